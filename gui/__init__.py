@@ -1,0 +1,1 @@
+"""The Qt window: live maps, pixel inspector, controls. Talks only to ``acq``."""

@@ -1,0 +1,90 @@
+"""The per-pixel photon store: every reader and the acquisition loop produce one, every estimator
+consumes one."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from recon.errors import InputError
+
+
+@dataclass(frozen=True, eq=False)
+class PhotonStore:
+    """Detection times of an H x W image, pixel by pixel, in detection order.
+
+    Stored compressed (CSR-like) so a 1024 x 1024 scan with millions of detections is two flat
+    arrays, and the photons of pixel ``p = row * W + col`` are ``times[offsets[p]:offsets[p + 1]]``.
+
+    times:       float64, shape (n_photons,): arrival time after the laser sync, in units of
+                 ``time_unit_s`` (integral for time-tagger data; float keeps ps-unit files exact).
+    offsets:     int64, shape (H * W + 1,), non-decreasing, offsets[0] == 0, offsets[-1] == n_photons.
+    shape:       (H, W) pixels, row-major.
+    time_unit_s: the size of one unit of ``times`` in seconds (e.g. 8e-12 for 8 ps units).
+    """
+
+    times: np.ndarray
+    offsets: np.ndarray
+    shape: tuple[int, int]
+    time_unit_s: float
+
+    def __post_init__(self) -> None:
+        h, w = self.shape
+        if h < 1 or w < 1:
+            raise InputError(f"photon store shape must be at least 1 x 1, got {self.shape}")
+        if not (self.time_unit_s > 0 and np.isfinite(self.time_unit_s)):
+            raise InputError(f"time_unit_s must be positive, got {self.time_unit_s}")
+        times = np.ascontiguousarray(self.times, dtype=np.float64)
+        offsets = np.ascontiguousarray(self.offsets, dtype=np.int64)
+        if offsets.shape != (h * w + 1,):
+            raise InputError(f"offsets must have H*W+1 = {h * w + 1} entries, got {offsets.shape}")
+        if offsets[0] != 0 or offsets[-1] != times.size or np.any(np.diff(offsets) < 0):
+            raise InputError("offsets must rise from 0 to the number of photons")
+        if times.size and not np.all(np.isfinite(times)):
+            raise InputError("photon times contain NaN or infinity")
+        object.__setattr__(self, "times", times)
+        object.__setattr__(self, "offsets", offsets)
+        object.__setattr__(self, "shape", (int(h), int(w)))
+
+    @classmethod
+    def from_lists(cls, per_pixel, shape: tuple[int, int], time_unit_s: float) -> "PhotonStore":
+        """Build from a sequence of H*W arrays (row-major pixel order) of detection times."""
+        counts = np.fromiter((len(p) for p in per_pixel), dtype=np.int64, count=len(per_pixel))
+        offsets = np.zeros(counts.size + 1, dtype=np.int64)
+        np.cumsum(counts, out=offsets[1:])
+        times = (np.concatenate([np.asarray(p, dtype=np.float64).ravel() for p in per_pixel])
+                 if offsets[-1] else np.zeros(0))
+        return cls(times, offsets, shape, time_unit_s)
+
+    @classmethod
+    def from_pixel_indices(cls, pixel: np.ndarray, times: np.ndarray, shape: tuple[int, int],
+                           time_unit_s: float) -> "PhotonStore":
+        """Build from parallel arrays of flat pixel index and detection time (any order of pixels;
+        detection order within a pixel is kept, since the sort is stable)."""
+        pixel = np.asarray(pixel, dtype=np.int64)
+        n_pix = shape[0] * shape[1]
+        if pixel.size and (pixel.min() < 0 or pixel.max() >= n_pix):
+            raise InputError(f"pixel index out of range for a {shape[0]} x {shape[1]} image")
+        order = np.argsort(pixel, kind="stable")
+        counts = np.bincount(pixel, minlength=n_pix)
+        offsets = np.zeros(n_pix + 1, dtype=np.int64)
+        np.cumsum(counts, out=offsets[1:])
+        return cls(np.asarray(times, dtype=np.float64)[order], offsets, shape, time_unit_s)
+
+    @property
+    def n_pixels(self) -> int:
+        return self.shape[0] * self.shape[1]
+
+    @property
+    def n_photons(self) -> int:
+        return int(self.times.size)
+
+    def counts(self) -> np.ndarray:
+        """Detections per pixel, shape (H, W), int64."""
+        return np.diff(self.offsets).reshape(self.shape)
+
+    def pixel(self, row: int, col: int) -> np.ndarray:
+        """Detection times of one pixel (a view, in detection order)."""
+        p = row * self.shape[1] + col
+        return self.times[self.offsets[p]:self.offsets[p + 1]]
