@@ -84,6 +84,26 @@ class PhotonStore:
         """Detections per pixel, shape (H, W), int64."""
         return np.diff(self.offsets).reshape(self.shape)
 
+    def first_in_window(self, start: float, stop: float, max_photons: int | None = None) -> "PhotonStore":
+        """Keep only detections with ``start <= t < stop`` (raw units), and of those the first
+        ``max_photons`` per pixel in detection order, so one long recording can stand for a shorter
+        acquisition. Out-of-window detections are dropped, never clamped into edge bins."""
+        if max_photons is not None and max_photons < 1:
+            raise InputError(f"max_photons must be at least 1, got {max_photons}")
+        keep = (self.times >= start) & (self.times < stop)
+        if max_photons is not None:
+            # rank of each kept photon within its pixel = running count of kept photons minus the
+            # count at the pixel's first photon
+            running = np.cumsum(keep)
+            before_pixel = np.concatenate(([0], running))[self.offsets[:-1]]
+            rank = running - np.repeat(before_pixel, np.diff(self.offsets))
+            keep &= rank <= max_photons
+        pix = np.repeat(np.arange(self.n_pixels), np.diff(self.offsets))
+        counts = np.bincount(pix[keep], minlength=self.n_pixels)
+        offsets = np.zeros(self.n_pixels + 1, dtype=np.int64)
+        np.cumsum(counts, out=offsets[1:])
+        return PhotonStore(self.times[keep], offsets, self.shape, self.time_unit_s)
+
     def pixel(self, row: int, col: int) -> np.ndarray:
         """Detection times of one pixel (a view, in detection order)."""
         p = row * self.shape[1] + col
