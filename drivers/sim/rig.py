@@ -1,0 +1,228 @@
+"""The simulated bench: one photon world, one virtual clock, one mirror, one time-tagger FIFO.
+
+The simulated galvo controller and the simulated time tagger both hold the same ``SimRig``. The
+galvo firmware moves the mirror, pulses the marker lines and dwells (count-gated or fixed); the rig
+turns each dwell into the photons of the scene pixel under the mirror, pushes them (and the
+markers) into the tagger's FIFO in time order, and advances the virtual clock. The tagger backend
+drains the FIFO. Nothing here knows about bytes on wires.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from drivers.events import EVENT_DTYPE, EventKind
+
+
+@dataclass(frozen=True)
+class FieldOfView:
+    """Mirror angles (optical degrees) that map onto the scene's pixel grid: x spans the columns,
+    y the rows; the centre of pixel (0, 0) sits half a pixel inside (x_min_deg, y_min_deg)."""
+
+    x_min_deg: float = -10.0
+    x_max_deg: float = 10.0
+    y_min_deg: float = -10.0
+    y_max_deg: float = 10.0
+
+    def pixel_of(self, x_deg: float, y_deg: float, shape: tuple[int, int]) -> tuple[int, int] | None:
+        """The (row, col) the mirror points at, or None when it points outside the scene."""
+        h, w = shape
+        col = int(np.floor((x_deg - self.x_min_deg) / (self.x_max_deg - self.x_min_deg) * w))
+        row = int(np.floor((y_deg - self.y_min_deg) / (self.y_max_deg - self.y_min_deg) * h))
+        if 0 <= row < h and 0 <= col < w:
+            return row, col
+        return None
+
+    def centre_deg(self, row: int, col: int, shape: tuple[int, int]) -> tuple[float, float]:
+        """Mirror angles (x_deg, y_deg) of the centre of pixel (row, col)."""
+        h, w = shape
+        x = self.x_min_deg + (col + 0.5) * (self.x_max_deg - self.x_min_deg) / w
+        y = self.y_min_deg + (row + 0.5) * (self.y_max_deg - self.y_min_deg) / h
+        return x, y
+
+
+@dataclass
+class FifoStatus:
+    """What the tagger's status request reports about its FIFO."""
+
+    fill_records: int
+    capacity_records: int
+    overflowed: bool
+    lost_records: int
+
+
+class SimRig:
+    """Shared state of the simulated instruments. Thread-safe: the galvo emulator and the tagger
+    backend run in different threads (serial reader, USB reader).
+
+    world: a ``drivers.sim.PhotonWorld`` (anything with ``shape``, ``sync_period_s``,
+           ``count_gated(row, col, n_target, dwell_limit_s, start_sync)`` and
+           ``fixed_dwell(row, col, dwell_s, start_sync)`` returning ``(events, n_syncs)``).
+    fov:   mirror angles that cover the scene.
+    fifo_capacity_records: the tagger FIFO depth; events beyond it are dropped and counted as lost
+           (HydraHarp 400: 2M records).
+    """
+
+    def __init__(self, world, fov: FieldOfView | None = None, fifo_capacity_records: int = 2 ** 21):
+        self.world = world
+        self.fov = fov or FieldOfView()
+        self.fifo_capacity_records = int(fifo_capacity_records)
+        self._lock = threading.RLock()
+        self._sync = 0                      # laser syncs since power-on; the virtual clock
+        self._mirror_deg = (0.0, 0.0)
+        self._fifo: deque[np.ndarray] = deque()
+        self._fifo_fill = 0
+        self._lost = 0
+        self._overflowed = False
+        self._lost_since_sync: int | None = None   # set while the FIFO is dropping records
+        self._pending_lost = 0
+        self.tagger_running = False
+
+    # ---- clock -------------------------------------------------------------------------------
+    @property
+    def sync(self) -> int:
+        """Laser syncs since power-on."""
+        return self._sync
+
+    @property
+    def now_s(self) -> float:
+        """Virtual time since power-on, seconds."""
+        return self._sync * self.world.sync_period_s
+
+    def wait(self, dt_s: float) -> None:
+        """Let virtual time pass with the mirror still (no dwell counting, e.g. settling)."""
+        with self._lock:
+            n = max(0, int(round(dt_s / self.world.sync_period_s)))
+            self._sync += n
+
+    # ---- what the galvo controller does --------------------------------------------------------
+    def set_mirror(self, x_deg: float, y_deg: float) -> None:
+        with self._lock:
+            self._mirror_deg = (float(x_deg), float(y_deg))
+
+    @property
+    def mirror_deg(self) -> tuple[float, float]:
+        return self._mirror_deg
+
+    def current_pixel(self) -> tuple[int, int] | None:
+        """Scene pixel under the mirror, or None outside the scene."""
+        return self.fov.pixel_of(*self._mirror_deg, self.world.shape)
+
+    def pulse_markers(self, mask: int) -> None:
+        """The controller pulses marker lines (``drivers.events.Marker`` bits) now."""
+        ev = np.zeros(1, dtype=EVENT_DTYPE)
+        ev["sync"] = self._sync
+        ev["kind"] = EventKind.MARKER
+        ev["marker"] = mask
+        with self._lock:
+            self._push(ev)
+
+    def count_gated_dwell(self, n_target: int, dwell_limit_s: float) -> tuple[int, float]:
+        """Hold the mirror until the detector has fired ``n_target`` times or ``dwell_limit_s``
+        passed. Returns (detector pulses counted, elapsed seconds)."""
+        with self._lock:
+            pix = self.current_pixel()
+            if pix is None:
+                # Pointing off the scene: nothing returns, the dwell limit expires.
+                self.wait(dwell_limit_s)
+                return 0, dwell_limit_s
+            events, n_syncs = self.world.count_gated(pix[0], pix[1], int(n_target),
+                                                     float(dwell_limit_s), self._sync)
+            return self._dwell_done(events, n_syncs)
+
+    def fixed_dwell(self, dwell_s: float) -> tuple[int, float]:
+        """Hold the mirror for ``dwell_s``. Returns (detector pulses counted, elapsed seconds)."""
+        with self._lock:
+            pix = self.current_pixel()
+            if pix is None:
+                self.wait(dwell_s)
+                return 0, dwell_s
+            events, n_syncs = self.world.fixed_dwell(pix[0], pix[1], float(dwell_s), self._sync)
+            return self._dwell_done(events, n_syncs)
+
+    def _dwell_done(self, events: np.ndarray, n_syncs: int) -> tuple[int, float]:
+        self._push(events)
+        self._sync += int(n_syncs)
+        return int(events.size), n_syncs * self.world.sync_period_s
+
+    # ---- what the time tagger does ---------------------------------------------------------------
+    def _push(self, events: np.ndarray) -> None:
+        """Append events to the FIFO if the tagger is measuring; drop and count what does not fit.
+
+        A dropped span is reported in-band as one LOST event at the sync where loss began, so the
+        stream says exactly where it has a hole."""
+        if not self.tagger_running or events.size == 0:
+            return
+        room = self.fifo_capacity_records - self._fifo_fill
+        if room >= events.size and self._lost_since_sync is None:
+            self._fifo.append(events)
+            self._fifo_fill += events.size
+            return
+        if room > 0 and self._lost_since_sync is None:
+            self._fifo.append(events[:room])
+            self._fifo_fill += room
+            events = events[room:]
+        if self._lost_since_sync is None:
+            self._lost_since_sync = int(events["sync"][0])
+            self._pending_lost = 0
+        self._pending_lost += int(events.size)
+        self._lost += int(events.size)
+        self._overflowed = True
+
+    def overflow_fifo(self, n_records: int) -> None:
+        """Fault injection: the host fell behind by ``n_records``; those records are lost."""
+        with self._lock:
+            ev = np.zeros(int(n_records), dtype=EVENT_DTYPE)
+            ev["sync"] = self._sync
+            ev["kind"] = EventKind.PHOTON
+            fill = self._fifo_fill
+            self._fifo_fill = self.fifo_capacity_records   # force the overflow path
+            self._push(ev)
+            self._fifo_fill = fill
+
+    def read_events(self, max_events: int) -> np.ndarray:
+        """Drain up to ``max_events`` events from the FIFO, oldest first. After a loss, the LOST
+        event comes first once the FIFO holds room again, so readers see the hole in order."""
+        with self._lock:
+            out = []
+            n = 0
+            while self._fifo and n < max_events:
+                chunk = self._fifo[0]
+                take = min(chunk.size, max_events - n)
+                out.append(chunk[:take])
+                n += take
+                if take == chunk.size:
+                    self._fifo.popleft()
+                else:
+                    self._fifo[0] = chunk[take:]
+            self._fifo_fill -= n
+            if self._lost_since_sync is not None and n < max_events:
+                lost = np.zeros(1, dtype=EVENT_DTYPE)
+                lost["sync"] = self._lost_since_sync
+                lost["kind"] = EventKind.LOST
+                lost["dtime"] = min(self._pending_lost, 2 ** 32 - 1)
+                out.append(lost)
+                self._lost_since_sync = None
+            return np.concatenate(out) if out else np.zeros(0, dtype=EVENT_DTYPE)
+
+    def fifo_status(self) -> FifoStatus:
+        with self._lock:
+            return FifoStatus(self._fifo_fill, self.fifo_capacity_records, self._overflowed,
+                              self._lost)
+
+    def clear_fifo_flags(self) -> None:
+        """The overflow flag is sticky until the host clears it (like a hardware status latch)."""
+        with self._lock:
+            self._overflowed = False
+
+    def start_tagger(self) -> None:
+        with self._lock:
+            self.tagger_running = True
+
+    def stop_tagger(self) -> None:
+        with self._lock:
+            self.tagger_running = False
