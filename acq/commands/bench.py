@@ -1,0 +1,29 @@
+"""``spdepth bench TARGET``: print speed figures measured side by side in one run.
+
+Targets live next to the code they measure; each module exposes ``bench(argv) -> int``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+
+HELP = "measure speed: detection generation, reconstruction, T3 decoding"
+
+TARGETS = {
+    "generate": ("drivers.sim.bench", "photon generation of the scene simulator (detections/s)"),
+    "recon": ("recon.bench", "estimators vs plain NumPy references, 1 and 2 threads (pixels/s)"),
+    "decode": ("drivers.tagger.bench", "T3 record decoding: numba vs NumPy vs ptufile (records/s)"),
+}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("target", choices=sorted(TARGETS),
+                        help="; ".join(f"{k}: {v[1]}" for k, v in TARGETS.items()))
+    parser.add_argument("rest", nargs=argparse.REMAINDER,
+                        help="options passed to the target's benchmark (see its --help)")
+
+
+def run(args: argparse.Namespace) -> int:
+    module = importlib.import_module(TARGETS[args.target][0])
+    return int(module.bench(list(args.rest)) or 0)
