@@ -1,0 +1,78 @@
+"""File readers: recorded measurements enter here, at the same point a live device does, and leave
+as one :class:`recon.photons.PhotonStore`.
+
+``read_photons(path)`` picks the reader from the file's first bytes (not its name), so a text file
+called ``x.ptu`` gets a clear "not a PTU file" error instead of a decoder traceback.
+
+Every reader raises :class:`recon.errors.InputError` with a one-line message naming the file and
+what is wrong (missing, empty, truncated, corrupt, wrong kind, missing field).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from acq.readers.common import ReadResult
+from recon.errors import InputError
+
+__all__ = ["ReadResult", "read_photons", "sniff_kind"]
+
+_MAT_MAGIC = b"MATLAB"
+_PTU_MAGICS = (b"PQTTTR\0\0",)
+_HT3_IDENT = b"HydraHarp"
+_PT3_IDENT = b"PicoHarp 300"
+
+
+def sniff_kind(path: str | Path) -> str:
+    """The file's kind from its first bytes: ``"mat"``, ``"ptu"``, ``"ht3"`` or ``"pt3"``.
+
+    Raises InputError when the file is missing, empty or of none of these kinds."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as f:
+            head = f.read(128)
+    except FileNotFoundError:
+        raise InputError(f"{path}: no such file") from None
+    except IsADirectoryError:
+        raise InputError(f"{path}: is a directory, not a measurement file") from None
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    if not head:
+        raise InputError(f"{path}: file is empty")
+    if head.startswith(_MAT_MAGIC):
+        return "mat"
+    if head[:8] in _PTU_MAGICS:
+        return "ptu"
+    if head.startswith(_HT3_IDENT):
+        return "ht3"
+    if head.startswith(_PT3_IDENT):
+        return "pt3"
+    if head.startswith(b"\x89HDF"):
+        raise InputError(f"{path}: an HDF5 file (MATLAB v7.3?); save the .mat with -v7 to read it here")
+    raise InputError(f"{path}: not a .mat, PTU, HT3 or PT3 file (unrecognised first bytes "
+                     f"{head[:8]!r})")
+
+
+def read_photons(path: str | Path, *, time_unit_s: float | None = None, mat_var: str | None = None,
+                 channel: int | None = None) -> ReadResult:
+    """Read any supported file into a PhotonStore.
+
+    path:        a first-photon-imaging .mat file, or a PicoQuant PTU / HT3 / PT3 T3 file.
+    time_unit_s: size of one raw time unit in seconds. Required for .mat files (they carry none);
+                 for PicoQuant files it overrides the header's TCSPC resolution (rarely wanted).
+    mat_var:     the cell-array variable of a .mat file when it holds more than one.
+    channel:     PicoQuant files: keep only this detector channel (0-based); default all channels.
+    """
+    kind = sniff_kind(path)
+    if kind == "mat":
+        from acq.readers.mat import read_mat
+
+        if channel is not None:
+            raise InputError(f"{path}: a .mat file has no detector channels; drop the channel option")
+        return read_mat(path, time_unit_s=time_unit_s, var=mat_var)
+    if mat_var is not None:
+        raise InputError(f"{path}: a {kind.upper()} file has no variables; drop the mat-var option")
+    from acq.readers import picoquant
+
+    reader = {"ptu": picoquant.read_ptu, "ht3": picoquant.read_ht3, "pt3": picoquant.read_pt3}[kind]
+    return reader(path, time_unit_s=time_unit_s, channel=channel)

@@ -1,0 +1,114 @@
+"""First-photon-imaging .mat files: a 2-D MATLAB cell array, one cell per pixel, each cell a vector
+of detection times in detection order.
+
+MATLAB cell ``(i, j)`` is image row ``i``, column ``j``; scipy's ``loadmat`` keeps that as
+``cells[i, j]``, so the row-major flat pixel index is simply ``cells.ravel(order="C")``. Cells can
+be empty (``0 x 0``), columns (``n x 1``, the fpi files) or rows (``1 x n``, the long-range file).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from acq.readers.common import ReadResult
+from recon.errors import InputError
+from recon.photons import PhotonStore
+
+
+def _describe(value) -> str:
+    shape = "x".join(str(n) for n in np.shape(value)) or "scalar"
+    dtype = "cell" if getattr(value, "dtype", None) == object else getattr(value, "dtype", type(value).__name__)
+    return f"{shape} {dtype}"
+
+
+def _cell_variables(contents: dict) -> dict[str, np.ndarray]:
+    return {name: value for name, value in contents.items()
+            if not name.startswith("__") and isinstance(value, np.ndarray)
+            and value.dtype == object and value.ndim == 2}
+
+
+def load_cells(path: str | Path, var: str | None = None) -> tuple[str, np.ndarray]:
+    """Load the file's cell-array variable (or ``var``) as a 2-D object array ``cells[row, col]``."""
+    import scipy.io
+
+    path = Path(path)
+    try:
+        contents = scipy.io.loadmat(path, squeeze_me=False, struct_as_record=True)
+    except NotImplementedError:
+        raise InputError(f"{path}: MATLAB v7.3 (HDF5) file; save it with -v7 to read it here") from None
+    except FileNotFoundError:
+        raise InputError(f"{path}: no such file") from None
+    except Exception as exc:  # scipy raises many kinds for damaged files (ValueError, TypeError, zlib.error, ...)
+        raise InputError(f"{path}: not a readable .mat file ({type(exc).__name__}: {exc})") from None
+    cells = _cell_variables(contents)
+    others = ", ".join(f"{k} ({_describe(v)})" for k, v in contents.items() if not k.startswith("__"))
+    if var is not None:
+        if var not in contents or var.startswith("__"):
+            raise InputError(f"{path}: no variable {var!r}; the file holds: {others or 'nothing'}")
+        if var not in cells:
+            raise InputError(f"{path}: variable {var!r} is {_describe(contents[var])}, not a 2-D cell "
+                             f"array of detection times")
+        return var, cells[var]
+    if not cells:
+        raise InputError(f"{path}: no 2-D cell-array variable of detection times; the file holds: "
+                         f"{others or 'nothing'}")
+    if len(cells) > 1:
+        raise InputError(f"{path}: several cell-array variables ({', '.join(sorted(cells))}); "
+                         f"choose one with --mat-var")
+    (name, value), = cells.items()
+    return name, value
+
+
+def cells_to_store(cells: np.ndarray, time_unit_s: float, *, source: str = "cell array") -> PhotonStore:
+    """Flatten a 2-D object array of per-pixel time vectors into a PhotonStore (row-major pixels,
+    detection order kept within each pixel).
+
+    One pass over the cells collects sizes and checks they are numeric vectors; then a single
+    ``np.concatenate`` builds the times (a 340 x 340 file takes tens of milliseconds)."""
+    h, w = cells.shape
+    flat = cells.ravel(order="C")
+    counts = np.empty(flat.size, dtype=np.int64)
+    for p, cell in enumerate(flat):
+        if not isinstance(cell, np.ndarray):
+            raise InputError(f"{source}: cell ({p // w + 1},{p % w + 1}) holds a {type(cell).__name__}, "
+                             f"not a vector of times")
+        if cell.ndim > 2 or (cell.ndim == 2 and min(cell.shape) > 1):
+            raise InputError(f"{source}: cell ({p // w + 1},{p % w + 1}) is a {_describe(cell)} matrix, "
+                             f"not a vector of detection times")
+        counts[p] = cell.size
+    offsets = np.zeros(flat.size + 1, dtype=np.int64)
+    np.cumsum(counts, out=offsets[1:])
+    nonempty = [c.ravel() for c in flat if c.size]
+    if nonempty:
+        times = np.concatenate(nonempty)
+        if times.dtype.kind not in "uif":
+            raise InputError(f"{source}: cells hold {times.dtype} values, not numbers")
+        times = times.astype(np.float64, copy=False)
+        if not np.all(np.isfinite(times)):
+            raise InputError(f"{source}: {int(np.sum(~np.isfinite(times)))} detection times are NaN or infinite")
+    else:
+        times = np.zeros(0)
+    return PhotonStore(times, offsets, (h, w), time_unit_s)
+
+
+def read_mat(path: str | Path, *, time_unit_s: float | None, var: str | None = None) -> ReadResult:
+    """Read a first-photon-imaging .mat file.
+
+    time_unit_s: the size of one unit of the stored times (8e-12 for the fpi files, 1e-12 for the
+                 long-range file); .mat files do not record it, so it is required.
+    var:         the cell-array variable, needed only when the file holds several.
+    """
+    path = Path(path)
+    if time_unit_s is None:
+        raise InputError(f"{path}: a .mat file does not record its time unit; give it "
+                         f"(--time-unit-ps 8 for first-photon-imaging files, 1 for times in ps)")
+    name, cells = load_cells(path, var)
+    if cells.size == 0:
+        raise InputError(f"{path}: variable {name!r} is an empty cell array")
+    store = cells_to_store(cells, time_unit_s, source=f"{path}: variable {name!r}")
+    if store.n_photons == 0:
+        raise InputError(f"{path}: variable {name!r} holds no detections")
+    return ReadResult(store=store, path=str(path), kind="mat", is_image=True,
+                      meta={"mat_var": name, "time_unit_s": time_unit_s})

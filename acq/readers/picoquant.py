@@ -1,0 +1,377 @@
+"""PicoQuant T3 files: PTU (tagged header, via ``ptufile``), and the legacy HT3 (HydraHarp) and PT3
+(PicoHarp 300) formats, whose fixed binary headers are parsed here and whose records go through
+the same ``ptufile`` decoder.
+
+Pixels come from the scanner's line markers (DESIGN.md section 3): a photon between the line-start
+marker at sync ``t0`` and the line-stop marker at sync ``t1`` lands in column
+``floor((t - t0) / (t1 - t0) * PixX)``; the row is the line's index within its frame (the frame
+marker resets it). ``ImgHdr_PixY`` is not trusted: the height is the number of lines actually
+found. A file without line markers is a point measurement and comes back as a 1 x 1 store.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import struct
+from pathlib import Path
+
+import numpy as np
+from numba import njit
+
+from acq.readers.common import ReadResult
+from recon.errors import InputError
+from recon.photons import PhotonStore
+
+# ptufile record type codes (TTResultFormat_TTTRRecType) for the legacy formats' records
+_REC_PICOHARP_T3 = 0x00010303    # PicoHarp 300: channel:4 | dtime:12 | nsync:16
+_REC_HYDRAHARP_T3 = 0x00010304   # HydraHarp v1: special:1 | channel:6 | dtime:15 | nsync:10, overflow count 1
+_REC_HYDRAHARP2_T3 = 0x01010304  # HydraHarp v2 / Generic T3: overflow record carries a count
+
+
+@contextlib.contextmanager
+def _quiet_ptufile():
+    """ptufile logs header quirks (e.g. out-of-order indexed tags) that readers cannot act on."""
+    log = logging.getLogger("ptufile")
+    level = log.level
+    log.setLevel(logging.CRITICAL)
+    try:
+        yield
+    finally:
+        log.setLevel(level)
+
+
+# ---------------------------------------------------------------------------------------------
+# pixel assignment from markers
+
+
+@njit(cache=True, nogil=True)
+def _assign_pixels_kernel(sync, channel, marker, pix_x, start_mask, stop_mask, frame_mask,
+                          bidirectional, keep_channel, row_out, col_out):
+    """Fill row_out/col_out (pre-set to -1) for photons inside a line; return (lines_total,
+    max_lines_in_a_frame, frames). Within one record the stop bit is handled before the frame bit
+    and the frame bit before the start bit, since a controller may fire them together at a line
+    boundary."""
+    n = sync.size
+    in_line = False
+    t_start = np.uint64(0)
+    first = 0
+    lines_in_frame = 0
+    max_lines = 0
+    lines_total = 0
+    frames = 0
+    for i in range(n):
+        if channel[i] >= 0:
+            continue
+        m = marker[i]
+        if m == 0:
+            continue  # overflow record
+        if (m & stop_mask) != 0 and in_line:
+            span = np.int64(sync[i] - t_start)
+            if span > 0:
+                y = lines_in_frame
+                for j in range(first, i):
+                    ch = channel[j]
+                    if ch < 0 or (keep_channel >= 0 and ch != keep_channel):
+                        continue
+                    x = np.int64(sync[j] - t_start) * pix_x // span
+                    if x >= pix_x:
+                        x = pix_x - 1
+                    if bidirectional and (y % 2) == 1:
+                        x = pix_x - 1 - x
+                    row_out[j] = y
+                    col_out[j] = x
+            lines_in_frame += 1
+            lines_total += 1
+            if lines_in_frame > max_lines:
+                max_lines = lines_in_frame
+            in_line = False
+        if frame_mask != 0 and (m & frame_mask) != 0:
+            frames += 1
+            lines_in_frame = 0
+            in_line = False  # a line left open at a frame marker is abandoned
+        if (m & start_mask) != 0:
+            in_line = True
+            t_start = sync[i]
+            first = i + 1
+    return lines_total, max_lines, frames
+
+
+def assign_pixels(sync: np.ndarray, channel: np.ndarray, marker: np.ndarray, *, pix_x: int,
+                  line_start: int, line_stop: int, frame: int = 0, bidirectional: bool = False,
+                  keep_channel: int = -1) -> tuple[np.ndarray, np.ndarray, int, int, int]:
+    """Row and column of each record from the scanner's markers.
+
+    sync:     uint64 (n,), sync count of each record (overflows resolved).
+    channel:  int8 (n,), detector channel, negative for marker/overflow records.
+    marker:   uint8 (n,), marker bit mask of marker records.
+    pix_x:    pixels per line.
+    line_start, line_stop, frame: marker numbers (1-based, as in ImgHdr_LineStart...; frame 0 =
+              the file has no frame marker).
+    keep_channel: only photons of this channel get a pixel (-1: all).
+    Returns ``(row, col, lines_total, max_lines_per_frame, frames)``; row and col are int64 (n,),
+    -1 for records that are not photons inside a line.
+    """
+    if pix_x < 1:
+        raise InputError(f"pixels per line must be at least 1, got {pix_x}")
+    masks = []
+    for name, number in (("line start", line_start), ("line stop", line_stop), ("frame", frame)):
+        if not 0 <= number <= 8 or (number == 0 and name != "frame"):
+            raise InputError(f"{name} marker number must be 1..8, got {number}")
+        masks.append(0 if number == 0 else 1 << (number - 1))
+    n = sync.size
+    row = np.full(n, -1, dtype=np.int64)
+    col = np.full(n, -1, dtype=np.int64)
+    lines_total, max_lines, frames = _assign_pixels_kernel(
+        np.ascontiguousarray(sync, dtype=np.uint64), np.ascontiguousarray(channel, dtype=np.int8),
+        np.ascontiguousarray(marker, dtype=np.uint8), np.int64(pix_x), np.uint8(masks[0]),
+        np.uint8(masks[1]), np.uint8(masks[2]), bool(bidirectional), np.int64(keep_channel), row, col)
+    return row, col, int(lines_total), int(max_lines), int(frames)
+
+
+# ---------------------------------------------------------------------------------------------
+# records -> store
+
+
+def _decode(records: np.ndarray, rectype: int) -> np.ndarray:
+    import ptufile
+    from ptufile._ptufile import decode_t3_records  # the decoder ptufile itself uses
+
+    out = np.zeros(records.size, dtype=ptufile.T3_RECORD_DTYPE)
+    decode_t3_records(out, np.ascontiguousarray(records, dtype=np.uint32), rectype)
+    return out
+
+
+def _records_to_result(path: Path, kind: str, decoded: np.ndarray, time_unit_s: float,
+                       image: dict | None, keep_channel: int | None, meta: dict) -> ReadResult:
+    """Shared tail of all PicoQuant readers: pixel assignment (or point measurement) -> store."""
+    is_photon = decoded["channel"] >= 0
+    channels, per_channel = np.unique(decoded["channel"][is_photon], return_counts=True)
+    meta = dict(meta, time_unit_s=time_unit_s,
+                photons_per_channel={int(c): int(k) for c, k in zip(channels, per_channel)})
+    if keep_channel is not None:
+        if keep_channel not in meta["photons_per_channel"]:
+            raise InputError(f"{path}: no photons on channel {keep_channel}; channels with photons: "
+                             f"{sorted(meta['photons_per_channel']) or 'none'}")
+        is_photon &= decoded["channel"] == keep_channel
+    notes = []
+    marker_bits = int(np.bitwise_or.reduce(decoded["marker"][~is_photon])) if decoded.size else 0
+    if image is not None:
+        start_bit = 1 << (image["line_start"] - 1)
+        if not marker_bits & start_bit:
+            raise InputError(f"{path}: header describes a {image['pix_x']}-pixel-wide image with line "
+                             f"start marker {image['line_start']}, but no such marker is in the records")
+        row, col, lines, max_lines, frames = assign_pixels(
+            decoded["time"], decoded["channel"], decoded["marker"], pix_x=image["pix_x"],
+            line_start=image["line_start"], line_stop=image["line_stop"], frame=image["frame"],
+            bidirectional=image["bidirectional"],
+            keep_channel=-1 if keep_channel is None else keep_channel)
+        if lines == 0:
+            raise InputError(f"{path}: no complete scan line (line start {image['line_start']} "
+                             f"followed by line stop {image['line_stop']}) in the records")
+        height = max_lines
+        pix_y = image.get("pix_y") or 0
+        if image["frame"] == 0 and pix_y and lines > pix_y and lines % pix_y == 0:
+            # no frame marker: frames are inferred from ImgHdr_PixY only when it divides evenly
+            row = np.where(row >= 0, row % pix_y, -1)
+            height = pix_y
+            frames = lines // pix_y
+        elif image["frame"] == 0:
+            frames = 1
+        sel = row >= 0
+        store = PhotonStore.from_pixel_indices(row[sel] * image["pix_x"] + col[sel],
+                                               decoded["dtime"][sel], (height, image["pix_x"]),
+                                               time_unit_s)
+        dropped = int(np.sum(is_photon)) - int(np.sum(sel))
+        meta.update(lines=lines, frames=max(frames, 1), pix_x=image["pix_x"], height=height,
+                    photons_outside_lines=dropped)
+        return ReadResult(store=store, path=str(path), kind=kind, is_image=True, notes=tuple(notes),
+                          meta=meta)
+    times = decoded["dtime"][is_photon]
+    store = PhotonStore(times, np.array([0, times.size]), (1, 1), time_unit_s)
+    notes.append(f"{path.name}: point measurement (no image line markers): all "
+                 f"{times.size} photons go to one 1 x 1 pixel")
+    return ReadResult(store=store, path=str(path), kind=kind, is_image=False, notes=tuple(notes),
+                      meta=meta)
+
+
+# ---------------------------------------------------------------------------------------------
+# PTU
+
+
+def read_ptu(path: str | Path, *, time_unit_s: float | None = None,
+             channel: int | None = None) -> ReadResult:
+    """Read a PicoQuant PTU T3 file. Times are in units of the file's TCSPC resolution
+    (``MeasDesc_Resolution``) unless ``time_unit_s`` overrides it."""
+    import ptufile
+
+    path = Path(path)
+    try:
+        with _quiet_ptufile(), ptufile.PtuFile(path) as ptu:
+            tags = dict(ptu.tags)
+            is_t3 = ptu.is_t3
+            record_offset = ptu.record_offset
+            n_records = ptu.number_records
+            if is_t3:
+                records = ptu.read_records()
+    except InputError:
+        raise
+    except FileNotFoundError:
+        raise InputError(f"{path}: no such file") from None
+    except Exception as exc:  # ptufile raises various kinds on damaged headers
+        raise InputError(f"{path}: not a readable PTU file ({type(exc).__name__}: {exc})") from None
+    mode = tags.get("Measurement_Mode")
+    if not is_t3:
+        raise InputError(f"{path}: a T2 file (Measurement_Mode={mode}): it has no TCSPC times after "
+                         f"a laser sync, so there is no depth to reconstruct; record in T3 mode")
+    for field in ("MeasDesc_Resolution", "TTResultFormat_TTTRRecType"):
+        if field not in tags:
+            raise InputError(f"{path}: header field {field} is missing")
+    size = path.stat().st_size
+    expected = record_offset + 4 * n_records
+    if size < expected or records.size < n_records:
+        raise InputError(f"{path}: truncated: the header promises {n_records} records "
+                         f"({expected} bytes), the file holds {size} bytes")
+    resolution_s = float(tags["MeasDesc_Resolution"])
+    if not resolution_s > 0:
+        raise InputError(f"{path}: header field MeasDesc_Resolution is {resolution_s}, not a positive time")
+    rectype = int(tags["TTResultFormat_TTTRRecType"])
+    decoded = _decode(records[:n_records], rectype)
+    image = None
+    if all(k in tags for k in ("ImgHdr_LineStart", "ImgHdr_LineStop", "ImgHdr_PixX")):
+        image = {"pix_x": int(tags["ImgHdr_PixX"]), "line_start": int(tags["ImgHdr_LineStart"]),
+                 "line_stop": int(tags["ImgHdr_LineStop"]), "frame": int(tags.get("ImgHdr_Frame", 0) or 0),
+                 "pix_y": int(tags.get("ImgHdr_PixY", 0) or 0),
+                 "bidirectional": bool(tags.get("ImgHdr_BiDirect", False))}
+        if tags.get("ImgHdr_SinCorrection"):
+            raise InputError(f"{path}: sinusoidal (resonant) scanning is not supported: pixels "
+                             f"would be unevenly spaced in time")
+    meta = {"record_type": rectype, "resolution_s": resolution_s, "records": int(n_records),
+            "sync_rate_hz": float(tags.get("TTResult_SyncRate", 0) or 0)}
+    return _records_to_result(path, "ptu", decoded, time_unit_s or resolution_s, image, channel, meta)
+
+
+# ---------------------------------------------------------------------------------------------
+# legacy HT3 / PT3: fixed little-endian headers (PicoQuant's file format demos)
+
+_TEXT_HEAD = [("Ident", "16s"), ("FormatVersion", "6s"), ("CreatorName", "18s"),
+              ("CreatorVersion", "12s"), ("FileTime", "18s"), ("CRLF", "2s"), ("Comment", "256s")]
+_HT3_HEAD = _TEXT_HEAD + [
+    ("NumberOfCurves", "i"), ("BitsPerRecord", "i"), ("ActiveCurve", "i"), ("MeasurementMode", "i"),
+    ("SubMode", "i"), ("Binning", "i"), ("Resolution_ps", "d"), ("Offset", "i"), ("Tacq_ms", "i"),
+    ("StopAt", "I"), ("StopOnOvfl", "i"), ("Restart", "i"), ("DispLinLog", "i"),
+    ("DispTimeFrom", "i"), ("DispTimeTo", "i"), ("DispCountFrom", "i"), ("DispCountTo", "i"),
+    ("DispCurves", "16i"), ("Params", "9f"), ("RepeatMode", "i"), ("RepeatsPerCurve", "i"),
+    ("RepeatTime", "i"), ("RepeatWaitTime", "i"), ("ScriptName", "20s"),
+    ("HardwareIdent", "16s"), ("HardwarePartNo", "8s"), ("HardwareSerial", "i"),
+    ("NumberOfModules", "i"), ("ModuleInfo", "20i"), ("BaseResolution", "d"), ("InputsEnabled", "Q"),
+    ("InpChansPresent", "i"), ("RefClockSource", "i"), ("ExtDevices", "i"), ("MarkerSettings", "i"),
+    ("SyncDivider", "i"), ("SyncCFDLevel", "i"), ("SyncCFDZeroCross", "i"), ("SyncOffset", "i")]
+# then per input channel 4 x int32 (module, CFD level, CFD zero cross, offset), then one int32 rate
+# per channel, then this T3 block, then ImgHdrSize int32 words of image header, then the records
+_HT3_TTMODE = [("SyncRate", "i"), ("StopAfter", "i"), ("StopReason", "i"), ("ImgHdrSize", "i"),
+               ("nRecords", "q")]
+_PT3_HEAD = _TEXT_HEAD + [
+    ("NumberOfCurves", "i"), ("BitsPerRecord", "i"), ("RoutingChannels", "i"), ("NumberOfBoards", "i"),
+    ("ActiveCurve", "i"), ("MeasurementMode", "i"), ("SubMode", "i"), ("RangeNo", "i"), ("Offset", "i"),
+    ("Tacq_ms", "i"), ("StopAt", "i"), ("StopOnOvfl", "i"), ("Restart", "i"), ("DispLinLog", "i"),
+    ("DispTimeFrom", "i"), ("DispTimeTo", "i"), ("DispCountFrom", "i"), ("DispCountTo", "i"),
+    ("DispCurves", "16i"), ("Params", "9f"), ("RepeatMode", "i"), ("RepeatsPerCurve", "i"),
+    ("RepeatTime", "i"), ("RepeatWaitTime", "i"), ("ScriptName", "20s"),
+    ("HardwareIdent", "16s"), ("HardwarePartNo", "8s"), ("HardwareSerial", "i"), ("SyncDivider", "i"),
+    ("CFDZeroCross0", "i"), ("CFDLevel0", "i"), ("CFDZeroCross1", "i"), ("CFDLevel1", "i"),
+    ("Resolution_ns", "f"), ("RouterModelCode", "i"), ("RouterEnabled", "i"), ("Router", "24i"),
+    ("ExtDevices", "i"), ("Reserved1", "i"), ("Reserved2", "i"), ("SyncRate", "i"), ("CountRate", "i"),
+    ("StopAfter", "i"), ("StopReason", "i"), ("nRecords", "i"), ("ImgHdrSize", "i")]
+
+
+def _unpack(path: Path, data: bytes, offset: int, fields: list[tuple[str, str]]) -> tuple[dict, int]:
+    fmt = "<" + "".join(f for _, f in fields)
+    size = struct.calcsize(fmt)
+    if len(data) < offset + size:
+        raise InputError(f"{path}: truncated header ({len(data)} bytes, the header needs more than "
+                         f"{offset + size})")
+    values = list(struct.unpack_from(fmt, data, offset))
+    out = {}
+    for name, f in fields:
+        count = int(f[:-1]) if f[:-1].isdigit() and f[-1] != "s" else 1
+        if count == 1:
+            v = values.pop(0)
+            out[name] = v.rstrip(b"\0").decode("latin-1").strip() if isinstance(v, bytes) else v
+        else:
+            out[name] = values[:count]
+            del values[:count]
+    return out, offset + size
+
+
+def _legacy_records(path: Path, data: bytes, offset: int, head: dict) -> np.ndarray:
+    if head["MeasurementMode"] != 3:
+        kind = "T2" if head["MeasurementMode"] == 2 else f"MeasurementMode={head['MeasurementMode']}"
+        raise InputError(f"{path}: a {kind} file, not T3: it has no TCSPC times after a laser sync, "
+                         f"so there is no depth to reconstruct")
+    if head["BitsPerRecord"] != 32:
+        raise InputError(f"{path}: header field BitsPerRecord is {head['BitsPerRecord']}, expected 32")
+    n_records = int(head["nRecords"])
+    offset += 4 * max(int(head["ImgHdrSize"]), 0)
+    if n_records < 0 or len(data) < offset + 4 * n_records:
+        raise InputError(f"{path}: truncated: the header promises {n_records} records "
+                         f"({offset + 4 * n_records} bytes), the file holds {len(data)} bytes")
+    return np.frombuffer(data, dtype="<u4", count=n_records, offset=offset)
+
+
+def _read_bytes(path: Path) -> bytes:
+    try:
+        return path.read_bytes()
+    except FileNotFoundError:
+        raise InputError(f"{path}: no such file") from None
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read: {exc.strerror or exc}") from None
+
+
+def read_ht3(path: str | Path, *, time_unit_s: float | None = None,
+             channel: int | None = None) -> ReadResult:
+    """Read a legacy HydraHarp .ht3 T3 file (format 1.0 or 2.0). Legacy image headers are not
+    decoded, so these files always read as point measurements."""
+    path = Path(path)
+    data = _read_bytes(path)
+    head, off = _unpack(path, data, 0, _HT3_HEAD)
+    if not head["Ident"].startswith("HydraHarp"):
+        raise InputError(f"{path}: not an HT3 file (ident {head['Ident']!r})")
+    n_inputs = head["InpChansPresent"]
+    if not 0 < n_inputs <= 64:
+        raise InputError(f"{path}: corrupt header: InpChansPresent is {n_inputs}")
+    _, off = _unpack(path, data, off, [("Inputs", f"{5 * n_inputs}i")])
+    tt, off = _unpack(path, data, off, _HT3_TTMODE)
+    head.update(tt)
+    version = head["FormatVersion"]
+    rectype = {"1.0": _REC_HYDRAHARP_T3, "2.0": _REC_HYDRAHARP2_T3}.get(version)
+    if rectype is None:
+        raise InputError(f"{path}: HT3 format version {version!r} is not 1.0 or 2.0")
+    records = _legacy_records(path, data, off, head)
+    resolution_s = head["Resolution_ps"] * 1e-12
+    if not resolution_s > 0:
+        raise InputError(f"{path}: header field Resolution is {head['Resolution_ps']} ps, not positive")
+    meta = {"record_type": rectype, "resolution_s": resolution_s, "records": int(records.size),
+            "sync_rate_hz": float(head["SyncRate"]), "format_version": version}
+    return _records_to_result(path, "ht3", _decode(records, rectype), time_unit_s or resolution_s,
+                              None, channel, meta)
+
+
+def read_pt3(path: str | Path, *, time_unit_s: float | None = None,
+             channel: int | None = None) -> ReadResult:
+    """Read a legacy PicoHarp 300 .pt3 T3 file (format 2.0); a point measurement, as for HT3."""
+    path = Path(path)
+    data = _read_bytes(path)
+    head, off = _unpack(path, data, 0, _PT3_HEAD)
+    if not head["Ident"].startswith("PicoHarp"):
+        raise InputError(f"{path}: not a PT3 file (ident {head['Ident']!r})")
+    if head["FormatVersion"] != "2.0":
+        raise InputError(f"{path}: PT3 format version {head['FormatVersion']!r} is not 2.0")
+    records = _legacy_records(path, data, off, head)
+    resolution_s = head["Resolution_ns"] * 1e-9
+    if not resolution_s > 0:
+        raise InputError(f"{path}: header field Resolution is {head['Resolution_ns']} ns, not positive")
+    meta = {"record_type": _REC_PICOHARP_T3, "resolution_s": resolution_s, "records": int(records.size),
+            "sync_rate_hz": float(head["SyncRate"]), "format_version": head["FormatVersion"]}
+    return _records_to_result(path, "pt3", _decode(records, _REC_PICOHARP_T3),
+                              time_unit_s or resolution_s, None, channel, meta)
