@@ -1,0 +1,137 @@
+"""What a person looks at after a reconstruction: PNG map sheets and a progress bar on stderr.
+
+Used by ``spdepth recon`` and by any other command that produces maps (demo, replay). Rendering
+uses matplotlib's Agg canvas directly (no pyplot), so it never needs a display and never touches
+global figure state.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+from typing import Sequence, TextIO
+
+import numpy as np
+
+#: colour for pixels without an estimate (NaN): a mid grey, distinct from every colour of the maps
+NAN_COLOUR = "#9a9a9a"
+
+#: the panels of a standard sheet: (attribute of the maps object, title, unit, colour map)
+DEFAULT_PANELS: tuple[tuple[str, str, str, str], ...] = (
+    ("depth_m", "depth", "m", "viridis_r"),
+    ("background", "background", "counts per pixel", "magma"),
+    ("photons", "detections used", "photons per pixel", "cividis"),
+)
+
+
+def robust_limits(values: np.ndarray, lower_pct: float = 2.0, upper_pct: float = 98.0) -> tuple[float, float]:
+    """Colour limits from percentiles of the finite values, so a few outliers (a stray detection
+    placing one pixel kilometres away) do not wash out the map. Returns ``(vmin, vmax)`` with
+    ``vmin < vmax`` even for constant or all-NaN maps."""
+    finite = np.asarray(values, dtype=np.float64)
+    finite = finite[np.isfinite(finite)]
+    if finite.size == 0:
+        return 0.0, 1.0
+    lo, hi = np.percentile(finite, [lower_pct, upper_pct])
+    if not hi > lo:
+        span = abs(lo) * 1e-3 or 1.0
+        lo, hi = lo - span, hi + span
+    return float(lo), float(hi)
+
+
+def render_maps_png(path: str | Path, maps, *, title: str | None = None,
+                    panels: Sequence[tuple[str, str, str, str]] = DEFAULT_PANELS,
+                    dpi: int = 110) -> Path:
+    """Write a PNG with one panel per map: image, colour bar with unit, title.
+
+    maps:   any object with the panel attributes as 2-D arrays of equal shape (``DepthMaps`` has
+            ``depth_m``, ``background``, ``photons``); a missing attribute raises AttributeError.
+    panels: ``(attribute, title, unit, colour map)`` for each panel.
+    Pixels that are NaN show in NAN_COLOUR, named under the panel when there are any.
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    import matplotlib
+
+    path = Path(path)
+    arrays = [np.asarray(getattr(maps, attr), dtype=np.float64) for attr, *_ in panels]
+    h, w = arrays[0].shape
+    aspect = h / w
+    panel_w = 4.2
+    fig = Figure(figsize=(panel_w * len(panels), panel_w * min(max(aspect, 0.3), 3.0) + 0.9),
+                 layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(1, len(panels), squeeze=False)[0]
+    for ax, arr, (attr, name, unit, cmap_name) in zip(axes, arrays, panels):
+        cmap = matplotlib.colormaps[cmap_name].copy()
+        cmap.set_bad(NAN_COLOUR)
+        vmin, vmax = robust_limits(arr)
+        im = ax.imshow(np.ma.masked_invalid(arr), cmap=cmap, vmin=vmin, vmax=vmax,
+                       interpolation="nearest", origin="upper")
+        ax.set_title(f"{name} ({unit})")
+        ax.set_xlabel("column")
+        ax.set_ylabel("row")
+        bar = fig.colorbar(im, ax=ax, shrink=0.85)
+        bar.set_label(unit)
+        n_nan = int(np.sum(~np.isfinite(arr)))
+        if n_nan:
+            ax.text(0.0, -0.16 if h >= 8 else -0.3, f"grey: no estimate ({n_nan} px)",
+                    transform=ax.transAxes, fontsize=8, color="#444444", va="top")
+    if title:
+        fig.suptitle(title)
+    fig.savefig(path, dpi=dpi)
+    return path
+
+
+class ProgressBar:
+    """A one-line progress bar on a stream (stderr by default), usable as the ``progress(done,
+    total)`` callback of ``recon.estimate.reconstruct``.
+
+    It stays silent unless the stream is a terminal or the work has already taken longer than
+    ``after_s``, so quick runs and logs of scripted runs are not cluttered; it redraws at most
+    ``max_rate_hz`` times a second.
+    """
+
+    def __init__(self, label: str = "", *, stream: TextIO | None = None, after_s: float = 1.0,
+                 width: int = 30, max_rate_hz: float = 10.0, force: bool = False) -> None:
+        self.label = label
+        self.stream = stream if stream is not None else sys.stderr
+        self.after_s = after_s
+        self.width = width
+        self.min_interval_s = 1.0 / max_rate_hz
+        self.start_s = time.monotonic()
+        self._last_draw_s = -np.inf
+        self._drawn = False
+        try:
+            tty = self.stream.isatty()
+        except (AttributeError, ValueError):
+            tty = False
+        self._tty = tty
+        self.force = force
+
+    def __call__(self, done: int, total: int) -> None:
+        now = time.monotonic()
+        if not (self.force or self._tty or now - self.start_s > self.after_s):
+            return
+        finished = total > 0 and done >= total
+        # a log file (not a terminal) gets a whole line every few seconds, not ten a second
+        interval = self.min_interval_s if self._tty else max(self.min_interval_s, 2.0)
+        if not finished and now - self._last_draw_s < interval:
+            return
+        self._last_draw_s = now
+        frac = min(max(done / total, 0.0), 1.0) if total > 0 else 0.0
+        filled = int(round(frac * self.width))
+        elapsed = now - self.start_s
+        eta = f" eta {elapsed / frac - elapsed:5.1f} s" if 0 < frac < 1 else ""
+        line = (f"{self.label} [{'#' * filled}{'.' * (self.width - filled)}] {done}/{total} "
+                f"{elapsed:5.1f} s{eta}")
+        self.stream.write(line + ("\r" if self._tty else "\n"))
+        self.stream.flush()
+        self._drawn = True
+
+    def close(self) -> None:
+        """End the bar's line on a terminal (call once the work is done)."""
+        if self._drawn and self._tty:
+            self.stream.write("\n")
+            self.stream.flush()

@@ -1,0 +1,350 @@
+"""File readers: orientation and layout of .mat cell arrays, PicoQuant T3 files with and without
+image markers, and one clear InputError for every kind of bad file."""
+
+from __future__ import annotations
+
+import struct
+
+import numpy as np
+import pytest
+import scipy.io
+from numpy.testing import assert_allclose, assert_array_equal
+
+from acq.readers import read_photons, sniff_kind
+from acq.readers.picoquant import _PT3_HEAD, assign_pixels
+from recon.errors import InputError
+
+MANNEQUIN = "fpi/mannequin_face_8ppp.mat"
+TOWER = "longrange/tower_9km.mat"
+PTU_V2 = "ptu/hydraharp_v20_t3.ptu"
+
+
+# --------------------------------------------------------------------------------- .mat files
+
+def _cell(rows):
+    """A 2-D object array as scipy builds MATLAB cells, from nested lists of arrays."""
+    out = np.empty((len(rows), len(rows[0])), dtype=object)
+    for i, row in enumerate(rows):
+        for j, v in enumerate(row):
+            out[i, j] = v
+    return out
+
+
+def test_mat_orientation_rows_columns_and_empty_cells(tmp_path):
+    # 2 x 3 so a transposed read cannot pass; column vectors, row vectors and empty cells mixed
+    cells = _cell([
+        [np.array([[10.0], [11.0], [12.0]]), np.zeros((0, 0)), np.array([[20.0, 21.0]])],
+        [np.array([[30.0]]), np.array([[40.0, 41.0, 42.0, 43.0]]), np.array([[50.0], [51.0]])],
+    ])
+    path = tmp_path / "small.mat"
+    scipy.io.savemat(path, {"Ts": cells})
+    res = read_photons(path, time_unit_s=8e-12)
+    store = res.store
+    assert store.shape == (2, 3)
+    assert res.meta["mat_var"] == "Ts" and res.is_image
+    assert_array_equal(store.counts(), [[3, 0, 2], [1, 4, 2]])
+    assert_array_equal(store.pixel(0, 0), [10, 11, 12])
+    assert store.pixel(0, 1).size == 0
+    assert_array_equal(store.pixel(0, 2), [20, 21])
+    assert_array_equal(store.pixel(1, 1), [40, 41, 42, 43])  # detection order kept
+    assert store.time_unit_s == 8e-12
+
+
+def test_mannequin_matches_loadmat_cell_by_cell(shared_data):
+    path = shared_data / MANNEQUIN
+    res = read_photons(path, time_unit_s=8e-12)
+    cells = scipy.io.loadmat(path)["Ts"]
+    assert res.store.shape == cells.shape == (340, 340)
+    counts = np.array([[c.size for c in row] for row in cells])
+    assert_array_equal(res.store.counts(), counts)
+    for r, c in [(0, 0), (3, 7), (170, 20), (339, 338), (100, 250)]:
+        assert_array_equal(res.store.pixel(r, c), cells[r, c].ravel().astype(float))
+
+
+def test_tower_row_vectors_in_ps(shared_data):
+    path = shared_data / TOWER
+    res = read_photons(path, time_unit_s=1e-12)
+    cells = scipy.io.loadmat(path)["data_processed"]
+    assert res.store.shape == (160, 160)
+    assert res.meta["mat_var"] == "data_processed"  # mm, MM, sbr... are numeric, not cells
+    r, c = next((i, j) for i in range(160) for j in range(160) if cells[i, j].shape[1] > 2)
+    assert_array_equal(res.store.pixel(r, c), cells[r, c].ravel())
+    assert 5.18e6 <= res.store.times.min() and res.store.times.max() <= 5.38e6
+
+
+def test_mat_needs_time_unit(shared_data):
+    with pytest.raises(InputError, match="time unit"):
+        read_photons(shared_data / MANNEQUIN)
+
+
+def test_mat_without_cell_variable(tmp_path):
+    path = tmp_path / "numbers.mat"
+    scipy.io.savemat(path, {"depth": np.ones((4, 4)), "sbr": 3.0})
+    with pytest.raises(InputError, match=r"numbers\.mat.*no 2-D cell-array.*depth"):
+        read_photons(path, time_unit_s=1e-12)
+
+
+def test_mat_two_cell_variables_need_mat_var(tmp_path):
+    a = _cell([[np.array([[1.0]]), np.array([[2.0]])]])
+    b = _cell([[np.array([[5.0, 6.0]])]])
+    path = tmp_path / "two.mat"
+    scipy.io.savemat(path, {"first": a, "second": b})
+    with pytest.raises(InputError, match=r"two\.mat.*several.*first, second.*--mat-var"):
+        read_photons(path, time_unit_s=1e-12)
+    res = read_photons(path, time_unit_s=1e-12, mat_var="second")
+    assert res.store.shape == (1, 1)
+    assert_array_equal(res.store.pixel(0, 0), [5, 6])
+    with pytest.raises(InputError, match="no variable 'third'"):
+        read_photons(path, time_unit_s=1e-12, mat_var="third")
+
+
+def test_mat_cell_holding_matrix_or_text(tmp_path):
+    path = tmp_path / "matrix.mat"
+    scipy.io.savemat(path, {"Ts": _cell([[np.ones((2, 3))]])})
+    with pytest.raises(InputError, match=r"cell \(1,1\).*matrix"):
+        read_photons(path, time_unit_s=1e-12)
+    path = tmp_path / "text.mat"
+    scipy.io.savemat(path, {"Ts": _cell([[np.array(["abc"])]])})
+    with pytest.raises(InputError, match="not numbers"):
+        read_photons(path, time_unit_s=1e-12)
+
+
+def test_mat_all_cells_empty(tmp_path):
+    path = tmp_path / "empty_cells.mat"
+    scipy.io.savemat(path, {"Ts": _cell([[np.zeros((0, 0)), np.zeros((0, 0))]])})
+    with pytest.raises(InputError, match="no detections"):
+        read_photons(path, time_unit_s=1e-12)
+
+
+def test_truncated_mat(shared_data, tmp_path):
+    data = (shared_data / MANNEQUIN).read_bytes()
+    path = tmp_path / "cut.mat"
+    path.write_bytes(data[: len(data) // 3])
+    with pytest.raises(InputError, match=r"cut\.mat: not a readable \.mat file"):
+        read_photons(path, time_unit_s=8e-12)
+
+
+# --------------------------------------------------------------------------- bad files of any kind
+
+@pytest.mark.parametrize("name,content,message", [
+    ("empty.ptu", b"", "file is empty"),
+    ("empty.mat", b"", "file is empty"),
+    ("notes.ptu", b"just some text, not a measurement\n" * 5, "not a .mat, PTU, HT3 or PT3"),
+    ("magic_only.ptu", b"PQTTTR\0\0", "not a readable PTU file"),
+])
+def test_bad_files_are_named_in_one_line(tmp_path, name, content, message):
+    path = tmp_path / name
+    path.write_bytes(content)
+    with pytest.raises(InputError) as info:
+        read_photons(path, time_unit_s=1e-12)
+    text = str(info.value)
+    assert message in text and name in text and "\n" not in text
+
+
+def test_missing_file_and_directory(tmp_path):
+    with pytest.raises(InputError, match="no such file"):
+        read_photons(tmp_path / "nope.ptu")
+    with pytest.raises(InputError, match="is a directory"):
+        sniff_kind(tmp_path)
+
+
+# -------------------------------------------------------------------------------- PicoQuant files
+
+def test_ptu_point_measurement(shared_data):
+    res = read_photons(shared_data / PTU_V2)
+    assert not res.is_image
+    assert res.store.shape == (1, 1)
+    assert res.store.n_photons == 77883  # as the data README and ptufile's header say
+    assert_allclose(res.store.time_unit_s, 64e-12, rtol=1e-6)
+    assert res.meta["photons_per_channel"] == {0: 45012, 1: 32871}
+    assert any("point measurement" in n for n in res.notes)
+    assert res.store.times.min() >= 0 and res.store.times.max() < 2**15
+
+
+def test_ptu_channel_filter(shared_data):
+    res = read_photons(shared_data / PTU_V2, channel=1)
+    assert res.store.n_photons == 32871
+    with pytest.raises(InputError, match="no photons on channel 5"):
+        read_photons(shared_data / PTU_V2, channel=5)
+
+
+def test_ptu_v1_records(shared_data):
+    res = read_photons(shared_data / "ptu/hydraharp_v10_t3.ptu")
+    assert res.store.n_photons == 94560
+    assert_allclose(res.store.time_unit_s, 128e-12, rtol=1e-6)
+
+
+def test_t2_file_is_refused(shared_data):
+    with pytest.raises(InputError, match=r"picoharp_v30_t2\.ptu: a T2 file"):
+        read_photons(shared_data / "ptu/picoharp_v30_t2.ptu")
+
+
+def test_ht3_legacy_file(shared_data):
+    res = read_photons(shared_data / "ptu/hydraharp_v20.ht3")
+    assert res.kind == "ht3" and not res.is_image
+    assert res.store.n_photons == 44141
+    assert_allclose(res.store.time_unit_s, 16e-12)
+    assert res.meta["sync_rate_hz"] == 998898
+
+
+@pytest.mark.parametrize("keep", [3000, 5801, 5800 + 4 * 1000, 5800 + 4 * 1000 + 3, 431196 - 4])
+def test_truncated_ptu_copies(shared_data, tmp_path, keep):
+    data = (shared_data / PTU_V2).read_bytes()
+    path = tmp_path / "cut.ptu"
+    path.write_bytes(data[:keep])
+    with pytest.raises(InputError) as info:
+        read_photons(path)
+    assert "cut.ptu" in str(info.value)
+    if keep > 5800:  # header intact: the message says the records are short
+        assert "truncated" in str(info.value)
+
+
+@pytest.mark.parametrize("keep", [100, 790, 215224 - 4])
+def test_truncated_ht3(shared_data, tmp_path, keep):
+    path = tmp_path / "cut.ht3"
+    path.write_bytes((shared_data / "ptu/hydraharp_v20.ht3").read_bytes()[:keep])
+    with pytest.raises(InputError, match=r"cut\.ht3: truncated"):
+        read_photons(path)
+
+
+def test_ptu_image_from_ptufile_writer(tmp_path, rng):
+    import ptufile
+
+    hist = rng.poisson(0.4, size=(3, 5, 7, 1, 16)).astype(np.uint8)  # T Y X C H
+    path = tmp_path / "image.ptu"
+    ptufile.imwrite(path, hist, global_resolution=1e-7, tcspc_resolution=4e-11)
+    res = read_photons(path)
+    store = res.store
+    assert res.is_image and store.shape == (5, 7)
+    assert res.meta["frames"] == 3 and res.meta["lines"] == 15
+    assert_array_equal(store.counts(), hist.sum(axis=(0, 3, 4)))
+    assert_allclose(store.time_unit_s, 4e-11)
+    for r in range(5):
+        for c in range(7):
+            assert_array_equal(np.bincount(store.pixel(r, c).astype(int), minlength=16),
+                               hist[:, r, c, 0, :].sum(axis=0))
+
+
+def test_image_header_without_markers_is_an_error(tmp_path, rng):
+    import ptufile
+
+    hist = rng.poisson(0.4, size=(2, 3, 1, 8)).astype(np.uint8)
+    path = tmp_path / "image.ptu"
+    ptufile.imwrite(path, hist, global_resolution=1e-7, tcspc_resolution=4e-11)
+    with ptufile.PtuFile(path) as f:
+        start = f.tags["ImgHdr_LineStart"]
+    # rewrite the header so it names a marker that never fires: tag values are int64 after the
+    # 32-byte tag identifier, 4-byte index and 4-byte type of the ImgHdr_LineStart entry
+    data = bytearray(path.read_bytes())
+    pos = data.find(b"ImgHdr_LineStart")
+    struct.pack_into("<q", data, pos + 40, 4 if start != 4 else 5)
+    path.write_bytes(bytes(data))
+    with pytest.raises(InputError, match="no such marker"):
+        read_photons(path)
+
+
+# ------------------------------------------------------------------ marker kernel vs reference
+
+def assign_reference(sync, channel, marker, pix_x, start_mask, stop_mask, frame_mask, bidir, keep):
+    """Plain NumPy: walk the (few) marker records in Python, place each line's photons at once."""
+    row = np.full(sync.size, -1, np.int64)
+    col = np.full(sync.size, -1, np.int64)
+    y, open_at, lines = 0, None, 0
+    photon = (channel >= 0) & ((channel == keep) if keep >= 0 else True)
+    for i in np.flatnonzero((channel < 0) & (marker != 0)):
+        m = int(marker[i])
+        if m & stop_mask and open_at is not None:
+            t0 = int(sync[open_at])
+            span = int(sync[i]) - t0
+            if span > 0:
+                idx = np.arange(open_at + 1, i)
+                idx = idx[photon[idx]]
+                x = np.minimum((sync[idx].astype(np.int64) - t0) * pix_x // span, pix_x - 1)
+                if bidir and y % 2:
+                    x = pix_x - 1 - x
+                row[idx], col[idx] = y, x
+            y += 1
+            lines += 1
+            open_at = None
+        if frame_mask and m & frame_mask:
+            y, open_at = 0, None
+        if m & start_mask:
+            open_at = i
+    return row, col, lines
+
+
+@pytest.mark.parametrize("frame,bidir,keep", [(0, False, -1), (4, False, -1), (4, True, -1),
+                                              (0, True, 1)])
+def test_assign_pixels_matches_reference(rng, frame, bidir, keep):
+    # a synthetic stream: frames of lines, photons everywhere (also between lines), some markers
+    # firing together (stop of one line with start of the next), overflow records sprinkled in
+    rows_per_frame, pix_x, n_frames = 6, 9, 3
+    recs = []
+    t = 0
+    for f in range(n_frames):
+        for y in range(rows_per_frame):
+            m = 1  # line start is marker 1
+            if y == 0 and frame:
+                m |= 1 << (frame - 1)
+            recs.append((t, -1, m))
+            line_len = int(rng.integers(50, 80))
+            for tt in np.sort(rng.integers(t, t + line_len, size=int(rng.integers(0, 30)))):
+                recs.append((int(tt), int(rng.integers(0, 3)), 0))
+            t += line_len
+            recs.append((t, -1, 2))  # line stop is marker 2
+            if rng.random() < 0.3:
+                recs.append((t + 1, -1, 0))  # overflow record
+            for tt in range(int(rng.integers(0, 3))):
+                recs.append((t + 2, int(rng.integers(0, 3)), 0))  # flyback photons: no pixel
+            t += 5
+    sync = np.array([r[0] for r in recs], dtype=np.uint64)
+    channel = np.array([r[1] for r in recs], dtype=np.int8)
+    marker = np.array([r[2] for r in recs], dtype=np.uint8)
+    row, col, lines, max_lines, frames = assign_pixels(
+        sync, channel, marker, pix_x=pix_x, line_start=1, line_stop=2, frame=frame,
+        bidirectional=bidir, keep_channel=keep)
+    ref_row, ref_col, ref_lines = assign_reference(sync, channel, marker, pix_x, 1, 2,
+                                                   (1 << (frame - 1)) if frame else 0, bidir, keep)
+    assert_array_equal(row, ref_row)
+    assert_array_equal(col, ref_col)
+    assert lines == ref_lines == rows_per_frame * n_frames
+    assert max_lines == (rows_per_frame if frame else rows_per_frame * n_frames)
+    assert frames == (n_frames if frame else 0)
+    assert col.max() == pix_x - 1 and row[channel < 0].max() == -1
+
+
+def test_assign_pixels_rejects_bad_marker_numbers():
+    z = np.zeros(1, np.uint64)
+    with pytest.raises(InputError, match="line start marker number"):
+        assign_pixels(z, np.zeros(1, np.int8), np.zeros(1, np.uint8), pix_x=4, line_start=0, line_stop=2)
+
+
+# ----------------------------------------------------------------------------------- PT3 files
+
+def _pt3_bytes(records: np.ndarray, resolution_ns: float, n_records: int | None = None) -> bytes:
+    values = []
+    for name, fmt in _PT3_HEAD:
+        count = int(fmt[:-1]) if fmt[:-1].isdigit() and fmt[-1] != "s" else 1
+        default = {"Ident": b"PicoHarp 300", "FormatVersion": b"2.0", "BitsPerRecord": 32,
+                   "MeasurementMode": 3, "Resolution_ns": resolution_ns, "SyncRate": 40_000_000,
+                   "nRecords": records.size if n_records is None else n_records,
+                   "ImgHdrSize": 0}.get(name, b"" if fmt.endswith("s") else 0)
+        values.extend([default] * count if count > 1 else [default])
+    head = struct.pack("<" + "".join(f for _, f in _PT3_HEAD), *values)
+    return head + records.astype("<u4").tobytes()
+
+
+def test_pt3_point_measurement(tmp_path):
+    # PicoHarp T3 records: channel:4 | dtime:12 | nsync:16; channel 15 with dtime 0 = overflow
+    dtimes = np.array([100, 2000, 4095, 7])
+    recs = np.array([(1 << 28) | (d << 16) | (5 + i) for i, d in enumerate(dtimes)]
+                    + [15 << 28], dtype=np.uint32)
+    path = tmp_path / "point.pt3"
+    path.write_bytes(_pt3_bytes(recs, 0.004))
+    res = read_photons(path)
+    assert res.kind == "pt3" and res.store.shape == (1, 1)
+    assert_array_equal(res.store.pixel(0, 0), dtimes)
+    assert_allclose(res.store.time_unit_s, 4e-12)
+    path.write_bytes(_pt3_bytes(recs, 0.004, n_records=10))
+    with pytest.raises(InputError, match=r"point\.pt3: truncated"):
+        read_photons(path)
