@@ -33,6 +33,8 @@ class FaultKind(str, Enum):
     """Galvo: one command is executed but its reply is never sent."""
     SLOW_REPLY = "slow-reply"
     """Galvo: one reply arrives later than the host's timeout (it is then stale)."""
+    SERVO_FAULT = "servo-fault"
+    """Galvo: the mirror servo reports a tracking error; the scan aborts, state FAULT."""
     USB_TIMEOUT = "usb-timeout"
     """Tagger: one bulk read times out."""
     PARTIAL_READ = "partial-read"
@@ -49,7 +51,8 @@ class FaultKind(str, Enum):
 
 
 _GALVO_KINDS = frozenset({FaultKind.SERIAL_UNPLUG, FaultKind.GARBLED_REPLY,
-                          FaultKind.MISSING_REPLY, FaultKind.SLOW_REPLY})
+                          FaultKind.MISSING_REPLY, FaultKind.SLOW_REPLY,
+                          FaultKind.SERVO_FAULT})
 
 
 @dataclass(frozen=True)
