@@ -19,9 +19,9 @@ NAN_COLOUR = "#9a9a9a"
 
 #: the panels of a standard sheet: (attribute of the maps object, title, unit, colour map)
 DEFAULT_PANELS: tuple[tuple[str, str, str, str], ...] = (
-    ("depth_m", "depth", "m", "viridis_r"),
-    ("background", "background", "counts per pixel", "magma"),
-    ("photons", "detections used", "photons per pixel", "cividis"),
+    ("depth_m", "depth", "m", "turbo"),
+    ("background", "background", "detections per bin", "magma"),
+    ("photons", "detections used", "photons per pixel", "viridis"),
 )
 
 
@@ -47,6 +47,7 @@ def render_maps_png(path: str | Path, maps, *, title: str | None = None,
 
     maps:   any object with the panel attributes as 2-D arrays of equal shape (``DepthMaps`` has
             ``depth_m``, ``background``, ``photons``); a missing attribute raises AttributeError.
+            (K, H, W) maps of K returns per pixel show their first return.
     panels: ``(attribute, title, unit, colour map)`` for each panel.
     Pixels that are NaN show in NAN_COLOUR, named under the panel when there are any.
     """
@@ -55,7 +56,9 @@ def render_maps_png(path: str | Path, maps, *, title: str | None = None,
     import matplotlib
 
     path = Path(path)
+    # K > 1 returns per pixel come as (K, H, W): the sheet shows the first (nearest) return
     arrays = [np.asarray(getattr(maps, attr), dtype=np.float64) for attr, *_ in panels]
+    arrays = [a[0] if a.ndim == 3 else a for a in arrays]
     h, w = arrays[0].shape
     aspect = h / w
     panel_w = 4.2
@@ -64,8 +67,7 @@ def render_maps_png(path: str | Path, maps, *, title: str | None = None,
     FigureCanvasAgg(fig)
     axes = fig.subplots(1, len(panels), squeeze=False)[0]
     for ax, arr, (attr, name, unit, cmap_name) in zip(axes, arrays, panels):
-        cmap = matplotlib.colormaps[cmap_name].copy()
-        cmap.set_bad(NAN_COLOUR)
+        cmap = matplotlib.colormaps[cmap_name].with_extremes(bad=NAN_COLOUR)
         vmin, vmax = robust_limits(arr)
         im = ax.imshow(np.ma.masked_invalid(arr), cmap=cmap, vmin=vmin, vmax=vmax,
                        interpolation="nearest", origin="upper")
@@ -135,3 +137,33 @@ class ProgressBar:
         if self._drawn and self._tty:
             self.stream.write("\n")
             self.stream.flush()
+
+
+def render_point_png(path: str | Path, times_s: np.ndarray, *, tof_s: float | None = None,
+                     title: str | None = None, bins: int = 200, dpi: int = 110) -> Path:
+    """Write a PNG for a point measurement (one pixel): the histogram of detection times in ns,
+    log counts, with the estimated time of flight marked.
+
+    times_s: detection times after the laser sync (s), shape (n,).
+    tof_s:   estimated time of flight (s); NaN or None draws no marker.
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    path = Path(path)
+    times_ns = np.asarray(times_s, dtype=np.float64) * 1e9
+    fig = Figure(figsize=(7.5, 4.2), layout="constrained")
+    FigureCanvasAgg(fig)
+    ax = fig.subplots()
+    if times_ns.size:
+        ax.hist(times_ns, bins=bins, color="#3b6ea5", log=True)
+    ax.set_xlabel("time after laser sync (ns)")
+    ax.set_ylabel("detections per bin")
+    if tof_s is not None and np.isfinite(tof_s):
+        ax.axvline(tof_s * 1e9, color="#d62728", linestyle="--",
+                   label=f"estimated time of flight {tof_s * 1e9:.3f} ns "
+                         f"(depth {tof_s * 299792458.0 / 2:.3f} m)")
+        ax.legend(loc="upper right", fontsize=8)
+    ax.set_title(title or f"point measurement: {times_ns.size} detections")
+    fig.savefig(path, dpi=dpi)
+    return path

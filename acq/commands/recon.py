@@ -1,0 +1,214 @@
+"""``spdepth recon``: reconstruct depth and background maps from a recorded file.
+
+Reads a first-photon-imaging .mat file or a PicoQuant PTU/HT3/PT3 T3 file, keeps the detections in
+the time window (the first ``--max-photons`` of them per pixel), runs the chosen estimator and
+writes the maps (.npz), a picture (.png) and, with ``--json``, one JSON summary line on stdout.
+
+Time units: PicoQuant files carry theirs (the TCSPC resolution); .mat files do not, so
+``--time-unit-ps`` is required for them (8 for the first-photon-imaging files, 1 for times in ps).
+Without ``--window-ps`` the window spans the detections present; without ``--bin-ps`` bins are
+whole raw units, as wide as needed to keep at most 1024 bins; without ``--pulse-rms-ps`` or
+``--irf`` the estimator estimates the pulse width itself.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+
+from recon.errors import InputError
+
+HELP = "reconstruct depth/background maps from a .mat or PicoQuant PTU/HT3/PT3 T3 file"
+
+#: the most bins the default binning makes (a ps-unit file with a 200 ns gate would otherwise get
+#: 200,000 one-unit bins)
+DEFAULT_MAX_BINS = 1024
+
+
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not (value > 0 and math.isfinite(value)):
+        raise argparse.ArgumentTypeError(f"must be a positive number, got {text}")
+    return value
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def _window(text: str) -> tuple[float, float]:
+    parts = text.split(":")
+    if len(parts) != 2:
+        raise argparse.ArgumentTypeError(f"expected START:STOP in ps, got {text!r}")
+    try:
+        start, stop = float(parts[0]), float(parts[1])
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected START:STOP in ps, got {text!r}") from None
+    if not (math.isfinite(start) and math.isfinite(stop) and stop > start >= 0):
+        raise argparse.ArgumentTypeError(f"window needs 0 <= START < STOP, got {text!r}")
+    return start, stop
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("input", metavar="INPUT", help=".mat (first-photon imaging) or PTU/HT3/PT3 T3 file")
+    parser.add_argument("--method", choices=("uos", "lmf", "ml"), default="uos",
+                        help="estimator: uos (the seed paper's union of subspaces, default), "
+                             "lmf (log-matched filter, ignores background), ml (Poisson maximum likelihood)")
+    parser.add_argument("--out", metavar="MAPS.npz", help="write the maps and the settings used here")
+    parser.add_argument("--png", metavar="MAPS.png", help="write a picture of the depth, background and "
+                        "photon-count maps (a time histogram for a point measurement)")
+    parser.add_argument("--json", action="store_true",
+                        help="print one JSON summary object as the last stdout line")
+    parser.add_argument("--time-unit-ps", type=_positive_float, metavar="PS",
+                        help="size of one raw time unit in ps; required for .mat files (8 for the "
+                             "first-photon-imaging files, 1 for ps); PicoQuant files: the header's resolution")
+    parser.add_argument("--window-ps", type=_window, metavar="START:STOP",
+                        help="keep detections with START <= t < STOP (ps after the laser sync); "
+                             "default: the span of the detections present")
+    parser.add_argument("--bin-ps", type=_positive_float, metavar="PS",
+                        help="histogram bin width in ps (a whole number of raw units); default: whole "
+                             f"units, at most {DEFAULT_MAX_BINS} bins")
+    pulse = parser.add_mutually_exclusive_group()
+    pulse.add_argument("--pulse-rms-ps", type=_positive_float, metavar="PS",
+                       help="Gaussian pulse RMS width in ps (the seed paper: 360)")
+    pulse.add_argument("--irf", metavar="FILE", help="measured instrument response to use instead of a Gaussian")
+    parser.add_argument("--max-photons", type=_positive_int, metavar="N",
+                        help="keep the first N in-window detections per pixel (the seed paper: 15)")
+    parser.add_argument("--reflectors", type=_positive_int, default=1, metavar="K",
+                        help="surfaces per pixel to look for (default 1)")
+    parser.add_argument("--mat-var", metavar="NAME", help=".mat files: the cell-array variable to read "
+                        "when the file holds several")
+    parser.add_argument("--channel", type=int, metavar="N",
+                        help="PicoQuant files: keep only detector channel N (0-based); default all")
+    parser.add_argument("--threads", type=_positive_int, metavar="N",
+                        help="worker threads for the estimator (default: all cores)")
+
+
+def default_binning_units(start: float, stop: float, max_bins: int = DEFAULT_MAX_BINS) -> float:
+    """Bin width in raw units for a window [start, stop) when none is given: whole units, as few
+    as keep the number of bins at most ``max_bins``."""
+    return float(max(1, math.ceil((stop - start) / max_bins)))
+
+
+def run(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from acq.readers import read_photons
+    from acq.report import ProgressBar
+    from recon.estimate import reconstruct
+    from recon.model import Binning, ReconSettings, load_irf
+
+    t0 = time.perf_counter()
+    time_unit_s = args.time_unit_ps * 1e-12 if args.time_unit_ps else None
+    result = read_photons(args.input, time_unit_s=time_unit_s, mat_var=args.mat_var,
+                          channel=args.channel)
+    store = result.store
+    for note in result.notes:
+        print(f"spdepth recon: {note}", file=sys.stderr)
+    unit_ps = store.time_unit_s * 1e12
+    if store.n_photons == 0:
+        raise InputError(f"{args.input}: holds no photons")
+
+    # window and bins, in raw units, then as the estimator's Binning
+    if args.window_ps is not None:
+        start_u, stop_u = args.window_ps[0] / unit_ps, args.window_ps[1] / unit_ps
+    else:
+        start_u = math.floor(float(store.times.min()))
+        stop_u = math.floor(float(store.times.max())) + 1
+    if args.bin_ps is not None:
+        bin_u = args.bin_ps / unit_ps
+        if abs(bin_u - round(bin_u)) > 1e-6 * max(1.0, bin_u) or round(bin_u) < 1:
+            raise InputError(f"--bin-ps {args.bin_ps:g} is not a whole number of {unit_ps:g} ps raw units")
+    else:
+        bin_u = default_binning_units(start_u, stop_u)
+    binning = Binning.from_ps(unit_ps, window_ps=(start_u * unit_ps, stop_u * unit_ps),
+                              bin_ps=round(bin_u) * unit_ps)
+    kept = store.first_in_window(binning.window_start, binning.window_stop, args.max_photons)
+    if kept.n_photons == 0:
+        raise InputError(f"{args.input}: no detections in the window {start_u * unit_ps:g}:"
+                         f"{stop_u * unit_ps:g} ps (the file's detections span "
+                         f"{store.times.min() * unit_ps:g} to {store.times.max() * unit_ps:g} ps)")
+    irf = load_irf(args.irf) if args.irf else None
+    settings = ReconSettings(
+        method=args.method, binning=binning,
+        pulse_rms_s=args.pulse_rms_ps * 1e-12 if args.pulse_rms_ps else None, irf=irf,
+        max_photons=args.max_photons, reflectors=args.reflectors)
+    read_s = time.perf_counter() - t0
+
+    if args.threads is not None:
+        import numba
+
+        if args.threads > numba.config.NUMBA_NUM_THREADS:
+            raise InputError(f"--threads {args.threads}: this machine allows at most "
+                             f"{numba.config.NUMBA_NUM_THREADS}")
+        numba.set_num_threads(args.threads)
+    bar = ProgressBar(f"recon {args.method}")
+    t1 = time.perf_counter()
+    try:
+        maps = reconstruct(kept, settings, progress=bar)
+    finally:
+        bar.close()
+    recon_s = time.perf_counter() - t1
+
+    if args.out:
+        maps.save_npz(args.out)
+    if args.png:
+        from acq.report import render_maps_png, render_point_png
+
+        title = (f"{result.path.rsplit('/', 1)[-1]}: {args.method}, {kept.n_photons} photons, "
+                 f"window {binning.window_start * unit_ps:g}-{binning.window_stop * unit_ps:g} ps")
+        if result.is_image:
+            render_maps_png(args.png, maps, title=title)
+        else:
+            render_point_png(args.png, kept.times * store.time_unit_s,
+                             tof_s=float(np.ravel(maps.tof_s)[0]), title=title)
+
+    depth = np.asarray(maps.depth_m, dtype=float)
+    finite = depth[np.isfinite(depth)]
+    summary = {
+        "input": str(args.input), "kind": result.kind, "is_image": result.is_image,
+        "shape": list(store.shape), "pixels": store.n_pixels,
+        "pixels_with_estimate": int(finite.size),
+        "photons": kept.n_photons, "photons_in_file": store.n_photons,
+        "method": args.method, "read_s": round(read_s, 4), "recon_s": round(recon_s, 4),
+        "time_unit_ps": unit_ps, "window_ps": [binning.window_start * unit_ps, binning.window_stop * unit_ps],
+        "bin_ps": binning.bin_width * unit_ps, "n_bins": binning.n_bins,
+        "max_photons": args.max_photons, "settings": maps.settings,
+        "depth_m_median": float(np.median(finite)) if finite.size else None,
+        "out": args.out, "png": args.png, "source": result.meta,
+    }
+    if args.json:
+        print(json.dumps(summary, default=_json_default))
+    else:
+        print(f"{result.path}: {store.shape[0]} x {store.shape[1]} pixels, {kept.n_photons} photons "
+              f"in window (of {store.n_photons}); read {read_s:.2f} s, {args.method} {recon_s:.2f} s")
+        if finite.size:
+            print(f"depth: median {np.median(finite):.4f} m, 2-98% {np.percentile(finite, 2):.4f} to "
+                  f"{np.percentile(finite, 98):.4f} m; {finite.size} of {depth.size} pixels estimated")
+        for what, where in (("maps", args.out), ("picture", args.png)):
+            if where:
+                print(f"{what}: {where}")
+    return 0
+
+
+def _json_default(value):
+    """numpy scalars/arrays and other odd values in settings dicts, made JSON-able."""
+    import numpy as np
+
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    return str(value)

@@ -1,0 +1,98 @@
+"""PNG map sheets and the stderr progress bar."""
+
+from __future__ import annotations
+
+import io
+import types
+
+import numpy as np
+import pytest
+from matplotlib.colors import to_rgb
+from matplotlib.image import imread
+
+from acq.report import NAN_COLOUR, ProgressBar, render_maps_png, render_point_png, robust_limits
+
+
+def test_robust_limits_ignore_outliers_and_nan(rng):
+    values = rng.normal(5.0, 0.1, size=10_000)
+    values[:20] = 9000.0  # a few stray pixels far away
+    values[20:40] = np.nan
+    lo, hi = robust_limits(values)
+    assert 4.6 < lo < 5.0 < hi < 5.4
+
+
+@pytest.mark.parametrize("values", [np.full(5, np.nan), np.full(5, 3.0), np.zeros(0)])
+def test_robust_limits_degenerate_maps(values):
+    lo, hi = robust_limits(values)
+    assert lo < hi and np.isfinite(lo) and np.isfinite(hi)
+
+
+def _colour_pixels(img: np.ndarray, colour: str, tol: float = 0.02) -> int:
+    return int(np.sum(np.all(np.abs(img[..., :3] - np.array(to_rgb(colour))) < tol, axis=-1)))
+
+
+def _maps(rng, shape=(40, 60), nan=True):
+    depth = 4.5 + 0.05 * rng.standard_normal(shape)
+    if nan:
+        depth[5:15, 10:30] = np.nan
+    return types.SimpleNamespace(depth_m=depth, background=rng.random(shape),
+                                 photons=rng.integers(0, 15, shape))
+
+
+def test_render_maps_png_draws_nan_in_its_own_colour(tmp_path, rng):
+    path = render_maps_png(tmp_path / "maps.png", _maps(rng), title="test sheet")
+    img = imread(path)
+    assert img.shape[0] > 200 and img.shape[1] > 600
+    img2 = imread(render_maps_png(tmp_path / "maps2.png", _maps(rng, nan=False)))
+    # the NaN block is 10 x 20 of 40 x 60 map pixels, about 5 x 5 screen pixels each; anti-aliased
+    # text adds some grey to both sheets, the block only to the first
+    assert _colour_pixels(img, NAN_COLOUR) - _colour_pixels(img2, NAN_COLOUR) > 3000
+    assert img.std() > 0.05  # not a blank page
+
+
+def test_render_maps_png_missing_map_is_an_error(tmp_path):
+    with pytest.raises(AttributeError):
+        render_maps_png(tmp_path / "x.png", types.SimpleNamespace(depth_m=np.ones((2, 2))))
+
+
+def test_render_point_png(tmp_path, rng):
+    times = np.concatenate([rng.uniform(0, 100e-9, 5000), rng.normal(30e-9, 0.3e-9, 5000)])
+    img = imread(render_point_png(tmp_path / "p.png", times, tof_s=30e-9))
+    assert img.shape[1] > 600 and img.std() > 0.05
+    assert _colour_pixels(img, "#d62728", tol=0.05) > 50  # the time-of-flight marker
+
+
+def test_progress_bar_silent_for_quick_runs_on_a_log():
+    stream = io.StringIO()
+    bar = ProgressBar("x", stream=stream, after_s=10.0)
+    for i in range(101):
+        bar(i, 100)
+    bar.close()
+    assert stream.getvalue() == ""
+
+
+def test_progress_bar_lines_on_a_log_when_forced():
+    stream = io.StringIO()
+    bar = ProgressBar("recon", stream=stream, force=True)
+    for i in range(101):
+        bar(i, 100)
+    lines = stream.getvalue().splitlines()
+    assert "\r" not in stream.getvalue()
+    assert 1 <= len(lines) <= 3  # the first draw and the final one, not 101 lines
+    assert lines[-1].startswith("recon [" + "#" * 30 + "] 100/100")
+
+
+class _Tty(io.StringIO):
+    def isatty(self):
+        return True
+
+
+def test_progress_bar_redraws_in_place_on_a_terminal():
+    stream = _Tty()
+    bar = ProgressBar("r", stream=stream, max_rate_hz=1e9)
+    for i in range(0, 11):
+        bar(i, 10)
+    bar.close()
+    text = stream.getvalue()
+    assert text.count("\r") == 11 and text.endswith("\n")
+    assert "10/10" in text
