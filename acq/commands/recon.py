@@ -6,9 +6,10 @@ writes the maps (.npz), a picture (.png) and, with ``--json``, one JSON summary 
 
 Time units: PicoQuant files carry theirs (the TCSPC resolution); .mat files do not, so
 ``--time-unit-ps`` is required for them (8 for the first-photon-imaging files, 1 for times in ps).
-Without ``--window-ps`` the window spans the detections present; without ``--bin-ps`` bins are
-whole raw units, as wide as needed to keep at most 1024 bins; without ``--pulse-rms-ps`` or
-``--irf`` the estimator estimates the pulse width itself.
+With neither ``--window-ps`` nor ``--bin-ps`` the estimator derives both from the data (window: the
+span of the detections; bins: a ninth of the pulse RMS). With only one given: the window defaults
+to the span of the detections, the bin width to a ninth of ``--pulse-rms-ps`` (whole raw units, at
+most 1024 bins). Without ``--pulse-rms-ps`` or ``--irf`` the estimator estimates the pulse width.
 """
 
 from __future__ import annotations
@@ -78,8 +79,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="keep detections with START <= t < STOP (ps after the laser sync); "
                              "default: the span of the detections present")
     parser.add_argument("--bin-ps", type=_positive_float, metavar="PS",
-                        help="histogram bin width in ps (a whole number of raw units); default: whole "
-                             f"units, at most {DEFAULT_MAX_BINS} bins")
+                        help="histogram bin width in ps (a whole number of raw units); default: a "
+                             "ninth of the pulse RMS")
     pulse = parser.add_mutually_exclusive_group()
     pulse.add_argument("--pulse-rms-ps", type=_positive_float, metavar="PS",
                        help="Gaussian pulse RMS width in ps (the seed paper: 360)")
@@ -96,10 +97,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="worker threads for the estimator (default: all cores)")
 
 
-def default_binning_units(start: float, stop: float, max_bins: int = DEFAULT_MAX_BINS) -> float:
-    """Bin width in raw units for a window [start, stop) when none is given: whole units, as few
-    as keep the number of bins at most ``max_bins``."""
-    return float(max(1, math.ceil((stop - start) / max_bins)))
+def default_bin_units(start: float, stop: float, pulse_rms_units: float | None = None,
+                      max_bins: int = DEFAULT_MAX_BINS) -> int:
+    """Bin width in whole raw units for a window [start, stop) when none is given: a ninth of the
+    pulse RMS when it is known (the seed paper's 40 ps bins for a 360 ps pulse), at least one unit,
+    and wide enough to keep at most ``max_bins`` bins."""
+    width = max(1, round(pulse_rms_units / 9)) if pulse_rms_units else 1
+    return int(max(width, math.ceil((stop - start) / max_bins)))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -121,25 +125,31 @@ def run(args: argparse.Namespace) -> int:
     if store.n_photons == 0:
         raise InputError(f"{args.input}: holds no photons")
 
-    # window and bins, in raw units, then as the estimator's Binning
-    if args.window_ps is not None:
-        start_u, stop_u = args.window_ps[0] / unit_ps, args.window_ps[1] / unit_ps
+    # window and bins in raw units; with neither given the estimator derives both from the data
+    if args.window_ps is None and args.bin_ps is None:
+        binning = None
+        kept = store
     else:
-        start_u = math.floor(float(store.times.min()))
-        stop_u = math.floor(float(store.times.max())) + 1
-    if args.bin_ps is not None:
-        bin_u = args.bin_ps / unit_ps
-        if abs(bin_u - round(bin_u)) > 1e-6 * max(1.0, bin_u) or round(bin_u) < 1:
-            raise InputError(f"--bin-ps {args.bin_ps:g} is not a whole number of {unit_ps:g} ps raw units")
-    else:
-        bin_u = default_binning_units(start_u, stop_u)
-    binning = Binning.from_ps(unit_ps, window_ps=(start_u * unit_ps, stop_u * unit_ps),
-                              bin_ps=round(bin_u) * unit_ps)
-    kept = store.first_in_window(binning.window_start, binning.window_stop, args.max_photons)
-    if kept.n_photons == 0:
-        raise InputError(f"{args.input}: no detections in the window {start_u * unit_ps:g}:"
-                         f"{stop_u * unit_ps:g} ps (the file's detections span "
-                         f"{store.times.min() * unit_ps:g} to {store.times.max() * unit_ps:g} ps)")
+        if args.window_ps is not None:
+            start_u, stop_u = args.window_ps[0] / unit_ps, args.window_ps[1] / unit_ps
+        else:
+            start_u = math.floor(float(store.times.min()))
+            stop_u = math.floor(float(store.times.max())) + 1
+        if args.bin_ps is not None:
+            bin_u = args.bin_ps / unit_ps
+            if abs(bin_u - round(bin_u)) > 1e-6 * max(1.0, bin_u) or round(bin_u) < 1:
+                raise InputError(f"--bin-ps {args.bin_ps:g} is not a whole number of {unit_ps:g} ps "
+                                 f"raw units")
+        else:
+            bin_u = default_bin_units(start_u, stop_u,
+                                      args.pulse_rms_ps / unit_ps if args.pulse_rms_ps else None)
+        binning = Binning.from_ps(unit_ps, window_ps=(start_u * unit_ps, stop_u * unit_ps),
+                                  bin_ps=round(bin_u) * unit_ps)
+        kept = store.first_in_window(binning.window_start, binning.window_stop, args.max_photons)
+        if kept.n_photons == 0:
+            raise InputError(f"{args.input}: no detections in the window {start_u * unit_ps:g}:"
+                             f"{stop_u * unit_ps:g} ps (the file's detections span "
+                             f"{store.times.min() * unit_ps:g} to {store.times.max() * unit_ps:g} ps)")
     irf = load_irf(args.irf) if args.irf else None
     settings = ReconSettings(
         method=args.method, binning=binning,
@@ -162,17 +172,22 @@ def run(args: argparse.Namespace) -> int:
         bar.close()
     recon_s = time.perf_counter() - t1
 
+    # what was actually used (the estimator fills in what was left to it)
+    used = maps.settings["binning"]
+    win_u = (used["window_start"], used["window_stop"])
+    photons = int(np.sum(maps.photons))
     if args.out:
         maps.save_npz(args.out)
     if args.png:
         from acq.report import render_maps_png, render_point_png
 
-        title = (f"{result.path.rsplit('/', 1)[-1]}: {args.method}, {kept.n_photons} photons, "
-                 f"window {binning.window_start * unit_ps:g}-{binning.window_stop * unit_ps:g} ps")
+        title = (f"{result.path.rsplit('/', 1)[-1]}: {args.method}, {photons} photons, "
+                 f"window {win_u[0] * unit_ps:g}-{win_u[1] * unit_ps:g} ps")
         if result.is_image:
             render_maps_png(args.png, maps, title=title)
         else:
-            render_point_png(args.png, kept.times * store.time_unit_s,
+            shown = store.first_in_window(win_u[0], win_u[1], args.max_photons)
+            render_point_png(args.png, shown.times * store.time_unit_s,
                              tof_s=float(np.ravel(maps.tof_s)[0]), title=title)
 
     depth = np.asarray(maps.depth_m, dtype=float)
@@ -181,10 +196,12 @@ def run(args: argparse.Namespace) -> int:
         "input": str(args.input), "kind": result.kind, "is_image": result.is_image,
         "shape": list(store.shape), "pixels": store.n_pixels,
         "pixels_with_estimate": int(finite.size),
-        "photons": kept.n_photons, "photons_in_file": store.n_photons,
+        "photons": photons, "photons_in_file": store.n_photons,
         "method": args.method, "read_s": round(read_s, 4), "recon_s": round(recon_s, 4),
-        "time_unit_ps": unit_ps, "window_ps": [binning.window_start * unit_ps, binning.window_stop * unit_ps],
-        "bin_ps": binning.bin_width * unit_ps, "n_bins": binning.n_bins,
+        "time_unit_ps": unit_ps, "window_ps": [win_u[0] * unit_ps, win_u[1] * unit_ps],
+        "bin_ps": used["bin_width"] * unit_ps, "n_bins": used["n_bins"],
+        "pulse_rms_ps": (maps.settings["pulse_rms_s"] * 1e12
+                         if maps.settings.get("pulse_rms_s") is not None else None),
         "max_photons": args.max_photons, "settings": maps.settings,
         "depth_m_median": float(np.median(finite)) if finite.size else None,
         "out": args.out, "png": args.png, "source": result.meta,
@@ -192,8 +209,9 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(summary, default=_json_default))
     else:
-        print(f"{result.path}: {store.shape[0]} x {store.shape[1]} pixels, {kept.n_photons} photons "
-              f"in window (of {store.n_photons}); read {read_s:.2f} s, {args.method} {recon_s:.2f} s")
+        print(f"{result.path}: {store.shape[0]} x {store.shape[1]} pixels, {photons} photons used "
+              f"(of {store.n_photons}), window {win_u[0] * unit_ps:g}:{win_u[1] * unit_ps:g} ps; "
+              f"read {read_s:.2f} s, {args.method} {recon_s:.2f} s")
         if finite.size:
             print(f"depth: median {np.median(finite):.4f} m, 2-98% {np.percentile(finite, 2):.4f} to "
                   f"{np.percentile(finite, 98):.4f} m; {finite.size} of {depth.size} pixels estimated")

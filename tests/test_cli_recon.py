@@ -1,0 +1,122 @@
+"""``spdepth recon`` end to end: real files in, maps/PNG/JSON out, exit status 0 or 2."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import scipy.io
+from matplotlib.image import imread
+
+from acq.cli import main
+from recon.maps import NPZ_KEYS
+
+FACE = "fpi/mannequin_face_8ppp.mat"
+PAPER = ["--time-unit-ps", "8", "--window-ps", "16000:48000", "--bin-ps", "40",
+         "--pulse-rms-ps", "360"]
+
+
+def _last_json(text: str) -> dict:
+    return json.loads(text.strip().splitlines()[-1])
+
+
+@pytest.fixture
+def face_crop(shared_data, tmp_path):
+    """A 60 x 50 crop of the mannequin (nose and cheek) as its own .mat file, to keep tests fast."""
+    cells = scipy.io.loadmat(shared_data / FACE)["Ts"][120:180, 140:190]
+    path = tmp_path / "crop.mat"
+    scipy.io.savemat(path, {"Ts": cells})
+    return path
+
+
+@pytest.mark.parametrize("method", ["uos", "lmf", "ml"])
+def test_recon_crop_writes_maps_png_and_json(face_crop, tmp_path, capsys, method):
+    out, png = tmp_path / "maps.npz", tmp_path / "maps.png"
+    code = main(["recon", str(face_crop), "--method", method, *PAPER, "--max-photons", "15",
+                 "--out", str(out), "--png", str(png), "--json"])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    summary = _last_json(captured.out)
+    assert summary["pixels"] == 60 * 50 and summary["shape"] == [60, 50]
+    assert summary["method"] == method and summary["read_s"] >= 0 and summary["recon_s"] >= 0
+    assert summary["window_ps"] == [16000, 48000] and summary["n_bins"] == 801
+    assert summary["pulse_rms_ps"] == pytest.approx(360)
+    with np.load(out) as z:
+        assert set(NPZ_KEYS) <= set(z.files)
+        photons = z["photons"]
+        depth = z["depth_m"]
+        settings = json.loads(str(z["settings"]))
+    assert photons.shape == (60, 50) and photons.max() <= 15
+    assert summary["photons"] == int(photons.sum()) > 60 * 50 * 5
+    assert settings["method"] == method and settings["max_photons"] == 15
+    # the face is about 4.3-4.5 m away (window 16-48 ns covers 2.4-7.2 m)
+    assert 4.0 < np.nanmedian(depth) < 4.8
+    img = imread(png)
+    assert img.shape[0] > 200 and img.std() > 0.05
+
+
+def test_recon_human_output_and_defaults(face_crop, capsys):
+    # no window or bin: the estimator derives them (and the pulse width) from the data
+    code = main(["recon", str(face_crop), "--time-unit-ps", "8", "--max-photons", "10", "--method", "lmf"])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    assert "60 x 50 pixels" in captured.out and "depth: median" in captured.out
+
+
+def test_recon_point_measurement_ptu(shared_data, tmp_path, capsys):
+    png = tmp_path / "point.png"
+    code = main(["recon", str(shared_data / "ptu/hydraharp_v20_t3.ptu"), "--channel", "0",
+                 "--method", "ml", "--png", str(png), "--json"])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    assert "point measurement" in captured.err
+    summary = _last_json(captured.out)
+    assert summary["pixels"] == 1 and summary["is_image"] is False
+    assert summary["photons"] == 45012
+    assert summary["time_unit_ps"] == pytest.approx(64, rel=1e-6)
+    assert png.stat().st_size > 10_000
+
+
+@pytest.mark.parametrize("args,message", [
+    (["ptu/picoharp_v30_t2.ptu"], "T2 file"),
+    ([FACE], "time unit"),
+    ([FACE, "--time-unit-ps", "8", "--window-ps", "90000:95000"], "no detections in the window"),
+    ([FACE, "--time-unit-ps", "8", "--bin-ps", "13"], "not a whole number"),
+    ([FACE, "--time-unit-ps", "8", "--mat-var", "nope"], "no variable 'nope'"),
+])
+def test_recon_bad_input_exits_2_with_one_line(shared_data, capsys, args, message):
+    code = main(["recon", str(shared_data / args[0]), *args[1:]])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert message in err and err.count("\n") == 1 and err.startswith("spdepth recon: error:")
+
+
+@pytest.mark.parametrize("args", [["--window-ps", "5:2"], ["--max-photons", "0"],
+                                  ["--method", "magic"], ["--pulse-rms-ps", "360", "--irf", "x.txt"]])
+def test_recon_bad_options_exit_2(face_crop, args):
+    with pytest.raises(SystemExit) as info:
+        main(["recon", str(face_crop), "--time-unit-ps", "8", *args])
+    assert info.value.code == 2
+
+
+def test_recon_text_file_named_ptu(tmp_path, capsys):
+    path = tmp_path / "notes.ptu"
+    path.write_text("not a measurement\n")
+    assert main(["recon", str(path)]) == 2
+    assert "notes.ptu: not a .mat, PTU, HT3 or PT3 file" in capsys.readouterr().err
+
+
+def test_recon_subprocess(face_crop, tmp_path):
+    out = tmp_path / "m.npz"
+    proc = subprocess.run(
+        [sys.executable, "-m", "acq.cli", "recon", str(face_crop), *PAPER, "--max-photons", "15",
+         "--method", "uos", "--out", str(out), "--json"],
+        capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert _last_json(proc.stdout)["pixels"] == 3000 and out.stat().st_size > 1000
+    bad = subprocess.run(["spdepth", "recon", str(tmp_path / "missing.mat")],
+                         capture_output=True, text=True, timeout=300)
+    assert bad.returncode == 2 and "missing.mat: no such file" in bad.stderr
