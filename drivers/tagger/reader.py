@@ -1,0 +1,269 @@
+"""The tagger's reader thread: bulk reads into one preallocated buffer, decoding, lost-data events,
+recovery, and a bounded queue of event chunks for the owner.
+
+Lost data is reported in-band as ``EventKind.LOST`` events (``sync`` where the hole starts,
+``dtime`` = records lost, 0 when unknown):
+
+* FIFO overrun: the device latches the gap (stream position, sync, count) and holds back every
+  record after it until ACK_GAP, so the LOST event sits exactly where the hole is.
+* endpoint stall (pipe error): the failed transfer's bytes are gone and the record alignment of
+  the stream is no longer known, so the reader restarts the measurement (the device clears its
+  FIFO) and emits LOST at the last decoded sync, count unknown.
+* device vanished: LOST at the last decoded sync, then the tagger is reopened (same serial),
+  reconfigured and restarted; if it does not come back the error reaches the owner.
+
+After a restart the device's sync counter begins again at 0; the reader offsets it so syncs keep
+increasing across the hole (they then count from an estimate, which is why the LOST event is there).
+A bulk timeout loses nothing (libusb hands over whatever arrived; the device keeps the rest), so
+the reader simply reads again.
+"""
+
+from __future__ import annotations
+
+import array
+import logging
+import queue
+import threading
+from typing import Callable
+
+import numpy as np
+
+from drivers.events import EVENT_DTYPE, EventKind
+from drivers.tagger.t3 import T3DecoderState, decode_t3
+from drivers.tagger.transport import DeviceGoneError, EndpointStallError
+from recon.errors import DeviceError, DeviceTimeoutError, InputError, ProtocolError
+
+log = logging.getLogger(__name__)
+
+
+def lost_event(sync: int, n_records: int) -> np.ndarray:
+    """One LOST event at ``sync`` for ``n_records`` lost records (0: unknown)."""
+    ev = np.zeros(1, dtype=EVENT_DTYPE)
+    ev["sync"] = max(0, int(sync))
+    ev["kind"] = EventKind.LOST
+    ev["dtime"] = min(int(n_records), 2 ** 32 - 1)
+    return ev
+
+
+class TaggerReader:
+    """Reads a tagger in a thread and queues decoded ``EVENT_DTYPE`` chunks.
+
+    tagger:              a ``drivers.tagger.Tagger`` (configured).
+    queue_chunks:        bound of the chunk queue; when the owner falls behind the thread waits,
+                         the device FIFO fills and an overrun is reported in-band.
+    buffer_bytes:        size of the preallocated bulk buffer (a multiple of 512).
+    read_timeout_s:      bulk read timeout; also how quickly ``stop`` is noticed.
+    start_measurement:   send START when the thread starts and STOP when it ends.
+    reconnect_timeout_s: how long to wait for a vanished device to come back.
+    connection_lost:     called from the thread as ``connection_lost(exc)`` when it ends (``exc``
+                         None after ``stop``), like pyserial's ``ReaderThread``.
+
+    Consume with ``get`` (or iterate): a thread error is re-raised there once the chunks queued
+    before it have been taken, so it never dies silently.
+    """
+
+    def __init__(self, tagger, queue_chunks: int = 64, buffer_bytes: int = 1 << 20,
+                 read_timeout_s: float = 0.05, start_measurement: bool = True,
+                 reconnect_timeout_s: float = 5.0,
+                 connection_lost: Callable[[BaseException | None], None] | None = None):
+        if buffer_bytes < 512 or buffer_bytes % 512:
+            raise InputError(f"reader buffer_bytes={buffer_bytes} must be a positive multiple of 512")
+        if queue_chunks < 1:
+            raise InputError(f"reader queue_chunks={queue_chunks} must be >= 1")
+        self.tagger = tagger
+        self.read_timeout_s = float(read_timeout_s)
+        self.start_measurement = bool(start_measurement)
+        self.reconnect_timeout_s = float(reconnect_timeout_s)
+        self.connection_lost = connection_lost
+        self._queue: queue.Queue[np.ndarray] = queue.Queue(maxsize=queue_chunks)
+        # One buffer for the life of the reader; pyusb fills array.array objects in place and the
+        # NumPy view below sees the bytes without a copy.
+        self._buffer = array.array("B", bytes(buffer_bytes))
+        self._buffer_u8 = np.frombuffer(self._buffer, dtype=np.uint8)
+        self._carry = np.zeros(0, dtype=np.uint8)   # bytes of a record split across two reads
+        self.state = T3DecoderState()
+        self._position = 0         # records received since the device's START
+        self._offset = 0           # reader sync of the device's sync 0 (grows at each restart)
+        self._stop = threading.Event()
+        self._done = threading.Event()
+        self._error: BaseException | None = None
+        self._thread: threading.Thread | None = None
+        self.stats = {"records": 0, "events": 0, "lost_events": 0, "timeouts": 0,
+                      "restarts": 0, "reconnects": 0}
+
+    # ---- owner side ------------------------------------------------------------------------------
+    def start(self) -> "TaggerReader":
+        if self._thread is not None:
+            raise DeviceError("tagger reader already started")
+        self._thread = threading.Thread(target=self._run, name="tagger-reader", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self, timeout_s: float = 2.0) -> None:
+        """Ask the thread to end and join it. Raises DeviceTimeoutError if it does not end in
+        ``timeout_s``. Chunks still queued stay available to ``get``."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout_s)
+            if self._thread.is_alive():
+                raise DeviceTimeoutError(f"tagger reader did not stop within {timeout_s:g} s")
+
+    @property
+    def error(self) -> BaseException | None:
+        """The exception that ended the thread, if any."""
+        return self._error
+
+    @property
+    def alive(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def get(self, timeout_s: float | None = None) -> np.ndarray | None:
+        """The next chunk of events (oldest first). Returns an empty array when nothing came
+        within ``timeout_s`` (None: wait), None once the thread has ended and every chunk was
+        taken. Re-raises the thread's exception after the chunks queued before it."""
+        waited = 0.0
+        while True:
+            step = 0.05 if timeout_s is None else min(0.05, max(0.0, timeout_s - waited))
+            try:
+                return self._queue.get(timeout=step) if step > 0 else self._queue.get_nowait()
+            except queue.Empty:
+                pass
+            if self._done.is_set() and self._queue.empty():
+                if self._error is not None:
+                    raise self._error
+                return None
+            waited += step
+            if timeout_s is not None and waited >= timeout_s:
+                return np.zeros(0, dtype=EVENT_DTYPE)
+
+    def __iter__(self):
+        while (chunk := self.get()) is not None:
+            if chunk.size:
+                yield chunk
+
+    def __enter__(self) -> "TaggerReader":
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    # ---- thread side -----------------------------------------------------------------------------
+    def _run(self) -> None:
+        exc: BaseException | None = None
+        try:
+            if self.start_measurement:
+                self.tagger.start()
+            while not self._stop.is_set():
+                self.step()
+        except BaseException as e:  # noqa: BLE001 - handed to the owner, never swallowed
+            exc = e
+            log.error("tagger reader stopped by %s: %s", type(e).__name__, e)
+        finally:
+            if self.start_measurement:
+                try:
+                    self.tagger.stop()
+                except DeviceError as e:
+                    log.debug("STOP at reader end failed: %s", e)
+            self._error = exc
+            self._done.set()
+            if self.connection_lost is not None:
+                try:
+                    self.connection_lost(exc)
+                except Exception:  # a faulty callback must not hide the reader's own error
+                    log.exception("connection_lost callback failed")
+
+    def _push(self, events: np.ndarray) -> None:
+        if events.size == 0:
+            return
+        self.stats["events"] += int(events.size)
+        self.stats["lost_events"] += int(np.count_nonzero(events["kind"] == EventKind.LOST))
+        while True:
+            try:
+                self._queue.put(events, timeout=0.05)
+                return
+            except queue.Full:
+                if self._stop.is_set():
+                    # Owner is stopping and no longer consuming; say what is dropped.
+                    log.warning("reader stopping with a full queue: %d events dropped", events.size)
+                    return
+
+    def _gap_sync(self) -> int:
+        """Sync where a hole after the events decoded so far starts."""
+        return self.state.last_sync if self.state.last_sync >= 0 else self.state.sync_base
+
+    def _restart_session(self) -> None:
+        """Device restarted from sync 0 and record 0: continue syncs after everything seen."""
+        self._offset = max(self.state.sync_base, self.state.last_sync + 1)
+        self.state.sync_base = self._offset
+        self._position = 0
+        self._carry = np.zeros(0, dtype=np.uint8)
+
+    def step(self) -> None:
+        """One bulk read, its decoding and the status check (the thread's loop body)."""
+        try:
+            n = self.tagger.read_into(self._buffer, self.read_timeout_s)
+        except DeviceTimeoutError:
+            self.stats["timeouts"] += 1
+            n = 0
+        except EndpointStallError as exc:
+            log.warning("bulk endpoint stalled (%s): restarting the measurement", exc)
+            self._push(lost_event(self._gap_sync(), 0))
+            self.tagger.transport.clear_halt()
+            self.tagger.stop()
+            self.tagger.start()
+            self.stats["restarts"] += 1
+            self._restart_session()
+            return
+        except DeviceGoneError as exc:
+            self._device_gone(exc)
+            return
+        try:
+            self._consume(n)
+        except DeviceGoneError as exc:
+            self._device_gone(exc)
+
+    def _device_gone(self, exc: DeviceGoneError) -> None:
+        log.warning("tagger vanished (%s): reconnecting", exc)
+        self._push(lost_event(self._gap_sync(), 0))
+        self.tagger.reconnect(timeout_s=self.reconnect_timeout_s)
+        self.stats["reconnects"] += 1
+        self._restart_session()
+
+    def _consume(self, n: int) -> None:
+        if n:
+            data = self._buffer_u8[:n]
+            if self._carry.size:
+                # Rare (a read ended mid-record): only then are the bytes copied.
+                data = np.concatenate([self._carry, data])
+            whole = data.size - data.size % 4
+            records = data[:whole].view(np.uint32)
+            self._carry = data[whole:].copy()
+        else:
+            records = np.zeros(0, dtype=np.uint32)
+        status = self.tagger.status()
+        end = self._position + records.size
+        if status.overrun and status.gap_position <= end:
+            split = status.gap_position - self._position
+            if split < 0:
+                raise ProtocolError(f"tagger reports a gap at record {status.gap_position}, but "
+                                    f"records up to {self._position} were already delivered")
+            gap = self.tagger.ack_gap()
+            if gap.position != status.gap_position:
+                raise ProtocolError(f"tagger gap moved from record {status.gap_position} "
+                                    f"(status) to {gap.position} (ACK_GAP)")
+            before = decode_t3(records[:split], self.state)
+            lost_sync = self._session_sync(gap.sync)
+            if lost_sync < self.state.last_sync:
+                raise ProtocolError(f"tagger gap at device sync {gap.sync} precedes the record "
+                                    f"before it (sync {self.state.last_sync})")
+            after = decode_t3(records[split:], self.state)
+            log.warning("FIFO overrun: %d records lost from sync %d", gap.lost_records, lost_sync)
+            self._push(np.concatenate([before, lost_event(lost_sync, gap.lost_records), after]))
+        elif records.size:
+            self._push(decode_t3(records, self.state))
+        self._position = end
+        self.stats["records"] += int(records.size)
+
+    def _session_sync(self, device_sync: int) -> int:
+        """A device sync (since its START) in the reader's sync count."""
+        return self._offset + int(device_sync)
