@@ -1,0 +1,155 @@
+"""Per-pixel depth and background estimation: validation, allocation and chunking around the numba
+kernels of :mod:`recon.kernels`."""
+
+from __future__ import annotations
+
+import math
+from typing import Callable
+
+import numpy as np
+
+from recon import kernels as K
+from recon.errors import InputError
+from recon.maps import C_M_PER_S, DepthMaps, PixelFlag
+from recon.model import (FINE_STEPS, Binning, PulseKernel, ReconSettings, build_kernel,
+                         default_binning, estimate_pulse_rms_s)
+from recon.photons import PhotonStore
+
+#: Pixels per kernel call; progress is reported between chunks.
+CHUNK_PIXELS = 16384
+#: K-reflector pursuit: returns closer than this many pulse RMS widths are one return.
+MERGE_RMS = 2.0
+#: K-reflector pursuit: a return must raise the Poisson log-likelihood by more than this (nats).
+LLR_MIN = 3.0
+
+
+def resolve_model(store: PhotonStore, settings: ReconSettings) -> tuple[Binning, PulseKernel, dict]:
+    """The binning and pulse kernel a reconstruction of ``store`` uses, and notes for the record."""
+    notes: dict = {}
+    b = settings.binning
+    if b is not None and not math.isclose(b.time_unit_s, store.time_unit_s, rel_tol=1e-9):
+        raise InputError(f"binning time unit {b.time_unit_s} s differs from the data's "
+                         f"{store.time_unit_s} s")
+    if settings.irf is not None:
+        rms_s = settings.irf.rms_s
+        notes["pulse_source"] = "irf"
+    elif settings.pulse_rms_s is not None:
+        rms_s = settings.pulse_rms_s
+        notes["pulse_source"] = "given"
+    else:
+        sample = store
+        if b is not None or settings.max_photons is not None:
+            lo = b.window_start if b is not None else -np.inf
+            hi = b.window_stop if b is not None else np.inf
+            sample = store.first_in_window(lo, hi, settings.max_photons)
+        rms_s = estimate_pulse_rms_s(sample.times, sample.offsets, store.time_unit_s)
+        notes["pulse_source"] = "estimated"
+    if b is None:
+        b = default_binning(store.times, store.time_unit_s, rms_s)
+        notes["binning_source"] = "derived from the data's time range"
+    else:
+        notes["binning_source"] = "given"
+    if settings.irf is not None:
+        kern = build_kernel(b, irf=settings.irf)
+    else:
+        kern = build_kernel(b, pulse_rms_s=rms_s)
+    notes["pulse_rms_s"] = float(rms_s)
+    return b, kern, notes
+
+
+def reconstruct(store: PhotonStore, settings: ReconSettings,
+                progress: Callable[[int, int], None] | None = None) -> DepthMaps:
+    """Estimate depth, background and signal at every pixel of ``store``.
+
+    Steps: resolve the binning and pulse (estimating the pulse RMS from the data when neither a width
+    nor an IRF is given), keep the first ``max_photons`` in-window detections of each pixel, bin
+    them, and run the method's kernel over chunks of CHUNK_PIXELS pixels, calling
+    ``progress(done, total)`` after each chunk. Returns :class:`DepthMaps`; ``settings`` in it holds
+    everything used (binning, pulse RMS and its source).
+    """
+    if not isinstance(settings, ReconSettings):
+        raise InputError(f"settings must be ReconSettings, got {type(settings).__name__}")
+    if not isinstance(store, PhotonStore):
+        raise InputError(f"store must be a PhotonStore, got {type(store).__name__}")
+    b, kern, notes = resolve_model(store, settings)
+    used = store.first_in_window(b.window_start, b.window_stop, settings.max_photons)
+    bins = b.bin_index(used.times)
+    offsets = used.offsets
+    h, w = store.shape
+    npix = h * w
+    m = b.n_bins
+    kk = int(settings.reflectors)
+    counts = np.diff(offsets)
+
+    shift = np.full((npix, kk), np.nan)
+    amp = np.zeros((npix, kk))
+    var = np.full((npix, kk), np.nan)
+    bg = np.zeros(npix)
+    n_used = np.zeros(npix, np.int64)
+    iters = np.ones(npix, np.int32)
+    conv = np.ones(npix, np.bool_)
+
+    if settings.method == "ml":
+        logg_int = np.full(kern.g.size, -np.inf)
+        pos = kern.g > 0
+        logg_int[pos] = np.log(kern.g[pos])
+        cmin = float(kern.colsum.min())
+        above = np.flatnonzero(kern.g * m > cmin)
+        dlo, dhi = int(above[0] - kern.off), int(above[-1] - kern.off)
+        log_colsum = np.log(kern.colsum)
+
+    for p0 in range(0, npix, CHUNK_PIXELS):
+        p1 = min(npix, p0 + CHUNK_PIXELS)
+        o = offsets[p0:p1 + 1]
+        cb = bins[o[0]:o[-1]]
+        co = o - o[0]
+        maxn = int(counts[p0:p1].max()) if p1 > p0 else 0
+        if settings.method == "lmf":
+            si = np.empty(p1 - p0, np.int64)
+            K.lmf_kernel(cb, co, m, kern.logg, kern.log_concave, maxn, si, var[p0:p1, 0], n_used[p0:p1])
+            shift[p0:p1, 0] = np.where(si >= 0, si, np.nan)
+            amp[p0:p1, 0] = np.where(si >= 0, counts[p0:p1], 0.0)
+        elif settings.method == "uos":
+            K.uos_kernel(cb, co, m, kern.g, kern.off, kern.gmax, kern.colsum, kern.pp, kern.dg,
+                         kk, float(settings.delta), int(settings.max_iterations),
+                         MERGE_RMS * kern.rms_bins, LLR_MIN, maxn,
+                         shift[p0:p1], amp[p0:p1], bg[p0:p1], iters[p0:p1], conv[p0:p1],
+                         var[p0:p1], n_used[p0:p1])
+        else:
+            K.ml_kernel(cb, co, m, kern.g, kern.off, logg_int, dlo, dhi, kern.colsum, log_colsum,
+                        kern.fine, kern.fine_colsum, FINE_STEPS, kern.dg, maxn,
+                        shift[p0:p1, 0], amp[p0:p1, 0], bg[p0:p1], var[p0:p1, 0], n_used[p0:p1])
+        if progress is not None:
+            progress(p1, npix)
+
+    has = np.isfinite(shift)
+    # expected signal detections inside the window: amplitude times the column sum at that shift
+    q = np.where(has, np.rint(np.nan_to_num(shift) * FINE_STEPS), 0).astype(np.int64)
+    signal = np.where(has, amp * kern.fine_colsum[np.clip(q, 0, kern.fine_colsum.size - 1)], 0.0)
+    if settings.method == "lmf":
+        signal = np.where(has, amp, 0.0)    # the LMF attributes every detection to the return
+    tof_s = np.where(has, b.shift_to_time_s(np.nan_to_num(shift)), np.nan)
+    unc_s = np.sqrt(var) * b.bin_width_s
+
+    flags = np.full(npix, PixelFlag.OK, np.uint8)
+    any_ret = has.any(axis=1)
+    flags[~any_ret] = PixelFlag.NO_SIGNAL
+    flags[any_ret & ~conv] = PixelFlag.NOT_CONVERGED
+    flags[n_used == 0] = PixelFlag.NO_PHOTONS
+
+    def img(a):
+        if kk == 1:
+            return a[:, 0].reshape(h, w)
+        return np.ascontiguousarray(a.T).reshape(kk, h, w)
+
+    rec = settings.to_dict()
+    rec.update(notes)
+    rec["binning"] = b.to_dict()
+    rec["kernel"] = kern.info
+    rec["tof_reference"] = "pulse centroid, from the laser sync"
+    if settings.irf is not None:
+        rec["irf"]["rms_s"] = settings.irf.rms_s
+    tof_img = img(tof_s)
+    return DepthMaps(tof_s=tof_img, depth_m=C_M_PER_S * tof_img / 2.0, background=bg.reshape(h, w),
+                     signal=img(signal), photons=n_used.reshape(h, w), iterations=iters.reshape(h, w),
+                     uncertainty_s=img(unc_s), flags=flags.reshape(h, w), settings=rec)

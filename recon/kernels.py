@@ -1,0 +1,721 @@
+"""Numba kernels of the per-pixel estimators. Plain arrays in, disjoint per-pixel outputs out; all
+validation and allocation of outputs happens in :mod:`recon.estimate`.
+
+Every kernel works from per-pixel photon lists (CSR: ``bins[offsets[p]:offsets[p+1]]`` are the bin
+indices, all inside ``[0, M)``) turned into sorted (bin, count) pairs, and from the 1-D pulse tables
+of :class:`recon.model.PulseKernel`, so ``S_i^T y = sum over photons of g[k - i]`` and no N x N
+matrix is ever formed. Pixels are processed in blocks of BLOCK under ``prange``; each block owns its
+scratch arrays.
+
+Shift ``i`` means the pulse centroid is at the centre of bin ``i`` (0 <= i < M).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+BLOCK = 64
+SMALL_SORT = 48
+
+
+# ------------------------------------------------------------------------------------------------
+# shared helpers
+
+
+@njit(cache=True, nogil=True)
+def unique_counts(bins, o0, o1, tmp, kb, kw):
+    """Sorted distinct bins of one pixel and their counts into kb/kw; returns how many.
+
+    tmp, kb, kw need at least o1 - o0 entries. Insertion sort for the usual handful of photons,
+    numpy's sort for big pixels (a million detections must not be quadratic)."""
+    n = o1 - o0
+    if n == 0:
+        return 0
+    if n <= SMALL_SORT:
+        for a in range(n):
+            v = bins[o0 + a]
+            b = a - 1
+            while b >= 0 and tmp[b] > v:
+                tmp[b + 1] = tmp[b]
+                b -= 1
+            tmp[b + 1] = v
+    else:
+        tmp[:n] = np.sort(bins[o0:o1])
+    nu = 0
+    kb[0] = tmp[0]
+    kw[0] = 1.0
+    for a in range(1, n):
+        if tmp[a] == kb[nu]:
+            kw[nu] += 1.0
+        else:
+            nu += 1
+            kb[nu] = tmp[a]
+            kw[nu] = 1.0
+    return nu + 1
+
+
+@njit(cache=True, nogil=True)
+def col_dot(i, j, m, pp, off, nk):
+    """S_i^T S_j for the unit-area kernel g (rows restricted to the window's m bins), from the prefix
+    table pp (row d + dmax holds cumulative sums over offset index of g[o] g[o - d], d = j - i)."""
+    d = j - i
+    dmax = (pp.shape[0] - 1) // 2
+    if d > dmax or d < -dmax:
+        return 0.0
+    lo = -i + off
+    hi = m - i + off
+    if lo < 0:
+        lo = 0
+    if lo > nk:
+        lo = nk
+    if hi < 0:
+        hi = 0
+    if hi > nk:
+        hi = nk
+    return pp[d + dmax, hi] - pp[d + dmax, lo]
+
+
+@njit(cache=True, nogil=True)
+def sym_eig(a, n, vecs, vals):
+    """Eigen-decomposition of the leading n x n block of symmetric a (cyclic Jacobi; a is
+    overwritten). Columns of vecs are eigenvectors. n is at most 2K+1, so this is a few dozen flops."""
+    for r in range(n):
+        for c in range(n):
+            vecs[r, c] = 1.0 if r == c else 0.0
+    for _sweep in range(50):
+        off = 0.0
+        for p in range(n):
+            for q in range(p + 1, n):
+                off += a[p, q] * a[p, q]
+        scale = 0.0
+        for p in range(n):
+            scale += a[p, p] * a[p, p]
+        if off <= 1e-30 * scale or off == 0.0:
+            break
+        for p in range(n):
+            for q in range(p + 1, n):
+                apq = a[p, q]
+                if apq == 0.0:
+                    continue
+                theta = (a[q, q] - a[p, p]) / (2.0 * apq)
+                t = (1.0 if theta >= 0 else -1.0) / (abs(theta) + math.sqrt(theta * theta + 1.0))
+                c = 1.0 / math.sqrt(t * t + 1.0)
+                s = t * c
+                for k in range(n):
+                    akp = a[k, p]
+                    akq = a[k, q]
+                    a[k, p] = c * akp - s * akq
+                    a[k, q] = s * akp + c * akq
+                for k in range(n):
+                    apk = a[p, k]
+                    aqk = a[q, k]
+                    a[p, k] = c * apk - s * aqk
+                    a[q, k] = s * apk + c * aqk
+                for k in range(n):
+                    vkp = vecs[k, p]
+                    vkq = vecs[k, q]
+                    vecs[k, p] = c * vkp - s * vkq
+                    vecs[k, q] = s * vkp + c * vkq
+    for p in range(n):
+        vals[p] = a[p, p]
+
+
+@njit(cache=True, nogil=True)
+def pinv_solve(gram, rhs, n, work, vecs, vals, out):
+    """out = pinv(A) y from the Gram matrix A^T A (n x n) and rhs = A^T y, dropping directions whose
+    eigenvalue is below 1e-12 of the largest (singular value ratio 1e-6): what pinv's tolerance does
+    for numerically collinear columns, at the precision a Gram matrix can resolve."""
+    for r in range(n):
+        for c in range(n):
+            work[r, c] = gram[r, c]
+    sym_eig(work, n, vecs, vals)
+    lmax = 0.0
+    for p in range(n):
+        if vals[p] > lmax:
+            lmax = vals[p]
+    for r in range(n):
+        out[r] = 0.0
+    if lmax <= 0.0:
+        return
+    for p in range(n):
+        if vals[p] > 1e-12 * lmax:
+            proj = 0.0
+            for r in range(n):
+                proj += vecs[r, p] * rhs[r]
+            proj /= vals[p]
+            for r in range(n):
+                out[r] += proj * vecs[r, p]
+
+
+@njit(cache=True, nogil=True)
+def fisher_var(shift, a, bg, m, g, dg, off):
+    """Variance (bins^2) of the shift from the Poisson Fisher information of
+    lambda_k = a g[k - shift] + bg over the window's m bins, with a (and bg when > 0) profiled out.
+    NaN when the information is degenerate (no signal)."""
+    if not a > 0.0:
+        return np.nan
+    nk = g.size
+    i00 = 0.0
+    i01 = 0.0
+    i02 = 0.0
+    i11 = 0.0
+    i12 = 0.0
+    i22 = 0.0
+    n_in = 0
+    for t in range(nk):
+        k = shift + t - off
+        if k < 0 or k >= m:
+            continue
+        n_in += 1
+        lam = a * g[t] + bg
+        if lam <= 0.0:
+            continue
+        d0 = -a * dg[t]
+        d1 = g[t]
+        i00 += d0 * d0 / lam
+        i01 += d0 * d1 / lam
+        i02 += d0 / lam
+        i11 += d1 * d1 / lam
+        i12 += d1 / lam
+        i22 += 1.0 / lam
+    if bg > 0.0:
+        i22 += (m - n_in) / bg
+        det12 = i11 * i22 - i12 * i12
+        if det12 <= 0.0:
+            return np.nan
+        # Schur complement of the (a, bg) block
+        schur = i00 - (i01 * (i22 * i01 - i12 * i02) + i02 * (i11 * i02 - i12 * i01)) / det12
+    else:
+        if i11 <= 0.0:
+            return np.nan
+        schur = i00 - i01 * i01 / i11
+    if not schur > 0.0:
+        return np.nan
+    return 1.0 / schur
+
+
+# ------------------------------------------------------------------------------------------------
+# log-matched filter, eq. (11): argmax_i sum_k y_k log S_{k,i}
+
+
+@njit(cache=True, nogil=True)
+def _lmf_score(kb, kw, nu, i, logg, m):
+    s = 0.0
+    for u in range(nu):
+        s += kw[u] * logg[kb[u] - i + m - 1]
+    return s
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def lmf_kernel(bins, offsets, m, logg, log_concave, maxn, out_shift, out_var, out_n):
+    """Log-matched filter per pixel. out_shift: argmax shift (int64, -1 without photons), out_var:
+    shift variance in bins^2 from the observed curvature of the log-likelihood, out_n: photons."""
+    npix = offsets.size - 1
+    nblk = (npix + BLOCK - 1) // BLOCK
+    nt = logg.size
+    for blk in prange(nblk):
+        tmp = np.empty(max(maxn, 1), np.int64)
+        kb = np.empty(max(maxn, 1), np.int64)
+        kw = np.empty(max(maxn, 1), np.float64)
+        for p in range(blk * BLOCK, min(npix, (blk + 1) * BLOCK)):
+            o0 = offsets[p]
+            o1 = offsets[p + 1]
+            out_n[p] = o1 - o0
+            nu = unique_counts(bins, o0, o1, tmp, kb, kw)
+            if nu == 0:
+                out_shift[p] = -1
+                out_var[p] = np.nan
+                continue
+            if log_concave:
+                # a sum of concave sequences is concave: climb from the photons' mean bin
+                mean = 0.0
+                tot = 0.0
+                for u in range(nu):
+                    mean += kw[u] * kb[u]
+                    tot += kw[u]
+                i = int(mean / tot + 0.5)
+                i = min(max(i, 0), m - 1)
+                best = _lmf_score(kb, kw, nu, i, logg, m)
+                moved = False
+                while i + 1 < m:
+                    s = _lmf_score(kb, kw, nu, i + 1, logg, m)
+                    if s > best:
+                        best = s
+                        i += 1
+                        moved = True
+                    else:
+                        break
+                if not moved:
+                    while i > 0:
+                        s = _lmf_score(kb, kw, nu, i - 1, logg, m)
+                        if s >= best:   # >= : first index among ties, like argmax
+                            best = s
+                            i -= 1
+                        else:
+                            break
+                else:
+                    while i > 0 and _lmf_score(kb, kw, nu, i - 1, logg, m) >= best:
+                        i -= 1
+            else:
+                i = 0
+                best = _lmf_score(kb, kw, nu, 0, logg, m)
+                for j in range(1, m):
+                    s = _lmf_score(kb, kw, nu, j, logg, m)
+                    if s > best:
+                        best = s
+                        i = j
+            out_shift[p] = i
+            curv = 0.0
+            for u in range(nu):
+                t = kb[u] - i + m - 1
+                tl = max(t - 1, 0)
+                th = min(t + 1, nt - 1)
+                if th - tl == 2:
+                    curv += kw[u] * (logg[th] - 2.0 * logg[t] + logg[tl])
+            out_var[p] = -1.0 / curv if curv < 0.0 else np.nan
+
+
+# ------------------------------------------------------------------------------------------------
+# Algorithm 1 (uos) and its K-sparse generalization
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def uos_kernel(bins, offsets, m, g, off, gmax, colsum, pp, dg, n_refl, delta, max_iter,
+               merge_bins, llr_min, maxn,
+               out_shift, out_amp, out_bg, out_iter, out_conv, out_var, out_n):
+    """Union-of-subspaces greedy pursuit (Algorithm 1) with K = n_refl depth columns.
+
+    The pursuit runs on the published code's scaling (columns g / gmax, peak 1) so delta means what
+    it means there. Outputs per pixel p and return r (r < K):
+    out_shift[p, r]: shift (bins, float; NaN none), sorted ascending;
+    out_amp[p, r]: amplitude on the unit-area kernel (expected signal detections of an unclipped
+    pulse); out_bg[p]: background per bin; out_iter[p]: iterations; out_conv[p]: converged;
+    out_var[p, r]: shift variance (bins^2, Fisher information); out_n[p]: photons.
+    For K > 1, returns closer than merge_bins are merged (amplitude-weighted) and a return is kept only
+    if dropping it costs more than llr_min in Poisson log-likelihood.
+    """
+    npix = offsets.size - 1
+    nblk = (npix + BLOCK - 1) // BLOCK
+    nk = g.size
+    kk = n_refl
+    inv_gmax = 1.0 / gmax
+    inv_g2 = inv_gmax * inv_gmax
+    for blk in prange(nblk):
+        tmp = np.empty(max(maxn, 1), np.int64)
+        kb = np.empty(max(maxn, 1), np.int64)
+        kw = np.empty(max(maxn, 1), np.float64)
+        cvec = np.empty(m)
+        prox = np.empty(m)
+        supp = np.empty(kk, np.int64)
+        amp = np.empty(kk)
+        nsupp = np.empty(kk, np.int64)
+        namp = np.empty(kk)
+        newi = np.empty(kk, np.int64)
+        om = np.empty(3 * kk, np.int64)
+        gram = np.empty((3 * kk + 1, 3 * kk + 1))
+        work = np.empty((3 * kk + 1, 3 * kk + 1))
+        vecs = np.empty((3 * kk + 1, 3 * kk + 1))
+        vals = np.empty(3 * kk + 1)
+        rhs = np.empty(3 * kk + 1)
+        sol = np.empty(3 * kk + 1)
+        taken = np.zeros(m, np.bool_)
+        for p in range(blk * BLOCK, min(npix, (blk + 1) * BLOCK)):
+            o0 = offsets[p]
+            o1 = offsets[p + 1]
+            out_n[p] = o1 - o0
+            for r in range(kk):
+                out_shift[p, r] = np.nan
+                out_amp[p, r] = 0.0
+                out_var[p, r] = np.nan
+            nu = unique_counts(bins, o0, o1, tmp, kb, kw)
+            if nu == 0:
+                out_bg[p] = 0.0
+                out_iter[p] = 0
+                out_conv[p] = True
+                continue
+            ntot = 0.0
+            for u in range(nu):
+                ntot += kw[u]
+            # c_i = S_i^T y (peak-1 columns), scattered from the photons
+            for i in range(m):
+                cvec[i] = 0.0
+            for u in range(nu):
+                k = kb[u]
+                wu = kw[u] * inv_gmax
+                ilo = max(0, k - (nk - 1 - off))
+                ihi = min(m - 1, k + off)
+                for i in range(ilo, ihi + 1):
+                    cvec[i] += wu * g[k - i + off]
+            ns = 0          # support size
+            bg = 0.0
+            it = 0
+            conv = False
+            while it < max_iter:
+                it += 1
+                # proxy A^T u = A^T y - A^T A x, via column sums and column inner products
+                for i in range(m):
+                    prox[i] = cvec[i] - bg * colsum[i] * inv_gmax
+                for s in range(ns):
+                    j = supp[s]
+                    aj = amp[s] * inv_g2
+                    ilo = max(0, j - (nk - 1))
+                    ihi = min(m - 1, j + (nk - 1))
+                    for i in range(ilo, ihi + 1):
+                        prox[i] -= aj * col_dot(i, j, m, pp, off, nk)
+                # the K largest proxy entries (first index among ties, like sort 'descend')
+                for r in range(kk):
+                    best = -np.inf
+                    bi = -1
+                    for i in range(m):
+                        if not taken[i] and prox[i] > best:
+                            best = prox[i]
+                            bi = i
+                    newi[r] = bi
+                    if bi >= 0:
+                        taken[bi] = True
+                for r in range(kk):
+                    if newi[r] >= 0:
+                        taken[newi[r]] = False
+                # Omega = new U previous support (sorted, distinct) U {background}
+                nd = 0
+                for r in range(kk):
+                    if newi[r] >= 0:
+                        om[nd] = newi[r]
+                        nd += 1
+                for s in range(ns):
+                    dup = False
+                    for t in range(nd):
+                        if om[t] == supp[s]:
+                            dup = True
+                    if not dup:
+                        om[nd] = supp[s]
+                        nd += 1
+                for a in range(1, nd):
+                    v = om[a]
+                    b = a - 1
+                    while b >= 0 and om[b] > v:
+                        om[b + 1] = om[b]
+                        b -= 1
+                    om[b + 1] = v
+                for a in range(nd):
+                    for b in range(a, nd):
+                        gab = col_dot(om[a], om[b], m, pp, off, nk) * inv_g2
+                        gram[a, b] = gab
+                        gram[b, a] = gab
+                    gram[a, nd] = colsum[om[a]] * inv_gmax
+                    gram[nd, a] = gram[a, nd]
+                    rhs[a] = cvec[om[a]]
+                gram[nd, nd] = float(m)
+                rhs[nd] = ntot
+                pinv_solve(gram, rhs, nd + 1, work, vecs, vals, sol)
+                # keep the K largest depth coefficients, then T_0 (non-negativity)
+                nn = 0
+                for r in range(kk):
+                    best = -np.inf
+                    bi = -1
+                    for a in range(nd):
+                        if sol[a] > best:
+                            dup = False
+                            for t in range(nn):
+                                if nsupp[t] == a:
+                                    dup = True
+                            if not dup:
+                                best = sol[a]
+                                bi = a
+                    if bi < 0:
+                        break
+                    if best > 0.0:
+                        nsupp[nn] = bi
+                        namp[nn] = best
+                        nn += 1
+                    else:
+                        break
+                for t in range(nn):
+                    nsupp[t] = om[nsupp[t]]
+                nbg = sol[nd] if sol[nd] > 0.0 else 0.0
+                # ||x_k - x_{k-1}||^2 over the union of the two supports
+                diff = (nbg - bg) * (nbg - bg)
+                for t in range(nn):
+                    prev = 0.0
+                    for s in range(ns):
+                        if supp[s] == nsupp[t]:
+                            prev = amp[s]
+                    diff += (namp[t] - prev) * (namp[t] - prev)
+                for s in range(ns):
+                    found = False
+                    for t in range(nn):
+                        if supp[s] == nsupp[t]:
+                            found = True
+                    if not found:
+                        diff += amp[s] * amp[s]
+                ns = nn
+                for t in range(nn):
+                    supp[t] = nsupp[t]
+                    amp[t] = namp[t]
+                bg = nbg
+                if diff < delta:
+                    conv = True
+                    break
+            out_iter[p] = it
+            out_conv[p] = conv
+            out_bg[p] = bg
+            # amplitudes on the unit-area kernel
+            for s in range(ns):
+                amp[s] = amp[s] * inv_gmax
+            if kk > 1 and ns > 1:
+                # sort by shift, then merge returns closer than merge_bins into the stronger one
+                for a in range(1, ns):
+                    v = supp[a]
+                    va = amp[a]
+                    b = a - 1
+                    while b >= 0 and supp[b] > v:
+                        supp[b + 1] = supp[b]
+                        amp[b + 1] = amp[b]
+                        b -= 1
+                    supp[b + 1] = v
+                    amp[b + 1] = va
+                pos = np.empty(ns)
+                for s in range(ns):
+                    pos[s] = supp[s]
+                nm = 0
+                for s in range(ns):
+                    if nm > 0 and pos[s] - pos[nm - 1] < merge_bins:
+                        at = amp[nm - 1] + amp[s]
+                        pos[nm - 1] = (pos[nm - 1] * amp[nm - 1] + pos[s] * amp[s]) / at
+                        amp[nm - 1] = at
+                    else:
+                        pos[nm] = pos[s]
+                        amp[nm] = amp[s]
+                        nm += 1
+                # likelihood-ratio support test for each return
+                keep = np.zeros(nm, np.bool_)
+                for s in range(nm):
+                    js = int(pos[s] + 0.5)
+                    llr = -amp[s] * colsum[js]
+                    for u in range(nu):
+                        lam = bg
+                        mine = 0.0
+                        for t in range(nm):
+                            jt = int(pos[t] + 0.5)
+                            d = kb[u] - jt + off
+                            if d >= 0 and d < nk:
+                                v = amp[t] * g[d]
+                                lam += v
+                                if t == s:
+                                    mine = v
+                        rest = lam - mine
+                        if mine > 0.0:
+                            if rest <= 0.0:
+                                llr = np.inf
+                                break
+                            llr += kw[u] * math.log(lam / rest)
+                    keep[s] = llr > llr_min
+                r = 0
+                for s in range(nm):
+                    if keep[s]:
+                        js = int(pos[s] + 0.5)
+                        out_shift[p, r] = pos[s]
+                        out_amp[p, r] = amp[s]
+                        out_var[p, r] = fisher_var(js, amp[s], bg, m, g, dg, off)
+                        r += 1
+            elif ns >= 1:
+                out_shift[p, 0] = supp[0]
+                out_amp[p, 0] = amp[0]
+                out_var[p, 0] = fisher_var(supp[0], amp[0], bg, m, g, dg, off)
+
+
+# ------------------------------------------------------------------------------------------------
+# exact pixelwise Poisson ML, eq. (9), global over shifts
+
+
+@njit(cache=True, nogil=True)
+def mix_ml(r, w, nu, uni, s0):
+    """max over s in [0, 1] of sum_u w_u log((1 - s) uni + s r_u): the Poisson likelihood of eq. (9)
+    with (a, B) profiled onto a C + B M = n (where its maximum lies), s = a C / n the signal share,
+    r_u = g_u / C the pulse's density at photon u, uni = 1 / M. Concave in s: safeguarded Newton.
+    Returns (s, loglik)."""
+    d0 = 0.0
+    zero_r = False
+    for u in range(nu):
+        d0 += w[u] * (r[u] - uni)
+        if r[u] <= 0.0:
+            zero_r = True
+    if d0 <= 0.0:
+        ll = 0.0
+        for u in range(nu):
+            ll += w[u]
+        return 0.0, ll * math.log(uni)
+    if not zero_r:
+        d1 = 0.0
+        for u in range(nu):
+            d1 += w[u] * (r[u] - uni) / r[u]
+        if d1 >= 0.0:
+            ll = 0.0
+            for u in range(nu):
+                ll += w[u] * math.log(r[u])
+            return 1.0, ll
+    lo = 0.0
+    hi = 1.0
+    s = s0
+    if not (s > 0.0 and s < 1.0):
+        s = 0.5
+    for _ in range(60):
+        f1 = 0.0
+        f2 = 0.0
+        for u in range(nu):
+            e = r[u] - uni
+            den = uni + s * e
+            q = e / den
+            f1 += w[u] * q
+            f2 += w[u] * q * q
+        if f1 > 0.0:
+            lo = s
+        else:
+            hi = s
+        sn = s + f1 / f2 if f2 > 0.0 else 0.5 * (lo + hi)
+        if not (sn > lo and sn < hi):
+            sn = 0.5 * (lo + hi)
+        if abs(sn - s) < 1e-12:
+            s = sn
+            break
+        s = sn
+        if hi - lo < 1e-14:
+            break
+    ll = 0.0
+    for u in range(nu):
+        ll += w[u] * math.log(uni + s * (r[u] - uni))
+    return s, ll
+
+
+@njit(cache=True, nogil=True)
+def _ml_at_int(kb, kw, nu, i, g, off, colsum, uni, s0, r):
+    nk = g.size
+    c = colsum[i]
+    for u in range(nu):
+        d = kb[u] - i + off
+        r[u] = g[d] / c if (d >= 0 and d < nk) else 0.0
+    return mix_ml(r, kw, nu, uni, s0)
+
+
+@njit(cache=True, nogil=True)
+def _ml_at_fine(kb, kw, nu, i, q, fine, off, fine_colsum, fsteps, uni, s0, r):
+    """Profile at shift i + q / fsteps (|q| <= fsteps), from the fine kernel table."""
+    nf = fine.size
+    c = fine_colsum[i * fsteps + q]
+    for u in range(nu):
+        j = (kb[u] - i + off) * fsteps - q
+        r[u] = fine[j] / c if (j >= 0 and j < nf) else 0.0
+    return mix_ml(r, kw, nu, uni, s0)
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def ml_kernel(bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_colsum, fine, fine_colsum,
+              fsteps, dg, maxn, out_shift, out_amp, out_bg, out_var, out_n):
+    """Exact Poisson ML over (shift, a >= 0, B >= 0), global over all integer shifts, refined to
+    1/fsteps bin and then by a parabola.
+
+    Pruning is exact: for every shift, U(i) = sum_u w_u max(log(g_u / C_i), -log M) (+ const) bounds
+    the profile likelihood from above (split the linear term a C + B M evenly over the photons and
+    maximise each photon's term alone), and only offsets d with g[d] M > min C (dlo..dhi) contribute
+    above the floor. Shifts whose bound cannot beat the best likelihood found are skipped.
+    Outputs: out_shift (bins, NaN none), out_amp (unit-area amplitude), out_bg (per bin),
+    out_var (bins^2), out_n (photons).
+    """
+    npix = offsets.size - 1
+    nblk = (npix + BLOCK - 1) // BLOCK
+    uni = 1.0 / m
+    logm = math.log(m)
+    for blk in prange(nblk):
+        tmp = np.empty(max(maxn, 1), np.int64)
+        kb = np.empty(max(maxn, 1), np.int64)
+        kw = np.empty(max(maxn, 1), np.float64)
+        r = np.empty(max(maxn, 1), np.float64)
+        acc = np.empty(m)
+        for p in range(blk * BLOCK, min(npix, (blk + 1) * BLOCK)):
+            o0 = offsets[p]
+            o1 = offsets[p + 1]
+            out_n[p] = o1 - o0
+            out_shift[p] = np.nan
+            out_amp[p] = 0.0
+            out_var[p] = np.nan
+            nu = unique_counts(bins, o0, o1, tmp, kb, kw)
+            if nu == 0:
+                out_bg[p] = 0.0
+                continue
+            ntot = 0.0
+            for u in range(nu):
+                ntot += kw[u]
+            for i in range(m):
+                acc[i] = 0.0
+            for u in range(nu):
+                k = kb[u]
+                for d in range(dlo, dhi + 1):
+                    i = k - d
+                    if i < 0 or i >= m:
+                        continue
+                    v = logg_int[d + off] - log_colsum[i] + logm
+                    if v > 0.0:
+                        acc[i] += kw[u] * v
+            floor_ll = -ntot * logm          # s = 0: all background
+            best_ll = floor_ll
+            best_i = -1
+            best_s = 0.0
+            i1 = 0
+            for i in range(1, m):
+                if acc[i] > acc[i1]:
+                    i1 = i
+            if acc[i1] > 0.0:
+                s, ll = _ml_at_int(kb, kw, nu, i1, g, off, colsum, uni, 0.5, r)
+                if ll > best_ll:
+                    best_ll = ll
+                    best_i = i1
+                    best_s = s
+            for i in range(m):
+                if i == i1 or floor_ll + acc[i] <= best_ll + 1e-12 * abs(best_ll):
+                    continue
+                s, ll = _ml_at_int(kb, kw, nu, i, g, off, colsum, uni, best_s, r)
+                if ll > best_ll:
+                    best_ll = ll
+                    best_i = i
+                    best_s = s
+            if best_i < 0 or best_s <= 0.0:
+                out_bg[p] = ntot * uni
+                continue
+            # sub-bin: best of the fine shifts strictly between the integer neighbours, then a parabola
+            qlo = -fsteps if best_i > 0 else 0
+            qhi = fsteps if best_i < m - 1 else 0
+            bq = 0
+            bll = best_ll
+            bs = best_s
+            lls = np.empty(2 * fsteps + 1)
+            lls[fsteps] = best_ll
+            for q in range(qlo, qhi + 1):
+                if q == 0:
+                    continue
+                s, ll = _ml_at_fine(kb, kw, nu, best_i, q, fine, off, fine_colsum, fsteps, uni, bs, r)
+                lls[q + fsteps] = ll
+                if ll > bll:
+                    bll = ll
+                    bq = q
+                    bs = s
+            frac = 0.0
+            if bq - 1 >= qlo and bq + 1 <= qhi:
+                lm = lls[bq - 1 + fsteps]
+                l0 = lls[bq + fsteps]
+                lp = lls[bq + 1 + fsteps]
+                den = lm - 2.0 * l0 + lp
+                if den < 0.0:
+                    frac = 0.5 * (lm - lp) / den
+                    frac = min(max(frac, -0.5), 0.5)
+            tau = best_i + (bq + frac) / fsteps
+            tau = min(max(tau, 0.0), m - 1.0)
+            c = fine_colsum[best_i * fsteps + bq]
+            a = bs * ntot / c
+            bg = (1.0 - bs) * ntot * uni
+            out_shift[p] = tau
+            out_amp[p] = a
+            out_bg[p] = bg
+            out_var[p] = fisher_var(int(tau + 0.5), a, bg, m, g, dg, off)

@@ -1,0 +1,89 @@
+"""Per-pixel results of a reconstruction and their file format."""
+
+from __future__ import annotations
+
+import json
+import zipfile
+from dataclasses import dataclass
+from enum import IntEnum
+from pathlib import Path
+
+import numpy as np
+
+from recon.errors import InputError
+
+#: Speed of light in vacuum, m/s (depth = c * tof / 2).
+C_M_PER_S = 299_792_458.0
+
+NPZ_KEYS = ("tof_s", "depth_m", "background", "signal", "photons", "iterations", "uncertainty_s",
+            "flags", "settings")
+
+
+class PixelFlag(IntEnum):
+    """Outcome of the estimate at one pixel (the ``flags`` map, uint8)."""
+
+    OK = 0
+    """A return was found; tof, signal, background and uncertainty are set."""
+    NO_PHOTONS = 1
+    """No detection in the window: tof NaN, signal and background 0."""
+    NO_SIGNAL = 2
+    """Detections, but the best fit puts none of them in a return (all background): tof NaN."""
+    NOT_CONVERGED = 3
+    """uos stopped at max_iterations before ``||x_k - x_{k-1}||^2 < delta``; the estimate is kept."""
+
+
+@dataclass(frozen=True, eq=False)
+class DepthMaps:
+    """Maps of one reconstruction. H x W pixels; K returns per pixel when ``settings['reflectors']``
+    is K > 1 (then tof_s, depth_m, signal and uncertainty_s are (K, H, W), returns sorted by time,
+    NaN / 0 where fewer than K returns are supported by the data).
+
+    tof_s:         round-trip time of flight from the laser sync to the pulse centroid, s (NaN: none).
+    depth_m:       c * tof_s / 2, m.
+    background:    expected background detections per bin (the paper's B), >= 0.
+    signal:        detections attributed to the return (expected signal count in the window), >= 0.
+    photons:       detections used (in the window, after max_photons), int64.
+    iterations:    estimator iterations (uos), 1 for lmf and ml, int32.
+    uncertainty_s: standard deviation of tof_s, s (from the Poisson likelihood's curvature).
+    flags:         :class:`PixelFlag` codes, uint8.
+    settings:      every setting used, including the pulse RMS actually used (estimated or given).
+    """
+
+    tof_s: np.ndarray
+    depth_m: np.ndarray
+    background: np.ndarray
+    signal: np.ndarray
+    photons: np.ndarray
+    iterations: np.ndarray
+    uncertainty_s: np.ndarray
+    flags: np.ndarray
+    settings: dict
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return tuple(self.flags.shape)
+
+    def save_npz(self, path) -> None:
+        """Write a compressed .npz with keys exactly NPZ_KEYS; settings as a JSON string."""
+        arrays = {k: getattr(self, k) for k in NPZ_KEYS if k != "settings"}
+        np.savez_compressed(Path(path), settings=np.array(json.dumps(self.settings)), **arrays)
+
+    @classmethod
+    def load_npz(cls, path) -> "DepthMaps":
+        """Read a file written by save_npz; InputError naming the file if it is not one."""
+        p = Path(path)
+        if not p.is_file():
+            raise InputError(f"depth maps file {p} not found")
+        try:
+            with np.load(p, allow_pickle=False) as z:
+                missing = [k for k in NPZ_KEYS if k not in z.files]
+                if missing:
+                    raise InputError(f"depth maps file {p}: missing {', '.join(missing)}")
+                data = {k: z[k] for k in NPZ_KEYS}
+        except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
+            raise InputError(f"depth maps file {p}: not a readable .npz ({exc})") from None
+        try:
+            settings = json.loads(str(data.pop("settings")))
+        except json.JSONDecodeError as exc:
+            raise InputError(f"depth maps file {p}: settings are not JSON ({exc})") from None
+        return cls(settings=settings, **data)

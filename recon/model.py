@@ -1,0 +1,544 @@
+"""Forward model of the seed paper (Shin, Shapiro, Goyal 2015, eqs. 1-7): binning, pulse kernel, and
+the settings of a reconstruction.
+
+The paper's matrix ``A = [S, 1]`` is never built. ``S`` is shift-invariant: column ``i`` (a return
+whose pulse centroid sits at the centre of bin ``i``) holds ``g[k - i]`` in row ``k``, where ``g`` is
+the pulse integrated over one bin (eq. 5 with ``epsilon = Delta``, so N = M as in the paper's
+experiments). :class:`PulseKernel` keeps ``g`` as a short 1-D table plus the few precomputed
+quantities the estimators need (column sums ``S_i^T 1``, column inner products ``S_i^T S_j`` via
+prefix sums, a finely sampled copy for sub-bin shifts, and ``log g`` for the log-matched filter).
+
+Times: raw units are multiples of ``time_unit_s`` (the time tagger's resolution); a pixel's detection
+times are in raw units after the laser sync. SI seconds everywhere else.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.special import log_ndtr, ndtr
+
+from recon.errors import InputError
+
+#: Relative level below which the pulse is treated as zero (kernel truncation for uos/ml). The
+#: truncated tail carries less than ~1e-10 of the pulse energy for a Gaussian.
+KERNEL_TAIL_REL = 1e-10
+#: Sub-bin steps per bin of the fine kernel table used for the ml estimator's sub-bin refinement.
+FINE_STEPS = 8
+
+
+@dataclass(frozen=True)
+class Binning:
+    """How detection times become histogram bins.
+
+    time_unit_s:  size of one raw time unit in seconds (e.g. 8e-12).
+    window_start: first time kept, raw units, inclusive.
+    window_stop:  end of the window, raw units, exclusive.
+    bin_width:    bin width, raw units. Bin ``k`` covers
+                  ``[window_start + k*bin_width, window_start + (k+1)*bin_width)``; there are
+                  ``ceil((window_stop - window_start) / bin_width)`` bins (a last partial bin counts
+                  as a full one, so the paper's [2000, 6005) window of 5-unit bins gives 801 bins).
+
+    Detections outside ``[window_start, window_stop)`` are dropped (``bin_index`` gives -1), never
+    clamped into the edge bins.
+    """
+
+    time_unit_s: float
+    window_start: float
+    window_stop: float
+    bin_width: float
+
+    def __post_init__(self) -> None:
+        for name in ("time_unit_s", "window_start", "window_stop", "bin_width"):
+            v = getattr(self, name)
+            if not isinstance(v, (int, float, np.integer, np.floating)) or not math.isfinite(v):
+                raise InputError(f"binning {name} must be a finite number, got {v!r}")
+            object.__setattr__(self, name, float(v))
+        if self.time_unit_s <= 0:
+            raise InputError(f"binning time_unit_s must be positive, got {self.time_unit_s}")
+        if self.bin_width <= 0:
+            raise InputError(f"binning bin_width must be positive, got {self.bin_width}")
+        if not self.window_stop > self.window_start:
+            raise InputError(f"binning window [{self.window_start}, {self.window_stop}) holds no bin: "
+                             "stop must exceed start")
+        if self.n_bins > 1_000_000:
+            raise InputError(f"binning gives {self.n_bins} bins (more than 1,000,000): widen bin_width")
+
+    @classmethod
+    def from_ps(cls, time_unit_ps: float, window_ps: tuple[float, float], bin_ps: float) -> "Binning":
+        """Binning from picoseconds: raw unit, (start, stop) window and bin width all in ps."""
+        if not (time_unit_ps > 0 and math.isfinite(time_unit_ps)):
+            raise InputError(f"time unit must be positive, got {time_unit_ps} ps")
+        try:
+            start_ps, stop_ps = (float(v) for v in window_ps)
+        except (TypeError, ValueError):
+            raise InputError(f"window must be (start_ps, stop_ps), got {window_ps!r}") from None
+        return cls(time_unit_ps * 1e-12, start_ps / time_unit_ps, stop_ps / time_unit_ps,
+                   bin_ps / time_unit_ps)
+
+    @property
+    def n_bins(self) -> int:
+        # tolerance so a window that is a whole number of bins in ps does not gain a sliver bin
+        return max(1, int(math.ceil((self.window_stop - self.window_start) / self.bin_width - 1e-9)))
+
+    @property
+    def bin_width_s(self) -> float:
+        return self.bin_width * self.time_unit_s
+
+    @property
+    def window_start_s(self) -> float:
+        return self.window_start * self.time_unit_s
+
+    @property
+    def window_stop_s(self) -> float:
+        return self.window_stop * self.time_unit_s
+
+    def bin_index(self, times) -> np.ndarray:
+        """Bin of each time (raw units), int64, -1 outside ``[window_start, window_stop)``."""
+        t = np.asarray(times, dtype=np.float64)
+        inside = (t >= self.window_start) & (t < self.window_stop)
+        k = np.floor((t - self.window_start) / self.bin_width)
+        # floating rounding at the stop edge must not create bin n_bins
+        k = np.minimum(k, self.n_bins - 1)
+        return np.where(inside, k, -1).astype(np.int64)
+
+    def shift_to_time_s(self, shift) -> np.ndarray:
+        """Time (s) of the pulse centroid for a (fractional) shift in bins: centre of bin ``shift``."""
+        return (self.window_start + (np.asarray(shift, dtype=np.float64) + 0.5) * self.bin_width) \
+            * self.time_unit_s
+
+    def to_dict(self) -> dict:
+        return {"time_unit_s": self.time_unit_s, "window_start": self.window_start,
+                "window_stop": self.window_stop, "bin_width": self.bin_width, "n_bins": self.n_bins}
+
+
+@dataclass(frozen=True)
+class Irf:
+    """A measured instrument response: the pulse shape as detected (laser, detector jitter, tagger).
+
+    times_s: sample times, seconds, strictly increasing, evenly or unevenly spaced.
+    counts:  counts (or any non-negative weights) per sample; only the shape matters.
+    source:  where it came from (file name), for the record.
+
+    The pulse's reference point is its centroid: a return reported at ``tof_s`` has its detected
+    pulse centroid at ``tof_s`` (the IRF's own time origin does not matter).
+    """
+
+    times_s: tuple
+    counts: tuple
+    source: str = ""
+
+    def __post_init__(self) -> None:
+        t = np.asarray(self.times_s, dtype=np.float64).ravel()
+        c = np.asarray(self.counts, dtype=np.float64).ravel()
+        where = f"IRF {self.source}" if self.source else "IRF"
+        if t.size != c.size:
+            raise InputError(f"{where}: {t.size} times but {c.size} counts")
+        if t.size < 2:
+            raise InputError(f"{where}: needs at least 2 samples, got {t.size}")
+        if not np.all(np.isfinite(t)) or not np.all(np.isfinite(c)):
+            raise InputError(f"{where}: contains NaN or infinite values")
+        if np.any(c < 0):
+            raise InputError(f"{where}: negative counts (first at sample {int(np.argmax(c < 0))})")
+        if np.any(np.diff(t) <= 0):
+            raise InputError(f"{where}: times must be strictly increasing")
+        if not c.sum() > 0:
+            raise InputError(f"{where}: all counts are zero")
+        object.__setattr__(self, "times_s", tuple(float(v) for v in t))
+        object.__setattr__(self, "counts", tuple(float(v) for v in c))
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        return np.asarray(self.times_s), np.asarray(self.counts)
+
+    @property
+    def rms_s(self) -> float:
+        t, c = self.arrays()
+        mean = np.sum(t * c) / c.sum()
+        return float(np.sqrt(np.sum(c * (t - mean) ** 2) / c.sum()))
+
+    def to_dict(self) -> dict:
+        return {"times_s": list(self.times_s), "counts": list(self.counts), "source": self.source}
+
+
+def load_irf(path) -> Irf:
+    """Read a measured instrument response.
+
+    Accepted: a text/CSV file with two columns, time in ps and counts (comma, tab or space separated;
+    lines starting with ``#`` and one header line of non-numbers are skipped), or a ``.npy`` array of
+    shape (n, 2) with the same columns. Raises InputError naming the file for anything else, NaN,
+    negative counts, non-increasing times or an all-zero response.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"IRF file {p} not found")
+    if p.suffix.lower() == ".npy":
+        try:
+            arr = np.load(p, allow_pickle=False)
+        except (ValueError, OSError, EOFError) as exc:
+            raise InputError(f"IRF file {p}: not a readable .npy array ({exc})") from None
+        arr = np.asarray(arr)
+        if arr.ndim != 2 or arr.shape[1] != 2 or not np.issubdtype(arr.dtype, np.number):
+            raise InputError(f"IRF file {p}: expected a numeric (n, 2) array of time ps, counts; "
+                             f"got shape {arr.shape} dtype {arr.dtype}")
+    else:
+        try:
+            text = p.read_text(encoding="utf-8")
+        except (UnicodeDecodeError, OSError) as exc:
+            raise InputError(f"IRF file {p}: not a text file ({exc})") from None
+        rows = []
+        header_seen = False
+        for lineno, line in enumerate(text.splitlines(), 1):
+            s = line.strip()
+            if not s or s.startswith("#"):
+                continue
+            parts = [q for q in s.replace(",", " ").replace(";", " ").replace("\t", " ").split() if q]
+            try:
+                vals = [float(q) for q in parts]
+            except ValueError:
+                if not rows and not header_seen:
+                    header_seen = True   # one header line such as "time_ps,counts"
+                    continue
+                raise InputError(f"IRF file {p}, line {lineno}: not numbers: {s[:60]!r}") from None
+            if len(vals) != 2:
+                raise InputError(f"IRF file {p}, line {lineno}: expected 2 columns (time ps, counts), "
+                                 f"got {len(vals)}")
+            rows.append(vals)
+        if not rows:
+            raise InputError(f"IRF file {p}: no data rows")
+        arr = np.asarray(rows, dtype=np.float64)
+    arr = arr.astype(np.float64)
+    if not np.all(np.isfinite(arr)):
+        raise InputError(f"IRF file {p}: contains NaN or infinite values")
+    return Irf(tuple(arr[:, 0] * 1e-12), tuple(arr[:, 1]), source=str(p))
+
+
+METHODS = ("lmf", "uos", "ml")
+
+
+@dataclass(frozen=True)
+class ReconSettings:
+    """Everything a reconstruction depends on; saved with every result (``to_dict``).
+
+    method:         "lmf" (log-matched filter, eq. 11), "uos" (Algorithm 1; with ``reflectors`` K > 1
+                    its K-sparse generalization) or "ml" (exact pixelwise Poisson ML of eq. 9).
+    binning:        None derives it from the data: window = [min, max] of all detection times
+                    (stop just past the max), bin width = pulse RMS / 9 rounded to whole raw units
+                    (the paper's 360 ps / 40 ps ratio), widened if needed to keep at most 4096 bins.
+    pulse_rms_s:    Gaussian pulse RMS width, seconds. With ``irf`` also None it is estimated from the
+                    data (within-pixel pairwise time differences, see ``estimate_pulse_rms_s``).
+    irf:            a measured instrument response (:class:`Irf`, see :func:`load_irf`) instead of a
+                    Gaussian.
+    max_photons:    use only the first N in-window detections of each pixel (None: all).
+    reflectors:     K returns per pixel (uos only for K > 1).
+    delta:          uos stopping threshold on ``||x_k - x_{k-1}||^2`` (paper: 1e-4, with the pulse
+                    columns scaled to peak 1 as in the published code).
+    max_iterations: uos iteration cap (paper: 10).
+    """
+
+    method: str = "uos"
+    binning: Binning | None = None
+    pulse_rms_s: float | None = None
+    irf: Irf | None = None
+    max_photons: int | None = None
+    reflectors: int = 1
+    delta: float = 1e-4
+    max_iterations: int = 10
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise InputError(f"method must be one of {', '.join(METHODS)}, got {self.method!r}")
+        if self.pulse_rms_s is not None:
+            if not (isinstance(self.pulse_rms_s, (int, float, np.floating)) and math.isfinite(self.pulse_rms_s)
+                    and self.pulse_rms_s > 0):
+                raise InputError(f"pulse_rms_s must be a positive number of seconds, got {self.pulse_rms_s!r}")
+            object.__setattr__(self, "pulse_rms_s", float(self.pulse_rms_s))
+        if self.irf is not None and not isinstance(self.irf, Irf):
+            try:
+                t, c = self.irf
+            except (TypeError, ValueError):
+                raise InputError("irf must be an Irf or a (times_s, counts) pair") from None
+            object.__setattr__(self, "irf", Irf(tuple(np.ravel(t)), tuple(np.ravel(c))))
+        if self.irf is not None and self.pulse_rms_s is not None:
+            raise InputError("give either pulse_rms_s or irf, not both")
+        if self.max_photons is not None and (int(self.max_photons) != self.max_photons or self.max_photons < 1):
+            raise InputError(f"max_photons must be a positive integer, got {self.max_photons!r}")
+        if int(self.reflectors) != self.reflectors or not 1 <= self.reflectors <= 8:
+            raise InputError(f"reflectors must be an integer from 1 to 8, got {self.reflectors!r}")
+        if self.reflectors > 1 and self.method != "uos":
+            raise InputError(f"reflectors > 1 needs method 'uos' (its K-sparse pursuit), got {self.method!r}")
+        if not (math.isfinite(self.delta) and self.delta > 0):
+            raise InputError(f"delta must be positive, got {self.delta!r}")
+        if int(self.max_iterations) != self.max_iterations or self.max_iterations < 1:
+            raise InputError(f"max_iterations must be a positive integer, got {self.max_iterations!r}")
+
+    def to_dict(self) -> dict:
+        """JSON-serialisable copy (nested dicts and lists)."""
+        d = {"method": self.method,
+             "binning": None if self.binning is None else self.binning.to_dict(),
+             "pulse_rms_s": self.pulse_rms_s,
+             "irf": None if self.irf is None else self.irf.to_dict(),
+             "max_photons": self.max_photons, "reflectors": int(self.reflectors),
+             "delta": self.delta, "max_iterations": int(self.max_iterations)}
+        json.dumps(d)   # fail here, not when saving, if something is not serialisable
+        return d
+
+
+# ------------------------------------------------------------------------------------------------
+# Pulse kernel
+
+
+@dataclass(frozen=True, eq=False)
+class PulseKernel:
+    """The pulse integrated over bins, with the tables the estimators need. Shapes: M = n_bins.
+
+    g:          float64 (L0 + L1 + 1,): unit-area pulse integrated over a bin, ``g[d + L0]`` for a
+                photon ``d`` bins after the shift (d in [-L0, L1]); zero outside (truncated where the
+                pulse is below KERNEL_TAIL_REL of its peak, and to |d| < M).
+    off:        L0.
+    gmax:       max(g); the uos columns are ``g / gmax`` (peak 1, as in the published code).
+    colsum:     float64 (M,): ``S_i^T 1 = sum_k g[k - i]`` over the window's bins.
+    pp:         float64 (2M-1, len(g)+1): prefix sums of ``g[m] g[m - d]`` over m, row ``d + M - 1``,
+                so ``S_i^T S_j`` is a difference of two entries (see kernels.col_dot).
+    dg:         float64 like g: d g(x)/dx at integer x (for the Fisher information), per bin.
+    fine:       float64: g at offsets ``x = j / FINE_STEPS - L0`` (fractional shifts).
+    fine_colsum:float64 ((M-1)*FINE_STEPS + 1,): column sums at fractional shifts q / FINE_STEPS.
+    logg:       float64 (2M-1,): log(g / gmax) at offsets d in [-(M-1), M-1] (index d + M - 1), for
+                the log-matched filter; exact tails for a Gaussian, floored at the smallest finite
+                value for a measured IRF (the published code's convention).
+    log_concave:True when ``logg`` is concave (its argmax can be found by hill climbing).
+    rms_bins:   the pulse RMS width in bins.
+    """
+
+    g: np.ndarray
+    off: int
+    gmax: float
+    colsum: np.ndarray
+    pp: np.ndarray
+    dg: np.ndarray
+    fine: np.ndarray
+    fine_colsum: np.ndarray
+    logg: np.ndarray
+    log_concave: bool
+    rms_bins: float
+    n_bins: int
+    info: dict = field(default_factory=dict)
+
+
+def _gaussian_cdf(sigma_bins: float):
+    return lambda x: ndtr(np.asarray(x, dtype=np.float64) / sigma_bins)
+
+
+def _irf_cdf(irf: Irf, bin_width_s: float):
+    """CDF of the IRF (unit area, centred on its centroid) as a function of time in bins. Each sample
+    spreads its counts evenly over the half-way points to its neighbours."""
+    t, c = irf.arrays()
+    edges = np.empty(t.size + 1)
+    edges[1:-1] = 0.5 * (t[1:] + t[:-1])
+    edges[0] = t[0] - 0.5 * (t[1] - t[0])
+    edges[-1] = t[-1] + 0.5 * (t[-1] - t[-2])
+    p = c / c.sum()
+    centroid = np.sum(p * 0.5 * (edges[1:] + edges[:-1]))
+    e_bins = (edges - centroid) / bin_width_s
+    cdf = np.concatenate(([0.0], np.cumsum(p)))
+    cdf[-1] = 1.0
+    return lambda x: np.interp(np.asarray(x, dtype=np.float64), e_bins, cdf, left=0.0, right=1.0), \
+        (float(e_bins[0]), float(e_bins[-1]))
+
+
+def build_kernel(binning: Binning, pulse_rms_s: float | None = None, irf: Irf | None = None) -> PulseKernel:
+    """Tables of the bin-integrated pulse for this binning (see :class:`PulseKernel`)."""
+    m = binning.n_bins
+    w_s = binning.bin_width_s
+    if (pulse_rms_s is None) == (irf is None):
+        raise InputError("build_kernel needs exactly one of pulse_rms_s and irf")
+    if irf is None:
+        if not (pulse_rms_s > 0 and math.isfinite(pulse_rms_s)):
+            raise InputError(f"pulse RMS width must be positive, got {pulse_rms_s}")
+        sig = pulse_rms_s / w_s
+        cdf = _gaussian_cdf(sig)
+        reach = sig * math.sqrt(2 * math.log(1 / KERNEL_TAIL_REL)) + 1.0
+        lo_x, hi_x = -reach, reach
+        rms_bins = sig
+    else:
+        cdf, (lo_x, hi_x) = _irf_cdf(irf, w_s)
+        rms_bins = irf.rms_s / w_s
+        lo_x, hi_x = lo_x - 1.0, hi_x + 1.0
+    l0 = int(min(m - 1, math.ceil(-lo_x)))
+    l1 = int(min(m - 1, math.ceil(hi_x)))
+    d = np.arange(-l0, l1 + 1, dtype=np.float64)
+    g = cdf(d + 0.5) - cdf(d - 0.5)
+    gmax = float(g.max())
+    if not gmax > 0:
+        raise InputError("pulse kernel is zero on this binning")
+    g = np.where(g >= KERNEL_TAIL_REL * gmax, g, 0.0)
+    # trim zero ends so loops stay short, keeping the offset bookkeeping right
+    nz = np.flatnonzero(g)
+    a, b = int(nz[0]), int(nz[-1])
+    g = np.ascontiguousarray(g[a:b + 1])
+    l0 = l0 - a
+    d = d[a:b + 1]
+    nk = g.size
+
+    # fine table for sub-bin shifts: g(x) at x = j/FINE_STEPS - l0, j in [0, (nk-1)*FINE_STEPS]
+    xf = np.arange((nk - 1) * FINE_STEPS + 1) / FINE_STEPS - l0
+    fine = cdf(xf + 0.5) - cdf(xf - 0.5)
+    fine = np.where(fine >= KERNEL_TAIL_REL * gmax, fine, 0.0)
+    # derivative at integer offsets by central differences on the fine grid
+    h = 1.0 / FINE_STEPS
+    dg = (cdf(d + h + 0.5) - cdf(d + h - 0.5) - cdf(d - h + 0.5) + cdf(d - h - 0.5)) / (2 * h)
+
+    # column sums S_i^T 1 = sum_{m=-i}^{M-1-i} g[m]
+    csum = np.concatenate(([0.0], np.cumsum(g)))
+    i = np.arange(m)
+    lo_t = np.clip(-i + l0, 0, nk)
+    hi_t = np.clip(m - i + l0, 0, nk)
+    colsum = csum[hi_t] - csum[lo_t]
+    # fine column sums at shift tau = q / FINE_STEPS: sum_k g(k - tau) over k in the window
+    nq = (m - 1) * FINE_STEPS + 1
+    fine_colsum = np.empty(nq)
+    q = np.arange(nq)
+    for r in range(FINE_STEPS):
+        # shift tau = i + r/F: photon offset k - tau = (k - i) - r/F -> fine index (k-i+l0)*F - r
+        sel = q % FINE_STEPS == r
+        ii = q[sel] // FINE_STEPS
+        col = np.zeros(nk + 1)
+        # entries g((m') - r/F) for m' in [-l0, l1]: fine index (m'+l0)*F - r
+        idx = np.arange(nk) * FINE_STEPS - r
+        vals = np.where(idx >= 0, fine[np.clip(idx, 0, fine.size - 1)], 0.0)
+        # the value at m' = l1 + 1 (idx beyond) is ~0 by truncation
+        col[1:] = np.cumsum(vals)
+        lo_r = np.clip(-ii + l0, 0, nk)
+        hi_r = np.clip(m - ii + l0, 0, nk)
+        fine_colsum[sel] = col[hi_r] - col[lo_r]
+
+    # prefix sums of g[m] g[m-d] for d in [-(M-1), M-1]; only |d| < nk overlap
+    dmax = min(m - 1, nk - 1)
+    pp = np.zeros((2 * dmax + 1, nk + 1))
+    for dd in range(-dmax, dmax + 1):
+        prod = np.zeros(nk)
+        if dd >= 0:
+            prod[dd:] = g[dd:] * g[:nk - dd]
+        else:
+            prod[:nk + dd] = g[:nk + dd] * g[-dd:]
+        pp[dd + dmax, 1:] = np.cumsum(prod)
+
+    # log table for the log-matched filter over every offset a window can hold
+    dl = np.arange(-(m - 1), m, dtype=np.float64)
+    if irf is None:
+        sig = rms_bins
+        aa = (np.abs(dl) - 0.5) / sig
+        bb = (np.abs(dl) + 0.5) / sig
+        # log(Q(a) - Q(b)) with Q the upper tail, stable far out (no -inf for a Gaussian)
+        la = log_ndtr(-aa)
+        lb = log_ndtr(-bb)
+        with np.errstate(divide="ignore"):
+            logg = la + np.log1p(-np.exp(lb - la))
+        logg -= logg.max()
+    else:
+        gl = cdf(dl + 0.5) - cdf(dl - 0.5)
+        with np.errstate(divide="ignore"):
+            logg = np.log(gl / gl.max())
+        finite = np.isfinite(logg)
+        logg[~finite] = logg[finite].min()
+    d2 = logg[2:] - 2 * logg[1:-1] + logg[:-2]
+    log_concave = bool(np.all(d2 <= 1e-9 * np.maximum(1.0, np.abs(logg[1:-1]))))
+
+    return PulseKernel(g=g, off=int(l0), gmax=gmax, colsum=np.ascontiguousarray(colsum), pp=pp,
+                       dg=np.ascontiguousarray(dg), fine=np.ascontiguousarray(fine),
+                       fine_colsum=fine_colsum, logg=np.ascontiguousarray(logg),
+                       log_concave=log_concave, rms_bins=float(rms_bins), n_bins=m,
+                       info={"pulse": "gaussian" if irf is None else "irf",
+                             "pulse_rms_s": float(rms_bins * w_s)})
+
+
+# ------------------------------------------------------------------------------------------------
+# Pulse width from the data
+
+
+def estimate_pulse_rms_s(times: np.ndarray, offsets: np.ndarray, time_unit_s: float,
+                         max_per_pixel: int = 32) -> float:
+    """Estimate the Gaussian pulse RMS width (s) from the data alone.
+
+    Depth differs from pixel to pixel, so the aggregate histogram of detection times is broadened by
+    the scene; the differences between two detections of the *same* pixel are not. Signal-signal
+    pairs give a peak at 0 of RMS ``sqrt(2) * sigma``; pairs involving background give a broad,
+    slowly varying floor. We histogram within-pixel differences (first ``max_per_pixel`` detections
+    of each pixel), subtract a floor fitted (linear in |dt|) on a band outside the peak, take the
+    second moment of the peak within +-4 of its RMS widths (iterated, truncation-corrected) and
+    divide by sqrt(2). Raises InputError when the data hold no clear peak.
+    """
+    times = np.asarray(times, dtype=np.float64)
+    offsets = np.asarray(offsets, dtype=np.int64)
+    counts = np.minimum(np.diff(offsets), max_per_pixel)
+    if times.size == 0 or np.sum(counts * (counts - 1)) < 20:
+        raise InputError("cannot estimate the pulse width: too few pixels with two or more detections; "
+                         "give the pulse RMS width or an IRF")
+    # gather the first max_per_pixel times of each pixel and all pairwise differences
+    diffs = []
+    starts = offsets[:-1]
+    for j in range(1, max_per_pixel):
+        has = counts > j
+        if not np.any(has):
+            break
+        tj = times[starts[has] + j]
+        for i in range(j):
+            diffs.append(tj - times[starts[has] + i])
+    dt = np.abs(np.concatenate(diffs))
+    span = float(dt.max())
+    if not span > 0:
+        raise InputError("cannot estimate the pulse width: all detections of each pixel coincide")
+    # fine histogram of |dt| (raw units); step small against any plausible pulse
+    nh = 4096
+    step = span / nh
+    hist, _ = np.histogram(dt, bins=nh, range=(0.0, span + step))
+    centers = (np.arange(nh) + 0.5) * step
+    # initial width: half-width where the smoothed histogram falls to half its peak above the floor
+    smooth = np.convolve(hist, np.ones(5) / 5, mode="same")
+    floor0 = np.median(smooth[nh // 4:])
+    peak = smooth[:8].max()
+    if not peak > 3 * max(floor0, 1.0):
+        raise InputError("cannot estimate the pulse width: no peak of coincident detections in the data; "
+                         "give the pulse RMS width or an IRF")
+    half = np.flatnonzero(smooth < floor0 + 0.5 * (peak - floor0))
+    hw = centers[half[0]] if half.size else centers[nh // 8]
+    s_d = max(hw / 1.1774, 2 * step)       # RMS of the difference distribution (HWHM / 1.1774)
+    for _ in range(20):
+        core = centers < 4 * s_d
+        band = (centers >= 5 * s_d) & (centers < 10 * s_d)
+        if band.sum() < 3:
+            band = centers >= 4 * s_d
+        if band.sum() < 3:
+            raise InputError("cannot estimate the pulse width: peak spans the whole window")
+        coef = np.polyfit(centers[band], hist[band], 1)
+        net = hist[core] - np.polyval(coef, centers[core])
+        if not net.sum() > 0:
+            raise InputError("cannot estimate the pulse width: no signal above the background floor")
+        var = np.sum(net * centers[core] ** 2) / net.sum() - step ** 2 / 12
+        # a Gaussian truncated at 4 sigma keeps 0.9989 of its variance
+        new = math.sqrt(max(var, step ** 2) / 0.99893)
+        if abs(new - s_d) < 1e-4 * s_d:
+            s_d = new
+            break
+        s_d = new
+    # raw-unit quantization adds 1/12 unit^2 to each time, 2/12 to a difference
+    sigma_units = math.sqrt(max(s_d ** 2 / 2 - 1 / 12, (s_d ** 2 / 2) * 1e-4))
+    return float(sigma_units * time_unit_s)
+
+
+def default_binning(times: np.ndarray, time_unit_s: float, pulse_rms_s: float) -> Binning:
+    """Binning derived from the data (see ReconSettings.binning)."""
+    if times.size == 0:
+        raise InputError("cannot derive a binning from data without detections; give a binning")
+    lo = float(np.floor(times.min()))
+    hi = float(times.max())
+    width = max(1.0, round(pulse_rms_s / time_unit_s / 9.0))
+    span = hi - lo + width
+    if span / width > 4096:
+        width = float(math.ceil(span / 4096))
+    # stop one bin past the bin holding the latest detection, so it is inside [start, stop)
+    n = int(math.floor((hi - lo) / width)) + 1
+    return Binning(time_unit_s, lo, lo + n * width, width)
