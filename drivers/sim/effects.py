@@ -37,6 +37,9 @@ class Batch:
     def __len__(self) -> int:
         return int(self.sync.size)
 
+    def copy(self) -> "Batch":
+        return Batch(self.sync.copy(), self.t.copy(), self.origin.copy(), self.item.copy())
+
     def take(self, n: int) -> "Batch":
         return Batch(self.sync[:n], self.t[:n], self.origin[:n], self.item[:n])
 
@@ -136,13 +139,17 @@ class _Sequential(Effect):
 
     def __init__(self, period_s: float) -> None:
         self.period_s = float(period_s)
+        self._out: Batch | None = None
 
     def apply(self, rng, batch, state, sync_end, counting):
         n = len(batch)
         cap = n + int(n * 3 * self.ap_prob / (1 - self.ap_prob)) + PENDING_CAP + 64
         saved = state.copy()
         while True:
-            out = Batch.empty(cap)
+            # reuse the output buffer between calls: its contents are consumed before the next
+            if self._out is None or len(self._out) < cap:
+                self._out = Batch.empty(cap)
+            out = self._out
             n_out, counted = K.detector_kernel(
                 rng, batch.sync, batch.t, batch.origin, batch.item, self.period_s,
                 self.dead_s, self.ap_prob, self.ap_tau_s,
@@ -154,7 +161,7 @@ class _Sequential(Effect):
                 return out.take(n_out), int(counted)
             # an afterpulse cascade overflowed the guess: start again with room to spare
             state.restore(saved)
-            cap *= 2
+            cap = 2 * len(out)
 
 
 class DeadTime(_Sequential):

@@ -107,6 +107,7 @@ class PhotonWorld:
         seq = [e for e in self.effects if e.sequential]
         self._sequential = seq[0] if seq else None
         self._det = DetectorState()
+        self._scratch: Batch | None = None
         self._range_bins = s.range_bins
 
     # ------------------------------------------------------------------ internals
@@ -117,23 +118,32 @@ class PhotonWorld:
         return row * w + col
 
     def _base(self, pix: np.ndarray, start_sync: np.ndarray, n_sync: np.ndarray) -> Batch:
-        """Ideal detections of the listed pixels (equation (3)), sorted by (sync, t)."""
+        """Ideal detections of the listed pixels (equation (3)), sorted by (sync, t).
+
+        Written into a scratch buffer the world reuses (fresh memory costs more than generating
+        into it), so the result is only valid until the next call."""
         expected = float((self._lam[pix] * n_sync).sum())
-        cap = int(expected + 6.0 * math.sqrt(expected) + 64)
-        parts = []
+        need = int(expected + 6.0 * math.sqrt(expected) + 64)
+        if self._scratch is None or len(self._scratch) < need:
+            self._scratch = Batch.empty(max(need, 4096))
+        buf = self._scratch
+        n_tot = 0
         i, u = 0, 0.0
         kind, rms, cdf, t0, b = self._pulse
         while True:
-            out = Batch.empty(cap)
             n, i, u = K.generate_chain(self._rng, pix, start_sync, n_sync, i, u,
                                        self._sig_pp, self._tof_s, self._bg_pp, self._period_s,
                                        kind, rms, cdf, t0, b,
-                                       out.sync, out.t, out.origin, out.item)
-            parts.append(out.take(n))
+                                       buf.sync[n_tot:], buf.t[n_tot:], buf.origin[n_tot:],
+                                       buf.item[n_tot:])
+            n_tot += n
             if i >= pix.size:
                 break
-            cap = max(cap // 2, 1024)
-        batch = Batch.concat(parts)
+            bigger = Batch.empty(2 * len(buf))
+            for f in ("sync", "t", "origin", "item"):
+                getattr(bigger, f)[:n_tot] = getattr(buf, f)[:n_tot]
+            self._scratch = buf = bigger
+        batch = buf.take(n_tot)
         K.sort_within_sync(batch.sync, batch.t, batch.origin, batch.item)
         return batch
 
@@ -146,13 +156,15 @@ class PhotonWorld:
             return batch, -1
         return self._sequential.apply(self._rng, batch, self._det, sync_end, counting)
 
-    def _pack(self, batch: Batch, m_sync=None, m_bits=None):
-        """Batch (+ markers sorted by sync) -> (events, origin)."""
+    def _pack(self, batch: Batch, m_sync=None, m_bits=None, ev=None, origin=None):
+        """Batch (+ markers sorted by sync) -> (events, origin). Packs into the given arrays
+        (capacity len(batch) + markers) when passed, else into new ones; returns the filled part."""
         if m_sync is None:
             m_sync = np.zeros(0, np.int64)
             m_bits = np.zeros(0, np.uint8)
-        ev = np.empty(len(batch) + m_sync.size, EVENT_DTYPE)
-        origin = np.empty(ev.size, np.uint8)
+        if ev is None:
+            ev = np.empty(len(batch) + m_sync.size, EVENT_DTYPE)
+            origin = np.empty(ev.size, np.uint8)
         n = K.pack_events(batch.sync, batch.t, batch.origin, self.scene.resolution_s,
                           self._range_bins, self.scene.settings.channel, m_sync, m_bits,
                           ev["sync"], ev["dtime"], ev["channel"], ev["kind"], ev["marker"], origin)
@@ -242,7 +254,7 @@ class PhotonWorld:
                         batch = batch.take(cut)
                         reached_sync = int(batch.sync[-1])
                         got = need
-                parts.append(batch)
+                parts.append(batch.copy())
                 counted += got
                 done += chunk
                 if counted < n_target:
@@ -303,10 +315,16 @@ class PhotonWorld:
     def _raster_fixed(self, n_dwell, gap, start_sync, progress):
         h, w = self.scene.shape
         line_len = w * n_dwell + gap
-        # blocks of lines bound the memory of in-flight arrays at ~4M detections
+        # Blocks of ~1M detections keep the scratch buffers small and reused; the output is
+        # allocated once for the whole frame (fresh memory is the dearest part of the job).
         per_line = float(self._lam.reshape(h, w).sum(axis=1).mean() * n_dwell) + 1.0
-        lines_per_block = int(min(h, max(1, 4e6 // per_line)))
-        evs, origins = [], []
+        lines_per_block = int(min(h, max(1, 1e6 // per_line)))
+        expected = float(self._lam.sum() * n_dwell)
+        ap = self.scene.settings.afterpulse_prob if "afterpulsing" in self.scene.active_effects else 0.0
+        cap = int(expected * (1 + 2 * ap) + 6 * math.sqrt(expected) + h * (w + 2) + 1024)
+        ev = np.empty(cap, EVENT_DTYPE)
+        origin = np.empty(cap, np.uint8)
+        n_out = 0
         cols = np.arange(w, dtype=np.int64)
         with self._lock:
             self._det.start_at(start_sync)
@@ -325,12 +343,21 @@ class PhotonWorld:
                                               frame=(r == 0))
                     ms.append(a)
                     mb.append(b)
-                ev, origin = self._pack(batch, np.concatenate(ms), np.concatenate(mb))
-                evs.append(ev)
-                origins.append(origin)
+                m_sync, m_bits = np.concatenate(ms), np.concatenate(mb)
+                need = len(batch) + m_sync.size
+                if n_out + need > ev.size:
+                    grow = max(ev.size * 3 // 2, n_out + need)
+                    ev2 = np.empty(grow, EVENT_DTYPE)
+                    ev2[:n_out] = ev[:n_out]
+                    o2 = np.empty(grow, np.uint8)
+                    o2[:n_out] = origin[:n_out]
+                    ev, origin = ev2, o2
+                e, _ = self._pack(batch, m_sync, m_bits, ev[n_out:n_out + need],
+                                  origin[n_out:n_out + need])
+                n_out += e.size
                 if progress is not None:
                     progress(r1 * w, h * w)
-        return evs, origins
+        return [ev[:n_out]], [origin[:n_out]]
 
     def _raster_gated(self, n_target, limit_s, window, gap, start_sync, progress):
         h, w = self.scene.shape
