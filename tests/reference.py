@@ -1,0 +1,157 @@
+"""Plain NumPy reference implementations of the recon estimators: dense matrices, one pixel at a
+time, written to be read rather than to be fast. The kernels in ``recon.kernels`` are compared
+against these in tests/test_recon_kernels.py, and ``recon.bench`` times them side by side.
+
+Every function takes one pixel's histogram ``y`` (length M, counts per bin) and the dense matrices
+built by ``dense_s`` from a :class:`recon.model.PulseKernel`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def dense_s(kern) -> np.ndarray:
+    """S (M x M, unit-area columns): S[k, i] = g[k - i] for the truncated kernel table."""
+    m = kern.n_bins
+    k = np.arange(m)[:, None]
+    i = np.arange(m)[None, :]
+    idx = k - i + kern.off
+    ok = (idx >= 0) & (idx < kern.g.size)
+    return np.where(ok, kern.g[np.clip(idx, 0, kern.g.size - 1)], 0.0)
+
+
+def dense_logs(kern) -> np.ndarray:
+    """log S (M x M) of the log-matched filter, from the kernel's log table."""
+    m = kern.n_bins
+    d = np.arange(m)[:, None] - np.arange(m)[None, :]
+    return kern.logg[d + m - 1]
+
+
+def histogram(bins: np.ndarray, m: int) -> np.ndarray:
+    return np.bincount(np.asarray(bins, dtype=np.int64), minlength=m).astype(np.float64)
+
+
+def lmf(y: np.ndarray, log_s: np.ndarray) -> int:
+    """Eq. (11) as in the published code: argmax over shifts of sum_k y_k log S[k, i]."""
+    return int(np.argmax(log_s.T @ y))
+
+
+def uos(y: np.ndarray, a_mat: np.ndarray, delta: float = 1e-4, ite_max: int = 10):
+    """Algorithm 1, a direct port of the published MATLAB loop (COSAMP_UOS.m): A = [S/max, 1],
+    proxy A^T v, support = best proxy index + previous support + background column, pinv
+    least squares, keep the largest depth coefficient and the background, T_0, stop on
+    ||a_prev - a||^2 < delta. Returns (x_hat, iterations)."""
+    n = a_mat.shape[1]
+    a = np.zeros(n)
+    v = y.copy()
+    i = 0
+    for i in range(1, ite_max + 1):
+        a_prev = a
+        x_proxy = a_mat.T @ v
+        supp_now = int(np.argmax(x_proxy[:n - 1]))
+        supp_prev = np.flatnonzero(a[:n - 1])
+        supp_total = np.union1d(np.union1d([supp_now], supp_prev), [n - 1]).astype(int)
+        # MATLAB pinv tolerance: max(size(A)) * norm(A) * eps
+        sub = a_mat[:, supp_total]
+        b0 = np.linalg.pinv(sub, rcond=max(sub.shape) * np.finfo(float).eps) @ y
+        b = np.zeros(n)
+        b[supp_total] = b0
+        prune_ind = int(np.argmax(b[:n - 1]))
+        a = np.zeros(n)
+        a[prune_ind] = b[prune_ind]
+        a[n - 1] = b[n - 1]
+        a[a < 0] = 0
+        diff_norm = float(np.sum((a_prev - a) ** 2))
+        v = y - a_mat @ a
+        if diff_norm < delta:
+            break
+    return a, i
+
+
+def uos_k(y: np.ndarray, a_mat: np.ndarray, k: int, delta: float = 1e-4, ite_max: int = 10):
+    """The K-sparse generalization: the K largest proxy entries join the support, the K largest
+    depth coefficients are kept. Returns (x_hat, iterations)."""
+    n = a_mat.shape[1]
+    a = np.zeros(n)
+    v = y.copy()
+    i = 0
+    for i in range(1, ite_max + 1):
+        a_prev = a
+        x_proxy = a_mat.T @ v
+        supp_now = np.argsort(-x_proxy[:n - 1], kind="stable")[:k]
+        supp_total = np.union1d(np.union1d(supp_now, np.flatnonzero(a[:n - 1])), [n - 1]).astype(int)
+        sub = a_mat[:, supp_total]
+        b0 = np.linalg.pinv(sub, rcond=max(sub.shape) * np.finfo(float).eps) @ y
+        b = np.zeros(n)
+        b[supp_total] = b0
+        keep = np.argsort(-b[:n - 1], kind="stable")[:k]
+        a = np.zeros(n)
+        a[keep] = b[keep]
+        a[n - 1] = b[n - 1]
+        a[a < 0] = 0
+        diff_norm = float(np.sum((a_prev - a) ** 2))
+        v = y - a_mat @ a
+        if diff_norm < delta:
+            break
+    return a, i
+
+
+def poisson_profile(y: np.ndarray, s_mat: np.ndarray, iters: int = 4000):
+    """For every column i of S, max over a, B >= 0 of sum_k y_k log(a S_ki + B) - a sum_k S_ki - B M
+    (eq. 9 negated, constants dropped), by EM on all columns at once (monotone, slow, independent
+    of the kernels' Newton solver). Returns (loglik per column, a, B)."""
+    m = s_mat.shape[0]
+    nz = np.flatnonzero(y)
+    yk = y[nz]
+    sk = s_mat[nz, :]                       # (photon bins, shifts)
+    c = s_mat.sum(axis=0)
+    n = yk.sum()
+    a = np.full(s_mat.shape[1], 0.5 * n) / np.maximum(c, 1e-300)
+    b = np.full(s_mat.shape[1], 0.5 * n / m)
+    for _ in range(iters):
+        lam = a * sk + b
+        with np.errstate(invalid="ignore", divide="ignore"):
+            resp = np.where(lam > 0, a * sk / lam, 0.0)
+        sig = (yk[:, None] * resp).sum(axis=0)
+        a = sig / np.maximum(c, 1e-300)
+        b = (n - sig) / m
+    lam = a * sk + b
+    with np.errstate(divide="ignore"):
+        ll = (yk[:, None] * np.log(lam)).sum(axis=0) - a * c - b * m
+    return ll, a, b
+
+
+def ml_integer(y: np.ndarray, s_mat: np.ndarray):
+    """Global ML over integer shifts: (best shift, its log-likelihood, all log-likelihoods)."""
+    ll, a, b = poisson_profile(y, s_mat)
+    i = int(np.argmax(ll))
+    return i, ll[i], ll
+
+
+def s_at(kern, shift: float) -> np.ndarray:
+    """Column of S for a fractional shift (pulse centroid at bin ``shift``), from the fine table."""
+    from recon.model import FINE_STEPS
+    m = kern.n_bins
+    x = np.arange(m) - shift + kern.off
+    j = np.rint(x * FINE_STEPS).astype(np.int64)
+    ok = (j >= 0) & (j < kern.fine.size)
+    return np.where(ok, kern.fine[np.clip(j, 0, kern.fine.size - 1)], 0.0)
+
+
+def ml_refined(y: np.ndarray, kern, s_mat: np.ndarray):
+    """Global integer search, then the best of the fine shifts within one bin of it, then a
+    parabola through the fine neighbours (what the ml kernel does, in dense form)."""
+    from recon.model import FINE_STEPS
+    i, _, _ = ml_integer(y, s_mat)
+    qs = np.arange(-FINE_STEPS, FINE_STEPS + 1)
+    qs = qs[(i + qs / FINE_STEPS >= 0) & (i + qs / FINE_STEPS <= kern.n_bins - 1)]
+    cols = np.stack([s_at(kern, i + q / FINE_STEPS) for q in qs], axis=1)
+    ll, _, _ = poisson_profile(y, cols)
+    j = int(np.argmax(ll))
+    frac = 0.0
+    if 0 < j < len(qs) - 1:
+        den = ll[j - 1] - 2 * ll[j] + ll[j + 1]
+        if den < 0:
+            frac = float(np.clip(0.5 * (ll[j - 1] - ll[j + 1]) / den, -0.5, 0.5))
+    return i + (qs[j] + frac) / FINE_STEPS

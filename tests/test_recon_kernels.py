@@ -1,0 +1,140 @@
+"""The numba kernels against the plain NumPy references of tests/reference.py, pixel by pixel."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import reference as ref
+from recon import kernels as K
+from recon.estimate import reconstruct
+from recon.model import Binning, Irf, ReconSettings, build_kernel
+from recon.photons import PhotonStore
+
+M = 201
+BIN = Binning(8e-12, 0.0, M * 5.0, 5.0)
+RMS_S = 4 * 40e-12          # 4 bins: short kernel, dense references stay fast
+
+
+def random_pixels(rng, n_pix, k=15, sbr=5.0, m=M):
+    """Bin lists of n_pix pixels: a Gaussian return (RMS 4 bins) plus uniform background."""
+    lists = []
+    for _ in range(n_pix):
+        ns = rng.binomial(k, sbr / (1 + sbr))
+        c = rng.uniform(5, m - 5)
+        s = np.clip(np.floor(c + 4 * rng.standard_normal(ns) + 0.5), 0, m - 1)
+        b = rng.integers(0, m, k - ns)
+        lists.append(np.concatenate([s, b]).astype(np.int64))
+    return lists
+
+
+def csr(lists):
+    off = np.zeros(len(lists) + 1, np.int64)
+    off[1:] = np.cumsum([len(x) for x in lists])
+    return np.concatenate(lists).astype(np.int64), off
+
+
+@pytest.fixture(scope="module")
+def kern():
+    return build_kernel(BIN, pulse_rms_s=RMS_S)
+
+
+def test_dense_s_matches_kernel_tables(kern):
+    s = ref.dense_s(kern)
+    np.testing.assert_allclose(s.sum(axis=0), kern.colsum, rtol=1e-12, atol=1e-15)
+    for i, j in [(0, 0), (3, 5), (100, 97), (200, 199), (200, 200), (0, 30)]:
+        np.testing.assert_allclose(K.col_dot(i, j, M, kern.pp, kern.off, kern.g.size), s[:, i] @ s[:, j],
+                                   rtol=1e-10, atol=1e-15)
+
+
+def test_lmf_kernel_matches_reference(kern, rng):
+    lists = random_pixels(rng, 60)
+    bins, off = csr(lists)
+    out = np.empty(60, np.int64)
+    var = np.empty(60)
+    n = np.empty(60, np.int64)
+    log_s = ref.dense_logs(kern)
+    assert kern.log_concave
+    for concave in (True, False):    # the hill climb and the exhaustive scan agree with argmax
+        K.lmf_kernel(bins, off, M, kern.logg, concave, 15, out, var, n)
+        want = [ref.lmf(ref.histogram(b, M), log_s) for b in lists]
+        np.testing.assert_array_equal(out, want)
+    assert np.all(n == 15) and np.all(var > 0)
+
+
+def test_uos_kernel_matches_published_loop(kern, rng):
+    lists = random_pixels(rng, 80)
+    bins, off = csr(lists)
+    a_mat = np.hstack([ref.dense_s(kern) / kern.gmax, np.ones((M, 1))])
+    shp = (80, 1)
+    shift, amp, var = np.full(shp, np.nan), np.zeros(shp), np.zeros(shp)
+    bg, it, conv, n = np.zeros(80), np.zeros(80, np.int32), np.zeros(80, bool), np.zeros(80, np.int64)
+    K.uos_kernel(bins, off, M, kern.g, kern.off, kern.gmax, kern.colsum, kern.pp, kern.dg, 1, 1e-4, 10,
+                 8.0, 3.0, 15, shift, amp, bg, it, conv, var, n)
+    for p, b in enumerate(lists):
+        x, iters = ref.uos(ref.histogram(b, M), a_mat)
+        nz = np.flatnonzero(x[:M])
+        assert it[p] == iters
+        if nz.size:
+            assert shift[p, 0] == nz[0]
+            np.testing.assert_allclose(amp[p, 0] * kern.gmax, x[nz[0]], rtol=1e-8)
+        else:
+            assert np.isnan(shift[p, 0])
+        np.testing.assert_allclose(bg[p], x[M], rtol=1e-8, atol=1e-12)
+
+
+def test_uos_k_kernel_matches_reference_on_two_surfaces(kern, rng):
+    lists = []
+    for _ in range(12):
+        c1, c2 = rng.uniform(20, 80), rng.uniform(120, 180)
+        s1 = np.floor(c1 + 4 * rng.standard_normal(12) + 0.5)
+        s2 = np.floor(c2 + 4 * rng.standard_normal(10) + 0.5)
+        lists.append(np.concatenate([s1, s2, rng.integers(0, M, 3)]).astype(np.int64))
+    bins, off = csr(lists)
+    a_mat = np.hstack([ref.dense_s(kern) / kern.gmax, np.ones((M, 1))])
+    shp = (12, 2)
+    shift, amp, var = np.full(shp, np.nan), np.zeros(shp), np.zeros(shp)
+    bg, it, conv, n = np.zeros(12), np.zeros(12, np.int32), np.zeros(12, bool), np.zeros(12, np.int64)
+    K.uos_kernel(bins, off, M, kern.g, kern.off, kern.gmax, kern.colsum, kern.pp, kern.dg, 2, 1e-4, 10,
+                 8.0, 3.0, 30, shift, amp, bg, it, conv, var, n)
+    for p, b in enumerate(lists):
+        x, iters = ref.uos_k(ref.histogram(b, M), a_mat, 2)
+        want = np.sort(np.flatnonzero(x[:M]))
+        assert it[p] == iters
+        # both surfaces found, at the reference's shifts (no merge: they are far apart)
+        np.testing.assert_array_equal(shift[p], want)
+        assert np.all(np.isfinite(var[p]))
+
+
+def test_ml_kernel_global_integer_optimum_matches_reference(kern, rng):
+    lists = random_pixels(rng, 10, sbr=2.0)
+    bins, off = csr(lists)
+    s_mat = ref.dense_s(kern)
+    for p, b in enumerate(lists):
+        y = ref.histogram(b, M)
+        i_ref, ll_ref, ll_all = ref.ml_integer(y, s_mat)
+        tau_ref = ref.ml_refined(y, kern, s_mat)
+        st = PhotonStore.from_lists([b * 5.0 + 2.0], (1, 1), 8e-12)
+        r = reconstruct(st, ReconSettings(method="ml", binning=BIN, pulse_rms_s=RMS_S))
+        tau = (r.tof_s[0, 0] / 8e-12 / 5.0) - 0.5
+        # same global optimum (EM reference converges to 1e-6 nats: allow ties within that)
+        near = np.flatnonzero(ll_all >= ll_ref - 1e-5)
+        assert np.min(np.abs(near - tau)) <= 1.0
+        assert abs(tau - tau_ref) <= 1.0 / 8 + 1e-9
+        y_sum = y.sum()
+        assert r.signal[0, 0] + r.background[0, 0] * M == pytest.approx(y_sum, rel=1e-6)
+
+
+def test_irf_kernel_brute_force_lmf_matches_reference(rng, tmp_path):
+    # an asymmetric, not log-concave response (two lobes): the exhaustive LMF path
+    t_ps = np.arange(0, 2000, 8.0)
+    counts = np.exp(-0.5 * ((t_ps - 400) / 60) ** 2) + 0.3 * np.exp(-0.5 * ((t_ps - 900) / 80) ** 2)
+    irf = Irf(tuple(t_ps * 1e-12), tuple(counts))
+    kern = build_kernel(BIN, irf=irf)
+    assert not kern.log_concave
+    lists = random_pixels(rng, 30)
+    bins, off = csr(lists)
+    out, var, n = np.empty(30, np.int64), np.empty(30), np.empty(30, np.int64)
+    K.lmf_kernel(bins, off, M, kern.logg, kern.log_concave, 15, out, var, n)
+    log_s = ref.dense_logs(kern)
+    np.testing.assert_array_equal(out, [ref.lmf(ref.histogram(b, M), log_s) for b in lists])
