@@ -289,3 +289,45 @@ def pack_events(sync, t, origin, res_s, range_bins, channel, m_sync, m_bits,
         n += 1
         j += 1
     return n
+
+
+T3_OVERFLOW_PERIOD = 1024   # nsync:10 wraps every 1024 syncs
+
+
+@njit(cache=True, nogil=True)
+def encode_t3_generic(ev_sync, ev_dtime, ev_channel, ev_kind, ev_marker, marker_map, out):
+    """Events -> PicoQuant "Generic T3" 32-bit records (HydraHarp v2 / MultiHarp / TimeHarp 260):
+    special:1 | channel:6 | dtime:15 | nsync:10, MSB to LSB.
+
+    Photons: special 0, channel = detector channel, dtime, nsync = sync mod 1024. Markers:
+    special 1, channel = marker_map[bits] (the file's marker inputs), dtime 0. Sync overflows:
+    special 1, channel 63, nsync = number of 1024-sync periods passed (1..1023 per record).
+    ``out`` needs len(events) + sum of overflow records; returns records written, -1 when full.
+    """
+    n = 0
+    cap = out.size
+    hi = np.int64(0)
+    for i in range(ev_sync.size):
+        s = np.int64(ev_sync[i])
+        h = s // T3_OVERFLOW_PERIOD
+        while h > hi:
+            step = min(h - hi, 1023)
+            if n >= cap:
+                return -1
+            out[n] = (np.uint32(1) << np.uint32(31)) | (np.uint32(63) << np.uint32(25)) | np.uint32(step)
+            n += 1
+            hi += step
+        if n >= cap:
+            return -1
+        low = np.uint32(s - h * T3_OVERFLOW_PERIOD)
+        if ev_kind[i] == KIND_PHOTON:
+            out[n] = ((np.uint32(ev_channel[i]) & np.uint32(63)) << np.uint32(25)) | \
+                     ((np.uint32(ev_dtime[i]) & np.uint32(32767)) << np.uint32(10)) | low
+            n += 1
+        elif ev_kind[i] == KIND_MARKER:
+            ch = marker_map[ev_marker[i]]
+            if ch == 0:
+                continue
+            out[n] = (np.uint32(1) << np.uint32(31)) | (np.uint32(ch) << np.uint32(25)) | low
+            n += 1
+    return n

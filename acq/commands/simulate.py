@@ -1,0 +1,130 @@
+"""``spdepth simulate``: scan a simulated scene and write what the tagger would have recorded as
+a PicoQuant T3 image PTU file, with the truth beside it (FILE.truth.npz)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+from recon.errors import InputError
+
+HELP = "simulate a scan of a built-in or depth-image scene; write a T3 image PTU and its truth"
+
+SCENE_HELP = ("scene: bust, daylight, steps, tilted-plane, two-layer, or "
+              "file:PATH[,reflectivity=PATH][,scale=M_PER_UNIT][,offset=M] for a depth image "
+              "(.npy/.png/.tif; float images in metres, integer images in millimetres unless scale)")
+
+
+def _size(text: str) -> tuple[int, int]:
+    """'WxH' -> (H, W)."""
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"size must be WxH (e.g. 64x64), got {text!r}") from None
+    if w < 1 or h < 1:
+        raise argparse.ArgumentTypeError(f"size must be at least 1x1, got {text!r}")
+    return h, w
+
+
+def _positive(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not v > 0 or v == float("inf"):
+        raise argparse.ArgumentTypeError(f"must be positive and finite, got {text!r}")
+    return v
+
+
+def _non_negative(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not v >= 0 or v == float("inf"):
+        raise argparse.ArgumentTypeError(f"must be >= 0 and finite, got {text!r}")
+    return v
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--scene", required=True, help=SCENE_HELP)
+    parser.add_argument("--size", type=_size, default=None,
+                        help="WxH pixels (default 64x64; a depth image's own size for file:)")
+    parser.add_argument("--ppp", type=_positive, default=15.0,
+                        help="mean detections (signal + background) per pixel (default 15)")
+    parser.add_argument("--sbr", type=_positive, default=None,
+                        help="signal-to-background ratio (default the scene's: 10, daylight 0.05)")
+    parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    parser.add_argument("--out", required=True, type=Path, help="output FILE.ptu")
+    parser.add_argument("--dwell-us", type=_positive, default=1000.0,
+                        help="pixel dwell in microseconds the ppp refers to (default 1000)")
+    parser.add_argument("--effects", default="",
+                        help="comma list of effects to simulate: jitter, dead_time, afterpulsing "
+                             "(dead_time is added by itself when detections per pulse are not small)")
+    parser.add_argument("--jitter-ps", type=_non_negative, default=50.0,
+                        help="timing jitter RMS in ps, with --effects jitter (default 50)")
+    parser.add_argument("--dead-time-ns", type=_non_negative, default=50.0,
+                        help="detector dead time in ns, with --effects dead_time (default 50)")
+    parser.add_argument("--afterpulse-prob", type=_non_negative, default=0.01,
+                        help="afterpulse probability, with --effects afterpulsing (default 0.01)")
+    parser.add_argument("--dark-rate-hz", type=_non_negative, default=0.0,
+                        help="dark-count rate in Hz, part of the background (default 0)")
+    parser.add_argument("--pulse-rms-ps", type=_non_negative, default=360.0,
+                        help="Gaussian laser pulse RMS in ps (default 360)")
+    parser.add_argument("--resolution-ps", type=_positive, default=8.0,
+                        help="tagger bin width in ps (default 8)")
+    parser.add_argument("--period-ns", type=_positive, default=100.0,
+                        help="laser repetition period in ns (default 100 = 10 MHz)")
+
+
+def run(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from drivers.sim import PhotonWorld, load_scene
+    from drivers.sim.ptu_writer import write_ptu
+
+    out = Path(args.out)
+    if out.suffix.lower() != ".ptu":
+        raise InputError(f"--out {out}: the file name must end in .ptu")
+    if not out.parent.is_dir():
+        raise InputError(f"--out {out}: folder {out.parent} does not exist")
+    effects = tuple(e for e in args.effects.split(",") if e)
+    scene = load_scene(args.scene, args.size, ppp=args.ppp, sbr=args.sbr, effects=effects,
+                       dwell_s=args.dwell_us * 1e-6, jitter_rms_s=args.jitter_ps * 1e-12,
+                       dead_time_s=args.dead_time_ns * 1e-9, afterpulse_prob=args.afterpulse_prob,
+                       dark_rate_hz=args.dark_rate_hz, pulse_rms_s=args.pulse_rms_ps * 1e-12,
+                       resolution_s=args.resolution_ps * 1e-12, sync_period_s=args.period_ns * 1e-9)
+    s = scene.settings
+    if s.range_bins > 32768:
+        raise InputError(f"{s.range_bins} tagger bins per period do not fit T3 records "
+                         "(max 32768): raise --resolution-ps or lower --period-ns")
+    h, w = scene.shape
+    big = h * w >= 128 * 128
+    t0 = time.monotonic()
+
+    def progress(done: int, total: int) -> None:
+        print(f"\rsimulate: {done}/{total} pixels", end="", file=sys.stderr, flush=True)
+
+    world = PhotonWorld(scene, seed=args.seed)
+    events = world.raster(progress=progress if big else None)
+    if big:
+        print(file=sys.stderr)
+    n_photons = int(np.count_nonzero(events["kind"] == 0))
+    truth = scene.truth()
+    settings = dict(truth["settings"], seed=args.seed, n_photons=n_photons,
+                    pixel_order="row-major, left to right, fixed dwell",
+                    ptu_markers="line start=1, line stop=2, frame=3 (end of frame), pixel=4")
+    n_rec = write_ptu(out, events, (h, w), s.sync_period_s, s.resolution_s, s.dwell_s, s.range_bins,
+                      comment=f"spdepth simulate: scene {s.name}, {w}x{h}, ppp {s.ppp}, "
+                              f"sbr {s.sbr}, seed {args.seed}")
+    truth_path = out.with_name(out.stem + ".truth.npz")
+    np.savez_compressed(truth_path, depth_m=truth["depth_m"], tof_s=truth["tof_s"],
+                        reflectivity=truth["reflectivity"], occupancy=truth["occupancy"],
+                        signal=truth["signal"], background=truth["background"],
+                        settings=np.array(json.dumps(settings)))
+    print(f"simulate: {n_photons} detections, {n_rec} records -> {out}; truth -> {truth_path} "
+          f"({time.monotonic() - t0:.1f} s)", file=sys.stderr)
+    return 0
