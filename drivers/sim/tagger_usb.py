@@ -172,6 +172,20 @@ class TaggerFirmware:
     def resolution_s(self) -> float:
         return self.identity.base_resolution_s * 2 ** self.binning
 
+    @property
+    def start_sync(self) -> int:
+        """Rig sync at the last START (the tagger's sync 0)."""
+        return self._sync0
+
+    @property
+    def records_out(self) -> int:
+        """Records encoded since START (handed to the bulk endpoint or waiting for it)."""
+        return self._records_out
+
+    @property
+    def gap_pending(self) -> bool:
+        return self._gap is not None
+
     # ---- control requests ------------------------------------------------------------------------
     def control_in(self, request: int, value: int, index: int, length: int) -> bytes:
         if request == Request.GET_IDENTITY:
