@@ -249,6 +249,16 @@ def detector_kernel(rng, sync, t, origin, item, period_s, dead_s, ap_prob, ap_ta
     return n, counted
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _put_marker(n, sync, bits, ev_sync, ev_dtime, ev_channel, ev_kind, ev_marker, ev_origin):
+    ev_sync[n] = sync
+    ev_dtime[n] = 0
+    ev_channel[n] = 0
+    ev_kind[n] = KIND_MARKER
+    ev_marker[n] = bits
+    ev_origin[n] = ORIGIN_MARKER
+
+
 @njit(cache=True, nogil=True)
 def pack_events(sync, t, origin, res_s, range_bins, channel, m_sync, m_bits,
                 ev_sync, ev_dtime, ev_channel, ev_kind, ev_marker, ev_origin):
@@ -261,12 +271,8 @@ def pack_events(sync, t, origin, res_s, range_bins, channel, m_sync, m_bits,
     for i in range(sync.size):
         s = sync[i]
         while j < nm and m_sync[j] <= s:
-            ev_sync[n] = m_sync[j]
-            ev_dtime[n] = 0
-            ev_channel[n] = 0
-            ev_kind[n] = KIND_MARKER
-            ev_marker[n] = m_bits[j]
-            ev_origin[n] = ORIGIN_MARKER
+            _put_marker(n, m_sync[j], m_bits[j], ev_sync, ev_dtime, ev_channel, ev_kind,
+                        ev_marker, ev_origin)
             n += 1
             j += 1
         d = np.int64(t[i] / res_s)
@@ -280,12 +286,8 @@ def pack_events(sync, t, origin, res_s, range_bins, channel, m_sync, m_bits,
         ev_origin[n] = origin[i]
         n += 1
     while j < nm:
-        ev_sync[n] = m_sync[j]
-        ev_dtime[n] = 0
-        ev_channel[n] = 0
-        ev_kind[n] = KIND_MARKER
-        ev_marker[n] = m_bits[j]
-        ev_origin[n] = ORIGIN_MARKER
+        _put_marker(n, m_sync[j], m_bits[j], ev_sync, ev_dtime, ev_channel, ev_kind,
+                    ev_marker, ev_origin)
         n += 1
         j += 1
     return n
