@@ -187,3 +187,13 @@ def test_real_hydraharp_v2_ptu_matches_ptufile(shared_data):
     # and our encoder writes the same stream back (overflow records may be grouped differently)
     again = decode_t3(encode_t3(ours))
     np.testing.assert_array_equal(again, ours)
+
+
+def test_bench_prints_all_three_decoders(capsys):
+    from drivers.tagger.bench import bench
+
+    assert bench(["--records", "20000", "--repeat", "1"]) == 0
+    out = capsys.readouterr().out
+    for name in ("numba decode_t3", "NumPy vectorised", "ptufile decode_t3_records"):
+        assert name in out
+    assert bench.__module__ == "drivers.tagger.bench"

@@ -1,0 +1,36 @@
+"""The tagger contract against a real device: ``pytest tests/hil --tagger usb:VID:PID``.
+
+Marked ``hardware``: skipped unless ``--tagger`` names a device. The real unit must speak the
+protocol of docs/protocols.md ("TCSPC time tagger"); photons are optional (the stream checks hold
+with or without light on the detector)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))   # tests/ holds the shared contract
+from test_tagger_contract import TaggerContract  # noqa: E402
+
+from drivers.tagger import Tagger  # noqa: E402
+
+pytestmark = pytest.mark.hardware
+
+
+@pytest.fixture
+def tagger(request):
+    url = request.config.getoption("--tagger")
+    if not url:
+        pytest.skip("no real tagger named (--tagger usb:VID:PID)")
+    t = Tagger.open(url)
+    try:
+        t.stop()   # a previous run may have left it measuring
+        yield t
+    finally:
+        t.close()
+
+
+class TestRealTaggerContract(TaggerContract):
+    pass
