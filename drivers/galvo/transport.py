@@ -20,6 +20,13 @@ from .protocol import MAX_REPLY_BYTES, TERMINATOR
 
 log = logging.getLogger("spdepth.galvo.transport")
 
+try:
+    import termios
+    # pyserial lets termios.error (not an OSError) through from flush() on a hung-up tty.
+    _PORT_ERRORS: tuple = (serial.SerialException, OSError, termios.error)
+except ImportError:   # Windows
+    _PORT_ERRORS = (serial.SerialException, OSError)
+
 # URL handlers of the simulated devices (galvosim://) live in drivers.sim.
 if "drivers.sim" not in serial.protocol_handler_packages:
     serial.protocol_handler_packages.append("drivers.sim")
@@ -54,7 +61,7 @@ class SerialTransport:
             # cannot stretch one read past timeout_s.
             self._port = serial.serial_for_url(self.url, baudrate=self.baudrate, timeout=0.02,
                                                write_timeout=self.timeout_s)
-        except (serial.SerialException, OSError) as e:
+        except _PORT_ERRORS as e:
             raise ConnectionLostError(f"galvo port {self.url}: cannot open: {e}") from e
         self._rx.clear()
         log.debug("open %s", self.url)
@@ -79,7 +86,7 @@ class SerialTransport:
         if self._port is not None:
             try:
                 self._port.close()
-            except (serial.SerialException, OSError) as e:
+            except _PORT_ERRORS as e:
                 log.debug("close %s: %s", self.url, e)
         self._rx.clear()
 
@@ -91,7 +98,7 @@ class SerialTransport:
         try:
             self._port.write(line)
             self._port.flush()
-        except (serial.SerialException, OSError) as e:
+        except _PORT_ERRORS as e:
             raise ConnectionLostError(f"galvo port {self.url}: write failed: {e}") from e
 
     def read_line(self, timeout_s: float | None = None) -> bytes:
@@ -122,7 +129,7 @@ class SerialTransport:
                                          f"{self.timeout_s if timeout_s is None else timeout_s:g} s")
             try:
                 chunk = self._port.read(max(1, self._port.in_waiting))
-            except (serial.SerialException, OSError) as e:
+            except _PORT_ERRORS as e:
                 raise ConnectionLostError(f"galvo port {self.url}: read failed: {e}") from e
             if chunk:
                 self._rx += chunk
@@ -136,7 +143,7 @@ class SerialTransport:
         self._rx.clear()
         try:
             self._port.reset_input_buffer()
-        except (serial.SerialException, OSError) as e:
+        except _PORT_ERRORS as e:
             raise ConnectionLostError(f"galvo port {self.url}: {e}") from e
 
     def __repr__(self) -> str:

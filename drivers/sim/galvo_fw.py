@@ -206,6 +206,9 @@ class GalvoFirmware:
                 line = bytes(self._inbuf[:i])
                 del self._inbuf[:i + 1]
                 overlong, self._overlong = self._overlong, False
+                if len(line) + 1 > MAX_COMMAND_BYTES:
+                    # Treated like a line that streamed past the buffer: its tag is not trusted.
+                    overlong, line = True, b""
                 self._take_faults()
                 if generation != self._generation:
                     return   # unplugged just now: the rest of the input is lost with the link
@@ -338,7 +341,7 @@ class GalvoFirmware:
                 raise UnicodeDecodeError("ascii", raw, 0, len(raw), "control character")
         except UnicodeDecodeError:
             return self._error(None, ErrorCode.BAD_ARGUMENT, "non-ASCII or control bytes in line")
-        m = _TAG_RE.match(text)
+        m = None if overlong else _TAG_RE.match(text)
         if m:
             tag, text = int(m.group(1)), m.group(2)
             if tag > MAX_TAG:
@@ -681,6 +684,16 @@ class GalvoFirmware:
     @property
     def state(self) -> GalvoState:
         return self._state
+
+    def power_cycle(self) -> None:
+        """The controller loses power: the link drops (as ``unplug``), every setting, the error
+        queue and the scan counter return to power-on values."""
+        with self._lock:
+            self._abort_scan()
+            self.unplug()
+            self._errors.clear()
+            self._scan_id = 0
+            self._power_on()
 
     def wait_idle(self, timeout_s: float = 10.0) -> bool:
         """Block (real time) until no scan runs; False on timeout."""
