@@ -17,11 +17,14 @@ import numpy as np
 #: colour for pixels without an estimate (NaN): a mid grey, distinct from every colour of the maps
 NAN_COLOUR = "#9a9a9a"
 
-#: the panels of a standard sheet: (attribute of the maps object, title, unit, colour map)
-DEFAULT_PANELS: tuple[tuple[str, str, str, str], ...] = (
-    ("depth_m", "depth", "m", "turbo"),
-    ("background", "background", "detections per bin", "magma"),
-    ("photons", "detections used", "photons per pixel", "viridis"),
+#: the panels of a standard sheet: (attribute of the maps object, title, unit, colour map, limits).
+#: limits "dense": the shortest interval holding 75% of the pixels, so a scene in front of a far
+#: wall shows its own relief instead of spending the colours on the gap to the wall;
+#: "percentile": the 2nd to 98th percentile.
+DEFAULT_PANELS: tuple[tuple[str, str, str, str, str], ...] = (
+    ("depth_m", "depth", "m", "turbo", "dense"),
+    ("background", "background", "detections per bin", "magma", "percentile"),
+    ("photons", "detections used", "photons per pixel", "viridis", "percentile"),
 )
 
 
@@ -40,15 +43,29 @@ def robust_limits(values: np.ndarray, lower_pct: float = 2.0, upper_pct: float =
     return float(lo), float(hi)
 
 
+def dense_limits(values: np.ndarray, coverage: float = 0.75) -> tuple[float, float]:
+    """Colour limits: the shortest interval that holds ``coverage`` of the finite values (the
+    densest part of the map). Falls back to :func:`robust_limits` when that interval is empty."""
+    finite = np.sort(np.asarray(values, dtype=np.float64)[np.isfinite(values)], axis=None)
+    k = int(np.ceil(coverage * finite.size))
+    if finite.size < 2 or k < 2:
+        return robust_limits(values)
+    widths = finite[k - 1:] - finite[:finite.size - k + 1]
+    i = int(np.argmin(widths))
+    lo, hi = float(finite[i]), float(finite[i + k - 1])
+    return (lo, hi) if hi > lo else robust_limits(values)
+
+
 def render_maps_png(path: str | Path, maps, *, title: str | None = None,
-                    panels: Sequence[tuple[str, str, str, str]] = DEFAULT_PANELS,
+                    panels: Sequence[tuple[str, str, str, str, str]] = DEFAULT_PANELS,
                     dpi: int = 110) -> Path:
     """Write a PNG with one panel per map: image, colour bar with unit, title.
 
     maps:   any object with the panel attributes as 2-D arrays of equal shape (``DepthMaps`` has
             ``depth_m``, ``background``, ``photons``); a missing attribute raises AttributeError.
             (K, H, W) maps of K returns per pixel show their first return.
-    panels: ``(attribute, title, unit, colour map)`` for each panel.
+    panels: ``(attribute, title, unit, colour map, "dense" | "percentile")`` for each panel; values
+            beyond the colour limits saturate (the colour bar's pointed ends say so).
     Pixels that are NaN show in NAN_COLOUR, named under the panel when there are any.
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -66,15 +83,18 @@ def render_maps_png(path: str | Path, maps, *, title: str | None = None,
                  layout="constrained")
     FigureCanvasAgg(fig)
     axes = fig.subplots(1, len(panels), squeeze=False)[0]
-    for ax, arr, (attr, name, unit, cmap_name) in zip(axes, arrays, panels):
+    for ax, arr, (attr, name, unit, cmap_name, limits) in zip(axes, arrays, panels):
         cmap = matplotlib.colormaps[cmap_name].with_extremes(bad=NAN_COLOUR)
-        vmin, vmax = robust_limits(arr)
+        vmin, vmax = dense_limits(arr) if limits == "dense" else robust_limits(arr)
         im = ax.imshow(np.ma.masked_invalid(arr), cmap=cmap, vmin=vmin, vmax=vmax,
                        interpolation="nearest", origin="upper")
         ax.set_title(f"{name} ({unit})")
         ax.set_xlabel("column")
         ax.set_ylabel("row")
-        bar = fig.colorbar(im, ax=ax, shrink=0.85)
+        finite = arr[np.isfinite(arr)]
+        extend = {(False, False): "neither", (True, False): "min", (False, True): "max",
+                  (True, True): "both"}[(bool(np.any(finite < vmin)), bool(np.any(finite > vmax)))]
+        bar = fig.colorbar(im, ax=ax, shrink=0.85, extend=extend)
         bar.set_label(unit)
         n_nan = int(np.sum(~np.isfinite(arr)))
         if n_nan:

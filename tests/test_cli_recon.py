@@ -42,7 +42,7 @@ def test_recon_crop_writes_maps_png_and_json(face_crop, tmp_path, capsys, method
     summary = _last_json(captured.out)
     assert summary["pixels"] == 60 * 50 and summary["shape"] == [60, 50]
     assert summary["method"] == method and summary["read_s"] >= 0 and summary["recon_s"] >= 0
-    assert summary["window_ps"] == [16000, 48000] and summary["n_bins"] == 801
+    assert summary["window_ps"] == [16000, 48000] and summary["n_bins"] == 800  # 40 ps bins
     assert summary["pulse_rms_ps"] == pytest.approx(360)
     with np.load(out) as z:
         assert set(NPZ_KEYS) <= set(z.files)
@@ -68,7 +68,7 @@ def test_recon_human_output_and_defaults(face_crop, capsys):
 
 def test_recon_point_measurement_ptu(shared_data, tmp_path, capsys):
     png = tmp_path / "point.png"
-    code = main(["recon", str(shared_data / "ptu/hydraharp_v20_t3.ptu"), "--channel", "0",
+    code = main(["recon", str(shared_data / "ptu/hydraharp_v20_t3.ptu"), "--channel", "0", "--pulse-rms-ps", "200",
                  "--method", "ml", "--png", str(png), "--json"])
     captured = capsys.readouterr()
     assert code == 0, captured.err
