@@ -298,3 +298,25 @@ def test_fault_list_accepted_as_objects():
     with pytest.raises(Exception) as info:
         tagger.read_into(buf, 0.01)
     assert type(info.value).__name__ == "DeviceTimeoutError"
+
+
+def test_real_photon_world_stream_is_exact():
+    from drivers.sim import PhotonWorld, load_scene
+    from drivers.sim.galvo_fw import rig_world
+
+    rig = TapRig(rig_world(PhotonWorld(load_scene("steps", shape=(4, 4)), seed=3)))
+    backend = SimTaggerBackend(rig)
+    tagger = Tagger.open(DEFAULT_URL, backend=backend)
+    tagger.configure(TaggerSettings(binning=3))          # 8 ps, the scene's dtime unit
+    reader = tagger.reader(read_timeout_s=0.01).start()
+    wait_running(rig)
+    h, w = rig.world.shape
+    for r in range(h):
+        for c in range(w):
+            rig.set_mirror(*rig.fov.centre_deg(r, c, (h, w)))
+            rig.pulse_markers(Marker.PIXEL)
+            rig.count_gated_dwell(15, 1e-3)
+    events = drain(reader, backend)
+    want = to_device(rig.offered_events(), backend.firmware.start_sync)
+    assert np.count_nonzero(want["kind"] == EventKind.PHOTON) > 100
+    np.testing.assert_array_equal(events, want)
