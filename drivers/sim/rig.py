@@ -65,9 +65,12 @@ class SimRig:
     fov:   mirror angles that cover the scene.
     fifo_capacity_records: the tagger FIFO depth; events beyond it are dropped and counted as lost
            (HydraHarp 400: 2M records).
+    keep_truth: keep every dwell's (row, col, photon events) in ``truth`` so tests can check that
+           the decoded stream assigns each detection to the pixel that produced it.
     """
 
-    def __init__(self, world, fov: FieldOfView | None = None, fifo_capacity_records: int = 2 ** 21):
+    def __init__(self, world, fov: FieldOfView | None = None, fifo_capacity_records: int = 2 ** 21,
+                 keep_truth: bool = False):
         self.world = world
         self.fov = fov or FieldOfView()
         self.fifo_capacity_records = int(fifo_capacity_records)
@@ -81,6 +84,7 @@ class SimRig:
         self._lost_since_sync: int | None = None   # set while the FIFO is dropping records
         self._pending_lost = 0
         self.tagger_running = False
+        self.truth: list[tuple[int, int, np.ndarray]] | None = [] if keep_truth else None
 
     # ---- clock -------------------------------------------------------------------------------
     @property
@@ -132,7 +136,7 @@ class SimRig:
                 return 0, dwell_limit_s
             events, n_syncs = self.world.count_gated(pix[0], pix[1], int(n_target),
                                                      float(dwell_limit_s), self._sync)
-            return self._dwell_done(events, n_syncs)
+            return self._dwell_done(pix, events, n_syncs)
 
     def fixed_dwell(self, dwell_s: float) -> tuple[int, float]:
         """Hold the mirror for ``dwell_s``. Returns (detector pulses counted, elapsed seconds)."""
@@ -142,9 +146,11 @@ class SimRig:
                 self.wait(dwell_s)
                 return 0, dwell_s
             events, n_syncs = self.world.fixed_dwell(pix[0], pix[1], float(dwell_s), self._sync)
-            return self._dwell_done(events, n_syncs)
+            return self._dwell_done(pix, events, n_syncs)
 
-    def _dwell_done(self, events: np.ndarray, n_syncs: int) -> tuple[int, float]:
+    def _dwell_done(self, pix: tuple[int, int], events: np.ndarray, n_syncs: int) -> tuple[int, float]:
+        if self.truth is not None and self.tagger_running:
+            self.truth.append((pix[0], pix[1], events.copy()))
         self._push(events)
         self._sync += int(n_syncs)
         return int(events.size), n_syncs * self.world.sync_period_s
