@@ -303,6 +303,15 @@ def uos_kernel(bins, offsets, m, g, off, gmax, colsum, pp, dg, n_refl, delta, ma
     kk = n_refl
     inv_gmax = 1.0 / gmax
     inv_g2 = inv_gmax * inv_gmax
+    # full autocorrelation of g, lag index d + nk - 1
+    acorr = np.zeros(2 * nk - 1)
+    for d in range(-(nk - 1), nk):
+        acc = 0.0
+        for t in range(nk):
+            if 0 <= t - d < nk:
+                acc += g[t] * g[t - d]
+        acorr[d + nk - 1] = acc
+    grev = g[::-1].copy()
     for blk in prange(nblk):
         tmp = np.empty(max(maxn, 1), np.int64)
         kb = np.empty(max(maxn, 1), np.int64)
@@ -347,8 +356,9 @@ def uos_kernel(bins, offsets, m, g, off, gmax, colsum, pp, dg, n_refl, delta, ma
                 wu = kw[u] * inv_gmax
                 ilo = max(0, k - (nk - 1 - off))
                 ihi = min(m - 1, k + off)
+                sh = nk - 1 - k - off      # g[k - i + off] == grev[i + sh]: forward, vectorisable
                 for i in range(ilo, ihi + 1):
-                    cvec[i] += wu * g[k - i + off]
+                    cvec[i] += wu * grev[i + sh]
             ns = 0          # support size
             bg = 0.0
             it = 0
@@ -356,17 +366,65 @@ def uos_kernel(bins, offsets, m, g, off, gmax, colsum, pp, dg, n_refl, delta, ma
             while it < max_iter:
                 it += 1
                 # proxy A^T u = A^T y - A^T A x, via column sums and column inner products
-                for i in range(m):
+                if kk == 1 and (ns == 0 or (supp[0] - off >= 0 and supp[0] + (nk - 1 - off) < m)):
+                    # one fused pass: proxy and its argmax (first index among ties)
+                    bgc = bg * inv_gmax
+                    best = -np.inf
+                    bi = -1
+                    if ns == 0:
+                        for i in range(m):
+                            v = cvec[i] - bgc * colsum[i]
+                            if v > best:
+                                best = v
+                                bi = i
+                    else:
+                        j = supp[0]
+                        aj = amp[0] * inv_g2
+                        ilo = max(0, j - (nk - 1))
+                        ihi = min(m - 1, j + (nk - 1))
+                        for i in range(ilo):
+                            v = cvec[i] - bgc * colsum[i]
+                            if v > best:
+                                best = v
+                                bi = i
+                        for i in range(ilo, ihi + 1):
+                            v = cvec[i] - bgc * colsum[i] - aj * acorr[i - j + nk - 1]
+                            if v > best:
+                                best = v
+                                bi = i
+                        for i in range(ihi + 1, m):
+                            v = cvec[i] - bgc * colsum[i]
+                            if v > best:
+                                best = v
+                                bi = i
+                    newi[0] = bi
+                    fused = True
+                else:
+                    fused = False
+                for i in range(m if not fused else 0):
                     prox[i] = cvec[i] - bg * colsum[i] * inv_gmax
-                for s in range(ns):
+                for s in range(ns if not fused else 0):
                     j = supp[s]
                     aj = amp[s] * inv_g2
                     ilo = max(0, j - (nk - 1))
                     ihi = min(m - 1, j + (nk - 1))
-                    for i in range(ilo, ihi + 1):
-                        prox[i] -= aj * col_dot(i, j, m, pp, off, nk)
+                    if j - off >= 0 and j + (nk - 1 - off) < m:
+                        # column j lies inside the window: S_i^T S_j is the autocorrelation
+                        for i in range(ilo, ihi + 1):
+                            prox[i] -= aj * acorr[i - j + nk - 1]
+                    else:
+                        for i in range(ilo, ihi + 1):
+                            prox[i] -= aj * col_dot(i, j, m, pp, off, nk)
                 # the K largest proxy entries (first index among ties, like sort 'descend')
-                for r in range(kk):
+                if kk == 1 and not fused:
+                    best = -np.inf
+                    bi = -1
+                    for i in range(m):
+                        if prox[i] > best:
+                            best = prox[i]
+                            bi = i
+                    newi[0] = bi
+                for r in range(kk if kk > 1 else 0):
                     best = -np.inf
                     bi = -1
                     for i in range(m):
@@ -376,7 +434,7 @@ def uos_kernel(bins, offsets, m, g, off, gmax, colsum, pp, dg, n_refl, delta, ma
                     newi[r] = bi
                     if bi >= 0:
                         taken[bi] = True
-                for r in range(kk):
+                for r in range(kk if kk > 1 else 0):
                     if newi[r] >= 0:
                         taken[newi[r]] = False
                 # Omega = new U previous support (sorted, distinct) U {background}

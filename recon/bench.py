@@ -1,0 +1,161 @@
+"""Speed of the recon estimators, printed side by side with the plain NumPy references
+(tests/reference.py) in one run, at the paper's settings: 801 bins of 40 ps, Gaussian pulse RMS
+360 ps, 15 detections per pixel, SBR 10.
+
+Run as ``spdepth bench recon`` or ``python -m recon.bench``. The references live in the source
+checkout's tests/ folder (not installed); without it only the kernels are timed, and it says so.
+Ratios are what to read: other work on the machine moves absolute figures, not the side-by-side
+comparison made within one run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+M = 801
+UNIT_S = 8e-12
+BIN_UNITS = 5.0
+RMS_S = 360e-12
+
+
+def _load_reference():
+    path = Path(__file__).resolve().parents[1] / "tests" / "reference.py"
+    if not path.is_file():
+        return None, path
+    spec = importlib.util.spec_from_file_location("spdepth_tests_reference", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod, path
+
+
+def simulate(n_pix: int, seed: int, k: int = 15, sbr: float = 10.0):
+    """Per-pixel bin lists (CSR) of the paper's model: Gaussian return + uniform background."""
+    rng = np.random.default_rng(seed)
+    sig_bins = RMS_S / (UNIT_S * BIN_UNITS)
+    ns = rng.binomial(k, sbr / (1 + sbr), n_pix)
+    centre = rng.uniform(0.2 * M, 0.8 * M, n_pix)
+    sig = np.repeat(centre, ns) + sig_bins * rng.standard_normal(ns.sum())
+    is_sig = np.arange(k)[None, :] < ns[:, None]
+    t = rng.uniform(0, M, (n_pix, k))
+    t[is_sig] = sig
+    bins = np.clip(np.floor(t), 0, M - 1).astype(np.int64).ravel()
+    offsets = np.arange(n_pix + 1, dtype=np.int64) * k
+    return bins, offsets
+
+
+def _time(fn, min_s: float = 0.3) -> float:
+    """Seconds per call (best of repeated runs lasting at least min_s in total)."""
+    fn()
+    best = np.inf
+    total = 0.0
+    while total < min_s:
+        t0 = time.perf_counter()
+        fn()
+        dt = time.perf_counter() - t0
+        total += dt
+        best = min(best, dt)
+    return best
+
+
+def bench(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(prog="spdepth bench recon", description=__doc__.splitlines()[0])
+    parser.add_argument("--pixels", type=int, default=100_000, help="pixels per kernel run")
+    parser.add_argument("--ref-pixels", type=int, default=200, help="pixels per reference run (lmf, uos)")
+    parser.add_argument("--ml-ref-pixels", type=int, default=3, help="pixels for the ml reference (slow EM)")
+    parser.add_argument("--methods", default="lmf,uos,ml")
+    args = parser.parse_args(argv)
+
+    import numba
+
+    from recon import kernels as K
+    from recon.estimate import reconstruct
+    from recon.model import FINE_STEPS, Binning, ReconSettings, build_kernel
+    from recon.photons import PhotonStore
+
+    binning = Binning(UNIT_S, 2000.0, 2000.0 + M * BIN_UNITS, BIN_UNITS)
+    kern = build_kernel(binning, pulse_rms_s=RMS_S)
+    bins, offsets = simulate(args.pixels, seed=1)
+    n = args.pixels
+    ref, ref_path = _load_reference()
+
+    logg_int = np.full(kern.g.size, -np.inf)
+    logg_int[kern.g > 0] = np.log(kern.g[kern.g > 0])
+    above = np.flatnonzero(kern.g * M > kern.colsum.min())
+    dlo, dhi = int(above[0] - kern.off), int(above[-1] - kern.off)
+    log_colsum = np.log(kern.colsum)
+
+    def run_kernel(method, b, o):
+        p = o.size - 1
+        if method == "lmf":
+            K.lmf_kernel(b, o, M, kern.logg, kern.log_concave, 15, np.empty(p, np.int64), np.empty(p),
+                         np.empty(p, np.int64))
+        elif method == "uos":
+            K.uos_kernel(b, o, M, kern.g, kern.off, kern.gmax, kern.colsum, kern.pp, kern.dg, 1, 1e-4, 10,
+                         2 * kern.rms_bins, 3.0, 15, np.empty((p, 1)), np.empty((p, 1)), np.empty(p),
+                         np.empty(p, np.int32), np.empty(p, np.bool_), np.empty((p, 1)), np.empty(p, np.int64))
+        else:
+            K.ml_kernel(b, o, M, kern.g, kern.off, logg_int, dlo, dhi, kern.colsum, log_colsum, kern.fine,
+                        kern.fine_colsum, FINE_STEPS, kern.dg, 15, np.empty(p), np.empty(p), np.empty(p),
+                        np.empty(p), np.empty(p, np.int64))
+
+    def run_ref(method, b, o):
+        if method == "lmf":
+            log_s = ref.dense_logs(kern)
+            for p in range(o.size - 1):
+                ref.lmf(ref.histogram(b[o[p]:o[p + 1]], M), log_s)
+        elif method == "uos":
+            a_mat = np.hstack([ref.dense_s(kern) / kern.gmax, np.ones((M, 1))])
+            for p in range(o.size - 1):
+                ref.uos(ref.histogram(b[o[p]:o[p + 1]], M), a_mat)
+        else:
+            s_mat = ref.dense_s(kern)
+            for p in range(o.size - 1):
+                ref.ml_refined(ref.histogram(b[o[p]:o[p + 1]], M), kern, s_mat)
+
+    times_raw = (bins + 0.5) * BIN_UNITS + 2000.0
+    store = PhotonStore(times_raw, offsets, (1, n), UNIT_S)
+
+    print(f"recon estimators, {M} bins of {BIN_UNITS * UNIT_S * 1e12:.0f} ps, pulse RMS {RMS_S * 1e12:.0f} ps, "
+          "15 detections/pixel, SBR 10; pixels per second")
+    if ref is None:
+        print(f"(plain NumPy references not found at {ref_path}: run from a source checkout to compare)")
+    else:
+        print(f"(references: {ref_path})")
+    print(f"{'method':<6} {'kernel 1 thr':>13} {'kernel 2 thr':>13} {'speed-up':>9} "
+          f"{'reconstruct 1 thr':>18} {'reference':>11} {'kernel/ref':>11}")
+    old_threads = numba.get_num_threads()
+    try:
+        for method in args.methods.split(","):
+            rates = {}
+            for nt in (1, 2):
+                if nt > numba.config.NUMBA_NUM_THREADS:
+                    rates[nt] = np.nan
+                    continue
+                numba.set_num_threads(nt)
+                rates[nt] = n / _time(lambda: run_kernel(method, bins, offsets))
+            numba.set_num_threads(1)
+            settings = ReconSettings(method=method, binning=binning, pulse_rms_s=RMS_S)
+            full = n / _time(lambda: reconstruct(store, settings), min_s=0.1)
+            if ref is not None:
+                npr = args.ml_ref_pixels if method == "ml" else args.ref_pixels
+                o = offsets[:npr + 1]
+                t0 = time.perf_counter()
+                run_ref(method, bins, o)
+                ref_rate = npr / (time.perf_counter() - t0)
+            else:
+                ref_rate = np.nan
+            print(f"{method:<6} {rates[1]:13,.0f} {rates[2]:13,.0f} {rates[2] / rates[1]:8.2f}x "
+                  f"{full:18,.0f} {ref_rate:11,.1f} {rates[1] / ref_rate:10,.0f}x", flush=True)
+    finally:
+        numba.set_num_threads(old_threads)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(bench(sys.argv[1:]))
