@@ -38,8 +38,9 @@ def robust_limits(values: np.ndarray, lower_pct: float = 2.0, upper_pct: float =
         return 0.0, 1.0
     lo, hi = np.percentile(finite, [lower_pct, upper_pct])
     if not hi > lo:
+        # a constant map (e.g. background 0 everywhere): put the value at the bottom of the scale
         span = abs(lo) * 1e-3 or 1.0
-        lo, hi = lo - span, hi + span
+        lo, hi = (lo, lo + span) if lo == 0 else (lo - span, hi + span)
     return float(lo), float(hi)
 
 
