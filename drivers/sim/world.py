@@ -110,6 +110,16 @@ class PhotonWorld:
         self._scratch: Batch | None = None
         self._range_bins = s.range_bins
 
+    @property
+    def shape(self) -> tuple[int, int]:
+        """Scene pixels (H, W)."""
+        return self.scene.shape
+
+    @property
+    def sync_period_s(self) -> float:
+        """Laser repetition period, seconds."""
+        return self._period_s
+
     # ------------------------------------------------------------------ internals
     def _check_pixel(self, row: int, col: int) -> int:
         h, w = self.scene.shape
