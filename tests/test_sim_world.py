@@ -9,6 +9,8 @@ import time
 import numpy as np
 import pytest
 
+from acq.assign import PixelAssigner
+
 from drivers.events import EVENT_DTYPE, EventKind, Marker
 from drivers.sim import PhotonWorld, VirtualClock, load_scene, scene_names
 from drivers.sim.scene import C_M_PER_S
@@ -116,41 +118,22 @@ def test_seeded_reproducibility():
     assert np.array_equal(ga[0], ga[1])
 
 
-def _pixel_of_photons(ev, shape):
-    """Assign photons to pixels from the markers alone, like a stream decoder would."""
-    h, w = shape
-    row, col, in_line = -1, -1, False
-    pix = np.full(ev.size, -1)
-    for i, e in enumerate(ev):
-        if e["kind"] == EventKind.MARKER:
-            m = int(e["marker"])
-            if m & Marker.LINE_START:
-                row += 1
-                col = 0
-                in_line = True
-            if m & Marker.PIXEL:
-                col += 1
-            if m & Marker.LINE_STOP:
-                in_line = False
-        elif in_line:
-            pix[i] = row * w + col
-    return pix
-
-
 @pytest.mark.parametrize("n_target", [None, 12])
 def test_raster_markers(n_target):
     h, w = 6, 5
     scene = load_scene("steps", (h, w), ppp=20)
     ev, origin = PhotonWorld(scene, seed=9).raster(n_target=n_target, with_origin=True)
     mk = ev[ev["kind"] == EventKind.MARKER]
-    assert mk[0]["marker"] == Marker.FRAME
-    assert (mk["marker"] == Marker.FRAME).sum() == 1
-    assert (mk["marker"] == Marker.LINE_START).sum() == h
+    # the galvo's order (docs/protocols.md): [FRAME|]LINE_START|PIXEL, PIXEL..., LINE_STOP
+    first_pixel = Marker.LINE_START | Marker.PIXEL
+    assert mk[0]["marker"] == Marker.FRAME | first_pixel
+    assert (mk["marker"] & Marker.FRAME != 0).sum() == 1
+    assert (mk["marker"] & Marker.LINE_START != 0).sum() == h
     assert (mk["marker"] == Marker.LINE_STOP).sum() == h
-    assert (mk["marker"] == Marker.PIXEL).sum() == h * (w - 1)
+    assert (mk["marker"] & Marker.PIXEL != 0).sum() == h * w
     assert np.all(np.diff(ev["sync"].astype(np.int64)) >= 0)
     assert origin.size == ev.size
-    pix = _pixel_of_photons(ev, (h, w))
+    pix = PixelAssigner((h, w)).assign(ev)
     photons = ev["kind"] == EventKind.PHOTON
     assert np.all(pix[photons] >= 0)
     counts = np.bincount(pix[photons], minlength=h * w)

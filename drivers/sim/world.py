@@ -310,16 +310,16 @@ class PhotonWorld:
         return ev
 
     def _line_markers(self, line_start: int, pixel_starts: np.ndarray, line_stop: int, frame: bool):
+        """The marker pulses of one line, as the galvo controller drives them (docs/protocols.md):
+        ``[FRAME|]LINE_START|PIXEL`` at the first pixel, ``PIXEL`` at each later one, ``LINE_STOP``
+        after the last."""
         w = pixel_starts.size
-        m_sync = np.empty(w + 1 + frame, np.int64)
-        m_bits = np.empty(w + 1 + frame, np.uint8)
-        j = 0
-        if frame:
-            m_sync[0], m_bits[0] = line_start, Marker.FRAME
-            j = 1
-        m_sync[j], m_bits[j] = line_start, Marker.LINE_START
-        m_sync[j + 1:j + w], m_bits[j + 1:j + w] = pixel_starts[1:], Marker.PIXEL
-        m_sync[j + w], m_bits[j + w] = line_stop, Marker.LINE_STOP
+        m_sync = np.empty(w + 1, np.int64)
+        m_bits = np.empty(w + 1, np.uint8)
+        m_sync[0] = line_start
+        m_bits[0] = Marker.LINE_START | Marker.PIXEL | (Marker.FRAME if frame else 0)
+        m_sync[1:w], m_bits[1:w] = pixel_starts[1:], Marker.PIXEL
+        m_sync[w], m_bits[w] = line_stop, Marker.LINE_STOP
         return m_sync, m_bits
 
     def _raster_fixed(self, n_dwell, gap, start_sync, progress):
@@ -388,7 +388,7 @@ class PhotonWorld:
             mk = np.zeros(m_sync.size, EVENT_DTYPE)
             mk["sync"], mk["kind"], mk["marker"] = m_sync, K.KIND_MARKER, m_bits
             mo = np.full(m_sync.size, K.ORIGIN_MARKER, np.uint8)
-            j0 = 2 if r == 0 else 1     # FRAME + LINE_START, or LINE_START
+            j0 = 1     # [FRAME|]LINE_START|PIXEL opens the line's first pixel
             pieces.append(mk[:j0])
             opieces.append(mo[:j0])
             for c in range(w):
