@@ -178,7 +178,7 @@ def test_pixel_log_overrun_is_reported(make_bench):
 def test_end_to_end_with_the_photon_world():
     from drivers.sim import PhotonWorld, load_scene
 
-    rig = SimRig(galvo_fw.rig_world(PhotonWorld(load_scene("bust", shape=(6, 6)), seed=1)))
+    rig = SimRig(PhotonWorld(load_scene("bust", shape=(6, 6)), seed=1))
     galvo_fw.register_rig("e2e-rig", rig)
     try:
         with Galvo.open("galvosim://e2e?rig=e2e-rig") as g:
@@ -202,7 +202,7 @@ def test_url_builds_a_scene_and_rejects_bad_options():
     with Galvo.open("galvosim://scene-dev?scene=steps&size=4x5&seed=3&serial=SN42") as g:
         assert g.identity.serial == "SN42"
         fw = galvo_fw.device_for_url("galvosim://scene-dev")
-        assert fw.rig.world.shape == (4, 5)
+        assert fw.rig.world.shape == (5, 4)   # size is width x height
     galvo_fw.unregister("scene-dev")
     for url, words in [("galvosim://x?colour=red", "unknown options"),
                        ("galvosim://x?rig=nope", "no rig registered"),

@@ -302,9 +302,8 @@ def test_fault_list_accepted_as_objects():
 
 def test_real_photon_world_stream_is_exact():
     from drivers.sim import PhotonWorld, load_scene
-    from drivers.sim.galvo_fw import rig_world
 
-    rig = TapRig(rig_world(PhotonWorld(load_scene("steps", shape=(4, 4)), seed=3)))
+    rig = TapRig(PhotonWorld(load_scene("steps", shape=(4, 4)), seed=3))
     backend = SimTaggerBackend(rig)
     tagger = Tagger.open(DEFAULT_URL, backend=backend)
     tagger.configure(TaggerSettings(binning=3))          # 8 ps, the scene's dtime unit

@@ -799,28 +799,7 @@ def _rig_from_scene(opts: dict, url: str, num):
     size = opts.get("size", "32x32")
     m = re.fullmatch(r"(\d+)x(\d+)", size)
     if m is None:
-        raise InputError(f"galvosim URL {url!r}: size={size!r} is not like 32x32 (rows x cols)")
-    shape = (int(m.group(1)), int(m.group(2)))
+        raise InputError(f"galvosim URL {url!r}: size={size!r} is not like 32x32 (width x height)")
+    shape = (int(m.group(2)), int(m.group(1)))
     scene = load_scene(opts.get("scene", "bust"), shape=shape)
-    return SimRig(rig_world(PhotonWorld(scene, seed=num("seed", 0, int))))
-
-
-class _WorldView:
-    """A PhotonWorld seen through the attributes SimRig reads (``shape``, ``sync_period_s``),
-    taken from its scene when the world does not carry them itself."""
-
-    def __init__(self, world):
-        self._world = world
-        self.shape = tuple(world.scene.shape)
-        self.sync_period_s = float(world.scene.sync_period_s)
-
-    def __getattr__(self, name):
-        return getattr(self._world, name)
-
-
-def rig_world(world):
-    """``world`` itself if SimRig can use it as it is, else a view that adds ``shape`` and
-    ``sync_period_s`` from ``world.scene``."""
-    if hasattr(world, "shape") and hasattr(world, "sync_period_s"):
-        return world
-    return _WorldView(world)
+    return SimRig(PhotonWorld(scene, seed=num("seed", 0, int)))
