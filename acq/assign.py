@@ -24,8 +24,8 @@ from recon.errors import InputError
 UNASSIGNED = -1
 
 # state vector layout (int64): frame, row, visit (column in visiting order), pixel open (0/1),
-# position known (0/1)
-_FRAME, _ROW, _VISIT, _OPEN, _KNOWN = range(5)
+# position known (0/1), lines closed (LINE_STOP markers seen)
+_FRAME, _ROW, _VISIT, _OPEN, _KNOWN, _LINES_CLOSED = range(6)
 
 
 @njit(cache=True, nogil=True)
@@ -53,6 +53,7 @@ def _assign_kernel(sync, kind, marker, height, width, serpentine, state, pixel_o
                 state[3] = 1
             if m & 4:  # LINE_STOP
                 state[3] = 0
+                state[5] += 1
         elif k == 0:  # PHOTON
             if state[3] == 1 and state[4] == 1:
                 row = state[1]
@@ -106,12 +107,17 @@ class PixelAssigner:
         # Before the first FRAME marker the position is known only if the stream starts at a
         # scan start: a stream without FRAME markers (one-frame scans of some controllers)
         # still works because LINE_START counts rows from -1.
-        self._state = np.array([-1, -1, -1, 0, 1], dtype=np.int64)
+        self._state = np.array([-1, -1, -1, 0, 1, 0], dtype=np.int64)
 
     @property
     def frame(self) -> int:
         """Frames started so far, minus one (0 during the first frame)."""
         return int(self._state[_FRAME])
+
+    @property
+    def lines_closed(self) -> int:
+        """LINE_STOP markers seen so far: a one-frame scan of H lines is complete at H."""
+        return int(self._state[_LINES_CLOSED])
 
     @property
     def position_known(self) -> bool:
