@@ -29,6 +29,19 @@ _FRAME, _ROW, _VISIT, _OPEN, _KNOWN, _LINES_CLOSED = range(6)
 
 
 @njit(cache=True, nogil=True)
+def _open_pixel(state, height, width, serpentine):
+    """Flat index of the pixel open in ``state``, or -1 (none open, position unknown, off grid)."""
+    if state[3] == 0 or state[4] == 0:
+        return -1
+    row = state[1]
+    visit = state[2]
+    if not (0 <= row < height and 0 <= visit < width):
+        return -1
+    col = width - 1 - visit if serpentine and row % 2 == 1 else visit
+    return row * width + col
+
+
+@njit(cache=True, nogil=True)
 def _assign_kernel(sync, kind, marker, height, width, serpentine, state, pixel_out, lost_pixel_out):
     """Fill ``pixel_out[i]`` with the flat pixel index of photon event i (-1 for anything else or
     an unknown position) and ``lost_pixel_out[i]`` for LOST events with the pixel open at the loss
@@ -55,24 +68,10 @@ def _assign_kernel(sync, kind, marker, height, width, serpentine, state, pixel_o
                 state[3] = 0
                 state[5] += 1
         elif k == 0:  # PHOTON
-            if state[3] == 1 and state[4] == 1:
-                row = state[1]
-                visit = state[2]
-                if 0 <= row < height and 0 <= visit < width:
-                    col = visit
-                    if serpentine and (row % 2 == 1):
-                        col = width - 1 - visit
-                    pixel_out[i] = row * width + col
+            pixel_out[i] = _open_pixel(state, height, width, serpentine)
         elif k == 2:  # LOST
             n_lost += 1
-            if state[3] == 1 and state[4] == 1:
-                row = state[1]
-                visit = state[2]
-                if 0 <= row < height and 0 <= visit < width:
-                    col = visit
-                    if serpentine and (row % 2 == 1):
-                        col = width - 1 - visit
-                    lost_pixel_out[i] = row * width + col
+            lost_pixel_out[i] = _open_pixel(state, height, width, serpentine)
             state[4] = 0
     return n_lost
 
