@@ -158,29 +158,28 @@ def fisher_var(shift, a, bg, m, g, dg, off):
     if not a > 0.0:
         return np.nan
     nk = g.size
+    # offsets t whose bin k = shift + t - off lies in the window: a plain range, no per-t test
+    tlo = max(0, off - shift)
+    thi = min(nk, m - shift + off)
     i00 = 0.0
     i01 = 0.0
     i02 = 0.0
     i11 = 0.0
     i12 = 0.0
     i22 = 0.0
-    n_in = 0
-    for t in range(nk):
-        k = shift + t - off
-        if k < 0 or k >= m:
-            continue
-        n_in += 1
+    n_in = max(0, thi - tlo)
+    for t in range(tlo, thi):
         lam = a * g[t] + bg
-        if lam <= 0.0:
-            continue
+        # one reciprocal instead of six divisions (this loop dominated a 15-photon pixel's cost)
+        inv = 1.0 / lam if lam > 0.0 else 0.0
         d0 = -a * dg[t]
         d1 = g[t]
-        i00 += d0 * d0 / lam
-        i01 += d0 * d1 / lam
-        i02 += d0 / lam
-        i11 += d1 * d1 / lam
-        i12 += d1 / lam
-        i22 += 1.0 / lam
+        i00 += d0 * d0 * inv
+        i01 += d0 * d1 * inv
+        i02 += d0 * inv
+        i11 += d1 * d1 * inv
+        i12 += d1 * inv
+        i22 += inv
     if bg > 0.0:
         i22 += (m - n_in) / bg
         det12 = i11 * i22 - i12 * i12
@@ -282,6 +281,85 @@ def lmf_kernel(bins, offsets, m, logg, log_concave, maxn, out_shift, out_var, ou
 # Algorithm 1 (uos) and its K-sparse generalization
 
 
+@njit(cache=True, nogil=True)
+def photon_intervals(kb, nu, lo_reach, hi_reach, m, ivlo, ivhi):
+    """Merge the shift ranges ``[k - lo_reach, k + hi_reach]`` (clipped to [0, m)) of the sorted
+    distinct photon bins kb[:nu] into disjoint ascending intervals ivlo/ivhi; returns how many.
+    Outside them ``S_i^T y`` is exactly zero (no photon under column i)."""
+    niv = 0
+    for u in range(nu):
+        lo = max(0, kb[u] - lo_reach)
+        hi = min(m - 1, kb[u] + hi_reach)
+        if niv > 0 and lo <= ivhi[niv - 1] + 1:
+            if hi > ivhi[niv - 1]:
+                ivhi[niv - 1] = hi
+        else:
+            ivlo[niv] = lo
+            ivhi[niv] = hi
+            niv += 1
+    return niv
+
+
+@njit(cache=True, nogil=True)
+def _scan_range(lo, hi, best, bi, cvec, colsum, bgc, j, aj, wlo, whi, clipped, acorr, nk, m, pp, off):
+    """Running (max, first argmax) of the proxy over shifts lo..hi (inclusive), continuing from
+    (best, bi). The entry is ``cvec[i] - bgc*colsum[i]``, minus ``aj * S_i^T S_j`` inside the support
+    window [wlo, whi]: the same floating-point expression in pruned and dense scans, so they agree
+    bit for bit. Three plain loops, so the common parts carry no per-shift branches."""
+    for i in range(lo, min(hi, wlo - 1) + 1):
+        v = cvec[i] - bgc * colsum[i]
+        if v > best:
+            best = v
+            bi = i
+    if clipped:
+        for i in range(max(lo, wlo), min(hi, whi) + 1):
+            v = cvec[i] - bgc * colsum[i] - aj * col_dot(i, j, m, pp, off, nk)
+            if v > best:
+                best = v
+                bi = i
+    else:
+        for i in range(max(lo, wlo), min(hi, whi) + 1):
+            v = cvec[i] - bgc * colsum[i] - aj * acorr[i - j + nk - 1]
+            if v > best:
+                best = v
+                bi = i
+    for i in range(max(lo, whi + 1), hi + 1):
+        v = cvec[i] - bgc * colsum[i]
+        if v > best:
+            best = v
+            bi = i
+    return best, bi
+
+
+@njit(cache=True, nogil=True)
+def uos1_argmax(cvec, colsum, cmin, bgc, ns, j, aj, acorr, nk, m, pp, off, ivlo, ivhi, niv):
+    """First index of the largest proxy entry (numpy argmax of the dense proxy), K = 1.
+
+    Exact pruning: outside the photon intervals cvec is exactly 0, so there the entry is
+    ``0 - bgc*colsum[i] - aj*S_i^T S_j <= 0 - bgc*cmin`` (aj, bgc >= 0, column inner products >= 0,
+    and rounding is monotone). If the best entry inside the intervals beats that bound strictly, no
+    other index can reach or tie it; otherwise (rare: nothing above the background level) the dense
+    scan decides."""
+    if ns > 0:
+        wlo = max(0, j - (nk - 1))
+        whi = min(m - 1, j + (nk - 1))
+    else:
+        wlo = m          # empty window: no support column to subtract
+        whi = m - 1
+    clipped = ns > 0 and not (j - off >= 0 and j + (nk - 1 - off) < m)
+    best = -np.inf
+    bi = -1
+    for t in range(niv):
+        best, bi = _scan_range(ivlo[t], ivhi[t], best, bi, cvec, colsum, bgc, j, aj, wlo, whi, clipped,
+                               acorr, nk, m, pp, off)
+    far_bound = 0.0 - bgc * cmin
+    if best > far_bound:
+        return bi
+    best, bi = _scan_range(0, m - 1, -np.inf, -1, cvec, colsum, bgc, j, aj, wlo, whi, clipped,
+                           acorr, nk, m, pp, off)
+    return bi
+
+
 @njit(parallel=True, cache=True, nogil=True)
 def uos_kernel(bins, offsets, m, g, off, gmax, colsum, pp, dg, n_refl, delta, max_iter,
                merge_bins, llr_min, maxn,
@@ -312,12 +390,15 @@ def uos_kernel(bins, offsets, m, g, off, gmax, colsum, pp, dg, n_refl, delta, ma
                 acc += g[t] * g[t - d]
         acorr[d + nk - 1] = acc
     grev = g[::-1].copy()
+    cmin = colsum.min()
     for blk in prange(nblk):
         tmp = np.empty(max(maxn, 1), np.int64)
         kb = np.empty(max(maxn, 1), np.int64)
         kw = np.empty(max(maxn, 1), np.float64)
-        cvec = np.empty(m)
+        cvec = np.zeros(m)
         prox = np.empty(m)
+        ivlo = np.empty(max(maxn, 1), np.int64)
+        ivhi = np.empty(max(maxn, 1), np.int64)
         supp = np.empty(kk, np.int64)
         amp = np.empty(kk)
         nsupp = np.empty(kk, np.int64)
@@ -348,9 +429,9 @@ def uos_kernel(bins, offsets, m, g, off, gmax, colsum, pp, dg, n_refl, delta, ma
             ntot = 0.0
             for u in range(nu):
                 ntot += kw[u]
-            # c_i = S_i^T y (peak-1 columns), scattered from the photons
-            for i in range(m):
-                cvec[i] = 0.0
+            # c_i = S_i^T y (peak-1 columns), scattered from the photons into cvec, which is all zero
+            # between pixels (only the photon intervals are touched, and reset after the pixel)
+            niv = photon_intervals(kb, nu, nk - 1 - off, off, m, ivlo, ivhi)
             for u in range(nu):
                 k = kb[u]
                 wu = kw[u] * inv_gmax
@@ -366,38 +447,10 @@ def uos_kernel(bins, offsets, m, g, off, gmax, colsum, pp, dg, n_refl, delta, ma
             while it < max_iter:
                 it += 1
                 # proxy A^T u = A^T y - A^T A x, via column sums and column inner products
-                if kk == 1 and (ns == 0 or (supp[0] - off >= 0 and supp[0] + (nk - 1 - off) < m)):
-                    # one fused pass: proxy and its argmax (first index among ties)
-                    bgc = bg * inv_gmax
-                    best = -np.inf
-                    bi = -1
-                    if ns == 0:
-                        for i in range(m):
-                            v = cvec[i] - bgc * colsum[i]
-                            if v > best:
-                                best = v
-                                bi = i
-                    else:
-                        j = supp[0]
-                        aj = amp[0] * inv_g2
-                        ilo = max(0, j - (nk - 1))
-                        ihi = min(m - 1, j + (nk - 1))
-                        for i in range(ilo):
-                            v = cvec[i] - bgc * colsum[i]
-                            if v > best:
-                                best = v
-                                bi = i
-                        for i in range(ilo, ihi + 1):
-                            v = cvec[i] - bgc * colsum[i] - aj * acorr[i - j + nk - 1]
-                            if v > best:
-                                best = v
-                                bi = i
-                        for i in range(ihi + 1, m):
-                            v = cvec[i] - bgc * colsum[i]
-                            if v > best:
-                                best = v
-                                bi = i
-                    newi[0] = bi
+                if kk == 1:
+                    newi[0] = uos1_argmax(cvec, colsum, cmin, bg * inv_gmax, ns, supp[0] if ns > 0 else 0,
+                                          amp[0] * inv_g2 if ns > 0 else 0.0, acorr, nk, m, pp, off,
+                                          ivlo, ivhi, niv)
                     fused = True
                 else:
                     fused = False
@@ -517,6 +570,9 @@ def uos_kernel(bins, offsets, m, g, off, gmax, colsum, pp, dg, n_refl, delta, ma
                 if diff < delta:
                     conv = True
                     break
+            for t in range(niv):
+                for i in range(ivlo[t], ivhi[t] + 1):
+                    cvec[i] = 0.0
             out_iter[p] = it
             out_conv[p] = conv
             out_bg[p] = bg
