@@ -104,6 +104,17 @@ class PhotonStore:
         np.cumsum(counts, out=offsets[1:])
         return PhotonStore(self.times[keep], offsets, self.shape, self.time_unit_s)
 
+    def without_pixels(self, flat_pixels) -> "PhotonStore":
+        """The same store with the photons of the listed pixels (flat indices) removed, e.g.
+        pixels that lost data and must not pass for complete ones."""
+        drop = np.zeros(self.n_pixels, dtype=bool)
+        drop[np.asarray(flat_pixels, dtype=np.int64)] = True
+        counts = np.where(drop, 0, np.diff(self.offsets))
+        keep = np.repeat(~drop, np.diff(self.offsets))
+        offsets = np.zeros(self.n_pixels + 1, dtype=np.int64)
+        np.cumsum(counts, out=offsets[1:])
+        return PhotonStore(self.times[keep], offsets, self.shape, self.time_unit_s)
+
     def pixel(self, row: int, col: int) -> np.ndarray:
         """Detection times of one pixel (a view, in detection order)."""
         p = row * self.shape[1] + col

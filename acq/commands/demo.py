@@ -33,6 +33,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     parser.add_argument("--methods", default="lmf,uos,ml",
                         help="estimators to run, comma-separated (default lmf,uos,ml)")
+    parser.add_argument("--faults", default="", metavar="SPEC",
+                        help="inject faults into the simulated instruments, KIND@WHEN items "
+                             "(WHEN in virtual seconds '2s' or share of the scan '40%%'), e.g. "
+                             "serial-unplug@2s,usb-timeout@50%%,fifo-overflow@70%%; kinds: "
+                             "serial-unplug, garbled-reply, missing-reply, slow-reply, servo-fault "
+                             "(galvo); usb-timeout, partial-read, fifo-overflow, device-vanish (tagger)")
     parser.add_argument("--out", default="spdepth-demo.png", help="PNG sheet to write")
 
 
@@ -43,6 +49,7 @@ def run(args: argparse.Namespace) -> int:
     from acq.scan import ScanPlan, run_scan
     from drivers.galvo import Galvo
     from drivers.sim import PhotonWorld, galvo_fw, load_scene
+    from drivers.sim.faults import GALVO_FAULTS, TAGGER_FAULTS, parse_faults
     from drivers.sim.rig import SimRig
     from drivers.sim.tagger_usb import SimTaggerBackend
     from drivers.tagger import Tagger
@@ -65,7 +72,10 @@ def run(args: argparse.Namespace) -> int:
     # The galvo counts every detector pulse; the dwell limit stops dark pixels from holding the scan.
     plan = ScanPlan(w, h, x0, x1, y0, y1, n_target=args.photons, dwell_s=20 * scene.dwell_s)
 
-    galvo_fw.register_rig("demo", rig)
+    faults = parse_faults(args.faults)
+    galvo_faults = [f for f in faults if f.kind in GALVO_FAULTS]
+    tagger_faults = [f for f in faults if f.kind in TAGGER_FAULTS]
+    galvo_fw.register_device("demo-galvo", galvo_fw.GalvoFirmware(rig, faults=galvo_faults))
     bar = ProgressBar("scan", stream=sys.stderr)
     got = [0]
 
@@ -74,17 +84,28 @@ def run(args: argparse.Namespace) -> int:
         bar(min(got[0], h * w * args.photons), h * w * args.photons)
 
     try:
-        with Galvo.open("galvosim://demo-galvo?rig=demo") as galvo, \
-                Tagger.open("usb:1209:7a64", backend=SimTaggerBackend(rig)) as tagger:
+        backend = SimTaggerBackend(rig, faults=tagger_faults, scan_pixels=h * w)
+        with Galvo.open("galvosim://demo-galvo") as galvo, \
+                Tagger.open("usb:1209:7a64", backend=backend) as tagger:
             result = run_scan(galvo, tagger, plan, on_chunk=on_chunk)
+            galvo_reconnects = galvo.reconnects
     finally:
         bar.close()
         galvo_fw.unregister("demo-galvo")
-        galvo_fw.unregister("demo")
     store = result.store
     print(f"scanned {args.scene} {w}x{h} through the drivers: {store.n_photons} detections, "
           f"{result.events} events, {rig.now_s:.2f} s of scan time in {result.wall_s:.2f} s"
           + (f", {result.short_pixels.size} pixels short" if result.short_pixels.size else ""))
+    if faults:
+        print(f"faults injected: {', '.join(str(f) for f in faults)}; galvo reconnects: "
+              f"{galvo_reconnects}; lost spans in the tag stream: {len(result.lost)}"
+              + "".join(f"\n  lost {span.records_lost or 'unknown'} records from sync {span.sync}, "
+                        f"pixel {divmod(span.pixel, w) if span.pixel >= 0 else 'between pixels'}"
+                        for span in result.lost))
+    if result.short_pixels.size:
+        print(f"{result.short_pixels.size} pixels are short of what the galvo counted (lost data): "
+              "they show as holes in the maps, to be re-acquired")
+        store = store.without_pixels(result.short_pixels)
 
     res_s = store.time_unit_s
     bin_units = max(1, int(round(bin_s / res_s)))
