@@ -264,35 +264,18 @@ def lmf_kernel(bins, offsets, m, logg, log_concave, maxn, out_shift, out_var, ou
                 out_var[p] = np.nan
                 continue
             if log_concave:
-                # a sum of concave sequences is concave: climb from the photons' mean bin
-                mean = 0.0
-                tot = 0.0
-                for u in range(nu):
-                    mean += kw[u] * kb[u]
-                    tot += kw[u]
-                i = int(mean / tot + 0.5)
-                i = min(max(i, 0), m - 1)
-                best = _lmf_score(kb, kw, nu, i, logg, m)
-                moved = False
-                while i + 1 < m:
-                    s = _lmf_score(kb, kw, nu, i + 1, logg, m)
-                    if s > best:
-                        best = s
-                        i += 1
-                        moved = True
+                # a sum of concave sequences is concave: its first argmax is the first shift where
+                # the score stops rising, found by bisection in O(photons log bins) (a climb from
+                # the photons' mean could walk O(bins) steps of O(photons) each on a huge pixel)
+                lo = 0
+                hi = m - 1
+                while lo < hi:
+                    mid = (lo + hi) // 2
+                    if _lmf_score(kb, kw, nu, mid + 1, logg, m) > _lmf_score(kb, kw, nu, mid, logg, m):
+                        lo = mid + 1
                     else:
-                        break
-                if not moved:
-                    while i > 0:
-                        s = _lmf_score(kb, kw, nu, i - 1, logg, m)
-                        if s >= best:   # >= : first index among ties, like argmax
-                            best = s
-                            i -= 1
-                        else:
-                            break
-                else:
-                    while i > 0 and _lmf_score(kb, kw, nu, i - 1, logg, m) >= best:
-                        i -= 1
+                        hi = mid
+                i = lo
             else:
                 i = 0
                 best = _lmf_score(kb, kw, nu, 0, logg, m)
@@ -681,29 +664,32 @@ def uos_kernel(bins, offsets, m, g, off, gmax, colsum, pp, dg, n_refl, delta, ma
 
 
 @njit(cache=True, nogil=True)
-def mix_ml(r, w, nu, uni, s0):
+def mix_ml(r, w, n_in, w_out, uni, s0):
     """max over s in [0, 1] of sum_u w_u log((1 - s) uni + s r_u): the Poisson likelihood of eq. (9)
     with (a, B) profiled onto a C + B M = n (where its maximum lies), s = a C / n the signal share,
     r_u = g_u / C the pulse's density at photon u, uni = 1 / M. Concave in s: safeguarded Newton.
+
+    Only the n_in photons under the pulse are listed (r[:n_in], w[:n_in]); the weight w_out of all
+    others (r = 0) enters as one term, so a call costs O(pulse support), not O(photons).
     Returns (s, loglik)."""
-    d0 = 0.0
-    zero_r = False
-    for u in range(nu):
+    d0 = -w_out * uni
+    zero_r = w_out > 0.0
+    for u in range(n_in):
         d0 += w[u] * (r[u] - uni)
         if r[u] <= 0.0:
             zero_r = True
     if d0 <= 0.0:
-        ll = 0.0
-        for u in range(nu):
+        ll = w_out
+        for u in range(n_in):
             ll += w[u]
         return 0.0, ll * math.log(uni)
     if not zero_r:
         d1 = 0.0
-        for u in range(nu):
+        for u in range(n_in):
             d1 += w[u] * (r[u] - uni) / r[u]
         if d1 >= 0.0:
             ll = 0.0
-            for u in range(nu):
+            for u in range(n_in):
                 ll += w[u] * math.log(r[u])
             return 1.0, ll
     lo = 0.0
@@ -712,12 +698,13 @@ def mix_ml(r, w, nu, uni, s0):
     if not (s > 0.0 and s < 1.0):
         s = 0.5
     for _ in range(60):
-        f1 = 0.0
-        f2 = 0.0
-        for u in range(nu):
+        e = -uni
+        q = e / (uni + s * e)
+        f1 = w_out * q
+        f2 = w_out * q * q
+        for u in range(n_in):
             e = r[u] - uni
-            den = uni + s * e
-            q = e / den
+            q = e / (uni + s * e)
             f1 += w[u] * q
             f2 += w[u] * q * q
         if f1 > 0.0:
@@ -733,31 +720,47 @@ def mix_ml(r, w, nu, uni, s0):
         s = sn
         if hi - lo < 1e-14:
             break
-    ll = 0.0
-    for u in range(nu):
+    ll = w_out * math.log(uni - s * uni) if w_out > 0.0 else 0.0
+    for u in range(n_in):
         ll += w[u] * math.log(uni + s * (r[u] - uni))
     return s, ll
 
 
 @njit(cache=True, nogil=True)
-def _ml_at_int(kb, kw, nu, i, g, off, colsum, uni, s0, r):
-    nk = g.size
-    c = colsum[i]
-    for u in range(nu):
-        d = kb[u] - i + off
-        r[u] = g[d] / c if (d >= 0 and d < nk) else 0.0
-    return mix_ml(r, kw, nu, uni, s0)
+def _photon_range(kb, nu, lo, hi):
+    """[ua, ub): the sorted distinct photon bins kb[:nu] lying in [lo, hi] (binary search)."""
+    ua = np.searchsorted(kb[:nu], lo, side="left")
+    ub = np.searchsorted(kb[:nu], hi, side="right")
+    return ua, ub
 
 
 @njit(cache=True, nogil=True)
-def _ml_at_fine(kb, kw, nu, i, q, fine, off, fine_colsum, fsteps, uni, s0, r):
+def _ml_at_int(kb, kw, nu, wtot, i, g, off, colsum, uni, s0, r):
+    nk = g.size
+    c = colsum[i]
+    # photons under column i: offset d = k - i + off in [0, nk)
+    ua, ub = _photon_range(kb, nu, i - off, i - off + nk - 1)
+    w_in = 0.0
+    for u in range(ua, ub):
+        r[u - ua] = g[kb[u] - i + off] / c
+        w_in += kw[u]
+    return mix_ml(r, kw[ua:ub], ub - ua, wtot - w_in, uni, s0)
+
+
+@njit(cache=True, nogil=True)
+def _ml_at_fine(kb, kw, nu, wtot, i, q, fine, off, fine_colsum, fsteps, uni, s0, r):
     """Profile at shift i + q / fsteps (|q| <= fsteps), from the fine kernel table."""
     nf = fine.size
+    nk = (nf - 1) // fsteps + 1
     c = fine_colsum[i * fsteps + q]
-    for u in range(nu):
+    # fine index (k - i + off) * fsteps - q lies in [0, nf) only for k - i + off in [-1, nk]
+    ua, ub = _photon_range(kb, nu, i - off - 1, i - off + nk)
+    w_in = 0.0
+    for u in range(ua, ub):
         j = (kb[u] - i + off) * fsteps - q
-        r[u] = fine[j] / c if (j >= 0 and j < nf) else 0.0
-    return mix_ml(r, kw, nu, uni, s0)
+        r[u - ua] = fine[j] / c if (j >= 0 and j < nf) else 0.0
+        w_in += kw[u]
+    return mix_ml(r, kw[ua:ub], ub - ua, wtot - w_in, uni, s0)
 
 
 @njit(parallel=True, cache=True, nogil=True)
@@ -783,6 +786,7 @@ def ml_kernel(bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_colsum, 
         kw = np.empty(max(maxn, 1), np.float64)
         r = np.empty(max(maxn, 1), np.float64)
         acc = np.empty(m)
+        lls = np.empty(2 * fsteps + 1)
         for p in range(blk * BLOCK, min(npix, (blk + 1) * BLOCK)):
             o0 = offsets[p]
             o1 = offsets[p + 1]
@@ -817,7 +821,7 @@ def ml_kernel(bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_colsum, 
                 if acc[i] > acc[i1]:
                     i1 = i
             if acc[i1] > 0.0:
-                s, ll = _ml_at_int(kb, kw, nu, i1, g, off, colsum, uni, 0.5, r)
+                s, ll = _ml_at_int(kb, kw, nu, ntot, i1, g, off, colsum, uni, 0.5, r)
                 if ll > best_ll:
                     best_ll = ll
                     best_i = i1
@@ -825,7 +829,7 @@ def ml_kernel(bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_colsum, 
             for i in range(m):
                 if i == i1 or floor_ll + acc[i] <= best_ll + 1e-12 * abs(best_ll):
                     continue
-                s, ll = _ml_at_int(kb, kw, nu, i, g, off, colsum, uni, best_s, r)
+                s, ll = _ml_at_int(kb, kw, nu, ntot, i, g, off, colsum, uni, best_s, r)
                 if ll > best_ll:
                     best_ll = ll
                     best_i = i
@@ -839,12 +843,11 @@ def ml_kernel(bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_colsum, 
             bq = 0
             bll = best_ll
             bs = best_s
-            lls = np.empty(2 * fsteps + 1)
             lls[fsteps] = best_ll
             for q in range(qlo, qhi + 1):
                 if q == 0:
                     continue
-                s, ll = _ml_at_fine(kb, kw, nu, best_i, q, fine, off, fine_colsum, fsteps, uni, bs, r)
+                s, ll = _ml_at_fine(kb, kw, nu, ntot, best_i, q, fine, off, fine_colsum, fsteps, uni, bs, r)
                 lls[q + fsteps] = ll
                 if ll > bll:
                     bll = ll
