@@ -50,6 +50,21 @@ def simulate(n_pix: int, seed: int, k: int = 15, sbr: float = 10.0):
     return bins, offsets
 
 
+BIG_PHOTONS = 50_000
+BIG_BINS = 4096
+BIG_RMS_UNITS = 25.0
+
+
+def huge_pixel(seed: int) -> np.ndarray:
+    """Raw times of one point-measurement pixel: 80% of BIG_PHOTONS in a Gaussian return at unit
+    1500.3 (RMS BIG_RMS_UNITS), the rest uniform over [0, BIG_BINS); one raw unit per bin."""
+    rng = np.random.default_rng(seed)
+    n_sig = int(0.8 * BIG_PHOTONS)
+    t = np.concatenate([1500.3 + BIG_RMS_UNITS * rng.standard_normal(n_sig),
+                        rng.uniform(0, BIG_BINS, BIG_PHOTONS - n_sig)])
+    return t[(t >= 0) & (t < BIG_BINS)]
+
+
 def _time(fn, min_s: float = 0.3) -> float:
     """Seconds per call (best of repeated runs lasting at least min_s in total)."""
     fn()
@@ -158,6 +173,16 @@ def bench(argv: list[str]) -> int:
                 ref_rate = np.nan
             print(f"{method:<6} {rates[1]:13,.0f} {rates[2]:13,.0f} {rates[2] / rates[1]:8.2f}x "
                   f"{full:18,.0f} {ref_rate:11,.1f} {rates[1] / ref_rate:10,.0f}x", flush=True)
+        # one pathological pixel: a point measurement of 50,000 detections over 4096 bins
+        numba.set_num_threads(1)
+        big_b = Binning(UNIT_S, 0.0, float(BIG_BINS), 1.0)
+        big_store = PhotonStore.from_lists([huge_pixel(seed=2)], (1, 1), UNIT_S)
+        line = []
+        for method in args.methods.split(","):
+            s = ReconSettings(method=method, binning=big_b, pulse_rms_s=BIG_RMS_UNITS * UNIT_S)
+            line.append(f"{method} {_time(lambda: reconstruct(big_store, s), min_s=0.1):.4f} s")
+        print(f"one pixel of {BIG_PHOTONS:,} detections over {BIG_BINS} bins (reconstruct, 1 thr): "
+              + ", ".join(line), flush=True)
     finally:
         numba.set_num_threads(old_threads)
     return 0

@@ -19,6 +19,9 @@ from numba import njit, prange
 
 BLOCK = 64
 SMALL_SORT = 48
+#: LMF on a log-concave pulse: up to this many distinct photon bins, hill-climb from their mean
+#: (cost O(photons x steps), steps < bins); above it, bisect (O(photons log bins)).
+CLIMB_MAX_PHOTONS = 64
 
 
 # ------------------------------------------------------------------------------------------------
@@ -263,7 +266,7 @@ def lmf_kernel(bins, offsets, m, logg, log_concave, maxn, out_shift, out_var, ou
                 out_shift[p] = -1
                 out_var[p] = np.nan
                 continue
-            if log_concave:
+            if log_concave and nu > CLIMB_MAX_PHOTONS:
                 # a sum of concave sequences is concave: its first argmax is the first shift where
                 # the score stops rising, found by bisection in O(photons log bins) (a climb from
                 # the photons' mean could walk O(bins) steps of O(photons) each on a huge pixel)
@@ -276,6 +279,36 @@ def lmf_kernel(bins, offsets, m, logg, log_concave, maxn, out_shift, out_var, ou
                     else:
                         hi = mid
                 i = lo
+            elif log_concave:
+                # few photons: climb from their mean bin (a handful of steps, cheaper than bisection)
+                mean = 0.0
+                tot = 0.0
+                for u in range(nu):
+                    mean += kw[u] * kb[u]
+                    tot += kw[u]
+                i = int(mean / tot + 0.5)
+                i = min(max(i, 0), m - 1)
+                best = _lmf_score(kb, kw, nu, i, logg, m)
+                moved = False
+                while i + 1 < m:
+                    s = _lmf_score(kb, kw, nu, i + 1, logg, m)
+                    if s > best:
+                        best = s
+                        i += 1
+                        moved = True
+                    else:
+                        break
+                if not moved:
+                    while i > 0:
+                        s = _lmf_score(kb, kw, nu, i - 1, logg, m)
+                        if s >= best:   # >= : first index among ties, like argmax
+                            best = s
+                            i -= 1
+                        else:
+                            break
+                else:
+                    while i > 0 and _lmf_score(kb, kw, nu, i - 1, logg, m) >= best:
+                        i -= 1
             else:
                 i = 0
                 best = _lmf_score(kb, kw, nu, 0, logg, m)

@@ -138,3 +138,75 @@ def test_irf_kernel_brute_force_lmf_matches_reference(rng, tmp_path):
     K.lmf_kernel(bins, off, M, kern.logg, kern.log_concave, 15, out, var, n)
     log_s = ref.dense_logs(kern)
     np.testing.assert_array_equal(out, [ref.lmf(ref.histogram(b, M), log_s) for b in lists])
+
+
+def _dense_proxy(cvec, colsum, bgc, j, aj, kern, m):
+    """The proxy of Algorithm 1 for x = (aj on column j, background bgc), every shift, with the same
+    floating-point expression as the kernel (cvec - bgc*colsum, minus aj * S_i^T S_j near j)."""
+    nk = kern.g.size
+    v = cvec - bgc * colsum
+    if aj is not None:
+        s = ref.dense_s(kern)
+        lo, hi = max(0, j - (nk - 1)), min(m - 1, j + (nk - 1))
+        i = np.arange(lo, hi + 1)
+        v[i] = v[i] - aj * (s[:, i].T @ s[:, j])
+    return v
+
+
+@pytest.mark.parametrize("case", range(40))
+def test_pruned_uos_argmax_is_the_dense_argmax(kern, rng, case):
+    # photons anywhere (edges included), backgrounds from none to far above the photons' level (the
+    # dense fallback), supports inside the window and clipped by its edges
+    nk, off, m = kern.g.size, kern.off, M
+    n = int(rng.integers(1, 20))
+    kb = np.unique(np.concatenate([rng.integers(0, m, n), [0, m - 1][:case % 3]])).astype(np.int64)
+    kw = rng.integers(1, 4, kb.size).astype(np.float64)
+    cvec = np.zeros(m)
+    for k, w in zip(kb, kw):
+        i = np.arange(max(0, k - (nk - 1 - off)), min(m - 1, k + off) + 1)
+        cvec[i] += w / kern.gmax * kern.g[k - i + off]
+    ivlo, ivhi = np.empty(kb.size, np.int64), np.empty(kb.size, np.int64)
+    niv = K.photon_intervals(kb, kb.size, nk - 1 - off, off, m, ivlo, ivhi)
+    covered = np.zeros(m, bool)
+    for t in range(niv):
+        covered[ivlo[t]:ivhi[t] + 1] = True
+    assert np.all(cvec[~covered] == 0.0) and np.all(ivlo[1:niv] > ivhi[:niv - 1] + 1)
+    bgc = [0.0, 1e-3, 0.3, 50.0][case % 4]
+    j = int([rng.integers(0, m), 1, m - 2, kb[0]][(case // 4) % 4])
+    amp = None if case % 5 == 0 else float(rng.uniform(0.0, 3.0))
+    # uos1_argmax takes the peak-1 scaling: aj multiplies S_i^T S_j of the unit-area kernel
+    aj_k = 0.0 if amp is None else amp / kern.gmax ** 2
+    got = K.uos1_argmax(cvec, kern.colsum, kern.colsum.min(), bgc, 0 if amp is None else 1, j, aj_k,
+                        _acorr(kern), nk, m, kern.pp, off, ivlo, ivhi, niv)
+    want = int(np.argmax(_dense_proxy(cvec, kern.colsum, bgc, j, None if amp is None else aj_k, kern, m)))
+    assert got == want
+
+
+def _acorr(kern):
+    g = kern.g
+    return np.correlate(g, g, mode="full")
+
+
+def test_huge_pixel_matches_reference_and_methods_agree():
+    # one pixel of 50,000 detections over 4096 bins (a point measurement): the uos kernel follows
+    # the published loop exactly, the LMF equals its dense reference, and the ML agrees with uos
+    rng = np.random.default_rng(50_000)
+    m = 4096
+    b = Binning(8e-12, 0.0, float(m), 1.0)
+    rms_s = 25 * 8e-12
+    t = np.concatenate([1500.3 + 25 * rng.standard_normal(40_000), rng.uniform(0, m, 10_000)])
+    t = t[(t >= 0) & (t < m)]
+    store = PhotonStore.from_lists([t], (1, 1), 8e-12)
+    kern = build_kernel(b, pulse_rms_s=rms_s)
+    y = ref.histogram(b.bin_index(t), m)
+    res = {meth: reconstruct(store, ReconSettings(method=meth, binning=b, pulse_rms_s=rms_s))
+           for meth in ("uos", "lmf", "ml")}
+    shift = {meth: r.tof_s[0, 0] / 8e-12 - 0.5 for meth, r in res.items()}
+    a_mat = np.hstack([ref.dense_s(kern) / kern.gmax, np.ones((m, 1))])
+    x, iters = ref.uos(y, a_mat)
+    assert res["uos"].photons[0, 0] == t.size
+    assert shift["uos"] == pytest.approx(np.flatnonzero(x[:m])[0], abs=1e-6)
+    assert res["uos"].iterations[0, 0] == iters
+    np.testing.assert_allclose(res["uos"].background[0, 0], x[m], rtol=1e-8)
+    assert shift["lmf"] == pytest.approx(ref.lmf(y, ref.dense_logs(kern)), abs=1e-6)
+    assert abs(shift["ml"] - shift["uos"]) <= 1.0 and abs(shift["ml"] - 1500.3) <= 1.0
