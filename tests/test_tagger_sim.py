@@ -150,7 +150,6 @@ def check_lost_span(events, offered, start_sync, lost_world_records):
 def test_fifo_overflow_fault_is_one_lost_event_in_place():
     rig, backend, tagger, reader, events = session("fifo-overflow@2ms", n_pixels=60,
                                                    pause_s=0.001, overflow_records=777)
-    assert len(backend.schedule.fired) == 1
     lost_total = rig.fifo_status().lost_records
     lost = check_lost_span(events, rig.offered_events(), backend.firmware.start_sync,
                            lost_total - 777)

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.events import EVENT_DTYPE, EventKind
+from drivers.events import EVENT_DTYPE, EventKind, Marker
 
 
 @dataclass(frozen=True)
@@ -85,6 +85,8 @@ class SimRig:
         self._pending_lost = 0
         self.tagger_running = False
         self.truth: list[tuple[int, int, np.ndarray]] | None = [] if keep_truth else None
+        self.pixels_pulsed = 0              # PIXEL marker pulses since power-on: scan progress
+        self._scheduled_losses: list[tuple[str, float, int]] = []
 
     # ---- clock -------------------------------------------------------------------------------
     @property
@@ -123,6 +125,9 @@ class SimRig:
         ev["kind"] = EventKind.MARKER
         ev["marker"] = mask
         with self._lock:
+            if mask & Marker.PIXEL:
+                self.pixels_pulsed += 1
+                self._fire_scheduled_losses()
             self._push(ev)
 
     def count_gated_dwell(self, n_target: int, dwell_limit_s: float) -> tuple[int, float]:
@@ -153,6 +158,7 @@ class SimRig:
             self.truth.append((pix[0], pix[1], events.copy()))
         self._push(events)
         self._sync += int(n_syncs)
+        self._fire_scheduled_losses()
         return int(events.size), n_syncs * self.world.sync_period_s
 
     # ---- what the time tagger does ---------------------------------------------------------------
@@ -189,6 +195,29 @@ class SimRig:
             self._fifo_fill = self.fifo_capacity_records   # force the overflow path
             self._push(ev)
             self._fifo_fill = fill
+
+    def schedule_overflow(self, n_records: int, *, at_pixel: int | None = None,
+                          at_s: float | None = None) -> None:
+        """Fault injection tied to the scan, not to when the host reads: the FIFO overflows
+        (``n_records`` lost) when the galvo opens pixel number ``at_pixel`` (counting PIXEL pulses
+        from power-on) or when virtual time reaches ``at_s``."""
+        if (at_pixel is None) == (at_s is None):
+            raise ValueError("give exactly one of at_pixel, at_s")
+        with self._lock:
+            if at_pixel is not None:
+                self._scheduled_losses.append(("pixel", float(at_pixel), int(n_records)))
+            else:
+                self._scheduled_losses.append(("time", float(at_s), int(n_records)))
+
+    def _fire_scheduled_losses(self) -> None:
+        if not self._scheduled_losses:
+            return
+        due = [x for x in self._scheduled_losses
+               if (x[0] == "pixel" and self.pixels_pulsed >= x[1])
+               or (x[0] == "time" and self.now_s >= x[1])]
+        for item in due:
+            self._scheduled_losses.remove(item)
+            self.overflow_fifo(item[2])
 
     def read_events(self, max_events: int) -> np.ndarray:
         """Drain up to ``max_events`` events from the FIFO, oldest first. After a loss, the LOST

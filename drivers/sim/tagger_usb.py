@@ -18,7 +18,8 @@ until the host sends ACK_GAP.
 Faults (``drivers.sim.faults``; WHEN in the rig's virtual seconds or a fraction of ``scan_pixels``
 counted by PIXEL markers): ``usb-timeout`` (one bulk read times out with data waiting),
 ``partial-read`` (one bulk read ends in the middle of a record), ``fifo-overflow``
-(``rig.overflow_fifo(overflow_records)``), ``device-vanish`` (the device leaves the bus for
+(``rig.schedule_overflow``: the rig drops ``overflow_records`` when the scan reaches WHEN),
+``device-vanish`` (the device leaves the bus for
 ``vanish_s`` wall-clock seconds and comes back powered up afresh).
 """
 
@@ -429,9 +430,20 @@ class SimTaggerBackend(TaggerUsbDescriptors):
             faults = parse_faults(faults, TAGGER_FAULTS)
         if any(f.at_fraction is not None for f in faults) and not scan_pixels:
             raise InputError("tagger faults given as a fraction of the scan need scan_pixels")
-        self.schedule = FaultSchedule(faults)
         self.scan_pixels = scan_pixels
         self.overflow_records = int(overflow_records)
+        # A FIFO overflow belongs to the moment the scan reaches WHEN, not to when the host
+        # happens to read that far (the galvo can run far ahead of the reader in virtual time),
+        # so the rig fires it as the scan passes that point.
+        for f in faults:
+            if f.kind == FaultKind.FIFO_OVERFLOW:
+                if f.at_fraction is not None:
+                    # "50%" = once half the pixels are complete: as the next one opens
+                    at_pixel = rig.pixels_pulsed + round(f.at_fraction * scan_pixels) + 1
+                    rig.schedule_overflow(self.overflow_records, at_pixel=at_pixel)
+                else:
+                    rig.schedule_overflow(self.overflow_records, at_s=f.at_s)
+        self.schedule = FaultSchedule([f for f in faults if f.kind != FaultKind.FIFO_OVERFLOW])
         self.vanish_s = float(vanish_s)
         self.poll_s = float(poll_s)
         self._gone_until: float | None = None
@@ -454,8 +466,6 @@ class SimTaggerBackend(TaggerUsbDescriptors):
                 self._timeouts_due += 1
             elif fault.kind == FaultKind.PARTIAL_READ:
                 self._partials_due += 1
-            elif fault.kind == FaultKind.FIFO_OVERFLOW:
-                self.rig.overflow_fifo(self.overflow_records)
             elif fault.kind == FaultKind.DEVICE_VANISH:
                 self.rig.stop_tagger()
                 self.firmware.running = False
