@@ -75,6 +75,7 @@ class SimRig:
         self.fov = fov or FieldOfView()
         self.fifo_capacity_records = int(fifo_capacity_records)
         self._lock = threading.RLock()
+        self._has_events = threading.Condition(self._lock)   # the tagger waits on it, never polls
         self._sync = 0                      # laser syncs since power-on; the virtual clock
         self._mirror_deg = (0.0, 0.0)
         self._fifo: deque[np.ndarray] = deque()
@@ -169,6 +170,7 @@ class SimRig:
         stream says exactly where it has a hole."""
         if not self.tagger_running or events.size == 0:
             return
+        self._has_events.notify_all()
         room = self.fifo_capacity_records - self._fifo_fill
         if room >= events.size and self._lost_since_sync is None:
             self._fifo.append(events)
@@ -218,6 +220,13 @@ class SimRig:
         for item in due:
             self._scheduled_losses.remove(item)
             self.overflow_fifo(item[2])
+
+    def wait_for_events(self, timeout_s: float) -> bool:
+        """Block until the FIFO holds events (or a loss to report), at most ``timeout_s``.
+        Returns whether there is something to read."""
+        with self._lock:
+            return self._has_events.wait_for(
+                lambda: bool(self._fifo) or self._lost_since_sync is not None, timeout_s)
 
     def read_events(self, max_events: int) -> np.ndarray:
         """Drain up to ``max_events`` events from the FIFO, oldest first. After a loss, the LOST

@@ -418,11 +418,12 @@ class SimTaggerBackend(TaggerUsbDescriptors):
     scan_pixels:      pixels of the scan, for faults given as a fraction (``40%``).
     overflow_records: records a ``fifo-overflow`` fault loses.
     vanish_s:         wall-clock seconds a vanished device stays away.
-    poll_s:           how often an idle bulk read looks at the rig again.
+    poll_s:           longest an idle bulk read sleeps before it looks again (it wakes at once
+                      when the rig has events).
     """
 
     def __init__(self, rig, faults: str | list[Fault] | None = None, scan_pixels: int | None = None,
-                 overflow_records: int = 1000, vanish_s: float = 0.1, poll_s: float = 0.001):
+                 overflow_records: int = 1000, vanish_s: float = 0.1, poll_s: float = 0.02):
         super().__init__()
         self.rig = rig
         self.firmware = TaggerFirmware(rig)
@@ -511,6 +512,9 @@ class SimTaggerBackend(TaggerUsbDescriptors):
                 if n:
                     view[:n] = fw.take(n)
                     return n
-            if time.monotonic() >= deadline:
+            left = deadline - time.monotonic()
+            if left <= 0:
                 raise usb.core.USBTimeoutError("Operation timed out", -7, errno.ETIMEDOUT)
-            time.sleep(self.poll_s)
+            # Sleep until the rig has events; wake at least every poll_s for faults due in
+            # wall-clock time (a vanished device coming back).
+            self.rig.wait_for_events(min(left, self.poll_s))
