@@ -5,6 +5,7 @@ from __future__ import annotations
 import re
 
 import numpy as np
+import pytest
 
 from acq.cli import main
 from recon.photons import PhotonStore
@@ -38,7 +39,9 @@ def test_demo_with_faults_reports_them_and_leaves_holes(tmp_path, capsys):
 def test_demo_refuses_bad_options(tmp_path, capsys):
     assert main(["demo", "--faults", "bogus@1s", "--out", str(tmp_path / "x.png")]) == 2
     assert "unknown kind 'bogus'" in capsys.readouterr().err
-    assert main(["demo", "--photons", "0", "--out", str(tmp_path / "x.png")]) == 2
+    with pytest.raises(SystemExit) as exc:           # argparse-level: same one line, exit 2
+        main(["demo", "--photons", "0", "--out", str(tmp_path / "x.png")])
+    assert exc.value.code == 2 and "--photons: must be at least 1" in capsys.readouterr().err
 
 
 def test_without_pixels_empties_exactly_those_pixels():

@@ -8,26 +8,18 @@ import argparse
 import sys
 import time
 
+from acq.commands._args import positive_int, size_wxh
+
 HELP = "simulate a count-gated scan of a built-in scene, reconstruct it, write a PNG of the maps"
 
 C_M_PER_S = 299_792_458.0
 
 
-def _size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"size must be WxH, e.g. 64x64, got {text!r}") from None
-    if not (1 <= w <= 4096 and 1 <= h <= 4096):
-        raise argparse.ArgumentTypeError(f"size must be between 1x1 and 4096x4096, got {text!r}")
-    return h, w
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scene", default="bust", help="built-in scene name (default: bust)")
-    parser.add_argument("--size", type=_size, default=(96, 96), metavar="WxH",
+    parser.add_argument("--size", type=size_wxh, default=(96, 96), metavar="WxH",
                         help="scan size in pixels (default 96x96)")
-    parser.add_argument("--photons", type=int, default=15, metavar="N",
+    parser.add_argument("--photons", type=positive_int, default=15, metavar="N",
                         help="count-gated target: in-window detections per pixel (default 15)")
     parser.add_argument("--sbr", type=float, default=10.0, help="signal-to-background ratio (default 10)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
@@ -53,13 +45,10 @@ def run(args: argparse.Namespace) -> int:
     from drivers.sim.rig import SimRig
     from drivers.sim.tagger_usb import SimTaggerBackend
     from drivers.tagger import Tagger
-    from recon.errors import InputError
     from recon.estimate import reconstruct
     from recon.model import Binning, ReconSettings
 
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
-    if args.photons < 1:
-        raise InputError(f"--photons must be at least 1, got {args.photons}")
     h, w = args.size
     # The tagger records the seed paper's window: 801 bins of 40 ps (32 ns) after each sync,
     # so --sbr is the ratio among the detections the estimators see.

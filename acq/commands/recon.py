@@ -20,6 +20,7 @@ import math
 import sys
 import time
 
+from acq.commands._args import positive_float, positive_int
 from recon.errors import InputError
 
 HELP = "reconstruct depth/background maps from a .mat or PicoQuant PTU/HT3/PT3 T3 file"
@@ -27,26 +28,6 @@ HELP = "reconstruct depth/background maps from a .mat or PicoQuant PTU/HT3/PT3 T
 #: the most bins the default binning makes (a ps-unit file with a 200 ns gate would otherwise get
 #: 200,000 one-unit bins)
 DEFAULT_MAX_BINS = 1024
-
-
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not (value > 0 and math.isfinite(value)):
-        raise argparse.ArgumentTypeError(f"must be a positive number, got {text}")
-    return value
-
-
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a whole number: {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
-    return value
 
 
 def _window(text: str) -> tuple[float, float]:
@@ -72,28 +53,28 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "photon-count maps (a time histogram for a point measurement)")
     parser.add_argument("--json", action="store_true",
                         help="print one JSON summary object as the last stdout line")
-    parser.add_argument("--time-unit-ps", type=_positive_float, metavar="PS",
+    parser.add_argument("--time-unit-ps", type=positive_float, metavar="PS",
                         help="size of one raw time unit in ps; required for .mat files (8 for the "
                              "first-photon-imaging files, 1 for ps); PicoQuant files: the header's resolution")
     parser.add_argument("--window-ps", type=_window, metavar="START:STOP",
                         help="keep detections with START <= t < STOP (ps after the laser sync); "
                              "default: the span of the detections present")
-    parser.add_argument("--bin-ps", type=_positive_float, metavar="PS",
+    parser.add_argument("--bin-ps", type=positive_float, metavar="PS",
                         help="histogram bin width in ps (a whole number of raw units); default: a "
                              "ninth of the pulse RMS")
     pulse = parser.add_mutually_exclusive_group()
-    pulse.add_argument("--pulse-rms-ps", type=_positive_float, metavar="PS",
+    pulse.add_argument("--pulse-rms-ps", type=positive_float, metavar="PS",
                        help="Gaussian pulse RMS width in ps (the seed paper: 360)")
     pulse.add_argument("--irf", metavar="FILE", help="measured instrument response to use instead of a Gaussian")
-    parser.add_argument("--max-photons", type=_positive_int, metavar="N",
+    parser.add_argument("--max-photons", type=positive_int, metavar="N",
                         help="keep the first N in-window detections per pixel (the seed paper: 15)")
-    parser.add_argument("--reflectors", type=_positive_int, default=1, metavar="K",
+    parser.add_argument("--reflectors", type=positive_int, default=1, metavar="K",
                         help="surfaces per pixel to look for (default 1)")
     parser.add_argument("--mat-var", metavar="NAME", help=".mat files: the cell-array variable to read "
                         "when the file holds several")
     parser.add_argument("--channel", type=int, metavar="N",
                         help="PicoQuant files: keep only detector channel N (0-based); default all")
-    parser.add_argument("--threads", type=_positive_int, metavar="N",
+    parser.add_argument("--threads", type=positive_int, metavar="N",
                         help="worker threads for the estimator (default: all cores)")
 
 

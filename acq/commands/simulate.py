@@ -9,6 +9,7 @@ import sys
 import time
 from pathlib import Path
 
+from acq.commands._args import non_negative_float, positive_float, size_wxh
 from recon.errors import InputError
 
 HELP = "simulate a scan of a built-in or depth-image scene; write a T3 image PTU and its truth"
@@ -18,65 +19,34 @@ SCENE_HELP = ("scene: bust, daylight, steps, tilted-plane, two-layer, or "
               "(.npy/.png/.tif; float images in metres, integer images in millimetres unless scale)")
 
 
-def _size(text: str) -> tuple[int, int]:
-    """'WxH' -> (H, W)."""
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"size must be WxH (e.g. 64x64), got {text!r}") from None
-    if w < 1 or h < 1:
-        raise argparse.ArgumentTypeError(f"size must be at least 1x1, got {text!r}")
-    return h, w
-
-
-def _positive(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not v > 0 or v == float("inf"):
-        raise argparse.ArgumentTypeError(f"must be positive and finite, got {text!r}")
-    return v
-
-
-def _non_negative(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not v >= 0 or v == float("inf"):
-        raise argparse.ArgumentTypeError(f"must be >= 0 and finite, got {text!r}")
-    return v
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scene", required=True, help=SCENE_HELP)
-    parser.add_argument("--size", type=_size, default=None,
+    parser.add_argument("--size", type=size_wxh, default=None,
                         help="WxH pixels (default 64x64; a depth image's own size for file:)")
-    parser.add_argument("--ppp", type=_positive, default=15.0,
+    parser.add_argument("--ppp", type=positive_float, default=15.0,
                         help="mean detections (signal + background) per pixel (default 15)")
-    parser.add_argument("--sbr", type=_positive, default=None,
+    parser.add_argument("--sbr", type=positive_float, default=None,
                         help="signal-to-background ratio (default the scene's: 10, daylight 0.05)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     parser.add_argument("--out", required=True, type=Path, help="output FILE.ptu")
-    parser.add_argument("--dwell-us", type=_positive, default=1000.0,
+    parser.add_argument("--dwell-us", type=positive_float, default=1000.0,
                         help="pixel dwell in microseconds the ppp refers to (default 1000)")
     parser.add_argument("--effects", default="",
                         help="comma list of effects to simulate: jitter, dead_time, afterpulsing "
                              "(dead_time is added by itself when detections per pulse are not small)")
-    parser.add_argument("--jitter-ps", type=_non_negative, default=50.0,
+    parser.add_argument("--jitter-ps", type=non_negative_float, default=50.0,
                         help="timing jitter RMS in ps, with --effects jitter (default 50)")
-    parser.add_argument("--dead-time-ns", type=_non_negative, default=50.0,
+    parser.add_argument("--dead-time-ns", type=non_negative_float, default=50.0,
                         help="detector dead time in ns, with --effects dead_time (default 50)")
-    parser.add_argument("--afterpulse-prob", type=_non_negative, default=0.01,
+    parser.add_argument("--afterpulse-prob", type=non_negative_float, default=0.01,
                         help="afterpulse probability, with --effects afterpulsing (default 0.01)")
-    parser.add_argument("--dark-rate-hz", type=_non_negative, default=0.0,
+    parser.add_argument("--dark-rate-hz", type=non_negative_float, default=0.0,
                         help="dark-count rate in Hz, part of the background (default 0)")
-    parser.add_argument("--pulse-rms-ps", type=_non_negative, default=360.0,
+    parser.add_argument("--pulse-rms-ps", type=non_negative_float, default=360.0,
                         help="Gaussian laser pulse RMS in ps (default 360)")
-    parser.add_argument("--resolution-ps", type=_positive, default=8.0,
+    parser.add_argument("--resolution-ps", type=positive_float, default=8.0,
                         help="tagger bin width in ps (default 8)")
-    parser.add_argument("--period-ns", type=_positive, default=100.0,
+    parser.add_argument("--period-ns", type=positive_float, default=100.0,
                         help="laser repetition period in ns (default 100 = 10 MHz)")
 
 
