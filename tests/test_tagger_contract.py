@@ -10,7 +10,7 @@ import time
 import numpy as np
 import pytest
 
-from drivers.events import EVENT_DTYPE, EventKind, Marker
+from drivers.events import EVENT_DTYPE, Marker
 from drivers.sim.rig import SimRig
 from drivers.sim.tagger_usb import SimTaggerBackend
 from drivers.tagger import DEFAULT_URL, Tagger, TaggerSettings

@@ -4,7 +4,6 @@ recovery, never wrong data)."""
 
 from __future__ import annotations
 
-import threading
 import time
 
 import numpy as np
