@@ -72,9 +72,15 @@ def reconstruct(store: PhotonStore, settings: ReconSettings,
     if not isinstance(store, PhotonStore):
         raise InputError(f"store must be a PhotonStore, got {type(store).__name__}")
     b, kern, notes = resolve_model(store, settings)
-    used = store.first_in_window(b.window_start, b.window_stop, settings.max_photons)
-    bins = b.bin_index(used.times)
-    offsets = used.offsets
+    # window, first max_photons and binning in one compiled pass (the NumPy route of
+    # first_in_window + bin_index cost as much as the lmf kernel itself)
+    times = np.ascontiguousarray(store.times, dtype=np.float64)
+    bins = np.empty(times.size, np.int64)
+    offsets = np.empty(store.offsets.size, np.int64)
+    n_kept = K.window_bins(times, np.ascontiguousarray(store.offsets, dtype=np.int64), b.window_start,
+                           b.window_stop, b.bin_width, b.n_bins,
+                           -1 if settings.max_photons is None else int(settings.max_photons), bins, offsets)
+    bins = bins[:n_kept]
     h, w = store.shape
     npix = h * w
     m = b.n_bins

@@ -29,6 +29,34 @@ CLIMB_MAX_PHOTONS = 64
 
 
 @njit(cache=True, nogil=True)
+def window_bins(times, offsets, start, stop, width, n_bins, max_photons, out_bins, out_offsets):
+    """First ``max_photons`` (all when < 0) detections of each pixel with ``start <= t < stop``, as
+    bin indices ``floor((t - start) / width)`` capped at n_bins - 1, in detection order: one pass
+    doing what PhotonStore.first_in_window followed by Binning.bin_index do (same floating-point
+    expressions, so the same bins). out_bins needs times.size entries, out_offsets offsets.size;
+    returns the number of detections kept (out_bins[:n] is the CSR list under out_offsets)."""
+    npix = offsets.size - 1
+    n = 0
+    out_offsets[0] = 0
+    for p in range(npix):
+        kept = 0
+        for q in range(offsets[p], offsets[p + 1]):
+            if max_photons >= 0 and kept >= max_photons:
+                break
+            t = times[q]
+            if t >= start and t < stop:
+                k = math.floor((t - start) / width)
+                if k > n_bins - 1:
+                    k = n_bins - 1
+                out_bins[n] = np.int64(k)
+                n += 1
+                kept += 1
+        out_offsets[p + 1] = n
+    return n
+
+
+
+@njit(cache=True, nogil=True)
 def unique_counts(bins, o0, o1, tmp, kb, kw):
     """Sorted distinct bins of one pixel and their counts into kb/kw; returns how many.
 

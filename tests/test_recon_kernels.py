@@ -210,3 +210,23 @@ def test_huge_pixel_matches_reference_and_methods_agree():
     np.testing.assert_allclose(res["uos"].background[0, 0], x[m], rtol=1e-8)
     assert shift["lmf"] == pytest.approx(ref.lmf(y, ref.dense_logs(kern)), abs=1e-6)
     assert abs(shift["ml"] - shift["uos"]) <= 1.0 and abs(shift["ml"] - 1500.3) <= 1.0
+
+
+@pytest.mark.parametrize("max_photons", [None, 1, 3, 15])
+def test_window_bins_is_first_in_window_then_bin_index(rng, max_photons):
+    # times straddling both window edges, exact edge values, empty pixels and a window that is not a
+    # whole number of bins (the last partial bin, and rounding at the stop edge)
+    b = Binning(8e-12, 1000.0, 1000.0 + 37.5 * 7.0, 7.0)
+    lists = [rng.uniform(900.0, 1400.0, int(rng.integers(0, 25))) for _ in range(200)]
+    lists[3] = np.array([b.window_start, b.window_stop, np.nextafter(b.window_stop, 0.0), 999.999])
+    lists[4] = np.array([])
+    store = PhotonStore.from_lists(lists, (10, 20), 8e-12)
+    used = store.first_in_window(b.window_start, b.window_stop, max_photons)
+    want = b.bin_index(used.times)
+    out_b = np.empty(store.times.size, np.int64)
+    out_o = np.empty(store.offsets.size, np.int64)
+    n = K.window_bins(store.times, store.offsets, b.window_start, b.window_stop, b.bin_width, b.n_bins,
+                      -1 if max_photons is None else max_photons, out_b, out_o)
+    np.testing.assert_array_equal(out_o, used.offsets)
+    np.testing.assert_array_equal(out_b[:n], want)
+    assert n == want.size and np.all(want >= 0) and want.max() == b.n_bins - 1
