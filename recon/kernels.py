@@ -269,8 +269,9 @@ def fisher_var(shift, a, bg, m, g, dg, off):
 @njit(cache=True, nogil=True)
 def _lmf_score(kb, kw, nu, i, logg, m):
     s = 0.0
+    # unsigned index: spares numba's negative-index wraparound on each gather (the index is >= 0)
     for u in range(nu):
-        s += kw[u] * logg[kb[u] - i + m - 1]
+        s += kw[u] * logg[np.uint64(kb[u] - i + m - 1)]
     return s
 
 
