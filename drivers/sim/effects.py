@@ -9,6 +9,8 @@ both, since an afterpulse can only follow a detection the dead detector did regi
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
+
 from dataclasses import dataclass
 
 import numpy as np
@@ -102,18 +104,18 @@ class Counting:
     win_hi: int = 1
 
 
-class Effect:
+class Effect(ABC):
     """One physical effect. ``sequential`` effects need the detector state and the whole stream
     in time order; the others act on each detection alone."""
 
     name = ""
     sequential = False
 
+    @abstractmethod
     def apply(self, rng, batch: Batch, state: DetectorState, sync_end: int,
               counting: Counting) -> tuple[Batch, int]:
         """Transform ``batch``; return it and how many counted detections a sequential effect
         registered (stateless effects return -1: the caller counts)."""
-        raise NotImplementedError
 
 
 class Jitter(Effect):

@@ -121,11 +121,13 @@ class Serial(SerialBase):
     def cd(self):
         return True
 
+    # The emulated controller has no modem lines and no break detection: SerialBase calls these
+    # when the host sets RTS, DTR or break, and there is nothing to drive.
     def _update_rts_state(self):
-        pass
+        return None
 
     def _update_dtr_state(self):
-        pass
+        return None
 
     def _update_break_state(self):
-        pass
+        return None
