@@ -9,6 +9,7 @@ in a new pty is made and the symlink points at it again.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import logging
 import os
@@ -80,10 +81,8 @@ class PtyLink:
         log.debug("pty link %s -> %s", self.path, os.ttyname(self._slave))
 
     def _unplug(self) -> None:
-        try:
+        with contextlib.suppress(FileNotFoundError):   # already gone: unplugged before
             os.unlink(self.path)
-        except FileNotFoundError:
-            pass
         for fd in (self._master, self._slave):
             if fd >= 0:
                 os.close(fd)
@@ -136,8 +135,6 @@ class PtyLink:
         self.fw.remove_listener(self._wake)
         self._unplug()
         for fd in (self._wake_r, self._wake_w):
-            try:
+            with contextlib.suppress(OSError):             # closed by the other side's unplug
                 os.close(fd)
-            except OSError:
-                pass
         shutil.rmtree(self._dir, ignore_errors=True)

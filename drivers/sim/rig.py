@@ -253,6 +253,15 @@ class SimRig:
                 self._lost_since_sync = None
             return np.concatenate(out) if out else np.zeros(0, dtype=EVENT_DTYPE)
 
+    def clear_fifo(self) -> None:
+        """Drop every queued event and any pending loss report (the tagger's START does this);
+        the lost-records total since power-on is kept."""
+        with self._lock:
+            self._fifo.clear()
+            self._fifo_fill = 0
+            self._lost_since_sync = None
+            self._pending_lost = 0
+
     def fifo_status(self) -> FifoStatus:
         with self._lock:
             return FifoStatus(self._fifo_fill, self.fifo_capacity_records, self._overflowed,

@@ -230,8 +230,7 @@ class TaggerFirmware:
             self.marker_enabled, self.marker_rising = value, index
         elif request == Request.START:
             self.rig.stop_tagger()
-            while self.rig.read_events(1 << 20).size:   # START clears the FIFO
-                pass
+            self.rig.clear_fifo()                        # START clears the FIFO
             self.rig.clear_fifo_flags()
             self._reset_stream()
             self.running = True
@@ -371,8 +370,10 @@ class TaggerUsbDescriptors(usb.backend.IBackend):
             self._handles += 1
             return self._handles
 
+    # A simulated device holds no OS resources and no kernel driver binds to it, so closing,
+    # releasing and (de)attaching have nothing to undo.
     def close_device(self, dev_handle):
-        pass
+        return None
 
     def set_configuration(self, dev_handle, config_value):
         self._check_present()
@@ -392,7 +393,7 @@ class TaggerUsbDescriptors(usb.backend.IBackend):
         self._check_present()
 
     def release_interface(self, dev_handle, intf):
-        pass
+        return None
 
     def clear_halt(self, dev_handle, ep):
         self._check_present()
@@ -404,10 +405,10 @@ class TaggerUsbDescriptors(usb.backend.IBackend):
         return False
 
     def detach_kernel_driver(self, dev_handle, intf):
-        pass
+        return None
 
     def attach_kernel_driver(self, dev_handle, intf):
-        pass
+        return None
 
 
 class SimTaggerBackend(TaggerUsbDescriptors):

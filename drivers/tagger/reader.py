@@ -127,6 +127,7 @@ class TaggerReader:
             try:
                 return self._queue.get(timeout=step) if step > 0 else self._queue.get_nowait()
             except queue.Empty:
+                # nothing yet: see whether the thread has ended, else keep waiting
                 pass
             if self._done.is_set() and self._queue.empty():
                 if self._error is not None:

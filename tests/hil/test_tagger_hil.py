@@ -33,4 +33,4 @@ def tagger(request):
 
 
 class TestRealTaggerContract(TaggerContract):
-    pass
+    """The shared tagger contract, run against the device named by --tagger."""
