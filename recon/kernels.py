@@ -380,15 +380,10 @@ def photon_intervals(kb, nu, lo_reach, hi_reach, m, ivlo, ivhi):
     return niv
 
 
-@njit(cache=True, nogil=True)
-def _scan_range(lo, hi, best, bi, cvec, colsum, bgc, j, aj, wlo, whi, clipped, acorr, nk, m, pp, off):
-    """Running (max, first argmax) of the proxy over shifts lo..hi (inclusive), continuing from
-    (best, bi). The entry is ``cvec[i] - bgc*colsum[i]``, minus ``aj * S_i^T S_j`` inside the support
-    window [wlo, whi]: the same floating-point expression in pruned and dense scans, so they agree
-    bit for bit. Three plain loops, so the common parts carry no per-shift branches; each runs over
-    slices indexed from 0, which spares numba's negative-index wraparound on every load."""
-    a = lo
-    b = min(hi, wlo - 1)
+@njit(cache=True, nogil=True, inline="always")
+def _scan_plain(cvec, colsum, bgc, a, b, best, bi):
+    """Running (max, first argmax) of ``cvec[i] - bgc*colsum[i]`` over shifts a..b (inclusive):
+    the proxy where the support column does not overlap. A 0-based slice loop (vectorisable)."""
     if b >= a:
         cv = cvec[a:b + 1]
         cs = colsum[a:b + 1]
@@ -397,6 +392,17 @@ def _scan_range(lo, hi, best, bi, cvec, colsum, bgc, j, aj, wlo, whi, clipped, a
             if v > best:
                 best = v
                 bi = a + t
+    return best, bi
+
+
+@njit(cache=True, nogil=True)
+def _scan_range(lo, hi, best, bi, cvec, colsum, bgc, j, aj, wlo, whi, clipped, acorr, nk, m, pp, off):
+    """Running (max, first argmax) of the proxy over shifts lo..hi (inclusive), continuing from
+    (best, bi). The entry is ``cvec[i] - bgc*colsum[i]``, minus ``aj * S_i^T S_j`` inside the support
+    window [wlo, whi]: the same floating-point expression in pruned and dense scans, so they agree
+    bit for bit. Three plain loops, so the common parts carry no per-shift branches; each runs over
+    slices indexed from 0, which spares numba's negative-index wraparound on every load."""
+    best, bi = _scan_plain(cvec, colsum, bgc, lo, min(hi, wlo - 1), best, bi)
     a = max(lo, wlo)
     b = min(hi, whi)
     if b >= a:
@@ -415,17 +421,7 @@ def _scan_range(lo, hi, best, bi, cvec, colsum, bgc, j, aj, wlo, whi, clipped, a
                 if v > best:
                     best = v
                     bi = a + t
-    a = max(lo, whi + 1)
-    b = hi
-    if b >= a:
-        cv = cvec[a:b + 1]
-        cs = colsum[a:b + 1]
-        for t in range(cv.size):
-            v = cv[t] - bgc * cs[t]
-            if v > best:
-                best = v
-                bi = a + t
-    return best, bi
+    return _scan_plain(cvec, colsum, bgc, max(lo, whi + 1), hi, best, bi)
 
 
 @njit(cache=True, nogil=True)

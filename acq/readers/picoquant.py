@@ -347,14 +347,8 @@ def read_ht3(path: str | Path, *, time_unit_s: float | None = None,
     rectype = {"1.0": _REC_HYDRAHARP_T3, "2.0": _REC_HYDRAHARP2_T3}.get(version)
     if rectype is None:
         raise InputError(f"{path}: HT3 format version {version!r} is not 1.0 or 2.0")
-    records = _legacy_records(path, data, off, head)
-    resolution_s = head["Resolution_ps"] * 1e-12
-    if not resolution_s > 0:
-        raise InputError(f"{path}: header field Resolution is {head['Resolution_ps']} ps, not positive")
-    meta = {"record_type": rectype, "resolution_s": resolution_s, "records": int(records.size),
-            "sync_rate_hz": float(head["SyncRate"]), "format_version": version}
-    return _records_to_result(path, "ht3", _decode(records, rectype), time_unit_s or resolution_s,
-                              None, channel, meta)
+    return _legacy_result(path, "ht3", data, off, head, rectype, head["Resolution_ps"] * 1e-12,
+                          time_unit_s, channel)
 
 
 def read_pt3(path: str | Path, *, time_unit_s: float | None = None,
@@ -367,11 +361,16 @@ def read_pt3(path: str | Path, *, time_unit_s: float | None = None,
         raise InputError(f"{path}: not a PT3 file (ident {head['Ident']!r})")
     if head["FormatVersion"] != "2.0":
         raise InputError(f"{path}: PT3 format version {head['FormatVersion']!r} is not 2.0")
+    return _legacy_result(path, "pt3", data, off, head, _REC_PICOHARP_T3,
+                          head["Resolution_ns"] * 1e-9, time_unit_s, channel)
+
+
+def _legacy_result(path, kind, data, off, head, rectype, resolution_s, time_unit_s, channel):
+    """Records of a legacy HT3/PT3 file after its header, decoded into a point measurement."""
     records = _legacy_records(path, data, off, head)
-    resolution_s = head["Resolution_ns"] * 1e-9
     if not resolution_s > 0:
-        raise InputError(f"{path}: header field Resolution is {head['Resolution_ns']} ns, not positive")
-    meta = {"record_type": _REC_PICOHARP_T3, "resolution_s": resolution_s, "records": int(records.size),
+        raise InputError(f"{path}: header field Resolution is {resolution_s * 1e12:g} ps, not positive")
+    meta = {"record_type": rectype, "resolution_s": resolution_s, "records": int(records.size),
             "sync_rate_hz": float(head["SyncRate"]), "format_version": head["FormatVersion"]}
-    return _records_to_result(path, "pt3", _decode(records, _REC_PICOHARP_T3),
-                              time_unit_s or resolution_s, None, channel, meta)
+    return _records_to_result(path, kind, _decode(records, rectype), time_unit_s or resolution_s,
+                              None, channel, meta)
