@@ -1,5 +1,5 @@
-"""The ``spdepth`` command: finds the subcommands in ``acq.commands`` and turns every spdepth
-error into a one-line message with exit status 2."""
+"""The ``spdepth`` command: finds the subcommands in ``acq.commands`` and turns every error family
+spdepth raises on purpose (``recon``'s and ``drivers``') into a one-line message and an exit status."""
 
 from __future__ import annotations
 
@@ -10,9 +10,24 @@ import pkgutil
 import sys
 
 import acq.commands
-from recon.errors import SpdError
+from drivers.errors import DeviceError, SettingError
+from recon.errors import InputError
 
 EXIT_USAGE = 2
+"""Exit status for bad input (a file, field or value) and, as always, for device faults."""
+
+EXIT_CODES: tuple[tuple[type[Exception], int], ...] = (
+    (InputError, EXIT_USAGE),    # recon/acq: a bad file or setting
+    (SettingError, EXIT_USAGE),  # drivers: a bad argument to a driver or simulated device
+    (DeviceError, EXIT_USAGE),   # drivers: a fault, timeout or undecodable bytes (also recordings)
+)
+"""Every error family the CLI reports as one line, with its exit status; the first match wins.
+Anything else is a bug and keeps its traceback."""
+
+
+def exit_code(exc: BaseException) -> int | None:
+    """The exit status for an error of a known family, None for anything else."""
+    return next((code for family, code in EXIT_CODES if isinstance(exc, family)), None)
 
 
 def _command_modules():
@@ -43,9 +58,9 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
     try:
         return int(args._run(args) or 0)
-    except SpdError as exc:
+    except tuple(family for family, _ in EXIT_CODES) as exc:
         print(f"spdepth {args.command}: error: {exc}", file=sys.stderr)
-        return EXIT_USAGE
+        return exit_code(exc)
     except KeyboardInterrupt:
         print(f"spdepth {args.command}: interrupted", file=sys.stderr)
         return 130

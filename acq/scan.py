@@ -16,7 +16,8 @@ from typing import Callable
 import numpy as np
 
 from acq.assign import LostSpan, PixelAssigner
-from recon.errors import DeviceError, DeviceTimeoutError, InputError
+from drivers.errors import DeviceError, DeviceTimeoutError
+from recon.errors import InputError
 from recon.photons import PhotonStore
 
 log = logging.getLogger(__name__)

@@ -1,30 +1,11 @@
-"""The one error hierarchy of spdepth.
-
-It lives in ``recon`` because ``recon`` is the bottom layer (it imports nothing from ``acq``,
-``drivers`` or ``gui``) and every other package may import from it.
+"""The errors of the ``recon`` room (math only). Device and protocol errors belong to the drivers
+(``drivers.errors``); ``recon`` imports nothing from the other rooms, and ``acq`` (above both)
+raises :class:`InputError` for bad files and settings too.
 """
 
 from __future__ import annotations
 
 
-class SpdError(Exception):
-    """Base of every error spdepth raises on purpose; the CLI turns it into a one-line message."""
-
-
-class InputError(SpdError, ValueError):
+class InputError(ValueError):
     """Raised for bad user input: a file that is missing, truncated, corrupt or of the wrong kind,
-    a setting out of range, a scene name that does not exist. The message names the file, field
-    and value."""
-
-
-class DeviceError(SpdError):
-    """Raised when an instrument reports a fault, answers with an error reply, or vanishes."""
-
-
-class DeviceTimeoutError(DeviceError, TimeoutError):
-    """Raised when an instrument does not answer within the transport's timeout."""
-
-
-class ProtocolError(DeviceError):
-    """Raised when bytes from an instrument or a recording do not decode: garbled, truncated or
-    unexpected replies and records."""
+    a reconstruction or scan setting out of range. The message names the file, field and value."""

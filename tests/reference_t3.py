@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from drivers.errors import ProtocolError
 from drivers.events import EVENT_DTYPE, EventKind
-from recon.errors import ProtocolError
 
 
 def reference_decode_t3(records: np.ndarray, sync_base: int = 0) -> tuple[np.ndarray, int]:

@@ -5,12 +5,16 @@ every injected fault."""
 from __future__ import annotations
 
 import itertools
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
 import serial
 
+from drivers.errors import DeviceTimeoutError, SettingError
 from drivers.events import EventKind, Marker
 from drivers.galvo import (ConnectionLostError, Galvo, GalvoState, Gate, HardwareFaultError,
                            PatternCodes, PixelFlag, ScanMode, ScanPattern)
@@ -20,7 +24,6 @@ from drivers.sim.faults import FaultKind
 from drivers.sim.galvo_fw import GalvoFirmware
 from drivers.sim.pty_link import PtyLink
 from drivers.sim.rig import SimRig
-from recon.errors import DeviceTimeoutError, InputError
 from tests import galvo_contract as C
 from tests.galvo_support import poisson_rig
 
@@ -213,6 +216,19 @@ def test_url_builds_a_scene_and_rejects_bad_options():
         galvo_fw.unregister("x")
 
 
+
+def test_real_galvo_driver_leaves_pyserial_url_handlers_alone():
+    # A fresh interpreter: this one has long since imported the simulator.
+    code = ("import sys, serial, drivers.galvo\n"
+            "print('drivers.sim' in serial.protocol_handler_packages, 'drivers.sim' in sys.modules)\n"
+            "import drivers.sim\n"
+            "print('drivers.sim' in serial.protocol_handler_packages)\n"
+            "drivers.galvo.Galvo.open('galvosim://fresh').close()\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                         cwd=Path(__file__).resolve().parents[1])
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["False", "False", "True"]
+
 # ---- raw protocol details -------------------------------------------------------------------
 
 def _raw(fw: GalvoFirmware, data: bytes) -> list[bytes]:
@@ -352,9 +368,9 @@ def test_start_reply_lost_starts_exactly_one_scan(make_bench):
 
 
 def test_emulator_rejects_bad_settings():
-    with pytest.raises(InputError):
+    with pytest.raises(SettingError):
         GalvoFirmware(poisson_rig(), faults="fifo-overflow@1s")
-    with pytest.raises(InputError):
+    with pytest.raises(SettingError):
         GalvoFirmware(poisson_rig(), serial_number="bad serial*")
-    with pytest.raises(InputError):
+    with pytest.raises(SettingError):
         GalvoFirmware(poisson_rig(), pace=-1)

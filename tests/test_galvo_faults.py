@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import pytest
 
+from drivers.errors import SettingError
 from drivers.sim.faults import (GALVO_FAULTS, TAGGER_FAULTS, Fault, FaultKind, FaultSchedule,
                                 parse_faults)
-from recon.errors import InputError
 
 
 def test_parse_times_and_fractions():
@@ -35,13 +35,13 @@ def test_empty_spec_gives_no_faults(spec):
     ("garbled-reply@140%", "outside"),
 ])
 def test_bad_specs_name_the_item(spec, words):
-    with pytest.raises(InputError, match=words):
+    with pytest.raises(SettingError, match=words):
         parse_faults(spec)
 
 
 def test_allowed_kinds_are_enforced():
     assert parse_faults("fifo-overflow@1s", allowed=TAGGER_FAULTS)
-    with pytest.raises(InputError, match="cannot be injected here"):
+    with pytest.raises(SettingError, match="cannot be injected here"):
         parse_faults("fifo-overflow@1s", allowed=GALVO_FAULTS)
 
 
@@ -53,9 +53,9 @@ def test_every_kind_belongs_to_one_device():
 
 
 def test_fault_needs_exactly_one_trigger():
-    with pytest.raises(InputError):
+    with pytest.raises(SettingError):
         Fault(FaultKind.SLOW_REPLY)
-    with pytest.raises(InputError):
+    with pytest.raises(SettingError):
         Fault(FaultKind.SLOW_REPLY, at_s=1.0, at_fraction=0.5)
 
 

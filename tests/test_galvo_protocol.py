@@ -7,12 +7,12 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from drivers.errors import DeviceError, DeviceTimeoutError, ProtocolError, SettingError
 from drivers.galvo import (BadArgumentError, BusyError, ConnectionLostError, ErrorCode, Galvo,
                            GalvoReplyError, GalvoState, Gate, GateMode, GateSetting,
                            HardwareFaultError, Limits, OutOfRangeError, PatternCodes, PixelFlag,
                            ScanMode, ScanPattern, UnknownCommandError)
 from drivers.galvo import protocol as P
-from recon.errors import DeviceError, DeviceTimeoutError, InputError, ProtocolError
 from tests.galvo_support import LOST, ExpectedTransport, reply
 
 IDN = "OK SPDEPTH,GS-16,SIM0001,1.0"
@@ -43,11 +43,11 @@ def test_encode_command():
     assert P.encode_command("*IDN?") == b"*IDN?\n"
     assert P.encode_command("GATE", "COUNT", 15, 1000000, tag=65535) == b"65535:GATE COUNT 15 1000000\n"
     for bad in [("pos",), ("POS", 1.5), ("POS", "a b"), ("POS", True)]:
-        with pytest.raises(InputError):
+        with pytest.raises(SettingError):
             P.encode_command(*bad)
-    with pytest.raises(InputError):
+    with pytest.raises(SettingError):
         P.encode_command("POS", 1, tag=65536)
-    with pytest.raises(InputError):
+    with pytest.raises(SettingError):
         P.encode_command("PIX?", *range(100))
 
 
@@ -98,25 +98,25 @@ def test_move_checks_limits_then_sends():
 
 def test_limits_refuse_before_sending():
     def act(g):
-        with pytest.raises(InputError, match="outside the soft limits"):
+        with pytest.raises(SettingError, match="outside the soft limits"):
             g.move_codes(50, 500)
-        with pytest.raises(InputError, match="outside the soft limits"):
+        with pytest.raises(SettingError, match="outside the soft limits"):
             g.move_deg(25.0, 0.0)          # beyond the 16-bit range altogether
-        with pytest.raises(InputError):
+        with pytest.raises(SettingError):
             g.set_limits(Limits(10, 5, 0, 10))
-        with pytest.raises(InputError):
+        with pytest.raises(SettingError):
             g.set_gate(Gate.count(0, 1e-3))
-        with pytest.raises(InputError):
+        with pytest.raises(SettingError):
             g.set_gate(Gate.fixed(20.0))
-        with pytest.raises(InputError):
+        with pytest.raises(SettingError):
             g.set_settle(1.0)
-        with pytest.raises(InputError):
+        with pytest.raises(SettingError):
             g.set_frames(-1)
-        with pytest.raises(InputError):
+        with pytest.raises(SettingError):
             g.set_pattern(PatternCodes(ScanMode.RASTER, 0, 4, 100, 200, 100, 200))
-        with pytest.raises(InputError):
+        with pytest.raises(SettingError):
             g.set_pattern(PatternCodes(ScanMode.RASTER, 4, 4, 100, 2000, 100, 200))
-        with pytest.raises(InputError):
+        with pytest.raises(SettingError):
             g.pixels(-1)
     run([(b"1:LIM?\n", reply("OK 100 1000 100 1000", 1)),
          (b"2:CAL?\n", reply(CAL, 2))], act)

@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 
 from acq.scan import ScanPlan, run_scan
+from drivers.errors import DeviceError
 from drivers.galvo import Galvo
 from drivers.sim import PhotonWorld, load_scene
 from drivers.sim import galvo_fw
 from drivers.sim.rig import SimRig
 from drivers.sim.tagger_usb import SimTaggerBackend
 from drivers.tagger import Tagger
-from recon.errors import DeviceError
 
 SIM_TAGGER = "usb:1209:7a64"
 _names = itertools.count()

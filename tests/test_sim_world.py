@@ -11,10 +11,10 @@ import pytest
 
 from acq.assign import PixelAssigner
 
+from drivers.errors import SettingError
 from drivers.events import EVENT_DTYPE, EventKind, Marker
 from drivers.sim import PhotonWorld, VirtualClock, load_scene, scene_names
 from drivers.sim.scene import C_M_PER_S
-from recon.errors import InputError
 
 SCENES = ["bust", "daylight", "steps", "tilted-plane", "two-layer"]
 
@@ -95,15 +95,15 @@ def test_count_gated_matches_fixed_dwell_statistics():
 
 def test_bad_calls_raise_input_error():
     world = PhotonWorld(load_scene("bust", (4, 4)), seed=0)
-    with pytest.raises(InputError):
+    with pytest.raises(SettingError):
         world.count_gated(4, 0, 10, 1e-3, 0)
-    with pytest.raises(InputError):
+    with pytest.raises(SettingError):
         world.count_gated(0, 0, 0, 1e-3, 0)
-    with pytest.raises(InputError):
+    with pytest.raises(SettingError):
         world.count_gated(0, 0, 5, -1.0, 0)
-    with pytest.raises(InputError):
+    with pytest.raises(SettingError):
         world.count_gated(0, 0, 5, 1e-3, 0, window=(10, 5))
-    with pytest.raises(InputError):
+    with pytest.raises(SettingError):
         world.fixed_dwell(0, 0, 0.0, 0)
 
 
@@ -187,19 +187,19 @@ def test_scene_specifics():
 
 
 def test_bad_scene_options():
-    with pytest.raises(InputError, match="unknown scene"):
+    with pytest.raises(SettingError, match="unknown scene"):
         load_scene("nope")
-    with pytest.raises(InputError):
+    with pytest.raises(SettingError):
         load_scene("bust", (0, 16))
-    with pytest.raises(InputError):
+    with pytest.raises(SettingError):
         load_scene("bust", ppp=0)
-    with pytest.raises(InputError):
+    with pytest.raises(SettingError):
         load_scene("bust", ppp=-3)
-    with pytest.raises(InputError):
+    with pytest.raises(SettingError):
         load_scene("bust", dark_rate_hz=-1.0)
-    with pytest.raises(InputError, match="effect"):
+    with pytest.raises(SettingError, match="effect"):
         load_scene("bust", effects=("glare",))
-    with pytest.raises(InputError, match="dark-count"):
+    with pytest.raises(SettingError, match="dark-count"):
         load_scene("bust", ppp=1, dark_rate_hz=1e6)
 
 
@@ -245,12 +245,12 @@ def test_depth_image_with_reflectivity_resampled_and_holes(tmp_path):
     assert scene.shape == (20, 20)
     assert t["occupancy"][0, :2, :2].sum() == 0 and t["signal"][:2, :2].sum() == 0
     assert t["signal"][:, :10].sum() == 0 and t["signal"][:, 10:].min() > 0
-    with pytest.raises(InputError, match="unknown option"):
+    with pytest.raises(SettingError, match="unknown option"):
         load_scene(f"file:{tmp_path / 'd.npy'},gamma=2")
-    with pytest.raises(InputError, match="not found"):
+    with pytest.raises(SettingError, match="not found"):
         load_scene(f"file:{tmp_path / 'missing.npy'}")
     (tmp_path / "bad.png").write_bytes(b"not a png")
-    with pytest.raises(InputError, match="cannot read"):
+    with pytest.raises(SettingError, match="cannot read"):
         load_scene(f"file:{tmp_path / 'bad.png'}")
 
 
@@ -291,7 +291,7 @@ def test_virtual_clock():
     paced.advance(0.1)
     assert time.monotonic() - t0 >= 0.095             # 0.2 s simulated at 2x -> 0.1 s
     assert paced.now_s == pytest.approx(0.2)
-    with pytest.raises(InputError):
+    with pytest.raises(SettingError):
         clock.advance(-1.0)
-    with pytest.raises(InputError):
+    with pytest.raises(SettingError):
         VirtualClock(speed=0)

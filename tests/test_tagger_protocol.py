@@ -10,12 +10,12 @@ import usb.core
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from drivers.errors import DeviceError, DeviceTimeoutError, ProtocolError, SettingError
 from drivers.sim.tagger_usb import TaggerUsbDescriptors
 from drivers.tagger import Tagger, TaggerSettings
 from drivers.tagger import protocol as proto
 from drivers.tagger.protocol import Gap, MarkerConfig, StatusFlag
 from drivers.tagger.transport import DeviceGoneError, EndpointStallError
-from recon.errors import DeviceError, DeviceTimeoutError, InputError, ProtocolError
 
 IN, OUT = 0xC0, 0x40
 IDENTITY = (b"SPDT" + struct.pack("<HBBHBBII", 1, 2, 5, 17, 4, 4, 1000, 2 ** 21)
@@ -133,7 +133,7 @@ def test_usb_errors_become_typed_errors(exc, err):
                                   lambda t: t.set_markers(0x10, 0), lambda t: t.set_markers(1, -1)])
 def test_bad_settings_are_refused_before_anything_is_sent(call):
     tagger, backend = opened()
-    with pytest.raises(InputError):
+    with pytest.raises(SettingError):
         call(tagger)
     backend.assert_consumed()
 
@@ -159,7 +159,7 @@ def test_wrong_magic_is_refused():
 
 @pytest.mark.parametrize("url", ["usb:1209", "serial:1209:7a64", "usb:xyz:7a64", "usb:1209:10000"])
 def test_bad_urls(url):
-    with pytest.raises(InputError):
+    with pytest.raises(SettingError):
         proto.parse_url(url)
 
 

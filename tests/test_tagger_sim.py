@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 import usb.core
 
+from drivers.errors import SettingError
 from drivers.events import EVENT_DTYPE, EventKind, Marker
 from drivers.sim.faults import Fault, FaultKind
 from drivers.sim.tagger_usb import SimTaggerBackend
 from drivers.tagger import DEFAULT_URL, Tagger, TaggerSettings
 from drivers.tagger.transport import DeviceGoneError
-from recon.errors import InputError
 from test_tagger_contract import PoissonWorld, TapRig, drive_pixels
 
 
@@ -157,7 +157,7 @@ def test_fifo_overflow_fault_is_one_lost_event_in_place():
 
 
 def test_fifo_overflow_at_scan_fraction():
-    with pytest.raises(InputError, match="scan_pixels"):
+    with pytest.raises(SettingError, match="scan_pixels"):
         open_bench("fifo-overflow@50%")
     rig, backend, tagger, reader, events = session("fifo-overflow@50%", n_pixels=40, pause_s=0.001,
                                                    scan_pixels=20, overflow_records=10)

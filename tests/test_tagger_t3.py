@@ -8,9 +8,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from drivers.errors import ProtocolError, SettingError
 from drivers.events import EVENT_DTYPE, EventKind
 from drivers.tagger.t3 import (T3DecoderState, T3EncoderState, decode_t3, encode_t3)
-from recon.errors import InputError, ProtocolError
 from reference_t3 import reference_decode_t3
 
 
@@ -112,7 +112,7 @@ def test_decode_into_preallocated_out(rng):
     ev = decode_t3(records, out=out)
     assert np.shares_memory(ev, out)
     np.testing.assert_array_equal(ev, reference_decode_t3(records)[0])
-    with pytest.raises(InputError):
+    with pytest.raises(SettingError):
         decode_t3(records, out=np.zeros(10, dtype=EVENT_DTYPE))
 
 
@@ -124,18 +124,18 @@ def test_encoder_rejects_what_t3_cannot_carry(field, value):
     ev["kind"][1] = EventKind.MARKER if field == "marker" else EventKind.PHOTON
     ev["marker"][1] = 1 if field != "marker" else 0
     ev[field][1] = value
-    with pytest.raises(InputError, match="event 1"):
+    with pytest.raises(SettingError, match="event 1"):
         encode_t3(ev)
 
 
 def test_encoder_rejects_time_going_backwards():
     ev = np.zeros(3, dtype=EVENT_DTYPE)
     ev["sync"] = [10, 5000, 4999]
-    with pytest.raises(InputError, match="event 2 .* back in time"):
+    with pytest.raises(SettingError, match="event 2 .* back in time"):
         encode_t3(ev)
     state = T3EncoderState()
     encode_t3(ev[:2], state)
-    with pytest.raises(InputError, match="precedes"):
+    with pytest.raises(SettingError, match="precedes"):
         encode_t3(ev[:1], state)
 
 

@@ -12,7 +12,7 @@ import logging
 import time
 from dataclasses import dataclass
 
-from recon.errors import DeviceError, DeviceTimeoutError, InputError, ProtocolError
+from drivers.errors import DeviceError, DeviceTimeoutError, ProtocolError, SettingError
 
 from . import protocol as P
 from .errors import ConnectionLostError, ErrorCode
@@ -54,14 +54,14 @@ class Gate:
         return cls(GateMode.FIXED, float(dwell_s), 0)
 
     def to_wire(self) -> GateSetting:
-        """Nanosecond integers as the controller takes them; InputError when out of range."""
+        """Nanosecond integers as the controller takes them; SettingError when out of range."""
         dwell_ns = int(round(self.dwell_s * 1e9))
         if not P.MIN_DWELL_NS <= dwell_ns <= P.MAX_DWELL_NS:
-            raise InputError(f"galvo gate: dwell_s={self.dwell_s!r} outside "
+            raise SettingError(f"galvo gate: dwell_s={self.dwell_s!r} outside "
                              f"{P.MIN_DWELL_NS * 1e-9:g}..{P.MAX_DWELL_NS * 1e-9:g} s")
         if self.mode == GateMode.COUNT:
             if not 1 <= self.n_target <= P.MAX_N_TARGET:
-                raise InputError(f"galvo gate: n_target={self.n_target!r} outside "
+                raise SettingError(f"galvo gate: n_target={self.n_target!r} outside "
                                  f"1..{P.MAX_N_TARGET}")
             return GateSetting(GateMode.COUNT, int(self.n_target), dwell_ns)
         return GateSetting(GateMode.FIXED, 0, dwell_ns)
@@ -251,7 +251,7 @@ class Galvo:
         """``LIM``: new soft limits (codes, inclusive)."""
         v = (limits.x_min, limits.x_max, limits.y_min, limits.y_max)
         if not all(0 <= c <= P.DAC_MAX_CODE for c in v) or v[0] > v[1] or v[2] > v[3]:
-            raise InputError(f"galvo limits {limits}: codes must be 0..65535 with min <= max")
+            raise SettingError(f"galvo limits {limits}: codes must be 0..65535 with min <= max")
         self._set("LIM", *v)
         self._limits = limits
 
@@ -264,7 +264,7 @@ class Galvo:
     def _check_point(self, x: int, y: int, what: str) -> None:
         lim = self._limits_known()
         if not lim.contains(x, y):
-            raise InputError(f"galvo {what}: codes ({x}, {y}) outside the soft limits "
+            raise SettingError(f"galvo {what}: codes ({x}, {y}) outside the soft limits "
                              f"x {lim.x_min}..{lim.x_max}, y {lim.y_min}..{lim.y_max}")
 
     def to_codes(self, x_deg: float, y_deg: float) -> tuple[int, int]:
@@ -308,11 +308,11 @@ class Galvo:
 
     # ---- scan configuration ----------------------------------------------------------------------
     def pattern_codes(self, pattern: ScanPattern) -> PatternCodes:
-        """The wire form of a pattern; InputError when it does not fit counts or limits."""
+        """The wire form of a pattern; SettingError when it does not fit counts or limits."""
         for name in ("nx", "ny"):
             n = getattr(pattern, name)
             if not 1 <= n <= P.MAX_PIXELS_PER_AXIS:
-                raise InputError(f"galvo pattern: {name}={n!r} outside 1..{P.MAX_PIXELS_PER_AXIS}")
+                raise SettingError(f"galvo pattern: {name}={n!r} outside 1..{P.MAX_PIXELS_PER_AXIS}")
         x0, y0 = self.to_codes(pattern.x_first_deg, pattern.y_first_deg)
         x1, y1 = self.to_codes(pattern.x_last_deg, pattern.y_last_deg)
         return PatternCodes(ScanMode(pattern.mode), pattern.nx, pattern.ny, x0, x1, y0, y1)
@@ -321,7 +321,7 @@ class Galvo:
         """``PAT``: the frame to scan (degrees are converted with the calibration)."""
         codes = pattern if isinstance(pattern, PatternCodes) else self.pattern_codes(pattern)
         if not (1 <= codes.nx <= P.MAX_PIXELS_PER_AXIS and 1 <= codes.ny <= P.MAX_PIXELS_PER_AXIS):
-            raise InputError(f"galvo pattern {codes}: pixel counts outside 1..{P.MAX_PIXELS_PER_AXIS}")
+            raise SettingError(f"galvo pattern {codes}: pixel counts outside 1..{P.MAX_PIXELS_PER_AXIS}")
         self._check_point(codes.x_first, codes.y_first, "pattern first pixel")
         self._check_point(codes.x_last, codes.y_last, "pattern last pixel")
         self._set("PAT", *P.encode_pattern(codes))
@@ -344,7 +344,7 @@ class Galvo:
         """``SETTLE``: wait after each step before the pixel marker and the dwell."""
         ns = int(round(settle_s * 1e9))
         if not 0 <= ns <= P.MAX_SETTLE_NS:
-            raise InputError(f"galvo settle_s={settle_s!r} outside 0..{P.MAX_SETTLE_NS * 1e-9:g} s")
+            raise SettingError(f"galvo settle_s={settle_s!r} outside 0..{P.MAX_SETTLE_NS * 1e-9:g} s")
         self._set("SETTLE", ns)
 
     def settle_s(self) -> float:
@@ -354,7 +354,7 @@ class Galvo:
     def set_frames(self, frames: int) -> None:
         """``FRAMES``: frames per START; 0 scans until STOP."""
         if not 0 <= int(frames) <= P.MAX_FRAMES:
-            raise InputError(f"galvo frames={frames!r} outside 0..{P.MAX_FRAMES}")
+            raise SettingError(f"galvo frames={frames!r} outside 0..{P.MAX_FRAMES}")
         self._set("FRAMES", int(frames))
 
     def frames(self) -> int:
@@ -406,7 +406,7 @@ class Galvo:
     def pixels(self, from_seq: int, max_records: int = P.MAX_PIX_PAGE) -> PixelPage:
         """``PIX?``: completed-pixel records of the current scan from ``from_seq`` on."""
         if from_seq < 0 or not 1 <= max_records <= P.MAX_PIX_PAGE:
-            raise InputError(f"galvo pixels: from_seq={from_seq!r} must be >= 0 and "
+            raise SettingError(f"galvo pixels: from_seq={from_seq!r} must be >= 0 and "
                              f"max_records={max_records!r} in 1..{P.MAX_PIX_PAGE}")
         return P.parse_pixels(self._query("PIX?", int(from_seq), int(max_records)), from_seq)
 

@@ -1,12 +1,12 @@
-"""Errors of the galvo scan controller driver, all inside spdepth's one hierarchy
-(``recon.errors``): numbered error replies become :class:`GalvoReplyError` subclasses that keep the
-controller's code and message; a vanished port becomes :class:`ConnectionLostError`."""
+"""Errors of the galvo scan controller driver, inside the drivers' hierarchy (``drivers.errors``):
+numbered error replies become :class:`GalvoReplyError` subclasses that keep the controller's code
+and message; a vanished port becomes :class:`ConnectionLostError`."""
 
 from __future__ import annotations
 
 from enum import IntEnum
 
-from recon.errors import DeviceError
+from drivers.errors import DeviceError
 
 
 class ErrorCode(IntEnum):

@@ -8,7 +8,7 @@ Wire format (docs/protocols.md, section "Galvo scan controller", is the referenc
   echoes the command's tag (decimal 0..65535) so a late reply to an earlier command is recognised.
 * all times are integer nanoseconds, positions are 16-bit DAC codes.
 
-Everything here raises :class:`recon.errors.ProtocolError` for bytes that do not decode and never
+Everything here raises :class:`drivers.errors.ProtocolError` for bytes that do not decode and never
 anything else, whatever the input (the hypothesis tests feed it random and truncated bytes).
 """
 
@@ -19,7 +19,7 @@ import re
 from dataclasses import dataclass
 from enum import IntEnum
 
-from recon.errors import InputError, ProtocolError
+from drivers.errors import ProtocolError, SettingError
 
 from .errors import ErrorCode, GalvoReplyError, reply_error
 
@@ -259,29 +259,29 @@ _MNEMONIC_RE = re.compile(r"^(\*?[A-Z]+\??)$")
 def encode_command(mnemonic: str, *args: int | str, tag: int | None = None) -> bytes:
     """One command line: ``encode_command("POS", 100, 200, tag=7) == b"7:POS 100 200\\n"``.
 
-    Arguments are ints (written in decimal) or upper-case keywords. Raises InputError for
+    Arguments are ints (written in decimal) or upper-case keywords. Raises SettingError for
     anything the controller could not parse, so bad values never reach the wire."""
     if not _MNEMONIC_RE.match(mnemonic):
-        raise InputError(f"galvo command mnemonic {mnemonic!r} is not like 'POS' or '*IDN?'")
+        raise SettingError(f"galvo command mnemonic {mnemonic!r} is not like 'POS' or '*IDN?'")
     parts = [mnemonic]
     for a in args:
         if isinstance(a, bool):
-            raise InputError(f"galvo command {mnemonic}: argument {a!r} is not an integer")
+            raise SettingError(f"galvo command {mnemonic}: argument {a!r} is not an integer")
         if isinstance(a, int) or hasattr(a, "__index__"):
             parts.append(str(int(a)))
         elif isinstance(a, str) and re.fullmatch(r"[A-Z]+", a):
             parts.append(a)
         else:
-            raise InputError(f"galvo command {mnemonic}: argument {a!r} is not an integer "
+            raise SettingError(f"galvo command {mnemonic}: argument {a!r} is not an integer "
                              f"or an upper-case keyword")
     body = " ".join(parts)
     if tag is not None:
         if not 0 <= tag <= MAX_TAG:
-            raise InputError(f"galvo command tag {tag} outside 0..{MAX_TAG}")
+            raise SettingError(f"galvo command tag {tag} outside 0..{MAX_TAG}")
         body = f"{tag}:{body}"
     line = body.encode(ENCODING) + TERMINATOR
     if len(line) > MAX_COMMAND_BYTES:
-        raise InputError(f"galvo command {body[:40]!r}... is longer than {MAX_COMMAND_BYTES} bytes")
+        raise SettingError(f"galvo command {body[:40]!r}... is longer than {MAX_COMMAND_BYTES} bytes")
     return line
 
 

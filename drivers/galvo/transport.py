@@ -13,7 +13,7 @@ import time
 
 import serial
 
-from recon.errors import DeviceTimeoutError, ProtocolError
+from drivers.errors import DeviceTimeoutError, ProtocolError
 
 from .errors import ConnectionLostError
 from .protocol import MAX_REPLY_BYTES, TERMINATOR
@@ -26,10 +26,6 @@ try:
     _PORT_ERRORS: tuple = (serial.SerialException, OSError, termios.error)
 except ImportError:   # Windows
     _PORT_ERRORS = (serial.SerialException, OSError)
-
-# URL handlers of the simulated devices (galvosim://) live in drivers.sim.
-if "drivers.sim" not in serial.protocol_handler_packages:
-    serial.protocol_handler_packages.append("drivers.sim")
 
 
 class SerialTransport:

@@ -2,10 +2,26 @@
 
 ``load_scene`` builds a scene (built-in or from a depth image) with its truth; ``PhotonWorld``
 produces the detections the devices would deliver; ``VirtualClock`` keeps simulated time.
+
+Importing this package registers the simulated devices' pyserial URL handlers (``galvosim://``),
+so ``serial.serial_for_url`` and ``Galvo.open`` reach them by the same path as a real port; the real
+drivers never import the simulator, so a process that only drives hardware keeps pyserial as it is.
 """
+
+import serial
 
 from drivers.sim.scene import EFFECTS, Scene, SceneSettings, load_scene, scene_names
 from drivers.sim.world import PhotonWorld, VirtualClock
 
 __all__ = ["EFFECTS", "PhotonWorld", "Scene", "SceneSettings", "VirtualClock", "load_scene",
-           "scene_names"]
+           "register_url_handlers", "scene_names"]
+
+
+def register_url_handlers() -> None:
+    """Let pyserial open ``galvosim://`` URLs (module ``drivers.sim.protocol_galvosim``).
+    Idempotent; runs when ``drivers.sim`` (or any of its modules) is first imported."""
+    if __name__ not in serial.protocol_handler_packages:
+        serial.protocol_handler_packages.append(__name__)
+
+
+register_url_handlers()

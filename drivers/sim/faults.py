@@ -19,7 +19,7 @@ import threading
 from dataclasses import dataclass
 from enum import Enum
 
-from recon.errors import InputError
+from drivers.errors import SettingError
 
 
 class FaultKind(str, Enum):
@@ -66,7 +66,7 @@ class Fault:
 
     def __post_init__(self):
         if (self.at_s is None) == (self.at_fraction is None):
-            raise InputError(f"fault {self.kind.value}: give exactly one of at_s, at_fraction")
+            raise SettingError(f"fault {self.kind.value}: give exactly one of at_s, at_fraction")
 
     def is_due(self, now_s: float, scan_fraction: float | None) -> bool:
         """True once virtual time ``now_s`` (seconds) or the completed share of the scan
@@ -88,7 +88,7 @@ def parse_faults(spec: str | None, allowed: set[FaultKind] | frozenset[FaultKind
     """Parse a ``KIND@WHEN[,KIND@WHEN...]`` spec into faults, in the order given.
 
     ``allowed`` restricts the kinds (e.g. a galvo rejects ``usb-timeout``). An empty or None spec
-    gives no faults. Raises InputError naming the bad item for anything else."""
+    gives no faults. Raises SettingError naming the bad item for anything else."""
     if spec is None or not spec.strip():
         return []
     faults = []
@@ -98,24 +98,24 @@ def parse_faults(spec: str | None, allowed: set[FaultKind] | frozenset[FaultKind
             continue
         kind_s, sep, when_s = item.partition("@")
         if not sep:
-            raise InputError(f"fault spec {spec!r}: item {item!r} is not KIND@WHEN")
+            raise SettingError(f"fault spec {spec!r}: item {item!r} is not KIND@WHEN")
         try:
             kind = FaultKind(kind_s.strip().lower())
         except ValueError:
             known = ", ".join(k.value for k in FaultKind)
-            raise InputError(f"fault spec {spec!r}: unknown kind {kind_s.strip()!r} "
+            raise SettingError(f"fault spec {spec!r}: unknown kind {kind_s.strip()!r} "
                              f"(known: {known})") from None
         if allowed is not None and kind not in allowed:
-            raise InputError(f"fault spec {spec!r}: {kind.value!r} cannot be injected here "
+            raise SettingError(f"fault spec {spec!r}: {kind.value!r} cannot be injected here "
                              f"(allowed: {', '.join(sorted(k.value for k in allowed))})")
         m = _WHEN_RE.match(when_s)
         if m is None:
-            raise InputError(f"fault spec {spec!r}: time {when_s!r} of {item!r} is not like "
+            raise SettingError(f"fault spec {spec!r}: time {when_s!r} of {item!r} is not like "
                              f"'2s', '250ms' or '40%'")
         value, unit = float(m.group(1)), m.group(2)
         if unit == "%":
             if not 0.0 <= value <= 100.0:
-                raise InputError(f"fault spec {spec!r}: {when_s!r} is outside 0..100%")
+                raise SettingError(f"fault spec {spec!r}: {when_s!r} is outside 0..100%")
             faults.append(Fault(kind, at_fraction=value / 100.0))
         else:
             faults.append(Fault(kind, at_s=value / 1000.0 if unit == "ms" else value))

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from drivers.errors import SettingError
 from drivers.events import Marker
 from drivers.galvo.errors import ErrorCode
 from drivers.galvo.protocol import (DAC_MAX_CODE, MAX_COMMAND_BYTES, MAX_DWELL_NS, MAX_FRAMES,
@@ -34,7 +35,6 @@ from drivers.galvo.protocol import (DAC_MAX_CODE, MAX_COMMAND_BYTES, MAX_DWELL_N
                                     GalvoState, GateMode, GateSetting, PatternCodes, ScanMode,
                                     encode_reply)
 from drivers.sim.faults import GALVO_FAULTS, Fault, FaultKind, FaultSchedule, parse_faults
-from recon.errors import InputError
 
 log = logging.getLogger("spdepth.sim.galvo")
 
@@ -108,10 +108,10 @@ class GalvoFirmware:
                  pace: float = 0.0, replug_s: float = 0.5, slow_reply_s: float = 1.0,
                  seed: int = 0):
         if not re.fullmatch(r"[A-Za-z0-9_.-]{1,32}", serial_number):
-            raise InputError(f"galvo emulator: serial_number {serial_number!r} must be 1-32 "
+            raise SettingError(f"galvo emulator: serial_number {serial_number!r} must be 1-32 "
                              f"letters, digits, '_', '.', '-'")
         if pace < 0 or replug_s < 0 or slow_reply_s < 0:
-            raise InputError("galvo emulator: pace, replug_s and slow_reply_s must be >= 0")
+            raise SettingError("galvo emulator: pace, replug_s and slow_reply_s must be >= 0")
         self.rig = rig
         self.serial_number = serial_number
         self.pace = float(pace)
@@ -120,7 +120,7 @@ class GalvoFirmware:
         fault_list = parse_faults(faults, GALVO_FAULTS) if isinstance(faults, str) else list(faults)
         bad = [f for f in fault_list if f.kind not in GALVO_FAULTS]
         if bad:
-            raise InputError(f"galvo emulator: faults {bad} are not galvo faults")
+            raise SettingError(f"galvo emulator: faults {bad} are not galvo faults")
         self.faults = FaultSchedule(fault_list)
         self._rng = np.random.default_rng(seed)
 
@@ -750,18 +750,18 @@ def device_for_url(url: str) -> GalvoFirmware:
     ``faults=SPEC``; ``pace=F``; ``replug_s=S``; ``slow_s=S``; ``serial=SN``."""
     parts = urllib.parse.urlsplit(url)
     if parts.scheme.lower() != "galvosim":
-        raise InputError(f"not a galvosim:// URL: {url!r}")
+        raise SettingError(f"not a galvosim:// URL: {url!r}")
     name = (parts.netloc + parts.path).strip("/") or "default"
     opts = {k: v[-1] for k, v in urllib.parse.parse_qs(parts.query, keep_blank_values=True).items()}
     unknown = set(opts) - _URL_OPTIONS
     if unknown:
-        raise InputError(f"galvosim URL {url!r}: unknown options {sorted(unknown)} "
+        raise SettingError(f"galvosim URL {url!r}: unknown options {sorted(unknown)} "
                          f"(known: {sorted(_URL_OPTIONS)})")
     with _REG_LOCK:
         if name in _DEVICES:
             fw, created_query = _DEVICES[name]
             if opts and parts.query != created_query:
-                raise InputError(f"galvosim URL {url!r}: device {name!r} exists; options can "
+                raise SettingError(f"galvosim URL {url!r}: device {name!r} exists; options can "
                                  f"only be given when it is created")
             return fw
         fw = _firmware_from_options(name, opts, url)
@@ -774,12 +774,12 @@ def _firmware_from_options(name: str, opts: dict, url: str) -> GalvoFirmware:
         try:
             return conv(opts[key]) if key in opts else default
         except ValueError:
-            raise InputError(f"galvosim URL {url!r}: {key}={opts[key]!r} is not a number") from None
+            raise SettingError(f"galvosim URL {url!r}: {key}={opts[key]!r} is not a number") from None
 
     if "rig" in opts:
         rig = _RIGS.get(opts["rig"])
         if rig is None:
-            raise InputError(f"galvosim URL {url!r}: no rig registered as {opts['rig']!r}")
+            raise SettingError(f"galvosim URL {url!r}: no rig registered as {opts['rig']!r}")
     else:
         rig = _rig_from_scene(opts, url, num)
     return GalvoFirmware(rig, serial_number=opts.get("serial", "SIM0001"),
@@ -794,12 +794,12 @@ def _rig_from_scene(opts: dict, url: str, num):
     try:
         from drivers.sim import PhotonWorld, load_scene
     except ImportError as e:
-        raise InputError(f"galvosim URL {url!r}: building a scene needs drivers.sim.PhotonWorld "
+        raise SettingError(f"galvosim URL {url!r}: building a scene needs drivers.sim.PhotonWorld "
                          f"({e}); register a rig and pass rig=NAME instead") from None
     size = opts.get("size", "32x32")
     m = re.fullmatch(r"(\d+)x(\d+)", size)
     if m is None:
-        raise InputError(f"galvosim URL {url!r}: size={size!r} is not like 32x32 (width x height)")
+        raise SettingError(f"galvosim URL {url!r}: size={size!r} is not like 32x32 (width x height)")
     shape = (int(m.group(2)), int(m.group(1)))
     scene = load_scene(opts.get("scene", "bust"), shape=shape)
     return SimRig(PhotonWorld(scene, seed=num("seed", 0, int)))

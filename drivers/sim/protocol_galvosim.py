@@ -1,7 +1,7 @@
 """pyserial URL handler ``galvosim://NAME?options``: a serial port wired to a GalvoFirmware.
 
-Enabled by ``serial.protocol_handler_packages.append("drivers.sim")`` (importing
-``drivers.galvo`` does it), after which ``serial.serial_for_url("galvosim://bench")`` opens the
+Enabled by ``drivers.sim.register_url_handlers()`` (importing ``drivers.sim`` does it; the real
+``drivers.galvo`` does not), after which ``serial.serial_for_url("galvosim://bench")`` opens the
 emulator registered (or created) under that name; see ``drivers.sim.galvo_fw.device_for_url`` for
 the options. An unplugged emulator makes every call raise SerialException, and ``open()`` fails
 until it is plugged back in, like a USB-serial adapter that vanished from /dev.
@@ -13,8 +13,8 @@ import time
 
 from serial.serialutil import PortNotOpenError, SerialBase, SerialException
 
+from drivers.errors import SettingError
 from drivers.sim import galvo_fw
-from recon.errors import InputError
 
 
 class Serial(SerialBase):
@@ -34,7 +34,7 @@ class Serial(SerialBase):
             raise SerialException("Port must be configured before it can be used.")
         try:
             fw = galvo_fw.device_for_url(self._port)
-        except InputError as e:
+        except SettingError as e:
             raise SerialException(f"could not open port {self._port}: {e}") from e
         if not fw.is_plugged:
             raise SerialException(f"could not open port {self._port}: no such device "

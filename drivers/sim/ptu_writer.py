@@ -19,8 +19,8 @@ import struct
 
 import numpy as np
 
+from drivers.errors import SettingError
 from drivers.events import Marker
-from recon.errors import InputError
 
 from drivers.sim import kernels as K
 
@@ -58,16 +58,16 @@ def write_ptu(path, events: np.ndarray, shape: tuple[int, int], sync_period_s: f
     """Write ``events`` (EVENT_DTYPE, one fixed-dwell frame with markers) as a T3 image PTU.
 
     shape (H, W); range_bins is the number of dtime bins (<= 32768 for Generic T3 records).
-    Returns the number of records written. Raises InputError when the settings cannot be
+    Returns the number of records written. Raises SettingError when the settings cannot be
     expressed in Generic T3 records.
     """
     import ptufile
 
     if range_bins > 32768:
-        raise InputError(f"{range_bins} tagger bins per period do not fit T3 records (max 32768): "
+        raise SettingError(f"{range_bins} tagger bins per period do not fit T3 records (max 32768): "
                          "use a coarser resolution or a shorter tagger range")
     if events.size and int(events["channel"].max()) > 62:
-        raise InputError("detector channel above 62 does not fit T3 records")
+        raise SettingError("detector channel above 62 does not fit T3 records")
     h, w = shape
     ev = _frame_at_end(events)
     # overflow records: at most one per 1023 x 1024 syncs of gap, plus one per event
@@ -77,7 +77,7 @@ def write_ptu(path, events: np.ndarray, shape: tuple[int, int], sync_period_s: f
     n = K.encode_t3_generic(ev["sync"], ev["dtime"], ev["channel"], ev["kind"], ev["marker"],
                             _marker_map(), out)
     if n < 0:  # cannot happen with the bound above; kept as a guard against a silent short file
-        raise InputError("T3 record buffer too small")
+        raise SettingError("T3 record buffer too small")
     head = io.BytesIO()
     writer = ptufile.PtuWriter(head, (h, w, range_bins), sync_period_s, resolution_s,
                                max(pixel_time_s, sync_period_s),
@@ -89,7 +89,7 @@ def write_ptu(path, events: np.ndarray, shape: tuple[int, int], sync_period_s: f
     for name, value in ((b"TTResult_NumberOfRecords", n), (b"ImgHdr_MaxFrames", 1)):
         at = header.find(name)
         if at < 0:
-            raise InputError(f"ptufile header lacks {name.decode()}")
+            raise SettingError(f"ptufile header lacks {name.decode()}")
         header[at + 40:at + 48] = struct.pack("<q", value)
     with open(path, "wb") as fh:
         fh.write(header)

@@ -10,8 +10,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from recon.errors import InputError
-
+from drivers.errors import SettingError
 from drivers.sim import scenes as _scenes
 
 C_M_PER_S = 299_792_458.0
@@ -79,31 +78,31 @@ class SceneSettings:
     def __post_init__(self):
         h, w = self.shape
         if not (1 <= h <= MAX_SIDE and 1 <= w <= MAX_SIDE):
-            raise InputError(f"scene size must be 1..{MAX_SIDE} pixels a side, got {w}x{h} (WxH)")
+            raise SettingError(f"scene size must be 1..{MAX_SIDE} pixels a side, got {w}x{h} (WxH)")
         positive = ("ppp", "sbr", "dwell_s", "sync_period_s", "resolution_s", "efficiency")
         for name in positive:
             v = getattr(self, name)
             if not (v > 0) or math.isnan(v) or (math.isinf(v) and name != "sbr"):
-                raise InputError(f"scene setting {name} must be positive and finite, got {v}")
+                raise SettingError(f"scene setting {name} must be positive and finite, got {v}")
         for name in ("pulse_rms_s", "dark_rate_hz", "jitter_rms_s", "dead_time_s",
                      "afterpulse_prob", "afterpulse_tau_s"):
             v = getattr(self, name)
             if not (v >= 0) or math.isinf(v):
-                raise InputError(f"scene setting {name} must be >= 0 and finite, got {v}")
+                raise SettingError(f"scene setting {name} must be >= 0 and finite, got {v}")
         if self.efficiency > 1:
-            raise InputError(f"scene setting efficiency must be in (0, 1], got {self.efficiency}")
+            raise SettingError(f"scene setting efficiency must be in (0, 1], got {self.efficiency}")
         if self.afterpulse_prob >= 0.5:
-            raise InputError(f"scene setting afterpulse_prob must be below 0.5, got {self.afterpulse_prob}")
+            raise SettingError(f"scene setting afterpulse_prob must be below 0.5, got {self.afterpulse_prob}")
         if self.resolution_s > self.sync_period_s:
-            raise InputError(f"tagger resolution {self.resolution_s} s exceeds the sync period "
+            raise SettingError(f"tagger resolution {self.resolution_s} s exceeds the sync period "
                              f"{self.sync_period_s} s")
         if self.tagger_range_s is not None and not (0 < self.tagger_range_s):
-            raise InputError(f"scene setting tagger_range_s must be positive, got {self.tagger_range_s}")
+            raise SettingError(f"scene setting tagger_range_s must be positive, got {self.tagger_range_s}")
         bad = [e for e in self.effects if e not in EFFECTS]
         if bad:
-            raise InputError(f"unknown effect(s) {', '.join(bad)}; known: {', '.join(EFFECTS)}")
+            raise SettingError(f"unknown effect(s) {', '.join(bad)}; known: {', '.join(EFFECTS)}")
         if not 0 <= self.channel < 63:
-            raise InputError(f"scene setting channel must be 0..62, got {self.channel}")
+            raise SettingError(f"scene setting channel must be 0..62, got {self.channel}")
 
     @property
     def syncs_per_dwell(self) -> int:
@@ -270,7 +269,7 @@ def _build(geom: _scenes.Geometry, settings: SceneSettings, irf) -> Scene:
     amp = geom.reflectivity * geom.occupancy
     mean_amp = float(amp.sum(axis=0).mean())
     if not mean_amp > 0:
-        raise InputError(f"scene {s.name}: nothing reflects (all reflectivity x occupancy is 0)")
+        raise SettingError(f"scene {s.name}: nothing reflects (all reflectivity x occupancy is 0)")
     if math.isinf(s.sbr):
         sig_mean, bg_mean = s.ppp / n, 0.0
     else:
@@ -279,18 +278,18 @@ def _build(geom: _scenes.Geometry, settings: SceneSettings, irf) -> Scene:
     dark_pp = s.dark_rate_hz * s.sync_period_s
     ambient_mean = bg_mean - dark_pp
     if ambient_mean < -1e-12 * max(bg_mean, 1e-300):
-        raise InputError(
+        raise SettingError(
             f"dark-count rate {s.dark_rate_hz} Hz alone gives {dark_pp * n:.3g} detections per "
             f"pixel, more than the {bg_mean * n:.3g} background detections ppp={s.ppp} and "
             f"sbr={s.sbr} allow")
     ambient_mean = max(ambient_mean, 0.0)
     bg_rel = np.asarray(geom.background, np.float64)
     if np.any(bg_rel < 0) or not np.all(np.isfinite(bg_rel)) or bg_rel.mean() <= 0:
-        raise InputError(f"scene {s.name}: background map must be finite, >= 0 and not all 0")
+        raise SettingError(f"scene {s.name}: background map must be finite, >= 0 and not all 0")
     signal_pp = amp * (sig_mean / mean_amp)
     background_pp = bg_rel * (ambient_mean / bg_rel.mean()) + dark_pp
     if geom.depth_m.shape[1:] != s.shape:
-        raise InputError(f"scene {s.name}: geometry shape {geom.depth_m.shape[1:]} != {s.shape}")
+        raise SettingError(f"scene {s.name}: geometry shape {geom.depth_m.shape[1:]} != {s.shape}")
     active = list(e for e in EFFECTS if e in s.effects)
     if "dead_time" not in active and s.dead_time_s > 0:
         if float((signal_pp.sum(axis=0) + background_pp).max()) > PILEUP_THRESHOLD:
@@ -298,9 +297,9 @@ def _build(geom: _scenes.Geometry, settings: SceneSettings, irf) -> Scene:
     if irf is not None:
         irf = np.asarray(irf, np.float64).ravel()
         if irf.size < 1 or np.any(irf < 0) or not np.all(np.isfinite(irf)) or irf.sum() <= 0:
-            raise InputError("measured IRF must be a non-empty array of finite values >= 0, not all 0")
+            raise SettingError("measured IRF must be a non-empty array of finite values >= 0, not all 0")
         if s.irf_bin_s is None or not s.irf_bin_s > 0:
-            raise InputError("a measured IRF needs its bin width irf_bin_s > 0")
+            raise SettingError("a measured IRF needs its bin width irf_bin_s > 0")
     return Scene(s, np.asarray(geom.depth_m, np.float64), np.asarray(geom.reflectivity, np.float64),
                  np.asarray(geom.occupancy, np.float64), bg_rel, signal_pp, background_pp, tuple(active), irf)
 
@@ -324,15 +323,15 @@ def load_scene(name: str, shape: tuple[int, int] | None = None, *, ppp: float = 
     irf:   a measured instrument response (histogram, any scale) replacing the Gaussian pulse;
            give ``irf_bin_s`` too.
     settings: any other ``SceneSettings`` field (dwell_s, sync_period_s, effects, ...).
-    Raises InputError for an unknown scene or a bad setting.
+    Raises SettingError for an unknown scene or a bad setting.
     """
     if shape is not None:
         try:
             shape = (int(shape[0]), int(shape[1]))
         except (TypeError, ValueError, IndexError):
-            raise InputError(f"scene shape must be (H, W), got {shape!r}") from None
+            raise SettingError(f"scene shape must be (H, W), got {shape!r}") from None
         if not (1 <= shape[0] <= MAX_SIDE and 1 <= shape[1] <= MAX_SIDE):
-            raise InputError(f"scene size must be 1..{MAX_SIDE} pixels a side, got {shape} (H, W)")
+            raise SettingError(f"scene size must be 1..{MAX_SIDE} pixels a side, got {shape} (H, W)")
     if name.startswith("file:"):
         geom = _scenes.from_file(name, shape)
         shape = geom.depth_m.shape[1:]
@@ -340,7 +339,7 @@ def load_scene(name: str, shape: tuple[int, int] | None = None, *, ppp: float = 
         shape = shape or (64, 64)
         geom = _scenes.BUILTIN[name](shape)
     else:
-        raise InputError(f"unknown scene {name!r}; built-in scenes: {', '.join(scene_names())}, "
+        raise SettingError(f"unknown scene {name!r}; built-in scenes: {', '.join(scene_names())}, "
                          "or file:PATH for a depth image")
     if sbr is None:
         sbr = geom.defaults.get("sbr", 10.0)
@@ -350,5 +349,5 @@ def load_scene(name: str, shape: tuple[int, int] | None = None, *, ppp: float = 
     try:
         s = SceneSettings(name=name, shape=tuple(shape), ppp=float(ppp), sbr=float(sbr), **settings)
     except TypeError as exc:
-        raise InputError(f"bad scene setting: {exc}") from None
+        raise SettingError(f"bad scene setting: {exc}") from None
     return _build(geom, s, irf)

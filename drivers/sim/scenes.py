@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from recon.errors import InputError
+from drivers.errors import SettingError
 
 
 @dataclass(frozen=True, eq=False)
@@ -137,7 +137,7 @@ BUILTIN = {
 
 def _read_image(path: Path) -> np.ndarray:
     if not path.is_file():
-        raise InputError(f"scene image {path}: file not found")
+        raise SettingError(f"scene image {path}: file not found")
     suffix = path.suffix.lower()
     try:
         if suffix == ".npy":
@@ -150,16 +150,16 @@ def _read_image(path: Path) -> np.ndarray:
             with Image.open(path) as im:
                 img = np.asarray(im)
         else:
-            raise InputError(f"scene image {path}: unknown type {suffix!r} (use .npy, .png, .tif, .tiff)")
-    except InputError:
+            raise SettingError(f"scene image {path}: unknown type {suffix!r} (use .npy, .png, .tif, .tiff)")
+    except SettingError:
         raise
     except Exception as exc:  # a corrupt file of a known type
-        raise InputError(f"scene image {path}: cannot read ({exc})") from exc
+        raise SettingError(f"scene image {path}: cannot read ({exc})") from exc
     img = np.asarray(img)
     if img.ndim != 2:
-        raise InputError(f"scene image {path}: need a single-channel 2-D image, got shape {img.shape}")
+        raise SettingError(f"scene image {path}: need a single-channel 2-D image, got shape {img.shape}")
     if img.dtype.kind not in "uif":
-        raise InputError(f"scene image {path}: need numbers, got dtype {img.dtype}")
+        raise SettingError(f"scene image {path}: need numbers, got dtype {img.dtype}")
     return img
 
 
@@ -176,18 +176,18 @@ def parse_file_spec(spec: str) -> dict:
     body = spec[len("file:"):]
     parts = body.split(",")
     if not parts[0]:
-        raise InputError(f"scene {spec!r}: no depth image path after 'file:'")
+        raise SettingError(f"scene {spec!r}: no depth image path after 'file:'")
     opts = {"path": parts[0]}
     for part in parts[1:]:
         key, sep, value = part.partition("=")
         if not sep or key not in ("reflectivity", "scale", "offset"):
-            raise InputError(f"scene {spec!r}: unknown option {part!r} "
+            raise SettingError(f"scene {spec!r}: unknown option {part!r} "
                              "(allowed: reflectivity=PATH, scale=M_PER_UNIT, offset=M)")
         if key in ("scale", "offset"):
             try:
                 opts[key] = float(value)
             except ValueError:
-                raise InputError(f"scene {spec!r}: {key} must be a number, got {value!r}") from None
+                raise SettingError(f"scene {spec!r}: {key} must be a number, got {value!r}") from None
         else:
             opts[key] = value
     return opts
@@ -210,19 +210,19 @@ def from_file(spec: str, shape=None) -> Geometry:
         depth = _resample(depth, shape)
     valid = np.isfinite(depth) & (depth > 0)
     if not valid.any():
-        raise InputError(f"scene image {opts['path']}: no pixel has a finite positive depth")
+        raise SettingError(f"scene image {opts['path']}: no pixel has a finite positive depth")
     if "reflectivity" in opts:
         rimg = _read_image(Path(opts["reflectivity"]))
         refl = rimg.astype(np.float64)
         if rimg.dtype.kind in "ui":
             refl /= np.iinfo(rimg.dtype).max
         if rimg.shape != img.shape:
-            raise InputError(f"reflectivity image {opts['reflectivity']}: shape {rimg.shape} "
+            raise SettingError(f"reflectivity image {opts['reflectivity']}: shape {rimg.shape} "
                              f"differs from depth image shape {img.shape}")
         if shape is not None and tuple(shape) != refl.shape:
             refl = _resample(refl, shape)
         if not np.all(np.isfinite(refl)) or np.any(refl < 0):
-            raise InputError(f"reflectivity image {opts['reflectivity']}: values must be finite and >= 0")
+            raise SettingError(f"reflectivity image {opts['reflectivity']}: values must be finite and >= 0")
     else:
         refl = np.full(depth.shape, 0.5)
     occ = valid.astype(np.float64)

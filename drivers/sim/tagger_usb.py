@@ -34,12 +34,12 @@ import numpy as np
 import usb.backend
 import usb.core
 
+from drivers.errors import SettingError
 from drivers.events import EVENT_DTYPE, EventKind, Marker
 from drivers.sim.faults import Fault, FaultKind, FaultSchedule, TAGGER_FAULTS, parse_faults
 from drivers.tagger import protocol as proto
 from drivers.tagger.protocol import Gap, Request, StatusFlag, TaggerIdentity, TaggerStatus
 from drivers.tagger.t3 import T3_DTIME_MAX, T3EncoderState, encode_t3
-from recon.errors import InputError
 
 SIM_IDENTITY = TaggerIdentity(
     protocol_version=proto.PROTOCOL_VERSION,
@@ -62,7 +62,7 @@ def world_resolution_s(world) -> float:
         value = getattr(holder, "resolution_s", None) if holder is not None else None
         if value is not None:
             return float(value)
-    raise InputError(f"photon world {type(world).__name__} does not say its dtime unit "
+    raise SettingError(f"photon world {type(world).__name__} does not say its dtime unit "
                      f"(resolution_s)")
 
 
@@ -431,7 +431,7 @@ class SimTaggerBackend(TaggerUsbDescriptors):
         if isinstance(faults, str) or faults is None:
             faults = parse_faults(faults, TAGGER_FAULTS)
         if any(f.at_fraction is not None for f in faults) and not scan_pixels:
-            raise InputError("tagger faults given as a fraction of the scan need scan_pixels")
+            raise SettingError("tagger faults given as a fraction of the scan need scan_pixels")
         self.scan_pixels = scan_pixels
         self.overflow_records = int(overflow_records)
         # A FIFO overflow belongs to the moment the scan reaches WHEN, not to when the host

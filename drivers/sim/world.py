@@ -16,8 +16,8 @@ from typing import Callable
 
 import numpy as np
 
+from drivers.errors import SettingError
 from drivers.events import EVENT_DTYPE, Marker
-from recon.errors import InputError
 
 from drivers.sim import kernels as K
 from drivers.sim.effects import Batch, Counting, DetectorState, build_effects
@@ -33,7 +33,7 @@ class VirtualClock:
 
     def __init__(self, start_s: float = 0.0, speed: float | None = None) -> None:
         if speed is not None and not speed > 0:
-            raise InputError(f"clock speed must be positive, got {speed}")
+            raise SettingError(f"clock speed must be positive, got {speed}")
         self._lock = threading.Lock()
         self._now_s = float(start_s)
         self._start_s = float(start_s)
@@ -48,7 +48,7 @@ class VirtualClock:
     def advance(self, dt_s: float) -> float:
         """Move simulated time forward by ``dt_s`` >= 0; pace if ``speed`` is set. Returns now_s."""
         if not dt_s >= 0:
-            raise InputError(f"clock can only advance by dt_s >= 0, got {dt_s}")
+            raise SettingError(f"clock can only advance by dt_s >= 0, got {dt_s}")
         with self._lock:
             self._now_s += dt_s
             now = self._now_s
@@ -62,7 +62,7 @@ class VirtualClock:
 
 def _syncs(duration_s: float, period_s: float, what: str) -> int:
     if not (duration_s > 0) or math.isinf(duration_s):
-        raise InputError(f"{what} must be positive and finite, got {duration_s}")
+        raise SettingError(f"{what} must be positive and finite, got {duration_s}")
     return max(1, int(duration_s / period_s + 1e-9))
 
 
@@ -124,7 +124,7 @@ class PhotonWorld:
     def _check_pixel(self, row: int, col: int) -> int:
         h, w = self.scene.shape
         if not (0 <= row < h and 0 <= col < w):
-            raise InputError(f"pixel ({row}, {col}) outside the {h} x {w} scene")
+            raise SettingError(f"pixel ({row}, {col}) outside the {h} x {w} scene")
         return row * w + col
 
     def _base(self, pix: np.ndarray, start_sync: np.ndarray, n_sync: np.ndarray) -> Batch:
@@ -187,9 +187,9 @@ class PhotonWorld:
         try:
             lo, hi = int(window[0]), int(window[1])
         except (TypeError, ValueError, IndexError):
-            raise InputError(f"window must be (start, stop) in tagger units, got {window!r}") from None
+            raise SettingError(f"window must be (start, stop) in tagger units, got {window!r}") from None
         if not 0 <= lo < hi:
-            raise InputError(f"window must satisfy 0 <= start < stop, got {window!r}")
+            raise SettingError(f"window must satisfy 0 <= start < stop, got {window!r}")
         return lo, hi
 
     # ------------------------------------------------------------------ per pixel
@@ -204,7 +204,7 @@ class PhotonWorld:
         n_sync = _syncs(dwell_s, self._period_s, "dwell_s")
         start_sync = int(start_sync)
         if start_sync < 0:
-            raise InputError(f"start_sync must be >= 0, got {start_sync}")
+            raise SettingError(f"start_sync must be >= 0, got {start_sync}")
         with self._lock:
             self._det.start_at(start_sync)
             batch = self._base(np.array([p], np.int64), np.array([start_sync], np.int64),
@@ -226,11 +226,11 @@ class PhotonWorld:
         p = self._check_pixel(row, col)
         n_target = int(n_target)
         if n_target < 1:
-            raise InputError(f"n_target must be >= 1, got {n_target}")
+            raise SettingError(f"n_target must be >= 1, got {n_target}")
         limit = _syncs(dwell_limit_s, self._period_s, "dwell_limit_s")
         start_sync = int(start_sync)
         if start_sync < 0:
-            raise InputError(f"start_sync must be >= 0, got {start_sync}")
+            raise SettingError(f"start_sync must be >= 0, got {start_sync}")
         lo, hi = self._window(window)
         res = self.scene.resolution_s
         rb = self._range_bins
@@ -297,7 +297,7 @@ class PhotonWorld:
         n_dwell = _syncs(dwell_s, T, "dwell_s")
         gap = 0 if line_gap_s == 0 else _syncs(line_gap_s, T, "line_gap_s")
         if start_sync < 0:
-            raise InputError(f"start_sync must be >= 0, got {start_sync}")
+            raise SettingError(f"start_sync must be >= 0, got {start_sync}")
         if n_target is None:
             evs, origins = self._raster_fixed(n_dwell, gap, int(start_sync), progress)
         else:

@@ -11,10 +11,10 @@ import logging
 import time
 from dataclasses import dataclass
 
+from drivers.errors import DeviceError, SettingError
 from drivers.tagger import protocol as proto
 from drivers.tagger.protocol import Binning, Gap, MarkerConfig, TaggerIdentity, TaggerStatus
 from drivers.tagger.transport import DeviceGoneError, UsbTransport
-from recon.errors import DeviceError, InputError
 
 log = logging.getLogger(__name__)
 
@@ -105,7 +105,7 @@ class Tagger:
     def configure(self, settings: TaggerSettings) -> None:
         """Apply all settings (while stopped); they are re-applied after a reconnect."""
         if not isinstance(settings, TaggerSettings):
-            raise InputError(f"tagger settings must be TaggerSettings, not {type(settings).__name__}")
+            raise SettingError(f"tagger settings must be TaggerSettings, not {type(settings).__name__}")
         self.set_binning(settings.binning)
         self.set_sync_divider(settings.sync_divider)
         self.set_markers(settings.marker_enabled_mask, settings.marker_rising_mask)

@@ -10,7 +10,7 @@ import struct
 from dataclasses import dataclass
 from enum import IntEnum, IntFlag
 
-from recon.errors import InputError, ProtocolError
+from drivers.errors import ProtocolError, SettingError
 
 VENDOR_ID = 0x1209
 """pid.codes (open-source hardware) vendor id; the simulated tagger enumerates with it."""
@@ -190,7 +190,7 @@ def get_identity() -> Setup:
 
 def set_binning(code: int) -> Setup:
     if not 0 <= int(code) <= MAX_BINNING:
-        raise InputError(f"tagger binning code {code} is outside 0..{MAX_BINNING}")
+        raise SettingError(f"tagger binning code {code} is outside 0..{MAX_BINNING}")
     return _out(Request.SET_BINNING, int(code))
 
 
@@ -200,7 +200,7 @@ def get_binning() -> Setup:
 
 def set_sync_divider(divider: int) -> Setup:
     if int(divider) not in SYNC_DIVIDERS:
-        raise InputError(f"tagger sync divider {divider} is not one of {SYNC_DIVIDERS}")
+        raise SettingError(f"tagger sync divider {divider} is not one of {SYNC_DIVIDERS}")
     return _out(Request.SET_SYNC_DIVIDER, int(divider))
 
 
@@ -212,7 +212,7 @@ def set_markers(enabled_mask: int, rising_mask: int) -> Setup:
     full = (1 << MARKER_INPUTS) - 1
     for name, m in (("enabled", enabled_mask), ("rising-edge", rising_mask)):
         if not 0 <= int(m) <= full:
-            raise InputError(f"tagger {name} marker mask {m:#x} is outside 0..{full:#x}")
+            raise SettingError(f"tagger {name} marker mask {m:#x} is outside 0..{full:#x}")
     return _out(Request.SET_MARKERS, int(enabled_mask), int(rising_mask))
 
 
@@ -337,14 +337,14 @@ def encode_gap(gap: Gap) -> bytes:
 
 
 def parse_url(url: str) -> tuple[int, int]:
-    """``usb:VID:PID`` (hex, with or without 0x) -> (vid, pid). Raises InputError."""
+    """``usb:VID:PID`` (hex, with or without 0x) -> (vid, pid). Raises SettingError."""
     parts = str(url).split(":")
     if len(parts) != 3 or parts[0].lower() != "usb":
-        raise InputError(f"tagger address {url!r} is not like 'usb:1209:7a64'")
+        raise SettingError(f"tagger address {url!r} is not like 'usb:1209:7a64'")
     try:
         vid, pid = (int(p, 16) for p in parts[1:])
     except ValueError:
-        raise InputError(f"tagger address {url!r}: VID and PID must be hexadecimal") from None
+        raise SettingError(f"tagger address {url!r}: VID and PID must be hexadecimal") from None
     if not (0 <= vid <= 0xFFFF and 0 <= pid <= 0xFFFF):
-        raise InputError(f"tagger address {url!r}: VID and PID must fit 16 bits")
+        raise SettingError(f"tagger address {url!r}: VID and PID must fit 16 bits")
     return vid, pid

@@ -28,10 +28,10 @@ from typing import Callable
 
 import numpy as np
 
+from drivers.errors import DeviceError, DeviceTimeoutError, ProtocolError, SettingError
 from drivers.events import EVENT_DTYPE, EventKind
 from drivers.tagger.t3 import T3DecoderState, decode_t3
 from drivers.tagger.transport import DeviceGoneError, EndpointStallError
-from recon.errors import DeviceError, DeviceTimeoutError, InputError, ProtocolError
 
 log = logging.getLogger(__name__)
 
@@ -67,9 +67,9 @@ class TaggerReader:
                  reconnect_timeout_s: float = 5.0,
                  connection_lost: Callable[[BaseException | None], None] | None = None):
         if buffer_bytes < 512 or buffer_bytes % 512:
-            raise InputError(f"reader buffer_bytes={buffer_bytes} must be a positive multiple of 512")
+            raise SettingError(f"reader buffer_bytes={buffer_bytes} must be a positive multiple of 512")
         if queue_chunks < 1:
-            raise InputError(f"reader queue_chunks={queue_chunks} must be >= 1")
+            raise SettingError(f"reader queue_chunks={queue_chunks} must be >= 1")
         self.tagger = tagger
         self.read_timeout_s = float(read_timeout_s)
         self.start_measurement = bool(start_measurement)

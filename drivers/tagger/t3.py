@@ -26,8 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from drivers.errors import ProtocolError, SettingError
 from drivers.events import EVENT_DTYPE, EventKind
-from recon.errors import InputError, ProtocolError
 
 T3_WRAP_SYNCS = 1024
 """Syncs per overflow period (the 10-bit ``nsync`` field wraps here)."""
@@ -152,12 +152,12 @@ def decode_t3(records: np.ndarray, state: T3DecoderState | None = None,
                                     f"4-byte records ({records.size % 4} bytes left over)")
             records = np.ascontiguousarray(records).view(T3_RECORD_DTYPE)
         else:
-            raise InputError(f"T3 records must be uint32 or bytes, not {records.dtype}")
+            raise SettingError(f"T3 records must be uint32 or bytes, not {records.dtype}")
     records = records.reshape(-1)
     if out is None:
         out = np.empty(records.size, dtype=EVENT_DTYPE)
     elif out.dtype != EVENT_DTYPE or out.size < records.size or not out.flags.c_contiguous:
-        raise InputError(f"out must be a C-contiguous EVENT_DTYPE array of >= {records.size} rows")
+        raise SettingError(f"out must be a C-contiguous EVENT_DTYPE array of >= {records.size} rows")
     words = out.view(np.uint64).reshape(-1, 2)
     n, base, last, bad = _decode_kernel(records, words, np.int64(state.sync_base))
     if bad >= 0:
@@ -231,30 +231,30 @@ def encode_t3(events: np.ndarray, state: T3EncoderState | None = None) -> np.nda
     events: EVENT_DTYPE[n] with non-decreasing ``sync`` >= ``state.sync_base`` (syncs since the
             stream start), photons with dtime <= 32767 and channel <= 63, markers with mask 1..15.
     state:  carried between chunks of one stream; updated in place.
-    Returns uint32 records. Raises InputError for events a T3 stream cannot carry (LOST events,
+    Returns uint32 records. Raises SettingError for events a T3 stream cannot carry (LOST events,
     syncs going backwards, fields out of range).
     """
     if state is None:
         state = T3EncoderState()
     if events.dtype != EVENT_DTYPE:
-        raise InputError(f"events must have EVENT_DTYPE, not {events.dtype}")
+        raise SettingError(f"events must have EVENT_DTYPE, not {events.dtype}")
     events = events.reshape(-1)
     sync = events["sync"]
     kind = events["kind"]
     if sync.size and int(sync[0]) < state.sync_base:
-        raise InputError(f"event 0 at sync {int(sync[0])} precedes the encoder's overflow "
+        raise SettingError(f"event 0 at sync {int(sync[0])} precedes the encoder's overflow "
                          f"period starting at sync {state.sync_base}")
     count = _count_encoded(sync, kind, np.int64(state.sync_base))
     if count < 0:
         i = -count - 1
-        raise InputError(f"event {i} at sync {int(sync[i])} goes back in time "
+        raise SettingError(f"event {i} at sync {int(sync[i])} goes back in time "
                          f"(previous event at sync {int(sync[i - 1]) if i else state.sync_base})")
     out = np.empty(count, dtype=T3_RECORD_DTYPE)
     n, base, bad = _encode_kernel(sync, events["dtime"], events["channel"], kind,
                                   events["marker"], np.int64(state.sync_base), out)
     if bad >= 0:
         e = events[bad]
-        raise InputError(f"event {bad} cannot be a T3 record: kind={int(e['kind'])}, "
+        raise SettingError(f"event {bad} cannot be a T3 record: kind={int(e['kind'])}, "
                          f"dtime={int(e['dtime'])}, channel={int(e['channel'])}, "
                          f"marker={int(e['marker'])} (photons: dtime <= {T3_DTIME_MAX}, "
                          f"channel <= 63; markers: mask 1..15; LOST has no record)")
