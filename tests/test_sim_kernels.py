@@ -221,31 +221,3 @@ def test_pack_events_matches_numpy(rng):
     assert_array_equal(ev[:m], ref)
     assert_array_equal(org[:m], ref_o)
 
-
-def test_encode_t3_generic_matches_reference(rng):
-    n = 500
-    ev = np.zeros(n, EVENT_DTYPE)
-    ev["sync"] = np.sort(rng.integers(0, 5_000_000, n))
-    ev["sync"][-1] = 3 * 1023 * 1024 + 7_000_000   # a gap needing several overflow records
-    ev["dtime"] = rng.integers(0, 32768, n)
-    ev["channel"] = rng.integers(0, 4, n)
-    ev["kind"] = rng.random(n) < 0.1
-    ev["marker"] = np.where(ev["kind"] == 1, rng.integers(1, 16, n), 0)
-    mmap = np.arange(256, dtype=np.uint8) & 15
-    out = np.empty(2 * n + 100, np.uint32)
-    m = K.encode_t3_generic(ev["sync"], ev["dtime"], ev["channel"], ev["kind"], ev["marker"],
-                            mmap, out)
-    ref = []
-    hi = 0
-    for e in ev:
-        h = int(e["sync"]) // 1024
-        while h > hi:
-            step = min(h - hi, 1023)
-            ref.append((1 << 31) | (63 << 25) | step)
-            hi += step
-        low = int(e["sync"]) % 1024
-        if e["kind"] == 0:
-            ref.append((int(e["channel"]) << 25) | (int(e["dtime"]) << 10) | low)
-        else:
-            ref.append((1 << 31) | (int(mmap[e["marker"]]) << 25) | low)
-    assert_array_equal(out[:m], np.array(ref, np.uint32))

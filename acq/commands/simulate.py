@@ -53,8 +53,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
+    from acq.ptu import MARKER_INPUT, write_ptu
     from drivers.sim import PhotonWorld, load_scene
-    from drivers.sim.ptu_writer import write_ptu
 
     out = Path(args.out)
     if out.suffix.lower() != ".ptu":
@@ -86,7 +86,8 @@ def run(args: argparse.Namespace) -> int:
     truth = scene.truth()
     settings = dict(truth["settings"], seed=args.seed, n_photons=n_photons,
                     pixel_order="row-major, left to right, fixed dwell",
-                    ptu_markers="line start=1, line stop=2, frame=3 (end of frame), pixel=4")
+                    ptu_markers=", ".join(f"{m.name.lower()}={n}" for m, n in MARKER_INPUT.items())
+                    + " (frame at the start of the frame; one marker kind per record)")
     n_rec = write_ptu(out, events, (h, w), s.sync_period_s, s.resolution_s, s.dwell_s, s.range_bins,
                       comment=f"spdepth simulate: scene {s.name}, {w}x{h}, ppp {s.ppp}, "
                               f"sbr {s.sbr}, seed {args.seed}")

@@ -14,8 +14,10 @@ One record is a little-endian ``uint32``, fields from MSB to LSB::
 * special=1 with any other channel (0, 16..62) is not defined by PicoQuant: decoding raises
   ``ProtocolError`` instead of guessing.
 
-The numba kernels (``_decode_kernel``, ``_count_encoded``, ``_encode_kernel``) take plain arrays;
-``decode_t3``/``encode_t3`` validate, allocate and carry the overflow state between chunks.
+The numba kernels (``_decode_kernel``, ``_count_encoded``, ``_encode_kernel``, ``_split_kernel``)
+take plain arrays; ``decode_t3``/``encode_t3``/``split_marker_records`` validate, allocate and carry
+the overflow state between chunks. This is the one Generic T3 encoder: the simulated tagger and
+``acq.ptu`` (files) both use it.
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ import numpy as np
 from numba import njit
 
 from drivers.errors import ProtocolError, SettingError
-from drivers.events import EVENT_DTYPE, EventKind
+from drivers.events import EVENT_DTYPE, EventKind, Marker
 
 T3_WRAP_SYNCS = 1024
 """Syncs per overflow period (the 10-bit ``nsync`` field wraps here)."""
@@ -39,6 +41,26 @@ T3_MAX_OVERFLOW_COUNT = 1023
 """Largest overflow count one record carries (10-bit ``nsync``)."""
 T3_MARKER_MASK_MAX = 15
 """Markers use channels 1..15: four marker inputs, bit-coded."""
+T3_CHANNEL_MAX = 2 ** 6 - 1
+"""Largest ``channel`` field (6 bits): the highest detector channel a photon record carries."""
+
+T3_DTIME_SHIFT = 10
+"""Bit position of ``dtime`` (above the 10 bits of ``nsync``)."""
+T3_CHANNEL_SHIFT = 25
+"""Bit position of ``channel`` (above ``dtime``)."""
+T3_SPECIAL_SHIFT = 31
+"""Bit position of ``special`` (the top bit)."""
+# The numba kernels read these module-level ints as compile-time constants (numba freezes global
+# ints when it compiles), so naming them costs nothing at run time.
+
+KIND_PHOTON = int(EventKind.PHOTON)
+KIND_MARKER = int(EventKind.MARKER)
+
+MARKER_SPLIT_ORDER = (Marker.FRAME, Marker.LINE_START, Marker.PIXEL, Marker.LINE_STOP)
+"""The order in which one marker record with several bits becomes several records
+(``split_marker_records``): the order ``acq.assign`` applies the bits of a combined record, so
+the split stream assigns every photon exactly as the combined one. The device's marker inputs
+are the ``Marker`` bits (input n = mask ``1 << (n - 1)``)."""
 
 T3_RECORD_DTYPE = np.dtype("<u4")
 """One raw Generic T3 record: ``special:1 | channel:6 | dtime:15 | nsync:10`` (MSB to LSB),
@@ -53,7 +75,7 @@ if sys.byteorder != "little":  # the kernels write EVENT_DTYPE rows as two nativ
 assert EVENT_DTYPE.itemsize == 16
 assert [EVENT_DTYPE.fields[f][1] for f in ("sync", "dtime", "channel", "kind", "marker")] == [0, 8, 12, 13, 14]
 
-assert int(EventKind.PHOTON) == 0 and int(EventKind.MARKER) == 1
+assert sorted(int(m) for m in MARKER_SPLIT_ORDER) == [1, 2, 4, 8]  # every marker input once
 
 
 @dataclass
@@ -95,22 +117,22 @@ def _decode_kernel(records, out_words, sync_base):
     last_sync = -1
     for i in range(records.size):
         r = np.int64(records[i])      # uint32 fits: all arithmetic stays in int64
-        nsync = r & 0x3FF             # nsync: 10 bits
-        dtime = (r >> 10) & 0x7FFF    # dtime: 15 bits
-        channel = (r >> 25) & 0x3F    # channel: 6 bits
-        special = r >> 31             # special: 1 bit
+        nsync = r & (T3_WRAP_SYNCS - 1)                         # nsync: 10 bits
+        dtime = (r >> T3_DTIME_SHIFT) & T3_DTIME_MAX            # dtime: 15 bits
+        channel = (r >> T3_CHANNEL_SHIFT) & T3_CHANNEL_MAX      # channel: 6 bits
+        special = r >> T3_SPECIAL_SHIFT                         # special: 1 bit
         if special == 0:
             s = sync_base + nsync
             out_words[n_out, 0] = s
-            out_words[n_out, 1] = dtime | (channel << 32)          # kind PHOTON = 0
+            out_words[n_out, 1] = dtime | (channel << 32) | (KIND_PHOTON << 40)
             n_out += 1
             last_sync = s
-        elif channel == 63:
-            sync_base += 1024 * (nsync if nsync != 0 else 1)
-        elif channel <= 15 and channel >= 1:
+        elif channel == T3_OVERFLOW_CHANNEL:
+            sync_base += T3_WRAP_SYNCS * (nsync if nsync != 0 else 1)
+        elif channel <= T3_MARKER_MASK_MAX and channel >= 1:
             s = sync_base + nsync
             out_words[n_out, 0] = s
-            out_words[n_out, 1] = (1 << 40) | (channel << 48)     # kind MARKER, marker bits
+            out_words[n_out, 1] = (KIND_MARKER << 40) | (channel << 48)    # marker bits
             n_out += 1
             last_sync = s
         else:
@@ -121,8 +143,9 @@ def _decode_kernel(records, out_words, sync_base):
 def describe_record(record: int) -> str:
     """Human-readable fields of one raw record, for error messages."""
     r = int(record)
-    return (f"0x{r:08x} (special={r >> 31}, channel={(r >> 25) & 0x3F}, "
-            f"dtime={(r >> 10) & 0x7FFF}, nsync={r & 0x3FF})")
+    return (f"0x{r:08x} (special={r >> T3_SPECIAL_SHIFT}, "
+            f"channel={(r >> T3_CHANNEL_SHIFT) & T3_CHANNEL_MAX}, "
+            f"dtime={(r >> T3_DTIME_SHIFT) & T3_DTIME_MAX}, nsync={r & (T3_WRAP_SYNCS - 1)})")
 
 
 def decode_t3(records: np.ndarray, state: T3DecoderState | None = None,
@@ -184,10 +207,10 @@ def _count_encoded(sync, kind, sync_base):
         if s < prev:
             return -(i + 1)
         prev = s
-        wraps = (s - base) // 1024
+        wraps = (s - base) // T3_WRAP_SYNCS
         if wraps > 0:
-            n += (wraps + 1022) // 1023
-            base += wraps * 1024
+            n += (wraps + T3_MAX_OVERFLOW_COUNT - 1) // T3_MAX_OVERFLOW_COUNT
+            base += wraps * T3_WRAP_SYNCS
         n += 1
     return n
 
@@ -200,37 +223,45 @@ def _encode_kernel(sync, dtime, channel, kind, marker, sync_base, out):
     base = sync_base
     for i in range(sync.size):
         s = np.int64(sync[i])
-        wraps = (s - base) // 1024
+        wraps = (s - base) // T3_WRAP_SYNCS
         while wraps > 0:
-            c = min(wraps, 1023)
+            c = min(wraps, T3_MAX_OVERFLOW_COUNT)
             # special:1=1 | channel:6=63 | dtime:15=0 | nsync:10=count
-            out[n] = np.uint32((1 << 31) | (63 << 25) | c)
+            out[n] = np.uint32((1 << T3_SPECIAL_SHIFT) | (T3_OVERFLOW_CHANNEL << T3_CHANNEL_SHIFT) | c)
             n += 1
-            base += c * 1024
+            base += c * T3_WRAP_SYNCS
             wraps -= c
         nsync = np.uint32(s - base)
         k = kind[i]
-        if k == 0:  # PHOTON
-            if dtime[i] > 32767 or channel[i] > 63:
+        if k == KIND_PHOTON:
+            if dtime[i] > T3_DTIME_MAX or channel[i] > T3_CHANNEL_MAX:
                 return n, base, i
-            out[n] = (np.uint32(channel[i]) << np.uint32(25)) | (np.uint32(dtime[i]) << np.uint32(10)) | nsync
-        elif k == 1:  # MARKER
+            # special:1=0 | channel:6 | dtime:15 | nsync:10
+            out[n] = ((np.uint32(channel[i]) << np.uint32(T3_CHANNEL_SHIFT))
+                      | (np.uint32(dtime[i]) << np.uint32(T3_DTIME_SHIFT)) | nsync)
+        elif k == KIND_MARKER:
             m = marker[i]
-            if m < 1 or m > 15:
+            if m < 1 or m > T3_MARKER_MASK_MAX:
                 return n, base, i
-            out[n] = np.uint32(1 << 31) | (np.uint32(m) << np.uint32(25)) | nsync
+            # special:1=1 | channel:6=marker bits | dtime:15=0 | nsync:10
+            out[n] = (np.uint32(1 << T3_SPECIAL_SHIFT) | (np.uint32(m) << np.uint32(T3_CHANNEL_SHIFT))
+                      | nsync)
         else:
             return n, base, i
         n += 1
     return n, base, -1
 
 
-def encode_t3(events: np.ndarray, state: T3EncoderState | None = None) -> np.ndarray:
+def encode_t3(events: np.ndarray, state: T3EncoderState | None = None, *,
+              split_markers: bool = False) -> np.ndarray:
     """Encode photon and marker events into Generic T3 records, inserting overflow records.
 
     events: EVENT_DTYPE[n] with non-decreasing ``sync`` >= ``state.sync_base`` (syncs since the
             stream start), photons with dtime <= 32767 and channel <= 63, markers with mask 1..15.
     state:  carried between chunks of one stream; updated in place.
+    split_markers: False writes a marker event with several bits as one record, as the device
+            does; True writes one record per bit (``split_marker_records``), as files for other
+            tools need.
     Returns uint32 records. Raises SettingError for events a T3 stream cannot carry (LOST events,
     syncs going backwards, fields out of range).
     """
@@ -257,6 +288,84 @@ def encode_t3(events: np.ndarray, state: T3EncoderState | None = None) -> np.nda
         raise SettingError(f"event {bad} cannot be a T3 record: kind={int(e['kind'])}, "
                          f"dtime={int(e['dtime'])}, channel={int(e['channel'])}, "
                          f"marker={int(e['marker'])} (photons: dtime <= {T3_DTIME_MAX}, "
-                         f"channel <= 63; markers: mask 1..15; LOST has no record)")
+                         f"channel <= {T3_CHANNEL_MAX}; markers: mask 1..{T3_MARKER_MASK_MAX}; "
+                         f"LOST has no record)")
     state.sync_base = int(base)
-    return out[:n]
+    return split_marker_records(out[:n]) if split_markers else out[:n]
+
+
+# ---- one marker kind per record ----------------------------------------------------------------
+
+def _split_tables() -> tuple[np.ndarray, np.ndarray]:
+    """For each marker channel value 0..15: its bits in ``MARKER_SPLIT_ORDER`` and their count."""
+    bits = np.zeros((T3_MARKER_MASK_MAX + 1, len(MARKER_SPLIT_ORDER)), np.uint32)
+    count = np.zeros(T3_MARKER_MASK_MAX + 1, np.int64)
+    for m in range(1, T3_MARKER_MASK_MAX + 1):
+        for b in MARKER_SPLIT_ORDER:
+            if m & int(b):
+                bits[m, count[m]] = int(b)
+                count[m] += 1
+    return bits, count
+
+
+_SPLIT_BITS, _SPLIT_COUNT = _split_tables()
+
+
+@njit(cache=True, nogil=True)
+def _count_split_extra(records, count):
+    """Records that splitting adds: for each marker record, its number of bits minus one."""
+    extra = 0
+    for i in range(records.size):
+        r = records[i]
+        if (r >> T3_SPECIAL_SHIFT) != 0:
+            ch = (r >> T3_CHANNEL_SHIFT) & T3_CHANNEL_MAX       # channel: 6 bits
+            if ch >= 1 and ch <= T3_MARKER_MASK_MAX:
+                extra += count[ch] - 1
+    return extra
+
+
+@njit(cache=True, nogil=True)
+def _split_kernel(records, bits, count, out):
+    """Copy ``records`` into ``out``, each marker record as ``count[ch]`` records carrying one bit
+    each (``bits[ch, :count[ch]]``), same nsync; returns records written."""
+    keep = np.uint32(~(T3_CHANNEL_MAX << T3_CHANNEL_SHIFT) & 0xFFFFFFFF)   # all but channel:6
+    n = 0
+    for i in range(records.size):
+        r = records[i]
+        if (r >> T3_SPECIAL_SHIFT) != 0:
+            ch = (r >> T3_CHANNEL_SHIFT) & T3_CHANNEL_MAX
+            if ch >= 1 and ch <= T3_MARKER_MASK_MAX and count[ch] > 1:
+                rest = r & keep
+                for k in range(count[ch]):
+                    out[n] = rest | (bits[ch, k] << np.uint32(T3_CHANNEL_SHIFT))
+                    n += 1
+                continue
+        out[n] = r
+        n += 1
+    return n
+
+
+def split_marker_records(records: np.ndarray) -> np.ndarray:
+    """One record per marker bit: every marker record whose channel field has several bits set
+    becomes one record per bit, same nsync (and dtime), in ``MARKER_SPLIT_ORDER`` (FRAME,
+    LINE_START, PIXEL, LINE_STOP). Photons, overflows and single-bit markers are copied unchanged,
+    in order.
+
+    Tools that match marker values whole (tttrlib) see the device's ``FRAME|LINE_START|PIXEL``
+    record as none of them; after splitting they see each. ``acq.assign`` gives the split stream
+    the same pixels as the combined one, since it applies combined bits in this same order.
+
+    records: uint32[n] Generic T3 records. Returns a new uint32 array, or a view of ``records``
+    when there is nothing to split (no copy). Runs at hundreds of millions of records per second.
+    """
+    records = np.ascontiguousarray(records)
+    if records.dtype != np.uint32:
+        raise SettingError(f"T3 records must be uint32, not {records.dtype}")
+    records = records.reshape(-1)
+    extra = _count_split_extra(records, _SPLIT_COUNT)
+    if extra == 0:
+        return records
+    out = np.empty(records.size + extra, dtype=T3_RECORD_DTYPE)
+    n = _split_kernel(records, _SPLIT_BITS, _SPLIT_COUNT, out)
+    assert n == out.size
+    return out
