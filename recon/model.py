@@ -29,6 +29,13 @@ from recon.errors import InputError
 KERNEL_TAIL_REL = 1e-10
 #: Sub-bin steps per bin of the fine kernel table used for the ml estimator's sub-bin refinement.
 FINE_STEPS = 8
+#: The most bins a default binning makes (``default_bin_width``). 4096, not fewer: it keeps the
+#: pulse-RMS/9 bins (the paper's 40 ps for a 360 ps pulse) over windows up to 164 ns, a whole
+#: 10 MHz laser period or a 24 m range gate, where 1024 would coarsen the bins of any window past
+#: 41 ns (and the lmf estimate is a whole bin).
+#: The estimators hold no pixels x bins arrays, so the price of more bins is time linear in bins per
+#: pixel; the cap only stops absurd counts (a ps-unit file with a 200 ns gate would get 200,000).
+DEFAULT_MAX_BINS = 4096
 
 
 @dataclass(frozen=True)
@@ -227,7 +234,8 @@ class ReconSettings:
                     its K-sparse generalization) or "ml" (exact pixelwise Poisson ML of eq. 9).
     binning:        None derives it from the data: window = [min, max] of all detection times
                     (stop just past the max), bin width = pulse RMS / 9 rounded to whole raw units
-                    (the paper's 360 ps / 40 ps ratio), widened if needed to keep at most 4096 bins.
+                    (the paper's 360 ps / 40 ps ratio), widened if needed to keep at most
+                    ``DEFAULT_MAX_BINS`` (4096) bins; see :func:`default_bin_width`.
     pulse_rms_s:    Gaussian pulse RMS width, seconds. With ``irf`` also None it is estimated from the
                     data (within-pixel pairwise time differences, see ``estimate_pulse_rms_s``).
     irf:            a measured instrument response (:class:`Irf`, see :func:`load_irf`) instead of a
@@ -529,16 +537,27 @@ def estimate_pulse_rms_s(times: np.ndarray, offsets: np.ndarray, time_unit_s: fl
     return float(sigma_units * time_unit_s)
 
 
+def default_bin_width(span: float, pulse_rms: float | None = None,
+                      max_bins: int = DEFAULT_MAX_BINS) -> float:
+    """The one default bin rule (``default_binning`` and ``spdepth recon`` use it): bin width in
+    whole raw units for a window ``span`` raw units long. A ninth of the pulse RMS (raw units) when
+    it is known (the seed paper's 40 ps bins for a 360 ps pulse), else one unit; at least one unit;
+    widened to whole units so that the window holds at most ``max_bins`` bins
+    (``ceil(span / width) <= max_bins``)."""
+    width = max(1.0, float(round(pulse_rms / 9.0))) if pulse_rms else 1.0
+    if span / width > max_bins:
+        width = float(math.ceil(span / max_bins))
+    return width
+
+
 def default_binning(times: np.ndarray, time_unit_s: float, pulse_rms_s: float) -> Binning:
     """Binning derived from the data (see ReconSettings.binning)."""
     if times.size == 0:
         raise InputError("cannot derive a binning from data without detections; give a binning")
     lo = float(np.floor(times.min()))
     hi = float(times.max())
-    width = max(1.0, round(pulse_rms_s / time_unit_s / 9.0))
-    span = hi - lo + width
-    if span / width > 4096:
-        width = float(math.ceil(span / 4096))
+    # the window below has floor((hi - lo) / width) + 1 bins, never more than ceil((hi - lo + 1) / width)
+    width = default_bin_width(hi - lo + 1.0, pulse_rms_s / time_unit_s)
     # stop one bin past the bin holding the latest detection, so it is inside [start, stop)
     n = int(math.floor((hi - lo) / width)) + 1
     return Binning(time_unit_s, lo, lo + n * width, width)

@@ -80,6 +80,16 @@ def test_recon_point_measurement_ptu(shared_data, tmp_path, capsys):
     assert png.stat().st_size > 10_000
 
 
+
+def test_recon_window_without_bins_uses_recons_default_rule(face_crop, capsys):
+    # a 64 ns window at a ninth of 360 ps (5 units of 8 ps) is 1600 bins: inside recon's one cap
+    # (4096); the CLI's old cap of 1024 bins widened them to 8 units (1000 bins)
+    code = main(["recon", str(face_crop), "--time-unit-ps", "8", "--window-ps", "16000:80000",
+                 "--pulse-rms-ps", "360", "--max-photons", "5", "--method", "lmf", "--json"])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    assert _last_json(captured.out)["n_bins"] == 1600
+
 @pytest.mark.parametrize("args,message", [
     (["ptu/picoharp_v30_t2.ptu"], "T2 file"),
     ([FACE], "time unit"),

@@ -10,7 +10,8 @@ from hypothesis import given, settings as hsettings, strategies as st
 from recon.errors import InputError
 from recon.estimate import reconstruct
 from recon.maps import DepthMaps, PixelFlag
-from recon.model import Binning, Irf, ReconSettings, build_kernel, estimate_pulse_rms_s, load_irf
+from recon.model import (DEFAULT_MAX_BINS, Binning, Irf, ReconSettings, build_kernel, default_bin_width,
+                         default_binning, estimate_pulse_rms_s, load_irf)
 from recon.photons import PhotonStore
 
 UNIT_S = 8e-12
@@ -132,6 +133,23 @@ def test_invalid_settings_refused(tmp_path):
         ReconSettings(method="magic")
     with pytest.raises(InputError):
         ReconSettings(method="ml", reflectors=2)
+
+
+def test_one_default_bin_rule():
+    assert DEFAULT_MAX_BINS == 4096
+    assert default_bin_width(4000, 45) == 5          # the paper: 360 ps pulse, 8 ps units -> 40 ps
+    assert default_bin_width(4000) == 1              # pulse width unknown: one raw unit
+    assert default_bin_width(10, 2) == 1             # never below one unit
+    assert default_bin_width(4096 * 5, 45) == 5      # exactly at the cap
+    assert default_bin_width(4096 * 5 + 1, 45) == 6  # one unit more: widened to whole units
+    assert default_bin_width(200_000) == 49          # 1 ps units, 200 ns gate: 4082 bins
+    for span in (1.0, 4097.0, 12345.5, 1e6):
+        w = default_bin_width(span, 3.0)
+        assert w == int(w) >= 1 and np.ceil(span / w) <= DEFAULT_MAX_BINS
+    # from data: the window holds every detection in at most DEFAULT_MAX_BINS bins
+    for hi in (4096 * 5 - 1, 4096 * 5, 4096 * 5 + 3):
+        b = default_binning(np.array([0.0, float(hi)]), 8e-12, 360e-12)
+        assert b.n_bins <= DEFAULT_MAX_BINS and b.bin_index(np.array([0.0, float(hi)])).min() >= 0
 
 
 def test_load_irf_text_and_npy(tmp_path):

@@ -8,8 +8,9 @@ Time units: PicoQuant files carry theirs (the TCSPC resolution); .mat files do n
 ``--time-unit-ps`` is required for them (8 for the first-photon-imaging files, 1 for times in ps).
 With neither ``--window-ps`` nor ``--bin-ps`` the estimator derives both from the data (window: the
 span of the detections; bins: a ninth of the pulse RMS). With only one given: the window defaults
-to the span of the detections, the bin width to a ninth of ``--pulse-rms-ps`` (whole raw units, at
-most 1024 bins). Without ``--pulse-rms-ps`` or ``--irf`` the estimator estimates the pulse width.
+to the span of the detections, the bin width by recon's one default rule
+(``recon.model.default_bin_width``: a ninth of ``--pulse-rms-ps`` in whole raw units, at most 4096
+bins). Without ``--pulse-rms-ps`` or ``--irf`` the estimator estimates the pulse width.
 """
 
 from __future__ import annotations
@@ -24,10 +25,6 @@ from acq.commands._args import positive_float, positive_int
 from recon.errors import InputError
 
 HELP = "reconstruct depth/background maps from a .mat or PicoQuant PTU/HT3/PT3 T3 file"
-
-#: the most bins the default binning makes (a ps-unit file with a 200 ns gate would otherwise get
-#: 200,000 one-unit bins)
-DEFAULT_MAX_BINS = 1024
 
 
 def _window(text: str) -> tuple[float, float]:
@@ -78,22 +75,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="worker threads for the estimator (default: all cores)")
 
 
-def default_bin_units(start: float, stop: float, pulse_rms_units: float | None = None,
-                      max_bins: int = DEFAULT_MAX_BINS) -> int:
-    """Bin width in whole raw units for a window [start, stop) when none is given: a ninth of the
-    pulse RMS when it is known (the seed paper's 40 ps bins for a 360 ps pulse), at least one unit,
-    and wide enough to keep at most ``max_bins`` bins."""
-    width = max(1, round(pulse_rms_units / 9)) if pulse_rms_units else 1
-    return int(max(width, math.ceil((stop - start) / max_bins)))
-
-
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from acq.readers import read_photons
     from acq.report import ProgressBar
     from recon.estimate import reconstruct
-    from recon.model import Binning, ReconSettings, load_irf
+    from recon.model import Binning, ReconSettings, default_bin_width, load_irf
 
     t0 = time.perf_counter()
     time_unit_s = args.time_unit_ps * 1e-12 if args.time_unit_ps else None
@@ -122,7 +110,7 @@ def run(args: argparse.Namespace) -> int:
                 raise InputError(f"--bin-ps {args.bin_ps:g} is not a whole number of {unit_ps:g} ps "
                                  f"raw units")
         else:
-            bin_u = default_bin_units(start_u, stop_u,
+            bin_u = default_bin_width(stop_u - start_u,
                                       args.pulse_rms_ps / unit_ps if args.pulse_rms_ps else None)
         binning = Binning.from_ps(unit_ps, window_ps=(start_u * unit_ps, stop_u * unit_ps),
                                   bin_ps=round(bin_u) * unit_ps)
