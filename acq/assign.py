@@ -4,11 +4,23 @@ The galvo controller pulses marker lines into the tagger (docs/protocols.md, "Sc
 markers, timing"): ``[FRAME|]LINE_START|PIXEL`` opens a line's first pixel, ``PIXEL`` each next one,
 ``LINE_STOP`` closes the line. A photon belongs to the pixel opened by the last PIXEL marker before
 it; photons after LINE_STOP (settling, fly-back) or before the first marker belong to no pixel.
-The assigner keeps that state across chunks, so a stream can be fed in any chunking.
+Combined marker bits act in the order FRAME, LINE_START, PIXEL, LINE_STOP, so a stream whose
+combined markers were split into one record per bit (in that order) assigns identically.
 
 After a LOST event the markers inside the hole are gone too, so the position is unknown: photons
-are left unassigned (-1) until the next FRAME marker, and the hole is reported so acquisition can
+are left unassigned until the next FRAME marker, and the hole is reported so acquisition can
 re-acquire or flag the pixels involved — never silently short.
+
+Two consumers share the marker state machine below (``_on_*`` helpers), so there is one assignment
+path: :class:`PixelAssigner` labels every event with its pixel (file readers, tests), and
+:func:`accumulate` feeds a live scan's store dwell by dwell. A *dwell* is the stretch of stream
+from a PIXEL marker to the next PIXEL or LINE_STOP marker; it is *complete* when that closing
+marker arrives with no LOST event in between. :func:`accumulate` keeps the photons of the open
+dwell aside and adds them to their pixel only when the dwell completes, so a dwell cut by a loss,
+a pause or the end of a pass contributes nothing (its pixel is scanned again).
+
+A pass may scan a sub-rectangle of the image (:class:`PassGeometry`): its local rows and columns
+map to the image's flat pixel index.
 """
 
 from __future__ import annotations
@@ -23,56 +35,160 @@ from recon.errors import InputError
 
 UNASSIGNED = -1
 
-# state vector layout (int64): frame, row, visit (column in visiting order), pixel open (0/1),
-# position known (0/1), lines closed (LINE_STOP markers seen)
-_FRAME, _ROW, _VISIT, _OPEN, _KNOWN, _LINES_CLOSED = range(6)
+# The kernels compare against these module-level ints (numba freezes them as constants).
+_PHOTON = int(EventKind.PHOTON)
+_MARKER = int(EventKind.MARKER)
+_LOST = int(EventKind.LOST)
+_M_PIXEL = int(Marker.PIXEL)
+_M_LINE_START = int(Marker.LINE_START)
+_M_LINE_STOP = int(Marker.LINE_STOP)
+_M_FRAME = int(Marker.FRAME)
+
+# state vector slots (int64)
+_FRAME = 0          # frames started, minus one
+_ROW = 1            # line of the pass (-1 before the first LINE_START)
+_VISIT = 2          # pixel of the line in visiting order (-1 before the first PIXEL)
+_OPEN = 3           # a pixel is open (1) or not (0: after LINE_STOP)
+_KNOWN = 4          # position known (0 after a LOST event until the next FRAME)
+_LINES_CLOSED = 5   # LINE_STOP markers seen
+_PIXELS_OPENED = 6  # PIXEL markers seen
+# accumulate() only: the open dwell
+_DWELL_PIXEL = 7    # flat pixel of the open dwell, -1 when none
+_DWELL_SYNC = 8     # sync of its PIXEL marker
+_DWELL_TOTAL = 9    # detections in it (all, in or out of the window)
+_DWELL_KEPT = 10    # of those, buffered in ``pend`` for its pixel
+STATE_SLOTS = 11
+
+# geometry vector (int64): pass origin and size in the image, image width, serpentine flag
+_G_ROW0, _G_COL0, _G_NY, _G_NX, _G_WIDTH, _G_SERP = range(6)
 
 
-@njit(cache=True, nogil=True)
-def _open_pixel(state, height, width, serpentine):
+@dataclass(frozen=True)
+class PassGeometry:
+    """Which pixels one galvo pass visits: lines ``row0 .. row0+ny-1`` of the image, columns
+    ``col0 .. col0+nx-1``, in ``pattern`` order ("raster", or "serp": odd lines of the pass right
+    to left). ``width`` is the image width (flat index = row * width + col)."""
+
+    row0: int
+    col0: int
+    ny: int
+    nx: int
+    width: int
+    pattern: str = "raster"
+
+    def __post_init__(self) -> None:
+        if self.pattern not in ("raster", "serp"):
+            raise InputError(f"scan pattern must be 'raster' or 'serp', got {self.pattern!r}")
+        if self.ny < 1 or self.nx < 1 or self.row0 < 0 or self.col0 < 0 \
+                or self.col0 + self.nx > self.width:
+            raise InputError(f"pass geometry {self} does not fit an image {self.width} wide")
+
+    @classmethod
+    def full(cls, shape: tuple[int, int], pattern: str = "raster") -> "PassGeometry":
+        """The whole ``(H, W)`` image."""
+        return cls(0, 0, int(shape[0]), int(shape[1]), int(shape[1]), pattern)
+
+    def vector(self) -> np.ndarray:
+        return np.array([self.row0, self.col0, self.ny, self.nx, self.width,
+                         1 if self.pattern == "serp" else 0], dtype=np.int64)
+
+    def flat_pixels(self) -> np.ndarray:
+        """Flat indices of the pixels of this pass (row-major, not visiting order)."""
+        rows = np.arange(self.row0, self.row0 + self.ny)[:, None]
+        cols = np.arange(self.col0, self.col0 + self.nx)[None, :]
+        return (rows * self.width + cols).ravel()
+
+    def to_dict(self) -> dict:
+        return {"row0": self.row0, "col0": self.col0, "ny": self.ny, "nx": self.nx,
+                "width": self.width, "pattern": self.pattern}
+
+
+def new_state() -> np.ndarray:
+    """Assignment state at the start of a stream or pass. Before the first FRAME marker the
+    position counts as known, so a stream without FRAME markers (one-frame scans of some
+    controllers) still works: LINE_START counts lines from -1."""
+    s = np.zeros(STATE_SLOTS, dtype=np.int64)
+    s[_FRAME] = s[_ROW] = s[_VISIT] = s[_DWELL_PIXEL] = -1
+    s[_KNOWN] = 1
+    return s
+
+
+# ---- the marker state machine (shared) ------------------------------------------------------------
+
+@njit(cache=True, nogil=True, inline="always")
+def _open_pixel(state, geom):
     """Flat index of the pixel open in ``state``, or -1 (none open, position unknown, off grid)."""
-    if state[3] == 0 or state[4] == 0:
+    if state[_OPEN] == 0 or state[_KNOWN] == 0:
         return -1
-    row = state[1]
-    visit = state[2]
-    if not (0 <= row < height and 0 <= visit < width):
+    row = state[_ROW]
+    visit = state[_VISIT]
+    if not (0 <= row < geom[_G_NY] and 0 <= visit < geom[_G_NX]):
         return -1
-    col = width - 1 - visit if serpentine and row % 2 == 1 else visit
-    return row * width + col
+    col = geom[_G_NX] - 1 - visit if geom[_G_SERP] != 0 and row % 2 == 1 else visit
+    return (geom[_G_ROW0] + row) * geom[_G_WIDTH] + geom[_G_COL0] + col
 
+
+@njit(cache=True, nogil=True, inline="always")
+def _on_frame(state):
+    # a fresh frame re-establishes the position after a loss
+    state[_FRAME] += 1
+    state[_ROW] = -1
+    state[_OPEN] = 0
+    state[_KNOWN] = 1
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _on_line_start(state):
+    state[_ROW] += 1
+    state[_VISIT] = -1
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _on_pixel(state):
+    state[_VISIT] += 1
+    state[_OPEN] = 1
+    state[_PIXELS_OPENED] += 1
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _on_line_stop(state):
+    state[_OPEN] = 0
+    state[_LINES_CLOSED] += 1
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _on_lost(state):
+    state[_KNOWN] = 0
+
+
+# ---- labelling every event ------------------------------------------------------------------------
 
 @njit(cache=True, nogil=True)
-def _assign_kernel(sync, kind, marker, height, width, serpentine, state, pixel_out, lost_pixel_out):
+def _assign_kernel(kind, marker, geom, state, pixel_out, lost_pixel_out):
     """Fill ``pixel_out[i]`` with the flat pixel index of photon event i (-1 for anything else or
     an unknown position) and ``lost_pixel_out[i]`` for LOST events with the pixel open at the loss
     (-1 if none). ``state`` is updated in place. Returns the number of LOST events seen."""
     n_lost = 0
-    for i in range(sync.size):
+    for i in range(kind.size):
         pixel_out[i] = -1
         lost_pixel_out[i] = -1
         k = kind[i]
-        if k == 1:  # MARKER
+        if k == _MARKER:
             m = marker[i]
-            if m & 8:  # FRAME: a fresh frame re-establishes the position after a loss
-                state[0] += 1
-                state[1] = -1
-                state[3] = 0
-                state[4] = 1
-            if m & 2:  # LINE_START
-                state[1] += 1
-                state[2] = -1
-            if m & 1:  # PIXEL
-                state[2] += 1
-                state[3] = 1
-            if m & 4:  # LINE_STOP
-                state[3] = 0
-                state[5] += 1
-        elif k == 0:  # PHOTON
-            pixel_out[i] = _open_pixel(state, height, width, serpentine)
-        elif k == 2:  # LOST
+            if m & _M_FRAME:
+                _on_frame(state)
+            if m & _M_LINE_START:
+                _on_line_start(state)
+            if m & _M_PIXEL:
+                _on_pixel(state)
+            if m & _M_LINE_STOP:
+                _on_line_stop(state)
+        elif k == _PHOTON:
+            pixel_out[i] = _open_pixel(state, geom)
+        elif k == _LOST:
             n_lost += 1
-            lost_pixel_out[i] = _open_pixel(state, height, width, serpentine)
-            state[4] = 0
+            lost_pixel_out[i] = _open_pixel(state, geom)
+            _on_lost(state)
     return n_lost
 
 
@@ -87,6 +203,11 @@ class LostSpan:
     pixel: int
 
 
+def _check_events(events: np.ndarray) -> None:
+    if events.dtype != EVENT_DTYPE:
+        raise InputError(f"events must have drivers.events.EVENT_DTYPE, got {events.dtype}")
+
+
 @dataclass
 class PixelAssigner:
     """Stateful marker-driven pixel assignment for an ``shape = (H, W)`` scan.
@@ -98,15 +219,11 @@ class PixelAssigner:
     lost: list[LostSpan] = field(default_factory=list)
 
     def __post_init__(self) -> None:
-        if self.pattern not in ("raster", "serp"):
-            raise InputError(f"scan pattern must be 'raster' or 'serp', got {self.pattern!r}")
         h, w = self.shape
         if h < 1 or w < 1:
             raise InputError(f"scan shape must be at least 1 x 1, got {self.shape}")
-        # Before the first FRAME marker the position is known only if the stream starts at a
-        # scan start: a stream without FRAME markers (one-frame scans of some controllers)
-        # still works because LINE_START counts rows from -1.
-        self._state = np.array([-1, -1, -1, 0, 1, 0], dtype=np.int64)
+        self._geom = PassGeometry.full(self.shape, self.pattern).vector()
+        self._state = new_state()
 
     @property
     def frame(self) -> int:
@@ -125,18 +242,19 @@ class PixelAssigner:
     def assign(self, events: np.ndarray) -> np.ndarray:
         """Flat pixel index (int64) for each event; -1 for markers, lost spans, photons outside a
         pixel and photons while the position is unknown. LOST events are appended to ``lost``."""
-        if events.dtype != EVENT_DTYPE:
-            raise InputError(f"events must have drivers.events.EVENT_DTYPE, got {events.dtype}")
+        _check_events(events)
         pixel = np.empty(events.size, dtype=np.int64)
         lost_pixel = np.empty(events.size, dtype=np.int64)
-        n_lost = _assign_kernel(events["sync"], events["kind"], events["marker"],
-                                self.shape[0], self.shape[1], self.pattern == "serp",
-                                self._state, pixel, lost_pixel)
+        n_lost = _assign_kernel(events["kind"], events["marker"], self._geom, self._state,
+                                pixel, lost_pixel)
         if n_lost:
-            for i in np.flatnonzero(events["kind"] == EventKind.LOST):
-                self.lost.append(LostSpan(int(events["sync"][i]), int(events["dtime"][i]),
-                                          int(lost_pixel[i])))
+            self.lost.extend(_lost_spans(events, lost_pixel))
         return pixel
+
+
+def _lost_spans(events: np.ndarray, lost_pixel: np.ndarray) -> list[LostSpan]:
+    return [LostSpan(int(events["sync"][i]), int(events["dtime"][i]), int(lost_pixel[i]))
+            for i in np.flatnonzero(events["kind"] == _LOST)]
 
 
 def photons_by_pixel(events: np.ndarray, pixel: np.ndarray):
@@ -145,4 +263,132 @@ def photons_by_pixel(events: np.ndarray, pixel: np.ndarray):
     return pixel[ok], events["dtime"][ok]
 
 
-__all__ = ["PixelAssigner", "LostSpan", "photons_by_pixel", "UNASSIGNED", "Marker"]
+# ---- feeding a store dwell by dwell -----------------------------------------------------------------
+
+@njit(cache=True, nogil=True, inline="always")
+def _close_dwell(state, sync, pend, times, count, detected, dwells, frozen,
+                 closed_pixel, closed_total, closed_syncs, n_closed):
+    """Complete the open dwell: its buffered photons join its pixel. Returns the new n_closed."""
+    p = state[_DWELL_PIXEL]
+    if p < 0:
+        return n_closed
+    if frozen[p] == 0:
+        c = count[p]
+        for j in range(state[_DWELL_KEPT]):
+            times[p, c + j] = pend[j]
+        count[p] = c + state[_DWELL_KEPT]
+        detected[p] += state[_DWELL_TOTAL]
+        dwells[p] += 1
+    closed_pixel[n_closed] = p
+    closed_total[n_closed] = state[_DWELL_TOTAL]
+    closed_syncs[n_closed] = sync - state[_DWELL_SYNC]
+    state[_DWELL_PIXEL] = -1
+    return n_closed + 1
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _drop_dwell(state):
+    """Discard the open dwell (cut by a loss or a pass boundary). Returns 1 if one was open."""
+    had = 1 if state[_DWELL_PIXEL] >= 0 else 0
+    state[_DWELL_PIXEL] = -1
+    return had
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _open_dwell(state, geom, sync):
+    p = _open_pixel(state, geom)
+    state[_DWELL_PIXEL] = p
+    state[_DWELL_SYNC] = sync
+    state[_DWELL_TOTAL] = 0
+    state[_DWELL_KEPT] = 0
+
+
+@njit(cache=True, nogil=True)
+def _accumulate_kernel(sync, dtime, kind, marker, geom, state, lo, hi, pend, times, count,
+                       detected, dwells, frozen, closed_pixel, closed_total, closed_syncs,
+                       lost_pixel_out, counters):
+    """Feed one chunk of events into the store arrays (see :func:`accumulate`).
+
+    counters (int64[4]) accumulates: photons outside any dwell, dwells dropped, LOST events,
+    photons kept. Returns the number of dwells closed in this chunk."""
+    n_keep = times.shape[1]
+    n_closed = 0
+    for i in range(kind.size):
+        lost_pixel_out[i] = -1
+        k = kind[i]
+        if k == _PHOTON:
+            p = state[_DWELL_PIXEL]
+            if p < 0:
+                counters[0] += 1
+                continue
+            state[_DWELL_TOTAL] += 1
+            t = dtime[i]
+            if lo <= t < hi and frozen[p] == 0 and count[p] + state[_DWELL_KEPT] < n_keep:
+                pend[state[_DWELL_KEPT]] = t
+                state[_DWELL_KEPT] += 1
+                counters[3] += 1
+        elif k == _MARKER:
+            m = marker[i]
+            s = np.int64(sync[i])
+            if m & _M_FRAME:
+                counters[1] += _drop_dwell(state)
+                _on_frame(state)
+            if m & _M_LINE_START:
+                _on_line_start(state)
+            if m & _M_PIXEL:
+                n_closed = _close_dwell(state, s, pend, times, count, detected, dwells, frozen,
+                                        closed_pixel, closed_total, closed_syncs, n_closed)
+                _on_pixel(state)
+                _open_dwell(state, geom, s)
+            if m & _M_LINE_STOP:
+                n_closed = _close_dwell(state, s, pend, times, count, detected, dwells, frozen,
+                                        closed_pixel, closed_total, closed_syncs, n_closed)
+                _on_line_stop(state)
+        elif k == _LOST:
+            counters[2] += 1
+            lost_pixel_out[i] = _open_pixel(state, geom)
+            counters[1] += _drop_dwell(state)
+            _on_lost(state)
+    return n_closed
+
+
+@dataclass(frozen=True)
+class Accumulated:
+    """What one chunk did to the store.
+
+    closed_pixel, closed_total, closed_syncs: one row per completed dwell, in stream order: flat
+        pixel, detections in the dwell (all, in or out of the window) and its length in syncs.
+    lost: the chunk's LOST events as :class:`LostSpan` (pixel open at the loss).
+    """
+
+    closed_pixel: np.ndarray
+    closed_total: np.ndarray
+    closed_syncs: np.ndarray
+    lost: list
+
+
+def accumulate(events: np.ndarray, geom: np.ndarray, state: np.ndarray, window: tuple[int, int],
+               pend: np.ndarray, times: np.ndarray, count: np.ndarray, detected: np.ndarray,
+               dwells: np.ndarray, frozen: np.ndarray, counters: np.ndarray) -> Accumulated:
+    """Feed ``events`` dwell by dwell into per-pixel arrays (``acq.store.PixelStore`` owns them).
+
+    A completed dwell adds its in-window detections (``window = (lo, hi)``, raw units,
+    ``lo <= dtime < hi``) to its pixel's row of ``times`` (n_pixels x n_keep) until the pixel holds
+    n_keep; later ones are not kept. Pixels with ``frozen`` set keep what they have (they were
+    handed to the reconstruction). ``pend`` (n_keep) buffers the open dwell between chunks."""
+    _check_events(events)
+    n = events.size
+    closed_pixel = np.empty(n + 1, np.int64)
+    closed_total = np.empty(n + 1, np.int64)
+    closed_syncs = np.empty(n + 1, np.int64)
+    lost_pixel = np.empty(n, np.int64)
+    n_closed = _accumulate_kernel(events["sync"], events["dtime"], events["kind"], events["marker"],
+                                  geom, state, np.int64(window[0]), np.int64(window[1]), pend,
+                                  times, count, detected, dwells, frozen, closed_pixel,
+                                  closed_total, closed_syncs, lost_pixel, counters)
+    lost = _lost_spans(events, lost_pixel) if np.any(events["kind"] == _LOST) else []
+    return Accumulated(closed_pixel[:n_closed], closed_total[:n_closed], closed_syncs[:n_closed], lost)
+
+
+__all__ = ["PixelAssigner", "PassGeometry", "LostSpan", "Accumulated", "accumulate",
+           "photons_by_pixel", "new_state", "UNASSIGNED"]

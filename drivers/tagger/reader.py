@@ -57,6 +57,11 @@ class TaggerReader:
     reconnect_timeout_s: how long to wait for a vanished device to come back.
     connection_lost:     called from the thread as ``connection_lost(exc)`` when it ends (``exc``
                          None after ``stop``), like pyserial's ``ReaderThread``.
+    tap:                 an object with ``on_records(raw)`` and ``on_lost(sync, n_records, restart)``,
+                         called from the thread in stream order with every whole raw record
+                         (uint32 array, valid only during the call) and every hole, before the
+                         records are decoded: a recorder sees the stream exactly as it came.
+                         ``restart`` says the device restarted (its sync counter from 0).
 
     Consume with ``get`` (or iterate): a thread error is re-raised there once the chunks queued
     before it have been taken, so it never dies silently.
@@ -65,7 +70,8 @@ class TaggerReader:
     def __init__(self, tagger, queue_chunks: int = 64, buffer_bytes: int = 1 << 20,
                  read_timeout_s: float = 0.05, start_measurement: bool = True,
                  reconnect_timeout_s: float = 5.0,
-                 connection_lost: Callable[[BaseException | None], None] | None = None):
+                 connection_lost: Callable[[BaseException | None], None] | None = None,
+                 tap=None):
         if buffer_bytes < 512 or buffer_bytes % 512:
             raise SettingError(f"reader buffer_bytes={buffer_bytes} must be a positive multiple of 512")
         if queue_chunks < 1:
@@ -75,6 +81,7 @@ class TaggerReader:
         self.start_measurement = bool(start_measurement)
         self.reconnect_timeout_s = float(reconnect_timeout_s)
         self.connection_lost = connection_lost
+        self.tap = tap
         self._queue: queue.Queue[np.ndarray] = queue.Queue(maxsize=queue_chunks)
         # One buffer for the life of the reader; pyusb fills array.array objects in place and the
         # NumPy view below sees the bytes without a copy.
@@ -188,6 +195,11 @@ class TaggerReader:
                     log.warning("reader stopping with a full queue: %d events dropped", events.size)
                     return
 
+    def _lost(self, sync: int, n_records: int, restart: bool) -> None:
+        if self.tap is not None:
+            self.tap.on_lost(sync, n_records, restart)
+        self._push(lost_event(sync, n_records))
+
     def _gap_sync(self) -> int:
         """Sync where a hole after the events decoded so far starts."""
         return self.state.last_sync if self.state.last_sync >= 0 else self.state.sync_base
@@ -208,7 +220,7 @@ class TaggerReader:
             n = 0
         except EndpointStallError as exc:
             log.warning("bulk endpoint stalled (%s): restarting the measurement", exc)
-            self._push(lost_event(self._gap_sync(), 0))
+            self._lost(self._gap_sync(), 0, restart=True)
             self.tagger.transport.clear_halt()
             self.tagger.stop()
             self.tagger.start()
@@ -225,7 +237,7 @@ class TaggerReader:
 
     def _device_gone(self, exc: DeviceGoneError) -> None:
         log.warning("tagger vanished (%s): reconnecting", exc)
-        self._push(lost_event(self._gap_sync(), 0))
+        self._lost(self._gap_sync(), 0, restart=True)
         self.tagger.reconnect(timeout_s=self.reconnect_timeout_s)
         self.stats["reconnects"] += 1
         self._restart_session()
@@ -252,6 +264,10 @@ class TaggerReader:
             if gap.position != status.gap_position:
                 raise ProtocolError(f"tagger gap moved from record {status.gap_position} "
                                     f"(status) to {gap.position} (ACK_GAP)")
+            if self.tap is not None:
+                self.tap.on_records(records[:split])
+                self.tap.on_lost(self._session_sync(gap.sync), gap.lost_records, False)
+                self.tap.on_records(records[split:])
             before = decode_t3(records[:split], self.state)
             lost_sync = self._session_sync(gap.sync)
             if lost_sync < self.state.last_sync:
@@ -261,6 +277,8 @@ class TaggerReader:
             log.warning("FIFO overrun: %d records lost from sync %d", gap.lost_records, lost_sync)
             self._push(np.concatenate([before, lost_event(lost_sync, gap.lost_records), after]))
         elif records.size:
+            if self.tap is not None:
+                self.tap.on_records(records)
             self._push(decode_t3(records, self.state))
         self._position = end
         self.stats["records"] += int(records.size)

@@ -1,0 +1,149 @@
+"""Opening the instruments a session drives: the simulated bench (a scene behind the real drivers)
+or real devices, each giving a galvo, a tagger and the facts a plan and a recording need."""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from acq.plan import ScanPlan
+from recon.errors import InputError
+from recon.model import Binning, ReconSettings
+
+SIM_TAGGER_URL = "usb:1209:7a64"
+PAPER_BIN_S = 40e-12
+"""The seed paper's bin (5 units of 8 ps)."""
+PAPER_BINS = 801
+"""The seed paper's window: 801 bins of 40 ps (32 ns) after each sync."""
+DWELL_LIMIT_FACTOR = 20
+"""Simulated gated scans: dwell limit in units of the dwell that gives the scene's mean ppp."""
+
+_names = itertools.count()
+
+
+@dataclass
+class Instruments:
+    """A galvo and a tagger, opened; ``close()`` releases both (and a simulated bench).
+
+    sync_period_s: the laser period (for the recording header; real devices: from the caller).
+    scene:         the simulated scene (None for real devices), with its truth.
+    """
+
+    galvo: object
+    tagger: object
+    sync_period_s: float | None
+    scene: object = None
+    rig: object = None
+    info: dict = field(default_factory=dict)
+    _name: str | None = None
+
+    def close(self) -> None:
+        for dev in (self.galvo, self.tagger):
+            try:
+                dev.close()
+            except Exception:  # noqa: BLE001 - closing one must not keep the other open
+                pass
+        if self._name is not None:
+            from drivers.sim import galvo_fw
+
+            galvo_fw.unregister(self._name)
+            self._name = None
+
+    def __enter__(self) -> "Instruments":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def full_plan(self, shape: tuple[int, int], **kwargs) -> ScanPlan:
+        """A plan over the whole simulated field of view (pixel centres of an H x W grid)."""
+        h, w = shape
+        if self.rig is None:
+            raise InputError("full_plan needs the simulated bench; give angles for real devices")
+        x0, y0 = self.rig.fov.centre_deg(0, 0, (h, w))
+        x1, y1 = self.rig.fov.centre_deg(h - 1, w - 1, (h, w))
+        return ScanPlan(w, h, x0, x1, y0, y1, **kwargs)
+
+
+def open_sim(scene_name: str = "bust", shape: tuple[int, int] = (64, 64), *, ppp: float = 15.0,
+             sbr: float | None = 10.0, seed: int = 0, faults: str = "",
+             n_bins: int = PAPER_BINS, bin_s: float = PAPER_BIN_S, **scene_settings) -> Instruments:
+    """The simulated bench: a scene, its photon world and rig, the galvo emulator on a
+    ``galvosim://`` URL and the tagger on the simulated pyusb backend, opened through the real
+    drivers. ``faults`` as in ``drivers.sim.faults`` (galvo and tagger kinds mixed). The tagger
+    records ``n_bins * bin_s`` after each sync, so ``sbr`` is what the estimators see."""
+    from drivers.galvo import Galvo
+    from drivers.sim import PhotonWorld, galvo_fw, load_scene
+    from drivers.sim.faults import GALVO_FAULTS, TAGGER_FAULTS, parse_faults
+    from drivers.sim.rig import SimRig
+    from drivers.sim.tagger_usb import SimTaggerBackend
+    from drivers.tagger import Tagger
+
+    h, w = shape
+    scene = load_scene(scene_name, (h, w), ppp=float(ppp), sbr=sbr, tagger_range_s=n_bins * bin_s,
+                       **scene_settings)
+    rig = SimRig(PhotonWorld(scene, seed=seed))
+    parsed = parse_faults(faults)
+    name = f"spdepth-sim-{next(_names)}"
+    galvo_fw.register_device(name, galvo_fw.GalvoFirmware(
+        rig, faults=[f for f in parsed if f.kind in GALVO_FAULTS]))
+    galvo = tagger = None
+    try:
+        galvo = Galvo.open(f"galvosim://{name}")
+        backend = SimTaggerBackend(rig, faults=[f for f in parsed if f.kind in TAGGER_FAULTS],
+                                   scan_pixels=h * w)
+        tagger = Tagger.open(SIM_TAGGER_URL, backend=backend)
+    except BaseException:
+        if galvo is not None:
+            galvo.close()
+        galvo_fw.unregister(name)
+        raise
+    info = {"scene": scene_name, "shape": [h, w], "ppp": ppp, "sbr": scene.settings.sbr,
+            "seed": seed, "faults": faults, "pulse_rms_s": scene.pulse_rms_s}
+    return Instruments(galvo, tagger, scene.settings.sync_period_s, scene, rig, info, name)
+
+
+def open_real(galvo_port: str, tagger_url: str, sync_period_s: float) -> Instruments:
+    """Real devices: a galvo on a serial port and a tagger at ``usb:VID:PID``."""
+    from drivers.galvo import Galvo
+    from drivers.tagger import Tagger
+
+    galvo = Galvo.open(galvo_port)
+    try:
+        tagger = Tagger.open(tagger_url)
+    except BaseException:
+        galvo.close()
+        raise
+    return Instruments(galvo, tagger, sync_period_s, info={"galvo": galvo_port, "tagger": tagger_url})
+
+
+def sim_plan(inst: Instruments, shape, *, mode: str = "gated", target: int = 15,
+             dwell_s: float | None = None, **kwargs) -> ScanPlan:
+    """A plan for the simulated bench: gated scans get a dwell limit of DWELL_LIMIT_FACTOR times
+    the scene's pixel dwell (dark pixels must not hold the scan), raster scans the scene's dwell
+    (about ``ppp`` detections a frame)."""
+    if dwell_s is None:
+        dwell_s = inst.scene.dwell_s * (DWELL_LIMIT_FACTOR if mode == "gated" else 1)
+    return inst.full_plan(shape, mode=mode, target=target, dwell_s=dwell_s, **kwargs)
+
+
+def window_binning(resolution_s: float, n_bins: int = PAPER_BINS, bin_s: float = PAPER_BIN_S,
+                   start_s: float = 0.0) -> Binning:
+    """``n_bins`` bins of ``bin_s`` from ``start_s`` after the sync, in tagger units."""
+    units = max(1, int(round(bin_s / resolution_s)))
+    start = int(round(start_s / resolution_s))
+    return Binning(time_unit_s=resolution_s, window_start=start,
+                   window_stop=start + n_bins * units, bin_width=units)
+
+
+def recon_settings(method: str, binning: Binning, target: int, pulse_rms_s: float | None,
+                   **kwargs) -> ReconSettings:
+    return ReconSettings(method=method, binning=binning, pulse_rms_s=pulse_rms_s,
+                         max_photons=target, **kwargs)
+
+
+__all__ = ["Instruments", "open_sim", "open_real", "sim_plan", "window_binning", "recon_settings"]

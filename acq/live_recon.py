@@ -1,0 +1,156 @@
+"""Live reconstruction: pixels are reconstructed in batches on a worker thread as they become final,
+never as a full-frame recompute.
+
+Every pixel is reconstructed exactly once, with the same ``ReconSettings`` (fixed binning and pulse),
+so the live maps at the end equal ``recon.estimate.reconstruct`` of the final store bit for bit:
+each estimator works pixel by pixel. When no pulse width is given, it is estimated once from the
+first ``PULSE_SAMPLE_PIXELS`` pixels to become final (in stream order, so a replay of the same
+stream estimates the same width) and then frozen.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import threading
+import time
+
+import numpy as np
+
+from recon.estimate import reconstruct, resolve_model
+from recon.maps import DepthMaps, PixelFlag
+from recon.model import ReconSettings
+
+log = logging.getLogger(__name__)
+
+PULSE_SAMPLE_PIXELS = 256
+"""Pixels pooled for the pulse-width estimate when none is given."""
+MAX_BATCH_PIXELS = 16384
+"""Largest batch one reconstruction call takes (keeps the maps fresh during a fast replay)."""
+
+
+class LiveRecon:
+    """Reconstructs the pixels handed to ``submit`` on its own thread and keeps full-frame maps.
+
+    store:    ``acq.store.PixelStore`` (the submitted pixels must be frozen in it).
+    settings: ``ReconSettings`` with a binning (a live scan cannot derive one from data it has not
+              seen) and ``max_photons`` equal to the store's target.
+    """
+
+    def __init__(self, store, settings: ReconSettings):
+        if settings.binning is None:
+            raise ValueError("live reconstruction needs a fixed binning")
+        if settings.reflectors != 1:
+            raise ValueError("live reconstruction maps one return per pixel (reflectors=1)")
+        self.store = store
+        self.settings = settings
+        h, w = store.shape
+        self.tof_s = np.full((h, w), np.nan)
+        self.depth_m = np.full((h, w), np.nan)
+        self.background = np.full((h, w), np.nan)
+        self.signal = np.zeros((h, w))
+        self.photons = np.zeros((h, w), np.int64)
+        self.iterations = np.zeros((h, w), np.int32)
+        self.uncertainty_s = np.full((h, w), np.nan)
+        self.flags = np.full((h, w), PixelFlag.NO_PHOTONS, np.uint8)
+        self.done = np.zeros((h, w), bool)
+        self.resolved: dict | None = None       # settings record of the first batch
+        self.submitted = 0
+        self.processed = 0
+        self.max_lag = 0
+        self.busy_s = 0.0
+        self._pending: list[np.ndarray] = []
+        self._n_pending = 0
+        self._cond = threading.Condition()
+        self._closing = False
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name="live-recon", daemon=True)
+        self._thread.start()
+
+    @property
+    def lag(self) -> int:
+        """Pixels handed over and not yet reconstructed."""
+        return self.submitted - self.processed
+
+    def submit(self, pixels: np.ndarray) -> None:
+        """Queue flat pixel indices (frozen in the store) for reconstruction."""
+        if pixels.size == 0:
+            return
+        with self._cond:
+            if self._error is not None:
+                raise self._error
+            self._pending.append(np.asarray(pixels, np.int64))
+            self._n_pending += pixels.size
+            self.submitted += int(pixels.size)
+            self.max_lag = max(self.max_lag, self.lag)
+            self._cond.notify()
+
+    def finish(self, timeout_s: float | None = None) -> None:
+        """Reconstruct everything queued, then end the thread; re-raises a worker error."""
+        with self._cond:
+            self._closing = True
+            self._cond.notify()
+        self._thread.join(timeout_s)
+        if self._error is not None:
+            raise self._error
+
+    def _take(self) -> np.ndarray | None:
+        with self._cond:
+            while True:
+                need = 1
+                if self.resolved is None and self._needs_pulse():
+                    need = PULSE_SAMPLE_PIXELS
+                if self._n_pending >= need or (self._closing and self._n_pending):
+                    break
+                if self._closing:
+                    return None
+                self._cond.wait(0.5)
+            batch = np.concatenate(self._pending)
+            take = batch[:MAX_BATCH_PIXELS]
+            rest = batch[MAX_BATCH_PIXELS:]
+            self._pending = [rest] if rest.size else []
+            self._n_pending = int(rest.size)
+            return take
+
+    def _needs_pulse(self) -> bool:
+        return self.settings.pulse_rms_s is None and self.settings.irf is None
+
+    def _run(self) -> None:
+        try:
+            while (batch := self._take()) is not None:
+                t0 = time.perf_counter()
+                self._reconstruct(batch)
+                self.busy_s += time.perf_counter() - t0
+        except BaseException as exc:  # noqa: BLE001 - handed to the owner at submit/finish
+            log.exception("live reconstruction failed")
+            with self._cond:
+                self._error = exc
+
+    def _reconstruct(self, pixels: np.ndarray) -> None:
+        photons = self.store.photons(pixels)
+        if self._needs_pulse():
+            # freeze the width estimated from this first batch for every later pixel
+            sample = self.store.photons(pixels[:PULSE_SAMPLE_PIXELS])
+            _, _, notes = resolve_model(sample, self.settings)
+            self.settings = dataclasses.replace(self.settings, pulse_rms_s=notes["pulse_rms_s"])
+            self.pulse_note = {"pulse_source": "estimated from the first "
+                               f"{min(PULSE_SAMPLE_PIXELS, pixels.size)} final pixels"}
+        m = reconstruct(photons, self.settings)
+        if self.resolved is None:
+            self.resolved = dict(m.settings)
+            self.resolved.update(getattr(self, "pulse_note", {}))
+        rows, cols = np.divmod(pixels, self.store.shape[1])
+        for name in ("tof_s", "depth_m", "background", "signal", "photons", "iterations",
+                     "uncertainty_s", "flags"):
+            getattr(self, name)[rows, cols] = getattr(m, name)[0]
+        self.done[rows, cols] = True
+        self.processed += int(pixels.size)
+
+    def maps(self) -> DepthMaps:
+        """The maps as they stand (copies), in ``spdepth recon``'s format."""
+        settings = dict(self.resolved) if self.resolved is not None else self.settings.to_dict()
+        return DepthMaps(tof_s=self.tof_s.copy(), depth_m=self.depth_m.copy(),
+                         background=self.background.copy(), signal=self.signal.copy(),
+                         photons=self.photons.copy(), iterations=self.iterations.copy(),
+                         uncertainty_s=self.uncertainty_s.copy(), flags=self.flags.copy(),
+                         settings=settings)

@@ -1,0 +1,316 @@
+"""Recording a session as it goes, and replaying a recording (DESIGN.md section 5).
+
+A recording directory holds:
+
+* ``recording.ptu``: the tagger's raw Generic T3 records as they came (combined marker records
+  split one kind per record), after a PTU header that carries the plan and the estimator
+  settings as tags. ``TTResult_NumberOfRecords`` stays 0 until a clean close patches it, so after a
+  crash (``kill -9``) ptufile and our replay read every whole record up to the last flush.
+* ``events.jsonl``: append-only, one JSON object a line, flushed with the records: state changes,
+  faults, every galvo pass (its geometry and the record position where it starts), every lost
+  span (record position, sync, count, whether the device restarted), and the galvo's pixel log.
+* ``run.json``: written at the end (write-to-temp-then-rename) by the session.
+
+Replay (:class:`ReplaySource`) reads the records back in chunks through the same decoder as the
+live reader, puts the logged lost spans back at their record positions (restoring the sync offset
+a device restart caused, as the live reader did), and cuts the stream at the logged passes, so the
+session assigns the replayed stream exactly as it assigned the live one. A PTU without our event
+log (``spdepth simulate``, or another program's file with pixel markers) replays as one pass over
+the header's image size.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from acq.assign import PassGeometry
+from acq.ptu import (PIXEL_MARKER_TAG, iter_records, marker_map, patch_record_count, ptu_header,
+                     read_layout, split_marker_records)
+from drivers.errors import ProtocolError
+from drivers.events import EVENT_DTYPE, EventKind
+from drivers.tagger.t3 import T3DecoderState, decode_t3
+from recon.errors import InputError
+from recon.model import Binning, Irf, ReconSettings
+
+FLUSH_S = 0.5
+"""Longest time records and events sit in Python's buffers before they go to the OS (the
+recording survives a killed process up to the last flush)."""
+T3_RANGE_BINS = 32768
+PLAN_TAG = "SPDepth_Plan"
+RECON_TAG = "SPDepth_Recon"
+INFO_TAG = "SPDepth_Info"
+
+
+class Recorder:
+    """Writes ``recording.ptu`` and ``events.jsonl`` in ``out_dir``.
+
+    The tagger reader calls ``on_records`` and ``on_lost`` from its thread (it is its ``tap``);
+    the session calls ``log_event`` from its own. ``records`` counts the records written, which
+    is the position the event log refers to.
+    """
+
+    def __init__(self, out_dir: Path, plan, recon_settings, *, resolution_s: float,
+                 sync_period_s: float | None, log=None, info: dict | None = None):
+        out_dir = Path(out_dir)
+        if sync_period_s is None:
+            raise InputError("recording needs the laser sync period (sync_period_s)")
+        header = ptu_header(plan.shape, sync_period_s, resolution_s, plan.dwell_s, T3_RANGE_BINS,
+                            comment="spdepth session recording",
+                            tags={PLAN_TAG: plan.to_dict(), RECON_TAG: recon_settings.to_dict(),
+                                  INFO_TAG: info or {}})
+        self.path = out_dir / "recording.ptu"
+        self._fh = open(self.path, "w+b")
+        self._fh.write(header)
+        self._fh.flush()
+        self._events = open(out_dir / "events.jsonl", "a", encoding="utf-8")
+        self._lock = threading.Lock()
+        self.records = 0
+        self._last_flush = time.monotonic()
+        self.closed = False
+
+    # reader thread
+    def on_records(self, raw: np.ndarray) -> None:
+        if raw.size == 0 or self.closed:
+            return
+        out = split_marker_records(raw)
+        with self._lock:
+            self._fh.write(out.tobytes())
+            self.records += int(out.size)
+            self._maybe_flush()
+
+    def on_lost(self, sync: int, n_records: int, restart: bool) -> None:
+        self.log_event({"event": "lost", "record": self.records, "sync": int(sync),
+                        "records_lost": int(n_records), "restart": bool(restart)})
+
+    # any thread
+    def log_event(self, entry: dict) -> None:
+        if self.closed:
+            return
+        with self._lock:
+            self._events.write(json.dumps(entry) + "\n")
+            self._maybe_flush()
+
+    def _maybe_flush(self) -> None:
+        now = time.monotonic()
+        if now - self._last_flush >= FLUSH_S:
+            self._fh.flush()
+            self._events.flush()
+            self._last_flush = now
+
+    def flush(self) -> None:
+        with self._lock:
+            self._fh.flush()
+            self._events.flush()
+            self._last_flush = time.monotonic()
+
+    def close(self) -> None:
+        """Flush, patch the record count (the file is complete), close."""
+        with self._lock:
+            if self.closed:
+                return
+            self.closed = True
+            self._fh.flush()
+            patch_record_count(self._fh, self.records)
+            self._fh.close()
+            self._events.close()
+
+
+@dataclass(frozen=True)
+class RecordingInfo:
+    """What a recording says about itself: its plan (None for a foreign file), estimator
+    settings, image shape, dtime unit and laser period."""
+
+    plan: dict | None
+    recon: dict | None
+    info: dict
+    shape: tuple[int, int]
+    resolution_s: float
+    sync_period_s: float
+    n_records: int
+    has_event_log: bool
+
+
+class ReplaySource:
+    """A recording (``DIR`` or ``DIR/recording.ptu``, or any T3 PTU with pixel markers) as a stream
+    of event chunks, cut into the passes the live session made.
+
+    speed: "max" (as fast as the pipeline takes it) or 1 (paced to the recorded laser time).
+    """
+
+    def __init__(self, path: str | Path, *, speed: str | float = "max",
+                 chunk_records: int = 1 << 20):
+        p = Path(path)
+        if p.is_dir():
+            p = p / "recording.ptu"
+        if not p.is_file():
+            raise InputError(f"recording {p} not found")
+        self.path = p
+        try:
+            self.layout = read_layout(p)
+        except InputError:
+            raise
+        except Exception as exc:  # ptufile's own errors for a file that is not a PTU
+            raise InputError(f"recording {p}: not a readable PTU file ({exc})") from None
+        tags = self.layout.tags
+        if int(tags.get("TTResultFormat_TTTRRecType", 0)) != 0x01010304:
+            raise InputError(f"recording {p}: record type "
+                             f"0x{int(tags.get('TTResultFormat_TTTRRecType', 0)):08x} is not "
+                             "Generic T3 (HydraHarp v2 / TimeHarp 260 / MultiHarp); use "
+                             "`spdepth recon` for other PicoQuant files")
+        lut = marker_map(tags)
+        if lut is None or not tags.get(PIXEL_MARKER_TAG):
+            raise InputError(f"recording {p}: the header names no pixel marker "
+                             f"({PIXEL_MARKER_TAG}); replay needs pixel markers; "
+                             "`spdepth recon FILE` interpolates pixels between line markers")
+        self._lut = lut
+        self.speed = speed
+        self.chunk_records = int(chunk_records)
+        self.first_read_t: float | None = None
+        self.events_path = p.parent / "events.jsonl"
+        self._passes, self._lost = self._read_event_log()
+        self.info = RecordingInfo(
+            plan=_json_tag(tags, PLAN_TAG), recon=_json_tag(tags, RECON_TAG),
+            info=_json_tag(tags, INFO_TAG) or {},
+            shape=(int(tags.get("ImgHdr_PixY", 1)), int(tags.get("ImgHdr_PixX", 1))),
+            resolution_s=float(tags["MeasDesc_Resolution"]),
+            sync_period_s=float(tags["MeasDesc_GlobalResolution"]),
+            n_records=min(self.layout.n_records, self.layout.records_in_file),
+            has_event_log=self.events_path.is_file())
+
+    def _read_event_log(self):
+        passes: list[tuple[int, PassGeometry]] = []
+        lost: list[dict] = []
+        if not self.events_path.is_file():
+            return passes, lost
+        with open(self.events_path, encoding="utf-8") as fh:
+            for n, line in enumerate(fh, 1):
+                if not line.endswith("\n"):
+                    break                 # the last line of a killed session may be cut
+                try:
+                    e = json.loads(line)
+                except json.JSONDecodeError:
+                    raise InputError(f"{self.events_path}, line {n}: not JSON") from None
+                if e.get("event") == "pass" and e.get("record") is not None:
+                    passes.append((int(e["record"]), PassGeometry(**e["geometry"])))
+                elif e.get("event") == "lost":
+                    lost.append(e)
+        return passes, lost
+
+    def segments(self):
+        """(PassGeometry, iterator of EVENT_DTYPE chunks) for each pass, in stream order."""
+        n = self.info.n_records
+        if self._passes:
+            starts = [max(0, min(r, n)) for r, _ in self._passes]
+            geoms = [g for _, g in self._passes]
+            starts[0] = 0                 # records before the first pass are idle stream
+        else:
+            starts, geoms = [0], [PassGeometry.full(self.info.shape)]
+        ends = starts[1:] + [n]
+        decoder = _Decoder(self._lut, self._lost)
+        for g, a, b in zip(geoms, starts, ends):
+            yield g, self._chunks(decoder, a, b)
+
+    def _chunks(self, decoder: "_Decoder", a: int, b: int):
+        if b <= a:
+            return
+        pace = self.speed not in ("max", None)
+        t_wall0 = None
+        for records in iter_records(self.layout, self.chunk_records, start=a):
+            if self.first_read_t is None:
+                self.first_read_t = time.monotonic()
+            take = min(records.size, b - decoder.position)
+            if take <= 0:
+                break
+            events = decoder.decode(np.asarray(records[:take]))
+            if pace and events.size:
+                t_rec = float(events["sync"][-1]) * self.info.sync_period_s / float(self.speed)
+                if t_wall0 is None:
+                    t_wall0 = time.monotonic() - t_rec
+                delay = t_wall0 + t_rec - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
+            yield events
+            if decoder.position >= b:
+                break
+
+
+class _Decoder:
+    """Records -> events with the file's marker numbering mapped to ours and the logged lost spans
+    put back at their record positions."""
+
+    def __init__(self, lut: np.ndarray, lost: list[dict]):
+        self.lut = lut
+        self.state = T3DecoderState()
+        self.position = 0
+        self._lost = sorted(lost, key=lambda e: int(e["record"]))
+        self._next = 0
+
+    def decode(self, records: np.ndarray) -> np.ndarray:
+        parts = []
+        start = 0
+        end = self.position + records.size
+        while self._next < len(self._lost) and int(self._lost[self._next]["record"]) <= end:
+            e = self._lost[self._next]
+            cut = int(e["record"]) - self.position
+            if cut >= start:
+                parts.append(self._decode(records[start:cut]))
+                start = cut
+            ev = np.zeros(1, dtype=EVENT_DTYPE)
+            ev["sync"] = int(e["sync"])
+            ev["kind"] = EventKind.LOST
+            ev["dtime"] = min(int(e["records_lost"]), 2 ** 32 - 1)
+            parts.append(ev)
+            if e.get("restart"):
+                # as the live reader did: the device counted syncs from 0 again
+                self.state.sync_base = max(self.state.sync_base, self.state.last_sync + 1)
+            self._next += 1
+        parts.append(self._decode(records[start:]))
+        self.position = end
+        return parts[0] if len(parts) == 1 else np.concatenate(parts)
+
+    def _decode(self, records: np.ndarray) -> np.ndarray:
+        try:
+            ev = decode_t3(records, self.state)
+        except ProtocolError as exc:
+            raise InputError(f"recording: {exc}") from None
+        is_marker = ev["kind"] == EventKind.MARKER
+        if is_marker.any():
+            ev["marker"][is_marker] = self.lut[ev["marker"][is_marker] & 15]
+        return ev
+
+
+def recon_settings_from_dict(d: dict, **override) -> ReconSettings:
+    """``ReconSettings`` from its ``to_dict`` form (as a recording's header keeps it), with any
+    field replaced by ``override`` (None values are ignored)."""
+    d = {**d, **{k: v for k, v in override.items() if v is not None}}
+    b = d.get("binning")
+    if isinstance(b, dict):
+        b = Binning(b["time_unit_s"], b["window_start"], b["window_stop"], b["bin_width"])
+    irf = d.get("irf")
+    if isinstance(irf, dict):
+        irf = Irf(tuple(irf["times_s"]), tuple(irf["counts"]), irf.get("source", ""))
+    if "pulse_rms_s" in override or "irf" in override:
+        # a width given now replaces the recorded pulse model whichever form it had
+        if override.get("pulse_rms_s") is not None:
+            irf = None
+    return ReconSettings(method=d.get("method", "uos"), binning=b,
+                         pulse_rms_s=None if irf is not None else d.get("pulse_rms_s"), irf=irf,
+                         max_photons=d.get("max_photons"), reflectors=int(d.get("reflectors", 1)),
+                         delta=float(d.get("delta", 1e-4)),
+                         max_iterations=int(d.get("max_iterations", 10)))
+
+
+def _json_tag(tags: dict, name: str):
+    v = tags.get(name)
+    if v is None:
+        return None
+    try:
+        return json.loads(v) if isinstance(v, str) else v
+    except json.JSONDecodeError:
+        return None
