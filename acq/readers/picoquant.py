@@ -2,16 +2,24 @@
 (PicoHarp 300) formats, whose fixed binary headers are parsed here and whose records go through
 the same ``ptufile`` decoder.
 
-Pixels come from the scanner's line markers (DESIGN.md section 3): a photon between the line-start
-marker at sync ``t0`` and the line-stop marker at sync ``t1`` lands in column
+Pixels come from pixel markers when the file has them (DESIGN.md section 5): a PTU whose header
+names a pixel-clock marker (``SPDepth_PixelMarker``, written by ``acq.ptu``) and whose records hold
+such markers is decoded in chunks into ``drivers.events`` events, its marker bits renumbered to our
+``Marker`` bits from the header, and assigned by ``acq.assign.PixelAssigner``, the one assignment
+path of live scans and replays: exact for count-gated scans, whose dwell varies per pixel.
+
+Only files with line markers and no pixel markers fall back to interpolation (DESIGN.md section 3),
+as ptufile and PicoQuant's tools do, which is right for fixed dwell only: a photon between the
+line-start marker at sync ``t0`` and the line-stop marker at sync ``t1`` lands in column
 ``floor((t - t0) / (t1 - t0) * PixX)``; the row is the line's index within its frame (the frame
-marker resets it). ``ImgHdr_PixY`` is not trusted: the height is the number of lines actually
-found. A file without line markers is a point measurement and comes back as a 1 x 1 store.
+marker resets it). ``ImgHdr_PixY`` is not trusted there: the height is the number of lines
+actually found. A file without line markers is a point measurement and comes back as a 1 x 1 store.
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import struct
 from pathlib import Path
@@ -19,7 +27,12 @@ from pathlib import Path
 import numpy as np
 from numba import njit
 
+from acq.assign import PixelAssigner
+from acq.ptu import PIXEL_MARKER_TAG, PtuLayout, iter_records, marker_map
 from acq.readers.common import ReadResult
+from drivers.errors import DriverError
+from drivers.events import EVENT_DTYPE, EventKind, Marker
+from drivers.tagger.t3 import T3DecoderState, decode_t3
 from recon.errors import InputError
 from recon.photons import PhotonStore
 
@@ -27,6 +40,11 @@ from recon.photons import PhotonStore
 _REC_PICOHARP_T3 = 0x00010303    # PicoHarp 300: channel:4 | dtime:12 | nsync:16
 _REC_HYDRAHARP_T3 = 0x00010304   # HydraHarp v1: special:1 | channel:6 | dtime:15 | nsync:10, overflow count 1
 _REC_HYDRAHARP2_T3 = 0x01010304  # HydraHarp v2 / Generic T3: overflow record carries a count
+# record types in the Generic T3 layout (overflow count in nsync) that drivers.tagger.t3 decodes:
+# HydraHarp v2, TimeHarp 260 N and P, MultiHarp / Generic T3
+_GENERIC_T3 = (_REC_HYDRAHARP2_T3, 0x00010305, 0x00010306, 0x00010307)
+CHUNK_RECORDS = 1 << 22
+"""Records decoded at a time on the pixel-marker path (64 MiB of events)."""
 
 
 @contextlib.contextmanager
@@ -183,8 +201,8 @@ def _records_to_result(path: Path, kind: str, decoded: np.ndarray, time_unit_s: 
                                                decoded["dtime"][sel], (height, image["pix_x"]),
                                                time_unit_s)
         dropped = int(np.sum(is_photon)) - int(np.sum(sel))
-        meta.update(lines=lines, frames=max(frames, 1), pix_x=image["pix_x"], height=height,
-                    photons_outside_lines=dropped)
+        meta.update(assignment="line interpolation", lines=lines, frames=max(frames, 1),
+                    pix_x=image["pix_x"], height=height, photons_outside_lines=dropped)
         return ReadResult(store=store, path=str(path), kind=kind, is_image=True, notes=tuple(notes),
                           meta=meta)
     times = decoded["dtime"][is_photon]
@@ -212,8 +230,6 @@ def read_ptu(path: str | Path, *, time_unit_s: float | None = None,
             is_t3 = ptu.is_t3
             record_offset = ptu.record_offset
             n_records = ptu.number_records
-            if is_t3:
-                records = ptu.read_records()
     except InputError:
         raise
     except FileNotFoundError:
@@ -229,14 +245,13 @@ def read_ptu(path: str | Path, *, time_unit_s: float | None = None,
             raise InputError(f"{path}: header field {field} is missing")
     size = path.stat().st_size
     expected = record_offset + 4 * n_records
-    if size < expected or records.size < n_records:
+    if size < expected:
         raise InputError(f"{path}: truncated: the header promises {n_records} records "
                          f"({expected} bytes), the file holds {size} bytes")
     resolution_s = float(tags["MeasDesc_Resolution"])
     if not resolution_s > 0:
         raise InputError(f"{path}: header field MeasDesc_Resolution is {resolution_s}, not a positive time")
     rectype = int(tags["TTResultFormat_TTTRRecType"])
-    decoded = _decode(records[:n_records], rectype)
     image = None
     if all(k in tags for k in ("ImgHdr_LineStart", "ImgHdr_LineStop", "ImgHdr_PixX")):
         image = {"pix_x": int(tags["ImgHdr_PixX"]), "line_start": int(tags["ImgHdr_LineStart"]),
@@ -248,7 +263,75 @@ def read_ptu(path: str | Path, *, time_unit_s: float | None = None,
                              f"would be unevenly spaced in time")
     meta = {"record_type": rectype, "resolution_s": resolution_s, "records": int(n_records),
             "sync_rate_hz": float(tags.get("TTResult_SyncRate", 0) or 0)}
-    return _records_to_result(path, "ptu", decoded, time_unit_s or resolution_s, image, channel, meta)
+    notes = ()
+    if image is not None and int(tags.get(PIXEL_MARKER_TAG, 0) or 0):
+        layout = PtuLayout(str(path), tags, record_offset, n_records, (size - record_offset) // 4)
+        result = _read_by_pixel_markers(path, layout, rectype, image, time_unit_s or resolution_s,
+                                        channel, meta)
+        if result is not None:
+            return result
+        notes = (f"{path.name}: the header names pixel marker {tags[PIXEL_MARKER_TAG]} but the "
+                 f"records hold none: pixels interpolated between line markers",)
+    records = np.fromfile(path, dtype="<u4", count=n_records, offset=record_offset)
+    result = _records_to_result(path, "ptu", _decode(records, rectype), time_unit_s or resolution_s,
+                                image, channel, meta)
+    if notes:
+        result = dataclasses.replace(result, notes=notes + result.notes)
+    return result
+
+
+def _read_by_pixel_markers(path: Path, layout: PtuLayout, rectype: int, image: dict,
+                           time_unit_s: float, keep_channel: int | None,
+                           meta: dict) -> ReadResult | None:
+    """Decode the records chunk by chunk into events, renumber their marker bits to ``Marker``
+    bits, and assign photons with ``PixelAssigner`` (a ``ImgHdr_PixY`` x ``ImgHdr_PixX`` scan,
+    serpentine when ``ImgHdr_BiDirect``). Returns None when the records hold no pixel marker
+    (the caller then interpolates between line markers)."""
+    if rectype not in _GENERIC_T3:
+        raise InputError(f"{path}: pixel markers in record type 0x{rectype:08x} are not supported "
+                         f"(Generic T3 record types only)")
+    lut = marker_map(layout.tags)
+    h, w = image["pix_y"], image["pix_x"]
+    if h < 1 or w < 1:
+        raise InputError(f"{path}: header field ImgHdr_PixY/ImgHdr_PixX is {h}/{w}: a file with "
+                         f"pixel markers needs the scan's size")
+    assigner = PixelAssigner((h, w), "serp" if image["bidirectional"] else "raster")
+    state = T3DecoderState()
+    buf = np.empty(min(CHUNK_RECORDS, max(layout.n_records, 1)), EVENT_DTYPE)
+    per_channel = np.zeros(64, np.int64)
+    pixels, times = [], []
+    n_pixel_markers = 0
+    outside = 0
+    for chunk in iter_records(layout, CHUNK_RECORDS):
+        try:
+            ev = decode_t3(chunk, state, out=buf)
+        except DriverError as exc:
+            raise InputError(f"{path}: {exc}") from None
+        is_marker = ev["kind"] == EventKind.MARKER
+        ev["marker"][is_marker] = lut[ev["marker"][is_marker]]
+        n_pixel_markers += int(np.count_nonzero(ev["marker"] & Marker.PIXEL))
+        pixel = assigner.assign(ev)
+        is_photon = ev["kind"] == EventKind.PHOTON
+        per_channel += np.bincount(ev["channel"][is_photon], minlength=64)
+        if keep_channel is not None:
+            is_photon &= ev["channel"] == keep_channel
+        sel = is_photon & (pixel >= 0)
+        outside += int(np.count_nonzero(is_photon)) - int(np.count_nonzero(sel))
+        pixels.append(pixel[sel])
+        times.append(ev["dtime"][sel].copy())
+    if n_pixel_markers == 0:
+        return None
+    meta = dict(meta, time_unit_s=time_unit_s,
+                photons_per_channel={int(c): int(k) for c, k in enumerate(per_channel) if k})
+    if keep_channel is not None and keep_channel not in meta["photons_per_channel"]:
+        raise InputError(f"{path}: no photons on channel {keep_channel}; channels with photons: "
+                         f"{sorted(meta['photons_per_channel']) or 'none'}")
+    store = PhotonStore.from_pixel_indices(np.concatenate(pixels), np.concatenate(times), (h, w),
+                                           time_unit_s)
+    meta.update(assignment="pixel markers", lines=assigner.lines_closed,
+                frames=max(assigner.frame + 1, 1), pix_x=w, height=h, pixel_markers=n_pixel_markers,
+                photons_outside_pixels=outside)
+    return ReadResult(store=store, path=str(path), kind="ptu", is_image=True, meta=meta)
 
 
 # ---------------------------------------------------------------------------------------------
