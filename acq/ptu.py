@@ -7,7 +7,8 @@ rest of the file as records), the records appended and flushed, ``patch_record_c
 close. ``spdepth simulate`` writes the same layout (``write_ptu``).
 
 Marker numbering (``MARKER_INPUT``) is the device's: marker input n has mask ``1 << (n - 1)`` and
-input n is our ``Marker`` bit of that mask, so the device's records go to disk unchanged:
+input n is our ``Marker`` bit of that mask, so the device's records need no renumbering (only
+splitting, below):
 
     PIXEL -> input 1, LINE_START -> input 2, LINE_STOP -> input 3, FRAME -> input 4
 
@@ -24,12 +25,18 @@ combined bits, so our own assignment does not change). Recordings and ``simulate
 records.
 
 Where FRAME goes (checked with ptufile 2026.2.6 and tttrlib 0.26.2, default settings, split
-records): at the START of each frame, before the frame's first LINE_START, exactly as the device
-streams it. ptufile counts frames from frame markers and places photons of every line between
-them (a frame marker at the start makes its first "frame" empty unless lines precede it, and
-ptufile drops an empty leading frame); tttrlib's default ``skip_before_first_frame_marker=False``
-keeps the lines before the first frame marker too, and its frames start at a frame marker. Both
-place every photon inside a line. See ``tests/test_acq_ptu.py`` for what is checked.
+records, one and three frames): at the START of each frame, before its first LINE_START, exactly
+as the device streams it. Both tools then find every frame and line and place every photon of a
+fixed-dwell scan in the right pixel of the right frame (a FRAME record after each frame's last
+LINE_STOP works as well; neither tool needs it there). ptufile's ``number_images`` says 0 for a
+one-frame file with FRAME at the start (it counts frame changes), yet ``decode_image`` returns
+that frame with every photon. See ``tests/test_acq_ptu.py``.
+
+Count-gated scans (dwell varies per pixel): the pixel markers are exact, and our reader
+(``acq.readers.picoquant``) and tttrlib with ``CLSMImage(tttr, use_pixel_markers=True)`` (its
+``marker_pixel`` default is our input 1) use them. Interpolating readers cannot be right there:
+tttrlib's default spreads each line evenly, and ptufile places pixels by ``ImgHdr_TimePerPixel``
+from the line start, dropping photons past ``ImgHdr_PixX`` pixel times.
 """
 
 from __future__ import annotations
