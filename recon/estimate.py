@@ -57,6 +57,25 @@ def resolve_model(store: PhotonStore, settings: ReconSettings) -> tuple[Binning,
     return b, kern, notes
 
 
+def honest_var(var: np.ndarray, has: np.ndarray, rms_bins: float, n_bins: int, method: str) -> np.ndarray:
+    """Shift variance (bins^2) to report, from the kernels' Fisher variance ``var``.
+
+    The Fisher information is the local curvature at the estimate; it says nothing where that
+    curvature vanishes. A pulse narrower than a bin puts all its photons in one bin, where the
+    likelihood is flat in the shift: the Fisher variance reads ~1e32 (or NaN with background),
+    while the shift is known to within that bin. So: a degenerate or larger variance is replaced
+    by a bin's uniform variance plus the pulse's (``1/12 + rms^2``) for such pulses, by the whole
+    window's uniform variance otherwise, never more than the window's; and the estimator's grid
+    adds its quantization (integer shifts for lmf/uos: 1/12; 1/FINE_STEPS for ml)."""
+    v = np.where(np.isfinite(var) & (var > 0), var, np.inf)
+    window = n_bins * n_bins / 12.0
+    if rms_bins < 1.0:
+        v = np.minimum(v, 1.0 / 12.0 + rms_bins * rms_bins)
+    v = np.minimum(v, window)
+    quant = 1.0 / (12.0 * FINE_STEPS * FINE_STEPS) if method == "ml" else 1.0 / 12.0
+    return np.where(has, np.minimum(v + quant, window), np.nan)
+
+
 def reconstruct(store: PhotonStore, settings: ReconSettings,
                 progress: Callable[[int, int], None] | None = None) -> DepthMaps:
     """Estimate depth, background and signal at every pixel of ``store``.
@@ -101,7 +120,12 @@ def reconstruct(store: PhotonStore, settings: ReconSettings,
         logg_int[pos] = np.log(kern.g[pos])
         cmin = float(kern.colsum.min())
         above = np.flatnonzero(kern.g * m > cmin)
-        dlo, dhi = int(above[0] - kern.off), int(above[-1] - kern.off)
+        if above.size:
+            dlo, dhi = int(above[0] - kern.off), int(above[-1] - kern.off)
+        else:
+            # no offset beats the floor (a one-bin window: a return and the background are the
+            # same column): every shift's bound is the floor, the all-background fit wins
+            dlo, dhi = 0, -1
         log_colsum = np.log(kern.colsum)
 
     for p0 in range(0, npix, CHUNK_PIXELS):
@@ -135,7 +159,10 @@ def reconstruct(store: PhotonStore, settings: ReconSettings,
     if settings.method == "lmf":
         signal = np.where(has, amp, 0.0)    # the LMF attributes every detection to the return
     tof_s = np.where(has, b.shift_to_time_s(np.nan_to_num(shift)), np.nan)
-    unc_s = np.sqrt(var) * b.bin_width_s
+    unc_s = np.sqrt(honest_var(var, has, kern.rms_bins, m, settings.method)) * b.bin_width_s
+    if settings.method == "lmf":
+        bg = np.full(npix, np.nan)      # the LMF does not estimate background (not "measured none")
+        notes["background"] = "not estimated by lmf (NaN)"
 
     flags = np.full(npix, PixelFlag.OK, np.uint8)
     any_ret = has.any(axis=1)

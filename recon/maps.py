@@ -40,7 +40,8 @@ class DepthMaps:
 
     tof_s:         round-trip time of flight from the laser sync to the pulse centroid, s (NaN: none).
     depth_m:       c * tof_s / 2, m.
-    background:    expected background detections per bin (the paper's B), >= 0.
+    background:    expected background detections per bin (the paper's B), >= 0; NaN for lmf, which
+                   does not estimate it (``settings['background']`` says so).
     signal:        detections attributed to the return (expected signal count in the window), >= 0.
     photons:       detections used (in the window, after max_photons), int64.
     iterations:    estimator iterations (uos), 1 for lmf and ml, int32.

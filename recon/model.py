@@ -36,6 +36,8 @@ FINE_STEPS = 8
 #: The estimators hold no pixels x bins arrays, so the price of more bins is time linear in bins per
 #: pixel; the cap only stops absurd counts (a ps-unit file with a 200 ns gate would get 200,000).
 DEFAULT_MAX_BINS = 4096
+#: Pulse-width estimate: pixel pairs histogrammed per block (bounds its memory to a few tens of MB).
+PAIR_BLOCK = 1 << 20
 
 
 @dataclass(frozen=True)
@@ -385,7 +387,9 @@ def build_kernel(binning: Binning, pulse_rms_s: float | None = None, irf: Irf | 
     g = np.where(g >= KERNEL_TAIL_REL * gmax, g, 0.0)
     # trim zero ends so loops stay short, keeping the offset bookkeeping right
     nz = np.flatnonzero(g)
-    a, b = int(nz[0]), int(nz[-1])
+    # keep one (zero) bin beyond the support on each side: the fine table then covers sub-bin shifts
+    # of a pulse narrower than a bin (trimmed to one bin, a half-bin shift read as zero signal)
+    a, b = max(0, int(nz[0]) - 1), min(g.size - 1, int(nz[-1]) + 1)
     g = np.ascontiguousarray(g[a:b + 1])
     l0 = l0 - a
     d = d[a:b + 1]
@@ -485,24 +489,40 @@ def estimate_pulse_rms_s(times: np.ndarray, offsets: np.ndarray, time_unit_s: fl
     if times.size == 0 or np.sum(counts * (counts - 1)) < 20:
         raise InputError("cannot estimate the pulse width: too few pixels with two or more detections; "
                          "give the pulse RMS width or an IRF")
-    # gather the first max_per_pixel times of each pixel and all pairwise differences
-    diffs = []
+    # |dt| of every pair among the first max_per_pixel times of each pixel, histogrammed a block of
+    # pixels at a time: memory stays bounded (keeping every difference of 1 Mpx at 32 detections
+    # took about 4 GB). The range is the largest within-pixel spread, found first.
     starts = offsets[:-1]
+    multi = np.flatnonzero(counts > 1)
+    first = times[starts[multi]]
+    lo_t = first.copy()
+    hi_t = first.copy()
     for j in range(1, max_per_pixel):
-        has = counts > j
-        if not np.any(has):
+        sel = counts[multi] > j
+        if not np.any(sel):
             break
-        tj = times[starts[has] + j]
-        for i in range(j):
-            diffs.append(tj - times[starts[has] + i])
-    dt = np.abs(np.concatenate(diffs))
-    span = float(dt.max())
+        tj = times[starts[multi[sel]] + j]
+        lo_t[sel] = np.minimum(lo_t[sel], tj)
+        hi_t[sel] = np.maximum(hi_t[sel], tj)
+    span = float((hi_t - lo_t).max()) if multi.size else 0.0
     if not span > 0:
         raise InputError("cannot estimate the pulse width: all detections of each pixel coincide")
     # fine histogram of |dt| (raw units); step small against any plausible pulse
     nh = 4096
     step = span / nh
-    hist, _ = np.histogram(dt, bins=nh, range=(0.0, span + step))
+    hist = np.zeros(nh, np.int64)
+    block = max(1, PAIR_BLOCK // max(1, max_per_pixel * (max_per_pixel - 1) // 2))
+    for b0 in range(0, multi.size, block):
+        pix = multi[b0:b0 + block]
+        cnt = counts[pix]
+        st = starts[pix]
+        for j in range(1, max_per_pixel):
+            has = cnt > j
+            if not np.any(has):
+                break
+            tj = times[st[has] + j]
+            diffs = np.abs(tj[None, :] - np.stack([times[st[has] + i] for i in range(j)]))
+            hist += np.histogram(diffs, bins=nh, range=(0.0, span + step))[0]
     centers = (np.arange(nh) + 0.5) * step
     # initial width: half-width where the smoothed histogram falls to half its peak above the floor
     smooth = np.convolve(hist, np.ones(5) / 5, mode="same")
@@ -560,4 +580,9 @@ def default_binning(times: np.ndarray, time_unit_s: float, pulse_rms_s: float) -
     width = default_bin_width(hi - lo + 1.0, pulse_rms_s / time_unit_s)
     # stop one bin past the bin holding the latest detection, so it is inside [start, stop)
     n = int(math.floor((hi - lo) / width)) + 1
+    if n < 3:
+        # all detections within a bin or two: one empty bin each side, so signal and background are
+        # told apart (in a one-bin window they are the same column)
+        lo -= width
+        n += 2
     return Binning(time_unit_s, lo, lo + n * width, width)
