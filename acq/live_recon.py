@@ -27,6 +27,10 @@ PULSE_SAMPLE_PIXELS = 256
 """Pixels pooled for the pulse-width estimate when none is given."""
 MAX_BATCH_PIXELS = 16384
 """Largest batch one reconstruction call takes (keeps the maps fresh during a fast replay)."""
+MIN_BATCH_PIXELS = 1024
+"""A batch starts once this many pixels wait, ..."""
+BATCH_WAIT_S = 0.2
+"""... or once the oldest has waited this long (the maps lag the scan by at most about this)."""
 
 
 class LiveRecon:
@@ -95,16 +99,23 @@ class LiveRecon:
             raise self._error
 
     def _take(self) -> np.ndarray | None:
+        """The next batch: at least MIN_BATCH_PIXELS, or whatever waited BATCH_WAIT_S (each call
+        of the estimator costs milliseconds of set-up, so a pixel at a time would burn a core)."""
         with self._cond:
+            oldest = None
             while True:
-                need = 1
+                need = MIN_BATCH_PIXELS
                 if self.resolved is None and self._needs_pulse():
-                    need = PULSE_SAMPLE_PIXELS
-                if self._n_pending >= need or (self._closing and self._n_pending):
+                    need = max(need, PULSE_SAMPLE_PIXELS)
+                if self._n_pending and oldest is None:
+                    oldest = time.monotonic()
+                waited = oldest is not None and time.monotonic() - oldest >= BATCH_WAIT_S
+                if self._n_pending >= need or (self._n_pending and (self._closing or (
+                        waited and not (self.resolved is None and self._needs_pulse())))):
                     break
                 if self._closing:
                     return None
-                self._cond.wait(0.5)
+                self._cond.wait(BATCH_WAIT_S / 4)
             batch = np.concatenate(self._pending)
             take = batch[:MAX_BATCH_PIXELS]
             rest = batch[MAX_BATCH_PIXELS:]
