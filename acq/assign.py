@@ -309,14 +309,16 @@ def _accumulate_kernel(sync, dtime, kind, marker, geom, state, lo, hi, pend, tim
                        lost_pixel_out, counters):
     """Feed one chunk of events into the store arrays (see :func:`accumulate`).
 
-    counters (int64[4]) accumulates: photons outside any dwell, dwells dropped, LOST events,
-    photons kept. Returns the number of dwells closed in this chunk."""
+    counters (int64[5]) accumulates: photons outside any dwell, dwells dropped, LOST events,
+    photons kept, photons seen. ``lost_pixel_out[j]`` gets the pixel open at the j-th LOST event
+    of the chunk (-1: none). Returns the number of dwells closed in this chunk."""
     n_keep = times.shape[1]
     n_closed = 0
+    n_lost0 = counters[2]
     for i in range(kind.size):
-        lost_pixel_out[i] = -1
         k = kind[i]
         if k == _PHOTON:
+            counters[4] += 1
             p = state[_DWELL_PIXEL]
             if p < 0:
                 counters[0] += 1
@@ -345,8 +347,8 @@ def _accumulate_kernel(sync, dtime, kind, marker, geom, state, lo, hi, pend, tim
                                         closed_pixel, closed_total, closed_syncs, n_closed)
                 _on_line_stop(state)
         elif k == _LOST:
+            lost_pixel_out[counters[2] - n_lost0] = _open_pixel(state, geom)
             counters[2] += 1
-            lost_pixel_out[i] = _open_pixel(state, geom)
             counters[1] += _drop_dwell(state)
             _on_lost(state)
     return n_closed
@@ -382,11 +384,17 @@ def accumulate(events: np.ndarray, geom: np.ndarray, state: np.ndarray, window: 
     closed_total = np.empty(n + 1, np.int64)
     closed_syncs = np.empty(n + 1, np.int64)
     lost_pixel = np.empty(n, np.int64)
+    n_lost0 = int(counters[2])
     n_closed = _accumulate_kernel(events["sync"], events["dtime"], events["kind"], events["marker"],
                                   geom, state, np.int64(window[0]), np.int64(window[1]), pend,
                                   times, count, detected, dwells, frozen, closed_pixel,
                                   closed_total, closed_syncs, lost_pixel, counters)
-    lost = _lost_spans(events, lost_pixel) if np.any(events["kind"] == _LOST) else []
+    n_lost = int(counters[2]) - n_lost0
+    lost = []
+    if n_lost:
+        at = np.flatnonzero(events["kind"] == _LOST)
+        lost = [LostSpan(int(events["sync"][i]), int(events["dtime"][i]), int(lost_pixel[j]))
+                for j, i in enumerate(at)]
     return Accumulated(closed_pixel[:n_closed], closed_total[:n_closed], closed_syncs[:n_closed], lost)
 
 

@@ -40,9 +40,12 @@ class Instruments:
     rig: object = None
     info: dict = field(default_factory=dict)
     _name: str | None = None
+    _link: object = None
 
     def close(self) -> None:
-        for dev in (self.galvo, self.tagger):
+        for dev in (self.galvo, self.tagger, self._link):
+            if dev is None:
+                continue
             try:
                 dev.close()
             except Exception:  # noqa: BLE001 - closing one must not keep the other open
@@ -71,11 +74,14 @@ class Instruments:
 
 def open_sim(scene_name: str = "bust", shape: tuple[int, int] = (64, 64), *, ppp: float = 15.0,
              sbr: float | None = 10.0, seed: int = 0, faults: str = "",
-             n_bins: int = PAPER_BINS, bin_s: float = PAPER_BIN_S, **scene_settings) -> Instruments:
+             n_bins: int = PAPER_BINS, bin_s: float = PAPER_BIN_S, keep_truth: bool = False,
+             galvo_link: str = "url", **scene_settings) -> Instruments:
     """The simulated bench: a scene, its photon world and rig, the galvo emulator on a
     ``galvosim://`` URL and the tagger on the simulated pyusb backend, opened through the real
     drivers. ``faults`` as in ``drivers.sim.faults`` (galvo and tagger kinds mixed). The tagger
-    records ``n_bins * bin_s`` after each sync, so ``sbr`` is what the estimators see."""
+    records ``n_bins * bin_s`` after each sync, so ``sbr`` is what the estimators see.
+    keep_truth: the rig keeps every dwell's photons (``rig.truth``) for tests.
+    galvo_link: "url" (pyserial URL handler) or "pty" (a real tty from a pty pair, POSIX)."""
     from drivers.galvo import Galvo
     from drivers.sim import PhotonWorld, galvo_fw, load_scene
     from drivers.sim.faults import GALVO_FAULTS, TAGGER_FAULTS, parse_faults
@@ -86,25 +92,33 @@ def open_sim(scene_name: str = "bust", shape: tuple[int, int] = (64, 64), *, ppp
     h, w = shape
     scene = load_scene(scene_name, (h, w), ppp=float(ppp), sbr=sbr, tagger_range_s=n_bins * bin_s,
                        **scene_settings)
-    rig = SimRig(PhotonWorld(scene, seed=seed))
+    rig = SimRig(PhotonWorld(scene, seed=seed), keep_truth=keep_truth)
     parsed = parse_faults(faults)
     name = f"spdepth-sim-{next(_names)}"
-    galvo_fw.register_device(name, galvo_fw.GalvoFirmware(
-        rig, faults=[f for f in parsed if f.kind in GALVO_FAULTS]))
-    galvo = tagger = None
+    fw = galvo_fw.GalvoFirmware(rig, faults=[f for f in parsed if f.kind in GALVO_FAULTS])
+    galvo_fw.register_device(name, fw)
+    galvo = tagger = link = None
     try:
-        galvo = Galvo.open(f"galvosim://{name}")
+        if galvo_link == "pty":
+            from drivers.sim.pty_link import PtyLink
+
+            link = PtyLink(fw)
+            galvo = Galvo.open(link.start())
+        else:
+            galvo = Galvo.open(f"galvosim://{name}")
         backend = SimTaggerBackend(rig, faults=[f for f in parsed if f.kind in TAGGER_FAULTS],
                                    scan_pixels=h * w)
         tagger = Tagger.open(SIM_TAGGER_URL, backend=backend)
     except BaseException:
         if galvo is not None:
             galvo.close()
+        if link is not None:
+            link.close()
         galvo_fw.unregister(name)
         raise
     info = {"scene": scene_name, "shape": [h, w], "ppp": ppp, "sbr": scene.settings.sbr,
             "seed": seed, "faults": faults, "pulse_rms_s": scene.pulse_rms_s}
-    return Instruments(galvo, tagger, scene.settings.sync_period_s, scene, rig, info, name)
+    return Instruments(galvo, tagger, scene.settings.sync_period_s, scene, rig, info, name, link)
 
 
 def open_real(galvo_port: str, tagger_url: str, sync_period_s: float) -> Instruments:

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from numba import njit
 
 from acq.assign import PassGeometry
 from acq.ptu import (PIXEL_MARKER_TAG, iter_records, marker_map, patch_record_count, ptu_header,
@@ -42,17 +43,18 @@ FLUSH_S = 0.5
 """Longest time records and events sit in Python's buffers before they go to the OS (the
 recording survives a killed process up to the last flush)."""
 T3_RANGE_BINS = 32768
+_MARKER = int(EventKind.MARKER)
 PLAN_TAG = "SPDepth_Plan"
 RECON_TAG = "SPDepth_Recon"
 INFO_TAG = "SPDepth_Info"
 
 
 class Recorder:
-    """Writes ``recording.ptu`` and ``events.jsonl`` in ``out_dir``.
+    """Writes ``recording.ptu`` in ``out_dir``; lost spans go to ``log`` (the session's event log,
+    ``EventLog``) with their record position.
 
-    The tagger reader calls ``on_records`` and ``on_lost`` from its thread (it is its ``tap``);
-    the session calls ``log_event`` from its own. ``records`` counts the records written, which
-    is the position the event log refers to.
+    The tagger reader calls ``on_records`` and ``on_lost`` from its thread (it is its ``tap``).
+    ``records`` counts the records written: the position the event log refers to.
     """
 
     def __init__(self, out_dir: Path, plan, recon_settings, *, resolution_s: float,
@@ -68,7 +70,7 @@ class Recorder:
         self._fh = open(self.path, "w+b")
         self._fh.write(header)
         self._fh.flush()
-        self._events = open(out_dir / "events.jsonl", "a", encoding="utf-8")
+        self._log = log
         self._lock = threading.Lock()
         self.records = 0
         self._last_flush = time.monotonic()
@@ -85,29 +87,15 @@ class Recorder:
             self._maybe_flush()
 
     def on_lost(self, sync: int, n_records: int, restart: bool) -> None:
-        self.log_event({"event": "lost", "record": self.records, "sync": int(sync),
-                        "records_lost": int(n_records), "restart": bool(restart)})
-
-    # any thread
-    def log_event(self, entry: dict) -> None:
-        if self.closed:
-            return
-        with self._lock:
-            self._events.write(json.dumps(entry) + "\n")
-            self._maybe_flush()
+        if self._log is not None:
+            self._log({"event": "lost", "record": self.records, "sync": int(sync),
+                       "records_lost": int(n_records), "restart": bool(restart)})
 
     def _maybe_flush(self) -> None:
         now = time.monotonic()
         if now - self._last_flush >= FLUSH_S:
             self._fh.flush()
-            self._events.flush()
             self._last_flush = now
-
-    def flush(self) -> None:
-        with self._lock:
-            self._fh.flush()
-            self._events.flush()
-            self._last_flush = time.monotonic()
 
     def close(self) -> None:
         """Flush, patch the record count (the file is complete), close."""
@@ -118,7 +106,32 @@ class Recorder:
             self._fh.flush()
             patch_record_count(self._fh, self.records)
             self._fh.close()
-            self._events.close()
+
+
+class EventLog:
+    """``events.jsonl``: one JSON object a line, appended from any thread, flushed at least every
+    FLUSH_S (and on close), so a killed process leaves whole lines up to its last flush."""
+
+    def __init__(self, path: Path):
+        self._fh = open(path, "a", encoding="utf-8")
+        self._lock = threading.Lock()
+        self._last_flush = time.monotonic()
+
+    def __call__(self, entry: dict) -> None:
+        with self._lock:
+            if self._fh is None:
+                return
+            self._fh.write(json.dumps(entry) + "\n")
+            now = time.monotonic()
+            if now - self._last_flush >= FLUSH_S:
+                self._fh.flush()
+                self._last_flush = now
+
+    def close(self) -> None:
+        with self._lock:
+            if self._fh is not None:
+                self._fh.close()
+                self._fh = None
 
 
 @dataclass(frozen=True)
@@ -169,6 +182,7 @@ class ReplaySource:
                              f"({PIXEL_MARKER_TAG}); replay needs pixel markers; "
                              "`spdepth recon FILE` interpolates pixels between line markers")
         self._lut = lut
+        _Decoder(lut, []).decode(np.zeros(0, np.uint32))   # load the kernels before timing starts
         self.speed = speed
         self.chunk_records = int(chunk_records)
         self.first_read_t: float | None = None
@@ -245,21 +259,29 @@ class _Decoder:
     put back at their record positions."""
 
     def __init__(self, lut: np.ndarray, lost: list[dict]):
-        self.lut = lut
+        # our recordings use the device's numbering: then there is nothing to map
+        self.lut = None if np.array_equal(lut, np.arange(lut.size)) else lut
+        self._out = np.empty(0, dtype=EVENT_DTYPE)
         self.state = T3DecoderState()
         self.position = 0
         self._lost = sorted(lost, key=lambda e: int(e["record"]))
         self._next = 0
 
     def decode(self, records: np.ndarray) -> np.ndarray:
+        """Events of ``records`` (the next records of the file). The result is a view of a buffer
+        reused by the next call: the session consumes a chunk before it asks for the next (and
+        fresh pages for every chunk cost more than the decoding)."""
+        if self._out.size < records.size:
+            self._out = np.empty(records.size, dtype=EVENT_DTYPE)
         parts = []
-        start = 0
+        start = used = 0
         end = self.position + records.size
         while self._next < len(self._lost) and int(self._lost[self._next]["record"]) <= end:
             e = self._lost[self._next]
             cut = int(e["record"]) - self.position
             if cut >= start:
-                parts.append(self._decode(records[start:cut]))
+                parts.append(self._decode(records[start:cut], used))
+                used += parts[-1].size
                 start = cut
             ev = np.zeros(1, dtype=EVENT_DTYPE)
             ev["sync"] = int(e["sync"])
@@ -270,19 +292,26 @@ class _Decoder:
                 # as the live reader did: the device counted syncs from 0 again
                 self.state.sync_base = max(self.state.sync_base, self.state.last_sync + 1)
             self._next += 1
-        parts.append(self._decode(records[start:]))
+        parts.append(self._decode(records[start:], used))
         self.position = end
         return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
-    def _decode(self, records: np.ndarray) -> np.ndarray:
+    def _decode(self, records: np.ndarray, used: int) -> np.ndarray:
         try:
-            ev = decode_t3(records, self.state)
+            ev = decode_t3(records, self.state, out=self._out[used:])
         except ProtocolError as exc:
             raise InputError(f"recording: {exc}") from None
-        is_marker = ev["kind"] == EventKind.MARKER
-        if is_marker.any():
-            ev["marker"][is_marker] = self.lut[ev["marker"][is_marker] & 15]
+        if self.lut is not None:
+            _map_markers(ev["kind"], ev["marker"], self.lut)
         return ev
+
+
+@njit(cache=True, nogil=True)
+def _map_markers(kind, marker, lut):
+    """Marker bits of the file's numbering -> ours, in place."""
+    for i in range(kind.size):
+        if kind[i] == _MARKER:
+            marker[i] = lut[marker[i] & 15]
 
 
 def recon_settings_from_dict(d: dict, **override) -> ReconSettings:

@@ -39,6 +39,7 @@ from acq.live_recon import LiveRecon
 from acq.plan import ScanPlan, pass_regions
 from acq.store import PixelStore
 from drivers.errors import DeviceError
+from drivers.events import EVENT_DTYPE
 from recon.errors import InputError
 from recon.model import ReconSettings
 
@@ -328,6 +329,13 @@ class Session:
 
     def _main(self) -> None:
         final = SessionState.DONE
+        if self.out_dir is not None:
+            from acq.recording import EventLog
+
+            self.out_dir.mkdir(parents=True, exist_ok=True)
+            self._events_log = EventLog(self.out_dir / "events.jsonl")
+            self._log({"event": "session", "plan": self.plan.to_dict(),
+                       "recon": self.recon.settings.to_dict(), "replay": self.replay is not None})
         try:
             try:
                 if self._abort_req:
@@ -371,11 +379,8 @@ class Session:
             self._ended.set()
 
     def _arm(self) -> None:
-        if self.out_dir is not None:
-            self.out_dir.mkdir(parents=True, exist_ok=True)
-            self._events_log = open(self.out_dir / "events.jsonl", "a", encoding="utf-8")
-            self._log({"event": "session", "plan": self.plan.to_dict(),
-                       "recon": self.recon.settings.to_dict(), "replay": self.replay is not None})
+        # load (or compile) the store's kernel now, not when the first photons are waiting
+        self.store.feed(np.zeros(0, dtype=EVENT_DTYPE))
         if self.replay is not None:
             return
         from acq.recording import Recorder
@@ -542,10 +547,10 @@ class Session:
     def _process(self, chunk: np.ndarray) -> bool:
         """Feed a chunk; hand pixels that became final to the reconstruction. Returns whether
         the chunk held a lost span."""
+        seen = self.store.photons_seen
         acc = self.store.feed(chunk)
-        n_photons = int(np.count_nonzero(chunk["kind"] == 0))
-        if n_photons:
-            self.detections += n_photons
+        if self.store.photons_seen > seen:
+            self.detections = self.store.photons_seen
             self._last_photon_t = time.monotonic()
         px = acc.closed_pixel
         if px.size:
@@ -675,11 +680,8 @@ class Session:
 
     # ---- event log -------------------------------------------------------------------------------
     def _log(self, entry: dict) -> None:
-        entry = {"t_s": round(time.monotonic() - self._t0, 4), **entry}
-        if self.recorder is not None:
-            self.recorder.log_event(entry)
-        elif self._events_log is not None:
-            self._events_log.write(json.dumps(entry) + "\n")
+        if self._events_log is not None:
+            self._events_log({"t_s": round(time.monotonic() - self._t0, 4), **entry})
 
     def _close_log(self) -> None:
         if self._events_log is not None:

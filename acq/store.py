@@ -56,8 +56,8 @@ class PixelStore:
         self.dwells = np.zeros(n, np.int32)       # complete dwells
         self.frozen = np.zeros(n, np.uint8)       # handed to the reconstruction
         self._pend = np.zeros(self.n_keep, np.uint32)
-        # photons outside any dwell, dwells dropped, LOST events, photons kept
-        self._counters = np.zeros(4, np.int64)
+        # photons outside any dwell, dwells dropped, LOST events, photons kept, photons seen
+        self._counters = np.zeros(5, np.int64)
         self._state = new_state()
         self._geom = PassGeometry.full(self.shape).vector()
         self._lock = threading.Lock()
@@ -70,6 +70,11 @@ class PixelStore:
     def unassigned(self) -> int:
         """Photons that arrived outside any dwell (fly-back, parked mirror, unknown position)."""
         return int(self._counters[0])
+
+    @property
+    def photons_seen(self) -> int:
+        """Photon events fed so far (assigned or not)."""
+        return int(self._counters[4])
 
     @property
     def dropped_dwells(self) -> int:

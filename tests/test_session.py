@@ -1,0 +1,263 @@
+"""Acquisition sessions against the simulated instruments through the real drivers: the target is
+reached or flagged, photons land in their pixel from complete dwells only (nothing counted twice),
+faults are re-acquired, pause/resume/abort from another thread, replay equals live."""
+
+from __future__ import annotations
+
+import json
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from acq.instruments import open_sim, recon_settings, sim_plan, window_binning
+from acq.recording import ReplaySource, recon_settings_from_dict
+from acq.session import AcqFlag, Session, SessionState, SessionStateError
+from recon.maps import DepthMaps
+
+
+def _session(inst, shape, out=None, *, target=10, method="lmf", **plan_kwargs):
+    plan = sim_plan(inst, shape, target=target, **plan_kwargs)
+    settings = recon_settings(method, window_binning(inst.tagger.resolution_s), target,
+                              inst.scene.pulse_rms_s)
+    return Session(plan, settings, galvo=inst.galvo, tagger=inst.tagger, out_dir=out,
+                   sync_period_s=inst.sync_period_s, info=inst.info)
+
+
+def _dwells_by_pixel(rig, width):
+    out: dict[int, list[np.ndarray]] = {}
+    for row, col, ev in rig.truth:
+        out.setdefault(row * width + col, []).append(ev["dtime"][ev["kind"] == 0])
+    return out
+
+
+def assert_from_complete_dwells(session, rig):
+    """Every pixel's kept times are the first in-window detections of a subsequence of the dwells
+    the world produced for that pixel, in order: right pixel, no detection twice, none invented."""
+    store = session.store
+    lo, hi = store.window
+    dwells = _dwells_by_pixel(rig, store.shape[1])
+    for p in range(store.n_pixels):
+        kept = store.times[p, :store.count[p]]
+        k = 0
+        for d in dwells.get(p, []):
+            w = d[(d >= lo) & (d < hi)]
+            take = min(w.size, kept.size - k)
+            if take and np.array_equal(kept[k:k + take], w[:take]):
+                k += take
+        assert k == kept.size, f"pixel {divmod(p, store.shape[1])}: kept times not from its dwells"
+
+
+def assert_complete_or_flagged(session):
+    target = session.plan.target
+    counts = session.store.count
+    flags = session.acq_flags
+    assert np.all(flags != 255), "every pixel ends final"
+    short = counts < target
+    assert np.all(flags[short] != AcqFlag.COMPLETE), "a short pixel passed as complete"
+    assert np.all(counts[flags == AcqFlag.COMPLETE] == target)
+
+
+@pytest.mark.parametrize("galvo_link", ["url", pytest.param("pty", marks=pytest.mark.skipif(
+    sys.platform == "win32", reason="pty pairs are POSIX"))])
+def test_gated_session_completes_every_pixel_from_its_own_dwells(tmp_path, galvo_link):
+    with open_sim("bust", (12, 16), ppp=10, seed=3, keep_truth=True, galvo_link=galvo_link) as inst:
+        s = _session(inst, (12, 16), tmp_path)
+        assert s.run() == SessionState.DONE
+        assert_complete_or_flagged(s)
+        assert_from_complete_dwells(s, inst.rig)
+    assert np.all(s.store.count == 10) and s.passes == 1
+    run = json.loads((tmp_path / "run.json").read_text())
+    assert run["state"] == "done" and run["flagged_pixels"] == [] and run["faults_seen"] == []
+    assert run["statistics"]["detections"] == s.detections > 12 * 16 * 10 - 1
+    maps = DepthMaps.load_npz(tmp_path / "maps.npz")
+    assert np.isfinite(maps.depth_m).mean() > 0.9
+
+
+def test_serpentine_session_assigns_reversed_lines(tmp_path):
+    with open_sim("steps", (6, 8), ppp=10, seed=1, keep_truth=True) as inst:
+        s = _session(inst, (6, 8), pattern="serp")
+        assert s.run() == SessionState.DONE
+        assert_from_complete_dwells(s, inst.rig)
+        assert_complete_or_flagged(s)
+
+
+def test_raster_mode_repeats_frames_until_every_pixel_has_the_target():
+    with open_sim("bust", (8, 8), ppp=10, seed=2, keep_truth=True) as inst:
+        # about 4 detections a frame: the target of 10 takes several frames
+        s = _session(inst, (8, 8), mode="raster", dwell_s=inst.scene.dwell_s * 0.4)
+        assert s.run() == SessionState.DONE
+        assert s.passes >= 3
+        assert_complete_or_flagged(s)
+        assert_from_complete_dwells(s, inst.rig)
+        assert np.median(s.store.dwells) >= 2 and s.store.dwells.max() >= 3
+
+
+def test_raster_frame_limit_flags_what_stays_short(tmp_path):
+    with open_sim("bust", (8, 8), ppp=10, seed=2) as inst:
+        s = _session(inst, (8, 8), tmp_path, mode="raster", dwell_s=inst.scene.dwell_s * 0.2,
+                     max_passes=2)
+        assert s.run() == SessionState.DONE
+    assert s.passes == 2
+    flagged = s.flagged_pixels()
+    assert flagged.size > 0 and np.all(s.acq_flags[flagged] == AcqFlag.PASS_LIMIT)
+    run = json.loads((tmp_path / "run.json").read_text())
+    assert run["flagged_pixels"] == flagged.tolist()
+    assert run["flag_reasons"] == {"PASS_LIMIT": flagged.size}
+
+
+def test_gated_dwell_limit_flags_dark_pixels():
+    with open_sim("bust", (8, 8), ppp=10, seed=4) as inst:
+        # a limit of a tenth of the scene's pixel dwell: most pixels stop short of 10
+        s = _session(inst, (8, 8), dwell_s=inst.scene.dwell_s * 0.1)
+        assert s.run() == SessionState.DONE
+    limited = s.acq_flags == AcqFlag.DWELL_LIMIT
+    assert limited.sum() > 10
+    assert np.all(s.store.count[limited] < 10)
+    assert s.passes == 1          # a dwell that hit its limit is not rescanned
+    assert_complete_or_flagged(s)
+
+
+@pytest.mark.parametrize("fault", ["fifo-overflow@40%", "device-vanish@50%", "usb-timeout@30%",
+                                   "partial-read@30%", "serial-unplug@30%", "garbled-reply@30%",
+                                   "missing-reply@30%", "servo-fault@50%"])
+def test_faults_are_reacquired_and_nothing_is_counted_twice(tmp_path, fault):
+    with open_sim("bust", (10, 10), ppp=10, seed=5, faults=fault, keep_truth=True) as inst:
+        s = _session(inst, (10, 10), tmp_path)
+        state = s.run()
+        assert state == SessionState.DONE, s.error
+        assert_complete_or_flagged(s)
+        assert_from_complete_dwells(s, inst.rig)
+    # every fault here is recoverable: the session re-acquires until every pixel is complete
+    assert s.flagged_pixels().size == 0
+    run = json.loads((tmp_path / "run.json").read_text())
+    if fault.split("@")[0] in ("fifo-overflow", "device-vanish", "servo-fault"):
+        assert run["faults_seen"], "the fault must be listed"
+        assert all({"kind", "t_s", "what", "action"} <= set(f) for f in run["faults_seen"])
+    if fault.startswith(("fifo-overflow", "servo-fault")):
+        assert s.passes >= 2, "the pixels after the fault are scanned again"
+
+
+def test_pause_resume_and_abort_from_another_thread(tmp_path):
+    with open_sim("bust", (24, 24), ppp=10, seed=6, keep_truth=True) as inst:
+        s = _session(inst, (24, 24), tmp_path)
+        with pytest.raises(SessionStateError):
+            s.pause()                      # not running yet
+        with pytest.raises(SessionStateError):
+            s.resume()
+        s.start()
+        with pytest.raises(SessionStateError):
+            s.start()
+        assert _wait(lambda: s.snapshot().pixels_final > 20)
+        threading.Thread(target=s.pause).start()
+        assert s.wait_for_state(SessionState.PAUSED, 20)
+        frozen = s.store.count.copy()
+        time.sleep(0.3)
+        assert np.array_equal(frozen, s.store.count), "nothing is acquired while paused"
+        assert s.snapshot().state == "paused"
+        # paused at a pixel boundary: every pixel is either untouched or complete
+        touched = frozen > 0
+        assert np.all(frozen[touched] == 10)
+        with pytest.raises(SessionStateError):
+            s.pause()
+        s.resume()
+        assert s.wait_for_state(SessionState.RUNNING, 10)
+        assert _wait(lambda: s.snapshot().pixels_final > frozen.astype(bool).sum() + 20)
+        threading.Thread(target=s.abort).start()
+        assert s.wait(30) == SessionState.ABORTED
+        assert_from_complete_dwells(s, inst.rig)
+    with pytest.raises(SessionStateError):
+        s.abort()
+    run = json.loads((tmp_path / "run.json").read_text())
+    assert run["state"] == "aborted"
+    incomplete = s.acq_flags == AcqFlag.INCOMPLETE
+    assert incomplete.any() and np.all(s.store.count[incomplete] < 10)
+    states = [json.loads(line).get("state") for line in (tmp_path / "events.jsonl").open()]
+    assert [x for x in states if x] == ["armed", "running", "paused", "running", "finishing",
+                                        "aborted"]
+    # what was recorded up to the abort replays to the same maps
+    rep = _replay(tmp_path)
+    assert rep.run() == SessionState.DONE
+    _assert_same_maps(DepthMaps.load_npz(tmp_path / "maps.npz"), rep.maps(), skip_flags=True)
+
+
+def _wait(cond, timeout_s=30.0):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if cond():
+            return True
+        time.sleep(0.01)
+    return False
+
+
+def _replay(rec_dir, **kwargs):
+    from acq.commands.replay import build_session
+
+    return build_session(rec_dir, **kwargs)
+
+
+def _assert_same_maps(a: DepthMaps, b: DepthMaps, skip_flags=False):
+    for k in ("tof_s", "depth_m", "background", "signal", "photons", "uncertainty_s", "flags"):
+        if skip_flags and k == "flags":
+            continue
+        np.testing.assert_array_equal(getattr(a, k), getattr(b, k), err_msg=k)
+
+
+@pytest.mark.parametrize("fault", ["", "fifo-overflow@40%,device-vanish@70%"])
+def test_replay_equals_live(tmp_path, fault):
+    with open_sim("bust", (12, 12), ppp=10, seed=7, faults=fault) as inst:
+        live = _session(inst, (12, 12), tmp_path / "live", method="uos")
+        assert live.run() == SessionState.DONE
+    rep = _replay(tmp_path / "live")
+    assert rep.run() == SessionState.DONE
+    _assert_same_maps(live.maps(), rep.maps())
+    assert np.array_equal(live.store.count, rep.store.count)
+    assert np.array_equal(live.store.times, rep.store.times)
+    assert len(rep.lost) == len(live.lost)
+    assert rep.detections == live.detections
+
+
+def test_replay_target_5_of_a_recording_of_12(tmp_path):
+    with open_sim("bust", (8, 8), ppp=10, seed=8) as inst:
+        live = _session(inst, (8, 8), tmp_path, target=12)
+        assert live.run() == SessionState.DONE
+    rep = _replay(tmp_path, target=5)
+    assert rep.run() == SessionState.DONE
+    assert np.all(rep.store.count == 5)
+    np.testing.assert_array_equal(rep.store.times[:, :5], live.store.times[:, :5])
+    assert rep.recon.settings.max_photons == 5
+
+
+def test_subscribers_get_latest_snapshots_at_most_30_hz_and_a_slow_one_does_not_slow_the_scan():
+    with open_sim("bust", (16, 16), ppp=10, seed=9) as inst:
+        s = _session(inst, (16, 16))
+        fast, slow = [], []
+        s.subscribe(lambda snap: fast.append((time.monotonic(), snap)))
+        s.subscribe(lambda snap: (slow.append(snap), time.sleep(0.5)))
+        t0 = time.monotonic()
+        assert s.run() == SessionState.DONE
+        wall = time.monotonic() - t0
+    time.sleep(0.1)
+    assert fast[-1][1].state == "done" and fast[-1][1].pixels_final == 256
+    rate = (len(fast) - 1) / max(fast[-1][0] - fast[0][0], 1e-9)
+    assert rate <= 33
+    # the slow subscriber saw few snapshots, and the scan did not wait for it
+    assert len(slow) <= wall / 0.5 + 2
+    snap = fast[len(fast) // 2][1]
+    assert snap.depth_m.shape == snap.counts.shape == (16, 16)
+
+
+def test_recording_is_a_ptu_that_ptufile_reads_as_an_image(tmp_path):
+    import ptufile
+
+    with open_sim("bust", (8, 8), ppp=10, seed=10) as inst:
+        s = _session(inst, (8, 8), tmp_path)
+        assert s.run() == SessionState.DONE
+    with ptufile.PtuFile(tmp_path / "recording.ptu") as pf:
+        assert pf.number_records == s.recorder.records > 0
+        assert pf.shape[1:3] == (8, 8) or pf.shape[-4:-2] == (8, 8) or 8 in pf.shape
+    info = ReplaySource(tmp_path).info
+    assert info.plan["target"] == 10 and info.has_event_log
+    assert recon_settings_from_dict(info.recon).binning == s.recon.settings.binning
