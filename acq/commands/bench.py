@@ -8,12 +8,14 @@ from __future__ import annotations
 import argparse
 import importlib
 
-HELP = "measure speed: detection generation, reconstruction, T3 decoding"
+HELP = "measure speed (generation, reconstruction, T3 decoding) and accuracy for time (report)"
 
 TARGETS = {
     "generate": ("drivers.sim.bench", "photon generation of the scene simulator (detections/s)"),
     "recon": ("recon.bench", "estimators vs plain NumPy references, 1 and 2 threads (pixels/s)"),
     "decode": ("drivers.tagger.bench", "T3 record decoding: numba vs NumPy vs ptufile (records/s)"),
+    "report": ("acq.bench_report", "accuracy vs detections per pixel, SBR and estimator, with scan and "
+               "compute time: report.md, results.csv, PNGs (--out DIR [--quick])"),
 }
 
 
