@@ -20,20 +20,23 @@ def test_demo_scans_reconstructs_and_writes_png(tmp_path, capsys):
     assert main(["demo", "--size", "24x20", "--out", str(png)]) == 0
     out = capsys.readouterr().out
     assert "scanned bust 24x20 through the drivers" in out
+    assert "live ml maps equal the batch reconstruction of the final store" in out
     assert png.stat().st_size > 20_000
     # the paper's ordering holds even on a small image: ml <= uos < lmf
     assert _mae(out, "ml") <= _mae(out, "uos") * 1.05 < _mae(out, "lmf")
 
 
-def test_demo_with_faults_reports_them_and_leaves_holes(tmp_path, capsys):
+def test_demo_with_faults_reports_them_and_reacquires(tmp_path, capsys):
     png = tmp_path / "demo.png"
     code = main(["demo", "--size", "16x16", "--methods", "uos",
                  "--faults", "serial-unplug@0.2s,fifo-overflow@50%", "--out", str(png)])
     assert code == 0
     out = capsys.readouterr().out
     assert "galvo reconnects: 1" in out
-    assert "lost spans in the tag stream: 1" in out
-    assert "pixels are short" in out
+    assert "lost spans in the tag stream: 1, re-acquired in later passes" in out
+    assert "in 2 passes" in out                       # the pixels after the hole were scanned again
+    assert "flagged" not in out                       # ... and all of them completed
+    assert "live uos maps equal the batch reconstruction" in out
 
 
 def test_demo_refuses_bad_options(tmp_path, capsys):

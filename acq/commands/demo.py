@@ -1,18 +1,18 @@
-"""``spdepth demo``: a count-gated scan of a built-in scene through the real drivers talking to
-the simulated instruments (galvo over a pyserial URL, time tagger over pyusb), reconstructed with
-each estimator, compared with the truth and the oracle bound, written as a PNG sheet."""
+"""``spdepth demo``: an acquisition session on a built-in scene through the real drivers talking to
+the simulated instruments (galvo over a pyserial URL, time tagger over pyusb), recorded, then the
+final photons reconstructed with each estimator, compared with the truth and the per-pixel oracle
+bound, written as a PNG sheet."""
 
 from __future__ import annotations
 
 import argparse
 import sys
+import tempfile
 import time
 
-from acq.commands._args import positive_int, size_wxh
+from acq.commands._args import positive_float, positive_int, size_wxh
 
-HELP = "simulate a count-gated scan of a built-in scene, reconstruct it, write a PNG of the maps"
-
-C_M_PER_S = 299_792_458.0
+HELP = "simulate a recorded count-gated scan session of a built-in scene, reconstruct it, write a PNG"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -21,113 +21,115 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="scan size in pixels (default 96x96)")
     parser.add_argument("--photons", type=positive_int, default=15, metavar="N",
                         help="count-gated target: in-window detections per pixel (default 15)")
-    parser.add_argument("--sbr", type=float, default=10.0, help="signal-to-background ratio (default 10)")
+    parser.add_argument("--sbr", type=positive_float, default=10.0,
+                        help="signal-to-background ratio (default 10)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     parser.add_argument("--methods", default="lmf,uos,ml",
-                        help="estimators to run, comma-separated (default lmf,uos,ml)")
+                        help="estimators to run, comma-separated (default lmf,uos,ml); the last one "
+                             "also runs live during the scan")
     parser.add_argument("--faults", default="", metavar="SPEC",
                         help="inject faults into the simulated instruments, KIND@WHEN items "
                              "(WHEN in virtual seconds '2s' or share of the scan '40%%'), e.g. "
                              "serial-unplug@2s,usb-timeout@50%%,fifo-overflow@70%%; kinds: "
                              "serial-unplug, garbled-reply, missing-reply, slow-reply, servo-fault "
                              "(galvo); usb-timeout, partial-read, fifo-overflow, device-vanish (tagger)")
+    parser.add_argument("--record", metavar="DIR",
+                        help="keep the session's files (recording.ptu, events.jsonl, maps.npz, "
+                             "run.json) in DIR (default: a temporary directory, removed)")
     parser.add_argument("--out", default="spdepth-demo.png", help="PNG sheet to write")
 
 
 def run(args: argparse.Namespace) -> int:
-    import numpy as np
-
-    from acq.report import ProgressBar, render_maps_png
-    from acq.scan import ScanPlan, run_scan
-    from drivers.galvo import Galvo
-    from drivers.sim import PhotonWorld, galvo_fw, load_scene
-    from drivers.sim.faults import GALVO_FAULTS, TAGGER_FAULTS, parse_faults
-    from drivers.sim.rig import SimRig
-    from drivers.sim.tagger_usb import SimTaggerBackend
-    from drivers.tagger import Tagger
-    from recon.estimate import reconstruct
-    from recon.model import Binning, ReconSettings
+    from recon.errors import InputError
+    from recon.model import METHODS
 
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    unknown = [m for m in methods if m not in METHODS]
+    if not methods or unknown:
+        raise InputError(f"--methods: unknown {', '.join(unknown) or '(none given)'}; "
+                         f"choose from {', '.join(METHODS)}")
+    if args.record:
+        from acq.commands._session import prepare_out_dir
+
+        return _demo(args, methods, prepare_out_dir(args.record, overwrite=False))
+    with tempfile.TemporaryDirectory(prefix="spdepth-demo-") as tmp:
+        return _demo(args, methods, tmp)
+
+
+def _demo(args, methods, out_dir) -> int:
+    import numpy as np
+
+    from acq.commands._session import run_session
+    from acq.evaluate import evaluate_depth, signal_detections
+    from acq.instruments import PAPER_BIN_S, PAPER_BINS, open_sim, sim_plan, window_binning
+    from acq.report import render_maps_png
+    from acq.session import Session
+    from recon.estimate import reconstruct
+    from recon.model import ReconSettings
+
     h, w = args.size
-    # The tagger records the seed paper's window: 801 bins of 40 ps (32 ns) after each sync,
-    # so --sbr is the ratio among the detections the estimators see.
-    n_bins, bin_s = 801, 40e-12
-    scene = load_scene(args.scene, (h, w), ppp=float(args.photons), sbr=args.sbr,
-                       tagger_range_s=n_bins * bin_s)
-    rig = SimRig(PhotonWorld(scene, seed=args.seed))
-    x0, y0 = rig.fov.centre_deg(0, 0, (h, w))
-    x1, y1 = rig.fov.centre_deg(h - 1, w - 1, (h, w))
-    # The galvo counts every detector pulse; the dwell limit stops dark pixels from holding the scan.
-    plan = ScanPlan(w, h, x0, x1, y0, y1, n_target=args.photons, dwell_s=20 * scene.dwell_s)
+    with open_sim(args.scene, (h, w), ppp=float(args.photons), sbr=args.sbr, seed=args.seed,
+                  faults=args.faults) as inst:
+        scene = inst.scene
+        plan = sim_plan(inst, (h, w), target=args.photons)
+        # The tagger records the seed paper's window (801 bins of 40 ps), so --sbr is the ratio
+        # among the detections the estimators see.
+        binning = window_binning(inst.tagger.resolution_s)
+        live = ReconSettings(method=methods[-1], binning=binning, pulse_rms_s=scene.pulse_rms_s,
+                             max_photons=args.photons)
+        session = Session(plan, live, galvo=inst.galvo, tagger=inst.tagger, out_dir=out_dir,
+                          sync_period_s=inst.sync_period_s, info=inst.info)
+        run_session(session, "demo")
+        galvo_reconnects = inst.galvo.reconnects
+        scan_s = inst.rig.now_s
+    snap = session.snapshot()
+    store = session.store
+    if session.error is not None:
+        print(f"session {session.state.value}: {session.error}", file=sys.stderr)
+    print(f"scanned {args.scene} {w}x{h} through the drivers: {snap.detections} detections in "
+          f"{snap.passes} passes, {scan_s:.2f} s of scan time in {snap.elapsed_s:.2f} s "
+          f"({snap.detections_per_s / 1e6:.2f} M detections/s, live {methods[-1]} lagged at most "
+          f"{session.recon.max_lag} pixels)")
+    if args.faults:
+        print(f"faults injected: {args.faults}; galvo reconnects: {galvo_reconnects}; lost spans "
+              f"in the tag stream: {len(session.lost)}, re-acquired in later passes")
+        for f in session.faults:
+            print(f"  {f['kind']}: {f['what']} -> {f['action']}")
+    flagged = session.flagged_pixels()
+    if flagged.size:
+        reasons = session.run_record()["flag_reasons"]
+        print(f"{flagged.size} pixels flagged short of {args.photons} detections ({reasons}); "
+              "they keep what they have")
 
-    faults = parse_faults(args.faults)
-    galvo_faults = [f for f in faults if f.kind in GALVO_FAULTS]
-    tagger_faults = [f for f in faults if f.kind in TAGGER_FAULTS]
-    galvo_fw.register_device("demo-galvo", galvo_fw.GalvoFirmware(rig, faults=galvo_faults))
-    bar = ProgressBar("scan", stream=sys.stderr)
-    got = [0]
-
-    def on_chunk(pixel, dtime):
-        got[0] += pixel.size
-        bar(min(got[0], h * w * args.photons), h * w * args.photons)
-
-    try:
-        backend = SimTaggerBackend(rig, faults=tagger_faults, scan_pixels=h * w)
-        with Galvo.open("galvosim://demo-galvo") as galvo, \
-                Tagger.open("usb:1209:7a64", backend=backend) as tagger:
-            result = run_scan(galvo, tagger, plan, on_chunk=on_chunk)
-            galvo_reconnects = galvo.reconnects
-    finally:
-        bar.close()
-        galvo_fw.unregister("demo-galvo")
-    store = result.store
-    print(f"scanned {args.scene} {w}x{h} through the drivers: {store.n_photons} detections, "
-          f"{result.events} events, {rig.now_s:.2f} s of scan time in {result.wall_s:.2f} s"
-          + (f", {result.short_pixels.size} pixels short" if result.short_pixels.size else ""))
-    if faults:
-        print(f"faults injected: {', '.join(str(f) for f in faults)}; galvo reconnects: "
-              f"{galvo_reconnects}; lost spans in the tag stream: {len(result.lost)}"
-              + "".join(f"\n  lost {span.records_lost or 'unknown'} records from sync {span.sync}, "
-                        f"pixel {divmod(span.pixel, w) if span.pixel >= 0 else 'between pixels'}"
-                        for span in result.lost))
-    if result.short_pixels.size:
-        print(f"{result.short_pixels.size} pixels are short of what the galvo counted (lost data): "
-              "they show as holes in the maps, to be re-acquired")
-        store = store.without_pixels(result.short_pixels)
-
-    res_s = store.time_unit_s
-    bin_units = max(1, int(round(bin_s / res_s)))
-    binning = Binning(time_unit_s=res_s, window_start=0, window_stop=n_bins * bin_units,
-                      bin_width=bin_units)
-    true_depth = np.asarray(scene.truth()["depth_m"], dtype=np.float64)
+    truth = scene.truth()
+    true_depth = np.asarray(truth["depth_m"], dtype=np.float64)
     if true_depth.ndim == 3:
         true_depth = true_depth[0]
-    valid = np.isfinite(true_depth)
-    # Oracle: knows which detections are signal and averages them (DESIGN.md section 3); here its
-    # analytic error for the image-mean SBR, so pixels brighter than the mean can beat it.
-    k_signal = args.photons * args.sbr / (1 + args.sbr)
-    oracle_cm = 100 * C_M_PER_S / 2 * scene.pulse_rms_s * np.sqrt(2 / np.pi) / np.sqrt(k_signal)
+    photons = store.photons()
+    k_signal = signal_detections(truth, store.count.reshape(h, w),
+                                 window_s=PAPER_BINS * PAPER_BIN_S)
     results = {}
-    print(f"{'method':<8}{'MAE (cm)':>10}{'x oracle':>10}{'recon (s)':>11}{'pixels/s':>12}")
-    print(f"{'oracle':<8}{oracle_cm:>10.2f}{1.0:>10.2f}   (analytic, at the image-mean SBR)")
+    print(f"{'method':<8}{'MAE (cm)':>10}{'x oracle':>10}{'missed':>8}{'recon (s)':>11}{'pixels/s':>12}")
+    oracle_cm = None
     for method in methods:
         settings = ReconSettings(method=method, binning=binning, pulse_rms_s=scene.pulse_rms_s,
                                  max_photons=args.photons)
-        # Time the reconstruction, not numba's one-off compilation (cached after the first run).
+        reconstruct(store.photons(np.arange(1)), settings)   # compile outside the timing
         t1 = time.perf_counter()
-        reconstruct(_first_pixel(store), settings)
-        if time.perf_counter() - t1 > 1.0:
-            print(f"  ({method}: numba kernels compiled in {time.perf_counter() - t1:.0f} s, "
-                  "cached for later runs)", file=sys.stderr)
-        t1 = time.perf_counter()
-        maps = reconstruct(store, settings)
+        maps = reconstruct(photons, settings)
         dt = time.perf_counter() - t1
-        err = np.abs(maps.depth_m - true_depth)
-        ok_px = valid & np.isfinite(err)
-        mae_cm = 100 * float(np.mean(err[ok_px])) if ok_px.any() else float("nan")
-        results[method] = (maps, mae_cm)
-        print(f"{method:<8}{mae_cm:>10.2f}{mae_cm / oracle_cm:>10.2f}{dt:>11.3f}{h * w / dt:>12,.0f}")
+        e = evaluate_depth(maps.depth_m, true_depth, k_signal, scene.pulse_rms_s)
+        if oracle_cm is None:
+            oracle_cm = 100 * e.oracle_mae_m
+            print(f"{'oracle':<8}{oracle_cm:>10.2f}{1.0:>10.2f}{'':>8}   (per pixel, same pixels)")
+        results[method] = (maps, 100 * e.mae_m)
+        print(f"{method:<8}{100 * e.mae_m:>10.2f}{e.ratio_to_oracle:>10.2f}"
+              f"{100 * e.miss_share:>7.1f}%{dt:>11.3f}{h * w / dt:>12,.0f}")
+    if methods[-1] in results:
+        live_maps = session.maps()
+        same = np.array_equal(live_maps.tof_s, results[methods[-1]][0].tof_s, equal_nan=True)
+        print(f"live {methods[-1]} maps {'equal' if same else 'DIFFER FROM'} the batch "
+              f"reconstruction of the final store")
 
     sheet = argparse.Namespace(truth_m=true_depth)
     panels = [("truth_m", "true depth", "m", "turbo", "percentile")]
@@ -139,12 +141,5 @@ def run(args: argparse.Namespace) -> int:
     panels.append(("background", "background", "detections per bin", "magma", "percentile"))
     render_maps_png(args.out, sheet, panels=panels,
                     title=f"{args.scene} {w}x{h}, {args.photons} detections per pixel, SBR {args.sbr:g}")
-    print(f"wrote {args.out}")
-    return 0
-
-
-def _first_pixel(store):
-    """A 1 x 1 store holding the first pixel's photons (enough to compile a method's kernel)."""
-    from recon.photons import PhotonStore
-
-    return PhotonStore.from_lists([store.pixel(0, 0)], (1, 1), store.time_unit_s)
+    print(f"wrote {args.out}" + (f"; session files in {out_dir}" if args.record else ""))
+    return 0 if session.state.value == "done" else 1

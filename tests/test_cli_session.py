@@ -1,0 +1,131 @@
+"""``spdepth scan`` and ``spdepth replay`` from the command line: files, exit codes, the JSON
+summary, refusing to overwrite, and a recording left by ``kill -9`` that still replays."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from acq.cli import main
+from recon.maps import DepthMaps
+
+FILES = ("recording.ptu", "events.jsonl", "maps.npz", "maps.png", "run.json")
+
+
+def _last_json(out: str) -> dict:
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def test_scan_writes_every_file_and_a_json_summary(tmp_path, capsys):
+    out = tmp_path / "run"
+    assert main(["scan", "--sim", "--size", "12x10", "--target", "8", "--method", "uos",
+                 "--faults", "fifo-overflow@50%", "--out", str(out), "--json"]) == 0
+    summary = _last_json(capsys.readouterr().out)
+    assert summary["state"] == "done" and summary["pixels"] == 120 and summary["flagged"] == 0
+    assert summary["lost_spans"] == 1 and summary["passes"] >= 2
+    for name in FILES:
+        assert (out / name).stat().st_size > 0, name
+    run = json.loads((out / "run.json").read_text())
+    assert run["plan"]["target"] == 8 and run["recon"]["method"] == "uos"
+    assert run["devices"]["tagger"]["serial"] == "SIMTAG000001"
+    assert [f["kind"] for f in run["faults_seen"]] == ["lost-data"]
+    maps = DepthMaps.load_npz(out / "maps.npz")
+    assert maps.depth_m.shape == (10, 12) and np.all(maps.photons == 8)
+
+
+def test_scan_refuses_a_non_empty_directory_and_bad_sources(tmp_path, capsys):
+    out = tmp_path / "busy"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    assert main(["scan", "--sim", "--size", "4x4", "--out", str(out)]) == 2
+    assert "not empty" in capsys.readouterr().err
+    assert (out / "notes.txt").read_text() == "mine"
+    assert main(["scan", "--size", "4x4", "--out", str(tmp_path / "x")]) == 2
+    assert "either --sim or both --galvo" in capsys.readouterr().err
+    assert main(["scan", "--sim", "--faults", "bogus@1s", "--out", str(tmp_path / "y")]) == 2
+    assert "bogus" in capsys.readouterr().err
+    assert main(["scan", "--sim", "--size", "4x4", "--target", "3", "--out", str(out),
+                 "--overwrite"]) == 0
+    assert (out / "recording.ptu").is_file()
+
+
+def test_replay_reproduces_the_live_maps_and_reports_its_stream_rate(tmp_path, capsys):
+    live = tmp_path / "live"
+    assert main(["scan", "--sim", "--size", "10x10", "--target", "10", "--method", "ml",
+                 "--out", str(live)]) == 0
+    capsys.readouterr()
+    again = tmp_path / "again"
+    assert main(["replay", str(live / "recording.ptu"), "--out", str(again), "--json"]) == 0
+    summary = _last_json(capsys.readouterr().out)
+    assert summary["detections"] > 0 and summary["stream_s"] > 0
+    a, b = DepthMaps.load_npz(live / "maps.npz"), DepthMaps.load_npz(again / "maps.npz")
+    for key in ("tof_s", "background", "signal", "photons", "uncertainty_s", "flags"):
+        np.testing.assert_array_equal(getattr(a, key), getattr(b, key), err_msg=key)
+    fewer = tmp_path / "fewer"
+    assert main(["replay", str(live), "--target", "4", "--method", "lmf", "--out", str(fewer),
+                 "--json"]) == 0
+    assert np.all(DepthMaps.load_npz(fewer / "maps.npz").photons == 4)
+    assert main(["replay", str(live), "--out", str(live), "--overwrite"]) == 2
+    assert "own directory" in capsys.readouterr().err
+
+
+def test_replay_takes_a_simulated_ptu(tmp_path, capsys):
+    ptu = tmp_path / "sim.ptu"
+    assert main(["simulate", "--scene", "steps", "--size", "16x8", "--ppp", "20",
+                 "--out", str(ptu)]) == 0
+    out = tmp_path / "rep"
+    assert main(["replay", str(ptu), "--target", "5", "--pulse-rms-ps", "360", "--out", str(out),
+                 "--json"]) == 0
+    summary = _last_json(capsys.readouterr().out)
+    assert summary["pixels"] == 128 and summary["detections"] > 128 * 10
+    assert summary["flagged"] < 10          # a fixed-dwell frame of 20 per pixel: few below 5
+
+
+def test_replay_refuses_what_is_not_a_recording(tmp_path, capsys):
+    bad = tmp_path / "bad.ptu"
+    bad.write_bytes(b"not a ptu file at all")
+    assert main(["replay", str(bad), "--out", str(tmp_path / "o")]) == 2
+    assert "bad.ptu" in capsys.readouterr().err
+    assert main(["replay", str(tmp_path / "missing"), "--out", str(tmp_path / "o2")]) == 2
+
+
+@pytest.mark.parametrize("kill_after_bytes", [60_000, 300_000])
+def test_kill_9_mid_scan_leaves_a_recording_that_replays(tmp_path, kill_after_bytes):
+    import ptufile
+
+    rec = tmp_path / "rec"
+    proc = subprocess.Popen([sys.executable, "-m", "acq.cli", "scan", "--sim", "--size", "96x96",
+                             "--target", "15", "--out", str(rec)],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    ptu = rec / "recording.ptu"
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and proc.poll() is None:
+        if ptu.exists() and ptu.stat().st_size > kill_after_bytes:
+            break
+        time.sleep(0.01)
+    assert proc.poll() is None, "the scan ended before it could be killed: " + \
+        proc.stderr.read().decode()[-500:]
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait(10)
+    assert not (rec / "run.json").exists()       # it really died mid-scan
+    with ptufile.PtuFile(ptu) as pf:              # count 0: ptufile reads what is there
+        n = pf.number_records
+        assert n > 0
+        assert pf.decode_records().size == n
+    out = tmp_path / "replayed"
+    proc2 = subprocess.run([sys.executable, "-m", "acq.cli", "replay", str(rec), "--out", str(out),
+                            "--json"], capture_output=True, text=True, timeout=120)
+    assert proc2.returncode == 0, proc2.stderr
+    summary = _last_json(proc2.stdout)
+    assert summary["state"] == "done" and summary["detections"] > 0
+    # the scan was cut: pixels it never finished are flagged, the others are complete
+    run = json.loads((out / "run.json").read_text())
+    assert 0 < len(run["flagged_pixels"]) < 96 * 96
+    assert set(run["flag_reasons"]) == {"INCOMPLETE"}
