@@ -14,6 +14,8 @@ TARGETS = {
     "generate": ("drivers.sim.bench", "photon generation of the scene simulator (detections/s)"),
     "recon": ("recon.bench", "estimators vs plain NumPy references, 1 and 2 threads (pixels/s)"),
     "decode": ("drivers.tagger.bench", "T3 record decoding: numba vs NumPy vs ptufile (records/s)"),
+    "session": ("acq.bench_session", "acquisition session end to end: scan det/s, live-recon "
+                "backlog, replay det/s, peak memory"),
     "report": ("acq.bench_report", "accuracy vs detections per pixel, SBR and estimator, with scan and "
                "compute time: report.md, results.csv, PNGs (--out DIR [--quick])"),
 }
