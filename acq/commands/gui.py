@@ -1,0 +1,84 @@
+"""``spdepth gui``: the live window (maps filling in during the scan, pixel inspector, controls),
+optionally starting a scan or replay at once, grabbing a screenshot and exiting at its end."""
+
+from __future__ import annotations
+
+import argparse
+
+from acq.commands._args import non_negative_float, positive_float, positive_int, size_wxh
+
+HELP = "open the live window; with --sim, --galvo/--tagger or --replay start that scan at once"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    src = parser.add_argument_group("source (optional: without one the window waits for Start)")
+    src.add_argument("--sim", action="store_true", help="simulated galvo and tagger (a scene)")
+    src.add_argument("--galvo", metavar="PORT", help="real galvo controller: serial port or URL")
+    src.add_argument("--tagger", metavar="usb:VID:PID", help="real time tagger")
+    src.add_argument("--sync-rate-hz", type=positive_float,
+                     help="laser repetition rate (real devices)")
+    src.add_argument("--replay", metavar="RECORDING",
+                     help="replay a run folder or its recording.ptu through the session pipeline")
+    sim = parser.add_argument_group("simulated bench")
+    sim.add_argument("--scene", help="built-in scene or file:DEPTH (default bust)")
+    sim.add_argument("--sbr", type=positive_float, help="signal-to-background ratio (default 10)")
+    sim.add_argument("--seed", type=int, help="random seed (default 0)")
+    sim.add_argument("--faults", metavar="SPEC",
+                     help="faults to inject, KIND@WHEN items, e.g. device-vanish@40%%")
+    scan = parser.add_argument_group("scan (defaults: the window's remembered settings)")
+    scan.add_argument("--size", type=size_wxh, metavar="WxH", help="pixels (e.g. 32x32)")
+    scan.add_argument("--target", type=positive_int, metavar="N",
+                      help="in-window detections per pixel (replay: default as recorded)")
+    scan.add_argument("--mode", choices=("gated", "raster"))
+    scan.add_argument("--dwell-limit-ms", type=non_negative_float, metavar="T",
+                      help="gated: dwell limit; raster: dwell per frame (0: default)")
+    scan.add_argument("--method", choices=("uos", "ml", "lmf"), help="estimator for the live maps")
+    out = parser.add_argument_group("output")
+    out.add_argument("--out", metavar="DIR",
+                     help="runs folder: each run writes its own subfolder here "
+                          "(default: the window's setting, ~/spdepth-runs)")
+    out.add_argument("--screenshot", metavar="PNG",
+                     help="grab the whole window into PNG when the scan ends")
+    out.add_argument("--exit-after-scan", action="store_true",
+                     help="close the window when the scan ends (exit 0 when done, 1 otherwise)")
+    out.add_argument("--window-size", type=size_wxh, metavar="WxH",
+                     help="window size in screen pixels (default 1480x900)")
+
+
+def spec_from_args(args: argparse.Namespace, base=None):
+    """``(spec, start)``: the ``gui.sources.SourceSpec`` of the arguments on top of ``base`` (the
+    window's remembered settings), and whether they name a source to start at once."""
+    import dataclasses
+
+    from gui.sources import SourceSpec
+    from recon.errors import InputError
+
+    kinds = [k for k, on in (("sim", args.sim), ("real", bool(args.galvo or args.tagger)),
+                             ("replay", bool(args.replay))) if on]
+    if len(kinds) > 1:
+        raise InputError("give one source: --sim, --galvo/--tagger or --replay")
+    changes = {"kind": kinds[0]} if kinds else {}
+    for name, field in (("scene", "scene"), ("sbr", "sbr"), ("seed", "seed"), ("faults", "faults"),
+                        ("size", "size"), ("target", "target"), ("mode", "mode"),
+                        ("dwell_limit_ms", "dwell_limit_ms"), ("method", "method"),
+                        ("galvo", "galvo_port"), ("tagger", "tagger_url"),
+                        ("sync_rate_hz", "sync_rate_hz"), ("replay", "recording"),
+                        ("out", "out_root")):
+        value = getattr(args, name)
+        if value is not None:
+            changes[field] = value
+    if kinds == ["replay"] and args.target is None:
+        changes["target"] = 0            # as recorded
+    if kinds == ["sim"] and args.faults is None:
+        changes["faults"] = ""           # a remembered fault spec must not sneak into a CLI run
+    return dataclasses.replace(base or SourceSpec(), **changes), bool(kinds)
+
+
+def run(args: argparse.Namespace) -> int:
+    from gui.app import WINDOW_SIZE, application, remembered_spec, run_window
+
+    application()
+    spec, start = spec_from_args(args, remembered_spec())
+    size = args.window_size[::-1] if args.window_size else (WINDOW_SIZE if args.screenshot else None)
+    return run_window(spec, start=start, screenshot=args.screenshot,
+                      exit_after_scan=args.exit_after_scan, window_size=size)

@@ -1,0 +1,94 @@
+"""Running the window as an application (``spdepth gui``): the QApplication, an optional source
+started at once, a screenshot at the end of the scan, and exit after it."""
+
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+WINDOW_SIZE = (1480, 900)
+"""Default window size (width, height): four maps, the controls and the inspector all legible."""
+
+
+def application():
+    """The QApplication (created once)."""
+    from PySide6 import QtWidgets
+
+    app = QtWidgets.QApplication.instance()
+    if app is None:
+        app = QtWidgets.QApplication(sys.argv[:1])
+        app.setOrganizationName("spdepth")
+        app.setApplicationName("spdepth")
+    return app
+
+
+def remembered_spec(settings=None):
+    """The source settings the window stored last time (None when there are none)."""
+    import json
+
+    from PySide6 import QtCore
+
+    from gui.sources import SourceSpec
+
+    settings = settings if settings is not None else QtCore.QSettings("spdepth", "spdepth")
+    raw = settings.value("source")
+    if not raw:
+        return None
+    try:
+        return SourceSpec.from_dict(json.loads(raw))
+    except (ValueError, TypeError):
+        return None
+
+
+def run_window(spec=None, *, start: bool = True, screenshot: str | Path | None = None,
+               exit_after_scan: bool = False, out_dir="auto",
+               window_size: tuple[int, int] | None = None, settings=None) -> int:
+    """Show the window with ``spec`` (a ``gui.sources.SourceSpec``) in its controls, started at
+    once when ``start``, and run the Qt loop. With ``screenshot``, the whole window is grabbed into
+    that PNG when the scan ends; with ``exit_after_scan`` the loop ends then. ``window_size``
+    (width, height) overrides the remembered geometry. Returns 0 (scan done, or window closed),
+    1 (scan aborted or failed), 2 (the source could not be started and the window is not kept)."""
+    from PySide6 import QtCore
+
+    from gui.window import MainWindow
+
+    app = application()
+    win = MainWindow(settings=settings)
+    if window_size is not None:
+        win.resize(*window_size)
+    elif not win.settings.contains("geometry"):
+        win.resize(*WINDOW_SIZE)
+    if spec is not None:
+        win.controls.set_spec(spec)
+    win.show()
+    result = {"code": 0}
+
+    def ended(state: str) -> None:
+        result["code"] = 0 if state == "done" else 1
+        if screenshot is not None:
+            app.processEvents()          # one more paint after the end-of-scan level fit
+            win.screenshot(screenshot)
+            print(f"spdepth gui: screenshot {screenshot}", file=sys.stderr)
+        if exit_after_scan:
+            QtCore.QTimer.singleShot(0, win.close)
+
+    win.scan_ended.connect(ended)
+    if spec is not None and start:
+        if not win.start_run(spec, out_dir=out_dir) and exit_after_scan:
+            print(f"spdepth gui: {win.banner_text.text()}", file=sys.stderr)
+            win.close()
+            win.deleteLater()
+            app.processEvents()
+            return 2
+    elif exit_after_scan:
+        log.warning("--exit-after-scan without a source: the window stays until closed")
+    app.exec()
+    win.deleteLater()
+    app.processEvents()
+    return result["code"]
+
+
+__all__ = ["application", "run_window", "remembered_spec", "WINDOW_SIZE"]

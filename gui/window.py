@@ -1,0 +1,765 @@
+"""The main window: controls, live maps, pixel inspector, accuracy-versus-time plot, status bar.
+
+The session scans on its own thread; a QTimer pulls ``session.snapshot()`` REFRESH_HZ times a second
+(DESIGN.md 4.12) and paints the latest, so a slow paint only skips snapshots, never the scan.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import pyqtgraph as pg
+from PySide6 import QtCore, QtGui, QtWidgets
+
+from gui.health import HealthTracker
+from gui.maps import C_M_PER_S, MAP_SPECS, MapPanel
+from gui.pixel_model import pixel_histogram
+from gui.sources import METHODS, MODES, SourceSpec, open_run, run_dir
+
+log = logging.getLogger(__name__)
+
+REFRESH_HZ = 20
+HISTORY_PERIOD_S = 0.2
+"""Accuracy-plot points are taken at most this often."""
+CLOSE_WAIT_S = 15.0
+"""Closing during a scan: longest wait for the aborted session to write its files."""
+SCENES = ("bust", "steps", "tilted-plane", "two-layer", "daylight")
+TERMINAL = ("done", "aborted", "failed")
+DEFAULT_OUT_ROOT = str(Path.home() / "spdepth-runs")
+STATE_COLOURS = {"idle": "#8a8a8a", "armed": "#1f6fb5", "running": "#1f6fb5", "paused": "#e0a800",
+                 "finishing": "#1f6fb5", "done": "#2e9d4a", "aborted": "#e07000",
+                 "failed": "#d0342c"}
+
+
+def _fmt_rate(v: float) -> str:
+    if v >= 1e6:
+        return f"{v / 1e6:.2f} M"
+    if v >= 1e3:
+        return f"{v / 1e3:.1f} k"
+    return f"{v:.0f} "
+
+
+def _fmt_eta(s: float | None) -> str:
+    if s is None or not math.isfinite(s):
+        return "–"
+    s = int(round(s))
+    return f"{s // 60}:{s % 60:02d}" if s >= 60 else f"{s} s"
+
+
+def _pill(label: QtWidgets.QLabel, colour: str) -> None:
+    label.setStyleSheet(f"QLabel {{ background: {colour}; color: white; border-radius: 8px; "
+                        "padding: 1px 8px; font-weight: bold; }")
+
+
+class ControlPanel(QtWidgets.QWidget):
+    """Source, scan and estimator settings, and the run buttons."""
+
+    def __init__(self, parent=None):
+        super().__init__(parent)
+        lay = QtWidgets.QVBoxLayout(self)
+        lay.setContentsMargins(6, 6, 6, 6)
+
+        src = QtWidgets.QGroupBox("Source")
+        f = QtWidgets.QFormLayout(src)
+        self.kind = QtWidgets.QComboBox()
+        self.kind.addItem("Simulated devices", "sim")
+        self.kind.addItem("Real devices", "real")
+        self.kind.addItem("Replay a recording", "replay")
+        f.addRow("Source", self.kind)
+        self.scene = QtWidgets.QComboBox()
+        self.scene.setEditable(True)
+        self.scene.addItems(SCENES)
+        self.scene.setToolTip("built-in scene, or file:DEPTH.npy|png|tiff")
+        self.sbr = QtWidgets.QDoubleSpinBox(decimals=2, minimum=0.01, maximum=1e4, value=10.0)
+        self.seed = QtWidgets.QSpinBox(minimum=0, maximum=2**31 - 1)
+        self.faults = QtWidgets.QLineEdit()
+        self.faults.setPlaceholderText("e.g. device-vanish@40%")
+        self.faults.setToolTip("inject simulated faults, KIND@WHEN items: serial-unplug, "
+                               "garbled-reply, missing-reply, slow-reply, servo-fault (galvo); "
+                               "usb-timeout, partial-read, fifo-overflow, device-vanish (tagger)")
+        self.galvo = QtWidgets.QLineEdit()
+        self.galvo.setPlaceholderText("/dev/ttyACM0")
+        self.tagger = QtWidgets.QLineEdit()
+        self.tagger.setPlaceholderText("usb:VID:PID")
+        self.sync_mhz = QtWidgets.QDoubleSpinBox(decimals=3, minimum=0.0, maximum=1e4, suffix=" MHz")
+        self.recording = QtWidgets.QLineEdit()
+        self.recording.setPlaceholderText("run folder or recording.ptu")
+        browse = QtWidgets.QPushButton("…")
+        browse.setFixedWidth(28)
+        browse.clicked.connect(self._browse_recording)
+        rec_row = QtWidgets.QHBoxLayout()
+        rec_row.addWidget(self.recording)
+        rec_row.addWidget(browse)
+        self._rows = {}
+        for key, label, w in (("sim", "Scene", self.scene), ("sim", "SBR", self.sbr),
+                              ("sim", "Seed", self.seed), ("sim", "Faults", self.faults),
+                              ("real", "Galvo port", self.galvo), ("real", "Tagger", self.tagger),
+                              ("real", "Sync rate", self.sync_mhz),
+                              ("replay", "Recording", rec_row)):
+            f.addRow(label, w)
+            self._rows.setdefault(key, []).append(w)
+        lay.addWidget(src)
+        self._src_form = f
+
+        scan = QtWidgets.QGroupBox("Scan")
+        g = QtWidgets.QFormLayout(scan)
+        size_row = QtWidgets.QHBoxLayout()
+        self.width_px = QtWidgets.QSpinBox(minimum=1, maximum=4096, value=32)
+        self.height_px = QtWidgets.QSpinBox(minimum=1, maximum=4096, value=32)
+        size_row.addWidget(self.width_px)
+        size_row.addWidget(QtWidgets.QLabel("×"))
+        size_row.addWidget(self.height_px)
+        g.addRow("Size (W×H)", size_row)
+        self.mode = QtWidgets.QComboBox()
+        self.mode.addItems(MODES)
+        self.mode.setToolTip("gated: hold each pixel until the target or the dwell limit; "
+                             "raster: fixed dwell, frames repeated")
+        g.addRow("Mode", self.mode)
+        self.target = QtWidgets.QSpinBox(minimum=0, maximum=100000, value=15)
+        self.target.setSpecialValueText("as recorded")
+        self.target.setToolTip("in-window detections per pixel")
+        g.addRow("Target", self.target)
+        self.dwell = QtWidgets.QDoubleSpinBox(decimals=3, minimum=0.0, maximum=1e5, suffix=" ms")
+        self.dwell.setSpecialValueText("default")
+        self.dwell.setToolTip("gated: dwell limit per pixel; raster: dwell per pixel and frame")
+        g.addRow("Dwell limit", self.dwell)
+        self.method = QtWidgets.QComboBox()
+        self.method.addItems(METHODS)
+        self.method.setToolTip("uos: union-of-subspaces (the paper); ml: Poisson maximum "
+                               "likelihood; lmf: log-matched filter (ignores background)")
+        g.addRow("Estimator", self.method)
+        out_row = QtWidgets.QHBoxLayout()
+        self.out_root = QtWidgets.QLineEdit(DEFAULT_OUT_ROOT)
+        self.out_root.setToolTip("each run gets its own folder here (recording, maps, run.json)")
+        out_browse = QtWidgets.QPushButton("…")
+        out_browse.setFixedWidth(28)
+        out_browse.clicked.connect(self._browse_out)
+        out_row.addWidget(self.out_root)
+        out_row.addWidget(out_browse)
+        g.addRow("Runs folder", out_row)
+        lay.addWidget(scan)
+        self._groups = (src, scan)
+
+        buttons = QtWidgets.QGridLayout()
+        self.start = QtWidgets.QPushButton("Start")
+        self.pause = QtWidgets.QPushButton("Pause")
+        self.resume = QtWidgets.QPushButton("Resume")
+        self.abort = QtWidgets.QPushButton("Abort")
+        self.start.setStyleSheet("font-weight: bold")
+        for i, b in enumerate((self.start, self.pause, self.resume, self.abort)):
+            buttons.addWidget(b, i // 2, i % 2)
+        lay.addLayout(buttons)
+        view = QtWidgets.QGroupBox("Maps")
+        v = QtWidgets.QHBoxLayout(view)
+        self.fit = QtWidgets.QPushButton("Fit levels")
+        self.fit.setToolTip("fit every colour bar to the data now (levels otherwise stay put)")
+        self.save = QtWidgets.QPushButton("Save maps…")
+        self.save.setToolTip("PNG sheet, TIFF stack (tifffile) or npz (spdepth recon's format)")
+        v.addWidget(self.fit)
+        v.addWidget(self.save)
+        lay.addWidget(view)
+        lay.addStretch(1)
+        self.kind.currentIndexChanged.connect(self._kind_changed)
+        self._kind_changed()
+
+    def _kind_changed(self) -> None:
+        kind = self.kind.currentData()
+        for key, widgets in self._rows.items():
+            for w in widgets:
+                self._src_form.setRowVisible(w, key == kind)
+        for w in (self.width_px, self.height_px, self.mode, self.dwell):
+            w.setEnabled(kind != "replay")
+
+    def _browse_recording(self) -> None:
+        path, _ = QtWidgets.QFileDialog.getOpenFileName(self, "Recording to replay",
+                                                        self.recording.text(),
+                                                        "PTU recordings (*.ptu);;All files (*)")
+        if path:
+            self.recording.setText(path)
+
+    def _browse_out(self) -> None:
+        path = QtWidgets.QFileDialog.getExistingDirectory(self, "Runs folder", self.out_root.text())
+        if path:
+            self.out_root.setText(path)
+
+    def spec(self) -> SourceSpec:
+        return SourceSpec(
+            kind=self.kind.currentData(), scene=self.scene.currentText().strip(),
+            size=(self.height_px.value(), self.width_px.value()), target=self.target.value(),
+            mode=self.mode.currentText(), method=self.method.currentText(),
+            dwell_limit_ms=self.dwell.value(), sbr=self.sbr.value(), seed=self.seed.value(),
+            faults=self.faults.text().strip(), galvo_port=self.galvo.text().strip(),
+            tagger_url=self.tagger.text().strip(), sync_rate_hz=self.sync_mhz.value() * 1e6,
+            recording=self.recording.text().strip(), out_root=self.out_root.text().strip())
+
+    def set_spec(self, s: SourceSpec) -> None:
+        i = self.kind.findData(s.kind)
+        self.kind.setCurrentIndex(max(0, i))
+        self.scene.setCurrentText(s.scene)
+        self.height_px.setValue(int(s.size[0]))
+        self.width_px.setValue(int(s.size[1]))
+        self.target.setValue(int(s.target))
+        self.mode.setCurrentText(s.mode)
+        self.method.setCurrentText(s.method)
+        self.dwell.setValue(float(s.dwell_limit_ms))
+        self.sbr.setValue(float(s.sbr))
+        self.seed.setValue(int(s.seed))
+        self.faults.setText(s.faults)
+        self.galvo.setText(s.galvo_port)
+        self.tagger.setText(s.tagger_url)
+        self.sync_mhz.setValue(float(s.sync_rate_hz) / 1e6)
+        self.recording.setText(s.recording)
+        if s.out_root:
+            self.out_root.setText(s.out_root)
+
+    def set_running(self, state: str | None) -> None:
+        active = state is not None and state not in TERMINAL
+        self.start.setEnabled(not active)
+        self.pause.setEnabled(state in ("running", "armed"))
+        self.resume.setEnabled(state == "paused")
+        self.abort.setEnabled(active and state != "finishing")
+        for box in self._groups:
+            box.setEnabled(not active)
+
+
+class Inspector(QtWidgets.QWidget):
+    """One pixel: its photon-arrival histogram with the fitted model, and its numbers."""
+
+    def __init__(self, parent=None):
+        super().__init__(parent)
+        lay = QtWidgets.QVBoxLayout(self)
+        lay.setContentsMargins(0, 0, 0, 0)
+        self.title = QtWidgets.QLabel("<b>Pixel inspector</b> — hover or click a map pixel")
+        lay.addWidget(self.title)
+        self.plot = pg.PlotWidget()
+        self.plot.setLabel("bottom", "arrival time after sync", units="s")
+        self.plot.setLabel("left", "detections per bin")
+        self.plot.addLegend(offset=(-8, 8), labelTextSize="9pt")
+        self.hist = self.plot.plot([0, 1], [0], stepMode="center", fillLevel=0,
+                                   brush=(70, 110, 200, 120), pen=pg.mkPen("#2a4f9a"),
+                                   name="detections")
+        self.model = self.plot.plot([], [], pen=pg.mkPen("#d0342c", width=2),
+                                    name="fitted model")
+        self.plot.setMinimumHeight(160)
+        lay.addWidget(self.plot, 1)
+        self.info = QtWidgets.QLabel()
+        self.info.setTextFormat(QtCore.Qt.RichText)
+        self.info.setTextInteractionFlags(QtCore.Qt.TextSelectableByMouse)
+        self.info.setWordWrap(True)
+        lay.addWidget(self.info)
+        self.pixel: tuple[int, int] | None = None
+        self.last_text = ""
+
+    def clear(self) -> None:
+        self.pixel = None
+        self.hist.setData([0, 1], [0])
+        self.model.setData([], [])
+        self.info.setText("")
+        self.title.setText("<b>Pixel inspector</b> — hover or click a map pixel")
+
+    def show_pixel(self, session, pixel: tuple[int, int], pinned: bool) -> None:
+        from acq.session import AcqFlag
+        from recon.maps import PixelFlag
+
+        r, c = pixel
+        h, w = session.plan.shape
+        flat = r * w + c
+        maps = session.maps()
+        settings = session.recon.settings
+        b = settings.binning
+        times = session.store.photons([flat]).times
+        tof = float(maps.tof_s[r, c])
+        bg = float(maps.background[r, c])
+        sig = float(maps.signal[r, c])
+        ph = pixel_histogram(times, b, tof_s=tof, background=bg, signal=sig,
+                             pulse_rms_s=settings.pulse_rms_s, irf=settings.irf)
+        self.hist.setData(ph.edges_s, ph.counts)
+        centres = 0.5 * (ph.edges_s[1:] + ph.edges_s[:-1])
+        self.model.setData(centres, ph.model) if ph.model is not None else self.model.setData([], [])
+        self.pixel = pixel
+        done = bool(session.recon.done[r, c]) if hasattr(session.recon, "done") else math.isfinite(tof)
+        acq = int(session.acq_flags[flat])
+        acq_txt = "acquiring" if acq == 255 else AcqFlag(acq).name.lower().replace("_", " ")
+        depth = float(maps.depth_m[r, c])
+        sd_cm = float(maps.uncertainty_s[r, c]) * C_M_PER_S / 2 * 100
+        n_bins = b.n_bins
+        rows = [
+            ("depth", f"{depth:.4f} m ± {sd_cm:.2f} cm" if math.isfinite(depth) else "–"),
+            ("time of flight", f"{tof * 1e9:.3f} ns" if math.isfinite(tof) else "–"),
+            ("signal", f"{sig:.2f} detections" if done else "–"),
+            ("background", f"{bg * n_bins:.3f} in window ({bg:.2e}/bin)"
+             if done and math.isfinite(bg) else "–"),
+            ("detections kept", f"{int(session.store.count[flat])} of {session.plan.target}"),
+            ("estimate", PixelFlag(int(maps.flags[r, c])).name.lower().replace("_", " ")
+             if done else "not yet"),
+            ("acquisition", acq_txt),
+        ]
+        self.title.setText(f"<b>Pixel row {r}, col {c}</b>" + (" (pinned: click again to release)"
+                                                              if pinned else ""))
+        self.last_text = "; ".join(f"{k}: {v}" for k, v in rows)
+        self.info.setText("<table>" + "".join(f"<tr><td>{k}&nbsp;&nbsp;</td><td>{v}</td></tr>"
+                                              for k, v in rows) + "</table>")
+
+
+class AccuracyPlot(QtWidgets.QWidget):
+    """Median depth uncertainty (and error against the truth of a simulated scene) versus elapsed
+    time or detections per pixel, live."""
+
+    def __init__(self, parent=None):
+        super().__init__(parent)
+        lay = QtWidgets.QVBoxLayout(self)
+        lay.setContentsMargins(0, 0, 0, 0)
+        top = QtWidgets.QHBoxLayout()
+        top.addWidget(QtWidgets.QLabel("<b>Accuracy vs</b>"))
+        self.axis = QtWidgets.QComboBox()
+        self.axis.addItem("elapsed time", "t")
+        self.axis.addItem("detections per pixel", "dpp")
+        self.axis.currentIndexChanged.connect(self.redraw)
+        top.addWidget(self.axis)
+        top.addStretch(1)
+        lay.addLayout(top)
+        self.plot = pg.PlotWidget()
+        self.plot.setLabel("left", "depth", units="cm")
+        self.plot.addLegend(offset=(-8, 8), labelTextSize="9pt")
+        self.sigma = self.plot.plot([], [], pen=pg.mkPen("#7a2fb5", width=2), symbol="o",
+                                    symbolSize=4, symbolBrush="#7a2fb5",
+                                    name="median uncertainty (1σ)")
+        self.error = self.plot.plot([], [], pen=pg.mkPen("#d0342c", width=2), symbol="t",
+                                    symbolSize=5, symbolBrush="#d0342c",
+                                    name="mean |error| vs truth")
+        self.plot.setMinimumHeight(140)
+        lay.addWidget(self.plot, 1)
+        self.history: list[tuple[float, float, float, float]] = []
+        self._last_t = -1.0
+        self.redraw()
+
+    def clear(self) -> None:
+        self.history.clear()
+        self._last_t = -1.0
+        self.redraw()
+
+    def add(self, snap, truth: np.ndarray | None, force: bool = False) -> None:
+        if not force and snap.elapsed_s - self._last_t < HISTORY_PERIOD_S:
+            return
+        sd = snap.uncertainty_s[np.isfinite(snap.uncertainty_s)]
+        if sd.size == 0:
+            return
+        self._last_t = snap.elapsed_s
+        med_cm = float(np.median(sd)) * C_M_PER_S / 2 * 100
+        err_cm = math.nan
+        if truth is not None and truth.shape == snap.depth_m.shape:
+            ok = np.isfinite(snap.depth_m)
+            if ok.any():
+                err_cm = float(np.mean(np.abs(snap.depth_m[ok] - truth[ok]))) * 100
+        dpp = snap.detections / max(1, snap.pixels_total)
+        self.history.append((snap.elapsed_s, dpp, med_cm, err_cm))
+        self.redraw()
+
+    def redraw(self) -> None:
+        by_time = self.axis.currentData() == "t"
+        self.plot.setLabel("bottom", "elapsed scan time" if by_time else "detections per pixel",
+                           units="s" if by_time else "")
+        if not self.history:
+            self.sigma.setData([], [])
+            self.error.setData([], [])
+            return
+        a = np.array(self.history)
+        x = a[:, 0] if by_time else a[:, 1]
+        self.sigma.setData(x, a[:, 2])
+        ok = np.isfinite(a[:, 3])
+        self.error.setData(x[ok], a[ok, 3])
+
+
+class MainWindow(QtWidgets.QMainWindow):
+    """The spdepth window. ``settings``: a QSettings (tests pass their own file)."""
+
+    scan_ended = QtCore.Signal(str)
+    """Emitted once per run with the final state (done, aborted, failed), after the last paint."""
+
+    def __init__(self, settings: QtCore.QSettings | None = None, parent=None):
+        super().__init__(parent)
+        self.setWindowTitle("spdepth — single-photon depth imaging")
+        self.settings = settings if settings is not None else QtCore.QSettings("spdepth", "spdepth")
+        self.run = None
+        self.snap = None
+        self.health = HealthTracker()
+        self._ended_emitted = False
+        self._pinned = False
+        self._hover: tuple[int, int] | None = None
+        self._inspect_key = None
+        self._last_sig = None
+        self._n_bins = 1
+
+        self.controls = ControlPanel()
+        scroll = QtWidgets.QScrollArea()
+        scroll.setWidget(self.controls)
+        scroll.setWidgetResizable(True)
+        scroll.setMinimumWidth(self.controls.sizeHint().width() + 20)
+
+        self.banner = QtWidgets.QFrame()
+        self.banner.setStyleSheet("QFrame { background: #fbe3e1; border: 1px solid #d0342c; "
+                                  "border-radius: 4px; } QLabel { border: none; color: #7a1010; }")
+        bl = QtWidgets.QHBoxLayout(self.banner)
+        bl.setContentsMargins(8, 4, 4, 4)
+        self.banner_text = QtWidgets.QLabel()
+        self.banner_text.setWordWrap(True)
+        self.banner_text.setTextInteractionFlags(QtCore.Qt.TextSelectableByMouse)
+        dismiss = QtWidgets.QToolButton(text="✕")
+        dismiss.setAutoRaise(True)
+        dismiss.clicked.connect(self.banner.hide)
+        bl.addWidget(self.banner_text, 1)
+        bl.addWidget(dismiss)
+        self.banner.hide()
+
+        self.run_label = QtWidgets.QLabel("No scan yet: choose a source and press Start.")
+        self.run_label.setStyleSheet("font-size: 11pt; font-weight: bold; padding: 2px 4px;")
+        self.maps_view = pg.GraphicsLayoutWidget()
+        self.maps_view.setBackground("w")
+        self.maps_view.ci.setSpacing(4)
+        self.panels = [MapPanel(self.maps_view.ci, spec, i // 2, i % 2)
+                       for i, spec in enumerate(MAP_SPECS)]
+        self.maps_view.scene().sigMouseMoved.connect(self._mouse_moved)
+        self.maps_view.scene().sigMouseClicked.connect(self._mouse_clicked)
+        centre = QtWidgets.QWidget()
+        cl = QtWidgets.QVBoxLayout(centre)
+        cl.setContentsMargins(4, 4, 4, 4)
+        cl.addWidget(self.banner)
+        cl.addWidget(self.run_label)
+        cl.addWidget(self.maps_view, 1)
+
+        self.inspector = Inspector()
+        self.accuracy = AccuracyPlot()
+        right = QtWidgets.QSplitter(QtCore.Qt.Vertical)
+        right.addWidget(self.inspector)
+        right.addWidget(self.accuracy)
+        right.setStretchFactor(0, 3)
+        right.setStretchFactor(1, 2)
+        self.splitter = QtWidgets.QSplitter(QtCore.Qt.Horizontal)
+        self.splitter.addWidget(scroll)
+        self.splitter.addWidget(centre)
+        self.splitter.addWidget(right)
+        self.splitter.setStretchFactor(0, 0)
+        self.splitter.setStretchFactor(1, 3)
+        self.splitter.setStretchFactor(2, 2)
+        self.setCentralWidget(self.splitter)
+        for w in (self.maps_view, self.inspector.plot, self.accuracy.plot):
+            w.setBackground("w")
+
+        sb = self.statusBar()
+        self.state_label = QtWidgets.QLabel("idle")
+        self.rate_label = QtWidgets.QLabel("– det/s")
+        self.progress = QtWidgets.QProgressBar()
+        self.progress.setMaximumWidth(160)
+        self.progress.setFormat("%v / %m px")
+        self.eta_label = QtWidgets.QLabel("ETA –")
+        self.lost_label = QtWidgets.QLabel("lost 0")
+        self.health_label = QtWidgets.QLabel("● no source")
+        for w in (self.state_label, self.rate_label, self.progress, self.eta_label, self.lost_label,
+                  self.health_label):
+            sb.addPermanentWidget(w)
+        _pill(self.state_label, STATE_COLOURS["idle"])
+        _pill(self.health_label, "#8a8a8a")
+
+        c = self.controls
+        c.start.clicked.connect(lambda: self.start_run())
+        c.pause.clicked.connect(self.pause)
+        c.resume.clicked.connect(self.resume)
+        c.abort.clicked.connect(self.abort)
+        c.fit.clicked.connect(self.fit_levels)
+        c.save.clicked.connect(self._save_dialog)
+        c.set_running(None)
+
+        self.timer = QtCore.QTimer(self)
+        self.timer.setInterval(int(1000 / REFRESH_HZ))
+        self.timer.timeout.connect(self.refresh)
+        self.timer.start()
+        self._restore_settings()
+
+    # ---- settings ------------------------------------------------------------------------------
+    def _restore_settings(self) -> None:
+        raw = self.settings.value("source")
+        if raw:
+            try:
+                self.controls.set_spec(SourceSpec.from_dict(json.loads(raw)))
+            except (ValueError, TypeError) as exc:
+                log.warning("ignoring stored settings: %s", exc)
+        geom = self.settings.value("geometry")
+        if geom is not None:
+            self.restoreGeometry(geom)
+        state = self.settings.value("splitter")
+        if state is not None:
+            self.splitter.restoreState(state)
+
+    def save_settings(self) -> None:
+        self.settings.setValue("source", json.dumps(self.controls.spec().to_dict()))
+        self.settings.setValue("geometry", self.saveGeometry())
+        self.settings.setValue("splitter", self.splitter.saveState())
+        self.settings.sync()
+
+    # ---- errors --------------------------------------------------------------------------------
+    def show_error(self, text: str) -> None:
+        self.banner_text.setText(text)
+        self.banner.show()
+        log.warning("%s", text)
+
+    # ---- runs ----------------------------------------------------------------------------------
+    @property
+    def session(self):
+        return self.run.session if self.run is not None else None
+
+    def running(self) -> bool:
+        return self.run is not None and not self.run.session.ended.is_set()
+
+    def start_run(self, spec: SourceSpec | None = None, out_dir: str | Path | None = "auto") -> bool:
+        """Open the source and start its session; errors go to the banner (returns False).
+        out_dir: "auto" (a new folder under the runs folder), a path, or None (in memory)."""
+        if self.running():
+            self.show_error("A scan is running: abort it first.")
+            return False
+        if spec is None:
+            spec = self.controls.spec()
+        else:
+            self.controls.set_spec(spec)
+        self._release_run()
+        self.banner.hide()
+        made = None
+        try:
+            if out_dir == "auto":
+                made = out_dir = run_dir(spec.out_root or DEFAULT_OUT_ROOT, spec.kind)
+            run = open_run(spec, out_dir)
+            run.session.start()
+        except Exception as exc:  # noqa: BLE001 - every failure to start is shown, window stays usable
+            if made is not None and made.is_dir() and not any(made.iterdir()):
+                made.rmdir()
+            self.show_error(f"Could not start: {exc}")
+            self.controls.set_running(None)
+            return False
+        self.run = run
+        self.save_settings()
+        self.health = HealthTracker(live=spec.kind != "replay")
+        self._ended_emitted = False
+        self._last_sig = None
+        self._inspect_key = None
+        self._pinned = False
+        self._hover = None
+        self._n_bins = run.session.recon.settings.binning.n_bins
+        for p in self.panels:
+            p.reset()
+        self.inspector.clear()
+        self.accuracy.clear()
+        where = f" — files in {run.out_dir}" if run.out_dir else ""
+        self.run_label.setText(f"{run.label}{where}")
+        self.run_label.setToolTip(str(run.out_dir or ""))
+        self.refresh()
+        return True
+
+    def _release_run(self) -> None:
+        if self.run is not None and self.run.session.ended.is_set():
+            self.run.close()
+
+    def pause(self) -> None:
+        self._command("pause")
+
+    def resume(self) -> None:
+        self._command("resume")
+
+    def abort(self) -> None:
+        self._command("abort")
+
+    def _command(self, name: str) -> None:
+        if self.session is None:
+            return
+        try:
+            getattr(self.session, name)()
+        except Exception as exc:  # noqa: BLE001 - e.g. SessionStateError: shown, not raised
+            self.statusBar().showMessage(f"{name}: {exc}", 5000)
+        self.refresh()
+
+    # ---- the timer -----------------------------------------------------------------------------
+    def refresh(self) -> None:
+        """Pull the latest snapshot and paint what changed (the timer calls this)."""
+        run = self.run
+        if run is None:
+            return
+        snap = run.session.snapshot()
+        self.snap = snap
+        target = run.session.plan.target
+        sig = (snap.state, snap.detections, snap.pixels_final, snap.recon_lag,
+               int(np.isfinite(snap.depth_m).sum()))
+        if sig != self._last_sig:
+            self._last_sig = sig
+            for p in self.panels:
+                p.show(p.spec.extract(snap, self._n_bins), target)
+            self.accuracy.add(snap, run.truth_depth_m, force=snap.state in TERMINAL)
+        self._status(snap)
+        self._update_inspector()
+        self.controls.set_running(snap.state)
+        if snap.state in TERMINAL and not self._ended_emitted:
+            self._ended_emitted = True
+            self._on_end(snap)
+
+    def _status(self, snap) -> None:
+        self.state_label.setText(snap.state)
+        _pill(self.state_label, STATE_COLOURS.get(snap.state, "#8a8a8a"))
+        self.rate_label.setText(f"{_fmt_rate(snap.detections_per_s)}det/s")
+        self.progress.setMaximum(snap.pixels_total)
+        self.progress.setValue(snap.pixels_final)
+        self.eta_label.setText(f"ETA {_fmt_eta(snap.eta_s)}")
+        self.lost_label.setText(f"lost {snap.lost_records} rec / {snap.lost_spans} spans")
+        h = self.health.update(snap)
+        self.health_label.setText(f"● {h.text}")
+        self.health_label.setToolTip(h.tooltip or h.text)
+        _pill(self.health_label, h.colour)
+
+    def _on_end(self, snap) -> None:
+        self.run.close()          # instruments; the session's files are already written
+        self.fit_levels()
+        if snap.state == "failed":
+            self.show_error(f"Scan failed: {snap.error or 'unknown error'}. What was recorded is "
+                            f"kept{' in ' + str(self.run.out_dir) if self.run.out_dir else ''}.")
+        self.scan_ended.emit(snap.state)
+
+    def fit_levels(self) -> None:
+        target = self.session.plan.target if self.session is not None else 1
+        for p in self.panels:
+            p.fit(target)
+        if self.snap is not None:
+            for p in self.panels:
+                p.show(p.spec.extract(self.snap, self._n_bins), target)
+
+    # ---- the inspector -------------------------------------------------------------------------
+    def _pixel_at(self, scene_pos):
+        for p in self.panels:
+            px = p.pixel_at(scene_pos)
+            if px is not None:
+                return px
+        return None
+
+    def _mouse_moved(self, pos) -> None:
+        if self._pinned:
+            return
+        px = self._pixel_at(pos)
+        if px is not None:
+            self.inspect(px)
+
+    def _mouse_clicked(self, ev) -> None:
+        px = self._pixel_at(ev.scenePos())
+        if px is None:
+            return
+        if self._pinned and px == self._hover:
+            self._pinned = False
+        else:
+            self.inspect(px, pin=True)
+
+    def inspect(self, pixel: tuple[int, int], pin: bool | None = None) -> None:
+        """Show ``pixel`` (row, col) in the inspector; ``pin`` keeps it there while hovering."""
+        if pin is not None:
+            self._pinned = pin
+        self._hover = pixel
+        self._inspect_key = None
+        self._update_inspector()
+
+    def _update_inspector(self) -> None:
+        if self.session is None or self._hover is None:
+            return
+        r, c = self._hover
+        s = self.session
+        h, w = s.plan.shape
+        if not (0 <= r < h and 0 <= c < w):
+            return
+        flat = r * w + c
+        key = (self._hover, self._pinned, int(s.store.count[flat]), int(s.acq_flags[flat]),
+               bool(s.recon.done[r, c]), s.recon.settings.pulse_rms_s)
+        if key == self._inspect_key:
+            return
+        self._inspect_key = key
+        for p in self.panels:
+            p.mark(self._hover)
+        self.inspector.show_pixel(s, self._hover, self._pinned)
+
+    # ---- files ---------------------------------------------------------------------------------
+    def save_maps(self, path: str | Path) -> Path:
+        """Write the current maps: .png (a sheet with colour bars), .tif/.tiff (float32 stack
+        depth_m, background, photons, depth_sd_m with the settings as JSON), .npz (``recon``'s)."""
+        from recon.errors import InputError
+
+        if self.session is None:
+            raise InputError("no maps yet: run a scan first")
+        path = Path(path)
+        maps = self.session.maps()
+        suffix = path.suffix.lower()
+        if suffix == ".npz":
+            maps.save_npz(path)
+        elif suffix in (".tif", ".tiff"):
+            import tifffile
+
+            names = ["depth_m", "background", "photons", "depth_sd_m"]
+            stack = np.stack([maps.depth_m, maps.background, maps.photons.astype(np.float64),
+                              maps.uncertainty_s * C_M_PER_S / 2]).astype(np.float32)
+            tifffile.imwrite(path, stack, photometric="minisblack",
+                             description=json.dumps({"channels": names,
+                                                     "settings": maps.settings}, default=str),
+                             metadata=None)
+        elif suffix == ".png":
+            from acq.report import render_maps_png
+
+            render_maps_png(path, maps, title=self.run.label)
+        else:
+            raise InputError(f"save maps: {path.name} must end in .png, .tif, .tiff or .npz")
+        return path
+
+    def _save_dialog(self) -> None:
+        if self.session is None:
+            self.show_error("No maps to save yet: run a scan first.")
+            return
+        start = str((self.run.out_dir or Path.cwd()) / "maps.png")
+        path, _ = QtWidgets.QFileDialog.getSaveFileName(
+            self, "Save maps", self.settings.value("last_save", start),
+            "PNG sheet (*.png);;TIFF stack (*.tif *.tiff);;NumPy (*.npz)")
+        if not path:
+            return
+        try:
+            self.save_maps(path)
+            self.settings.setValue("last_save", path)
+            self.statusBar().showMessage(f"saved {path}", 5000)
+        except Exception as exc:  # noqa: BLE001 - a failed save is shown, the window stays
+            self.show_error(f"Could not save maps: {exc}")
+
+    def screenshot(self, path: str | Path) -> Path:
+        """A grab of the whole window as PNG."""
+        path = Path(path)
+        if not self.grab().save(str(path)):
+            raise OSError(f"could not write screenshot {path}")
+        return path
+
+    # ---- closing -------------------------------------------------------------------------------
+    def shutdown(self, timeout_s: float = CLOSE_WAIT_S) -> None:
+        """Abort a running scan, wait for its files, release the instruments."""
+        self.timer.stop()
+        run = self.run
+        if run is None:
+            return
+        s = run.session
+        if not s.ended.is_set():
+            try:
+                s.abort()
+            except Exception as exc:  # noqa: BLE001 - it may have ended meanwhile
+                log.info("abort at close: %s", exc)
+            s.wait(timeout_s)
+        if s.ended.is_set():
+            run.close()
+        else:
+            log.error("session did not end within %.0f s of the abort", timeout_s)
+
+    def closeEvent(self, event: QtGui.QCloseEvent) -> None:  # noqa: N802 - Qt override
+        self.save_settings()
+        self.shutdown()
+        super().closeEvent(event)
+
+
+__all__ = ["MainWindow", "ControlPanel", "Inspector", "AccuracyPlot", "REFRESH_HZ"]
