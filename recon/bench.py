@@ -6,6 +6,12 @@ Run as ``spdepth bench recon`` or ``python -m recon.bench``. The references live
 checkout's tests/ folder (not installed); without it only the kernels are timed, and it says so.
 Ratios are what to read: other work on the machine moves absolute figures, not the side-by-side
 comparison made within one run.
+
+Like for like: kernel and reference get the same pixels (the first ``--ref-pixels``), both are
+warm (one untimed run first) and timed best-of, on one thread, and the references' dense matrices
+are built once, outside the timed region. Each reference is the same estimator as its kernel,
+written densely in NumPy one pixel at a time (REFERENCES says which), and the bench prints the share
+of pixels where the two agree.
 """
 
 from __future__ import annotations
@@ -50,6 +56,62 @@ def simulate(n_pix: int, seed: int, k: int = 15, sbr: float = 10.0):
     return bins, offsets
 
 
+REFERENCES = {
+    "lmf": "eq. 11 as one dense product log(S)^T y per pixel (tests/reference.py lmf)",
+    "uos": "Algorithm 1 as published: dense A = [S/max, 1], pinv least squares each iteration "
+           "(tests/reference.py uos)",
+    "ml": "exact Poisson ML, every shift's profile likelihood solved by the kernel's safeguarded "
+          "Newton in the signal share, vectorised over all shifts, no pruning; then the same "
+          "1/8-bin refinement and parabola (ml_dense here)",
+}
+"""What each reference is: the same estimator as the kernel, dense, in plain NumPy."""
+
+
+def _share_profile(y: np.ndarray, cols: np.ndarray, iters: int = 60) -> np.ndarray:
+    """For every column j of ``cols`` (unnormalised pulse columns, M x J): max over s in [0, 1] of
+    sum_k y_k log((1 - s)/M + s cols[k, j]/C_j), C_j the column sum: the Poisson likelihood with
+    amplitude and background profiled out, as the ml kernel's ``mix_ml`` solves it (safeguarded
+    Newton), for all columns at once. Returns the log-likelihood per column."""
+    m = cols.shape[0]
+    nz = np.flatnonzero(y)
+    w = y[nz][:, None]
+    uni = 1.0 / m
+    e = cols[nz, :] / cols.sum(axis=0) - uni
+    s = np.full(cols.shape[1], 0.5)
+    lo, hi = np.zeros_like(s), np.ones_like(s)
+    for _ in range(iters):
+        q = e / (uni + s * e)
+        f1 = (w * q).sum(axis=0)
+        f2 = (w * q * q).sum(axis=0)
+        up = f1 > 0
+        lo, hi = np.where(up, s, lo), np.where(up, hi, s)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            sn = np.where(f2 > 0, s + f1 / f2, 0.5 * (lo + hi))
+        s = np.where((sn > lo) & (sn < hi), sn, 0.5 * (lo + hi))
+    # the end points, where Newton only creeps towards them
+    ll = [(w * np.log(uni + t * e)).sum(axis=0) for t in (s, 0.0)]
+    with np.errstate(divide="ignore"):
+        ll.append((w * np.log(uni + e)).sum(axis=0))
+    return np.max(ll, axis=0)
+
+
+def ml_dense(y: np.ndarray, kern, s_mat: np.ndarray, ref) -> float:
+    """Shift (bins) of exact Poisson ML: global search over every integer shift, then the best of
+    the 1/8-bin shifts within one bin of it, then a parabola through its neighbours."""
+    from recon.model import FINE_STEPS
+
+    i = int(np.argmax(_share_profile(y, s_mat)))
+    fine = i + np.arange(-FINE_STEPS, FINE_STEPS + 1) / FINE_STEPS
+    fine = fine[(fine >= 0) & (fine <= kern.n_bins - 1)]
+    ll = _share_profile(y, np.stack([ref.s_at(kern, t) for t in fine], axis=1))
+    j = int(np.argmax(ll))
+    if not 0 < j < fine.size - 1:
+        return float(fine[j])
+    # vertex of the parabola through the best fine shift and its neighbours, within half a step
+    c2, c1, _ = np.polyfit(np.arange(-1.0, 2.0), ll[j - 1:j + 2], 2)
+    return float(fine[j] + (np.clip(-c1 / (2 * c2), -0.5, 0.5) if c2 < 0 else 0.0) / FINE_STEPS)
+
+
 BIG_PHOTONS = 50_000
 BIG_BINS = 4096
 BIG_RMS_UNITS = 25.0
@@ -82,8 +144,9 @@ def _time(fn, min_s: float = 0.3) -> float:
 def bench(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(prog="spdepth bench recon", description=__doc__.splitlines()[0])
     parser.add_argument("--pixels", type=int, default=100_000, help="pixels per kernel run")
-    parser.add_argument("--ref-pixels", type=int, default=200, help="pixels per reference run (lmf, uos)")
-    parser.add_argument("--ml-ref-pixels", type=int, default=3, help="pixels for the ml reference (slow EM)")
+    parser.add_argument("--ref-pixels", type=int, default=200,
+                        help="pixels of the side-by-side kernel/reference comparison (lmf, uos)")
+    parser.add_argument("--ml-ref-pixels", type=int, default=40, help="the same for ml")
     parser.add_argument("--methods", default="lmf,uos,ml")
     parser.add_argument("--rounds", type=int, default=3, help="alternating 1/2-thread rounds (best kept)")
     args = parser.parse_args(argv)
@@ -108,32 +171,44 @@ def bench(argv: list[str]) -> int:
     log_colsum = np.log(kern.colsum)
 
     def run_kernel(method, b, o):
+        """The kernel's shift per pixel (bins, NaN: none)."""
         p = o.size - 1
+        shift = np.full((p, 1), np.nan)
         if method == "lmf":
-            K.lmf_kernel(b, o, M, kern.logg, kern.log_concave, 15, np.empty(p, np.int64), np.empty(p),
-                         np.empty(p, np.int64))
+            si = np.empty(p, np.int64)
+            K.lmf_kernel(b, o, M, kern.logg, kern.log_concave, 15, si, np.empty(p), np.empty(p, np.int64))
+            shift[:, 0] = np.where(si >= 0, si, np.nan)
         elif method == "uos":
             K.uos_kernel(b, o, M, kern.g, kern.off, kern.gmax, kern.colsum, kern.pp, kern.dg, 1, 1e-4, 10,
-                         2 * kern.rms_bins, 3.0, 15, np.empty((p, 1)), np.empty((p, 1)), np.empty(p),
+                         2 * kern.rms_bins, 3.0, 15, shift, np.empty((p, 1)), np.empty(p),
                          np.empty(p, np.int32), np.empty(p, np.bool_), np.empty((p, 1)), np.empty(p, np.int64))
         else:
             K.ml_kernel(b, o, M, kern.g, kern.off, logg_int, dlo, dhi, kern.colsum, log_colsum, kern.fine,
-                        kern.fine_colsum, FINE_STEPS, kern.dg, 15, np.empty(p), np.empty(p), np.empty(p),
+                        kern.fine_colsum, FINE_STEPS, kern.dg, 15, shift[:, 0], np.empty(p), np.empty(p),
                         np.empty(p), np.empty(p, np.int64))
+        return shift[:, 0]
+
+    # the references' dense matrices, built once, outside every timed region
+    dense = {}
+    if ref is not None:
+        s_mat = ref.dense_s(kern)
+        dense = {"lmf": ref.dense_logs(kern), "uos": np.hstack([s_mat / kern.gmax, np.ones((M, 1))]),
+                 "ml": s_mat}
 
     def run_ref(method, b, o):
-        if method == "lmf":
-            log_s = ref.dense_logs(kern)
-            for p in range(o.size - 1):
-                ref.lmf(ref.histogram(b[o[p]:o[p + 1]], M), log_s)
-        elif method == "uos":
-            a_mat = np.hstack([ref.dense_s(kern) / kern.gmax, np.ones((M, 1))])
-            for p in range(o.size - 1):
-                ref.uos(ref.histogram(b[o[p]:o[p + 1]], M), a_mat)
-        else:
-            s_mat = ref.dense_s(kern)
-            for p in range(o.size - 1):
-                ref.ml_refined(ref.histogram(b[o[p]:o[p + 1]], M), kern, s_mat)
+        """The reference's shift per pixel (bins), one pixel at a time."""
+        out = np.full(o.size - 1, np.nan)
+        for p in range(o.size - 1):
+            y = ref.histogram(b[o[p]:o[p + 1]], M)
+            if method == "lmf":
+                out[p] = ref.lmf(y, dense["lmf"])
+            elif method == "uos":
+                a, _ = ref.uos(y, dense["uos"])
+                if np.any(a[:M] > 0):
+                    out[p] = np.argmax(a[:M])
+            else:
+                out[p] = ml_dense(y, kern, dense["ml"], ref)
+        return out
 
     times_raw = (bins + 0.5) * BIN_UNITS + 2000.0
     store = PhotonStore(times_raw, offsets, (1, n), UNIT_S)
@@ -143,10 +218,14 @@ def bench(argv: list[str]) -> int:
     if ref is None:
         print(f"(plain NumPy references not found at {ref_path}: run from a source checkout to compare)")
     else:
-        print(f"(references: {ref_path})")
+        print(f"references ({ref_path}): the same estimator, dense NumPy, one pixel at a time; same "
+              "pixels as the kernel, both warm, best-of, 1 thread, matrices built before timing:")
+        for method in args.methods.split(","):
+            print(f"  {method}: {REFERENCES[method]}")
     print(f"load average before: {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
     print(f"{'method':<6} {'kernel 1 thr':>13} {'kernel 2 thr':>13} {'speed-up':>9} "
-          f"{'reconstruct 1 thr':>18} {'reference':>11} {'kernel/ref':>11}")
+          f"{'reconstruct 1 thr':>18} {'kernel, ref px':>15} {'reference':>11} {'kernel/ref':>11} "
+          f"{'agree':>6}")
     old_threads = numba.get_num_threads()
     try:
         for method in args.methods.split(","):
@@ -163,16 +242,18 @@ def bench(argv: list[str]) -> int:
             numba.set_num_threads(1)
             settings = ReconSettings(method=method, binning=binning, pulse_rms_s=RMS_S)
             full = n / _time(lambda: reconstruct(store, settings), min_s=0.1)
+            ref_rate = same_rate = agree = np.nan
             if ref is not None:
-                npr = args.ml_ref_pixels if method == "ml" else args.ref_pixels
+                npr = min(n, args.ml_ref_pixels if method == "ml" else args.ref_pixels)
                 o = offsets[:npr + 1]
-                t0 = time.perf_counter()
-                run_ref(method, bins, o)
-                ref_rate = npr / (time.perf_counter() - t0)
-            else:
-                ref_rate = np.nan
+                same_rate = npr / _time(lambda: run_kernel(method, bins, o), 0.1)
+                ref_rate = npr / _time(lambda: run_ref(method, bins, o), 1e-9 if method == "ml" else 0.2)
+                # agreement: same shift to 1/8 bin (both NaN counts as agreeing)
+                a, b = run_kernel(method, bins, o), run_ref(method, bins, o)
+                agree = np.mean((np.abs(a - b) <= 1 / 8 + 1e-9) | (np.isnan(a) & np.isnan(b)))
             print(f"{method:<6} {rates[1]:13,.0f} {rates[2]:13,.0f} {rates[2] / rates[1]:8.2f}x "
-                  f"{full:18,.0f} {ref_rate:11,.1f} {rates[1] / ref_rate:10,.0f}x", flush=True)
+                  f"{full:18,.0f} {same_rate:15,.0f} {ref_rate:11,.1f} {same_rate / ref_rate:10,.0f}x "
+                  f"{100 * agree:5.0f}%", flush=True)
         # one pathological pixel: a point measurement of 50,000 detections over 4096 bins
         numba.set_num_threads(1)
         big_b = Binning(UNIT_S, 0.0, float(BIG_BINS), 1.0)
