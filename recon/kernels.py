@@ -453,6 +453,51 @@ def uos1_argmax(cvec, colsum, cmin, bgc, ns, j, aj, acorr, nk, m, pp, off, ivlo,
     return bi
 
 
+@njit(cache=True, nogil=True)
+def refit_nonneg(supp, amp, ns, use_bg, cvec, colsum, ntot, m, pp, off, nk, inv_gmax, inv_g2, gram, rhs,
+                 work, vecs, vals, sol):
+    """Least squares on the kept support (depth columns supp[:ns], and the background column when
+    use_bg), dropping the most negative coefficient until none is negative; amp[:ns] gets the
+    peak-1 amplitudes. Returns (ns, bg).
+
+    Algorithm 1's T_0 zeroes negative coefficients of a least-squares fit that included them: the
+    kept ones then absorb what the dropped ones explained (one detection in a three-bin window read
+    as six signal detections). Run once after the pursuit, so its path is the published one."""
+    while True:
+        nb = ns + (1 if use_bg else 0)
+        if nb == 0:
+            return 0, 0.0
+        for a in range(ns):
+            for b in range(a, ns):
+                gab = col_dot(supp[a], supp[b], m, pp, off, nk) * inv_g2
+                gram[a, b] = gab
+                gram[b, a] = gab
+            rhs[a] = cvec[supp[a]]
+            if use_bg:
+                gram[a, ns] = colsum[supp[a]] * inv_gmax
+                gram[ns, a] = gram[a, ns]
+        if use_bg:
+            gram[ns, ns] = float(m)
+            rhs[ns] = ntot
+        pinv_solve(gram, rhs, nb, work, vecs, vals, sol)
+        worst = -1
+        wv = 0.0
+        for a in range(nb):
+            if sol[a] < wv or (sol[a] == 0.0 and a < ns and wv == 0.0 and worst < 0):
+                wv = sol[a]
+                worst = a
+        if worst < 0:
+            for a in range(ns):
+                amp[a] = sol[a]
+            return ns, (sol[ns] if use_bg else 0.0)
+        if worst == ns:
+            use_bg = False
+        else:
+            for a in range(worst, ns - 1):
+                supp[a] = supp[a + 1]
+            ns -= 1
+
+
 @njit(parallel=True, cache=True, nogil=True)
 def uos_kernel(bins, offsets, m, g, off, gmax, colsum, pp, dg, n_refl, delta, max_iter,
                merge_bins, llr_min, maxn,
@@ -540,6 +585,7 @@ def uos_kernel(bins, offsets, m, g, off, gmax, colsum, pp, dg, n_refl, delta, ma
             ns = 0          # support size
             bg = 0.0
             it = 0
+            clipped_ls = False
             conv = False
             while it < max_iter:
                 it += 1
@@ -619,6 +665,10 @@ def uos_kernel(bins, offsets, m, g, off, gmax, colsum, pp, dg, n_refl, delta, ma
                 gram[nd, nd] = float(m)
                 rhs[nd] = ntot
                 pinv_solve(gram, rhs, nd + 1, work, vecs, vals, sol)
+                clipped_ls = False
+                for a in range(nd + 1):
+                    if sol[a] < 0.0:
+                        clipped_ls = True
                 # keep the K largest depth coefficients, then T_0 (non-negativity)
                 nn = 0
                 for r in range(kk):
@@ -672,6 +722,9 @@ def uos_kernel(bins, offsets, m, g, off, gmax, colsum, pp, dg, n_refl, delta, ma
                 if diff < delta * max(1.0, xnorm2):
                     conv = True
                     break
+            if clipped_ls:
+                ns, bg = refit_nonneg(supp, amp, ns, bg > 0.0, cvec, colsum, ntot, m, pp, off, nk,
+                                      inv_gmax, inv_g2, gram, rhs, work, vecs, vals, sol)
             for t in range(niv):
                 cvec[ivlo[t]:ivhi[t] + 1] = 0.0
             out_iter[p] = it

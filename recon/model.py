@@ -314,6 +314,7 @@ class PulseKernel:
     pp:         float64 (2M-1, len(g)+1): prefix sums of ``g[m] g[m - d]`` over m, row ``d + M - 1``,
                 so ``S_i^T S_j`` is a difference of two entries (see kernels.col_dot).
     dg:         float64 like g: d g(x)/dx at integer x (for the Fisher information), per bin.
+    ddg:        float64 like g: d^2 g(x)/dx^2 at integer x (one-bin differences), per bin^2.
     fine:       float64: g at offsets ``x = j / FINE_STEPS - L0`` (fractional shifts).
     fine_colsum:float64 ((M-1)*FINE_STEPS + 1,): column sums at fractional shifts q / FINE_STEPS.
     logg:       float64 (2M-1,): log(g / gmax) at offsets d in [-(M-1), M-1] (index d + M - 1), for
@@ -329,6 +330,7 @@ class PulseKernel:
     colsum: np.ndarray
     pp: np.ndarray
     dg: np.ndarray
+    ddg: np.ndarray
     fine: np.ndarray
     fine_colsum: np.ndarray
     logg: np.ndarray
@@ -402,6 +404,9 @@ def build_kernel(binning: Binning, pulse_rms_s: float | None = None, irf: Irf | 
     # derivative at integer offsets by central differences on the fine grid
     h = 1.0 / FINE_STEPS
     dg = (cdf(d + h + 0.5) - cdf(d + h - 0.5) - cdf(d - h + 0.5) + cdf(d - h - 0.5)) / (2 * h)
+    # second derivative (uos's matched-filter variance); one-bin steps keep a sampled IRF's
+    # piecewise-linear CDF from turning it into noise
+    ddg = (cdf(d + 1.5) - cdf(d + 0.5)) - 2 * (cdf(d + 0.5) - cdf(d - 0.5)) + (cdf(d - 0.5) - cdf(d - 1.5))
 
     # column sums S_i^T 1 = sum_{m=-i}^{M-1-i} g[m]
     csum = np.concatenate(([0.0], np.cumsum(g)))
@@ -460,7 +465,7 @@ def build_kernel(binning: Binning, pulse_rms_s: float | None = None, irf: Irf | 
     log_concave = bool(np.all(d2 <= 1e-9 * np.maximum(1.0, np.abs(logg[1:-1]))))
 
     return PulseKernel(g=g, off=int(l0), gmax=gmax, colsum=np.ascontiguousarray(colsum), pp=pp,
-                       dg=np.ascontiguousarray(dg), fine=np.ascontiguousarray(fine),
+                       dg=np.ascontiguousarray(dg), ddg=np.ascontiguousarray(ddg), fine=np.ascontiguousarray(fine),
                        fine_colsum=fine_colsum, logg=np.ascontiguousarray(logg),
                        log_concave=log_concave, rms_bins=float(rms_bins), n_bins=m,
                        info={"pulse": "gaussian" if irf is None else "irf",

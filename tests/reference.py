@@ -60,6 +60,7 @@ def uos(y: np.ndarray, a_mat: np.ndarray, delta: float = 1e-4, ite_max: int = 10
         b0 = np.linalg.pinv(sub, rcond=max(sub.shape) * np.finfo(float).eps) @ y
         b = np.zeros(n)
         b[supp_total] = b0
+        clipped = bool(np.any(b0 < 0))
         prune_ind = int(np.argmax(b[:n - 1]))
         a = np.zeros(n)
         a[prune_ind] = b[prune_ind]
@@ -69,7 +70,23 @@ def uos(y: np.ndarray, a_mat: np.ndarray, delta: float = 1e-4, ite_max: int = 10
         v = y - a_mat @ a
         if diff_norm < delta * max(1.0, float(np.sum(a ** 2))):
             break
-    return a, i
+    return (refit_nonneg(y, a_mat, a) if clipped else a), i
+
+
+def refit_nonneg(y: np.ndarray, a_mat: np.ndarray, a: np.ndarray) -> np.ndarray:
+    """Our one deviation after the loop: when the last least squares had a negative coefficient
+    (which T_0 zeroed), refit on the kept columns, dropping the most negative until none is."""
+    cols = list(np.flatnonzero(a))
+    while cols:
+        sub = a_mat[:, cols]
+        sol = np.linalg.pinv(sub, rcond=max(sub.shape) * np.finfo(float).eps) @ y
+        worst = int(np.argmin(sol))
+        if sol[worst] > 0:
+            out = np.zeros_like(a)
+            out[cols] = sol
+            return out
+        del cols[worst]
+    return np.zeros_like(a)
 
 
 def uos_k(y: np.ndarray, a_mat: np.ndarray, k: int, delta: float = 1e-4, ite_max: int = 10):
@@ -88,6 +105,7 @@ def uos_k(y: np.ndarray, a_mat: np.ndarray, k: int, delta: float = 1e-4, ite_max
         b0 = np.linalg.pinv(sub, rcond=max(sub.shape) * np.finfo(float).eps) @ y
         b = np.zeros(n)
         b[supp_total] = b0
+        clipped = bool(np.any(b0 < 0))
         keep = np.argsort(-b[:n - 1], kind="stable")[:k]
         a = np.zeros(n)
         a[keep] = b[keep]
@@ -97,7 +115,7 @@ def uos_k(y: np.ndarray, a_mat: np.ndarray, k: int, delta: float = 1e-4, ite_max
         v = y - a_mat @ a
         if diff_norm < delta * max(1.0, float(np.sum(a ** 2))):
             break
-    return a, i
+    return (refit_nonneg(y, a_mat, a) if clipped else a), i
 
 
 def poisson_profile(y: np.ndarray, s_mat: np.ndarray, iters: int = 4000):
