@@ -303,6 +303,18 @@ def _open_dwell(state, geom, sync):
     state[_DWELL_KEPT] = 0
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _dwell_locals(state, count, frozen, n_keep):
+    """(pixel, detections, kept, room left) of the open dwell; room is 0 without a dwell or for a
+    frozen pixel."""
+    p = state[_DWELL_PIXEL]
+    kept = state[_DWELL_KEPT]
+    room = 0
+    if p >= 0 and frozen[p] == 0:
+        room = n_keep - count[p] - kept
+    return p, state[_DWELL_TOTAL], kept, room
+
+
 @njit(cache=True, nogil=True)
 def _accumulate_kernel(sync, dtime, kind, marker, geom, state, lo, hi, pend, times, count,
                        detected, dwells, frozen, closed_pixel, closed_total, closed_syncs,
@@ -315,21 +327,32 @@ def _accumulate_kernel(sync, dtime, kind, marker, geom, state, lo, hi, pend, tim
     n_keep = times.shape[1]
     n_closed = 0
     n_lost0 = counters[2]
+    # The photon path runs on locals (the open dwell's pixel, counts and room left in its
+    # pixel); they are written back to ``state`` around the rarer markers and losses, where the
+    # shared helpers take over. Arrays the compiler must assume aliased would cost a load and a
+    # store per photon.
+    dp, dtot, dkept, room = _dwell_locals(state, count, frozen, n_keep)
+    n_seen = 0
+    n_outside = 0
+    n_kept = 0
     for i in range(kind.size):
         k = kind[i]
         if k == _PHOTON:
-            counters[4] += 1
-            p = state[_DWELL_PIXEL]
-            if p < 0:
-                counters[0] += 1
+            n_seen += 1
+            if dp < 0:
+                n_outside += 1
                 continue
-            state[_DWELL_TOTAL] += 1
+            dtot += 1
             t = dtime[i]
-            if lo <= t < hi and frozen[p] == 0 and count[p] + state[_DWELL_KEPT] < n_keep:
-                pend[state[_DWELL_KEPT]] = t
-                state[_DWELL_KEPT] += 1
-                counters[3] += 1
-        elif k == _MARKER:
+            if room > 0 and lo <= t < hi:
+                pend[dkept] = t
+                dkept += 1
+                room -= 1
+                n_kept += 1
+            continue
+        state[_DWELL_TOTAL] = dtot
+        state[_DWELL_KEPT] = dkept
+        if k == _MARKER:
             m = marker[i]
             s = np.int64(sync[i])
             if m & _M_FRAME:
@@ -351,6 +374,12 @@ def _accumulate_kernel(sync, dtime, kind, marker, geom, state, lo, hi, pend, tim
             counters[2] += 1
             counters[1] += _drop_dwell(state)
             _on_lost(state)
+        dp, dtot, dkept, room = _dwell_locals(state, count, frozen, n_keep)
+    state[_DWELL_TOTAL] = dtot
+    state[_DWELL_KEPT] = dkept
+    counters[0] += n_outside
+    counters[3] += n_kept
+    counters[4] += n_seen
     return n_closed
 
 

@@ -379,8 +379,11 @@ class Session:
             self._ended.set()
 
     def _arm(self) -> None:
-        # load (or compile) the store's kernel now, not when the first photons are waiting
-        self.store.feed(np.zeros(0, dtype=EVENT_DTYPE))
+        # load (or compile) the store's kernel now, not when the first photons are waiting: two
+        # rows of a kind the kernel ignores give the strided field views a real stream has
+        warm = np.zeros(2, dtype=EVENT_DTYPE)
+        warm["kind"] = 255
+        self.store.feed(warm)
         if self.replay is not None:
             return
         from acq.recording import Recorder
