@@ -314,6 +314,39 @@ def _map_markers(kind, marker, lut):
             marker[i] = lut[marker[i] & 15]
 
 
+def session_photons(path: str | Path):
+    """The photons a session kept, rebuilt from its recording (``acq.store``'s rule: the first
+    ``target`` in-window detections of complete dwells, passes placed by the event log): what
+    ``spdepth recon`` reconstructs from a recording. Returns (PhotonStore, notes, meta)."""
+    from acq.plan import ScanPlan
+    from acq.store import PixelStore
+
+    src = ReplaySource(path)
+    plan = ScanPlan.from_dict(src.info.plan)
+    b = recon_settings_from_dict(src.info.recon).binning
+    store = PixelStore(plan.shape, plan.target,
+                       (int(np.floor(b.window_start)), int(np.ceil(b.window_stop))),
+                       src.info.resolution_s)
+    passes = 0
+    for geom, chunks in src.segments():
+        store.begin_pass(geom)
+        passes += 1
+        for chunk in chunks:
+            store.feed(chunk)
+        store.end_pass()
+    notes = []
+    if not src.info.has_event_log:
+        notes.append(f"{src.path.name}: no events.jsonl beside it: the stream is read as one "
+                     "full-frame pass (re-acquisition passes, if any, cannot be placed)")
+    short = int(np.count_nonzero(store.count < plan.target))
+    if short:
+        notes.append(f"{src.path.name}: {short} pixels hold fewer than the session's target of "
+                     f"{plan.target} detections")
+    meta = {"assignment": "session recording (pixel markers, complete dwells)", "passes": passes,
+            "target": plan.target, "window": list(store.window), "records": src.info.n_records}
+    return store.photons(), tuple(notes), meta
+
+
 def recon_settings_from_dict(d: dict, **override) -> ReconSettings:
     """``ReconSettings`` from its ``to_dict`` form (as a recording's header keeps it), with any
     field replaced by ``override`` (None values are ignored)."""

@@ -129,3 +129,18 @@ def test_kill_9_mid_scan_leaves_a_recording_that_replays(tmp_path, kill_after_by
     run = json.loads((out / "run.json").read_text())
     assert 0 < len(run["flagged_pixels"]) < 96 * 96
     assert set(run["flag_reasons"]) == {"INCOMPLETE"}
+
+
+def test_recon_of_a_recording_gives_the_sessions_maps(tmp_path, capsys):
+    """`spdepth recon DIR/recording.ptu` reads the photons the session kept (passes from the event
+    log, re-acquired pixels included), so the same method gives the live maps."""
+    live = tmp_path / "live"
+    assert main(["scan", "--sim", "--size", "10x8", "--target", "8", "--method", "lmf",
+                 "--faults", "fifo-overflow@30%", "--out", str(live)]) == 0
+    out = tmp_path / "maps.npz"
+    assert main(["recon", str(live / "recording.ptu"), "--method", "lmf", "--pulse-rms-ps", "360",
+                 "--window-ps", "0:32040", "--bin-ps", "40", "--max-photons", "8",
+                 "--out", str(out)]) == 0
+    a, b = DepthMaps.load_npz(live / "maps.npz"), DepthMaps.load_npz(out)
+    np.testing.assert_array_equal(a.photons, b.photons)
+    np.testing.assert_array_equal(a.tof_s, b.tof_s)

@@ -264,6 +264,15 @@ def read_ptu(path: str | Path, *, time_unit_s: float | None = None,
     meta = {"record_type": rectype, "resolution_s": resolution_s, "records": int(n_records),
             "sync_rate_hz": float(tags.get("TTResult_SyncRate", 0) or 0)}
     notes = ()
+    if tags.get("SPDepth_Plan") and rectype in _GENERIC_T3:
+        # a session's recording: its passes and lost spans are in events.jsonl beside it
+        from acq.recording import session_photons
+
+        store, notes, extra = session_photons(path)
+        if time_unit_s is not None and time_unit_s != store.time_unit_s:
+            store = dataclasses.replace(store, time_unit_s=time_unit_s)
+        return ReadResult(store=store, path=str(path), kind="ptu", is_image=True, notes=notes,
+                          meta=dict(meta, **extra, time_unit_s=store.time_unit_s))
     if image is not None and int(tags.get(PIXEL_MARKER_TAG, 0) or 0):
         layout = PtuLayout(str(path), tags, record_offset, n_records, (size - record_offset) // 4)
         result = _read_by_pixel_markers(path, layout, rectype, image, time_unit_s or resolution_s,
