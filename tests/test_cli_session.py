@@ -144,3 +144,28 @@ def test_recon_of_a_recording_gives_the_sessions_maps(tmp_path, capsys):
     a, b = DepthMaps.load_npz(live / "maps.npz"), DepthMaps.load_npz(out)
     np.testing.assert_array_equal(a.photons, b.photons)
     np.testing.assert_array_equal(a.tof_s, b.tof_s)
+
+
+def test_ctrl_c_aborts_cleanly_and_keeps_the_files(tmp_path):
+    rec = tmp_path / "rec"
+    proc = subprocess.Popen([sys.executable, "-m", "acq.cli", "scan", "--sim", "--size", "96x96",
+                             "--target", "15", "--out", str(rec)],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    ptu = rec / "recording.ptu"
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and proc.poll() is None:
+        if ptu.exists() and ptu.stat().st_size > 100_000:
+            break
+        time.sleep(0.01)
+    assert proc.poll() is None, "the scan ended before the interrupt"
+    proc.send_signal(signal.SIGINT)
+    err = proc.communicate(timeout=60)[1]
+    assert proc.returncode == 130, err
+    assert "interrupted" in err and "Traceback" not in err
+    run = json.loads((rec / "run.json").read_text())
+    assert run["state"] == "aborted"
+    import ptufile
+
+    with ptufile.PtuFile(ptu) as pf:       # closed cleanly: the record count is patched in
+        assert pf.number_records == run["statistics"]["records_recorded"] > 0
+    assert (rec / "maps.npz").is_file()
