@@ -41,7 +41,9 @@ def _window(text: str) -> tuple[float, float]:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("input", metavar="INPUT", help=".mat (first-photon imaging) or PTU/HT3/PT3 T3 file")
+    parser.add_argument("input", metavar="INPUT", nargs="+",
+                        help=".mat (first-photon imaging) or PTU/HT3/PT3 T3 file; with several, "
+                             "--out and --png name folders (OUT/<name>.npz)")
     parser.add_argument("--method", choices=("uos", "lmf", "ml"), default="uos",
                         help="estimator: uos (the seed paper's union of subspaces, default), "
                              "lmf (log-matched filter, ignores background), ml (Poisson maximum likelihood)")
@@ -73,9 +75,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="PicoQuant files: keep only detector channel N (0-based); default all")
     parser.add_argument("--threads", type=positive_int, metavar="N",
                         help="worker threads for the estimator (default: all cores)")
+    parser.add_argument("--dask", metavar="ADDRESS|local:N",
+                        help="reconstruct on a dask.distributed cluster: a scheduler address, or "
+                             "local:N for N worker processes on 127.0.0.1 (docs/dask.md); same maps")
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.dask or len(args.input) > 1:
+        from acq import distributed
+
+        return distributed.run(args)
+    return run_one(argparse.Namespace(**dict(vars(args), input=args.input[0])))
+
+
+def run_one(args: argparse.Namespace) -> int:
+    """One input file (``args.input`` a path)."""
     import numpy as np
 
     from acq.readers import read_photons

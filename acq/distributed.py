@@ -1,0 +1,353 @@
+"""``spdepth recon INPUT... [--dask ADDRESS|local:N]``: many files, or one big recording, on a
+``dask.distributed`` cluster, with the same maps, bit for bit, as the single-process command.
+
+Two kinds of task:
+
+- **one per file** when several inputs are given (or one whose settings need every pixel at
+  once): the worker runs exactly what ``spdepth recon FILE`` runs (``acq.commands.recon.run``) and
+  writes ``OUT/<name>.npz`` (and ``.png``) itself, so the data and the output folder must be at the
+  same path on every worker (a shared file system).
+- **one per block of image rows** for a single PTU recording with pixel markers when the model is
+  fully given (``--window-ps``, ``--bin-ps`` and ``--pulse-rms-ps`` or ``--irf``): estimating a
+  pulse or a window from the data would need every pixel at once. The client walks the records once
+  in chunks of ``CHUNK_RECORDS`` (a memory map; nothing is loaded whole) and keeps only the decoder
+  and pixel-assigner state at each chunk boundary; each chunk task re-reads its own records from
+  the file, so a task lost with a dead worker is simply recomputed; each block task takes its
+  pixels from every chunk and reconstructs them. Pixels are independent given the model, so the
+  assembled maps equal the single-process maps exactly.
+
+A local cluster (``local:N``) runs N worker processes, one task thread each, listening on
+127.0.0.1 only, with ``NUMBA_NUM_THREADS`` set to the machine's cores divided by N. A remote
+scheduler is reached with dask's own configuration, TLS included (docs/dask.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import copy
+import io
+import json
+import os
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from recon.errors import InputError
+
+CHUNK_RECORDS = 1 << 22
+"""Records per chunk task (16 MiB of records)."""
+BLOCK_PIXELS = 1 << 17
+"""About this many pixels per block task (whole rows)."""
+
+_STDOUT_LOCK = threading.Lock()
+
+
+def parse_address(text: str) -> tuple[str, int | str]:
+    """``local:N`` -> ("local", N); anything else is a scheduler address ("remote", text)."""
+    if text.startswith("local"):
+        _, _, n = text.partition(":")
+        try:
+            workers = int(n) if n else os.cpu_count() or 1
+        except ValueError:
+            raise InputError(f"--dask {text!r}: expected local:N with N a whole number of workers") from None
+        if workers < 1:
+            raise InputError(f"--dask {text!r}: a local cluster needs at least one worker")
+        return "local", workers
+    if "://" not in text and ":" not in text:
+        raise InputError(f"--dask {text!r}: expected a scheduler address (tls://host:8786, "
+                         f"tcp://host:8786) or local:N")
+    return "remote", text
+
+
+@contextlib.contextmanager
+def connect(spec: str):
+    """A ``distributed.Client`` for ``--dask SPEC``; a local cluster is closed on exit."""
+    # dask logs every scheduler and worker event at INFO; the command's own lines are the report
+    os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")
+    import logging
+
+    from distributed import Client, LocalCluster
+
+    logging.getLogger("distributed").setLevel(logging.WARNING)
+    kind, value = parse_address(spec)
+    if kind == "remote":
+        # Security() from dask's configuration (distributed.comm.tls.*): TLS when it names
+        # certificates, as docs/dask.md shows
+        with Client(value, timeout="30s") as client:
+            yield client
+        return
+    threads = max(1, (os.cpu_count() or 1) // value)
+    # 127.0.0.1 for the scheduler, nannies, workers and dashboard alike: no port open to the network
+    with LocalCluster(n_workers=value, threads_per_worker=1, processes=True, host="127.0.0.1",
+                      dashboard_address="127.0.0.1:0",
+                      env={"NUMBA_NUM_THREADS": str(threads), "DASK_LOGGING__DISTRIBUTED": "warning"}
+                      ) as cluster, \
+            Client(cluster) as client:
+        yield client
+
+
+# ---------------------------------------------------------------------------------------------
+# one task per file
+
+
+def _outputs(args: argparse.Namespace, path: str, several: bool) -> tuple[str | None, str | None]:
+    """Where one input's maps and picture go: the options themselves for one input, else
+    ``DIR/<name>.npz`` / ``DIR/<name>.png`` with the options read as folders."""
+    if not several:
+        return args.out, args.png
+    stem = Path(path).stem
+    return (str(Path(args.out) / f"{stem}.npz") if args.out else None,
+            str(Path(args.png) / f"{stem}.png") if args.png else None)
+
+
+def recon_file(options: dict) -> dict:
+    """Run ``spdepth recon`` on one file with ``options`` (its parsed arguments); returns the
+    JSON summary it prints. Runs on a worker or in this process alike."""
+    from acq.commands import recon
+
+    ns = argparse.Namespace(**dict(options, json=True, dask=None))
+    buf = io.StringIO()
+    # redirect_stdout is process-wide: one task at a time may hold it
+    with _STDOUT_LOCK, contextlib.redirect_stdout(buf):
+        recon.run_one(ns)
+    return json.loads(buf.getvalue().strip().splitlines()[-1])
+
+
+def _per_file(args: argparse.Namespace, client) -> list[dict]:
+    inputs = list(args.input)
+    several = len(inputs) > 1
+    for folder in (args.out, args.png) if several else ():
+        if folder:
+            Path(folder).mkdir(parents=True, exist_ok=True)
+    jobs = []
+    for path in inputs:
+        out, png = _outputs(args, path, several)
+        jobs.append(dict(vars(args), input=path, out=out, png=png))
+    names = [Path(p).name for p in inputs]
+    if len(set(names)) < len(names) and several and (args.out or args.png):
+        raise InputError("inputs share a file name, so their outputs would overwrite each other")
+    if client is None:
+        return [recon_file(j) for j in jobs]
+    futures = client.map(recon_file, jobs, pure=False)
+    return client.gather(futures)
+
+
+# ---------------------------------------------------------------------------------------------
+# one big recording in blocks of rows
+
+
+@dataclass(frozen=True)
+class Plan:
+    """How a recording splits: ``starts[i]`` is the first record of chunk i and ``states[i]`` the
+    (decoder, assigner) state before it; blocks are row ranges ``rows[b]:rows[b + 1]``."""
+
+    path: str
+    shape: tuple[int, int]
+    rectype: int
+    chunk_records: int
+    starts: tuple[int, ...]
+    states: tuple
+    rows: tuple[int, ...]
+
+
+def _image_and_unit(path: str, time_unit_s: float | None):
+    """(layout, shape, pattern, rectype, time unit) of a PTU with pixel markers, or None."""
+    from acq.ptu import PIXEL_MARKER_TAG, read_layout
+    from acq.readers import sniff_kind
+
+    if sniff_kind(path) != "ptu":
+        return None
+    layout = read_layout(path)
+    tags = layout.tags
+    if not int(tags.get(PIXEL_MARKER_TAG, 0) or 0):
+        return None
+    h, w = int(tags.get("ImgHdr_PixY", 0) or 0), int(tags.get("ImgHdr_PixX", 0) or 0)
+    if h < 1 or w < 1:
+        return None
+    pattern = "serp" if tags.get("ImgHdr_BiDirect") else "raster"
+    unit = time_unit_s or float(tags["MeasDesc_Resolution"])
+    return layout, (h, w), pattern, int(tags["TTResultFormat_TTTRRecType"]), unit
+
+
+def _assigned(layout, chunk: np.ndarray, dec, assigner, lut, keep_channel):
+    """Decode one chunk of records and assign its photons: (flat pixel, dtime) of the photons that
+    land in a pixel (of ``keep_channel`` only, when given)."""
+    from drivers.errors import DriverError
+    from drivers.events import EventKind, Marker
+    from drivers.tagger.t3 import decode_t3
+
+    try:
+        ev = decode_t3(chunk, dec)
+    except DriverError as exc:
+        raise InputError(f"{layout.path}: {exc}") from None
+    is_marker = ev["kind"] == EventKind.MARKER
+    ev["marker"][is_marker] = lut[ev["marker"][is_marker]]
+    pixel = assigner.assign(ev)
+    sel = (ev["kind"] == EventKind.PHOTON) & (pixel >= 0)
+    if keep_channel is not None:
+        sel &= ev["channel"] == keep_channel
+    n_pixel_markers = int(np.count_nonzero(ev["marker"][is_marker] & Marker.PIXEL))
+    return pixel[sel], ev["dtime"][sel].astype(np.float64), n_pixel_markers
+
+
+def plan_blocks(path: str, time_unit_s: float | None = None, *, chunk_records: int = CHUNK_RECORDS,
+                block_pixels: int = BLOCK_PIXELS) -> Plan | None:
+    """Walk the recording once, in chunks, keeping the state at each chunk start. None when it is
+    not a PTU with pixel markers (then it goes whole to one task)."""
+    from acq.assign import PixelAssigner
+    from acq.ptu import iter_records, marker_map
+    from drivers.tagger.t3 import T3DecoderState
+
+    found = _image_and_unit(path, time_unit_s)
+    if found is None:
+        return None
+    layout, (h, w), pattern, rectype, _ = found
+    lut = marker_map(layout.tags)
+    dec, assigner = T3DecoderState(), PixelAssigner((h, w), pattern)
+    starts, states, markers = [], [], 0
+    for i, chunk in enumerate(iter_records(layout, chunk_records)):
+        starts.append(i * chunk_records)
+        states.append((copy.deepcopy(dec), copy.deepcopy(assigner)))
+        markers += _assigned(layout, chunk, dec, assigner, lut, None)[2]
+    if markers == 0:
+        return None
+    per = max(1, block_pixels // w)
+    rows = tuple(range(0, h, per)) + (h,)
+    return Plan(str(path), (h, w), rectype, chunk_records, tuple(starts), tuple(states), rows)
+
+
+def chunk_task(plan: Plan, i: int, keep_channel: int | None) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Chunk i's photons split by block: ``[(flat pixel, dtime) of block b, ...]``. Reads its own
+    records from the file, so dask can recompute it anywhere."""
+    from acq.ptu import iter_records, marker_map, read_layout
+
+    layout = read_layout(plan.path)
+    dec, assigner = copy.deepcopy(plan.states[i])
+    chunk = next(iter_records(layout, plan.chunk_records, start=plan.starts[i]))
+    pixel, dtime, _ = _assigned(layout, chunk, dec, assigner, marker_map(layout.tags), keep_channel)
+    edges = np.asarray(plan.rows, np.int64) * plan.shape[1]
+    block = np.searchsorted(edges, pixel, side="right") - 1
+    # stable: detection order within a pixel survives, as in the single-process reader
+    order = np.argsort(block, kind="stable")
+    pixel, dtime, block = pixel[order], dtime[order], block[order]
+    bounds = np.searchsorted(block, np.arange(len(plan.rows)))
+    return [(pixel[bounds[b]:bounds[b + 1]], dtime[bounds[b]:bounds[b + 1]])
+            for b in range(len(plan.rows) - 1)]
+
+
+def block_task(plan: Plan, b: int, settings, time_unit_s: float, *chunks):
+    """Reconstruct block b (rows ``plan.rows[b]:plan.rows[b + 1]``) from every chunk's share."""
+    from recon.estimate import reconstruct
+    from recon.photons import PhotonStore
+
+    r0, r1 = plan.rows[b], plan.rows[b + 1]
+    w = plan.shape[1]
+    pixel = np.concatenate([c[b][0] for c in chunks]) - r0 * w
+    dtime = np.concatenate([c[b][1] for c in chunks])
+    store = PhotonStore.from_pixel_indices(pixel, dtime, (r1 - r0, w), time_unit_s)
+    return reconstruct(store, settings)
+
+
+def assemble(parts: list) -> object:
+    """One DepthMaps from blocks of rows (in order)."""
+    from recon.maps import NPZ_KEYS, DepthMaps
+
+    arrays = {k: np.concatenate([getattr(p, k) for p in parts], axis=getattr(parts[0], k).ndim - 2)
+              for k in NPZ_KEYS if k != "settings"}
+    return DepthMaps(settings=parts[0].settings, **arrays)
+
+
+def reconstruct_blocks(client, plan: Plan, settings, time_unit_s: float, keep_channel: int | None,
+                       on_submitted=None):
+    """Maps of the whole recording, computed as chunk and block tasks on ``client``.
+    ``on_submitted(futures)`` is called once everything is submitted (tests kill a worker there)."""
+    chunks = [client.submit(chunk_task, plan, i, keep_channel, pure=False)
+              for i in range(len(plan.starts))]
+    blocks = [client.submit(block_task, plan, b, settings, time_unit_s, *chunks, pure=False)
+              for b in range(len(plan.rows) - 1)]
+    if on_submitted is not None:
+        on_submitted(chunks + blocks)
+    return assemble(client.gather(blocks))
+
+
+def settings_from_args(args: argparse.Namespace, unit_ps: float):
+    """ReconSettings of a fully given model, computed as ``spdepth recon`` computes them (the same
+    float operations, so the binning is the same to the last bit), or None when the window, bins
+    or pulse are left to the data."""
+    from recon.model import Binning, ReconSettings, load_irf
+
+    if args.window_ps is None or args.bin_ps is None or (args.pulse_rms_ps is None and not args.irf):
+        return None
+    start_u, stop_u = args.window_ps[0] / unit_ps, args.window_ps[1] / unit_ps
+    bin_u = args.bin_ps / unit_ps
+    if abs(bin_u - round(bin_u)) > 1e-6 * max(1.0, bin_u) or round(bin_u) < 1:
+        raise InputError(f"--bin-ps {args.bin_ps:g} is not a whole number of {unit_ps:g} ps raw units")
+    binning = Binning.from_ps(unit_ps, window_ps=(start_u * unit_ps, stop_u * unit_ps),
+                              bin_ps=round(bin_u) * unit_ps)
+    return ReconSettings(method=args.method, binning=binning,
+                         pulse_rms_s=args.pulse_rms_ps * 1e-12 if args.pulse_rms_ps else None,
+                         irf=load_irf(args.irf) if args.irf else None,
+                         max_photons=args.max_photons, reflectors=args.reflectors)
+
+
+def _by_blocks(args: argparse.Namespace, client) -> dict | None:
+    """The single-recording block path; None when the input cannot be split (see module doc)."""
+    path = args.input[0]
+    found = _image_and_unit(path, args.time_unit_ps * 1e-12 if args.time_unit_ps else None)
+    if found is None:
+        return None
+    unit_s = found[4]
+    settings = settings_from_args(args, unit_s * 1e12)
+    if settings is None:
+        print(f"spdepth recon: {path}: the window, bins or pulse are left to the data, which needs "
+              f"every pixel at once: reconstructing it as one task (give --window-ps, --bin-ps and "
+              f"--pulse-rms-ps to split it into blocks)", file=sys.stderr)
+        return None
+    t0 = time.perf_counter()
+    plan = plan_blocks(path, unit_s)
+    if plan is None:
+        return None
+    maps = reconstruct_blocks(client, plan, settings, unit_s, args.channel)
+    seconds = time.perf_counter() - t0
+    if args.out:
+        maps.save_npz(args.out)
+    if args.png:
+        from acq.report import render_maps_png
+
+        render_maps_png(args.png, maps, title=f"{Path(path).name}: {args.method} ({len(plan.rows) - 1} "
+                        f"blocks on dask)")
+    depth = np.asarray(maps.depth_m, dtype=float)
+    return {"input": str(path), "shape": list(plan.shape), "pixels": int(np.prod(plan.shape)),
+            "pixels_with_estimate": int(np.isfinite(depth).sum() if depth.ndim == 2 else
+                                        np.isfinite(depth).any(axis=0).sum()),
+            "photons": int(maps.photons.sum()), "method": args.method, "recon_s": round(seconds, 4),
+            "chunks": len(plan.starts), "blocks": len(plan.rows) - 1, "out": args.out, "png": args.png}
+
+
+def run(args: argparse.Namespace) -> int:
+    """``spdepth recon`` with several inputs or ``--dask``: print one line (or JSON object) per
+    input; exit 0."""
+    t0 = time.perf_counter()
+    with (connect(args.dask) if args.dask else contextlib.nullcontext()) as client:
+        summary = None
+        if client is not None and len(args.input) == 1:
+            summary = _by_blocks(args, client)
+        summaries = [summary] if summary is not None else _per_file(args, client)
+    wall = time.perf_counter() - t0
+    for s in summaries:
+        if args.json:
+            print(json.dumps(s, default=str))
+        else:
+            where = ", ".join(f"{k} {s[k]}" for k in ("out", "png") if s.get(k))
+            print(f"{s['input']}: {s['shape'][0]} x {s['shape'][1]} pixels, {s['photons']} photons, "
+                  f"{s['pixels_with_estimate']} estimated, {s['method']} {s['recon_s']:.2f} s"
+                  + (f"; {where}" if where else ""))
+    if not args.json:
+        print(f"{len(summaries)} input(s) in {wall:.2f} s"
+              + (f" on dask {args.dask}" if args.dask else " in this process"))
+    return 0

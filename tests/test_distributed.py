@@ -1,0 +1,126 @@
+"""``spdepth recon --dask``: a LocalCluster of 2 worker processes gives the single-process maps bit
+for bit, per file and per block of rows of one recording, also when a worker dies mid-run."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import signal
+
+import numpy as np
+import pytest
+
+pytest.importorskip("distributed")
+
+from acq import distributed as D  # noqa: E402
+from acq.cli import main  # noqa: E402
+from recon.errors import InputError  # noqa: E402
+from recon.maps import NPZ_KEYS, DepthMaps  # noqa: E402
+
+MODEL = ["--window-ps", "0:100000", "--bin-ps", "40", "--pulse-rms-ps", "360", "--max-photons", "12"]
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    d = tmp_path_factory.mktemp("dask")
+    paths = []
+    for i, scene in enumerate(("bust", "steps", "two-layer")):
+        p = d / f"{scene}.ptu"
+        assert main(["simulate", "--scene", scene, "--size", "40x30", "--ppp", "12", "--seed", str(i),
+                     "--out", str(p)]) == 0
+        paths.append(str(p))
+    return d, paths
+
+
+@pytest.fixture(scope="module")
+def client():
+    with D.connect("local:2") as c:
+        yield c
+
+
+def _args(argv):
+    from acq.cli import build_parser
+
+    return build_parser().parse_args(["recon", *argv])
+
+
+def _same(a: DepthMaps, b: DepthMaps):
+    for k in NPZ_KEYS:
+        if k == "settings":
+            assert a.settings == b.settings
+        else:
+            x, y = getattr(a, k), getattr(b, k)
+            assert x.dtype == y.dtype and np.array_equal(x, y, equal_nan=True), k
+
+
+def _single(path, tmp, method="uos"):
+    out = tmp / f"single-{os.path.basename(path)}-{method}.npz"
+    assert main(["recon", path, "--method", method, *MODEL, "--out", str(out)]) == 0
+    return DepthMaps.load_npz(out)
+
+
+def _blocks(client, path, method="uos", on_submitted=None):
+    args = _args([path, "--method", method, *MODEL])
+    unit_s = D._image_and_unit(path, None)[4]
+    settings = D.settings_from_args(args, unit_s * 1e12)
+    # small chunks and blocks, so that rows, chunks and blocks all cut across each other
+    plan = D.plan_blocks(path, unit_s, chunk_records=3001, block_pixels=7 * 40 + 13)
+    assert len(plan.starts) > 3 and len(plan.rows) > 3
+    return D.reconstruct_blocks(client, plan, settings, unit_s, None, on_submitted=on_submitted)
+
+
+def test_local_cluster_listens_on_loopback_only(client):
+    info = client.scheduler_info()
+    assert client.scheduler.address.startswith("tcp://127.0.0.1:")
+    assert len(info["workers"]) == 2
+    assert all(a.startswith("tcp://127.0.0.1:") for a in info["workers"])
+
+
+def test_blocks_of_one_recording_give_the_single_process_maps(client, files):
+    d, paths = files
+    for method in ("uos", "ml"):
+        _same(_blocks(client, paths[0], method), _single(paths[0], d, method))
+
+
+def test_a_worker_killed_mid_run_is_retried_and_the_maps_are_the_same(client, files):
+    from distributed import wait
+
+    d, paths = files
+    killed = []
+
+    def kill_a_worker_holding_results(futures):
+        wait(futures[0])                                   # a chunk's photons now live on a worker
+        (addr,) = list(client.who_has(futures[0]).values())[0][:1]
+        pid = client.run(os.getpid, workers=[addr])[addr]
+        os.kill(pid, signal.SIGKILL)
+        killed.append(pid)
+
+    maps = _blocks(client, paths[1], on_submitted=kill_a_worker_holding_results)
+    assert killed
+    _same(maps, _single(paths[1], d))
+    client.wait_for_workers(2, timeout=30)                 # the nanny restarted it
+
+
+def test_many_files_one_task_each_equal_the_single_runs(client, files, tmp_path):
+    d, paths = files
+    args = _args([*paths, "--method", "uos", *MODEL, "--out", str(tmp_path / "dask")])
+    summaries = D._per_file(args, client)
+    assert [s["input"] for s in summaries] == paths
+    # the command without --dask runs the same per-file path in this process
+    assert main(["recon", *paths, "--method", "uos", *MODEL, "--out", str(tmp_path / "here")]) == 0
+    for p in paths:
+        name = os.path.basename(p).replace(".ptu", ".npz")
+        single = _single(p, d)
+        _same(DepthMaps.load_npz(tmp_path / "dask" / name), single)
+        _same(DepthMaps.load_npz(tmp_path / "here" / name), single)
+
+
+def test_addresses():
+    assert D.parse_address("local:3") == ("local", 3)
+    assert D.parse_address("tls://sched.lab:8786") == ("remote", "tls://sched.lab:8786")
+    for bad in ("local:x", "local:0", "nonsense"):
+        with pytest.raises(InputError):
+            D.parse_address(bad)
+    # a model left to the data cannot be split into blocks
+    assert D.settings_from_args(_args(["x.ptu"]), 8.0) is None
+    assert isinstance(_args(["a", "b"]), argparse.Namespace)
