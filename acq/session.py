@@ -55,6 +55,9 @@ DRAIN_TIMEOUT_S = 5.0
 MAX_GALVO_FAULTS = 3
 """Galvo faults cleared and retried before the session fails."""
 SNAPSHOT_MAX_HZ = 30.0
+HEALTH_RECENT_S = 2.0
+_DEVICE_OF_FAULT = {"lost-data": "tagger", "tagger-reconnect": "tagger", "galvo-fault": "galvo",
+                    "galvo-reconnect": "galvo"}
 
 
 class SessionState(str, Enum):
@@ -137,6 +140,9 @@ class Snapshot:
     acq_flags: np.ndarray
     faults: tuple = ()
     error: str | None = None
+    health: dict = field(default_factory=dict)
+    """Per device ("galvo", "tagger"): "ok", "recovering" (a loss, reconnect or fault in the last
+    HEALTH_RECENT_S), "failed" (the session ended on that device's error) or "replay"."""
 
 
 class _Aborted(Exception):
@@ -305,7 +311,21 @@ class Session:
             uncertainty_s=r.uncertainty_s.copy(),
             counts=self.store.count.reshape(h, w).copy(), acq_flags=flags,
             faults=tuple(dict(f) for f in self.faults),
-            error=None if self.error is None else str(self.error))
+            error=None if self.error is None else str(self.error), health=self._health())
+
+    def _health(self) -> dict:
+        if self.replay is not None:
+            return {"galvo": "replay", "tagger": "replay"}
+        now = time.monotonic() - self._t0
+        out = {"galvo": "ok", "tagger": "ok"}
+        for f in self.faults:
+            dev = _DEVICE_OF_FAULT.get(f["kind"])
+            if dev and now - f["t_s"] < HEALTH_RECENT_S:
+                out[dev] = "recovering"
+        if self._state == SessionState.FAILED and self.error is not None:
+            reader_failed = self.reader is not None and self.reader.error is not None
+            out["tagger" if reader_failed else "galvo"] = "failed"
+        return out
 
     def subscribe(self, fn: Callable[[Snapshot], None], max_hz: float = SNAPSHOT_MAX_HZ):
         """Call ``fn(snapshot)`` from a thread of its own at most ``max_hz`` times a second, and
@@ -484,6 +504,7 @@ class Session:
                 stop_sent = cut = True
             if completed is None and now >= next_poll:
                 next_poll = now + STATUS_POLL_S
+                self._note_reconnects()
                 self._read_pixel_log()
                 st = galvo.status()
                 if st.state == GalvoState.FAULT:
@@ -510,6 +531,21 @@ class Session:
         return cut
 
     _lost_in_pass = False
+    _seen_reconnects = (0, 0, 0)
+
+    def _note_reconnects(self) -> None:
+        """Record reconnects the drivers did on their own (galvo serial link, tagger USB)."""
+        g = getattr(self.galvo, "reconnects", 0)
+        stats = self.reader.stats if self.reader is not None else {}
+        t_rec, t_restart = stats.get("reconnects", 0), stats.get("restarts", 0)
+        g0, r0, s0 = self._seen_reconnects
+        if g > g0:
+            self._fault("galvo-reconnect", f"serial link lost and re-opened ({g - g0}x)",
+                        "settings restored, commands retried; the scan went on")
+        if t_rec > r0 or t_restart > s0:
+            self._fault("tagger-reconnect", f"tagger reconnected {t_rec - r0}x, measurement "
+                        f"restarted {t_restart - s0}x", "stream resumed; the lost span is rescanned")
+        self._seen_reconnects = (g, t_rec, t_restart)
 
     def _galvo_fault(self, st) -> None:
         n = sum(1 for f in self.faults if f["kind"] == "galvo-fault") + 1
@@ -608,14 +644,7 @@ class Session:
                 self.reader.stop()
             except Exception as exc:  # noqa: BLE001
                 log.warning("tagger reader did not stop cleanly: %s", exc)
-            stats = self.reader.stats
-            if stats.get("reconnects") or stats.get("restarts"):
-                self._fault("tagger-reconnect",
-                            f"tagger reconnected {stats['reconnects']} times, restarted "
-                            f"{stats['restarts']} times", "stream resumed; lost spans rescanned")
-        if self.galvo is not None and getattr(self.galvo, "reconnects", 0):
-            self._fault("galvo-reconnect", f"serial link re-opened {self.galvo.reconnects} times",
-                        "commands retried after the reconnect")
+        self._note_reconnects()
         if self.recorder is not None:
             self.recorder.close()
         if self._last_photon_t is not None and self.replay is not None:

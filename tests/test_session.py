@@ -288,3 +288,18 @@ def test_recording_reads_in_tttrlib_with_every_photon(tmp_path, mode):
     exact.fill(tttr, channels=[0])
     np.testing.assert_array_equal(np.asarray(exact.intensity, np.int64)[0],
                                   s.store.detected.reshape(6, 8))
+
+
+@pytest.mark.parametrize("fault,device", [("device-vanish@40%", "tagger"),
+                                          ("serial-unplug@40%", "galvo")])
+def test_health_shows_a_device_recovering_then_the_scan_completes(fault, device):
+    with open_sim("bust", (16, 16), ppp=10, seed=12, faults=fault) as inst:
+        s = _session(inst, (16, 16))
+        seen = []
+        s.subscribe(lambda snap: seen.append(dict(snap.health)), max_hz=30)
+        assert s.run() == SessionState.DONE
+    time.sleep(0.1)
+    assert seen[0] == {"galvo": "ok", "tagger": "ok"}
+    assert any(h[device] == "recovering" for h in seen), seen
+    assert all(h[other] == "ok" for h in seen for other in ("galvo", "tagger") if other != device)
+    assert s.flagged_pixels().size == 0
