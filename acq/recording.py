@@ -92,10 +92,14 @@ class Recorder:
                        "records_lost": int(n_records), "restart": bool(restart)})
 
     def _maybe_flush(self) -> None:
-        now = time.monotonic()
-        if now - self._last_flush >= FLUSH_S:
-            self._fh.flush()
-            self._last_flush = now
+        self._last_flush = _flush_if_due(self._fh, self._last_flush)
+
+    def flush_if_due(self) -> None:
+        """Flush what waits in Python's buffer if FLUSH_S passed (the session calls this while
+        the stream is quiet, so the last records never wait for the next ones)."""
+        with self._lock:
+            if not self.closed:
+                self._maybe_flush()
 
     def close(self) -> None:
         """Flush, patch the record count (the file is complete), close."""
@@ -106,6 +110,15 @@ class Recorder:
             self._fh.flush()
             patch_record_count(self._fh, self.records)
             self._fh.close()
+
+
+def _flush_if_due(fh, last_flush: float) -> float:
+    """Flush ``fh`` when FLUSH_S has passed since ``last_flush``; returns the new last flush."""
+    now = time.monotonic()
+    if now - last_flush >= FLUSH_S:
+        fh.flush()
+        return now
+    return last_flush
 
 
 class EventLog:
@@ -122,10 +135,12 @@ class EventLog:
             if self._fh is None:
                 return
             self._fh.write(json.dumps(entry) + "\n")
-            now = time.monotonic()
-            if now - self._last_flush >= FLUSH_S:
-                self._fh.flush()
-                self._last_flush = now
+            self._last_flush = _flush_if_due(self._fh, self._last_flush)
+
+    def flush_if_due(self) -> None:
+        with self._lock:
+            if self._fh is not None:
+                self._last_flush = _flush_if_due(self._fh, self._last_flush)
 
     def close(self) -> None:
         with self._lock:

@@ -55,6 +55,7 @@ DRAIN_TIMEOUT_S = 5.0
 MAX_GALVO_FAULTS = 3
 """Galvo faults cleared and retried before the session fails."""
 SNAPSHOT_MAX_HZ = 30.0
+FLUSH_WHILE_PAUSED_S = 0.5
 HEALTH_RECENT_S = 2.0
 _DEVICE_OF_FAULT = {"lost-data": "tagger", "tagger-reconnect": "tagger", "galvo-fault": "galvo",
                     "galvo-reconnect": "galvo"}
@@ -457,7 +458,9 @@ class Session:
             return
         self._set_state(SessionState.PAUSED)
         with self._state_changed:
-            self._state_changed.wait_for(lambda: not self._pause_req or self._abort_req)
+            while not self._state_changed.wait_for(lambda: not self._pause_req or self._abort_req,
+                                                   timeout=FLUSH_WHILE_PAUSED_S):
+                self._flush_files()
         if self._abort_req:
             raise _Aborted
         self._set_state(SessionState.RUNNING)
@@ -504,6 +507,7 @@ class Session:
                 stop_sent = cut = True
             if completed is None and now >= next_poll:
                 next_poll = now + STATUS_POLL_S
+                self._flush_files()
                 self._note_reconnects()
                 self._read_pixel_log()
                 st = galvo.status()
@@ -532,6 +536,11 @@ class Session:
 
     _lost_in_pass = False
     _seen_reconnects = (0, 0, 0)
+
+    def _flush_files(self) -> None:
+        for f in (self.recorder, self._events_log):
+            if f is not None:
+                f.flush_if_due()
 
     def _note_reconnects(self) -> None:
         """Record reconnects the drivers did on their own (galvo serial link, tagger USB)."""
