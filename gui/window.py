@@ -239,6 +239,7 @@ class Inspector(QtWidgets.QWidget):
         self.plot = pg.PlotWidget()
         self.plot.setLabel("bottom", "arrival time after sync", units="s")
         self.plot.setLabel("left", "detections per bin")
+        self.plot.getAxis("left").enableAutoSIPrefix(False)
         self.plot.addLegend(offset=(-8, 8), labelTextSize="9pt")
         self.hist = self.plot.plot([0, 1], [0], stepMode="center", fillLevel=0,
                                    brush=(70, 110, 200, 120), pen=pg.mkPen("#2a4f9a"),
@@ -408,6 +409,7 @@ class MainWindow(QtWidgets.QMainWindow):
         bl.setContentsMargins(8, 4, 4, 4)
         self.banner_text = QtWidgets.QLabel()
         self.banner_text.setWordWrap(True)
+        self.banner_text.setSizePolicy(QtWidgets.QSizePolicy.Ignored, QtWidgets.QSizePolicy.Preferred)
         self.banner_text.setTextInteractionFlags(QtCore.Qt.TextSelectableByMouse)
         dismiss = QtWidgets.QToolButton(text="✕")
         dismiss.setAutoRaise(True)
@@ -418,6 +420,9 @@ class MainWindow(QtWidgets.QMainWindow):
 
         self.run_label = QtWidgets.QLabel("No scan yet: choose a source and press Start.")
         self.run_label.setStyleSheet("font-size: 11pt; font-weight: bold; padding: 2px 4px;")
+        # a long run folder must not widen the window: the label is clipped, the tooltip has it all
+        self.run_label.setSizePolicy(QtWidgets.QSizePolicy.Ignored, QtWidgets.QSizePolicy.Preferred)
+        self.run_label.setMinimumWidth(50)
         self.maps_view = pg.GraphicsLayoutWidget()
         self.maps_view.setBackground("w")
         self.maps_view.ci.setSpacing(4)
@@ -555,6 +560,8 @@ class MainWindow(QtWidgets.QMainWindow):
         where = f" — files in {run.out_dir}" if run.out_dir else ""
         self.run_label.setText(f"{run.label}{where}")
         self.run_label.setToolTip(str(run.out_dir or ""))
+        h, w = run.session.plan.shape
+        self.inspect((h // 2, w // 2), pin=False)     # something to look at until the user points
         self.refresh()
         return True
 

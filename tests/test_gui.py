@@ -1,0 +1,228 @@
+"""The live window, offscreen: scans started from the controls fill the maps; pause, resume, abort;
+replay; the pixel inspector; device health through a simulated tagger dropping off the bus; close
+during a scan; errors shown in the window; settings remembered; ``spdepth gui`` from the shell."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("pytestqt")
+from PySide6 import QtCore  # noqa: E402
+
+from gui.sources import SourceSpec, open_run  # noqa: E402
+from gui.window import MainWindow  # noqa: E402
+
+SMALL = dict(kind="sim", scene="bust", size=(16, 16), target=5)
+
+
+@pytest.fixture
+def settings(tmp_path):
+    return QtCore.QSettings(str(tmp_path / "spdepth.ini"), QtCore.QSettings.IniFormat)
+
+
+@pytest.fixture
+def win(qtbot, settings, tmp_path):
+    w = MainWindow(settings=settings)
+    w.controls.out_root.setText(str(tmp_path / "runs"))
+    qtbot.addWidget(w)
+    w.resize(1200, 800)
+    w.show()
+    yield w
+    w.shutdown(timeout_s=10)
+
+
+def _spec(tmp_path, **kw) -> SourceSpec:
+    return SourceSpec(**{**SMALL, "out_root": str(tmp_path / "runs"), **kw})
+
+
+def _state(w) -> str | None:
+    return w.snap.state if w.snap is not None else None
+
+
+def test_sim_scan_from_the_controls_fills_the_maps(qtbot, win, tmp_path):
+    win.controls.set_spec(_spec(tmp_path, size=(24, 24)))
+    seen_partial = []
+
+    def partial():
+        s, counts = win.snap, win.panels[2].data
+        if s is not None and s.state == "running" and counts is not None:
+            painted = int(np.isfinite(counts).sum())
+            if 0 < painted < counts.size:
+                seen_partial.append(painted)
+        return s is not None and s.state == "done"
+
+    with qtbot.waitSignal(win.scan_ended, timeout=60_000) as ended:
+        qtbot.mouseClick(win.controls.start, QtCore.Qt.LeftButton)
+        qtbot.waitUntil(partial, timeout=60_000)
+    assert ended.args == ["done"]
+    assert seen_partial, "the maps were never painted while the scan ran"
+    depth, counts = win.panels[0].data, win.panels[2].data
+    assert np.isfinite(depth).mean() > 0.9
+    assert np.all(counts == 5)
+    assert win.panels[2].levels == (0.0, 5.0)
+    lo, hi = win.panels[0].levels
+    assert 2.0 < lo < hi < 5.0                                # metres, the bust's range
+    assert "depth (m)" in win.panels[0].bar.getAxis("left").labelText.lower()
+    assert win.state_label.text() == "done"
+    assert win.progress.value() == 576
+    assert "ok" in win.health_label.text()
+    assert win.accuracy.history and np.isfinite(win.accuracy.history[-1][3])   # error vs truth
+    # the files of the run, and the maps saved three ways
+    out = win.run.out_dir
+    assert json.loads((out / "run.json").read_text())["state"] == "done"
+    for name in ("maps.png", "maps.tif", "maps.npz"):
+        assert win.save_maps(tmp_path / name).stat().st_size > 0
+    import tifffile
+
+    stack = tifffile.imread(tmp_path / "maps.tif")
+    assert stack.shape == (4, 24, 24)
+    np.testing.assert_allclose(stack[0], win.session.maps().depth_m.astype(np.float32))
+
+
+def test_inspector_shows_histogram_and_fitted_model(qtbot, win, tmp_path):
+    assert win.start_run(_spec(tmp_path), out_dir=None)
+    qtbot.waitUntil(lambda: _state(win) == "done", timeout=60_000)
+    win.inspect((8, 3), pin=True)
+    x, y = win.inspector.hist.getData()
+    assert y.sum() == 5                                       # the pixel's kept detections
+    mx, my = win.inspector.model.getData()
+    assert my is not None and my.size == y.size
+    assert abs(np.argmax(my) - np.argmax(y)) <= 1             # the pulse sits on the photons
+    m = win.session.maps()
+    assert my.sum() == pytest.approx(m.signal[8, 3] + m.background[8, 3] * 801, rel=1e-6)
+    text = win.inspector.last_text
+    assert "row 8, col 3" in win.inspector.title.text() and "depth: 3." in text
+    assert "5 of 5" in text
+    # hovering does not move a pinned pixel
+    win._mouse_moved(win.panels[0].plot.vb.mapViewToScene(QtCore.QPointF(1.5, 1.5)))
+    assert win.inspector.pixel == (8, 3)
+    win._pinned = False
+    win._mouse_moved(win.panels[0].plot.vb.mapViewToScene(QtCore.QPointF(1.5, 2.5)))
+    assert win.inspector.pixel == (2, 1)
+
+
+def test_pause_resume_abort(qtbot, win, tmp_path):
+    c = win.controls
+    win.controls.set_spec(_spec(tmp_path, size=(32, 32)))
+    qtbot.mouseClick(c.start, QtCore.Qt.LeftButton)
+    qtbot.waitUntil(c.pause.isEnabled, timeout=30_000)
+    qtbot.mouseClick(c.pause, QtCore.Qt.LeftButton)
+    qtbot.waitUntil(lambda: _state(win) == "paused", timeout=30_000)
+    assert c.resume.isEnabled() and not c.pause.isEnabled() and not c.start.isEnabled()
+    qtbot.mouseClick(c.resume, QtCore.Qt.LeftButton)
+    qtbot.waitUntil(lambda: _state(win) in ("running", "done"), timeout=30_000)
+    if _state(win) == "running":
+        qtbot.mouseClick(c.abort, QtCore.Qt.LeftButton)
+    with qtbot.waitSignal(win.scan_ended, timeout=30_000) as ended:
+        pass
+    assert ended.args[0] in ("aborted", "done")
+    run = json.loads((win.run.out_dir / "run.json").read_text())
+    assert run["state"] == ended.args[0]
+    assert (win.run.out_dir / "recording.ptu").stat().st_size > 0
+    assert c.start.isEnabled() and not c.abort.isEnabled()
+
+
+def test_replay_of_a_recording_matches_the_live_maps(qtbot, win, tmp_path):
+    rec_dir = tmp_path / "rec"
+    live = open_run(_spec(tmp_path), rec_dir)
+    live.session.start()
+    assert live.session.wait(60).value == "done"
+    live.close()
+    spec = SourceSpec(kind="replay", recording=str(rec_dir), target=0, method="uos",
+                      out_root=str(tmp_path / "runs"))
+    assert win.start_run(spec), win.banner_text.text()
+    qtbot.waitUntil(lambda: _state(win) == "done", timeout=60_000)
+    np.testing.assert_array_equal(win.session.maps().depth_m, live.session.maps().depth_m)
+    assert "recording ok" in win.health_label.text()
+
+
+def test_health_shows_a_vanished_tagger_and_its_recovery(qtbot, win, tmp_path):
+    levels = []
+
+    def watch():
+        levels.append(win.health.health.level)
+        return _state(win) in ("done", "failed")
+
+    assert win.start_run(_spec(tmp_path, faults="device-vanish@40%"), out_dir=None)
+    qtbot.waitUntil(watch, timeout=60_000)
+    assert "reconnecting" in levels
+    assert _state(win) == "done"
+    assert win.health.health.level == "recovered"
+    assert "fault" in win.health_label.text()
+    assert any(f["kind"] == "lost-data" for f in win.snap.faults)
+
+
+def test_close_during_a_scan_aborts_and_keeps_the_recording(qtbot, settings, tmp_path):
+    w = MainWindow(settings=settings)
+    qtbot.addWidget(w)
+    w.show()
+    assert w.start_run(_spec(tmp_path, size=(48, 48)))
+    qtbot.waitUntil(lambda: w.snap is not None and w.snap.pixels_final > 0, timeout=60_000)
+    session, out = w.session, w.run.out_dir
+    w.close()
+    assert session.state.value == "aborted"
+    assert w.run.instruments is None
+    assert json.loads((out / "run.json").read_text())["state"] == "aborted"
+    assert (out / "recording.ptu").stat().st_size > 0
+
+
+def test_errors_appear_in_the_window_and_it_stays_usable(qtbot, win, tmp_path):
+    assert not win.start_run(SourceSpec(kind="replay", recording=str(tmp_path / "nope.ptu")))
+    assert win.banner.isVisible() and "does not exist" in win.banner_text.text()
+    bad = tmp_path / "broken.ptu"
+    bad.write_bytes(b"not a PTU file at all" * 10)
+    assert not win.start_run(SourceSpec(kind="replay", recording=str(bad),
+                                        out_root=str(tmp_path / "runs")))
+    assert "broken.ptu" in win.banner_text.text()
+    assert not win.start_run(_spec(tmp_path, scene="no-such-scene"))
+    assert "no-such-scene" in win.banner_text.text()
+    assert not win.start_run(SourceSpec(kind="real", galvo_port="/dev/nope",
+                                        tagger_url="usb:1:2"))
+    assert "sync rate" in win.banner_text.text()
+    assert not any((tmp_path / "runs").glob("*")), "failed starts leave no empty run folders"
+    assert win.controls.start.isEnabled()
+    assert win.start_run(_spec(tmp_path), out_dir=None)
+    assert not win.banner.isVisible()
+    qtbot.waitUntil(lambda: _state(win) == "done", timeout=60_000)
+
+
+def test_settings_are_remembered(qtbot, settings, tmp_path):
+    w = MainWindow(settings=settings)
+    qtbot.addWidget(w)
+    spec = SourceSpec(kind="replay", scene="steps", size=(24, 40), target=7, mode="raster",
+                      method="ml", dwell_limit_ms=2.5, sbr=3.0, seed=9, recording="/x/rec",
+                      out_root=str(tmp_path))
+    w.controls.set_spec(spec)
+    w.close()
+    w2 = MainWindow(settings=settings)
+    qtbot.addWidget(w2)
+    assert w2.controls.spec() == spec
+
+
+def test_spdepth_gui_screenshot_offscreen(tmp_path):
+    env = {**os.environ, "QT_QPA_PLATFORM": "offscreen", "XDG_CONFIG_HOME": str(tmp_path / "cfg"),
+           "HOME": str(tmp_path)}
+    shot = tmp_path / "shot.png"
+    p = subprocess.run([sys.executable, "-m", "acq.cli", "gui", "--sim", "--size", "16x12",
+                        "--target", "5", "--screenshot", str(shot), "--exit-after-scan",
+                        "--out", str(tmp_path / "runs")],
+                       env=env, capture_output=True, text=True, timeout=120,
+                       cwd=Path(__file__).resolve().parents[1])
+    assert p.returncode == 0, p.stderr
+    from PIL import Image
+
+    assert Image.open(shot).size == (1480, 900)
+    (run,) = (tmp_path / "runs").iterdir()
+    assert json.loads((run / "run.json").read_text())["plan"]["nx"] == 16
+    bad = subprocess.run([sys.executable, "-m", "acq.cli", "gui", "--replay",
+                          str(tmp_path / "missing"), "--exit-after-scan"],
+                         env=env, capture_output=True, text=True, timeout=120,
+                         cwd=Path(__file__).resolve().parents[1])
+    assert bad.returncode == 2 and "does not exist" in bad.stderr
