@@ -59,12 +59,15 @@ def dense_limits(values: np.ndarray, coverage: float = 0.75) -> tuple[float, flo
 
 def render_maps_png(path: str | Path, maps, *, title: str | None = None,
                     panels: Sequence[tuple[str, str, str, str, str]] = DEFAULT_PANELS,
-                    dpi: int = 110) -> Path:
+                    dpi: int = 110, irf: tuple[np.ndarray, np.ndarray, str] | None = None) -> Path:
     """Write a PNG with one panel per map: image, colour bar with unit, title.
 
     maps:   any object with the panel attributes as 2-D arrays of equal shape (``DepthMaps`` has
             ``depth_m``, ``background``, ``photons``); a missing attribute raises AttributeError.
-            (K, H, W) maps of K returns per pixel show their first return.
+            (K, H, W) maps of K returns per pixel: one panel per return for the first panel's
+            map (depth: "surface 1", "surface 2", ... nearest first), the first return elsewhere.
+    irf:    ``(times_s, counts, label)`` of the pulse shape used: an extra panel draws it (log
+            counts against ps from its peak).
     panels: ``(attribute, title, unit, colour map, "dense" | "percentile")`` for each panel; values
             beyond the colour limits saturate (the colour bar's pointed ends say so).
     Pixels that are NaN show in NAN_COLOUR, named under the panel when there are any.
@@ -74,17 +77,29 @@ def render_maps_png(path: str | Path, maps, *, title: str | None = None,
     import matplotlib
 
     path = Path(path)
-    # K > 1 returns per pixel come as (K, H, W): the sheet shows the first (nearest) return
-    arrays = [np.asarray(getattr(maps, attr), dtype=np.float64) for attr, *_ in panels]
-    arrays = [a[0] if a.ndim == 3 else a for a in arrays]
+    # K > 1 returns per pixel come as (K, H, W): the first panel's map (depth) gets one panel per
+    # return, the others show the first (nearest) return
+    arrays, specs = [], []
+    for i, spec in enumerate(panels):
+        a = np.asarray(getattr(maps, spec[0]), dtype=np.float64)
+        if a.ndim == 3 and i == 0 and a.shape[0] > 1:
+            for r in range(a.shape[0]):
+                arrays.append(a[r])
+                specs.append((spec[0], f"{spec[1]}, surface {r + 1}", *spec[2:]))
+            continue
+        arrays.append(a[0] if a.ndim == 3 else a)
+        specs.append(tuple(spec))
     h, w = arrays[0].shape
     aspect = h / w
     panel_w = 4.2
-    fig = Figure(figsize=(panel_w * len(panels), panel_w * min(max(aspect, 0.3), 3.0) + 0.9),
+    n_ax = len(specs) + (irf is not None)
+    fig = Figure(figsize=(panel_w * n_ax, panel_w * min(max(aspect, 0.3), 3.0) + 0.9),
                  layout="constrained")
     FigureCanvasAgg(fig)
-    axes = fig.subplots(1, len(panels), squeeze=False)[0]
-    for ax, arr, (attr, name, unit, cmap_name, limits) in zip(axes, arrays, panels):
+    axes = fig.subplots(1, n_ax, squeeze=False)[0]
+    if irf is not None:
+        _draw_irf(axes[-1], *irf)
+    for ax, arr, (attr, name, unit, cmap_name, limits) in zip(axes, arrays, specs):
         cmap = matplotlib.colormaps[cmap_name].with_extremes(bad=NAN_COLOUR)
         vmin, vmax = dense_limits(arr) if limits == "dense" else robust_limits(arr)
         im = ax.imshow(np.ma.masked_invalid(arr), cmap=cmap, vmin=vmin, vmax=vmax,
@@ -160,22 +175,42 @@ class ProgressBar:
             self.stream.flush()
 
 
+def _draw_irf(ax, times_s, counts, label: str) -> None:
+    """The pulse shape on log counts against ps from its peak."""
+    t = np.asarray(times_s, dtype=np.float64)
+    c = np.asarray(counts, dtype=np.float64)
+    c = c / c.max()
+    t_ps = (t - t[np.argmax(c)]) * 1e12
+    ax.semilogy(t_ps, np.where(c > 0, c, np.nan), color="#3b6ea5")
+    ax.set_ylim(max(1e-4, float(np.nanmin(np.where(c > 0, c, np.nan)))), 1.5)
+    ax.set_xlabel("ps from the peak")
+    ax.set_ylabel("response (peak 1)")
+    ax.set_title("pulse shape used")
+    ax.text(0.98, 0.97, label, transform=ax.transAxes, fontsize=8, ha="right", va="top")
+
+
 def render_point_png(path: str | Path, times_s: np.ndarray, *, tof_s: float | None = None,
-                     title: str | None = None, bins: int = 200, dpi: int = 110) -> Path:
+                     title: str | None = None, bins: int = 200, dpi: int = 110,
+                     irf: tuple[np.ndarray, np.ndarray, str] | None = None) -> Path:
     """Write a PNG for a point measurement (one pixel): the histogram of detection times in ns,
     log counts, with the estimated time of flight marked.
 
     times_s: detection times after the laser sync (s), shape (n,).
     tof_s:   estimated time of flight (s); NaN or None draws no marker.
+    irf:     ``(times_s, counts, label)`` of the pulse shape used: drawn in a second panel.
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
     path = Path(path)
     times_ns = np.asarray(times_s, dtype=np.float64) * 1e9
-    fig = Figure(figsize=(7.5, 4.2), layout="constrained")
+    fig = Figure(figsize=(7.5 + 4.5 * (irf is not None), 4.2), layout="constrained")
     FigureCanvasAgg(fig)
-    ax = fig.subplots()
+    if irf is not None:
+        ax, ax_irf = fig.subplots(1, 2)
+        _draw_irf(ax_irf, *irf)
+    else:
+        ax = fig.subplots()
     if times_ns.size:
         ax.hist(times_ns, bins=bins, color="#3b6ea5", log=True)
     ax.set_xlabel("time after laser sync (ns)")

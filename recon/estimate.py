@@ -10,9 +10,10 @@ import numpy as np
 
 from recon import kernels as K
 from recon.errors import InputError
+from recon.irf import estimate_irf, irf_core_rms_s
 from recon.maps import C_M_PER_S, DepthMaps, PixelFlag
 from recon.model import (FINE_STEPS, Binning, PulseKernel, ReconSettings, build_kernel,
-                         default_binning, estimate_pulse_rms_s)
+                         default_binning)
 from recon.photons import PhotonStore
 
 #: Pixels per kernel call; progress is reported between chunks.
@@ -30,27 +31,35 @@ def resolve_model(store: PhotonStore, settings: ReconSettings) -> tuple[Binning,
     if b is not None and not math.isclose(b.time_unit_s, store.time_unit_s, rel_tol=1e-9):
         raise InputError(f"binning time unit {b.time_unit_s} s differs from the data's "
                          f"{store.time_unit_s} s")
-    if settings.irf is not None:
-        rms_s = settings.irf.rms_s
+    irf = settings.irf
+    if irf is not None:
+        rms_s = irf.rms_s
+        core_s = irf_core_rms_s(irf)
         notes["pulse_source"] = "irf"
     elif settings.pulse_rms_s is not None:
-        rms_s = settings.pulse_rms_s
+        rms_s = core_s = settings.pulse_rms_s
         notes["pulse_source"] = "given"
     else:
-        sample = store
-        if b is not None or settings.max_photons is not None:
-            lo = b.window_start if b is not None else -np.inf
-            hi = b.window_stop if b is not None else np.inf
-            sample = store.first_in_window(lo, hi, settings.max_photons)
-        rms_s = estimate_pulse_rms_s(sample.times, sample.offsets, store.time_unit_s)
+        # measured from the data: a Gaussian when no tail shows, else the measured shape
+        est = estimate_irf(store, b, settings.max_photons)
         notes["pulse_source"] = "estimated"
+        notes["irf_estimate"] = est.to_dict()
+        core_s = est.core_rms_s
+        if est.method == "emg-pairs" and est.tail_share == 0.0:
+            rms_s = est.core_rms_s
+        else:
+            irf = est.irf
+            rms_s = irf.rms_s
+            notes["irf"] = dict(irf.to_dict(), rms_s=rms_s)
     if b is None:
-        b = default_binning(store.times, store.time_unit_s, rms_s)
+        # bins from the sharp part of the response (a ninth of its RMS): a long tail must not
+        # blur the leading edge
+        b = default_binning(store.times, store.time_unit_s, core_s)
         notes["binning_source"] = "derived from the data's time range"
     else:
         notes["binning_source"] = "given"
-    if settings.irf is not None:
-        kern = build_kernel(b, irf=settings.irf)
+    if irf is not None:
+        kern = build_kernel(b, irf=irf)
     else:
         kern = build_kernel(b, pulse_rms_s=rms_s)
     notes["pulse_rms_s"] = float(rms_s)

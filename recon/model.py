@@ -225,6 +225,33 @@ def load_irf(path) -> Irf:
     return Irf(tuple(arr[:, 0] * 1e-12), tuple(arr[:, 1]), source=str(p))
 
 
+def save_irf(irf: Irf, path) -> Path:
+    """Write ``irf`` in the format :func:`load_irf` reads: ``.npy`` (n, 2) array of time ps and
+    counts for a ``.npy`` name, else CSV text with a ``time_ps,counts`` header and a comment line
+    saying where it came from. Returns the path."""
+    p = Path(path)
+    t, c = irf.arrays()
+    table = np.stack([t * 1e12, c], axis=1)
+    try:
+        if p.suffix.lower() == ".npy":
+            np.save(p, table)
+        else:
+            with open(p, "w", encoding="utf-8") as f:
+                f.write(f"# instrument response, {irf.source or 'spdepth'}; RMS {irf.rms_s * 1e12:.4g} ps\n")
+                f.write("time_ps,counts\n")
+                for a, b in table:
+                    f.write(f"{a:.6f},{b:.9g}\n")
+    except OSError as exc:
+        raise InputError(f"IRF file {p}: cannot write ({exc.strerror or exc})") from None
+    return p
+
+
+def gaussian_irf(rms_s: float, source: str = "Gaussian") -> Irf:
+    """A Gaussian response of RMS ``rms_s`` sampled at a twentieth of it over +-6 RMS."""
+    t = np.linspace(-6.0, 6.0, 241) * rms_s
+    return Irf(tuple(t), tuple(np.exp(-0.5 * (t / rms_s) ** 2)), source=source)
+
+
 METHODS = ("lmf", "uos", "ml")
 
 
@@ -476,6 +503,51 @@ def build_kernel(binning: Binning, pulse_rms_s: float | None = None, irf: Irf | 
 # Pulse width from the data
 
 
+def pair_difference_histogram(times: np.ndarray, offsets: np.ndarray, max_per_pixel: int = 32,
+                              nh: int = 4096) -> tuple[np.ndarray, float]:
+    """Histogram (nh bins from 0, int64) of ``|t_i - t_j|`` over the pairs among the first
+    ``max_per_pixel`` detections of each pixel (raw units), and its bin width. The pulse shape's
+    autocorrelation plus a floor from pairs with a background detection; scene depth cancels.
+    Raises InputError when no pixel's detections differ."""
+    times = np.asarray(times, dtype=np.float64)
+    offsets = np.asarray(offsets, dtype=np.int64)
+    # |dt| of every pair among the first max_per_pixel times of each pixel, histogrammed a block of
+    # pixels at a time: memory stays bounded (keeping every difference of 1 Mpx at 32 detections
+    # took about 4 GB). The range is the largest within-pixel spread, found first.
+    counts = np.minimum(np.diff(offsets), max_per_pixel)
+    starts = offsets[:-1]
+    multi = np.flatnonzero(counts > 1)
+    first = times[starts[multi]]
+    lo_t = first.copy()
+    hi_t = first.copy()
+    for j in range(1, max_per_pixel):
+        sel = counts[multi] > j
+        if not np.any(sel):
+            break
+        tj = times[starts[multi[sel]] + j]
+        lo_t[sel] = np.minimum(lo_t[sel], tj)
+        hi_t[sel] = np.maximum(hi_t[sel], tj)
+    span = float((hi_t - lo_t).max()) if multi.size else 0.0
+    if not span > 0:
+        raise InputError("cannot estimate the pulse width: all detections of each pixel coincide")
+    # fine histogram of |dt| (raw units); step small against any plausible pulse
+    step = span / nh
+    hist = np.zeros(nh, np.int64)
+    block = max(1, PAIR_BLOCK // max(1, max_per_pixel * (max_per_pixel - 1) // 2))
+    for b0 in range(0, multi.size, block):
+        pix = multi[b0:b0 + block]
+        cnt = counts[pix]
+        st = starts[pix]
+        for j in range(1, max_per_pixel):
+            has = cnt > j
+            if not np.any(has):
+                break
+            tj = times[st[has] + j]
+            diffs = np.abs(tj[None, :] - np.stack([times[st[has] + i] for i in range(j)]))
+            hist += np.histogram(diffs, bins=nh, range=(0.0, span + step))[0]
+    return hist, step
+
+
 def estimate_pulse_rms_s(times: np.ndarray, offsets: np.ndarray, time_unit_s: float,
                          max_per_pixel: int = 32) -> float:
     """Estimate the Gaussian pulse RMS width (s) from the data alone.
@@ -494,40 +566,8 @@ def estimate_pulse_rms_s(times: np.ndarray, offsets: np.ndarray, time_unit_s: fl
     if times.size == 0 or np.sum(counts * (counts - 1)) < 20:
         raise InputError("cannot estimate the pulse width: too few pixels with two or more detections; "
                          "give the pulse RMS width or an IRF")
-    # |dt| of every pair among the first max_per_pixel times of each pixel, histogrammed a block of
-    # pixels at a time: memory stays bounded (keeping every difference of 1 Mpx at 32 detections
-    # took about 4 GB). The range is the largest within-pixel spread, found first.
-    starts = offsets[:-1]
-    multi = np.flatnonzero(counts > 1)
-    first = times[starts[multi]]
-    lo_t = first.copy()
-    hi_t = first.copy()
-    for j in range(1, max_per_pixel):
-        sel = counts[multi] > j
-        if not np.any(sel):
-            break
-        tj = times[starts[multi[sel]] + j]
-        lo_t[sel] = np.minimum(lo_t[sel], tj)
-        hi_t[sel] = np.maximum(hi_t[sel], tj)
-    span = float((hi_t - lo_t).max()) if multi.size else 0.0
-    if not span > 0:
-        raise InputError("cannot estimate the pulse width: all detections of each pixel coincide")
-    # fine histogram of |dt| (raw units); step small against any plausible pulse
-    nh = 4096
-    step = span / nh
-    hist = np.zeros(nh, np.int64)
-    block = max(1, PAIR_BLOCK // max(1, max_per_pixel * (max_per_pixel - 1) // 2))
-    for b0 in range(0, multi.size, block):
-        pix = multi[b0:b0 + block]
-        cnt = counts[pix]
-        st = starts[pix]
-        for j in range(1, max_per_pixel):
-            has = cnt > j
-            if not np.any(has):
-                break
-            tj = times[st[has] + j]
-            diffs = np.abs(tj[None, :] - np.stack([times[st[has] + i] for i in range(j)]))
-            hist += np.histogram(diffs, bins=nh, range=(0.0, span + step))[0]
+    hist, step = pair_difference_histogram(times, offsets, max_per_pixel)
+    nh = hist.size
     centers = (np.arange(nh) + 0.5) * step
     # initial width: half-width where the smoothed histogram falls to half its peak above the floor
     smooth = np.convolve(hist, np.ones(5) / 5, mode="same")

@@ -65,6 +65,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     pulse.add_argument("--pulse-rms-ps", type=positive_float, metavar="PS",
                        help="Gaussian pulse RMS width in ps (the seed paper: 360)")
     pulse.add_argument("--irf", metavar="FILE", help="measured instrument response to use instead of a Gaussian")
+    parser.add_argument("--save-irf", metavar="FILE",
+                        help="write the pulse shape used (estimated from the data when neither "
+                             "--pulse-rms-ps nor --irf is given) in the format --irf reads "
+                             "(CSV time_ps,counts; .npy for an (n, 2) array), so it is measured once")
     parser.add_argument("--max-photons", type=positive_int, metavar="N",
                         help="keep the first N in-window detections per pixel (the seed paper: 15)")
     parser.add_argument("--reflectors", type=positive_int, default=1, metavar="K",
@@ -95,7 +99,7 @@ def run_one(args: argparse.Namespace) -> int:
     from acq.readers import read_photons
     from acq.report import ProgressBar
     from recon.estimate import reconstruct
-    from recon.model import Binning, ReconSettings, default_bin_width, load_irf
+    from recon.model import Binning, ReconSettings, default_bin_width, load_irf, save_irf
 
     t0 = time.perf_counter()
     time_unit_s = args.time_unit_ps * 1e-12 if args.time_unit_ps else None
@@ -161,17 +165,23 @@ def run_one(args: argparse.Namespace) -> int:
     photons = int(np.sum(maps.photons))
     if args.out:
         maps.save_npz(args.out)
+    irf_used = _irf_used(maps.settings)
+    if args.save_irf:
+        save_irf(irf_used, args.save_irf)
     if args.png:
         from acq.report import render_maps_png, render_point_png
 
         title = (f"{result.path.rsplit('/', 1)[-1]}: {args.method}, {photons} photons, "
                  f"window {win_u[0] * unit_ps:g}-{win_u[1] * unit_ps:g} ps")
+        t_irf, c_irf = irf_used.arrays()
+        drawn = (t_irf, c_irf, f"{maps.settings['pulse_source']}: RMS "
+                 f"{irf_used.rms_s * 1e12:.0f} ps")
         if result.is_image:
-            render_maps_png(args.png, maps, title=title)
+            render_maps_png(args.png, maps, title=title, irf=drawn)
         else:
             shown = store.first_in_window(win_u[0], win_u[1], args.max_photons)
             render_point_png(args.png, shown.times * store.time_unit_s,
-                             tof_s=float(np.ravel(maps.tof_s)[0]), title=title)
+                             tof_s=float(np.ravel(maps.tof_s)[0]), title=title, irf=drawn)
 
     depth = np.asarray(maps.depth_m, dtype=float)
     finite = depth[np.isfinite(depth)]
@@ -198,10 +208,26 @@ def run_one(args: argparse.Namespace) -> int:
         if finite.size:
             print(f"depth: median {np.median(finite):.4f} m, 2-98% {np.percentile(finite, 2):.4f} to "
                   f"{np.percentile(finite, 98):.4f} m; {finite.size} of {depth.size} pixels estimated")
-        for what, where in (("maps", args.out), ("picture", args.png)):
+        est = maps.settings.get("irf_estimate")
+        if est:
+            tail = (f", tail {est['tail_share']:.0%} of it" + (f" (mean delay {est['tail_tau_s'] * 1e12:.0f} ps)"
+                    if est.get("tail_tau_s") else "")) if est["tail_share"] > 0 else ", no tail"
+            print(f"pulse estimated from the data ({est['method']}): RMS {est['rms_s'] * 1e12:.0f} ps, "
+                  f"core {est['core_rms_s'] * 1e12:.0f} ps, FWHM {est['fwhm_s'] * 1e12:.0f} ps{tail}")
+        for what, where in (("maps", args.out), ("picture", args.png), ("pulse shape", args.save_irf)):
             if where:
                 print(f"{what}: {where}")
     return 0
+
+
+def _irf_used(settings: dict):
+    """The pulse shape a reconstruction used, as an Irf (a sampled Gaussian for a Gaussian pulse)."""
+    from recon.model import Irf, gaussian_irf
+
+    irf = settings.get("irf")
+    if irf:
+        return Irf(tuple(irf["times_s"]), tuple(irf["counts"]), source=irf.get("source", ""))
+    return gaussian_irf(settings["pulse_rms_s"], source=f"Gaussian, {settings['pulse_source']}")
 
 
 def _json_default(value):
