@@ -78,6 +78,10 @@ def connect(spec: str):
     if kind == "remote":
         # Security() from dask's configuration (distributed.comm.tls.*): TLS when it names
         # certificates, as docs/dask.md shows
+        host = value.split("://", 1)[-1].rsplit(":", 1)[0]
+        if not value.startswith("tls://") and host not in ("127.0.0.1", "localhost", "[::1]"):
+            print(f"spdepth recon: {value} is not a tls:// address: the photons and maps cross the "
+                  f"network unencrypted (docs/dask.md shows TLS)", file=sys.stderr)
         with Client(value, timeout="30s") as client:
             yield client
         return
