@@ -63,6 +63,7 @@ def resolve_model(store: PhotonStore, settings: ReconSettings) -> tuple[Binning,
     else:
         kern = build_kernel(b, pulse_rms_s=rms_s)
     notes["pulse_rms_s"] = float(rms_s)
+    notes["pulse_core_rms_s"] = float(min(core_s, rms_s))
     return b, kern, notes
 
 
@@ -141,6 +142,9 @@ def reconstruct(store: PhotonStore, settings: ReconSettings,
     m = b.n_bins
     kk = int(settings.reflectors)
     counts = np.diff(offsets)
+    # returns closer than MERGE_RMS widths of the response's sharp part are one (a long tail does
+    # not blur two surfaces that its leading edges tell apart)
+    merge_bins = MERGE_RMS * notes["pulse_core_rms_s"] / b.bin_width_s
 
     shift = np.full((npix, kk), np.nan)
     amp = np.zeros((npix, kk))
@@ -178,7 +182,7 @@ def reconstruct(store: PhotonStore, settings: ReconSettings,
         elif settings.method == "uos":
             K.uos_kernel(cb, co, m, kern.g, kern.off, kern.gmax, kern.colsum, kern.pp, kern.dg,
                          kk, float(settings.delta), int(settings.max_iterations),
-                         MERGE_RMS * kern.rms_bins, LLR_MIN, maxn,
+                         merge_bins, LLR_MIN, maxn,
                          shift[p0:p1], amp[p0:p1], bg[p0:p1], iters[p0:p1], conv[p0:p1],
                          var[p0:p1], n_used[p0:p1])
         else:

@@ -142,6 +142,25 @@ def _pair_model(d: np.ndarray, sigma: float, share: float, tau: float) -> np.nda
     return 2.0 * ((1 - share) ** 2 * g + mixed * (_emg_pdf(d, s2, tau) + _emg_pdf(-d, s2, tau)))
 
 
+def _first_dip(h: np.ndarray, w: float, sigma0: float) -> float:
+    """Where the pair histogram (bins of w) has its first clear dip before a later rise, in raw
+    units (inf if none). A response's pair density falls monotonically to the floor; pixels seeing
+    two surfaces add pairs at their separation, a bump the fit must not read as a tail."""
+    k = max(1, int(round(sigma0 / w)))
+    sm = np.convolve(h, np.ones(k) / k, mode="same")
+    start = int(np.argmax(sm[:max(2, 3 * k)]))
+    run_min = np.minimum.accumulate(sm[start:])
+    rise = sm[start:] - run_min
+    # a rise of 5 standard errors (of a k-bin mean) above the lowest level reached so far
+    sig = 5.0 * np.sqrt(np.maximum(run_min, 1.0) / k)
+    hit = np.flatnonzero(rise > sig)
+    if hit.size == 0:
+        return np.inf
+    j = start + int(hit[0])
+    dip = start + int(np.argmin(sm[start:j + 1]))
+    return float(max(dip, 3 * k) * w)
+
+
 def fit_emg_pairs(store: PhotonStore) -> tuple[float, float, float, int]:
     """(sigma, share, tau) in raw units of the detector response, fitted to the histogram of
     within-pixel detection-time differences (scene depth cancels in them), and the pairs used.
@@ -151,6 +170,9 @@ def fit_emg_pairs(store: PhotonStore) -> tuple[float, float, float, int]:
     Poisson variance, over |dt| < 60 initial widths. Raises InputError without a clear peak."""
     from scipy.optimize import least_squares
 
+    # integer times: one-unit bins (a fractional bin width combs the histogram: some bins hold
+    # two integer differences, their neighbours none)
+    integral = bool(np.all(np.mod(store.times, 1) == 0))
     hist, step = pair_difference_histogram(store.times, store.offsets)
     # initial width from the peak's half width at half height above the far floor
     smooth = np.convolve(hist, np.ones(5) / 5, mode="same")
@@ -164,13 +186,18 @@ def fit_emg_pairs(store: PhotonStore) -> tuple[float, float, float, int]:
     top = int(np.argmax(smooth[:8]))
     half = top + np.flatnonzero(smooth[top:] < floor0 + 0.5 * (peak - floor0))
     sigma0 = max((half[0] + 0.5) * step if half.size else hist.size * step / 8, step) / 1.1774 / math.sqrt(2)
-    # rebin to about a quarter of the width (integer data in a fractional step comb the histogram)
+    if integral and step < 1.0:
+        hist, step = pair_difference_histogram(store.times, store.offsets, step=1.0)
+    elif integral:
+        # whole units per bin, so the rebinned bins below stay aligned with the integers
+        hist, step = pair_difference_histogram(store.times, store.offsets, step=float(math.ceil(step)))
+    # rebin to about a quarter of the width
     f = max(1, int(sigma0 / 4 / step))
     n = hist.size // f
     h = hist[:n * f].reshape(n, f).sum(axis=1).astype(np.float64)
     w = step * f
     c = (np.arange(n) + 0.5) * w
-    use = c < 60 * sigma0
+    use = c < min(60 * sigma0, _first_dip(h, w, sigma0))
     c, h = c[use], h[use]
     if c.size < 12:
         raise InputError(f"cannot estimate the pulse shape: the detections span too little time; {NO_PEAK_HINT}")
@@ -201,7 +228,9 @@ def fit_emg_pairs(store: PhotonStore) -> tuple[float, float, float, int]:
     if best is None or not best.x[3] > 0:
         raise InputError(f"cannot estimate the pulse shape: no peak of coincident detections; {NO_PEAK_HINT}")
     sig, sh, tau = math.exp(best.x[0]), 1 / (1 + math.exp(-best.x[1])), math.exp(best.x[2])
-    if sh < 1e-3:
+    # a sliver of tail at the longest delay allowed, or beyond the fitted range, is the floor's
+    # slope, not a response
+    if sh < 1e-3 or (sh < 0.05 and tau > 0.5 * c[-1]):
         sh = 0.0
     return sig, sh, tau, int(hist.sum())
 

@@ -504,11 +504,13 @@ def build_kernel(binning: Binning, pulse_rms_s: float | None = None, irf: Irf | 
 
 
 def pair_difference_histogram(times: np.ndarray, offsets: np.ndarray, max_per_pixel: int = 32,
-                              nh: int = 4096) -> tuple[np.ndarray, float]:
+                              nh: int = 4096, step: float | None = None) -> tuple[np.ndarray, float]:
     """Histogram (nh bins from 0, int64) of ``|t_i - t_j|`` over the pairs among the first
     ``max_per_pixel`` detections of each pixel (raw units), and its bin width. The pulse shape's
     autocorrelation plus a floor from pairs with a background detection; scene depth cancels.
-    Raises InputError when no pixel's detections differ."""
+    ``step`` fixes the bin width instead (bins ``[j, j + 1) * step``: give 1.0
+    for integer times, so no bin holds two integers and its neighbour none). Raises InputError
+    when no pixel's detections differ."""
     times = np.asarray(times, dtype=np.float64)
     offsets = np.asarray(offsets, dtype=np.int64)
     # |dt| of every pair among the first max_per_pixel times of each pixel, histogrammed a block of
@@ -531,7 +533,12 @@ def pair_difference_histogram(times: np.ndarray, offsets: np.ndarray, max_per_pi
     if not span > 0:
         raise InputError("cannot estimate the pulse width: all detections of each pixel coincide")
     # fine histogram of |dt| (raw units); step small against any plausible pulse
-    step = span / nh
+    if step is None:
+        step = span / nh
+        edges_hi = span + step
+    else:
+        nh = int(span // step) + 1
+        edges_hi = nh * step
     hist = np.zeros(nh, np.int64)
     block = max(1, PAIR_BLOCK // max(1, max_per_pixel * (max_per_pixel - 1) // 2))
     for b0 in range(0, multi.size, block):
@@ -544,7 +551,7 @@ def pair_difference_histogram(times: np.ndarray, offsets: np.ndarray, max_per_pi
                 break
             tj = times[st[has] + j]
             diffs = np.abs(tj[None, :] - np.stack([times[st[has] + i] for i in range(j)]))
-            hist += np.histogram(diffs, bins=nh, range=(0.0, span + step))[0]
+            hist += np.histogram(diffs, bins=nh, range=(0.0, edges_hi))[0]
     return hist, step
 
 

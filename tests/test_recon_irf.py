@@ -14,7 +14,7 @@ from acq.readers import read_photons
 from recon.errors import InputError
 from recon.estimate import reconstruct
 from recon.irf import emg_response, estimate_irf
-from recon.model import ReconSettings, load_irf
+from recon.model import Binning, ReconSettings, load_irf
 from recon.photons import PhotonStore
 
 UNIT_S = 8e-12
@@ -125,3 +125,41 @@ def test_save_irf_round_trip_and_picture(shared_data, tmp_path, capsys):
     # .npy too
     assert main(["recon", str(src), "--pulse-rms-ps", "300", "--save-irf", str(tmp_path / "g.npy")]) == 0
     assert load_irf(tmp_path / "g.npy").rms_s == pytest.approx(300e-12, rel=1e-3)
+
+
+#: the response measured from fpi/chart_depth.mat by fit_emg_pairs (spdepth recon ... --time-unit-ps 8
+#: prints it): Gaussian core 127 ps RMS, 33% of it delayed by an exponential tail of mean 250 ps
+CHART_RESPONSE_PS = (127.0, 0.33, 250.0)
+
+
+def two_layer(rng, n_pix, k, sbr, sep_m, resp_ps=CHART_RESPONSE_PS, span=4500):
+    """A pane at 2 m before a wall sep_m behind it, half the signal each, k detections per pixel of
+    8 ps units; returns the store and the two true centroids (units)."""
+    s, share, tau = (v / 8.0 if i != 1 else v for i, v in enumerate(resp_ps))
+    t1, t2 = 2 * 2.0 / 299792458.0 / UNIT_S, 2 * (2.0 + sep_m) / 299792458.0 / UNIT_S
+    lists = []
+    for _ in range(n_pix):
+        ns = rng.binomial(k, sbr / (1 + sbr))
+        n1 = rng.binomial(ns, 0.5)
+        x = np.concatenate([t1 + emg_times(rng, n1, s, share, tau), t2 + emg_times(rng, ns - n1, s, share, tau),
+                            rng.uniform(0, span, k - ns)])
+        lists.append(np.floor(x[(x >= 0) & (x < span)]))
+    rms = np.sqrt(s ** 2 + share * tau ** 2 * (2 - share))
+    return PhotonStore.from_lists(lists, (1, n_pix), UNIT_S), (t1 + share * tau, t2 + share * tau), rms
+
+
+@pytest.mark.parametrize("sep_m", [1.5, 0.3])
+def test_two_surfaces_found_with_the_measured_response(sep_m):
+    # 50 detections per pixel, SBR 10, the chart's measured response; no pulse given: both surfaces
+    # within 3 response RMS on at least 80% of pixels (the pair differences across the two surfaces
+    # must not be read as a tail, nor the tail as a surface)
+    rng = np.random.default_rng(14)
+    store, truth, rms = two_layer(rng, 1500, 50, 10.0, sep_m)
+    maps = reconstruct(store, ReconSettings(method="uos", reflectors=2,
+                                            binning=Binning(UNIT_S, 0, 4500, 5)))
+    tof = maps.tof_s.reshape(2, -1) / UNIT_S
+    both = np.ones(tof.shape[1], bool)
+    for t in truth:
+        both &= np.any(np.abs(tof - t) < 3 * rms, axis=0)
+    print(f"two surfaces {sep_m} m apart: both found on {both.mean():.1%} of pixels")
+    assert both.mean() >= 0.8
