@@ -1,7 +1,11 @@
 """The main window: controls, live maps, pixel inspector, accuracy-versus-time plot, status bar.
 
-The session scans on its own thread; a QTimer pulls ``session.snapshot()`` REFRESH_HZ times a second
-(DESIGN.md 4.12) and paints the latest, so a slow paint only skips snapshots, never the scan.
+The session scans on its own thread; a QTimer pulls ``session.snapshot()`` up to REFRESH_HZ times a
+second (DESIGN.md 4.12) and paints the latest, so a slow paint only skips snapshots. Painting still
+costs the GUI thread CPU and, in Python, the GIL that the session's threads (and on the simulated
+bench the devices' threads) need: the timer therefore stretches its period whenever the GUI thread
+was busy more than CPU_BUDGET of the time since the last tick (large maps, a slow machine), down to
+MIN_REFRESH_HZ, and comes back when painting is cheap again.
 """
 
 from __future__ import annotations
@@ -23,8 +27,12 @@ from gui.sources import METHODS, MODES, SourceSpec, open_run, run_dir
 
 log = logging.getLogger(__name__)
 
-REFRESH_HZ = 20
-HISTORY_PERIOD_S = 0.2
+REFRESH_HZ = 10
+"""Snapshots pulled per second while painting is cheap."""
+MIN_REFRESH_HZ = 2
+CPU_BUDGET = 0.05
+"""Share of one core the GUI thread may use during a scan before the refresh slows down."""
+HISTORY_PERIOD_S = 1.0
 """Accuracy-plot points are taken at most this often."""
 CLOSE_WAIT_S = 15.0
 """Closing during a scan: longest wait for the aborted session to write its files."""
@@ -481,8 +489,10 @@ class MainWindow(QtWidgets.QMainWindow):
 
         self.timer = QtCore.QTimer(self)
         self.timer.setInterval(int(1000 / REFRESH_HZ))
-        self.timer.timeout.connect(self.refresh)
+        self.timer.timeout.connect(self._tick)
         self.timer.start()
+        self._tick_cpu = time.thread_time()
+        self._tick_wall = time.monotonic()
         self._restore_settings()
 
     # ---- settings ------------------------------------------------------------------------------
@@ -588,6 +598,21 @@ class MainWindow(QtWidgets.QMainWindow):
         self.refresh()
 
     # ---- the timer -----------------------------------------------------------------------------
+    def _tick(self) -> None:
+        """The timer: refresh, then adapt the period to what the GUI thread has been costing
+        (its CPU time since the last tick, painting included, over the wall time)."""
+        self.refresh()
+        cpu, wall = time.thread_time(), time.monotonic()
+        busy = (cpu - self._tick_cpu) / max(1e-3, wall - self._tick_wall)
+        self._tick_cpu, self._tick_wall = cpu, wall
+        period = self.timer.interval()
+        if self.running() and busy > CPU_BUDGET:
+            period = min(int(1000 / MIN_REFRESH_HZ), int(period * 1.5) + 1)
+        elif busy < CPU_BUDGET / 2:
+            period = max(int(1000 / REFRESH_HZ), int(period / 1.25))
+        if period != self.timer.interval():
+            self.timer.setInterval(period)
+
     def refresh(self) -> None:
         """Pull the latest snapshot and paint what changed (the timer calls this)."""
         run = self.run
