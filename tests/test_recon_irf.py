@@ -163,3 +163,30 @@ def test_two_surfaces_found_with_the_measured_response(sep_m):
         both &= np.any(np.abs(tof - t) < 3 * rms, axis=0)
     print(f"two surfaces {sep_m} m apart: both found on {both.mean():.1%} of pixels")
     assert both.mean() >= 0.8
+
+
+def test_png_draws_a_depth_map_per_surface(tmp_path, capsys):
+    # a 20 x 20 two-layer .mat file: --reflectors 2 --png draws depth for surface 1 and surface 2
+    import scipy.io
+
+    rng = np.random.default_rng(15)
+    store, _, _ = two_layer(rng, 400, 50, 10.0, 1.5)
+    cells = np.empty((20, 20), dtype=object)
+    for p in range(400):
+        cells[p // 20, p % 20] = store.times[store.offsets[p]:store.offsets[p + 1]].reshape(-1, 1)
+    src = tmp_path / "two_layer.mat"
+    scipy.io.savemat(src, {"Ts": cells})
+    one, two = tmp_path / "k1.png", tmp_path / "k2.png"
+    assert main(["recon", str(src), "--time-unit-ps", "8", "--png", str(one)]) == 0
+    assert main(["recon", str(src), "--time-unit-ps", "8", "--reflectors", "2", "--png", str(two),
+                 "--out", str(tmp_path / "k2.npz")]) == 0
+    out = capsys.readouterr().out
+    assert "pulse estimated from the data" in out
+    # one more panel (the second surface's depth) than the single-surface sheet
+    w1, w2 = imread(one).shape[1], imread(two).shape[1]
+    assert w2 / w1 == pytest.approx(5 / 4, rel=0.05)
+    with np.load(tmp_path / "k2.npz") as z:
+        depth = z["depth_m"]
+    assert depth.shape == (2, 20, 20)
+    assert np.nanmedian(depth[0]) == pytest.approx(2.0 + 0.33 * 250e-12 * 299792458.0 / 2, abs=0.03)
+    assert np.nanmedian(depth[1]) == pytest.approx(3.5 + 0.33 * 250e-12 * 299792458.0 / 2, abs=0.03)

@@ -205,9 +205,13 @@ def run_one(args: argparse.Namespace) -> int:
         print(f"{result.path}: {store.shape[0]} x {store.shape[1]} pixels, {photons} photons used "
               f"(of {store.n_photons}), window {win_u[0] * unit_ps:g}:{win_u[1] * unit_ps:g} ps; "
               f"read {read_s:.2f} s, {args.method} {recon_s:.2f} s")
-        if finite.size:
-            print(f"depth: median {np.median(finite):.4f} m, 2-98% {np.percentile(finite, 2):.4f} to "
-                  f"{np.percentile(finite, 98):.4f} m; {finite.size} of {depth.size} pixels estimated")
+        surfaces = depth if depth.ndim == 3 else depth[None]
+        for r, surf in enumerate(surfaces):
+            got = surf[np.isfinite(surf)]
+            if got.size:
+                which = f"surface {r + 1} " if depth.ndim == 3 else ""
+                print(f"{which}depth: median {np.median(got):.4f} m, 2-98% {np.percentile(got, 2):.4f} "
+                      f"to {np.percentile(got, 98):.4f} m; {got.size} of {surf.size} pixels estimated")
         est = maps.settings.get("irf_estimate")
         if est:
             tail = (f", tail {est['tail_share']:.0%} of it" + (f" (mean delay {est['tail_tau_s'] * 1e12:.0f} ps)"
