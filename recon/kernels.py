@@ -498,6 +498,212 @@ def refit_nonneg(supp, amp, ns, use_bg, cvec, colsum, ntot, m, pp, off, nk, inv_
             ns -= 1
 
 
+@njit(cache=True, nogil=True)
+def uos_scatter(kb, kw, nu, cvec, grev, inv_gmax, nk, off, m):
+    """c_i = S_i^T y (peak-1 columns) scattered from the photons into cvec (all zero before)."""
+    for u in range(nu):
+        k = kb[u]
+        wu = kw[u] * inv_gmax
+        ilo = max(0, k - (nk - 1 - off))
+        ihi = min(m - 1, k + off)
+        sh = nk - 1 - k - off      # g[k - i + off] == grev[i + sh]: forward, vectorisable
+        # through slices indexed from 0: numba's negative-index wraparound on ``i + sh``
+        # kept LLVM from vectorising this loop (3x slower, the largest cost of a pixel)
+        cv = cvec[ilo:ihi + 1]
+        gr = grev[ilo + sh:ihi + 1 + sh]
+        for t in range(cv.size):
+            cv[t] += wu * gr[t]
+
+
+@njit(cache=True, nogil=True)
+def uos_proxy(prox, cvec, colsum, bgc, supp, amp, ns, inv_g2, acorr, nk, m, pp, off):
+    """The dense proxy A^T (y - A x) for K > 1: ``cvec - bgc * colsum`` minus each support
+    column's inner products (the autocorrelation for a column inside the window)."""
+    for i in range(m):
+        prox[i] = cvec[i] - bgc * colsum[i]
+    for s in range(ns):
+        j = supp[s]
+        aj = amp[s] * inv_g2
+        ilo = max(0, j - (nk - 1))
+        ihi = min(m - 1, j + (nk - 1))
+        if j - off >= 0 and j + (nk - 1 - off) < m:
+            for i in range(ilo, ihi + 1):
+                prox[i] -= aj * acorr[i - j + nk - 1]
+        else:
+            for i in range(ilo, ihi + 1):
+                prox[i] -= aj * col_dot(i, j, m, pp, off, nk)
+
+
+@njit(cache=True, nogil=True)
+def top_k(prox, m, kk, taken, newi):
+    """The kk largest entries of prox[:m] into newi (first index among ties, like a descending
+    sort; -1 when fewer); taken is all False before and after."""
+    for r in range(kk):
+        best = -np.inf
+        bi = -1
+        for i in range(m):
+            if not taken[i] and prox[i] > best:
+                best = prox[i]
+                bi = i
+        newi[r] = bi
+        if bi >= 0:
+            taken[bi] = True
+    for r in range(kk):
+        if newi[r] >= 0:
+            taken[newi[r]] = False
+
+
+@njit(cache=True, nogil=True)
+def union_support(newi, kk, supp, ns, om):
+    """Omega = new indices U previous support, sorted and distinct, into om; returns its size."""
+    nd = 0
+    for r in range(kk):
+        if newi[r] >= 0:
+            om[nd] = newi[r]
+            nd += 1
+    for s in range(ns):
+        dup = False
+        for t in range(nd):
+            if om[t] == supp[s]:
+                dup = True
+        if not dup:
+            om[nd] = supp[s]
+            nd += 1
+    for a in range(1, nd):
+        v = om[a]
+        b = a - 1
+        while b >= 0 and om[b] > v:
+            om[b + 1] = om[b]
+            b -= 1
+        om[b + 1] = v
+    return nd
+
+
+@njit(cache=True, nogil=True)
+def solve_support(om, nd, cvec, colsum, ntot, m, pp, off, nk, inv_gmax, inv_g2, gram, rhs, work, vecs,
+                  vals, sol):
+    """Least squares of y on the columns om[:nd] and the background column (pinv, via the Gram
+    matrix): sol[:nd] depth coefficients, sol[nd] background. Returns True if any is negative."""
+    for a in range(nd):
+        for b in range(a, nd):
+            gab = col_dot(om[a], om[b], m, pp, off, nk) * inv_g2
+            gram[a, b] = gab
+            gram[b, a] = gab
+        gram[a, nd] = colsum[om[a]] * inv_gmax
+        gram[nd, a] = gram[a, nd]
+        rhs[a] = cvec[om[a]]
+    gram[nd, nd] = float(m)
+    rhs[nd] = ntot
+    pinv_solve(gram, rhs, nd + 1, work, vecs, vals, sol)
+    for a in range(nd + 1):
+        if sol[a] < 0.0:
+            return True
+    return False
+
+
+@njit(cache=True, nogil=True)
+def keep_largest(sol, nd, kk, om, nsupp, namp):
+    """The kk largest positive depth coefficients of sol[:nd] (T_0 drops the rest), as column
+    indices nsupp and amplitudes namp; returns how many."""
+    nn = 0
+    for r in range(kk):
+        best = -np.inf
+        bi = -1
+        for a in range(nd):
+            if sol[a] > best:
+                dup = False
+                for t in range(nn):
+                    if nsupp[t] == a:
+                        dup = True
+                if not dup:
+                    best = sol[a]
+                    bi = a
+        if bi < 0 or not best > 0.0:
+            break
+        nsupp[nn] = bi
+        namp[nn] = best
+        nn += 1
+    for t in range(nn):
+        nsupp[t] = om[nsupp[t]]
+    return nn
+
+
+@njit(cache=True, nogil=True)
+def change_norm(supp, amp, ns, nsupp, namp, nn, bg, nbg):
+    """(||x_k - x_{k-1}||^2 over the union of the two supports, ||x_k||^2)."""
+    diff = (nbg - bg) * (nbg - bg)
+    for t in range(nn):
+        prev = 0.0
+        for s in range(ns):
+            if supp[s] == nsupp[t]:
+                prev = amp[s]
+        diff += (namp[t] - prev) * (namp[t] - prev)
+    for s in range(ns):
+        found = False
+        for t in range(nn):
+            if supp[s] == nsupp[t]:
+                found = True
+        if not found:
+            diff += amp[s] * amp[s]
+    xnorm2 = nbg * nbg
+    for t in range(nn):
+        xnorm2 += namp[t] * namp[t]
+    return diff, xnorm2
+
+
+@njit(cache=True, nogil=True)
+def merge_close(supp, amp, ns, merge_bins, pos):
+    """Sort the returns by shift, then merge those closer than merge_bins into one at their
+    amplitude-weighted position (amp[:nm] summed, pos[:nm] positions); returns nm."""
+    for a in range(1, ns):
+        v = supp[a]
+        va = amp[a]
+        b = a - 1
+        while b >= 0 and supp[b] > v:
+            supp[b + 1] = supp[b]
+            amp[b + 1] = amp[b]
+            b -= 1
+        supp[b + 1] = v
+        amp[b + 1] = va
+    for s in range(ns):
+        pos[s] = supp[s]
+    nm = 0
+    for s in range(ns):
+        if nm > 0 and pos[s] - pos[nm - 1] < merge_bins:
+            at = amp[nm - 1] + amp[s]
+            pos[nm - 1] = (pos[nm - 1] * amp[nm - 1] + pos[s] * amp[s]) / at
+            amp[nm - 1] = at
+        else:
+            pos[nm] = pos[s]
+            amp[nm] = amp[s]
+            nm += 1
+    return nm
+
+
+@njit(cache=True, nogil=True)
+def return_llr(s, pos, amp, nm, bg, kb, kw, nu, g, off, nk, colsum):
+    """Poisson log-likelihood lost by dropping return s of nm (unit-area amplitudes)."""
+    js = int(pos[s] + 0.5)
+    llr = -amp[s] * colsum[js]
+    for u in range(nu):
+        lam = bg
+        mine = 0.0
+        for t in range(nm):
+            jt = int(pos[t] + 0.5)
+            d = kb[u] - jt + off
+            if d >= 0 and d < nk:
+                v = amp[t] * g[d]
+                lam += v
+                if t == s:
+                    mine = v
+        rest = lam - mine
+        if mine > 0.0:
+            if rest <= 0.0:
+                return np.inf
+            llr += kw[u] * math.log(lam / rest)
+    return llr
+
+
 @njit(parallel=True, cache=True, nogil=True)
 def uos_kernel(bins, offsets, m, g, off, gmax, colsum, pp, dg, n_refl, delta, max_iter,
                merge_bins, llr_min, maxn,
@@ -512,6 +718,11 @@ def uos_kernel(bins, offsets, m, g, off, gmax, colsum, pp, dg, n_refl, delta, ma
     out_var[p, r]: shift variance (bins^2, Fisher information); out_n[p]: photons.
     For K > 1, returns closer than merge_bins are merged (amplitude-weighted) and a return is kept only
     if dropping it costs more than llr_min in Poisson log-likelihood.
+
+    Per pixel: uos_scatter (S^T y), then iterations of: proxy argmax (uos1_argmax for K = 1,
+    pruned; uos_proxy + top_k for K > 1) -> union_support -> solve_support -> keep_largest ->
+    change_norm; then refit_nonneg if the last fit was clipped, and for K > 1 merge_close and
+    return_llr.
     """
     npix = offsets.size - 1
     nblk = (npix + BLOCK - 1) // BLOCK
@@ -550,6 +761,7 @@ def uos_kernel(bins, offsets, m, g, off, gmax, colsum, pp, dg, n_refl, delta, ma
         rhs = np.empty(3 * kk + 1)
         sol = np.empty(3 * kk + 1)
         taken = np.zeros(m, np.bool_)
+        pos = np.empty(kk)
         for p in range(blk * BLOCK, min(npix, (blk + 1) * BLOCK)):
             o0 = offsets[p]
             o1 = offsets[p + 1]
@@ -567,21 +779,9 @@ def uos_kernel(bins, offsets, m, g, off, gmax, colsum, pp, dg, n_refl, delta, ma
             ntot = 0.0
             for u in range(nu):
                 ntot += kw[u]
-            # c_i = S_i^T y (peak-1 columns), scattered from the photons into cvec, which is all zero
-            # between pixels (only the photon intervals are touched, and reset after the pixel)
+            # cvec is all zero between pixels: only the photon intervals are touched, reset below
             niv = photon_intervals(kb, nu, nk - 1 - off, off, m, ivlo, ivhi)
-            for u in range(nu):
-                k = kb[u]
-                wu = kw[u] * inv_gmax
-                ilo = max(0, k - (nk - 1 - off))
-                ihi = min(m - 1, k + off)
-                sh = nk - 1 - k - off      # g[k - i + off] == grev[i + sh]: forward, vectorisable
-                # through slices indexed from 0: numba's negative-index wraparound on ``i + sh``
-                # kept LLVM from vectorising this loop (3x slower, the largest cost of a pixel)
-                cv = cvec[ilo:ihi + 1]
-                gr = grev[ilo + sh:ihi + 1 + sh]
-                for t in range(cv.size):
-                    cv[t] += wu * gr[t]
+            uos_scatter(kb, kw, nu, cvec, grev, inv_gmax, nk, off, m)
             ns = 0          # support size
             bg = 0.0
             it = 0
@@ -589,136 +789,27 @@ def uos_kernel(bins, offsets, m, g, off, gmax, colsum, pp, dg, n_refl, delta, ma
             conv = False
             while it < max_iter:
                 it += 1
-                # proxy A^T u = A^T y - A^T A x, via column sums and column inner products
+                # the proxy A^T (y - A x) and its largest entries
                 if kk == 1:
                     newi[0] = uos1_argmax(cvec, colsum, cmin, bg * inv_gmax, ns, supp[0] if ns > 0 else 0,
                                           amp[0] * inv_g2 if ns > 0 else 0.0, acorr, nk, m, pp, off,
                                           ivlo, ivhi, niv)
-                    fused = True
                 else:
-                    fused = False
-                for i in range(m if not fused else 0):
-                    prox[i] = cvec[i] - bg * colsum[i] * inv_gmax
-                for s in range(ns if not fused else 0):
-                    j = supp[s]
-                    aj = amp[s] * inv_g2
-                    ilo = max(0, j - (nk - 1))
-                    ihi = min(m - 1, j + (nk - 1))
-                    if j - off >= 0 and j + (nk - 1 - off) < m:
-                        # column j lies inside the window: S_i^T S_j is the autocorrelation
-                        for i in range(ilo, ihi + 1):
-                            prox[i] -= aj * acorr[i - j + nk - 1]
-                    else:
-                        for i in range(ilo, ihi + 1):
-                            prox[i] -= aj * col_dot(i, j, m, pp, off, nk)
-                # the K largest proxy entries (first index among ties, like sort 'descend')
-                if kk == 1 and not fused:
-                    best = -np.inf
-                    bi = -1
-                    for i in range(m):
-                        if prox[i] > best:
-                            best = prox[i]
-                            bi = i
-                    newi[0] = bi
-                for r in range(kk if kk > 1 else 0):
-                    best = -np.inf
-                    bi = -1
-                    for i in range(m):
-                        if not taken[i] and prox[i] > best:
-                            best = prox[i]
-                            bi = i
-                    newi[r] = bi
-                    if bi >= 0:
-                        taken[bi] = True
-                for r in range(kk if kk > 1 else 0):
-                    if newi[r] >= 0:
-                        taken[newi[r]] = False
-                # Omega = new U previous support (sorted, distinct) U {background}
-                nd = 0
-                for r in range(kk):
-                    if newi[r] >= 0:
-                        om[nd] = newi[r]
-                        nd += 1
-                for s in range(ns):
-                    dup = False
-                    for t in range(nd):
-                        if om[t] == supp[s]:
-                            dup = True
-                    if not dup:
-                        om[nd] = supp[s]
-                        nd += 1
-                for a in range(1, nd):
-                    v = om[a]
-                    b = a - 1
-                    while b >= 0 and om[b] > v:
-                        om[b + 1] = om[b]
-                        b -= 1
-                    om[b + 1] = v
-                for a in range(nd):
-                    for b in range(a, nd):
-                        gab = col_dot(om[a], om[b], m, pp, off, nk) * inv_g2
-                        gram[a, b] = gab
-                        gram[b, a] = gab
-                    gram[a, nd] = colsum[om[a]] * inv_gmax
-                    gram[nd, a] = gram[a, nd]
-                    rhs[a] = cvec[om[a]]
-                gram[nd, nd] = float(m)
-                rhs[nd] = ntot
-                pinv_solve(gram, rhs, nd + 1, work, vecs, vals, sol)
-                clipped_ls = False
-                for a in range(nd + 1):
-                    if sol[a] < 0.0:
-                        clipped_ls = True
-                # keep the K largest depth coefficients, then T_0 (non-negativity)
-                nn = 0
-                for r in range(kk):
-                    best = -np.inf
-                    bi = -1
-                    for a in range(nd):
-                        if sol[a] > best:
-                            dup = False
-                            for t in range(nn):
-                                if nsupp[t] == a:
-                                    dup = True
-                            if not dup:
-                                best = sol[a]
-                                bi = a
-                    if bi < 0:
-                        break
-                    if best > 0.0:
-                        nsupp[nn] = bi
-                        namp[nn] = best
-                        nn += 1
-                    else:
-                        break
-                for t in range(nn):
-                    nsupp[t] = om[nsupp[t]]
+                    uos_proxy(prox, cvec, colsum, bg * inv_gmax, supp, amp, ns, inv_g2, acorr, nk, m, pp, off)
+                    top_k(prox, m, kk, taken, newi)
+                nd = union_support(newi, kk, supp, ns, om)
+                clipped_ls = solve_support(om, nd, cvec, colsum, ntot, m, pp, off, nk, inv_gmax, inv_g2,
+                                           gram, rhs, work, vecs, vals, sol)
+                nn = keep_largest(sol, nd, kk, om, nsupp, namp)
                 nbg = sol[nd] if sol[nd] > 0.0 else 0.0
-                # ||x_k - x_{k-1}||^2 over the union of the two supports
-                diff = (nbg - bg) * (nbg - bg)
-                for t in range(nn):
-                    prev = 0.0
-                    for s in range(ns):
-                        if supp[s] == nsupp[t]:
-                            prev = amp[s]
-                    diff += (namp[t] - prev) * (namp[t] - prev)
-                for s in range(ns):
-                    found = False
-                    for t in range(nn):
-                        if supp[s] == nsupp[t]:
-                            found = True
-                    if not found:
-                        diff += amp[s] * amp[s]
-                # relative for large x: the paper's absolute test (peak-1 columns) reads a change of
-                # 1e-2 in an amplitude of 10^4 as not converged, so high-count pixels hit the cap
-                xnorm2 = nbg * nbg
-                for t in range(nn):
-                    xnorm2 += namp[t] * namp[t]
+                diff, xnorm2 = change_norm(supp, amp, ns, nsupp, namp, nn, bg, nbg)
                 ns = nn
                 for t in range(nn):
                     supp[t] = nsupp[t]
                     amp[t] = namp[t]
                 bg = nbg
+                # relative for large x: the paper's absolute test (peak-1 columns) reads a change of
+                # 1e-2 in an amplitude of 10^4 as not converged, so high-count pixels hit the cap
                 if diff < delta * max(1.0, xnorm2):
                     conv = True
                     break
@@ -734,60 +825,14 @@ def uos_kernel(bins, offsets, m, g, off, gmax, colsum, pp, dg, n_refl, delta, ma
             for s in range(ns):
                 amp[s] = amp[s] * inv_gmax
             if kk > 1 and ns > 1:
-                # sort by shift, then merge returns closer than merge_bins into the stronger one
-                for a in range(1, ns):
-                    v = supp[a]
-                    va = amp[a]
-                    b = a - 1
-                    while b >= 0 and supp[b] > v:
-                        supp[b + 1] = supp[b]
-                        amp[b + 1] = amp[b]
-                        b -= 1
-                    supp[b + 1] = v
-                    amp[b + 1] = va
-                pos = np.empty(ns)
-                for s in range(ns):
-                    pos[s] = supp[s]
-                nm = 0
-                for s in range(ns):
-                    if nm > 0 and pos[s] - pos[nm - 1] < merge_bins:
-                        at = amp[nm - 1] + amp[s]
-                        pos[nm - 1] = (pos[nm - 1] * amp[nm - 1] + pos[s] * amp[s]) / at
-                        amp[nm - 1] = at
-                    else:
-                        pos[nm] = pos[s]
-                        amp[nm] = amp[s]
-                        nm += 1
-                # likelihood-ratio support test for each return
-                keep = np.zeros(nm, np.bool_)
-                for s in range(nm):
-                    js = int(pos[s] + 0.5)
-                    llr = -amp[s] * colsum[js]
-                    for u in range(nu):
-                        lam = bg
-                        mine = 0.0
-                        for t in range(nm):
-                            jt = int(pos[t] + 0.5)
-                            d = kb[u] - jt + off
-                            if d >= 0 and d < nk:
-                                v = amp[t] * g[d]
-                                lam += v
-                                if t == s:
-                                    mine = v
-                        rest = lam - mine
-                        if mine > 0.0:
-                            if rest <= 0.0:
-                                llr = np.inf
-                                break
-                            llr += kw[u] * math.log(lam / rest)
-                    keep[s] = llr > llr_min
+                nm = merge_close(supp, amp, ns, merge_bins, pos)
                 r = 0
                 for s in range(nm):
-                    if keep[s]:
-                        js = int(pos[s] + 0.5)
+                    # kept only if dropping it (from all nm merged returns) costs more than llr_min
+                    if return_llr(s, pos, amp, nm, bg, kb, kw, nu, g, off, nk, colsum) > llr_min:
                         out_shift[p, r] = pos[s]
                         out_amp[p, r] = amp[s]
-                        out_var[p, r] = fisher_var(js, amp[s], bg, m, g, dg, off)
+                        out_var[p, r] = fisher_var(int(pos[s] + 0.5), amp[s], bg, m, g, dg, off)
                         r += 1
             elif ns >= 1:
                 out_shift[p, 0] = supp[0]
