@@ -115,11 +115,14 @@ def recon_file(options: dict) -> dict:
     from acq.commands import recon
 
     ns = argparse.Namespace(**dict(options, json=True, dask=None))
-    buf = io.StringIO()
+    out, err = io.StringIO(), io.StringIO()
     # redirect_stdout is process-wide: one task at a time may hold it
-    with _STDOUT_LOCK, contextlib.redirect_stdout(buf):
+    with _STDOUT_LOCK, contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
         recon.run_one(ns)
-    return json.loads(buf.getvalue().strip().splitlines()[-1])
+    summary = json.loads(out.getvalue().strip().splitlines()[-1])
+    # the command's notes travel back to the client (progress bars stay on the worker)
+    summary["notes"] = [ln for ln in err.getvalue().splitlines() if ln.startswith("spdepth recon:")]
+    return summary
 
 
 def _per_file(args: argparse.Namespace, client) -> list[dict]:
@@ -240,19 +243,26 @@ def chunk_task(plan: Plan, i: int, keep_channel: int | None) -> list[tuple[np.nd
     order = np.argsort(block, kind="stable")
     pixel, dtime, block = pixel[order], dtime[order], block[order]
     bounds = np.searchsorted(block, np.arange(len(plan.rows)))
-    return [(pixel[bounds[b]:bounds[b + 1]], dtime[bounds[b]:bounds[b + 1]])
+    # copies: each block's share is its own object, moved alone to the worker that needs it
+    return [(pixel[bounds[b]:bounds[b + 1]].copy(), dtime[bounds[b]:bounds[b + 1]].copy())
             for b in range(len(plan.rows) - 1)]
 
 
-def block_task(plan: Plan, b: int, settings, time_unit_s: float, *chunks):
-    """Reconstruct block b (rows ``plan.rows[b]:plan.rows[b + 1]``) from every chunk's share."""
+def _share(chunk: list, b: int):
+    """Block b's share of one chunk task's output (a task of its own, so only it moves)."""
+    return chunk[b]
+
+
+def block_task(plan: Plan, b: int, settings, time_unit_s: float, *shares):
+    """Reconstruct block b (rows ``plan.rows[b]:plan.rows[b + 1]``) from its share of every chunk,
+    in chunk order."""
     from recon.estimate import reconstruct
     from recon.photons import PhotonStore
 
     r0, r1 = plan.rows[b], plan.rows[b + 1]
     w = plan.shape[1]
-    pixel = np.concatenate([c[b][0] for c in chunks]) - r0 * w
-    dtime = np.concatenate([c[b][1] for c in chunks])
+    pixel = np.concatenate([s[0] for s in shares]) - r0 * w
+    dtime = np.concatenate([s[1] for s in shares])
     store = PhotonStore.from_pixel_indices(pixel, dtime, (r1 - r0, w), time_unit_s)
     return reconstruct(store, settings)
 
@@ -270,12 +280,15 @@ def reconstruct_blocks(client, plan: Plan, settings, time_unit_s: float, keep_ch
                        on_submitted=None):
     """Maps of the whole recording, computed as chunk and block tasks on ``client``.
     ``on_submitted(futures)`` is called once everything is submitted (tests kill a worker there)."""
+    n_blocks = len(plan.rows) - 1
     chunks = [client.submit(chunk_task, plan, i, keep_channel, pure=False)
               for i in range(len(plan.starts))]
-    blocks = [client.submit(block_task, plan, b, settings, time_unit_s, *chunks, pure=False)
-              for b in range(len(plan.rows) - 1)]
+    shares = [[client.submit(_share, c, b, pure=False) for c in chunks] for b in range(n_blocks)]
+    blocks = [client.submit(block_task, plan, b, settings, time_unit_s, *shares[b], pure=False)
+              for b in range(n_blocks)]
     if on_submitted is not None:
         on_submitted(chunks + blocks)
+    del chunks, shares      # the scheduler keeps what the blocks still need, and how to remake it
     return assemble(client.gather(blocks))
 
 
@@ -344,6 +357,8 @@ def run(args: argparse.Namespace) -> int:
         summaries = [summary] if summary is not None else _per_file(args, client)
     wall = time.perf_counter() - t0
     for s in summaries:
+        for note in s.pop("notes", ()):
+            print(note, file=sys.stderr)
         if args.json:
             print(json.dumps(s, default=str))
         else:
