@@ -285,9 +285,19 @@ class Inspector(QtWidgets.QWidget):
         tof = float(maps.tof_s[r, c])
         bg = float(maps.background[r, c])
         sig = float(maps.signal[r, c])
+        # display bins about half the pulse RMS wide (raw 40 ps bins hold 0 or 1 photon each)
+        rms_bins = (settings.pulse_rms_s or 0.0) / b.bin_width_s
         ph = pixel_histogram(times, b, tof_s=tof, background=bg, signal=sig,
-                             pulse_rms_s=settings.pulse_rms_s, irf=settings.irf)
+                             pulse_rms_s=settings.pulse_rms_s, irf=settings.irf,
+                             display_bins=int(b.n_bins / max(1.0, rms_bins / 2)))
         self.hist.setData(ph.edges_s, ph.counts)
+        if math.isfinite(tof) and settings.pulse_rms_s:
+            # the pulse is a sliver of the window: show its neighbourhood (the "A" button: all)
+            half = max(3e-9, 10 * settings.pulse_rms_s)
+            self.plot.setXRange(tof - half, tof + half, padding=0)
+        else:
+            self.plot.setXRange(ph.edges_s[0], ph.edges_s[-1], padding=0)
+        self.plot.enableAutoRange(axis="y")
         centres = 0.5 * (ph.edges_s[1:] + ph.edges_s[:-1])
         self.model.setData(centres, ph.model) if ph.model is not None else self.model.setData([], [])
         self.pixel = pixel
