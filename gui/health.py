@@ -1,9 +1,11 @@
-"""Device health for the status bar, derived from the session's snapshots alone.
+"""Device health for the status bar, from the session's own per-device verdict (``Snapshot.health``:
+"ok", "recovering", "failed" or "replay" for the galvo and the tagger).
 
-The snapshot has no live device state, so health is read from what it does carry: the faults the
-session logged (``lost-data`` appears as soon as the stream says so; reconnect counts only at the
-end), the state and error, and whether detections still arrive while the scan runs (a tagger that
-left the bus shows first as a stream that went quiet).
+The session marks a device "recovering" once a loss, reconnect or fault of that device has been
+recorded (for HEALTH_RECENT_S). While a device is still gone nothing is recorded yet (the tagger's
+reconnect is counted when it succeeds, the lost span when the stream resumes), so a secondary hint
+remains: a running scan whose detections stopped for STALL_S shows "no data" until the session's
+verdict catches up.
 """
 
 from __future__ import annotations
@@ -13,22 +15,24 @@ from dataclasses import dataclass
 STALL_S = 0.75
 """Running without a new detection this long counts as a stalled stream (a gated dwell limit on the
 simulated bench is tens of ms; a real dark pixel is capped by the dwell limit too)."""
-RECENT_FAULT_S = 1.5
-"""A lost span or fault this recent keeps the indicator amber while the scan recovers."""
 
-OK, RECOVERED, RECONNECTING, FAILED, IDLE = "ok", "recovered", "reconnecting", "failed", "idle"
+DEVICES = ("galvo", "tagger")
+OK, RECOVERED, RECOVERING, FAILED, IDLE = "ok", "recovered", "recovering", "failed", "idle"
 
-COLOURS = {OK: "#2e9d4a", RECOVERED: "#2e9d4a", RECONNECTING: "#e0a800", FAILED: "#d0342c",
+COLOURS = {OK: "#2e9d4a", RECOVERED: "#2e9d4a", RECOVERING: "#e0a800", FAILED: "#d0342c",
            IDLE: "#8a8a8a"}
-
-_DEVICE_WORDS = ("device", "tagger", "galvo", "usb", "serial", "port", "stream")
+_TERMINAL = ("done", "aborted", "failed")
 
 
 @dataclass(frozen=True)
 class Health:
+    """level: one of ok, recovered (faults seen, all well now), recovering, failed, idle;
+    text: what the indicator says; devices: the per-device words shown."""
+
     level: str
     text: str
     tooltip: str = ""
+    devices: tuple = ()
 
     @property
     def colour(self) -> str:
@@ -51,26 +55,38 @@ class HealthTracker:
         faults = list(snap.faults)
         tip = "\n".join(f"{f['t_s']:.1f} s  {f['kind']}: {f['what']} ({f['action']})"
                         for f in faults[-8:])
-        n = len(faults)
-        what = "devices" if self.live else "recording"
-        if snap.state == "failed":
-            err = snap.error or "session failed"
-            dev = any(w in err.lower() for w in _DEVICE_WORDS)
-            self.health = Health(FAILED, f"{'device ' if dev else ''}failed", f"{err}\n{tip}".strip())
-        elif snap.state == "running" and snap.pixels_final < snap.pixels_total \
-                and t - self._last_det_t > STALL_S and self._last_det_t > 0:
-            self.health = Health(RECONNECTING, f"no data {t - self._last_det_t:.1f} s: reconnecting",
-                                 tip)
-        elif snap.state == "running" and faults and t - faults[-1]["t_s"] < RECENT_FAULT_S:
-            self.health = Health(RECONNECTING, f"{faults[-1]['kind']}: recovering", tip)
-        elif snap.state in ("idle", "armed") and not faults:
-            self.health = Health(IDLE if snap.state == "idle" else OK,
-                                 "connecting" if snap.state == "idle" else f"{what} ready", tip)
+        ended = snap.state in _TERMINAL
+        per = dict(snap.health or {})
+        if not self.live or "replay" in per.values():
+            level = FAILED if snap.state == "failed" else (IDLE if snap.state == "idle" else OK)
+            text = f"recording {'failed' if level == FAILED else 'ok'}"
+            tip = f"{snap.error}\n{tip}".strip() if snap.error else tip
+            self.health = Health(level, text, tip, (("recording", text.split()[1]),))
+            return self.health
+        words = {d: per.get(d, "ok") for d in DEVICES}
+        if ended:       # nothing recovers after the end: a recent fault is history now
+            words = {d: ("ok" if w == "recovering" else w) for d, w in words.items()}
+        stalled = (snap.state == "running" and snap.pixels_final < snap.pixels_total
+                   and self._last_det_t > 0 and t - self._last_det_t > STALL_S)
+        text = " · ".join(f"{d} {w}" for d, w in words.items())
+        if FAILED in words.values():
+            level = FAILED
+            tip = f"{snap.error or 'session failed'}\n{tip}".strip()
+        elif RECOVERING in words.values():
+            level = RECOVERING
+        elif stalled:
+            level = RECOVERING
+            text += f" · no data {t - self._last_det_t:.1f} s"
+        elif snap.state == "idle":
+            level, text = IDLE, "connecting"
         elif faults:
-            self.health = Health(RECOVERED, f"{what} ok ({n} fault{'s' * (n != 1)} recovered)", tip)
+            n = len(faults)
+            level = RECOVERED
+            text += f" ({n} fault{'s' * (n != 1)} recovered)"
         else:
-            self.health = Health(OK, f"{what} ok", tip)
+            level = OK
+        self.health = Health(level, text, tip or text, tuple(words.items()))
         return self.health
 
 
-__all__ = ["Health", "HealthTracker", "STALL_S", "RECENT_FAULT_S"]
+__all__ = ["Health", "HealthTracker", "STALL_S", "DEVICES"]
