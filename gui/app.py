@@ -4,6 +4,7 @@ started at once, a screenshot at the end of the scan, and exit after it."""
 from __future__ import annotations
 
 import logging
+import os
 import sys
 from pathlib import Path
 
@@ -11,6 +12,23 @@ log = logging.getLogger(__name__)
 
 WINDOW_SIZE = (1480, 900)
 """Default window size (width, height): four maps, the controls and the inspector all legible."""
+
+
+HEADLESS_PLATFORMS = ("offscreen", "minimal")
+
+
+def display_available(environ=None, platform: str | None = None) -> bool:
+    """Whether a window can be shown: on Linux (and other X11/Wayland systems) DISPLAY or
+    WAYLAND_DISPLAY set and QT_QPA_PLATFORM not offscreen/minimal; on macOS and Windows always
+    (unless QT_QPA_PLATFORM says offscreen/minimal)."""
+    env = os.environ if environ is None else environ
+    platform = sys.platform if platform is None else platform
+    qpa = env.get("QT_QPA_PLATFORM", "").split(":")[0].strip().lower()
+    if qpa in HEADLESS_PLATFORMS:
+        return False
+    if platform == "darwin" or platform.startswith("win"):
+        return True
+    return bool(env.get("DISPLAY") or env.get("WAYLAND_DISPLAY"))
 
 
 def application():
@@ -91,4 +109,19 @@ def run_window(spec=None, *, start: bool = True, screenshot: str | Path | None =
     return result["code"]
 
 
-__all__ = ["application", "run_window", "remembered_spec", "WINDOW_SIZE"]
+def run_demo_window(*, scene: str, size: tuple[int, int], target: int, sbr: float, seed: int,
+                    faults: str, method: str, out_dir=None, exit_after_scan: bool = False,
+                    screenshot: str | Path | None = None) -> int:
+    """``spdepth demo`` with a display: the same simulated scan started in the window (size is
+    (H, W)); out_dir None keeps the run in memory. Returns ``run_window``'s code."""
+    from gui.sources import SourceSpec
+
+    application()
+    spec = SourceSpec(kind="sim", scene=scene, size=tuple(size), target=int(target), sbr=sbr,
+                      seed=int(seed), faults=faults, method=method, mode="gated")
+    return run_window(spec, start=True, out_dir=out_dir, exit_after_scan=exit_after_scan,
+                      screenshot=screenshot, window_size=WINDOW_SIZE)
+
+
+__all__ = ["application", "run_window", "run_demo_window", "display_available",
+           "remembered_spec", "WINDOW_SIZE"]

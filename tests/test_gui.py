@@ -235,3 +235,29 @@ def test_spdepth_gui_screenshot_offscreen(tmp_path):
                          env=env, capture_output=True, text=True, timeout=120,
                          cwd=Path(__file__).resolve().parents[1])
     assert bad.returncode == 2 and "does not exist" in bad.stderr
+
+
+def test_demo_opens_the_window_only_where_a_display_exists():
+    from gui.app import display_available
+
+    assert display_available({"DISPLAY": ":0"}, "linux")
+    assert display_available({"WAYLAND_DISPLAY": "wayland-0"}, "linux")
+    assert not display_available({}, "linux")
+    assert not display_available({"DISPLAY": ":0", "QT_QPA_PLATFORM": "offscreen"}, "linux")
+    assert not display_available({"DISPLAY": ":0", "QT_QPA_PLATFORM": "minimal"}, "linux")
+    assert display_available({}, "darwin") and display_available({}, "win32")
+    assert not display_available({"QT_QPA_PLATFORM": "offscreen"}, "win32")
+
+
+def test_demo_window_runs_the_demo_scan(tmp_path):
+    """What ``spdepth demo`` opens with a display: the demo's scene scanned in the window."""
+    env = {**os.environ, "QT_QPA_PLATFORM": "offscreen", "XDG_CONFIG_HOME": str(tmp_path / "cfg"),
+           "HOME": str(tmp_path)}
+    shot = tmp_path / "demo.png"
+    code = ("import sys; from gui.app import run_demo_window; sys.exit(run_demo_window("
+            "scene='steps', size=(12, 16), target=4, sbr=10.0, seed=1, faults='', method='uos', "
+            f"exit_after_scan=True, screenshot={str(shot)!r}))")
+    p = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                       timeout=120, cwd=Path(__file__).resolve().parents[1])
+    assert p.returncode == 0, p.stderr
+    assert shot.stat().st_size > 0

@@ -37,23 +37,46 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="keep the session's files (recording.ptu, events.jsonl, maps.npz, "
                              "run.json) in DIR (default: a temporary directory, removed)")
     parser.add_argument("--out", default="spdepth-demo.png", help="PNG sheet to write")
+    parser.add_argument("--no-window", action="store_true",
+                        help="stay headless (the PNG sheet) even when a display exists; without "
+                             "a display (CI, ssh, QT_QPA_PLATFORM=offscreen) it always is")
 
 
 def run(args: argparse.Namespace) -> int:
     from recon.errors import InputError
     from recon.model import METHODS
 
+    from gui.app import display_available
+
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     unknown = [m for m in methods if m not in METHODS]
     if not methods or unknown:
         raise InputError(f"--methods: unknown {', '.join(unknown) or '(none given)'}; "
                          f"choose from {', '.join(METHODS)}")
+    if not args.no_window and display_available():
+        return _window(args, methods)
     if args.record:
         from acq.commands._session import prepare_out_dir
 
         return _demo(args, methods, prepare_out_dir(args.record, overwrite=False))
     with tempfile.TemporaryDirectory(prefix="spdepth-demo-") as tmp:
         return _demo(args, methods, tmp)
+
+
+def _window(args, methods) -> int:
+    """With a display: the same simulated scan in the live window (spdepth gui)."""
+    from gui.app import run_demo_window
+
+    print("spdepth demo: opening the window (--no-window for the headless PNG sheet)",
+          file=sys.stderr)
+    out = None
+    if args.record:
+        from acq.commands._session import prepare_out_dir
+
+        out = prepare_out_dir(args.record, overwrite=False)
+    return run_demo_window(scene=args.scene, size=args.size, target=args.photons, sbr=args.sbr,
+                           seed=args.seed, faults=args.faults,
+                           method=methods[-1], out_dir=out)
 
 
 def _demo(args, methods, out_dir) -> int:
