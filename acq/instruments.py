@@ -75,13 +75,15 @@ class Instruments:
 def open_sim(scene_name: str = "bust", shape: tuple[int, int] = (64, 64), *, ppp: float = 15.0,
              sbr: float | None = 10.0, seed: int = 0, faults: str = "",
              n_bins: int = PAPER_BINS, bin_s: float = PAPER_BIN_S, keep_truth: bool = False,
-             galvo_link: str = "url", **scene_settings) -> Instruments:
+             galvo_link: str = "url", tagger_options: dict | None = None,
+             **scene_settings) -> Instruments:
     """The simulated bench: a scene, its photon world and rig, the galvo emulator on a
     ``galvosim://`` URL and the tagger on the simulated pyusb backend, opened through the real
     drivers. ``faults`` as in ``drivers.sim.faults`` (galvo and tagger kinds mixed). The tagger
     records ``n_bins * bin_s`` after each sync, so ``sbr`` is what the estimators see.
     keep_truth: the rig keeps every dwell's photons (``rig.truth``) for tests.
-    galvo_link: "url" (pyserial URL handler) or "pty" (a real tty from a pty pair, POSIX)."""
+    galvo_link: "url" (pyserial URL handler) or "pty" (a real tty from a pty pair, POSIX).
+    tagger_options: more arguments of ``SimTaggerBackend`` (e.g. ``vanish_s``)."""
     from drivers.galvo import Galvo
     from drivers.sim import PhotonWorld, galvo_fw, load_scene
     from drivers.sim.faults import GALVO_FAULTS, TAGGER_FAULTS, parse_faults
@@ -107,7 +109,7 @@ def open_sim(scene_name: str = "bust", shape: tuple[int, int] = (64, 64), *, ppp
         else:
             galvo = Galvo.open(f"galvosim://{name}")
         backend = SimTaggerBackend(rig, faults=[f for f in parsed if f.kind in TAGGER_FAULTS],
-                                   scan_pixels=h * w)
+                                   scan_pixels=h * w, **(tagger_options or {}))
         tagger = Tagger.open(SIM_TAGGER_URL, backend=backend)
     except BaseException:
         if galvo is not None:

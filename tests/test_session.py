@@ -303,3 +303,25 @@ def test_health_shows_a_device_recovering_then_the_scan_completes(fault, device)
     assert any(h[device] == "recovering" for h in seen), seen
     assert all(h[other] == "ok" for h in seen for other in ("galvo", "tagger") if other != device)
     assert s.flagged_pixels().size == 0
+
+
+def test_a_tagger_that_does_not_come_back_fails_the_session_cleanly(tmp_path):
+    import ptufile
+
+    with open_sim("bust", (12, 12), ppp=10, seed=13, faults="device-vanish@30%",
+                  tagger_options={"vanish_s": 5.0}) as inst:
+        s = _session(inst, (12, 12), tmp_path)
+        s.reader_options = {"reconnect_timeout_s": 0.3}
+        seen = []
+        s.subscribe(lambda snap: seen.append(snap), max_hz=30)
+        assert s.run() == SessionState.FAILED
+        assert inst.galvo.status().state.name == "PARKED"      # cleanup stopped and parked it
+    assert "did not come back" in str(s.error)
+    time.sleep(0.1)
+    assert seen[-1].state == "failed" and seen[-1].health["tagger"] == "failed"
+    run = json.loads((tmp_path / "run.json").read_text())
+    assert run["state"] == "failed" and "did not come back" in run["error"]
+    assert_complete_or_flagged(s)
+    assert set(run["flag_reasons"]) == {"INCOMPLETE"}
+    with ptufile.PtuFile(tmp_path / "recording.ptu") as pf:    # closed cleanly, count patched
+        assert pf.number_records == s.recorder.records > 0
