@@ -89,7 +89,7 @@ def open_sim(scene_name: str = "bust", shape: tuple[int, int] = (64, 64), *, ppp
     from drivers.sim.faults import GALVO_FAULTS, TAGGER_FAULTS, parse_faults
     from drivers.sim.rig import SimRig
     from drivers.sim.tagger_usb import SimTaggerBackend
-    from drivers.tagger import Tagger
+    from drivers.tagger import Tagger, TaggerSettings
 
     h, w = shape
     scene = load_scene(scene_name, (h, w), ppp=float(ppp), sbr=sbr, tagger_range_s=n_bins * bin_s,
@@ -111,6 +111,7 @@ def open_sim(scene_name: str = "bust", shape: tuple[int, int] = (64, 64), *, ppp
         backend = SimTaggerBackend(rig, faults=[f for f in parsed if f.kind in TAGGER_FAULTS],
                                    scan_pixels=h * w, **(tagger_options or {}))
         tagger = Tagger.open(SIM_TAGGER_URL, backend=backend)
+        tagger.configure(TaggerSettings())
     except BaseException:
         if galvo is not None:
             galvo.close()
@@ -123,14 +124,23 @@ def open_sim(scene_name: str = "bust", shape: tuple[int, int] = (64, 64), *, ppp
     return Instruments(galvo, tagger, scene.settings.sync_period_s, scene, rig, info, name, link)
 
 
-def open_real(galvo_port: str, tagger_url: str, sync_period_s: float) -> Instruments:
-    """Real devices: a galvo on a serial port and a tagger at ``usb:VID:PID``."""
+def open_real(galvo_port: str, tagger_url: str, sync_period_s: float,
+              tagger_settings=None) -> Instruments:
+    """Real devices: a galvo on a serial port and a tagger at ``usb:VID:PID``, configured with
+    ``tagger_settings`` (default ``TaggerSettings()``: 8 ps units, every marker input enabled on
+    the rising edge, so the galvo's pixel, line and frame markers reach the stream)."""
     from drivers.galvo import Galvo
-    from drivers.tagger import Tagger
+    from drivers.tagger import Tagger, TaggerSettings
 
     galvo = Galvo.open(galvo_port)
     try:
         tagger = Tagger.open(tagger_url)
+        try:
+            tagger.stop()            # a previous run may have left it measuring
+            tagger.configure(tagger_settings or TaggerSettings())
+        except BaseException:
+            tagger.close()
+            raise
     except BaseException:
         galvo.close()
         raise

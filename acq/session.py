@@ -692,6 +692,8 @@ class Session:
             ident = getattr(dev, "identity", None) if dev is not None else None
             if ident is not None:
                 identities[name] = _jsonable(ident)
+        if self.tagger is not None and getattr(self.tagger, "settings", None) is not None:
+            identities["tagger_settings"] = _jsonable(self.tagger.settings)
         return {
             "state": (final or self._state).value,
             "error": None if self.error is None else f"{type(self.error).__name__}: {self.error}",
