@@ -127,6 +127,9 @@ def reconstruct(store: PhotonStore, settings: ReconSettings,
         raise InputError(f"settings must be ReconSettings, got {type(settings).__name__}")
     if not isinstance(store, PhotonStore):
         raise InputError(f"store must be a PhotonStore, got {type(store).__name__}")
+    if settings.method == "spatial":
+        from recon.spatial import reconstruct_spatial
+        return reconstruct_spatial(store, settings, progress)
     b, kern, notes = resolve_model(store, settings)
     # window, first max_photons and binning in one compiled pass (the NumPy route of
     # first_in_window + bin_index cost as much as the lmf kernel itself)

@@ -30,6 +30,8 @@ class PixelFlag(IntEnum):
     """Detections, but the best fit puts none of them in a return (all background): tof NaN."""
     NOT_CONVERGED = 3
     """uos stopped at max_iterations before ``||x_k - x_{k-1}||^2 < delta``; the estimate is kept."""
+    INTERPOLATED = 4
+    """spatial: the pixel had no detection kept as signal; tof comes from its neighbours."""
 
 
 @dataclass(frozen=True, eq=False)

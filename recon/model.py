@@ -252,7 +252,7 @@ def gaussian_irf(rms_s: float, source: str = "Gaussian") -> Irf:
     return Irf(tuple(t), tuple(np.exp(-0.5 * (t / rms_s) ** 2)), source=source)
 
 
-METHODS = ("lmf", "uos", "ml")
+METHODS = ("lmf", "uos", "ml", "spatial")
 
 
 @dataclass(frozen=True)
@@ -260,7 +260,8 @@ class ReconSettings:
     """Everything a reconstruction depends on; saved with every result (``to_dict``).
 
     method:         "lmf" (log-matched filter, eq. 11), "uos" (Algorithm 1; with ``reflectors`` K > 1
-                    its K-sparse generalization) or "ml" (exact pixelwise Poisson ML of eq. 9).
+                    its K-sparse generalization), "ml" (exact pixelwise Poisson ML of eq. 9) or
+                    "spatial" (censoring, pixelwise fit and TV over neighbours: recon.spatial).
     binning:        None derives it from the data: window = [min, max] of all detection times
                     (stop just past the max), bin width = pulse RMS / 9 rounded to whole raw units
                     (the paper's 360 ps / 40 ps ratio), widened if needed to keep at most

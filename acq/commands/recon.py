@@ -44,9 +44,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("input", metavar="INPUT", nargs="+",
                         help=".mat (first-photon imaging) or PTU/HT3/PT3 T3 file; with several, "
                              "--out and --png name folders (OUT/<name>.npz)")
-    parser.add_argument("--method", choices=("uos", "lmf", "ml"), default="uos",
+    parser.add_argument("--method", choices=("uos", "lmf", "ml", "spatial"), default="uos",
                         help="estimator: uos (the seed paper's union of subspaces, default), "
-                             "lmf (log-matched filter, ignores background), ml (Poisson maximum likelihood)")
+                             "lmf (log-matched filter, ignores background), ml (Poisson maximum likelihood), "
+                             "spatial (uses the neighbours: censoring, fit, TV; recon/spatial.py)")
     parser.add_argument("--out", metavar="MAPS.npz", help="write the maps and the settings used here")
     parser.add_argument("--png", metavar="MAPS.png", help="write a picture of the depth, background and "
                         "photon-count maps (a time histogram for a point measurement)")

@@ -1,0 +1,192 @@
+"""The spatial estimator (``method="spatial"``): depth from a pixel's detections *and* its
+neighbours', for scenes that are piecewise smooth. Validation, allocation and constants here; the
+numba kernels are in :mod:`recon.spatial_kernels`.
+
+Three steps, each after a paper, with what was changed:
+
+1. **Censoring** of likely background detections, after Rapp and Goyal, "A few photons among many:
+   unmixing signal and noise for photon-efficient active imaging", IEEE TCI 2017. They keep a
+   detection when the detections of an adaptive superpixel around it hold enough others close in
+   time. Here the neighbourhood is a fixed square of (2 r + 1)^2 pixels (r = 2 when pixels hold
+   fewer than ``WIDE_BELOW`` detections, else 1), "close" is within ``TAU_RMS`` pulse RMS widths,
+   and "enough" is the Poisson ``1 - ALPHA`` quantile of what uniform background alone would
+   bring (every neighbour detection treated as background: a conservative threshold that needs no
+   background estimate). A detection on a surface edge keeps the support of the pixels on its own
+   side, so censoring does not need the edge.
+2. **Pixelwise fit** of the detections: the densest cluster of kept detections seeds a few EM steps
+   on all the pixel's detections for a Gaussian pulse over a flat background (the exact Poisson
+   model of the seed paper, Shin, Shapiro and Goyal 2015, restricted to one return with the
+   background a free mixture weight). Its outputs are the shift, the expected signal count (sum of
+   responsibilities: the Fisher weight of the shift, in pulse widths) and the background per bin
+   from the detections not attributed to the return. Rapp and Goyal estimate depth from the kept
+   detections by ML too; they then regularise with TV as Shin et al. (IEEE TCI 2015) do.
+3. **Edge-preserving regulariser**: weighted total-variation denoising of the shift map, as in Shin
+   et al., "Photon-efficient computational 3-D and reflectivity imaging with single-photon
+   detectors", IEEE TCI 2015, but with a quadratic data term weighted by each pixel's signal count
+   (its Fisher information) instead of their penalised Poisson likelihood: ``min sum_p k_p (z_p -
+   f_p)^2 / 2 + LAMBDA * TV(z)`` in units of the pulse RMS, solved by Chambolle and Pock's
+   primal-dual algorithm. The weights make the smoothing fade where the data are strong (many
+   detections) and fill pixels that have none (``k_p = 0``): those are flagged
+   ``PixelFlag.INTERPOLATED``. A pixel with no data within ``FILL_RADIUS`` is left NaN.
+
+Uncertainty: ``sigma / sqrt(k_eff)``, k_eff the pixel's signal count plus ``NEIGHBOUR_SHARE`` of
+that of its 8 neighbours whose result lies within half a pulse width (the regulariser averaged them
+in); calibrated on simulated scenes, not derived. The Gaussian pulse model uses the response's RMS
+width; a measured response with a long tail is treated as a Gaussian of that width (its centroid
+stays unbiased, its shape is not used).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Callable
+
+import numpy as np
+from scipy.stats import poisson
+
+from recon import spatial_kernels as SK
+from recon.errors import InputError
+from recon.maps import C_M_PER_S, DepthMaps, PixelFlag
+from recon.model import ReconSettings
+from recon.photons import PhotonStore
+
+#: Censoring: support within this many pulse RMS widths of a detection.
+TAU_RMS = 1.5
+#: Censoring: false-alarm level of a background detection passing.
+ALPHA = 0.02
+#: Censoring: pixels with a median below this many detections pool a 5 x 5 window, else 3 x 3.
+WIDE_BELOW = 8
+#: EM steps of the pixelwise fit.
+EM_ITERS = 4
+#: TV weight, in pulse RMS widths per unit of signal count.
+LAMBDA = 1.0
+#: TV iterations (primal-dual), started from a local weighted mean.
+TV_ITERS = 60
+#: Pixels with no data within this radius are not filled (NaN, flagged).
+FILL_RADIUS = 2
+#: Uncertainty: share of a like neighbour's signal count added to a pixel's.
+NEIGHBOUR_SHARE = 0.5
+
+
+def reconstruct_spatial(store: PhotonStore, settings: ReconSettings,
+                        progress: Callable[[int, int], None] | None = None) -> DepthMaps:
+    """Depth, background and signal at every pixel of ``store`` from the pixel and its neighbours.
+
+    Same inputs, outputs and settings record as :func:`recon.estimate.reconstruct` (which
+    dispatches here for ``settings.method == "spatial"``); ``settings['spatial']`` in the result
+    holds this module's constants. Pixels whose depth comes from their neighbours only are flagged
+    ``INTERPOLATED`` (their photons, signal and background are their own: 0 with no detections).
+    """
+    from recon.estimate import resolve_model    # not at import: estimate dispatches here
+
+    if not isinstance(settings, ReconSettings):
+        raise InputError(f"settings must be ReconSettings, got {type(settings).__name__}")
+    if not isinstance(store, PhotonStore):
+        raise InputError(f"store must be a PhotonStore, got {type(store).__name__}")
+    if int(settings.reflectors) != 1:
+        raise InputError(f"the spatial method finds one return per pixel, got reflectors={settings.reflectors}")
+    b, kern, notes = resolve_model(store, settings)
+    h, w = store.shape
+    npix = h * w
+    m = b.n_bins
+    sigma = float(notes["pulse_rms_s"]) / b.bin_width_s       # pulse RMS in bins
+
+    x = np.empty(store.times.size, np.float64)
+    offsets = np.empty(npix + 1, np.int64)
+    n_kept = SK.window_shifts(store.times, store.offsets, b.window_start, b.window_stop, b.bin_width,
+                              -1 if settings.max_photons is None else int(settings.max_photons),
+                              x, offsets)
+    x = x[:n_kept]
+    counts = np.diff(offsets)
+    nonzero = counts[counts > 0]
+    radius = 2 if (nonzero.size == 0 or np.median(nonzero) < WIDE_BELOW) else 1
+
+    # censoring threshold per pixel: what background alone would bring, at false-alarm ALPHA
+    tau = TAU_RMS * sigma
+    win = _box_sum(counts.reshape(h, w).astype(np.float64), radius).ravel() - counts
+    mu_bg = win * min(1.0, 2.0 * tau / m)
+    s_min = (poisson.ppf(1.0 - ALPHA, mu_bg) + 1.0).astype(np.int64)
+    s_min = np.maximum(s_min, 1)
+
+    mu = np.empty(npix)
+    k = np.empty(npix)
+    bg = np.empty(npix)
+    n_used = np.empty(npix, np.int64)
+    n_cens = np.empty(npix, np.int64)
+    SK.censor_fit(x, offsets, h, w, radius, tau, s_min, sigma, float(m), EM_ITERS,
+                  mu, k, bg, n_used, n_cens)
+    if progress is not None:
+        progress(npix // 2, npix)
+
+    # TV in units of the pulse RMS, weighted by the signal counts
+    has = np.isfinite(mu) & (k > 1e-6)
+    wt = np.where(has, k, 0.0).reshape(h, w)
+    f = np.where(has, mu / sigma, 0.0).reshape(h, w)
+    z = np.empty((h, w))
+    SK.local_mean(f, wt, FILL_RADIUS, z)
+    reach = np.isfinite(z)
+    if reach.any():
+        z[~reach] = np.average(f[wt > 0], weights=wt[wt > 0])
+        scratch = [np.empty((h, w)) for _ in range(3)]
+        SK.tv_pdhg(f, wt, LAMBDA, z, TV_ITERS, *scratch)
+    shift = np.where(reach, z * sigma, np.nan).ravel()
+    if progress is not None:
+        progress(npix, npix)
+
+    # uncertainty from the signal counts the regulariser averaged in
+    zz = np.where(reach, z, np.nan)
+    k_eff = wt.copy()
+    pad_z = np.pad(zz, 1, constant_values=np.nan)
+    pad_w = np.pad(wt, 1)
+    for dr in (-1, 0, 1):
+        for dc in (-1, 0, 1):
+            if dr == 0 and dc == 0:
+                continue
+            nz = pad_z[1 + dr:1 + dr + h, 1 + dc:1 + dc + w]
+            nw = pad_w[1 + dr:1 + dr + h, 1 + dc:1 + dc + w]
+            with np.errstate(invalid="ignore"):
+                like = np.abs(nz - zz) <= 0.5
+            k_eff += NEIGHBOUR_SHARE * np.where(like, nw, 0.0)
+    finite = np.isfinite(shift)
+    with np.errstate(divide="ignore"):
+        var = np.where(k_eff.ravel() > 0, sigma * sigma / k_eff.ravel(), np.inf)
+    var = np.minimum(var, m * m / 12.0)          # never more than the window's uniform spread
+    unc_s = np.where(finite, np.sqrt(var), np.nan) * b.bin_width_s
+
+    tof_s = np.where(finite, b.shift_to_time_s(np.nan_to_num(shift)), np.nan)
+    signal = np.where(has, k, 0.0)
+    flags = np.full(npix, PixelFlag.OK, np.uint8)
+    flags[finite & ~has] = PixelFlag.INTERPOLATED
+    flags[~finite & (n_used > 0)] = PixelFlag.NO_SIGNAL
+    flags[~finite & (n_used == 0)] = PixelFlag.NO_PHOTONS
+
+    rec = settings.to_dict()
+    rec.update(notes)
+    rec["binning"] = b.to_dict()
+    rec["kernel"] = kern.info
+    rec["tof_reference"] = "pulse centroid, from the laser sync"
+    if settings.irf is not None:
+        rec["irf"]["rms_s"] = settings.irf.rms_s
+    rec["spatial"] = {"radius": radius, "tau_rms": TAU_RMS, "alpha": ALPHA, "em_iters": EM_ITERS,
+                      "tv_lambda": LAMBDA, "tv_iterations": TV_ITERS, "fill_radius": FILL_RADIUS,
+                      "interpolated": int((flags == PixelFlag.INTERPOLATED).sum()),
+                      "detections_kept_by_censoring": int(n_cens.sum())}
+    tof_img = tof_s.reshape(h, w)
+    return DepthMaps(tof_s=tof_img, depth_m=C_M_PER_S * tof_img / 2.0, background=bg.reshape(h, w),
+                     signal=signal.reshape(h, w), photons=n_used.reshape(h, w),
+                     iterations=np.full((h, w), TV_ITERS, np.int32),
+                     uncertainty_s=unc_s.reshape(h, w), flags=flags.reshape(h, w), settings=rec)
+
+
+def _box_sum(a: np.ndarray, radius: int) -> np.ndarray:
+    """Sum of ``a`` over the (2 radius + 1)^2 window around each pixel, clipped at the border."""
+    h, w = a.shape
+    c = np.zeros((h + 1, w + 1))
+    c[1:, 1:] = a.cumsum(0).cumsum(1)
+    r = np.arange(h)
+    col = np.arange(w)
+    r0 = np.clip(r - radius, 0, h)[:, None]
+    r1 = np.clip(r + radius + 1, 0, h)[:, None]
+    c0 = np.clip(col - radius, 0, w)[None, :]
+    c1 = np.clip(col + radius + 1, 0, w)[None, :]
+    return c[r1, c1] - c[r0, c1] - c[r1, c0] + c[r0, c0]

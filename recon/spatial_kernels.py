@@ -1,0 +1,208 @@
+"""Numba kernels of the spatial estimator (:mod:`recon.spatial`). Plain arrays in, disjoint outputs
+out; validation, allocation and the choice of constants happen in :mod:`recon.spatial`.
+
+Times here are continuous shifts in bins: a detection at raw time ``t`` is at
+``(t - window_start) / bin_width - 0.5``, the shift whose pulse centroid it would be (so the mean of a
+return's signal detections estimates the return's shift directly). Photon lists are CSR
+(``x[offsets[p]:offsets[p + 1]]``, pixels row-major over an H x W image), each pixel's list sorted.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+
+@njit(cache=True, nogil=True)
+def window_shifts(times, offsets, start, stop, width, max_photons, out_x, out_offsets):
+    """First ``max_photons`` (all when < 0) detections of each pixel with ``start <= t < stop``, as
+    shifts ``(t - start) / width - 0.5``, each pixel's list then sorted ascending. out_x needs
+    times.size entries, out_offsets offsets.size; returns the number kept."""
+    npix = offsets.size - 1
+    n = 0
+    out_offsets[0] = 0
+    for p in range(npix):
+        kept = 0
+        first = n
+        for q in range(offsets[p], offsets[p + 1]):
+            if max_photons >= 0 and kept >= max_photons:
+                break
+            t = times[q]
+            if t >= start and t < stop:
+                out_x[n] = (t - start) / width - 0.5
+                n += 1
+                kept += 1
+        out_x[first:n] = np.sort(out_x[first:n])
+        out_offsets[p + 1] = n
+    return n
+
+
+@njit(cache=True, nogil=True)
+def count_within(x, lo, hi, t, tau):
+    """How many of the sorted ``x[lo:hi]`` lie in ``[t - tau, t + tau]`` (two binary searches)."""
+    a = np.searchsorted(x[lo:hi], t - tau, side="left")
+    b = np.searchsorted(x[lo:hi], t + tau, side="right")
+    return b - a
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def censor_fit(x, offsets, h, w, radius, tau, s_min, sigma, n_bins, em_iters,
+               out_mu, out_k, out_bg, out_n, out_kept):
+    """Per pixel: censor, then fit a pulse-plus-flat mixture to the detections kept.
+
+    Censoring (after Rapp and Goyal 2017): a detection is kept when at least ``s_min[p]``
+    detections of the other pixels of the (2 radius + 1)^2 window lie within ``tau`` bins of it;
+    a background detection finds such support only by chance. Of the kept detections, the
+    densest cluster (most kept within 2.5 sigma) seeds the fit. Fit: ``em_iters`` EM steps on all
+    of the pixel's detections for ``pi N(mu, sigma^2) + (1 - pi) / n_bins``, mu and pi free.
+
+    Outputs per pixel: out_mu (shift, bins; NaN when nothing kept), out_k (signal detections, the
+    sum of responsibilities; 0 when nothing kept), out_bg (background detections per bin),
+    out_n (detections used), out_kept (detections that passed censoring)."""
+    npix = h * w
+    inv_m = 1.0 / n_bins
+    inv_s2 = 1.0 / (sigma * sigma)
+    norm = 1.0 / (math.sqrt(2.0 * math.pi) * sigma)
+    for p in prange(npix):
+        o0 = offsets[p]
+        o1 = offsets[p + 1]
+        n = o1 - o0
+        out_n[p] = n
+        out_mu[p] = np.nan
+        out_k[p] = 0.0
+        out_bg[p] = n * inv_m
+        out_kept[p] = 0
+        if n == 0:
+            continue
+        r0 = p // w
+        c0 = p - r0 * w
+        rlo = max(0, r0 - radius)
+        rhi = min(h - 1, r0 + radius)
+        clo = max(0, c0 - radius)
+        chi = min(w - 1, c0 + radius)
+        # kept detections: their positions in x (the pixel's list is sorted, so kept ones are too)
+        kept = np.empty(n, np.float64)
+        nk = 0
+        for i in range(o0, o1):
+            t = x[i]
+            s = 0
+            for r in range(rlo, rhi + 1):
+                for c in range(clo, chi + 1):
+                    q = r * w + c
+                    if q != p:
+                        s += count_within(x, offsets[q], offsets[q + 1], t, tau)
+                if s >= s_min[p]:
+                    break
+            if s >= s_min[p]:
+                kept[nk] = x[i]
+                nk += 1
+        out_kept[p] = nk
+        if nk == 0:
+            continue
+        # densest cluster of the kept detections (two pointers over the sorted list)
+        reach = 2.5 * sigma
+        best = 0
+        bi = 0
+        lo = 0
+        hi = 0
+        for i in range(nk):
+            while kept[lo] < kept[i] - reach:
+                lo += 1
+            while hi < nk and kept[hi] <= kept[i] + reach:
+                hi += 1
+            if hi - lo > best:
+                best = hi - lo
+                bi = i
+        acc = 0.0
+        cnt = 0
+        for i in range(nk):
+            if abs(kept[i] - kept[bi]) <= reach:
+                acc += kept[i]
+                cnt += 1
+        mu = acc / cnt
+        pi = min(0.999, max(cnt / n, 1e-3))
+        # EM over all the pixel's detections: a censored detection close to the return still
+        # counts as signal in proportion to its likelihood, a kept one far from it does not
+        ksum = float(cnt)
+        for _ in range(em_iters):
+            sr = 0.0
+            srt = 0.0
+            for i in range(o0, o1):
+                d = x[i] - mu
+                a = pi * norm * math.exp(-0.5 * d * d * inv_s2)
+                rr = a / (a + (1.0 - pi) * inv_m)
+                sr += rr
+                srt += rr * x[i]
+            if sr <= 1e-9:
+                break
+            mu = srt / sr
+            pi = min(0.999, max(sr / n, 1e-3))
+            ksum = sr
+        out_mu[p] = mu
+        out_k[p] = ksum
+        out_bg[p] = max(0.0, n - ksum) * inv_m
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def local_mean(f, wt, radius, out):
+    """Weighted mean of ``f`` over the (2 radius + 1)^2 window with weights ``wt`` (NaN where the
+    window holds no weight): the start of the TV iterations and the fill of empty pixels."""
+    h, w = f.shape
+    for r in prange(h):
+        for c in range(w):
+            a = 0.0
+            s = 0.0
+            for rr in range(max(0, r - radius), min(h, r + radius + 1)):
+                for cc in range(max(0, c - radius), min(w, c + radius + 1)):
+                    v = wt[rr, cc]
+                    if v > 0.0:
+                        a += v * f[rr, cc]
+                        s += v
+            out[r, c] = a / s if s > 0.0 else np.nan
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def tv_pdhg(f, wt, lam, z, iters, px, py, zbar):
+    """Weighted isotropic-TV denoising by the primal-dual algorithm of Chambolle and Pock (2011):
+    minimise ``sum wt (z - f)^2 / 2 + lam * TV(z)`` over z (H x W). Pixels with wt = 0 carry no
+    data and are filled by the regulariser. ``z`` holds the start and receives the result;
+    px, py, zbar are scratch (H x W, any content). Steps tau = sigma = 1/sqrt(8)."""
+    h, w = f.shape
+    step = 1.0 / math.sqrt(8.0)
+    for r in prange(h):
+        for c in range(w):
+            px[r, c] = 0.0
+            py[r, c] = 0.0
+            zbar[r, c] = z[r, c]
+    for _ in range(iters):
+        # dual ascent on the forward-difference gradient, projected on |p| <= lam
+        for r in prange(h):
+            for c in range(w):
+                gx = zbar[r, c + 1] - zbar[r, c] if c + 1 < w else 0.0
+                gy = zbar[r + 1, c] - zbar[r, c] if r + 1 < h else 0.0
+                ax = px[r, c] + step * gx
+                ay = py[r, c] + step * gy
+                nrm = math.sqrt(ax * ax + ay * ay)
+                sc = 1.0 if nrm <= lam else lam / nrm
+                px[r, c] = ax * sc
+                py[r, c] = ay * sc
+        # primal descent: divergence (minus the adjoint of the gradient), then the data prox
+        for r in prange(h):
+            for c in range(w):
+                div = 0.0
+                if c + 1 < w:
+                    div += px[r, c]
+                if c > 0:
+                    div -= px[r, c - 1]
+                if r + 1 < h:
+                    div += py[r, c]
+                if r > 0:
+                    div -= py[r - 1, c]
+                old = z[r, c]
+                v = old + step * div
+                a = step * wt[r, c]
+                new = (v + a * f[r, c]) / (1.0 + a)
+                z[r, c] = new
+                zbar[r, c] = 2.0 * new - old

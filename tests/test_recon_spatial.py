@@ -1,0 +1,211 @@
+"""The spatial estimator (recon.spatial): its kernels against NumPy references, beating the pixelwise
+oracle at 2 detections per pixel, keeping a 1 cm step, interpolated pixels flagged, and every output
+finite or flagged. Scenes are simulated here with NumPy (count-gated: N in-window detections per pixel,
+each signal with probability SBR / (1 + SBR)), so the oracle is exact: the mean of each pixel's
+signal detection times."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from numpy.testing import assert_allclose, assert_array_equal
+
+import reference_spatial as ref
+from recon import spatial_kernels as SK
+from recon.errors import InputError
+from recon.estimate import reconstruct
+from recon.maps import C_M_PER_S, PixelFlag
+from recon.model import Binning, ReconSettings
+from recon.photons import PhotonStore
+
+UNIT_S = 8e-12
+BIN_UNITS, M = 5.0, 801
+RMS_UNITS = 45.0            # 360 ps: 5.4 cm of depth per detection
+BINNING = Binning(UNIT_S, 0.0, M * BIN_UNITS, BIN_UNITS)
+CM_UNITS = 0.02 / C_M_PER_S / UNIT_S    # raw units of round-trip time per cm of depth
+
+
+def settings(method):
+    return ReconSettings(method=method, binning=BINNING, pulse_rms_s=RMS_UNITS * UNIT_S)
+
+
+def simulate(tof_units, n, sbr, seed):
+    """(store, oracle tof in units) for a count-gated scan of the (H, W) map of return times."""
+    rng = np.random.default_rng(seed)
+    h, w = tof_units.shape
+    npx = h * w
+    ns = rng.binomial(n, sbr / (1 + sbr), npx)
+    is_sig = np.arange(n)[None, :] < ns[:, None]
+    t = np.where(is_sig, tof_units.ravel()[:, None] + RMS_UNITS * rng.standard_normal((npx, n)),
+                 rng.uniform(0, M * BIN_UNITS, (npx, n)))
+    with np.errstate(invalid="ignore"):
+        oracle = np.where(ns > 0, np.where(is_sig, t, 0).sum(axis=1) / np.maximum(ns, 1), np.nan)
+    t = rng.permuted(t, axis=1)
+    lists = [row[(row >= 0) & (row < M * BIN_UNITS)] for row in t]
+    return PhotonStore.from_lists(lists, (h, w), UNIT_S), oracle.reshape(h, w)
+
+
+def smooth_scene(h=48, w=48):
+    """A tilted plane with a bump and a 30 cm step: piecewise smooth."""
+    yy, xx = np.mgrid[0:h, 0:w]
+    depth_cm = 300 + 0.4 * xx + 0.2 * yy + 3 * np.exp(-((xx - 16) ** 2 + (yy - 20) ** 2) / 60.0)
+    depth_cm = depth_cm + np.where(xx > 30, 30.0, 0.0)
+    return 1500 + (depth_cm - 300) * CM_UNITS
+
+
+def mae(maps, tof_units):
+    return float(np.mean(np.abs(maps.tof_s / UNIT_S - tof_units)))
+
+
+# ------------------------------------------------------------------------------------------------
+# kernels against their references
+
+
+@pytest.fixture(scope="module")
+def small_store():
+    store, _ = simulate(smooth_scene(9, 11), 6, 1.0, seed=4)
+    return store
+
+
+def _shifts(store, max_photons=-1):
+    x = np.empty(store.times.size)
+    off = np.empty(store.offsets.size, np.int64)
+    n = SK.window_shifts(store.times, store.offsets, 100.0, 3900.0, BIN_UNITS, max_photons, x, off)
+    return x[:n], off
+
+
+def test_window_shifts_matches_reference(small_store):
+    for maxp in (-1, 3):
+        x, off = _shifts(small_store, maxp)
+        want = ref.window_shifts(small_store.times, small_store.offsets, 100.0, 3900.0, BIN_UNITS, maxp)
+        assert_array_equal(np.diff(off), [v.size for v in want])
+        assert_allclose(x, np.concatenate(want))
+
+
+def test_censor_fit_matches_reference(small_store):
+    x, off = _shifts(small_store)
+    h, w = small_store.shape
+    rng = np.random.default_rng(0)
+    s_min = rng.integers(1, 4, h * w)
+    sigma = RMS_UNITS / BIN_UNITS
+    for radius in (1, 2):
+        got = [np.empty(h * w), np.empty(h * w), np.empty(h * w), np.empty(h * w, np.int64),
+               np.empty(h * w, np.int64)]
+        SK.censor_fit(x, off, h, w, radius, 1.5 * sigma, s_min, sigma, float(M), 4, *got)
+        lists = [x[off[p]:off[p + 1]] for p in range(h * w)]
+        want = ref.censor_fit(lists, h, w, radius, 1.5 * sigma, s_min, sigma, float(M), 4)
+        for g, wv in zip(got, want):
+            assert_allclose(g, wv, rtol=1e-10, atol=1e-12)
+        assert (got[4] > 0).any() and (got[4] < got[3]).any()      # some kept, some censored
+
+
+def test_local_mean_and_tv_match_reference():
+    rng = np.random.default_rng(1)
+    f = rng.normal(size=(13, 17))
+    wt = np.where(rng.uniform(size=f.shape) < 0.2, 0.0, rng.uniform(0.5, 3, f.shape))
+    wt[:4, :5] = 0.0
+    got = np.empty_like(f)
+    SK.local_mean(f, wt, 1, got)
+    assert_allclose(got, ref.local_mean(f, wt, 1), equal_nan=True)
+    z0 = np.where(np.isfinite(got), got, 0.0)
+    z = z0.copy()
+    SK.tv_pdhg(f, wt, 0.7, z, 40, *(np.empty_like(f) for _ in range(3)))
+    assert_allclose(z, ref.tv_pdhg(f, wt, 0.7, z0, 40), rtol=1e-10, atol=1e-12)
+    # it descends: many iterations beat the start and approach a minimum
+    z_long = z0.copy()
+    SK.tv_pdhg(f, wt, 0.7, z_long, 2000, *(np.empty_like(f) for _ in range(3)))
+    assert ref.tv_objective(z_long, f, wt, 0.7) < ref.tv_objective(z0, f, wt, 0.7)
+    assert ref.tv_objective(z_long, f, wt, 0.7) <= ref.tv_objective(z, f, wt, 0.7) + 1e-6
+
+
+# ------------------------------------------------------------------------------------------------
+# accuracy
+
+
+@pytest.mark.parametrize("sbr", [1.0, 10.0])
+def test_beats_the_pixelwise_oracle_at_two_detections(sbr):
+    tof = smooth_scene()
+    store, oracle = simulate(tof, 2, sbr, seed=int(sbr))
+    maps = reconstruct(store, settings("spatial"))
+    ml = reconstruct(store, settings("ml"))
+    assert np.all(np.isfinite(maps.tof_s))
+    # the oracle has no estimate where a pixel got no signal detection: count those as the ML
+    # does (it has to guess too), i.e. compare on the pixels the oracle covers
+    have = np.isfinite(oracle)
+    err_oracle = float(np.mean(np.abs(oracle - tof)[have]))
+    err = float(np.mean(np.abs(maps.tof_s / UNIT_S - tof)[have]))
+    assert err <= 0.6 * err_oracle, (err, err_oracle)
+    assert mae(maps, tof) < mae(ml, tof)
+
+
+def test_keeps_a_one_cm_step():
+    # columns in blocks of 8 alternating between 3.00 m and 3.01 m; 15 detections, SBR 10: the
+    # pixelwise ML has no smear at all (it never looks at a neighbour), so the spatial estimate
+    # may move at most one pixel's worth of the step across each edge
+    h, w, block = 64, 64, 8
+    raised = (np.arange(w) // block) % 2 == 1
+    tof = 1500 + np.tile(np.where(raised, 1.0, 0.0) * CM_UNITS, (h, 1))
+    store, _ = simulate(tof, 15, 10.0, seed=7)
+    maps = reconstruct(store, settings("spatial"))
+    ml = reconstruct(store, settings("ml"))
+    prof = (np.mean(maps.tof_s / UNIT_S, axis=0) - 1500) / CM_UNITS
+    aligned = [prof[e - 4:e + 4] if raised[e] else 1 - prof[e - 4:e + 4] for e in range(block, w, block)]
+    x = np.mean(aligned, axis=0)            # 0 before the edge (index 4), 1 after
+    smear = x[:4].sum() + (1 - x[4:]).sum()
+    assert smear <= 1.0, np.round(x, 2)
+    assert x[4] - x[3] > 0.5                 # a step, not a ramp
+    assert mae(maps, tof) < mae(ml, tof)
+
+
+# ------------------------------------------------------------------------------------------------
+# flags, stability, settings
+
+
+def test_pixels_without_detections_are_interpolated_and_flagged():
+    tof = smooth_scene(24, 24)
+    store, _ = simulate(tof, 5, 10.0, seed=3)
+    holes = [(5, 5), (12, 7), (20, 20)]
+    store = store.without_pixels([r * 24 + c for r, c in holes])
+    maps = reconstruct(store, settings("spatial"))
+    for r, c in holes:
+        assert maps.flags[r, c] == PixelFlag.INTERPOLATED
+        assert maps.photons[r, c] == 0 and maps.signal[r, c] == 0
+        assert np.isfinite(maps.uncertainty_s[r, c])
+        # the value comes from the neighbours: within a few cm of the truth
+        assert abs(maps.tof_s[r, c] / UNIT_S - tof[r, c]) < 3 * CM_UNITS
+    assert maps.settings["spatial"]["interpolated"] >= len(holes)
+
+
+def test_every_output_finite_or_flagged():
+    tof = smooth_scene(20, 20)
+    store, _ = simulate(tof, 3, 0.5, seed=5)
+    # a block with no data at all, beyond the fill radius: left NaN and flagged, never a guess
+    store = store.without_pixels([r * 20 + c for r in range(0, 8) for c in range(0, 8)])
+    maps = reconstruct(store, settings("spatial"))
+    ok = maps.flags == PixelFlag.OK
+    for a in (maps.tof_s, maps.depth_m, maps.uncertainty_s, maps.background, maps.signal):
+        assert np.all(np.isfinite(a[ok]))
+    assert np.all(np.isfinite(maps.background)) and np.all(maps.background >= 0)
+    nan = ~np.isfinite(maps.tof_s)
+    assert nan[2, 2] and maps.flags[2, 2] == PixelFlag.NO_PHOTONS
+    assert np.all(np.isin(maps.flags[nan], [PixelFlag.NO_PHOTONS, PixelFlag.NO_SIGNAL]))
+    assert np.all(np.isfinite(maps.uncertainty_s[~nan]))
+    assert np.all(maps.uncertainty_s[~nan] > 0)
+
+
+def test_empty_store_and_bad_settings():
+    store = PhotonStore(np.zeros(0), np.zeros(17, np.int64), (4, 4), UNIT_S)
+    maps = reconstruct(store, settings("spatial"))
+    assert np.all(np.isnan(maps.tof_s)) and np.all(maps.flags == PixelFlag.NO_PHOTONS)
+    with pytest.raises(InputError, match="reflectors"):
+        ReconSettings(method="spatial", reflectors=2)
+    assert maps.settings["method"] == "spatial" and "spatial" in maps.settings
+
+
+def test_uncertainty_roughly_calibrated():
+    tof = smooth_scene()
+    store, _ = simulate(tof, 5, 10.0, seed=9)
+    maps = reconstruct(store, settings("spatial"))
+    z = (maps.tof_s / UNIT_S - tof) / (maps.uncertainty_s / UNIT_S)
+    iqr = np.subtract(*np.nanpercentile(z, [75, 25]))
+    assert 1.349 * 0.6 <= iqr <= 1.349 * 1.5, iqr
