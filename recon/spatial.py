@@ -7,7 +7,7 @@ Three steps, each after a paper, with what was changed:
 1. **Censoring** of likely background detections, after Rapp and Goyal, "A few photons among many:
    unmixing signal and noise for photon-efficient active imaging", IEEE TCI 2017. They keep a
    detection when the detections of an adaptive superpixel around it hold enough others close in
-   time. Here the neighbourhood is a fixed square of (2 r + 1)^2 pixels (r = 2 when pixels hold
+   time. Here the neighbourhood is a fixed square (the pixel's own other detections included) of (2 r + 1)^2 pixels (r = 2 when pixels hold
    fewer than ``WIDE_BELOW`` detections, else 1), "close" is within ``TAU_RMS`` pulse RMS widths,
    and "enough" is the Poisson ``1 - ALPHA`` quantile of what uniform background alone would
    bring (every neighbour detection treated as background: a conservative threshold that needs no
@@ -103,10 +103,14 @@ def reconstruct_spatial(store: PhotonStore, settings: ReconSettings,
 
     # censoring threshold per pixel: what background alone would bring, at false-alarm ALPHA
     tau = TAU_RMS * sigma
-    win = _box_sum(counts.reshape(h, w).astype(np.float64), radius).ravel() - counts
+    win = np.maximum(_box_sum(counts.reshape(h, w).astype(np.float64), radius).ravel() - 1.0, 0.0)
     mu_bg = win * min(1.0, 2.0 * tau / m)
     s_min = (poisson.ppf(1.0 - ALPHA, mu_bg) + 1.0).astype(np.int64)
     s_min = np.maximum(s_min, 1)
+    if 2.0 * tau > 0.5 * m:
+        # a window hardly wider than the pulse: time cannot tell background from signal, so
+        # nothing is censored (the fit's flat term still takes its share)
+        s_min[:] = 0
 
     mu = np.empty(npix)
     k = np.empty(npix)

@@ -52,8 +52,8 @@ def censor_fit(x, offsets, h, w, radius, tau, s_min, sigma, n_bins, em_iters,
                out_mu, out_k, out_bg, out_n, out_kept):
     """Per pixel: censor, then fit a pulse-plus-flat mixture to the detections kept.
 
-    Censoring (after Rapp and Goyal 2017): a detection is kept when at least ``s_min[p]``
-    detections of the other pixels of the (2 radius + 1)^2 window lie within ``tau`` bins of it;
+    Censoring (after Rapp and Goyal 2017): a detection is kept when at least ``s_min[p]`` other
+    detections of the (2 radius + 1)^2 window (the pixel's own included) lie within ``tau`` bins;
     a background detection finds such support only by chance. Of the kept detections, the
     densest cluster (most kept within 2.5 sigma) seeds the fit. Fit: ``em_iters`` EM steps on all
     of the pixel's detections for ``pi N(mu, sigma^2) + (1 - pi) / n_bins``, mu and pi free.
@@ -87,12 +87,11 @@ def censor_fit(x, offsets, h, w, radius, tau, s_min, sigma, n_bins, em_iters,
         nk = 0
         for i in range(o0, o1):
             t = x[i]
-            s = 0
+            s = -1      # the detection itself is not its own support
             for r in range(rlo, rhi + 1):
                 for c in range(clo, chi + 1):
                     q = r * w + c
-                    if q != p:
-                        s += count_within(x, offsets[q], offsets[q + 1], t, tau)
+                    s += count_within(x, offsets[q], offsets[q + 1], t, tau)
                 if s >= s_min[p]:
                     break
             if s >= s_min[p]:
@@ -163,22 +162,26 @@ def local_mean(f, wt, radius, out):
             out[r, c] = a / s if s > 0.0 else np.nan
 
 
-@njit(parallel=True, cache=True, nogil=True)
+@njit(cache=True, nogil=True)
 def tv_pdhg(f, wt, lam, z, iters, px, py, zbar):
     """Weighted isotropic-TV denoising by the primal-dual algorithm of Chambolle and Pock (2011):
     minimise ``sum wt (z - f)^2 / 2 + lam * TV(z)`` over z (H x W). Pixels with wt = 0 carry no
     data and are filled by the regulariser. ``z`` holds the start and receives the result;
-    px, py, zbar are scratch (H x W, any content). Steps tau = sigma = 1/sqrt(8)."""
+    px, py, zbar are scratch (H x W, any content). Steps tau = sigma = 1/sqrt(8).
+
+    Serial on purpose: two parallel regions per iteration are 120 fork-joins a call, and on a
+    loaded machine one descheduled thread stalls every one of them (measured: 64 x 64 took 1.5 s
+    with 2 threads under load 5, 0.04 s with 1)."""
     h, w = f.shape
     step = 1.0 / math.sqrt(8.0)
-    for r in prange(h):
+    for r in range(h):
         for c in range(w):
             px[r, c] = 0.0
             py[r, c] = 0.0
             zbar[r, c] = z[r, c]
     for _ in range(iters):
         # dual ascent on the forward-difference gradient, projected on |p| <= lam
-        for r in prange(h):
+        for r in range(h):
             for c in range(w):
                 gx = zbar[r, c + 1] - zbar[r, c] if c + 1 < w else 0.0
                 gy = zbar[r + 1, c] - zbar[r, c] if r + 1 < h else 0.0
@@ -189,7 +192,7 @@ def tv_pdhg(f, wt, lam, z, iters, px, py, zbar):
                 px[r, c] = ax * sc
                 py[r, c] = ay * sc
         # primal descent: divergence (minus the adjoint of the gradient), then the data prox
-        for r in prange(h):
+        for r in range(h):
             for c in range(w):
                 div = 0.0
                 if c + 1 < w:

@@ -37,9 +37,8 @@ def censor_fit(lists, h, w, radius, tau, s_min, sigma, n_bins, em_iters):
             continue
         r0, c0 = divmod(p, w)
         others = np.concatenate([lists[r * w + c] for r in range(max(0, r0 - radius), min(h, r0 + radius + 1))
-                                 for c in range(max(0, c0 - radius), min(w, c0 + radius + 1))
-                                 if r * w + c != p] + [np.zeros(0)])
-        support = np.array([np.sum(np.abs(others - t) <= tau) for t in x])
+                                 for c in range(max(0, c0 - radius), min(w, c0 + radius + 1))])
+        support = np.array([np.sum(np.abs(others - t) <= tau) - 1 for t in x])
         kept = x[support >= s_min[p]]
         n_kept[p] = kept.size
         if kept.size == 0:

@@ -209,3 +209,27 @@ def test_uncertainty_roughly_calibrated():
     z = (maps.tof_s / UNIT_S - tof) / (maps.uncertainty_s / UNIT_S)
     iqr = np.subtract(*np.nanpercentile(z, [75, 25]))
     assert 1.349 * 0.6 <= iqr <= 1.349 * 1.5, iqr
+
+
+def _row(lists):
+    return PhotonStore.from_lists([np.asarray(x, dtype=float) for x in lists], (1, len(lists)), UNIT_S)
+
+
+def test_window_about_the_pulse_width_censors_nothing():
+    # tests/test_recon_hard_cases.py's one-bin case: a window of a few bins, pulse far wider
+    maps = reconstruct(_row([[100.0, 100.0, 101.0], [100.0], [102.0, 100.5]]),
+                       ReconSettings(method="spatial", pulse_rms_s=360e-12))
+    assert np.all(maps.flags == PixelFlag.OK)
+    assert np.all(np.abs(maps.tof_s / UNIT_S - 101) <= 5)
+    assert np.all(np.isfinite(maps.uncertainty_s))
+
+
+def test_sub_bin_pulse_and_a_lone_pixel():
+    # a pulse of 0.05 bins: the pixels with a tight cluster are fitted, the one whose two
+    # detections are 1.2 bins apart (24 pulse widths: no support) is filled from its neighbours
+    b = Binning(UNIT_S, 0.0, 1000.0, 5.0)
+    maps = reconstruct(_row([[499.9] * 5 + [500.1] * 5, [502.0] * 3, [497.0, 503.0]]),
+                       ReconSettings(method="spatial", binning=b, pulse_rms_s=0.05 * 40e-12))
+    assert_array_equal(maps.flags[0], [PixelFlag.OK, PixelFlag.OK, PixelFlag.INTERPOLATED])
+    assert maps.signal[0, 0] == pytest.approx(10, rel=0.01) and maps.signal[0, 1] == pytest.approx(3, rel=0.01)
+    assert np.all(np.isfinite(maps.tof_s)) and np.all(np.abs(maps.tof_s / UNIT_S - 501) < 3)

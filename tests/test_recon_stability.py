@@ -18,7 +18,7 @@ UNIT_S = 8e-12
 M = 201
 BIN = Binning(UNIT_S, 0.0, M * 5.0, 5.0)
 RMS_S = 4 * 40e-12
-METHODS = ("lmf", "uos", "ml")
+METHODS = ("lmf", "uos", "ml", "spatial")
 
 pytestmark = pytest.mark.filterwarnings("error")
 
