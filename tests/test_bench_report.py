@@ -7,7 +7,7 @@ import csv
 
 import pytest
 
-from acq.bench_report import CSV_FIELDS, QUICK_DETECTIONS, QUICK_SBRS
+from acq.bench_report import CSV_FIELDS, METHODS, QUICK_DETECTIONS, QUICK_SBRS
 from acq.cli import main
 
 
@@ -31,7 +31,7 @@ def test_writes_report_csv_and_figures(quick_report):
         assert needle in text, needle
     assert tuple(rows[0]) == CSV_FIELDS
     bust = [r for r in rows if r["scene"] == "bust"]
-    assert len(bust) == len(QUICK_DETECTIONS) * len(QUICK_SBRS) * 3
+    assert len(bust) == len(QUICK_DETECTIONS) * len(QUICK_SBRS) * len(METHODS)
     k2 = [r for r in rows if r["scene"] == "two-layer"]
     assert {r["surface"] for r in k2} == {"0", "1"} and all(r["reflectors"] == "2" for r in k2)
     for r in rows:
