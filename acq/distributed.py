@@ -315,6 +315,11 @@ def settings_from_args(args: argparse.Namespace, unit_ps: float):
 def _by_blocks(args: argparse.Namespace, client) -> dict | None:
     """The single-recording block path; None when the input cannot be split (see module doc)."""
     path = args.input[0]
+    if args.method == "spatial":
+        # its pixels are not independent: blocks would cut every neighbourhood at their seams
+        print(f"spdepth recon: {path}: the spatial method needs each pixel's neighbours: "
+              f"reconstructing it as one task", file=sys.stderr)
+        return None
     found = _image_and_unit(path, args.time_unit_ps * 1e-12 if args.time_unit_ps else None)
     if found is None:
         return None
