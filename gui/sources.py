@@ -16,8 +16,9 @@ import numpy as np
 
 from recon.errors import InputError
 
-SOURCES = ("sim", "real", "replay")
-"""Simulated bench, real devices, or a recording replayed through the same pipeline."""
+SOURCES = ("sim", "real", "replay", "file")
+"""Simulated bench, real devices, a recording replayed through the same pipeline, or a PTU/.mat
+file reconstructed as a whole (``spdepth recon``'s path, on a worker thread)."""
 MODES = ("gated", "raster")
 METHODS = ("uos", "ml", "lmf")
 
@@ -29,6 +30,10 @@ class SourceSpec:
     size:           (H, W) pixels, rows first.
     dwell_limit_ms: gated dwell limit / raster dwell; 0 means the default for the source.
     sync_rate_hz:   real devices: the laser repetition rate.
+    file:           a PTU/HT3/PT3 or .mat file to reconstruct (kind "file"); target is then the
+                    detections kept per pixel (0: all).
+    time_unit_ps:   file: size of one raw time unit (required for .mat, 0: the PTU header's).
+    pulse_rms_ps:   file: Gaussian pulse RMS (0: estimated from the data).
     out_root:       a folder under which each run gets its own directory (recording, maps, run.json).
     """
 
@@ -46,6 +51,9 @@ class SourceSpec:
     tagger_url: str = ""
     sync_rate_hz: float = 0.0
     recording: str = ""
+    file: str = ""
+    time_unit_ps: float = 0.0
+    pulse_rms_ps: float = 0.0
     out_root: str = ""
 
     def to_dict(self) -> dict:
@@ -66,6 +74,8 @@ class SourceSpec:
             return f"simulated {self.scene} {w}x{h}, {self.target} per pixel, {self.method}"
         if self.kind == "real":
             return f"devices {w}x{h}, {self.target} per pixel, {self.method}"
+        if self.kind == "file":
+            return f"{Path(self.file).name}, {self.method}"
         return f"replay of {Path(self.recording).name}, {self.method}"
 
 
@@ -122,7 +132,7 @@ def validate(spec: SourceSpec) -> None:
     h, w = spec.size
     if h < 1 or w < 1:
         raise InputError(f"size must be at least 1x1, got {w}x{h}")
-    if spec.target < 1 and spec.kind != "replay":   # a replay may keep the recorded target (0)
+    if spec.target < 1 and spec.kind not in ("replay", "file"):   # 0: as recorded / all
         raise InputError(f"target detections must be at least 1, got {spec.target}")
     if spec.mode not in MODES:
         raise InputError(f"mode must be gated or raster, got {spec.mode!r}")
@@ -138,6 +148,15 @@ def validate(spec: SourceSpec) -> None:
             raise InputError("choose a recording to replay")
         if not Path(spec.recording).exists():
             raise InputError(f"recording {spec.recording} does not exist")
+    if spec.kind == "file":
+        if not spec.file:
+            raise InputError("choose a PTU or .mat file to reconstruct")
+        if not Path(spec.file).is_file():
+            raise InputError(f"file {spec.file} does not exist")
+        if Path(spec.file).suffix.lower() == ".mat" and not spec.time_unit_ps > 0:
+            raise InputError(f"{Path(spec.file).name}: a .mat file does not record its time unit; "
+                             "set the time unit (8 ps for first-photon-imaging files, 1 ps for "
+                             "times in ps)")
 
 
 def open_run(spec: SourceSpec, out_dir: str | Path | None) -> Run:
@@ -174,4 +193,202 @@ def open_run(spec: SourceSpec, out_dir: str | Path | None) -> Run:
     return Run(session, spec, out, instruments=inst, truth_depth_m=truth, label=spec.label())
 
 
-__all__ = ["SourceSpec", "Run", "open_run", "run_dir", "validate", "SOURCES", "MODES", "METHODS"]
+@dataclass(frozen=True)
+class PixelInfo:
+    """One pixel as the inspector shows it: its kept detection times (tagger units of
+    ``binning.time_unit_s``), the estimate, the model used, and words for its counts and state."""
+
+    times: np.ndarray
+    binning: object
+    pulse_rms_s: float | None
+    irf: object
+    tof_s: float
+    depth_m: float
+    background: float
+    signal: float
+    uncertainty_s: float
+    estimated: bool
+    flag: int
+    kept: str
+    acquisition: str
+
+
+class SessionView:
+    """What the inspector and the saving need from a live or replayed session."""
+
+    def __init__(self, session):
+        self.session = session
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.session.plan.shape
+
+    @property
+    def target(self) -> int:
+        return self.session.plan.target
+
+    def maps(self):
+        return self.session.maps()
+
+    def key(self, r: int, c: int):
+        """Changes whenever what ``pixel(r, c)`` shows may have changed."""
+        s = self.session
+        flat = r * self.shape[1] + c
+        return (int(s.store.count[flat]), int(s.acq_flags[flat]), bool(s.recon.done[r, c]),
+                s.recon.settings.pulse_rms_s)
+
+    def pixel(self, r: int, c: int) -> PixelInfo:
+        from acq.session import AcqFlag
+
+        s = self.session
+        rc = s.recon
+        flat = r * self.shape[1] + c
+        acq = int(s.acq_flags[flat])
+        return PixelInfo(
+            times=s.store.photons([flat]).times, binning=rc.settings.binning,
+            pulse_rms_s=rc.settings.pulse_rms_s, irf=rc.settings.irf,
+            tof_s=float(rc.tof_s[r, c]), depth_m=float(rc.depth_m[r, c]),
+            background=float(rc.background[r, c]), signal=float(rc.signal[r, c]),
+            uncertainty_s=float(rc.uncertainty_s[r, c]), estimated=bool(rc.done[r, c]),
+            flag=int(rc.flags[r, c]), kept=f"{int(s.store.count[flat])} of {s.plan.target}",
+            acquisition="acquiring" if acq == 255 else AcqFlag(acq).name.lower().replace("_", " "))
+
+
+@dataclass
+class FileResult:
+    """A file reconstructed as a whole: the maps, the kept photons and the model used."""
+
+    path: Path
+    maps: object
+    store: object
+    binning: object
+    pulse_rms_s: float | None
+    irf: object
+    target: int
+    notes: tuple = ()
+    read_s: float = 0.0
+    recon_s: float = 0.0
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return tuple(self.maps.flags.shape)
+
+    def snapshot(self):
+        """The maps as an ``acq.session.Snapshot`` (state done), for the map panels."""
+        from acq.session import Snapshot
+
+        m = self.maps
+        h, w = self.shape
+        return Snapshot(state="done", elapsed_s=self.read_s + self.recon_s, pixels_total=h * w,
+                        pixels_final=h * w, detections=int(m.photons.sum()), detections_per_s=0.0,
+                        lost_spans=0, lost_records=0, eta_s=None, recon_lag=0, passes=0,
+                        depth_m=m.depth_m, background=m.background, signal=m.signal,
+                        uncertainty_s=m.uncertainty_s, counts=m.photons,
+                        acq_flags=np.zeros((h, w), np.uint8))
+
+
+class ResultView:
+    """``SessionView``'s interface over a :class:`FileResult`."""
+
+    def __init__(self, result: FileResult):
+        self.result = result
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.result.shape
+
+    @property
+    def target(self) -> int:
+        return self.result.target
+
+    def maps(self):
+        return self.result.maps
+
+    def key(self, r: int, c: int):
+        return ()
+
+    def pixel(self, r: int, c: int) -> PixelInfo:
+        res, m = self.result, self.result.maps
+        b = res.binning
+        t = res.store.pixel(r, c)
+        t = t[(t >= b.window_start) & (t < b.window_stop)]
+        if res.target:
+            t = t[:res.target]
+        n = int(m.photons[r, c])
+        return PixelInfo(
+            times=t, binning=b, pulse_rms_s=res.pulse_rms_s, irf=res.irf,
+            tof_s=float(m.tof_s[r, c]), depth_m=float(m.depth_m[r, c]),
+            background=float(m.background[r, c]), signal=float(m.signal[r, c]),
+            uncertainty_s=float(m.uncertainty_s[r, c]), estimated=n > 0, flag=int(m.flags[r, c]),
+            kept=f"{n} in the window" + (f" (first {res.target})" if res.target else ""),
+            acquisition=f"from {res.path.name}")
+
+
+def reconstruct_file(spec: SourceSpec, progress=None) -> FileResult:
+    """Read ``spec.file`` and reconstruct it as ``spdepth recon`` does with no window or bin
+    option (both derived from the data; the pulse estimated unless ``spec.pulse_rms_ps``).
+    Raises ``InputError`` (naming the file) for what cannot be read."""
+    from acq.readers import read_photons
+    from recon.estimate import reconstruct
+    from recon.model import Binning, Irf, ReconSettings
+
+    validate(spec)
+    path = Path(spec.file)
+    t0 = time.perf_counter()
+    result = read_photons(path, time_unit_s=spec.time_unit_ps * 1e-12 if spec.time_unit_ps else None)
+    store = result.store
+    if store.n_photons == 0:
+        raise InputError(f"{path.name}: holds no photons")
+    settings = ReconSettings(method=spec.method, binning=None,
+                             pulse_rms_s=spec.pulse_rms_ps * 1e-12 if spec.pulse_rms_ps else None,
+                             max_photons=spec.target or None)
+    t1 = time.perf_counter()
+    maps = reconstruct(store, settings, progress=progress)
+    t2 = time.perf_counter()
+    used = maps.settings
+    b = used["binning"]
+    binning = Binning(b["time_unit_s"], b["window_start"], b["window_stop"], b["bin_width"])
+    irf = None
+    if used.get("irf"):
+        irf = Irf(used["irf"]["times_s"], used["irf"]["counts"], used["irf"].get("source", ""))
+    return FileResult(path, maps, store, binning, used.get("pulse_rms_s"), irf, int(spec.target),
+                      tuple(result.notes), t1 - t0, t2 - t1)
+
+
+class FileJob:
+    """``reconstruct_file`` on a worker thread; the window polls ``done``/``result``/``error`` and
+    ``progress`` (pixels done, total) from its timer, so it never blocks."""
+
+    def __init__(self, spec: SourceSpec):
+        import threading
+
+        self.spec = spec
+        self.result: FileResult | None = None
+        self.error: BaseException | None = None
+        self.progress = (0, 0)
+        self.started_at = time.monotonic()
+        self._done = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="gui-file-recon", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        try:
+            self.result = reconstruct_file(self.spec, progress=self._progress)
+        except BaseException as exc:  # noqa: BLE001 - handed to the window, shown in its banner
+            self.error = exc
+        finally:
+            self._done.set()
+
+    def _progress(self, done: int, total: int) -> None:
+        self.progress = (int(done), int(total))
+
+    @property
+    def done(self) -> bool:
+        return self._done.is_set()
+
+    def wait(self, timeout_s: float | None = None) -> bool:
+        return self._done.wait(timeout_s)
+
+
+__all__ = ["SourceSpec", "Run", "open_run", "run_dir", "validate", "SOURCES", "MODES", "METHODS",
+           "PixelInfo", "SessionView", "ResultView", "FileResult", "FileJob", "reconstruct_file"]

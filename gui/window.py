@@ -23,7 +23,8 @@ from PySide6 import QtCore, QtGui, QtWidgets
 from gui.health import HealthTracker
 from gui.maps import C_M_PER_S, MAP_SPECS, MapPanel
 from gui.pixel_model import pixel_histogram
-from gui.sources import METHODS, MODES, SourceSpec, open_run, run_dir
+from gui.sources import (METHODS, MODES, FileJob, ResultView, SessionView, SourceSpec, open_run,
+                         run_dir)
 
 log = logging.getLogger(__name__)
 
@@ -64,6 +65,17 @@ def _pill(label: QtWidgets.QLabel, colour: str) -> None:
                         "padding: 1px 8px; font-weight: bold; }")
 
 
+def _path_row(edit: QtWidgets.QLineEdit, browse_slot) -> QtWidgets.QHBoxLayout:
+    """A path field with its "…" browse button."""
+    browse = QtWidgets.QPushButton("…")
+    browse.setFixedWidth(28)
+    browse.clicked.connect(browse_slot)
+    row = QtWidgets.QHBoxLayout()
+    row.addWidget(edit)
+    row.addWidget(browse)
+    return row
+
+
 class ControlPanel(QtWidgets.QWidget):
     """Source, scan and estimator settings, and the run buttons."""
 
@@ -78,6 +90,7 @@ class ControlPanel(QtWidgets.QWidget):
         self.kind.addItem("Simulated devices", "sim")
         self.kind.addItem("Real devices", "real")
         self.kind.addItem("Replay a recording", "replay")
+        self.kind.addItem("Reconstruct a PTU/.mat file", "file")
         f.addRow("Source", self.kind)
         self.scene = QtWidgets.QComboBox()
         self.scene.setEditable(True)
@@ -97,18 +110,26 @@ class ControlPanel(QtWidgets.QWidget):
         self.sync_mhz = QtWidgets.QDoubleSpinBox(decimals=3, minimum=0.0, maximum=1e4, suffix=" MHz")
         self.recording = QtWidgets.QLineEdit()
         self.recording.setPlaceholderText("run folder or recording.ptu")
-        browse = QtWidgets.QPushButton("…")
-        browse.setFixedWidth(28)
-        browse.clicked.connect(self._browse_recording)
-        rec_row = QtWidgets.QHBoxLayout()
-        rec_row.addWidget(self.recording)
-        rec_row.addWidget(browse)
+        rec_row = _path_row(self.recording, self._browse_recording)
+        self.file = QtWidgets.QLineEdit()
+        self.file.setPlaceholderText("scan.ptu or data.mat")
+        file_row = _path_row(self.file, self._browse_file)
+        self.time_unit = QtWidgets.QDoubleSpinBox(decimals=3, minimum=0.0, maximum=1e6, suffix=" ps")
+        self.time_unit.setSpecialValueText("from the file")
+        self.time_unit.setToolTip("size of one raw time unit: PTU files carry theirs; .mat files "
+                                  "need it (8 ps for first-photon-imaging files, 1 ps for ps)")
+        self.pulse_rms = QtWidgets.QDoubleSpinBox(decimals=1, minimum=0.0, maximum=1e6, suffix=" ps")
+        self.pulse_rms.setSpecialValueText("estimate")
+        self.pulse_rms.setToolTip("Gaussian pulse RMS width (the seed paper: 360 ps); "
+                                  "'estimate' measures the response from the data")
         self._rows = {}
         for key, label, w in (("sim", "Scene", self.scene), ("sim", "SBR", self.sbr),
                               ("sim", "Seed", self.seed), ("sim", "Faults", self.faults),
                               ("real", "Galvo port", self.galvo), ("real", "Tagger", self.tagger),
                               ("real", "Sync rate", self.sync_mhz),
-                              ("replay", "Recording", rec_row)):
+                              ("replay", "Recording", rec_row), ("file", "File", file_row),
+                              ("file", "Time unit", self.time_unit),
+                              ("file", "Pulse RMS", self.pulse_rms)):
             f.addRow(label, w)
             self._rows.setdefault(key, []).append(w)
         lay.addWidget(src)
@@ -141,14 +162,9 @@ class ControlPanel(QtWidgets.QWidget):
         self.method.setToolTip("uos: union-of-subspaces (the paper); ml: Poisson maximum "
                                "likelihood; lmf: log-matched filter (ignores background)")
         g.addRow("Estimator", self.method)
-        out_row = QtWidgets.QHBoxLayout()
         self.out_root = QtWidgets.QLineEdit(DEFAULT_OUT_ROOT)
         self.out_root.setToolTip("each run gets its own folder here (recording, maps, run.json)")
-        out_browse = QtWidgets.QPushButton("…")
-        out_browse.setFixedWidth(28)
-        out_browse.clicked.connect(self._browse_out)
-        out_row.addWidget(self.out_root)
-        out_row.addWidget(out_browse)
+        out_row = _path_row(self.out_root, self._browse_out)
         g.addRow("Runs folder", out_row)
         lay.addWidget(scan)
         self._groups = (src, scan)
@@ -181,7 +197,9 @@ class ControlPanel(QtWidgets.QWidget):
             for w in widgets:
                 self._src_form.setRowVisible(w, key == kind)
         for w in (self.width_px, self.height_px, self.mode, self.dwell):
-            w.setEnabled(kind != "replay")
+            w.setEnabled(kind not in ("replay", "file"))
+        self.out_root.setEnabled(kind != "file")      # a file's reconstruction writes nothing
+        self.target.setSpecialValueText("all" if kind == "file" else "as recorded")
 
     def _browse_recording(self) -> None:
         path, _ = QtWidgets.QFileDialog.getOpenFileName(self, "Recording to replay",
@@ -189,6 +207,13 @@ class ControlPanel(QtWidgets.QWidget):
                                                         "PTU recordings (*.ptu);;All files (*)")
         if path:
             self.recording.setText(path)
+
+    def _browse_file(self) -> None:
+        path, _ = QtWidgets.QFileDialog.getOpenFileName(
+            self, "File to reconstruct", self.file.text(),
+            "Photon data (*.ptu *.ht3 *.pt3 *.mat);;All files (*)")
+        if path:
+            self.file.setText(path)
 
     def _browse_out(self) -> None:
         path = QtWidgets.QFileDialog.getExistingDirectory(self, "Runs folder", self.out_root.text())
@@ -203,7 +228,9 @@ class ControlPanel(QtWidgets.QWidget):
             dwell_limit_ms=self.dwell.value(), sbr=self.sbr.value(), seed=self.seed.value(),
             faults=self.faults.text().strip(), galvo_port=self.galvo.text().strip(),
             tagger_url=self.tagger.text().strip(), sync_rate_hz=self.sync_mhz.value() * 1e6,
-            recording=self.recording.text().strip(), out_root=self.out_root.text().strip())
+            recording=self.recording.text().strip(), file=self.file.text().strip(),
+            time_unit_ps=self.time_unit.value(), pulse_rms_ps=self.pulse_rms.value(),
+            out_root=self.out_root.text().strip())
 
     def set_spec(self, s: SourceSpec) -> None:
         i = self.kind.findData(s.kind)
@@ -222,6 +249,9 @@ class ControlPanel(QtWidgets.QWidget):
         self.tagger.setText(s.tagger_url)
         self.sync_mhz.setValue(float(s.sync_rate_hz) / 1e6)
         self.recording.setText(s.recording)
+        self.file.setText(s.file)
+        self.time_unit.setValue(float(s.time_unit_ps))
+        self.pulse_rms.setValue(float(s.pulse_rms_ps))
         if s.out_root:
             self.out_root.setText(s.out_root)
 
@@ -271,29 +301,23 @@ class Inspector(QtWidgets.QWidget):
         self.info.setText("")
         self.title.setText("<b>Pixel inspector</b> — hover or click a map pixel")
 
-    def show_pixel(self, session, pixel: tuple[int, int], pinned: bool) -> None:
-        from acq.session import AcqFlag
+    def show_pixel(self, info, pixel: tuple[int, int], pinned: bool) -> None:
+        """``info``: a ``gui.sources.PixelInfo`` of ``pixel`` (row, col)."""
         from recon.maps import PixelFlag
 
         r, c = pixel
-        h, w = session.plan.shape
-        flat = r * w + c
-        maps = session.maps()
-        settings = session.recon.settings
-        b = settings.binning
-        times = session.store.photons([flat]).times
-        tof = float(maps.tof_s[r, c])
-        bg = float(maps.background[r, c])
-        sig = float(maps.signal[r, c])
+        b = info.binning
+        tof, bg, sig = info.tof_s, info.background, info.signal
+        pulse_rms_s = info.pulse_rms_s
         # display bins about half the pulse RMS wide (raw 40 ps bins hold 0 or 1 photon each)
-        rms_bins = (settings.pulse_rms_s or 0.0) / b.bin_width_s
-        ph = pixel_histogram(times, b, tof_s=tof, background=bg, signal=sig,
-                             pulse_rms_s=settings.pulse_rms_s, irf=settings.irf,
+        rms_bins = (pulse_rms_s or 0.0) / b.bin_width_s
+        ph = pixel_histogram(info.times, b, tof_s=tof, background=bg, signal=sig,
+                             pulse_rms_s=pulse_rms_s, irf=info.irf,
                              display_bins=int(b.n_bins / max(1.0, rms_bins / 2)))
         self.hist.setData(ph.edges_s, ph.counts)
-        if math.isfinite(tof) and settings.pulse_rms_s:
+        if math.isfinite(tof) and pulse_rms_s:
             # the pulse is a sliver of the window: show its neighbourhood (the "A" button: all)
-            half = max(3e-9, 10 * settings.pulse_rms_s)
+            half = max(3e-9, 10 * pulse_rms_s)
             self.plot.setXRange(tof - half, tof + half, padding=0)
         else:
             self.plot.setXRange(ph.edges_s[0], ph.edges_s[-1], padding=0)
@@ -301,11 +325,9 @@ class Inspector(QtWidgets.QWidget):
         centres = 0.5 * (ph.edges_s[1:] + ph.edges_s[:-1])
         self.model.setData(centres, ph.model) if ph.model is not None else self.model.setData([], [])
         self.pixel = pixel
-        done = bool(session.recon.done[r, c]) if hasattr(session.recon, "done") else math.isfinite(tof)
-        acq = int(session.acq_flags[flat])
-        acq_txt = "acquiring" if acq == 255 else AcqFlag(acq).name.lower().replace("_", " ")
-        depth = float(maps.depth_m[r, c])
-        sd_cm = float(maps.uncertainty_s[r, c]) * C_M_PER_S / 2 * 100
+        done = info.estimated
+        depth = info.depth_m
+        sd_cm = info.uncertainty_s * C_M_PER_S / 2 * 100
         n_bins = b.n_bins
         rows = [
             ("depth", f"{depth:.4f} m ± {sd_cm:.2f} cm" if math.isfinite(depth) else "–"),
@@ -313,10 +335,9 @@ class Inspector(QtWidgets.QWidget):
             ("signal", f"{sig:.2f} detections" if done else "–"),
             ("background", f"{bg * n_bins:.3f} in window ({bg:.2e}/bin)"
              if done and math.isfinite(bg) else "–"),
-            ("detections kept", f"{int(session.store.count[flat])} of {session.plan.target}"),
-            ("estimate", PixelFlag(int(maps.flags[r, c])).name.lower().replace("_", " ")
-             if done else "not yet"),
-            ("acquisition", acq_txt),
+            ("detections kept", info.kept),
+            ("estimate", PixelFlag(info.flag).name.lower().replace("_", " ") if done else "not yet"),
+            ("acquisition", info.acquisition),
         ]
         self.title.setText(f"<b>Pixel row {r}, col {c}</b>" + (" (pinned: click again to release)"
                                                               if pinned else ""))
@@ -405,6 +426,9 @@ class MainWindow(QtWidgets.QMainWindow):
         self.setWindowTitle("spdepth — single-photon depth imaging")
         self.settings = settings if settings is not None else QtCore.QSettings("spdepth", "spdepth")
         self.run = None
+        self.job: FileJob | None = None
+        self.view = None
+        """What the inspector and Save read: a ``SessionView`` or a ``ResultView``."""
         self.snap = None
         self.health = HealthTracker()
         self._ended_emitted = False
@@ -538,6 +562,8 @@ class MainWindow(QtWidgets.QMainWindow):
         return self.run.session if self.run is not None else None
 
     def running(self) -> bool:
+        if self.job is not None and not self.job.done:
+            return True
         return self.run is not None and not self.run.session.ended.is_set()
 
     def start_run(self, spec: SourceSpec | None = None, out_dir: str | Path | None = "auto") -> bool:
@@ -552,6 +578,8 @@ class MainWindow(QtWidgets.QMainWindow):
             self.controls.set_spec(spec)
         self._release_run()
         self.banner.hide()
+        if spec.kind == "file":
+            return self._start_file(spec)
         made = None
         try:
             if out_dir == "auto":
@@ -565,25 +593,101 @@ class MainWindow(QtWidgets.QMainWindow):
             self.controls.set_running(None)
             return False
         self.run = run
+        self.view = SessionView(run.session)
         self.save_settings()
         self.health = HealthTracker(live=spec.kind != "replay")
+        self._n_bins = run.session.recon.settings.binning.n_bins
+        # the run's own folder name; the whole path is in the tooltip (and in run.json)
+        where = f" — files in …/{run.out_dir.name}/" if run.out_dir else ""
+        self._new_run(f"{run.label}{where}", str(run.out_dir or ""))
+        h, w = run.session.plan.shape
+        self.inspect((h // 2, w // 2), pin=False)     # something to look at until the user points
+        self.refresh()
+        return True
+
+    def _new_run(self, label: str, tooltip: str) -> None:
         self._ended_emitted = False
         self._last_sig = None
         self._inspect_key = None
         self._pinned = False
         self._hover = None
-        self._n_bins = run.session.recon.settings.binning.n_bins
         for p in self.panels:
             p.reset()
         self.inspector.clear()
         self.accuracy.clear()
-        where = f" — files in {run.out_dir}" if run.out_dir else ""
-        self.run_label.setText(f"{run.label}{where}")
-        self.run_label.setToolTip(str(run.out_dir or ""))
-        h, w = run.session.plan.shape
-        self.inspect((h // 2, w // 2), pin=False)     # something to look at until the user points
-        self.refresh()
+        self.run_label.setText(label)
+        self.run_label.setToolTip(tooltip)
+
+    def _start_file(self, spec: SourceSpec) -> bool:
+        """Reconstruct a PTU/.mat file on a worker thread (the timer polls it)."""
+        from gui.sources import validate
+
+        try:
+            validate(spec)
+        except Exception as exc:  # noqa: BLE001 - a bad setting is shown, window stays usable
+            self.show_error(f"Could not start: {exc}")
+            return False
+        self.run = None
+        self.view = None
+        self.snap = None
+        self.job = FileJob(spec)
+        self.save_settings()
+        self.health = HealthTracker(live=False)
+        self._new_run(f"{spec.label()} — reconstructing…", spec.file)
+        self.state_label.setText("reconstructing")
+        _pill(self.state_label, STATE_COLOURS["running"])
+        self.health_label.setText("● file")
+        _pill(self.health_label, "#8a8a8a")
+        self.controls.set_running("running")
+        self.controls.pause.setEnabled(False)
+        self.controls.abort.setEnabled(False)      # a reconstruction cannot be stopped midway
         return True
+
+    def _poll_job(self) -> None:
+        job = self.job
+        if not job.done:
+            done, total = job.progress
+            if total:
+                self.progress.setMaximum(total)
+                self.progress.setValue(done)
+            self.eta_label.setText(f"{time.monotonic() - job.started_at:.0f} s")
+            return
+        self.job = None
+        self.controls.set_running(None)
+        if job.error is not None or job.result is None:
+            exc = job.error
+            self.state_label.setText("failed")
+            _pill(self.state_label, STATE_COLOURS["failed"])
+            self.run_label.setText(f"{job.spec.label()} — failed")
+            self.show_error(f"Could not reconstruct {Path(job.spec.file).name}: {exc}")
+            self.scan_ended.emit("failed")
+            return
+        res = job.result
+        self.view = ResultView(res)
+        self._n_bins = res.binning.n_bins
+        snap = self.snap = res.snapshot()
+        target = res.target or max(1, int(np.max(res.maps.photons)))
+        for p in self.panels:
+            p.show(p.spec.extract(snap, self._n_bins), target)
+        self.fit_levels()
+        h, w = res.shape
+        self.state_label.setText("done")
+        _pill(self.state_label, STATE_COLOURS["done"])
+        self.rate_label.setText(f"{snap.detections:,} det")
+        self.progress.setMaximum(h * w)
+        self.progress.setValue(h * w)
+        self.eta_label.setText(f"read {res.read_s:.1f} s, recon {res.recon_s:.1f} s")
+        self.lost_label.setText("")
+        b = res.binning
+        pulse = (f"pulse RMS {res.pulse_rms_s * 1e12:.0f} ps "
+                 f"({res.maps.settings.get('pulse_source', '')})" if res.pulse_rms_s else "")
+        self.run_label.setText(f"{job.spec.label()} — {w}×{h}, {snap.detections:,} detections, "
+                               f"window {b.window_start * b.time_unit_s * 1e9:.1f}–"
+                               f"{b.window_stop * b.time_unit_s * 1e9:.1f} ns, {pulse}")
+        for note in res.notes:
+            self.statusBar().showMessage(note, 10000)
+        self.inspect((h // 2, w // 2), pin=False)
+        self.scan_ended.emit("done")
 
     def _release_run(self) -> None:
         if self.run is not None and self.run.session.ended.is_set():
@@ -625,6 +729,9 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def refresh(self) -> None:
         """Pull the latest snapshot and paint what changed (the timer calls this)."""
+        if self.job is not None:
+            self._poll_job()
+            return
         run = self.run
         if run is None:
             return
@@ -667,7 +774,9 @@ class MainWindow(QtWidgets.QMainWindow):
         self.scan_ended.emit(snap.state)
 
     def fit_levels(self) -> None:
-        target = self.session.plan.target if self.session is not None else 1
+        target = max(1, self.view.target) if self.view is not None else 1
+        if isinstance(self.view, ResultView) and not self.view.target:
+            target = max(1, int(np.max(self.view.result.maps.photons)))
         for p in self.panels:
             p.fit(target)
         if self.snap is not None:
@@ -707,22 +816,20 @@ class MainWindow(QtWidgets.QMainWindow):
         self._update_inspector()
 
     def _update_inspector(self) -> None:
-        if self.session is None or self._hover is None:
+        view = self.view
+        if view is None or self._hover is None:
             return
         r, c = self._hover
-        s = self.session
-        h, w = s.plan.shape
+        h, w = view.shape
         if not (0 <= r < h and 0 <= c < w):
             return
-        flat = r * w + c
-        key = (self._hover, self._pinned, int(s.store.count[flat]), int(s.acq_flags[flat]),
-               bool(s.recon.done[r, c]), s.recon.settings.pulse_rms_s)
+        key = (self._hover, self._pinned, view.key(r, c))
         if key == self._inspect_key:
             return
         self._inspect_key = key
         for p in self.panels:
             p.mark(self._hover)
-        self.inspector.show_pixel(s, self._hover, self._pinned)
+        self.inspector.show_pixel(view.pixel(r, c), self._hover, self._pinned)
 
     # ---- files ---------------------------------------------------------------------------------
     def save_maps(self, path: str | Path) -> Path:
@@ -730,10 +837,10 @@ class MainWindow(QtWidgets.QMainWindow):
         depth_m, background, photons, depth_sd_m with the settings as JSON), .npz (``recon``'s)."""
         from recon.errors import InputError
 
-        if self.session is None:
+        if self.view is None:
             raise InputError("no maps yet: run a scan first")
         path = Path(path)
-        maps = self.session.maps()
+        maps = self.view.maps()
         suffix = path.suffix.lower()
         if suffix == ".npz":
             maps.save_npz(path)
@@ -750,16 +857,17 @@ class MainWindow(QtWidgets.QMainWindow):
         elif suffix == ".png":
             from acq.report import render_maps_png
 
-            render_maps_png(path, maps, title=self.run.label)
+            render_maps_png(path, maps, title=self.run_label.text().split(" — ")[0])
         else:
             raise InputError(f"save maps: {path.name} must end in .png, .tif, .tiff or .npz")
         return path
 
     def _save_dialog(self) -> None:
-        if self.session is None:
+        if self.view is None:
             self.show_error("No maps to save yet: run a scan first.")
             return
-        start = str((self.run.out_dir or Path.cwd()) / "maps.png")
+        folder = self.run.out_dir if self.run is not None else None
+        start = str((folder or Path.cwd()) / "maps.png")
         path, _ = QtWidgets.QFileDialog.getSaveFileName(
             self, "Save maps", self.settings.value("last_save", start),
             "PNG sheet (*.png);;TIFF stack (*.tif *.tiff);;NumPy (*.npz)")

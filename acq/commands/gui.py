@@ -7,7 +7,8 @@ import argparse
 
 from acq.commands._args import non_negative_float, positive_float, positive_int, size_wxh
 
-HELP = "open the live window; with --sim, --galvo/--tagger or --replay start that scan at once"
+HELP = ("open the live window; with --sim, --galvo/--tagger or --replay start that scan at once, "
+        "with --file reconstruct a PTU/.mat file in it")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -19,6 +20,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                      help="laser repetition rate (real devices)")
     src.add_argument("--replay", metavar="RECORDING",
                      help="replay a run folder or its recording.ptu through the session pipeline")
+    src.add_argument("--file", metavar="PTU|MAT",
+                     help="reconstruct a PTU/HT3/PT3 or .mat file (spdepth recon's reading) and "
+                          "show its maps")
+    src.add_argument("--time-unit-ps", type=positive_float, metavar="PS",
+                     help="--file: raw time unit (required for .mat: 8 for first-photon imaging)")
+    src.add_argument("--pulse-rms-ps", type=positive_float, metavar="PS",
+                     help="--file: Gaussian pulse RMS (default: estimated from the data)")
     sim = parser.add_argument_group("simulated bench")
     sim.add_argument("--scene", help="built-in scene or file:DEPTH (default bust)")
     sim.add_argument("--sbr", type=positive_float, help="signal-to-background ratio (default 10)")
@@ -54,21 +62,25 @@ def spec_from_args(args: argparse.Namespace, base=None):
     from recon.errors import InputError
 
     kinds = [k for k, on in (("sim", args.sim), ("real", bool(args.galvo or args.tagger)),
-                             ("replay", bool(args.replay))) if on]
+                             ("replay", bool(args.replay)), ("file", bool(args.file))) if on]
     if len(kinds) > 1:
-        raise InputError("give one source: --sim, --galvo/--tagger or --replay")
+        raise InputError("give one source: --sim, --galvo/--tagger, --replay or --file")
     changes = {"kind": kinds[0]} if kinds else {}
     for name, field in (("scene", "scene"), ("sbr", "sbr"), ("seed", "seed"), ("faults", "faults"),
                         ("size", "size"), ("target", "target"), ("mode", "mode"),
                         ("dwell_limit_ms", "dwell_limit_ms"), ("method", "method"),
                         ("galvo", "galvo_port"), ("tagger", "tagger_url"),
                         ("sync_rate_hz", "sync_rate_hz"), ("replay", "recording"),
-                        ("out", "out_root")):
+                        ("file", "file"), ("time_unit_ps", "time_unit_ps"),
+                        ("pulse_rms_ps", "pulse_rms_ps"), ("out", "out_root")):
         value = getattr(args, name)
         if value is not None:
             changes[field] = value
-    if kinds == ["replay"] and args.target is None:
-        changes["target"] = 0            # as recorded
+    if kinds in (["replay"], ["file"]) and args.target is None:
+        changes["target"] = 0            # as recorded / every detection
+    if kinds == ["file"]:
+        changes.setdefault("time_unit_ps", 0.0)      # not a remembered one: the file's own
+        changes.setdefault("pulse_rms_ps", 0.0)      # estimated
     if kinds == ["sim"] and args.faults is None:
         changes["faults"] = ""           # a remembered fault spec must not sneak into a CLI run
     return dataclasses.replace(base or SourceSpec(), **changes), bool(kinds)
