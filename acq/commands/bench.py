@@ -18,6 +18,8 @@ TARGETS = {
                 "backlog, replay det/s, peak memory"),
     "report": ("acq.bench_report", "accuracy vs detections per pixel, SBR and estimator, with scan and "
                "compute time: report.md, results.csv, PNGs (--out DIR [--quick])"),
+    "spatial": ("recon.spatial_bench", "spatial estimator on a 256x256 frame beside ml, warm, 1 thread "
+                "(pixels/s per core)"),
 }
 
 

@@ -1,0 +1,75 @@
+"""``spdepth bench spatial``: the spatial estimator's speed on a whole frame, beside pixelwise ml.
+
+A 256 x 256 piecewise-smooth frame (a tilted plane with a 30 cm step) is simulated with NumPy as a
+count-gated scan (N in-window detections per pixel, the seed paper's 801 bins of 40 ps, 360 ps
+pulse), then reconstructed warm (an untimed first run compiles), best of ``--repeats`` runs of
+``recon.estimate.reconstruct`` in CPU time of this process with one numba thread, so the figure is
+per core and the neighbours on a shared machine do not inflate it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+
+import numpy as np
+
+UNIT_S = 8e-12
+BIN_UNITS = 5
+N_BINS = 801
+RMS_UNITS = 45.0
+
+
+def simulate(side: int, n: int, sbr: float, seed: int = 0):
+    """(store, true tof in s) of a side x side count-gated frame, N detections per pixel."""
+    from recon.photons import PhotonStore
+
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:side, 0:side]
+    cm = 0.02 / 299_792_458.0 / UNIT_S
+    tof = 1500 + (0.2 * xx + 0.1 * yy + np.where(xx > side // 2, 30.0, 0.0)) * cm
+    npx = side * side
+    ns = rng.binomial(n, sbr / (1 + sbr), npx)
+    sig = np.arange(n)[None, :] < ns[:, None]
+    t = np.where(sig, tof.ravel()[:, None] + RMS_UNITS * rng.standard_normal((npx, n)),
+                 rng.uniform(0, N_BINS * BIN_UNITS, (npx, n)))
+    t = np.clip(t, 0, N_BINS * BIN_UNITS - 1)
+    return PhotonStore(t.ravel(), np.arange(npx + 1) * n, (side, side), UNIT_S), tof * UNIT_S
+
+
+def bench(argv: list[str]) -> int:
+    import numba
+
+    from recon.estimate import reconstruct
+    from recon.model import Binning, ReconSettings
+
+    parser = argparse.ArgumentParser(prog="spdepth bench spatial", description=__doc__.splitlines()[0])
+    parser.add_argument("--side", type=int, default=256)
+    parser.add_argument("--detections", default="2,5,15", help="detections per pixel, comma separated")
+    parser.add_argument("--sbr", type=float, default=10.0)
+    parser.add_argument("--methods", default="spatial,ml")
+    parser.add_argument("--repeats", type=int, default=3)
+    args = parser.parse_args(argv)
+    binning = Binning(UNIT_S, 0, N_BINS * BIN_UNITS, BIN_UNITS)
+    old = numba.get_num_threads()
+    numba.set_num_threads(1)
+    print(f"{args.side}x{args.side} frame, SBR {args.sbr:g}, warm, 1 numba thread, best of "
+          f"{args.repeats} in process CPU time")
+    print(f"{'method':<8} {'N':>3} {'CPU s':>7} {'pixels/s':>11} {'MAE ps':>7}")
+    try:
+        for n in (int(v) for v in args.detections.split(",")):
+            store, tof = simulate(args.side, n, args.sbr)
+            for method in args.methods.split(","):
+                settings = ReconSettings(method=method, binning=binning, pulse_rms_s=RMS_UNITS * UNIT_S)
+                maps = reconstruct(store, settings)
+                best = math.inf
+                for _ in range(args.repeats):
+                    t0 = time.process_time()
+                    reconstruct(store, settings)
+                    best = min(best, time.process_time() - t0)
+                mae = 1e12 * float(np.nanmean(np.abs(maps.tof_s - tof)))
+                print(f"{method:<8} {n:>3} {best:7.3f} {store.n_pixels / best:11,.0f} {mae:7.1f}")
+    finally:
+        numba.set_num_threads(old)
+    return 0
