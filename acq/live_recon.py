@@ -6,6 +6,11 @@ so the live maps at the end equal ``recon.estimate.reconstruct`` of the final st
 each estimator works pixel by pixel. When no pulse width is given, it is estimated once from the
 first ``PULSE_SAMPLE_PIXELS`` pixels to become final (in stream order, so a replay of the same
 stream estimates the same width) and then frozen.
+
+``method="spatial"`` needs each pixel's neighbours, so it cannot run pixel by pixel: the live maps
+come from the pixelwise ``SPATIAL_LIVE_STAND_IN`` and, once every pixel is final, one full-frame
+spatial reconstruction of the final store replaces them (a replay does the same, so it still
+equals the live run).
 """
 
 from __future__ import annotations
@@ -27,6 +32,8 @@ PULSE_SAMPLE_PIXELS = 256
 """Pixels pooled for the pulse-width estimate when none is given."""
 MAX_BATCH_PIXELS = 16384
 """Largest batch one reconstruction call takes (keeps the maps fresh during a fast replay)."""
+SPATIAL_LIVE_STAND_IN = "ml"
+"""Pixelwise estimator for the live maps of a spatial session (the best one pixel by pixel)."""
 MIN_BATCH_PIXELS = 1024
 """A batch starts once this many pixels wait, ..."""
 BATCH_WAIT_S = 0.2
@@ -47,6 +54,9 @@ class LiveRecon:
         if settings.reflectors != 1:
             raise ValueError("live reconstruction maps one return per pixel (reflectors=1)")
         self.store = store
+        self.final_settings = settings if settings.method == "spatial" else None
+        if self.final_settings is not None:
+            settings = dataclasses.replace(settings, method=SPATIAL_LIVE_STAND_IN)
         self.settings = settings
         h, w = store.shape
         self.tof_s = np.full((h, w), np.nan)
@@ -70,6 +80,11 @@ class LiveRecon:
         self._error: BaseException | None = None
         self._thread = threading.Thread(target=self._run, name="live-recon", daemon=True)
         self._thread.start()
+
+    @property
+    def requested(self) -> ReconSettings:
+        """The settings asked for (spatial included), as recordings and results keep them."""
+        return self.final_settings or self.settings
 
     @property
     def lag(self) -> int:
@@ -132,6 +147,12 @@ class LiveRecon:
                 t0 = time.perf_counter()
                 self._reconstruct(batch)
                 self.busy_s += time.perf_counter() - t0
+            if self.final_settings is not None and self.processed:
+                t0 = time.perf_counter()
+                self._reconstruct_frame(dataclasses.replace(
+                    self.final_settings, pulse_rms_s=self.settings.pulse_rms_s,
+                    irf=self.settings.irf))
+                self.busy_s += time.perf_counter() - t0
         except BaseException as exc:  # noqa: BLE001 - handed to the owner at submit/finish
             log.exception("live reconstruction failed")
             with self._cond:
@@ -156,6 +177,15 @@ class LiveRecon:
             getattr(self, name)[rows, cols] = getattr(m, name)[0]
         self.done[rows, cols] = True
         self.processed += int(pixels.size)
+
+    def _reconstruct_frame(self, settings: ReconSettings) -> None:
+        """One reconstruction of the whole final store (the spatial method's last step)."""
+        m = reconstruct(self.store.photons(), settings)
+        for name in ("tof_s", "depth_m", "background", "signal", "photons", "iterations",
+                     "uncertainty_s", "flags"):
+            getattr(self, name)[...] = getattr(m, name)
+        self.resolved = dict(m.settings)
+        self.resolved["live_maps"] = f"{SPATIAL_LIVE_STAND_IN} pixel by pixel during the scan"
 
     def maps(self) -> DepthMaps:
         """The maps as they stand (copies), in ``spdepth recon``'s format."""

@@ -356,7 +356,7 @@ class Session:
             self.out_dir.mkdir(parents=True, exist_ok=True)
             self._events_log = EventLog(self.out_dir / "events.jsonl")
             self._log({"event": "session", "plan": self.plan.to_dict(),
-                       "recon": self.recon.settings.to_dict(), "replay": self.replay is not None})
+                       "recon": self.recon.requested.to_dict(), "replay": self.replay is not None})
         try:
             try:
                 if self._abort_req:
@@ -410,7 +410,7 @@ class Session:
         from acq.recording import Recorder
 
         if self.out_dir is not None:
-            self.recorder = Recorder(self.out_dir, self.plan, self.recon.settings,
+            self.recorder = Recorder(self.out_dir, self.plan, self.recon.requested,
                                      resolution_s=self.tagger.resolution_s,
                                      sync_period_s=self.sync_period_s, log=self._log,
                                      info=self.info)
@@ -700,7 +700,7 @@ class Session:
             "software": {"name": "spdepth", "version": ver},
             "source": "replay" if self.replay is not None else "live",
             "plan": self.plan.to_dict(),
-            "recon": self.recon.resolved or self.recon.settings.to_dict(),
+            "recon": self.recon.resolved or self.recon.requested.to_dict(),
             "devices": identities,
             "info": self.info,
             "statistics": {

@@ -325,3 +325,18 @@ def test_a_tagger_that_does_not_come_back_fails_the_session_cleanly(tmp_path):
     assert set(run["flag_reasons"]) == {"INCOMPLETE"}
     with ptufile.PtuFile(tmp_path / "recording.ptu") as pf:    # closed cleanly, count patched
         assert pf.number_records == s.recorder.records > 0
+
+
+def test_spatial_session_shows_ml_live_then_the_spatial_frame_and_replays_equal(tmp_path):
+    from recon.estimate import reconstruct
+
+    with open_sim("steps", (12, 12), ppp=3, seed=14) as inst:
+        s = _session(inst, (12, 12), tmp_path, target=3, method="spatial")
+        assert s.recon.settings.method == "ml"           # the live maps, pixel by pixel
+        assert s.run() == SessionState.DONE
+    batch = reconstruct(s.store.photons(), s.recon.requested)
+    _assert_same_maps(s.maps(), batch)
+    assert s.maps().settings["method"] == "spatial"
+    rep = _replay(tmp_path)
+    assert rep.run() == SessionState.DONE
+    _assert_same_maps(s.maps(), rep.maps())

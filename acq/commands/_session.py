@@ -11,7 +11,7 @@ from pathlib import Path
 from acq.commands._args import positive_float, positive_int
 from recon.errors import InputError
 
-METHODS = ("uos", "ml", "lmf")
+METHODS = ("uos", "ml", "lmf", "spatial")
 
 
 def add_output_arguments(parser: argparse.ArgumentParser, *, out_required: bool = True) -> None:
@@ -25,7 +25,8 @@ def add_output_arguments(parser: argparse.ArgumentParser, *, out_required: bool 
 
 def add_recon_arguments(parser: argparse.ArgumentParser, default_method: str | None = "uos") -> None:
     parser.add_argument("--method", choices=METHODS, default=default_method,
-                        help=f"estimator for the live maps (default {default_method or 'as recorded'})")
+                        help=f"estimator for the maps (default {default_method or 'as recorded'}); "
+                             "spatial shows ml while the scan runs and replaces it at the end")
     parser.add_argument("--pulse-rms-ps", type=positive_float, metavar="PS",
                         help="pulse RMS width (default: the simulated scene's, or estimated from "
                              "the first pixels to complete)")

@@ -88,5 +88,5 @@ def run(args: argparse.Namespace) -> int:
     run_session(session, "replay")
     s = session.plan
     summary = finish_outputs(session, out, f"replay {s.nx}x{s.ny}, {s.target} per pixel, "
-                                           f"{session.recon.settings.method}")
+                                           f"{session.recon.requested.method}")
     return report(summary, args.json, "replay")
