@@ -30,7 +30,8 @@ def run(lists, method, binning=BIN, rms_s=RMS_S, **kw):
 
 def check_sane(maps, binning=BIN):
     """Finite or explicitly flagged; non-negative amplitudes; tof inside the window."""
-    ok = maps.flags != PixelFlag.NO_PHOTONS
+    # spatial fills a pixel without detections from its neighbours, flagged INTERPOLATED
+    ok = (maps.flags != PixelFlag.NO_PHOTONS) & (maps.flags != PixelFlag.INTERPOLATED)
     has = np.isfinite(maps.tof_s)
     if maps.settings["method"] == "lmf":
         # the log-matched filter does not estimate background: NaN, and the settings say so
