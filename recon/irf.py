@@ -170,9 +170,6 @@ def fit_emg_pairs(store: PhotonStore) -> tuple[float, float, float, int]:
     Poisson variance, over |dt| < 60 initial widths. Raises InputError without a clear peak."""
     from scipy.optimize import least_squares
 
-    # integer times: one-unit bins (a fractional bin width combs the histogram: some bins hold
-    # two integer differences, their neighbours none)
-    integral = bool(np.all(np.mod(store.times, 1) == 0))
     hist, step = pair_difference_histogram(store.times, store.offsets)
     # initial width from the peak's half width at half height above the far floor
     smooth = np.convolve(hist, np.ones(5) / 5, mode="same")
@@ -186,11 +183,6 @@ def fit_emg_pairs(store: PhotonStore) -> tuple[float, float, float, int]:
     top = int(np.argmax(smooth[:8]))
     half = top + np.flatnonzero(smooth[top:] < floor0 + 0.5 * (peak - floor0))
     sigma0 = max((half[0] + 0.5) * step if half.size else hist.size * step / 8, step) / 1.1774 / math.sqrt(2)
-    if integral and step < 1.0:
-        hist, step = pair_difference_histogram(store.times, store.offsets, step=1.0)
-    elif integral:
-        # whole units per bin, so the rebinned bins below stay aligned with the integers
-        hist, step = pair_difference_histogram(store.times, store.offsets, step=float(math.ceil(step)))
     # rebin to about a quarter of the width
     f = max(1, int(sigma0 / 4 / step))
     n = hist.size // f

@@ -509,9 +509,8 @@ def pair_difference_histogram(times: np.ndarray, offsets: np.ndarray, max_per_pi
     """Histogram (nh bins from 0, int64) of ``|t_i - t_j|`` over the pairs among the first
     ``max_per_pixel`` detections of each pixel (raw units), and its bin width. The pulse shape's
     autocorrelation plus a floor from pairs with a background detection; scene depth cancels.
-    ``step`` fixes the bin width instead (bins ``[j, j + 1) * step``: give 1.0
-    for integer times, so no bin holds two integers and its neighbour none). Raises InputError
-    when no pixel's detections differ."""
+    ``step`` fixes the bin width instead (bins ``[j, j + 1) * step``); integer times get a whole
+    number of units per bin. Raises InputError when no pixel's detections differ."""
     times = np.asarray(times, dtype=np.float64)
     offsets = np.asarray(offsets, dtype=np.int64)
     # |dt| of every pair among the first max_per_pixel times of each pixel, histogrammed a block of
@@ -534,6 +533,10 @@ def pair_difference_histogram(times: np.ndarray, offsets: np.ndarray, max_per_pi
     if not span > 0:
         raise InputError("cannot estimate the pulse width: all detections of each pixel coincide")
     # fine histogram of |dt| (raw units); step small against any plausible pulse
+    if step is None and np.all(np.mod(times, 1) == 0):
+        # integer times: whole units per bin (a fractional width combs the histogram: some bins
+        # hold two integer differences, their neighbours none)
+        step = float(max(1, math.ceil(span / nh)))
     if step is None:
         step = span / nh
         edges_hi = span + step
