@@ -235,6 +235,16 @@ def estimate_irf(store: PhotonStore, binning: Binning | None = None,
              are ignored); otherwise derived from the data each round.
     Raises InputError naming the options to pass when the data hold no usable peak.
     """
+    try:
+        return _estimate_irf(store, binning, max_photons)
+    except InputError as exc:
+        if NO_PEAK_HINT in str(exc):
+            raise
+        # the pair-difference helpers speak of the library's settings; name the command's options
+        raise InputError(f"{str(exc).split('; give')[0]}; {NO_PEAK_HINT}") from None
+
+
+def _estimate_irf(store: PhotonStore, binning: Binning | None, max_photons: int | None) -> IrfEstimate:
     if store.n_photons == 0:
         raise InputError(f"cannot estimate the pulse shape: no detections; {NO_PEAK_HINT}")
     if binning is not None or max_photons is not None:

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings as hsettings, strategies as st
 
+from recon.errors import InputError
 from recon.estimate import reconstruct
 from recon.maps import PixelFlag
 from recon.model import Binning, ReconSettings
@@ -25,8 +26,10 @@ detections = st.one_of(st.integers(0, 30), st.integers(0, 1000), st.integers(0, 
 @hsettings(max_examples=30, deadline=None, derandomize=True)
 @given(n_det=st.lists(detections, min_size=1, max_size=3), sbr=log_uniform(0.01, 100),
        rms_bins=log_uniform(0.05, 50), n_bins=st.one_of(st.integers(1, 8), st.integers(1, 4096)),
-       k=st.integers(1, 3), method=st.sampled_from(("lmf", "uos", "ml")), seed=st.integers(0, 2**32 - 1))
-def test_outputs_finite_or_flagged_over_the_whole_space(n_det, sbr, rms_bins, n_bins, k, method, seed):
+       k=st.integers(1, 3), method=st.sampled_from(("lmf", "uos", "ml")), seed=st.integers(0, 2**32 - 1),
+       pulse_given=st.booleans())
+def test_outputs_finite_or_flagged_over_the_whole_space(n_det, sbr, rms_bins, n_bins, k, method, seed,
+                                                        pulse_given):
     if k > 1:
         method = "uos"          # the K-sparse pursuit is uos's
     rng = np.random.default_rng(seed)
@@ -40,8 +43,14 @@ def test_outputs_finite_or_flagged_over_the_whole_space(n_det, sbr, rms_bins, n_
                             rng.uniform(0, span, n - n_sig)])
         lists.append(np.floor(t))           # a tagger's integer units; some fall outside the window
     store = PhotonStore.from_lists(lists, (1, len(lists)), UNIT_S)
-    maps = reconstruct(store, ReconSettings(method=method, binning=b, pulse_rms_s=rms_bins * b.bin_width_s,
-                                            reflectors=k))
+    settings = ReconSettings(method=method, binning=b, reflectors=k,
+                             pulse_rms_s=rms_bins * b.bin_width_s if pulse_given else None)
+    try:
+        maps = reconstruct(store, settings)
+    except InputError as exc:
+        # without a pulse, data that hold no usable peak are refused, naming the options to give
+        assert not pulse_given and "--pulse-rms-ps" in str(exc) and "--irf" in str(exc), str(exc)
+        return
     tof = maps.tof_s.reshape(k, -1)
     unc = maps.uncertainty_s.reshape(k, -1)
     sig = maps.signal.reshape(k, -1)
