@@ -266,8 +266,11 @@ class ReconSettings:
                     (stop just past the max), bin width = pulse RMS / 9 rounded to whole raw units
                     (the paper's 360 ps / 40 ps ratio), widened if needed to keep at most
                     ``DEFAULT_MAX_BINS`` (4096) bins; see :func:`default_bin_width`.
-    pulse_rms_s:    Gaussian pulse RMS width, seconds. With ``irf`` also None it is estimated from the
-                    data (within-pixel pairwise time differences, see ``estimate_pulse_rms_s``).
+    pulse_rms_s:    Gaussian pulse RMS width, seconds. With ``irf`` also None the instrument response
+                    is measured from the data (:func:`recon.irf.estimate_irf`: an exponentially
+                    modified Gaussian fitted to within-pixel time differences, or for pixels of
+                    hundreds of detections their pooled aligned histogram) and recorded in the
+                    result's settings (``irf_estimate``, and ``irf`` when it has a tail).
     irf:            a measured instrument response (:class:`Irf`, see :func:`load_irf`) instead of a
                     Gaussian.
     max_photons:    use only the first N in-window detections of each pixel (None: all).
