@@ -8,6 +8,7 @@ from typing import Callable
 
 import numpy as np
 import pyqtgraph as pg
+from PySide6 import QtWidgets
 
 C_M_PER_S = 299_792_458.0
 VIEW_BACKGROUND = "#d4d4d4"
@@ -89,22 +90,34 @@ class MapPanel:
                                    label=f"{spec.title} ({spec.unit})", width=16,
                                    interactive=True, pen="#444", colorMapMenu=False)
         self.bar.setImageItem(self.image, insert_in=self.plot)
+        # an image update repaints what overlaps it; the axes and the bar's axis are the dearest
+        # items to paint (pyqtgraph draws them in Python) and rarely change: keep them as pixmaps
+        for item in (self.plot.getAxis("left"), self.plot.getAxis("bottom"), self.bar.axis,
+                     self.plot.titleLabel):
+            item.setCacheMode(QtWidgets.QGraphicsItem.DeviceCoordinateCache)
         self.marker = pg.PlotDataItem(pen=pg.mkPen("#ff2d2d", width=2))
         self.marker.setZValue(10)
         self.plot.addItem(self.marker)
         self.levels: tuple[float, float] | None = None
         self.data: np.ndarray | None = None
+        self.version = None
         self._shape = None
 
     def reset(self) -> None:
         self.levels = None
         self.data = None
+        self.version = None
         self._shape = None
         self.image.clear()
         self.marker.setData([], [])
 
-    def show(self, data: np.ndarray, target: int) -> None:
-        """New data; levels fixed on the first data (or the spec's natural limits) and then kept."""
+    def show(self, data: np.ndarray, target: int, version=None) -> None:
+        """New data; levels fixed on the first data (or the spec's natural limits) and then kept.
+        ``version``: when given and equal to the last one shown, the data is unchanged and the
+        image is not set again (each setImage re-renders the whole image in Python)."""
+        if version is not None and version == self.version:
+            return
+        self.version = version
         self.data = data
         if self.levels is None:
             self.levels = (self.spec.fixed_levels(target) if self.spec.fixed_levels

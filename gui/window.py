@@ -1,11 +1,14 @@
 """The main window: controls, live maps, pixel inspector, accuracy-versus-time plot, status bar.
 
-The session scans on its own thread; a QTimer pulls ``session.snapshot()`` up to REFRESH_HZ times a
-second (DESIGN.md 4.12) and paints the latest, so a slow paint only skips snapshots. Painting still
-costs the GUI thread CPU and, in Python, the GIL that the session's threads (and on the simulated
-bench the devices' threads) need: the timer therefore stretches its period whenever the GUI thread
-was busy more than CPU_BUDGET of the time since the last tick (large maps, a slow machine), down to
-MIN_REFRESH_HZ, and comes back when painting is cheap again.
+The session scans on its own thread; a QTimer pulls ``session.snapshot()`` REFRESH_HZ times a
+second (DESIGN.md 4.12) for the status bar and the health indicator, so a slow paint only skips
+snapshots. Painting the maps, the accuracy plot and the inspector costs the GUI thread CPU (about
+30 ms for 48x48 maps in a 1480x900 window here, mostly Qt's own drawing) and, for pyqtgraph's
+Python parts, the GIL that the session's threads (and on the simulated bench the devices' threads)
+need. So during a scan they are repainted only as often as keeps the GUI thread within CPU_BUDGET
+of one core: the next map paint waits ``cost / CPU_BUDGET`` after the last one, where ``cost`` is
+the GUI thread's CPU time between the tick that painted and the next, between REFRESH_HZ and
+MIN_REFRESH_HZ. An unchanged map is never set again (``MapPanel.show``'s version).
 """
 
 from __future__ import annotations
@@ -30,9 +33,13 @@ log = logging.getLogger(__name__)
 
 REFRESH_HZ = 10
 """Snapshots pulled per second while painting is cheap."""
-MIN_REFRESH_HZ = 2
+MIN_REFRESH_HZ = 1
+"""Slowest map repaint rate during a scan (at 2 Hz a 60 ms repaint on the loaded 2-core test
+machine already took 12% of a core)."""
 CPU_BUDGET = 0.05
-"""Share of one core the GUI thread may use during a scan before the refresh slows down."""
+"""Share of one core the map repaints may use during a scan."""
+FIRST_PAINT_COST_S = 0.03
+"""Assumed cost of a map repaint until one is measured."""
 HISTORY_PERIOD_S = 1.0
 """Accuracy-plot points are taken at most this often."""
 CLOSE_WAIT_S = 15.0
@@ -61,8 +68,18 @@ def _fmt_eta(s: float | None) -> str:
 
 
 def _pill(label: QtWidgets.QLabel, colour: str) -> None:
+    if label.property("pill") == colour:
+        return
+    label.setProperty("pill", colour)
     label.setStyleSheet(f"QLabel {{ background: {colour}; color: white; border-radius: 8px; "
                         "padding: 1px 8px; font-weight: bold; }")
+
+
+def _set_text(label: QtWidgets.QLabel, text: str, pill: str | None = None) -> None:
+    if label.text() != text:
+        label.setText(text)
+    if pill is not None:
+        _pill(label, pill)
 
 
 def _path_row(edit: QtWidgets.QLineEdit, browse_slot) -> QtWidgets.QHBoxLayout:
@@ -526,7 +543,10 @@ class MainWindow(QtWidgets.QMainWindow):
         self.timer.timeout.connect(self._tick)
         self.timer.start()
         self._tick_cpu = time.thread_time()
-        self._tick_wall = time.monotonic()
+        self._painted_last_tick = False
+        self.paint_cost_s = FIRST_PAINT_COST_S
+        """GUI-thread CPU of one map repaint, measured (a running average)."""
+        self._maps_due = 0.0
         self._restore_settings()
 
     # ---- settings ------------------------------------------------------------------------------
@@ -585,7 +605,6 @@ class MainWindow(QtWidgets.QMainWindow):
             if out_dir == "auto":
                 made = out_dir = run_dir(spec.out_root or DEFAULT_OUT_ROOT, spec.kind)
             run = open_run(spec, out_dir)
-            run.session.start()
         except Exception as exc:  # noqa: BLE001 - every failure to start is shown, window stays usable
             if made is not None and made.is_dir() and not any(made.iterdir()):
                 made.rmdir()
@@ -602,7 +621,20 @@ class MainWindow(QtWidgets.QMainWindow):
         self._new_run(f"{run.label}{where}", str(run.out_dir or ""))
         h, w = run.session.plan.shape
         self.inspect((h // 2, w // 2), pin=False)     # something to look at until the user points
+        # the first paint of a run (new ranges, axes, labels: the whole window) is the dearest:
+        # done before the scan starts, it does not take CPU and GIL from the scan's first second
         self.refresh()
+        self.repaint()
+        try:
+            run.session.start()
+        except Exception as exc:  # noqa: BLE001 - shown, window stays usable
+            run.close()
+            self.run = None
+            self.view = None
+            self.show_error(f"Could not start: {exc}")
+            self.controls.set_running(None)
+            return False
+        self._maps_due = time.monotonic() + 1.0 / REFRESH_HZ
         return True
 
     def _new_run(self, label: str, tooltip: str) -> None:
@@ -713,57 +745,67 @@ class MainWindow(QtWidgets.QMainWindow):
 
     # ---- the timer -----------------------------------------------------------------------------
     def _tick(self) -> None:
-        """The timer: refresh, then adapt the period to what the GUI thread has been costing
-        (its CPU time since the last tick, painting included, over the wall time)."""
-        self.refresh()
-        cpu, wall = time.thread_time(), time.monotonic()
-        busy = (cpu - self._tick_cpu) / max(1e-3, wall - self._tick_wall)
-        self._tick_cpu, self._tick_wall = cpu, wall
-        period = self.timer.interval()
-        if self.running() and busy > CPU_BUDGET:
-            period = min(int(1000 / MIN_REFRESH_HZ), int(period * 1.5) + 1)
-        elif busy < CPU_BUDGET / 2:
-            period = max(int(1000 / REFRESH_HZ), int(period / 1.25))
-        if period != self.timer.interval():
-            self.timer.setInterval(period)
+        """The timer: the status at every tick; the maps when the CPU budget allows (always once
+        the scan has ended). The GUI thread's CPU time from a tick that repainted the maps to the
+        next (Qt paints in between) is what a repaint costs."""
+        cpu, now = time.thread_time(), time.monotonic()
+        if self._painted_last_tick:
+            self.paint_cost_s = 0.7 * self.paint_cost_s + 0.3 * (cpu - self._tick_cpu)
+        paint = not self.running() or now >= self._maps_due
+        self._tick_cpu = cpu
+        self._painted_last_tick = self.refresh(maps=paint)
+        if self._painted_last_tick:
+            gap = min(1.0 / MIN_REFRESH_HZ, max(1.0 / REFRESH_HZ, self.paint_cost_s / CPU_BUDGET))
+            self._maps_due = now + gap
 
-    def refresh(self) -> None:
-        """Pull the latest snapshot and paint what changed (the timer calls this)."""
+    def refresh(self, maps: bool = True) -> bool:
+        """Pull the latest snapshot and show it: the status bar, and with ``maps`` the maps, the
+        accuracy plot and the inspector where they changed. Returns whether a map was set."""
         if self.job is not None:
             self._poll_job()
-            return
+            return False
         run = self.run
         if run is None:
-            return
+            return False
         snap = run.session.snapshot()
         self.snap = snap
         target = run.session.plan.target
-        sig = (snap.state, snap.detections, snap.pixels_final, snap.recon_lag,
-               int(np.isfinite(snap.depth_m).sum()))
-        if sig != self._last_sig:
-            self._last_sig = sig
+        # what changed: the estimate maps only when the reconstruction finished more pixels, the
+        # detections map when detections arrived; an unchanged map is not set again
+        versions = {"estimate": (snap.state, snap.pixels_final - snap.recon_lag),
+                    "counts": (snap.state, snap.detections, snap.pixels_final)}
+        painted = False
+        if maps and versions != self._last_sig:
+            self._last_sig = versions
             for p in self.panels:
-                p.show(p.spec.extract(snap, self._n_bins), target)
+                v = versions["counts" if p.spec.key == "counts" else "estimate"]
+                if v != p.version:
+                    p.show(p.spec.extract(snap, self._n_bins), target, version=v)
+                    painted = True
             self.accuracy.add(snap, run.truth_depth_m, force=snap.state in TERMINAL)
         self._status(snap)
-        self._update_inspector()
+        if maps:
+            self._update_inspector()
         self.controls.set_running(snap.state)
-        if snap.state in TERMINAL and not self._ended_emitted:
+        if snap.state in TERMINAL and not self._ended_emitted and maps:
             self._ended_emitted = True
             self._on_end(snap)
+        return painted
 
     def _status(self, snap) -> None:
-        self.state_label.setText(snap.state)
-        _pill(self.state_label, STATE_COLOURS.get(snap.state, "#8a8a8a"))
-        self.rate_label.setText(f"{_fmt_rate(snap.detections_per_s)}det/s")
-        self.progress.setMaximum(snap.pixels_total)
-        self.progress.setValue(snap.pixels_final)
-        self.eta_label.setText(f"ETA {_fmt_eta(snap.eta_s)}")
-        self.lost_label.setText(f"lost {snap.lost_records} rec / {snap.lost_spans} spans")
+        # only what changed: each setText/setStyleSheet re-lays out and repaints the status bar
         h = self.health.update(snap)
-        self.health_label.setText(f"● {h.text}")
-        self.health_label.setToolTip(h.tooltip or h.text)
-        _pill(self.health_label, h.colour)
+        _set_text(self.state_label, snap.state, STATE_COLOURS.get(snap.state, "#8a8a8a"))
+        _set_text(self.rate_label, f"{_fmt_rate(snap.detections_per_s)}det/s")
+        if self.progress.maximum() != snap.pixels_total:
+            self.progress.setMaximum(snap.pixels_total)
+        if self.progress.value() != snap.pixels_final:
+            self.progress.setValue(snap.pixels_final)
+        _set_text(self.eta_label, f"ETA {_fmt_eta(snap.eta_s)}")
+        _set_text(self.lost_label, f"lost {snap.lost_records} rec / {snap.lost_spans} spans")
+        _set_text(self.health_label, f"● {h.text}", h.colour)
+        if self.health_label.toolTip() != (h.tooltip or h.text):
+            self.health_label.setToolTip(h.tooltip or h.text)
 
     def _on_end(self, snap) -> None:
         self.run.close()          # instruments; the session's files are already written
@@ -781,7 +823,7 @@ class MainWindow(QtWidgets.QMainWindow):
             p.fit(target)
         if self.snap is not None:
             for p in self.panels:
-                p.show(p.spec.extract(self.snap, self._n_bins), target)
+                p.show(p.spec.extract(self.snap, self._n_bins), target)   # new levels: repaint
 
     # ---- the inspector -------------------------------------------------------------------------
     def _pixel_at(self, scene_pos):
