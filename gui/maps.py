@@ -17,7 +17,8 @@ FIT_PERCENTILES = (1.0, 99.0)
 """Fitted levels span these percentiles of the finite pixels (a few outliers do not flatten the
 rest of the map)."""
 
-pg.setConfigOptions(imageAxisOrder="row-major", antialias=True)
+# dark axes and labels on the white plots (pyqtgraph's default grey is faint there)
+pg.setConfigOptions(imageAxisOrder="row-major", antialias=True, foreground="#303030")
 
 
 def _measured_counts(snap) -> np.ndarray:
@@ -49,7 +50,9 @@ class MapSpec:
 
 MAP_SPECS = (
     MapSpec("depth", "Depth", "m", "viridis", lambda s, n: s.depth_m),
-    MapSpec("background", "Background", "detections in window", "magma", _background_window),
+    # reversed: most pixels of a short dwell estimate no background at all, and magma's black
+    # low end made them one black field; light for none reads as "clean"
+    MapSpec("background", "Background", "detections in window", "magma_r", _background_window),
     MapSpec("counts", "Detections kept", "per pixel", "cividis", lambda s, n: _measured_counts(s),
             fixed_levels=lambda target: (0.0, float(target))),
     MapSpec("uncertainty", "Depth uncertainty (1 sigma)", "cm", "plasma", lambda s, n: _sigma_cm(s)),
@@ -86,7 +89,10 @@ class MapPanel:
         self.plot.vb.setBackgroundColor(VIEW_BACKGROUND)
         self.image = pg.ImageItem(axisOrder="row-major")
         self.plot.addItem(self.image)
-        self.bar = pg.ColorBarItem(values=(0.0, 1.0), colorMap=pg.colormap.get(spec.cmap),
+        cmap = pg.colormap.get(spec.cmap.removesuffix("_r"))
+        if spec.cmap.endswith("_r"):
+            cmap.reverse()
+        self.bar = pg.ColorBarItem(values=(0.0, 1.0), colorMap=cmap,
                                    label=f"{spec.title} ({spec.unit})", width=16,
                                    interactive=True, pen="#444", colorMapMenu=False)
         self.bar.setImageItem(self.image, insert_in=self.plot)

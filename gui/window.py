@@ -40,13 +40,14 @@ CPU_BUDGET = 0.05
 """Share of one core the map repaints may use during a scan."""
 FIRST_PAINT_COST_S = 0.03
 """Assumed cost of a map repaint until one is measured."""
-HISTORY_PERIOD_S = 1.0
+HISTORY_PERIOD_S = 0.25
 """Accuracy-plot points are taken at most this often."""
 CLOSE_WAIT_S = 15.0
 """Closing during a scan: longest wait for the aborted session to write its files."""
 SCENES = ("bust", "steps", "tilted-plane", "two-layer", "daylight")
 TERMINAL = ("done", "aborted", "failed")
-DEFAULT_OUT_ROOT = str(Path.home() / "spdepth-runs")
+DEFAULT_OUT_ROOT = "~/spdepth-runs"
+"""Shown as typed; ``run_dir`` expands the ``~``."""
 STATE_COLOURS = {"idle": "#8a8a8a", "armed": "#1f6fb5", "running": "#1f6fb5", "paused": "#e0a800",
                  "finishing": "#1f6fb5", "done": "#2e9d4a", "aborted": "#e07000",
                  "failed": "#d0342c"}
@@ -400,8 +401,12 @@ class AccuracyPlot(QtWidgets.QWidget):
         self._last_t = -1.0
         self.redraw()
 
-    def add(self, snap, truth: np.ndarray | None, force: bool = False) -> None:
+    def add(self, snap, truth: np.ndarray | None, force: bool = False, draw: bool = True) -> None:
+        """Take a point from ``snap`` (at most every HISTORY_PERIOD_S unless ``force``); with
+        ``draw`` also redraw (points are cheap, drawing is not: the window draws with the maps)."""
         if not force and snap.elapsed_s - self._last_t < HISTORY_PERIOD_S:
+            if draw and self._stale:
+                self.redraw()
             return
         sd = snap.uncertainty_s[np.isfinite(snap.uncertainty_s)]
         if sd.size == 0:
@@ -415,9 +420,14 @@ class AccuracyPlot(QtWidgets.QWidget):
                 err_cm = float(np.mean(np.abs(snap.depth_m[ok] - truth[ok]))) * 100
         dpp = snap.detections / max(1, snap.pixels_total)
         self.history.append((snap.elapsed_s, dpp, med_cm, err_cm))
-        self.redraw()
+        self._stale = True
+        if draw:
+            self.redraw()
+
+    _stale = False
 
     def redraw(self) -> None:
+        self._stale = False
         by_time = self.axis.currentData() == "t"
         self.plot.setLabel("bottom", "elapsed scan time" if by_time else "detections per pixel",
                            units="s" if by_time else "")
@@ -782,7 +792,9 @@ class MainWindow(QtWidgets.QMainWindow):
                 if v != p.version:
                     p.show(p.spec.extract(snap, self._n_bins), target, version=v)
                     painted = True
-            self.accuracy.add(snap, run.truth_depth_m, force=snap.state in TERMINAL)
+        # a point per HISTORY_PERIOD_S whatever the repaint rate; drawn with the maps
+        self.accuracy.add(snap, run.truth_depth_m, force=snap.state in TERMINAL and painted,
+                          draw=painted)
         self._status(snap)
         if maps:
             self._update_inspector()
