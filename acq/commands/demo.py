@@ -111,7 +111,7 @@ def _demo(args, methods, out_dir) -> int:
         print(f"session {session.state.value}: {session.error}", file=sys.stderr)
     print(f"scanned {args.scene} {w}x{h} through the drivers: {snap.detections} detections in "
           f"{snap.passes} pass{'es' if snap.passes != 1 else ''}, {scan_s:.2f} s of scan time in {snap.elapsed_s:.2f} s "
-          f"({snap.detections_per_s / 1e6:.2f} M detections/s, live {methods[-1]} lagged at most "
+          f"({snap.detections_per_s / 1e3:,.0f} k detections/s, live {methods[-1]} lagged at most "
           f"{session.recon.max_lag} pixels)")
     if args.faults:
         print(f"faults injected: {args.faults}; galvo reconnects: {galvo_reconnects}; lost spans "
