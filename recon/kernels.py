@@ -498,7 +498,7 @@ def refit_nonneg(supp, amp, ns, use_bg, cvec, colsum, ntot, m, pp, off, nk, inv_
             ns -= 1
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def uos_scatter(kb, kw, nu, cvec, grev, inv_gmax, nk, off, m):
     """c_i = S_i^T y (peak-1 columns) scattered from the photons into cvec (all zero before)."""
     for u in range(nu):
@@ -553,7 +553,7 @@ def top_k(prox, m, kk, taken, newi):
             taken[newi[r]] = False
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def union_support(newi, kk, supp, ns, om):
     """Omega = new indices U previous support, sorted and distinct, into om; returns its size."""
     nd = 0
@@ -579,7 +579,7 @@ def union_support(newi, kk, supp, ns, om):
     return nd
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def solve_support(om, nd, cvec, colsum, ntot, m, pp, off, nk, inv_gmax, inv_g2, gram, rhs, work, vecs,
                   vals, sol):
     """Least squares of y on the columns om[:nd] and the background column (pinv, via the Gram
@@ -601,7 +601,7 @@ def solve_support(om, nd, cvec, colsum, ntot, m, pp, off, nk, inv_gmax, inv_g2, 
     return False
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def keep_largest(sol, nd, kk, om, nsupp, namp):
     """The kk largest positive depth coefficients of sol[:nd] (T_0 drops the rest), as column
     indices nsupp and amplitudes namp; returns how many."""
@@ -628,7 +628,7 @@ def keep_largest(sol, nd, kk, om, nsupp, namp):
     return nn
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def change_norm(supp, amp, ns, nsupp, namp, nn, bg, nbg):
     """(||x_k - x_{k-1}||^2 over the union of the two supports, ||x_k||^2)."""
     diff = (nbg - bg) * (nbg - bg)
