@@ -469,6 +469,8 @@ class MainWindow(QtWidgets.QMainWindow):
         scroll = QtWidgets.QScrollArea()
         scroll.setWidget(self.controls)
         scroll.setWidgetResizable(True)
+        # the file source's longer labels must not bring a sideways scroll bar: fields shrink
+        scroll.setHorizontalScrollBarPolicy(QtCore.Qt.ScrollBarAlwaysOff)
         scroll.setMinimumWidth(self.controls.sizeHint().width() + 20)
 
         self.banner = QtWidgets.QFrame()
@@ -623,6 +625,7 @@ class MainWindow(QtWidgets.QMainWindow):
             return False
         self.run = run
         self.view = SessionView(run.session)
+        self.accuracy.show()
         self.save_settings()
         self.health = HealthTracker(live=spec.kind != "replay")
         self._n_bins = run.session.recon.settings.binning.n_bins
@@ -676,6 +679,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.save_settings()
         self.health = HealthTracker(live=False)
         self._new_run(f"{spec.label()} — reconstructing…", spec.file)
+        self.accuracy.hide()                   # accuracy over scan time: a file has no scan
         self.state_label.setText("reconstructing")
         _pill(self.state_label, STATE_COLOURS["running"])
         self.health_label.setText("● file")
@@ -721,8 +725,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self.eta_label.setText(f"read {res.read_s:.1f} s, recon {res.recon_s:.1f} s")
         self.lost_label.setText("")
         b = res.binning
-        pulse = (f"pulse RMS {res.pulse_rms_s * 1e12:.0f} ps "
-                 f"({res.maps.settings.get('pulse_source', '')})" if res.pulse_rms_s else "")
+        pulse = (f"pulse {res.pulse_rms_s * 1e12:.0f} ps RMS "
+                 f"{res.maps.settings.get('pulse_source', '')}" if res.pulse_rms_s else "")
         self.run_label.setText(f"{job.spec.label()} — {w}×{h}, {snap.detections:,} detections, "
                                f"window {b.window_start * b.time_unit_s * 1e9:.1f}–"
                                f"{b.window_stop * b.time_unit_s * 1e9:.1f} ns, {pulse}")
