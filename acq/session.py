@@ -508,9 +508,9 @@ class Session:
             if completed is None and now >= next_poll:
                 next_poll = now + STATUS_POLL_S
                 self._flush_files()
-                self._note_reconnects()
                 self._read_pixel_log()
                 st = galvo.status()
+                self._note_reconnects()     # after the calls that may have reconnected
                 if st.state == GalvoState.FAULT:
                     self._galvo_fault(st)
                     completed, cut = -1, True
