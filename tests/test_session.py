@@ -241,8 +241,10 @@ def test_subscribers_get_latest_snapshots_at_most_30_hz_and_a_slow_one_does_not_
         wall = time.monotonic() - t0
     time.sleep(0.1)
     assert fast[-1][1].state == "done" and fast[-1][1].pixels_final == 256
-    rate = (len(fast) - 1) / max(fast[-1][0] - fast[0][0], 1e-9)
-    assert rate <= 33
+    # the last call comes at once when the session ends; the others at most 30 a second
+    steady = fast[:-1]
+    rate = (len(steady) - 1) / max(steady[-1][0] - steady[0][0], 1e-9)
+    assert rate <= 31
     # the slow subscriber saw few snapshots, and the scan did not wait for it
     assert len(slow) <= wall / 0.5 + 2
     snap = fast[len(fast) // 2][1]
