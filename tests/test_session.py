@@ -141,8 +141,9 @@ def test_faults_are_reacquired_and_nothing_is_counted_twice(tmp_path, fault):
 
 
 def test_pause_resume_and_abort_from_another_thread(tmp_path):
-    with open_sim("bust", (24, 24), ppp=10, seed=6, keep_truth=True) as inst:
-        s = _session(inst, (24, 24), tmp_path)
+    # big enough that the abort lands mid-scan on a quiet machine too
+    with open_sim("bust", (48, 48), ppp=10, seed=6, keep_truth=True) as inst:
+        s = _session(inst, (48, 48), tmp_path)
         with pytest.raises(SessionStateError):
             s.pause()                      # not running yet
         with pytest.raises(SessionStateError):
