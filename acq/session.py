@@ -405,6 +405,7 @@ class Session:
         warm = np.zeros(2, dtype=EVENT_DTYPE)
         warm["kind"] = 255
         self.store.feed(warm)
+        self.recon.warm_up()
         if self.replay is not None:
             return
         from acq.recording import Recorder

@@ -55,7 +55,8 @@ class SessionProgress:
 
         self._bar = tqdm(total=session.plan.nx * session.plan.ny, desc=label, unit="px",
                          disable=None, file=sys.stderr, dynamic_ncols=True)
-        self._sub = session.subscribe(self._update, max_hz=10)
+        # no terminal, no bar: no subscriber either (each snapshot takes the GIL from the scan)
+        self._sub = None if self._bar.disable else session.subscribe(self._update, max_hz=10)
 
     def _update(self, snap) -> None:
         self._bar.n = snap.pixels_final
@@ -64,7 +65,8 @@ class SessionProgress:
         self._bar.refresh()
 
     def close(self) -> None:
-        self._sub.close()
+        if self._sub is not None:
+            self._sub.close()
         self._bar.close()
 
 
