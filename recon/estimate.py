@@ -113,6 +113,19 @@ def honest_var(var: np.ndarray, has: np.ndarray, rms_bins: float, n_bins: int, m
     return np.where(has, np.minimum(v + quant, window), np.nan)
 
 
+def settings_record(settings: ReconSettings, notes: dict, binning: Binning, kern: PulseKernel) -> dict:
+    """What a result's ``settings`` holds: the settings asked for, what was resolved (binning,
+    pulse and where it came from) and the kernel used."""
+    rec = settings.to_dict()
+    rec.update(notes)
+    rec["binning"] = binning.to_dict()
+    rec["kernel"] = kern.info
+    rec["tof_reference"] = "pulse centroid, from the laser sync"
+    if settings.irf is not None:
+        rec["irf"]["rms_s"] = settings.irf.rms_s
+    return rec
+
+
 def reconstruct(store: PhotonStore, settings: ReconSettings,
                 progress: Callable[[int, int], None] | None = None) -> DepthMaps:
     """Estimate depth, background and signal at every pixel of ``store``.
@@ -220,13 +233,7 @@ def reconstruct(store: PhotonStore, settings: ReconSettings,
             return a[:, 0].reshape(h, w)
         return np.ascontiguousarray(a.T).reshape(kk, h, w)
 
-    rec = settings.to_dict()
-    rec.update(notes)
-    rec["binning"] = b.to_dict()
-    rec["kernel"] = kern.info
-    rec["tof_reference"] = "pulse centroid, from the laser sync"
-    if settings.irf is not None:
-        rec["irf"]["rms_s"] = settings.irf.rms_s
+    rec = settings_record(settings, notes, b, kern)
     tof_img = img(tof_s)
     return DepthMaps(tof_s=tof_img, depth_m=C_M_PER_S * tof_img / 2.0, background=bg.reshape(h, w),
                      signal=img(signal), photons=n_used.reshape(h, w), iterations=iters.reshape(h, w),

@@ -77,7 +77,7 @@ def reconstruct_spatial(store: PhotonStore, settings: ReconSettings,
     holds this module's constants. Pixels whose depth comes from their neighbours only are flagged
     ``INTERPOLATED`` (their photons, signal and background are their own: 0 with no detections).
     """
-    from recon.estimate import resolve_model    # not at import: estimate dispatches here
+    from recon.estimate import resolve_model, settings_record  # estimate imports this module
 
     if not isinstance(settings, ReconSettings):
         raise InputError(f"settings must be ReconSettings, got {type(settings).__name__}")
@@ -164,13 +164,7 @@ def reconstruct_spatial(store: PhotonStore, settings: ReconSettings,
     flags[~finite & (n_used > 0)] = PixelFlag.NO_SIGNAL
     flags[~finite & (n_used == 0)] = PixelFlag.NO_PHOTONS
 
-    rec = settings.to_dict()
-    rec.update(notes)
-    rec["binning"] = b.to_dict()
-    rec["kernel"] = kern.info
-    rec["tof_reference"] = "pulse centroid, from the laser sync"
-    if settings.irf is not None:
-        rec["irf"]["rms_s"] = settings.irf.rms_s
+    rec = settings_record(settings, notes, b, kern)
     rec["spatial"] = {"radius": radius, "tau_rms": TAU_RMS, "alpha": ALPHA, "em_iters": EM_ITERS,
                       "tv_lambda": LAMBDA, "tv_iterations": TV_ITERS, "fill_radius": FILL_RADIUS,
                       "interpolated": int((flags == PixelFlag.INTERPOLATED).sum()),
