@@ -14,13 +14,13 @@ from pathlib import Path
 
 import numpy as np
 
+from acq.commands._session import METHODS  # one estimator list for the CLI and the window
 from recon.errors import InputError
 
 SOURCES = ("sim", "real", "replay", "file")
 """Simulated bench, real devices, a recording replayed through the same pipeline, or a PTU/.mat
 file reconstructed as a whole (``spdepth recon``'s path, on a worker thread)."""
 MODES = ("gated", "raster")
-METHODS = ("uos", "ml", "lmf")
 
 
 @dataclass

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 
 from acq.commands._args import non_negative_float, positive_float, positive_int, size_wxh
+from acq.commands._session import METHODS
 
 HELP = ("open the live window; with --sim, --galvo/--tagger or --replay start that scan at once, "
         "with --file reconstruct a PTU/.mat file in it")
@@ -40,7 +41,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     scan.add_argument("--mode", choices=("gated", "raster"))
     scan.add_argument("--dwell-limit-ms", type=non_negative_float, metavar="T",
                       help="gated: dwell limit; raster: dwell per frame (0: default)")
-    scan.add_argument("--method", choices=("uos", "ml", "lmf"), help="estimator for the live maps")
+    scan.add_argument("--method", choices=METHODS,
+                      help="estimator for the maps (spatial: ml live, spatial at the end)")
     out = parser.add_argument_group("output")
     out.add_argument("--out", metavar="DIR",
                      help="runs folder: each run writes its own subfolder here "
