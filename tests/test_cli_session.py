@@ -169,3 +169,16 @@ def test_ctrl_c_aborts_cleanly_and_keeps_the_files(tmp_path):
     with ptufile.PtuFile(ptu) as pf:       # closed cleanly: the record count is patched in
         assert pf.number_records == run["statistics"]["records_recorded"] > 0
     assert (rec / "maps.npz").is_file()
+
+
+def test_scan_on_a_missing_device_is_one_line_and_leaves_no_directory(tmp_path, capsys):
+    out = tmp_path / "never"
+    assert main(["scan", "--galvo", str(tmp_path / "ttyNOPE"), "--tagger", "usb:1209:7a64",
+                 "--sync-rate-hz", "1e7", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "ttyNOPE" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert not out.exists()
+    # a URL scheme pyserial has no handler for is the caller's mistake, said in one line too
+    assert main(["scan", "--galvo", "nosuchscheme://x", "--tagger", "usb:1209:7a64",
+                 "--sync-rate-hz", "1e7", "--out", str(out)]) == 2
+    assert "nosuchscheme" in capsys.readouterr().err

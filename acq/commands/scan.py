@@ -131,7 +131,13 @@ def build_session(args, inst, out):
 
 def run(args: argparse.Namespace) -> int:
     out = prepare_out_dir(args.out, args.overwrite)
-    with open_instruments(args) as inst:
+    try:
+        inst = open_instruments(args)
+    except BaseException:
+        if not any(out.iterdir()):
+            out.rmdir()          # nothing was recorded: leave no empty directory behind
+        raise
+    with inst:
         session = build_session(args, inst, out)
         run_session(session, "scan")
     h, w = args.size

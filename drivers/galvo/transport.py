@@ -13,7 +13,7 @@ import time
 
 import serial
 
-from drivers.errors import DeviceTimeoutError, ProtocolError
+from drivers.errors import DeviceTimeoutError, ProtocolError, SettingError
 
 from .errors import ConnectionLostError
 from .protocol import MAX_REPLY_BYTES, TERMINATOR
@@ -59,6 +59,10 @@ class SerialTransport:
                                                write_timeout=self.timeout_s)
         except _PORT_ERRORS as e:
             raise ConnectionLostError(f"galvo port {self.url}: cannot open: {e}") from e
+        except ValueError as e:
+            # pyserial's word for a URL scheme it has no handler for (e.g. galvosim:// before
+            # drivers.sim is imported) or a bad port setting: the caller's input, not the device
+            raise SettingError(f"galvo port {self.url}: {e}") from None
         self._rx.clear()
         log.debug("open %s", self.url)
 
