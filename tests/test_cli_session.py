@@ -94,6 +94,7 @@ def test_replay_refuses_what_is_not_a_recording(tmp_path, capsys):
     assert main(["replay", str(bad), "--out", str(tmp_path / "o")]) == 2
     assert "bad.ptu" in capsys.readouterr().err
     assert main(["replay", str(tmp_path / "missing"), "--out", str(tmp_path / "o2")]) == 2
+    assert not (tmp_path / "o").exists() and not (tmp_path / "o2").exists()
 
 
 @pytest.mark.parametrize("kill_after_bytes", [60_000, 300_000])

@@ -82,9 +82,14 @@ def run(args: argparse.Namespace) -> int:
     if Path(args.out).resolve() == rec_dir.resolve():
         raise InputError(f"--out {args.out} is the recording's own directory: pick another")
     out = prepare_out_dir(args.out, args.overwrite)
-    session = build_session(args.recording, target=args.target, method=args.method,
-                            pulse_rms_s=args.pulse_rms_ps * 1e-12 if args.pulse_rms_ps else None,
-                            bin_s=args.bin_ps * 1e-12, speed=args.speed, out=out)
+    try:
+        session = build_session(args.recording, target=args.target, method=args.method,
+                                pulse_rms_s=args.pulse_rms_ps * 1e-12 if args.pulse_rms_ps else None,
+                                bin_s=args.bin_ps * 1e-12, speed=args.speed, out=out)
+    except BaseException:
+        if not any(out.iterdir()):
+            out.rmdir()          # nothing replayed: leave no empty directory behind
+        raise
     run_session(session, "replay")
     s = session.plan
     summary = finish_outputs(session, out, f"replay {s.nx}x{s.ny}, {s.target} per pixel, "
