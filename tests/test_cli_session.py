@@ -102,7 +102,8 @@ def test_kill_9_mid_scan_leaves_a_recording_that_replays(tmp_path, kill_after_by
     import ptufile
 
     rec = tmp_path / "rec"
-    proc = subprocess.Popen([sys.executable, "-m", "acq.cli", "scan", "--sim", "--size", "96x96",
+    # 128x128 x 15 records about 1.1 MB: both kill points fall mid-scan on a quiet machine too
+    proc = subprocess.Popen([sys.executable, "-m", "acq.cli", "scan", "--sim", "--size", "128x128",
                              "--target", "15", "--out", str(rec)],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     ptu = rec / "recording.ptu"
@@ -128,7 +129,7 @@ def test_kill_9_mid_scan_leaves_a_recording_that_replays(tmp_path, kill_after_by
     assert summary["state"] == "done" and summary["detections"] > 0
     # the scan was cut: pixels it never finished are flagged, the others are complete
     run = json.loads((out / "run.json").read_text())
-    assert 0 < len(run["flagged_pixels"]) < 96 * 96
+    assert 0 < len(run["flagged_pixels"]) < 128 * 128
     assert set(run["flag_reasons"]) == {"INCOMPLETE"}
 
 
@@ -149,7 +150,7 @@ def test_recon_of_a_recording_gives_the_sessions_maps(tmp_path, capsys):
 
 def test_ctrl_c_aborts_cleanly_and_keeps_the_files(tmp_path):
     rec = tmp_path / "rec"
-    proc = subprocess.Popen([sys.executable, "-m", "acq.cli", "scan", "--sim", "--size", "96x96",
+    proc = subprocess.Popen([sys.executable, "-m", "acq.cli", "scan", "--sim", "--size", "128x128",
                              "--target", "15", "--out", str(rec)],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     ptu = rec / "recording.ptu"
