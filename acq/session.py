@@ -419,6 +419,7 @@ class Session:
             self.galvo.stop()             # a scan left running by someone else would mix in
         except DeviceError as exc:
             log.warning("galvo STOP before the scan failed: %s", exc)
+        self._clear_leftover_fault()
         self.reader = self.tagger.reader(tap=self.recorder, **self.reader_options).start()
 
     # ---- live scanning ---------------------------------------------------------------------------
@@ -568,6 +569,17 @@ class Session:
         if n > MAX_GALVO_FAULTS:
             raise DeviceError(f"galvo faulted {n} times (last: {msg}); giving up")
         self.galvo.clear_errors()
+
+    def _clear_leftover_fault(self) -> None:
+        """A controller left in FAULT (by an earlier run) refuses START: clear it once, say so."""
+        from drivers.galvo import GalvoState
+
+        st = self.galvo.status()
+        if st.state == GalvoState.FAULT:
+            code, msg = self.galvo.next_error()
+            self._fault("galvo-fault", f"galvo was in FAULT before the scan: {code.name} {msg}",
+                        "cleared (*CLS) before the first pass")
+            self.galvo.clear_errors()
 
     def _read_pixel_log(self) -> None:
         while True:

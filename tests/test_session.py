@@ -343,3 +343,18 @@ def test_spatial_session_shows_ml_live_then_the_spatial_frame_and_replays_equal(
     rep = _replay(tmp_path)
     assert rep.run() == SessionState.DONE
     _assert_same_maps(s.maps(), rep.maps())
+
+
+def test_a_galvo_left_in_fault_is_cleared_before_the_scan(tmp_path):
+    from drivers.sim import galvo_fw
+
+    with open_sim("bust", (6, 6), ppp=10, seed=15) as inst:
+        fw = galvo_fw.device_for_url(f"galvosim://{inst._name}")
+        with fw._lock:
+            fw._servo_fault("left over from an earlier run")
+        assert inst.galvo.status().state.name == "FAULT"
+        s = _session(inst, (6, 6), tmp_path)
+        assert s.run() == SessionState.DONE, s.error
+    assert s.flagged_pixels().size == 0
+    assert [f["kind"] for f in s.faults] == ["galvo-fault"]
+    assert "before the scan" in s.faults[0]["what"]
