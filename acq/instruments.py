@@ -76,6 +76,7 @@ def open_sim(scene_name: str = "bust", shape: tuple[int, int] = (64, 64), *, ppp
              sbr: float | None = 10.0, seed: int = 0, faults: str = "",
              n_bins: int = PAPER_BINS, bin_s: float = PAPER_BIN_S, keep_truth: bool = False,
              galvo_link: str = "url", tagger_options: dict | None = None,
+             galvo_options: dict | None = None,
              **scene_settings) -> Instruments:
     """The simulated bench: a scene, its photon world and rig, the galvo emulator on a
     ``galvosim://`` URL and the tagger on the simulated pyusb backend, opened through the real
@@ -83,7 +84,9 @@ def open_sim(scene_name: str = "bust", shape: tuple[int, int] = (64, 64), *, ppp
     records ``n_bins * bin_s`` after each sync, so ``sbr`` is what the estimators see.
     keep_truth: the rig keeps every dwell's photons (``rig.truth``) for tests.
     galvo_link: "url" (pyserial URL handler) or "pty" (a real tty from a pty pair, POSIX).
-    tagger_options: more arguments of ``SimTaggerBackend`` (e.g. ``vanish_s``)."""
+    tagger_options: more arguments of ``SimTaggerBackend`` (e.g. ``vanish_s``).
+    galvo_options: more arguments of ``GalvoFirmware`` (e.g. ``pace``: real seconds per virtual
+           second of dwell, so a scan takes wall time as a real one would)."""
     from drivers.galvo import Galvo
     from drivers.sim import PhotonWorld, galvo_fw, load_scene
     from drivers.sim.faults import GALVO_FAULTS, TAGGER_FAULTS, parse_faults
@@ -97,7 +100,8 @@ def open_sim(scene_name: str = "bust", shape: tuple[int, int] = (64, 64), *, ppp
     rig = SimRig(PhotonWorld(scene, seed=seed), keep_truth=keep_truth)
     parsed = parse_faults(faults)
     name = f"spdepth-sim-{next(_names)}"
-    fw = galvo_fw.GalvoFirmware(rig, faults=[f for f in parsed if f.kind in GALVO_FAULTS])
+    fw = galvo_fw.GalvoFirmware(rig, faults=[f for f in parsed if f.kind in GALVO_FAULTS],
+                                **(galvo_options or {}))
     galvo_fw.register_device(name, fw)
     galvo = tagger = link = None
     try:

@@ -311,8 +311,10 @@ def test_health_shows_a_device_recovering_then_the_scan_completes(fault, device)
 def test_a_tagger_that_does_not_come_back_fails_the_session_cleanly(tmp_path):
     import ptufile
 
-    with open_sim("bust", (12, 12), ppp=10, seed=13, faults="device-vanish@30%",
-                  tagger_options={"vanish_s": 5.0}) as inst:
+    # the galvo paced at real time, so the tagger leaves mid-scan, not after the emulator has
+    # raced through the whole frame into the FIFO
+    with open_sim("bust", (12, 12), ppp=10, seed=13, faults="device-vanish@0.05s",
+                  tagger_options={"vanish_s": 5.0}, galvo_options={"pace": 1.0}) as inst:
         s = _session(inst, (12, 12), tmp_path)
         s.reader_options = {"reconnect_timeout_s": 0.3}
         seen = []
