@@ -124,7 +124,9 @@ def test_gated_dwell_limit_flags_dark_pixels():
                                    "partial-read@30%", "serial-unplug@30%", "garbled-reply@30%",
                                    "missing-reply@30%", "servo-fault@50%"])
 def test_faults_are_reacquired_and_nothing_is_counted_twice(tmp_path, fault):
-    with open_sim("bust", (10, 10), ppp=10, seed=5, faults=fault, keep_truth=True) as inst:
+    # paced at real time, so each fault lands mid-scan rather than after the emulator raced ahead
+    with open_sim("bust", (10, 10), ppp=10, seed=5, faults=fault, keep_truth=True,
+                  galvo_options={"pace": 1.0}) as inst:
         s = _session(inst, (10, 10), tmp_path)
         state = s.run()
         assert state == SessionState.DONE, s.error
@@ -136,8 +138,10 @@ def test_faults_are_reacquired_and_nothing_is_counted_twice(tmp_path, fault):
     if fault.split("@")[0] in ("fifo-overflow", "device-vanish", "servo-fault"):
         assert run["faults_seen"], "the fault must be listed"
         assert all({"kind", "t_s", "what", "action"} <= set(f) for f in run["faults_seen"])
-    if fault.startswith(("fifo-overflow", "servo-fault")):
+    if fault.startswith(("fifo-overflow", "servo-fault", "device-vanish")):
         assert s.passes >= 2, "the pixels after the fault are scanned again"
+    if fault.startswith(("fifo-overflow", "device-vanish")):
+        assert s.lost, "the hole reached the session as a lost span"
 
 
 def test_pause_resume_and_abort_from_another_thread(tmp_path):
