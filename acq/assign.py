@@ -166,12 +166,11 @@ def _on_lost(state):
 @njit(cache=True, nogil=True)
 def _assign_kernel(kind, marker, geom, state, pixel_out, lost_pixel_out):
     """Fill ``pixel_out[i]`` with the flat pixel index of photon event i (-1 for anything else or
-    an unknown position) and ``lost_pixel_out[i]`` for LOST events with the pixel open at the loss
+    an unknown position) and ``lost_pixel_out[j]`` with the pixel open at the j-th LOST event
     (-1 if none). ``state`` is updated in place. Returns the number of LOST events seen."""
     n_lost = 0
     for i in range(kind.size):
         pixel_out[i] = -1
-        lost_pixel_out[i] = -1
         k = kind[i]
         if k == _MARKER:
             m = marker[i]
@@ -186,8 +185,8 @@ def _assign_kernel(kind, marker, geom, state, pixel_out, lost_pixel_out):
         elif k == _PHOTON:
             pixel_out[i] = _open_pixel(state, geom)
         elif k == _LOST:
+            lost_pixel_out[n_lost] = _open_pixel(state, geom)
             n_lost += 1
-            lost_pixel_out[i] = _open_pixel(state, geom)
             _on_lost(state)
     return n_lost
 
@@ -253,8 +252,10 @@ class PixelAssigner:
 
 
 def _lost_spans(events: np.ndarray, lost_pixel: np.ndarray) -> list[LostSpan]:
-    return [LostSpan(int(events["sync"][i]), int(events["dtime"][i]), int(lost_pixel[i]))
-            for i in np.flatnonzero(events["kind"] == _LOST)]
+    """The chunk's LOST events as spans; ``lost_pixel[j]`` is the pixel open at the j-th."""
+    at = np.flatnonzero(events["kind"] == _LOST)
+    return [LostSpan(int(events["sync"][i]), int(events["dtime"][i]), int(lost_pixel[j]))
+            for j, i in enumerate(at)]
 
 
 def photons_by_pixel(events: np.ndarray, pixel: np.ndarray):
@@ -418,12 +419,7 @@ def accumulate(events: np.ndarray, geom: np.ndarray, state: np.ndarray, window: 
                                   geom, state, np.int64(window[0]), np.int64(window[1]), pend,
                                   times, count, detected, dwells, frozen, closed_pixel,
                                   closed_total, closed_syncs, lost_pixel, counters)
-    n_lost = int(counters[2]) - n_lost0
-    lost = []
-    if n_lost:
-        at = np.flatnonzero(events["kind"] == _LOST)
-        lost = [LostSpan(int(events["sync"][i]), int(events["dtime"][i]), int(lost_pixel[j]))
-                for j, i in enumerate(at)]
+    lost = _lost_spans(events, lost_pixel) if counters[2] > n_lost0 else []
     return Accumulated(closed_pixel[:n_closed], closed_total[:n_closed], closed_syncs[:n_closed], lost)
 
 

@@ -342,7 +342,7 @@ def _machine() -> str:
             names = [ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")]
         cpu = names[0] if names else cpu
     except OSError:
-        pass
+        pass   # no /proc/cpuinfo (not Linux): keep platform's own CPU name
     load = " ".join(f"{v:.2f}" for v in os.getloadavg()) if hasattr(os, "getloadavg") else "n/a"
     return f"{platform.system()} {platform.release()}, {cpu}, {os.cpu_count()} logical CPUs, load {load}"
 

@@ -3,16 +3,15 @@ or real devices, each giving a galvo, a tagger and the facts a plan and a record
 
 from __future__ import annotations
 
-import dataclasses
 import itertools
-import math
+import logging
 from dataclasses import dataclass, field
-
-import numpy as np
 
 from acq.plan import ScanPlan
 from recon.errors import InputError
 from recon.model import Binning, ReconSettings
+
+log = logging.getLogger(__name__)
 
 SIM_TAGGER_URL = "usb:1209:7a64"
 PAPER_BIN_S = 40e-12
@@ -48,8 +47,8 @@ class Instruments:
                 continue
             try:
                 dev.close()
-            except Exception:  # noqa: BLE001 - closing one must not keep the other open
-                pass
+            except Exception as exc:  # noqa: BLE001 - closing one must not keep the other open
+                log.warning("closing %s failed: %s", type(dev).__name__, exc)
         if self._name is not None:
             from drivers.sim import galvo_fw
 

@@ -69,6 +69,7 @@ class LiveRecon:
         self.flags = np.full((h, w), PixelFlag.NO_PHOTONS, np.uint8)
         self.done = np.zeros((h, w), bool)
         self.resolved: dict | None = None       # settings record of the first batch
+        self._pulse_note: dict = {}             # how the pulse width was found, when estimated
         self.submitted = 0
         self.processed = 0
         self.max_lag = 0
@@ -180,12 +181,12 @@ class LiveRecon:
             sample = self.store.photons(pixels[:PULSE_SAMPLE_PIXELS])
             _, _, notes = resolve_model(sample, self.settings)
             self.settings = dataclasses.replace(self.settings, pulse_rms_s=notes["pulse_rms_s"])
-            self.pulse_note = {"pulse_source": "estimated from the first "
+            self._pulse_note = {"pulse_source": "estimated from the first "
                                f"{min(PULSE_SAMPLE_PIXELS, pixels.size)} final pixels"}
         m = reconstruct(photons, self.settings)
         if self.resolved is None:
             self.resolved = dict(m.settings)
-            self.resolved.update(getattr(self, "pulse_note", {}))
+            self.resolved.update(self._pulse_note)
         rows, cols = np.divmod(pixels, self.store.shape[1])
         for name in ("tof_s", "depth_m", "background", "signal", "photons", "iterations",
                      "uncertainty_s", "flags"):

@@ -64,6 +64,12 @@ the ``Marker`` value itself: the device's numbering)."""
 
 PIXEL_MARKER_TAG = "SPDepth_PixelMarker"
 """Our header tag naming the marker input of the pixel clock (PicoQuant has none)."""
+PLAN_TAG = "SPDepth_Plan"
+"""A session recording's ``acq.plan.ScanPlan`` (JSON); its presence marks a session recording."""
+RECON_TAG = "SPDepth_Recon"
+"""The estimator settings the session used (JSON)."""
+INFO_TAG = "SPDepth_Info"
+"""Facts about the source (scene, seed, devices) (JSON)."""
 
 RECORD_TYPE_HYDRAHARP2_T3 = 0x01010304
 """``TTResultFormat_TTTRRecType`` of HydraHarp v2 / Generic T3 records (overflow records carry a
@@ -347,6 +353,7 @@ def read_layout(path: str | os.PathLike) -> PtuLayout:
     return PtuLayout(str(path), tags, offset, n if n > 0 else whole, whole)
 
 
-__all__ = ["MARKER_INPUT", "PIXEL_MARKER_TAG", "RECORD_TYPE_HYDRAHARP2_T3", "PtuLayout",
+__all__ = ["MARKER_INPUT", "PIXEL_MARKER_TAG", "PLAN_TAG", "RECON_TAG", "INFO_TAG",
+           "RECORD_TYPE_HYDRAHARP2_T3", "PtuLayout",
            "encode_events", "image_tags", "iter_records", "marker_map", "patch_record_count",
            "ptu_header", "read_layout", "split_marker_records", "write_ptu"]

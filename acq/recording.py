@@ -31,8 +31,8 @@ import numpy as np
 from numba import njit
 
 from acq.assign import PassGeometry
-from acq.ptu import (PIXEL_MARKER_TAG, iter_records, marker_map, patch_record_count, ptu_header,
-                     read_layout, split_marker_records)
+from acq.ptu import (INFO_TAG, PIXEL_MARKER_TAG, PLAN_TAG, RECON_TAG, iter_records, marker_map,
+                     patch_record_count, ptu_header, read_layout, split_marker_records)
 from drivers.errors import ProtocolError
 from drivers.events import EVENT_DTYPE, EventKind
 from drivers.tagger.t3 import T3DecoderState, decode_t3
@@ -44,9 +44,6 @@ FLUSH_S = 0.5
 recording survives a killed process up to the last flush)."""
 T3_RANGE_BINS = 32768
 _MARKER = int(EventKind.MARKER)
-PLAN_TAG = "SPDepth_Plan"
-RECON_TAG = "SPDepth_Recon"
-INFO_TAG = "SPDepth_Info"
 
 
 class Recorder:

@@ -27,7 +27,7 @@ import logging
 import os
 import threading
 import time
-from dataclasses import asdict, dataclass, field, is_dataclass
+from dataclasses import asdict, dataclass, field, is_dataclass, replace
 from enum import Enum, IntEnum
 from pathlib import Path
 from typing import Callable
@@ -175,8 +175,7 @@ class Session:
         if recon.binning is None:
             raise InputError("a session needs a fixed binning (window and bin width)")
         if recon.max_photons is None:
-            import dataclasses
-            recon = dataclasses.replace(recon, max_photons=plan.target)
+            recon = replace(recon, max_photons=plan.target)
         if recon.max_photons != plan.target:
             raise InputError(f"recon max_photons {recon.max_photons} differs from the target "
                              f"{plan.target}")
@@ -218,6 +217,8 @@ class Session:
         self._first_record_t: float | None = None
         self._last_photon_t: float | None = None
         self._stop_reason: AcqFlag = AcqFlag.INCOMPLETE
+        self._lost_in_pass = False              # a lost span arrived during the current pass
+        self._seen_reconnects = (0, 0, 0)       # galvo, tagger reconnects, tagger restarts
         self._events_log = None
 
     # ---- commands (any thread) -------------------------------------------------------------------
@@ -514,7 +515,7 @@ class Session:
                 st = galvo.status()
                 self._note_reconnects()     # after the calls that may have reconnected
                 if st.state == GalvoState.FAULT:
-                    self._galvo_fault(st)
+                    self._galvo_fault(f"at row {st.row}, col {st.col}")
                     completed, cut = -1, True
                 elif st.state != GalvoState.SCANNING:
                     completed = st.completed
@@ -536,9 +537,6 @@ class Session:
         self._read_pixel_log()
         return cut
 
-    _lost_in_pass = False
-    _seen_reconnects = (0, 0, 0)
-
     def _flush_files(self) -> None:
         for f in (self.recorder, self._events_log):
             if f is not None:
@@ -558,28 +556,24 @@ class Session:
                         f"restarted {t_restart - s0}x", "stream resumed; the lost span is rescanned")
         self._seen_reconnects = (g, t_rec, t_restart)
 
-    def _galvo_fault(self, st) -> None:
+    def _galvo_fault(self, where: str) -> None:
+        """Record a galvo FAULT seen ``where``, clear it (*CLS re-homes the mirror), or give up
+        after MAX_GALVO_FAULTS. A FAULT left by an earlier run counts too: it refuses START."""
         n = sum(1 for f in self.faults if f["kind"] == "galvo-fault") + 1
         code, msg = self.galvo.next_error()
-        action = "cleared (*CLS), pass stopped, short pixels scanned again"
+        action = "cleared (*CLS); short pixels scanned in the next pass"
         if n > MAX_GALVO_FAULTS:
             action = "too many faults: session failed"
-        self._fault("galvo-fault", f"galvo FAULT at row {st.row}, col {st.col}: {code.name} {msg}",
-                    action)
+        self._fault("galvo-fault", f"galvo FAULT {where}: {code.name} {msg}", action)
         if n > MAX_GALVO_FAULTS:
             raise DeviceError(f"galvo faulted {n} times (last: {msg}); giving up")
         self.galvo.clear_errors()
 
     def _clear_leftover_fault(self) -> None:
-        """A controller left in FAULT (by an earlier run) refuses START: clear it once, say so."""
         from drivers.galvo import GalvoState
 
-        st = self.galvo.status()
-        if st.state == GalvoState.FAULT:
-            code, msg = self.galvo.next_error()
-            self._fault("galvo-fault", f"galvo was in FAULT before the scan: {code.name} {msg}",
-                        "cleared (*CLS) before the first pass")
-            self.galvo.clear_errors()
+        if self.galvo.status().state == GalvoState.FAULT:
+            self._galvo_fault("before the scan")
 
     def _read_pixel_log(self) -> None:
         while True:

@@ -105,7 +105,7 @@ def _initial_rms_units(store: PhotonStore) -> float:
         try:
             return estimate_pulse_rms_s(store.times, store.offsets, 1.0)
         except InputError:
-            pass
+            pass   # no usable pairs after all: fall back to the histogram edge below
     return _edge_rms_units(store.times)
 
 
@@ -254,7 +254,6 @@ def _estimate_irf(store: PhotonStore, binning: Binning | None, max_photons: int 
         if store.n_photons == 0:
             raise InputError(f"cannot estimate the pulse shape: no detections in the window; {NO_PEAK_HINT}")
     sample = _busiest(store, MAX_PIXELS)
-    unit_s = store.time_unit_s
     counts = np.diff(sample.offsets)
     if np.median(counts[counts > 0]) < ALIGN_MIN_PHOTONS:
         return _from_pairs(sample)

@@ -28,7 +28,7 @@ import numpy as np
 from numba import njit
 
 from acq.assign import PixelAssigner
-from acq.ptu import PIXEL_MARKER_TAG, PtuLayout, iter_records, marker_map
+from acq.ptu import PIXEL_MARKER_TAG, PLAN_TAG, PtuLayout, iter_records, marker_map
 from acq.readers.common import ReadResult
 from drivers.errors import DriverError
 from drivers.events import EVENT_DTYPE, EventKind, Marker
@@ -264,7 +264,7 @@ def read_ptu(path: str | Path, *, time_unit_s: float | None = None,
     meta = {"record_type": rectype, "resolution_s": resolution_s, "records": int(n_records),
             "sync_rate_hz": float(tags.get("TTResult_SyncRate", 0) or 0)}
     notes = ()
-    if tags.get("SPDepth_Plan") and rectype in _GENERIC_T3:
+    if tags.get(PLAN_TAG) and rectype in _GENERIC_T3:
         # a session's recording: its passes and lost spans are in events.jsonl beside it
         from acq.recording import session_photons
 
