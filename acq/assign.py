@@ -30,8 +30,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit
 
-from drivers.events import EVENT_DTYPE, EventKind, Marker
-from recon.errors import InputError
+from spdepth.drivers.events import EVENT_DTYPE, EventKind, Marker
+from spdepth.recon.errors import InputError
 
 UNASSIGNED = -1
 

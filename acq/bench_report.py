@@ -79,9 +79,9 @@ class Point:
 
 def simulate(point: Point, size: int, seed: int):
     """(store, scene) of a count-gated scan of ``point``: every pixel until N recorded detections."""
-    from drivers.events import EventKind
-    from drivers.sim import PhotonWorld, load_scene
-    from recon.photons import PhotonStore
+    from spdepth.drivers.events import EventKind
+    from spdepth.drivers.sim import PhotonWorld, load_scene
+    from spdepth.recon.photons import PhotonStore
 
     scene = load_scene(point.scene, (size, size), ppp=point.detections,
                        sbr=point.sbr * WINDOW_S / SYNC_PERIOD_S, tagger_range_s=WINDOW_S,
@@ -99,7 +99,7 @@ def simulate(point: Point, size: int, seed: int):
 
 
 def settings_for(method: str, reflectors: int = 1):
-    from recon.model import Binning, ReconSettings
+    from spdepth.recon.model import Binning, ReconSettings
 
     binning = Binning(UNIT_S, 0, N_BINS * BIN_UNITS, BIN_UNITS)
     return ReconSettings(method=method, binning=binning, pulse_rms_s=PULSE_RMS_S,
@@ -112,7 +112,7 @@ def warm_time_s(store, settings, repeats: int) -> tuple[object, float]:
     CPU time of this process, not wall time: on a machine shared with other work, wall time
     measures the neighbours too (seen here: the same point 2-3x apart between runs); with one
     numba thread the CPU time is the estimator's own cost."""
-    from recon.estimate import reconstruct
+    from spdepth.recon.estimate import reconstruct
 
     maps = reconstruct(store, settings)
     best = math.inf
@@ -126,7 +126,7 @@ def warm_time_s(store, settings, repeats: int) -> tuple[object, float]:
 def errors_rows(point: Point, method: str, reflectors: int, maps, truth, compute_s: float,
                 rate_hz: float) -> list[dict]:
     """CSV rows of one reconstruction: one per surface evaluated."""
-    from acq.evaluate import evaluate_depth, signal_detections
+    from spdepth.acq.evaluate import evaluate_depth, signal_detections
 
     n_pix = maps.photons.size
     common = {"scene": point.scene, "method": method, "reflectors": reflectors,
@@ -204,8 +204,8 @@ def _label(r: dict) -> str:
 
 def _outlier_cm() -> float:
     """The outlier threshold (and a miss's cost) of ``evaluate_depth``'s default, cm."""
-    from acq.evaluate import OUTLIER_PULSE_WIDTHS
-    from recon.maps import C_M_PER_S
+    from spdepth.acq.evaluate import OUTLIER_PULSE_WIDTHS
+    from spdepth.recon.maps import C_M_PER_S
 
     return 100 * OUTLIER_PULSE_WIDTHS * C_M_PER_S / 2 * PULSE_RMS_S
 
@@ -462,7 +462,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def bench(argv: list[str]) -> int:
-    from recon.errors import InputError
+    from spdepth.recon.errors import InputError
 
     parser = argparse.ArgumentParser(prog="spdepth bench report", description=__doc__.splitlines()[0])
     add_arguments(parser)

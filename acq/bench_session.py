@@ -26,9 +26,9 @@ def _peak_rss_mb() -> float:
 def scan_and_replay(size, target, method, seed, keep_dir=None, replay=True):
     import numpy as np
 
-    from acq.commands.replay import build_session as replay_session
-    from acq.instruments import open_sim, recon_settings, sim_plan, window_binning
-    from acq.session import Session
+    from spdepth.acq.commands.replay import build_session as replay_session
+    from spdepth.acq.instruments import open_sim, recon_settings, sim_plan, window_binning
+    from spdepth.acq.session import Session
 
     h, w = size
     tmp = Path(keep_dir or tempfile.mkdtemp(prefix="spdepth-bench-"))
@@ -70,8 +70,8 @@ def replay_simulated(size, ppp, method="lmf", repeats=3):
     """Replay rate on a bigger stream than a bench scan makes: a fixed-dwell ``spdepth simulate``
     PTU (pixel markers, one frame), replayed ``repeats`` times; returns (detections, best
     stream_s)."""
-    from acq.cli import main
-    from acq.commands.replay import build_session
+    from spdepth.acq.cli import main
+    from spdepth.acq.commands.replay import build_session
 
     w, h = size
     tmp = Path(tempfile.mkdtemp(prefix="spdepth-bench-"))

@@ -9,9 +9,9 @@ import logging
 import pkgutil
 import sys
 
-import acq.commands
-from drivers.errors import DeviceError, SettingError
-from recon.errors import InputError
+from spdepth.acq import commands as _commands
+from spdepth.drivers.errors import DeviceError, SettingError
+from spdepth.recon.errors import InputError
 
 EXIT_USAGE = 2
 """Exit status for bad input (a file, field or value) and, as always, for device faults."""
@@ -31,9 +31,9 @@ def exit_code(exc: BaseException) -> int | None:
 
 
 def _command_modules():
-    for info in sorted(pkgutil.iter_modules(acq.commands.__path__), key=lambda i: i.name):
+    for info in sorted(pkgutil.iter_modules(_commands.__path__), key=lambda i: i.name):
         if not info.name.startswith("_"):
-            yield info.name, importlib.import_module(f"acq.commands.{info.name}")
+            yield info.name, importlib.import_module(f"spdepth.acq.commands.{info.name}")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from recon.errors import InputError
+from spdepth.recon.errors import InputError
 
 CHUNK_RECORDS = 1 << 22
 """Records per chunk task (16 MiB of records)."""
@@ -112,7 +112,7 @@ def _outputs(args: argparse.Namespace, path: str, several: bool) -> tuple[str | 
 def recon_file(options: dict) -> dict:
     """Run ``spdepth recon`` on one file with ``options`` (its parsed arguments); returns the
     JSON summary it prints. Runs on a worker or in this process alike."""
-    from acq.commands import recon
+    from spdepth.acq.commands import recon
 
     ns = argparse.Namespace(**dict(options, json=True, dask=None))
     out, err = io.StringIO(), io.StringIO()
@@ -164,8 +164,8 @@ class Plan:
 
 def _image_and_unit(path: str, time_unit_s: float | None):
     """(layout, shape, pattern, rectype, time unit) of a PTU with pixel markers, or None."""
-    from acq.ptu import PIXEL_MARKER_TAG, read_layout
-    from acq.readers import sniff_kind
+    from spdepth.acq.ptu import PIXEL_MARKER_TAG, read_layout
+    from spdepth.acq.readers import sniff_kind
 
     if sniff_kind(path) != "ptu":
         return None
@@ -184,9 +184,9 @@ def _image_and_unit(path: str, time_unit_s: float | None):
 def _assigned(layout, chunk: np.ndarray, dec, assigner, lut, keep_channel):
     """Decode one chunk of records and assign its photons: (flat pixel, dtime) of the photons that
     land in a pixel (of ``keep_channel`` only, when given)."""
-    from drivers.errors import DriverError
-    from drivers.events import EventKind, Marker
-    from drivers.tagger.t3 import decode_t3
+    from spdepth.drivers.errors import DriverError
+    from spdepth.drivers.events import EventKind, Marker
+    from spdepth.drivers.tagger.t3 import decode_t3
 
     try:
         ev = decode_t3(chunk, dec)
@@ -206,9 +206,9 @@ def plan_blocks(path: str, time_unit_s: float | None = None, *, chunk_records: i
                 block_pixels: int = BLOCK_PIXELS) -> Plan | None:
     """Walk the recording once, in chunks, keeping the state at each chunk start. None when it is
     not a PTU with pixel markers (then it goes whole to one task)."""
-    from acq.assign import PixelAssigner
-    from acq.ptu import iter_records, marker_map
-    from drivers.tagger.t3 import T3DecoderState
+    from spdepth.acq.assign import PixelAssigner
+    from spdepth.acq.ptu import iter_records, marker_map
+    from spdepth.drivers.tagger.t3 import T3DecoderState
 
     found = _image_and_unit(path, time_unit_s)
     if found is None:
@@ -231,7 +231,7 @@ def plan_blocks(path: str, time_unit_s: float | None = None, *, chunk_records: i
 def chunk_task(plan: Plan, i: int, keep_channel: int | None) -> list[tuple[np.ndarray, np.ndarray]]:
     """Chunk i's photons split by block: ``[(flat pixel, dtime) of block b, ...]``. Reads its own
     records from the file, so dask can recompute it anywhere."""
-    from acq.ptu import iter_records, marker_map, read_layout
+    from spdepth.acq.ptu import iter_records, marker_map, read_layout
 
     layout = read_layout(plan.path)
     dec, assigner = copy.deepcopy(plan.states[i])
@@ -256,8 +256,8 @@ def _share(chunk: list, b: int):
 def block_task(plan: Plan, b: int, settings, time_unit_s: float, *shares):
     """Reconstruct block b (rows ``plan.rows[b]:plan.rows[b + 1]``) from its share of every chunk,
     in chunk order."""
-    from recon.estimate import reconstruct
-    from recon.photons import PhotonStore
+    from spdepth.recon.estimate import reconstruct
+    from spdepth.recon.photons import PhotonStore
 
     r0, r1 = plan.rows[b], plan.rows[b + 1]
     w = plan.shape[1]
@@ -269,7 +269,7 @@ def block_task(plan: Plan, b: int, settings, time_unit_s: float, *shares):
 
 def assemble(parts: list) -> object:
     """One DepthMaps from blocks of rows (in order)."""
-    from recon.maps import NPZ_KEYS, DepthMaps
+    from spdepth.recon.maps import NPZ_KEYS, DepthMaps
 
     arrays = {k: np.concatenate([getattr(p, k) for p in parts], axis=getattr(parts[0], k).ndim - 2)
               for k in NPZ_KEYS if k != "settings"}
@@ -296,7 +296,7 @@ def settings_from_args(args: argparse.Namespace, unit_ps: float):
     """ReconSettings of a fully given model, computed as ``spdepth recon`` computes them (the same
     float operations, so the binning is the same to the last bit), or None when the window, bins
     or pulse are left to the data."""
-    from recon.model import Binning, ReconSettings, load_irf
+    from spdepth.recon.model import Binning, ReconSettings, load_irf
 
     if args.window_ps is None or args.bin_ps is None or (args.pulse_rms_ps is None and not args.irf):
         return None
@@ -339,7 +339,7 @@ def _by_blocks(args: argparse.Namespace, client) -> dict | None:
     if args.out:
         maps.save_npz(args.out)
     if args.png:
-        from acq.report import render_maps_png
+        from spdepth.acq.report import render_maps_png
 
         render_maps_png(args.png, maps, title=f"{Path(path).name}: {args.method} ({len(plan.rows) - 1} "
                         f"blocks on dask)")

@@ -18,8 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from recon.errors import InputError
-from recon.maps import C_M_PER_S
+from spdepth.recon.errors import InputError
+from spdepth.recon.maps import C_M_PER_S
 
 OUTLIER_PULSE_WIDTHS = 3.0
 """Default outlier threshold, in pulse RMS widths of depth (c/2 * sigma each): an estimate that

@@ -7,9 +7,9 @@ import itertools
 import logging
 from dataclasses import dataclass, field
 
-from acq.plan import ScanPlan
-from recon.errors import InputError
-from recon.model import Binning, ReconSettings
+from spdepth.acq.plan import ScanPlan
+from spdepth.recon.errors import InputError
+from spdepth.recon.model import Binning, ReconSettings
 
 log = logging.getLogger(__name__)
 
@@ -50,7 +50,7 @@ class Instruments:
             except Exception as exc:  # noqa: BLE001 - closing one must not keep the other open
                 log.warning("closing %s failed: %s", type(dev).__name__, exc)
         if self._name is not None:
-            from drivers.sim import galvo_fw
+            from spdepth.drivers.sim import galvo_fw
 
             galvo_fw.unregister(self._name)
             self._name = None
@@ -86,12 +86,12 @@ def open_sim(scene_name: str = "bust", shape: tuple[int, int] = (64, 64), *, ppp
     tagger_options: more arguments of ``SimTaggerBackend`` (e.g. ``vanish_s``).
     galvo_options: more arguments of ``GalvoFirmware`` (e.g. ``pace``: real seconds per virtual
            second of dwell, so a scan takes wall time as a real one would)."""
-    from drivers.galvo import Galvo
-    from drivers.sim import PhotonWorld, galvo_fw, load_scene
-    from drivers.sim.faults import GALVO_FAULTS, TAGGER_FAULTS, parse_faults
-    from drivers.sim.rig import SimRig
-    from drivers.sim.tagger_usb import SimTaggerBackend
-    from drivers.tagger import Tagger, TaggerSettings
+    from spdepth.drivers.galvo import Galvo
+    from spdepth.drivers.sim import PhotonWorld, galvo_fw, load_scene
+    from spdepth.drivers.sim.faults import GALVO_FAULTS, TAGGER_FAULTS, parse_faults
+    from spdepth.drivers.sim.rig import SimRig
+    from spdepth.drivers.sim.tagger_usb import SimTaggerBackend
+    from spdepth.drivers.tagger import Tagger, TaggerSettings
 
     h, w = shape
     scene = load_scene(scene_name, (h, w), ppp=float(ppp), sbr=sbr, tagger_range_s=n_bins * bin_s,
@@ -105,7 +105,7 @@ def open_sim(scene_name: str = "bust", shape: tuple[int, int] = (64, 64), *, ppp
     galvo = tagger = link = None
     try:
         if galvo_link == "pty":
-            from drivers.sim.pty_link import PtyLink
+            from spdepth.drivers.sim.pty_link import PtyLink
 
             link = PtyLink(fw)
             galvo = Galvo.open(link.start())
@@ -132,8 +132,8 @@ def open_real(galvo_port: str, tagger_url: str, sync_period_s: float,
     """Real devices: a galvo on a serial port and a tagger at ``usb:VID:PID``, configured with
     ``tagger_settings`` (default ``TaggerSettings()``: 8 ps units, every marker input enabled on
     the rising edge, so the galvo's pixel, line and frame markers reach the stream)."""
-    from drivers.galvo import Galvo
-    from drivers.tagger import Tagger, TaggerSettings
+    from spdepth.drivers.galvo import Galvo
+    from spdepth.drivers.tagger import Tagger, TaggerSettings
 
     galvo = Galvo.open(galvo_port)
     try:

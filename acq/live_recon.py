@@ -22,9 +22,9 @@ import time
 
 import numpy as np
 
-from recon.estimate import reconstruct, resolve_model
-from recon.maps import DepthMaps, PixelFlag
-from recon.model import ReconSettings
+from spdepth.recon.estimate import reconstruct, resolve_model
+from spdepth.recon.maps import DepthMaps, PixelFlag
+from spdepth.recon.model import ReconSettings
 
 log = logging.getLogger(__name__)
 
@@ -96,7 +96,7 @@ class LiveRecon:
         """Load (or compile) the estimator's kernels on one made-up pixel now, so the first real
         batch does not wait for them while the scan piles up pixels (the session calls this while
         armed)."""
-        from recon.photons import PhotonStore
+        from spdepth.recon.photons import PhotonStore
 
         b = self.settings.binning
         times = b.window_start + b.bin_width * (np.arange(4) + 0.5 * b.n_bins)

@@ -7,8 +7,8 @@ from dataclasses import asdict, dataclass, fields
 
 import numpy as np
 
-from acq.assign import PassGeometry
-from recon.errors import InputError
+from spdepth.acq.assign import PassGeometry
+from spdepth.recon.errors import InputError
 
 MODES = ("gated", "raster")
 DEFAULT_MAX_PASSES = {"gated": 10, "raster": 100}

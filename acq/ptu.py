@@ -53,10 +53,10 @@ from typing import IO, Iterator
 
 import numpy as np
 
-from drivers.events import Marker
-from drivers.tagger.t3 import (T3_DTIME_MAX, T3_MARKER_MASK_MAX, T3EncoderState, encode_t3,
+from spdepth.drivers.events import Marker
+from spdepth.drivers.tagger.t3 import (T3_DTIME_MAX, T3_MARKER_MASK_MAX, T3EncoderState, encode_t3,
                                split_marker_records)
-from recon.errors import InputError
+from spdepth.recon.errors import InputError
 
 MARKER_INPUT = {Marker.PIXEL: 1, Marker.LINE_START: 2, Marker.LINE_STOP: 3, Marker.FRAME: 4}
 """Our marker -> the tagger's marker input number in recordings (mask ``1 << (n - 1)``, which is

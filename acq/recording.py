@@ -30,14 +30,14 @@ from pathlib import Path
 import numpy as np
 from numba import njit
 
-from acq.assign import PassGeometry
-from acq.ptu import (INFO_TAG, PIXEL_MARKER_TAG, PLAN_TAG, RECON_TAG, iter_records, marker_map,
+from spdepth.acq.assign import PassGeometry
+from spdepth.acq.ptu import (INFO_TAG, PIXEL_MARKER_TAG, PLAN_TAG, RECON_TAG, iter_records, marker_map,
                      patch_record_count, ptu_header, read_layout, split_marker_records)
-from drivers.errors import ProtocolError
-from drivers.events import EVENT_DTYPE, EventKind
-from drivers.tagger.t3 import T3DecoderState, decode_t3
-from recon.errors import InputError
-from recon.model import Binning, Irf, ReconSettings
+from spdepth.drivers.errors import ProtocolError
+from spdepth.drivers.events import EVENT_DTYPE, EventKind
+from spdepth.drivers.tagger.t3 import T3DecoderState, decode_t3
+from spdepth.recon.errors import InputError
+from spdepth.recon.model import Binning, Irf, ReconSettings
 
 FLUSH_S = 0.5
 """Longest time records and events sit in Python's buffers before they go to the OS (the
@@ -330,8 +330,8 @@ def session_photons(path: str | Path):
     """The photons a session kept, rebuilt from its recording (``acq.store``'s rule: the first
     ``target`` in-window detections of complete dwells, passes placed by the event log): what
     ``spdepth recon`` reconstructs from a recording. Returns (PhotonStore, notes, meta)."""
-    from acq.plan import ScanPlan
-    from acq.store import PixelStore
+    from spdepth.acq.plan import ScanPlan
+    from spdepth.acq.store import PixelStore
 
     src = ReplaySource(path)
     plan = ScanPlan.from_dict(src.info.plan)

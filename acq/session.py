@@ -34,14 +34,14 @@ from typing import Callable
 
 import numpy as np
 
-from acq.assign import PassGeometry
-from acq.live_recon import LiveRecon
-from acq.plan import ScanPlan, pass_regions
-from acq.store import PixelStore
-from drivers.errors import DeviceError
-from drivers.events import EVENT_DTYPE
-from recon.errors import InputError
-from recon.model import ReconSettings
+from spdepth.acq.assign import PassGeometry
+from spdepth.acq.live_recon import LiveRecon
+from spdepth.acq.plan import ScanPlan, pass_regions
+from spdepth.acq.store import PixelStore
+from spdepth.drivers.errors import DeviceError
+from spdepth.drivers.events import EVENT_DTYPE
+from spdepth.recon.errors import InputError
+from spdepth.recon.model import ReconSettings
 
 log = logging.getLogger(__name__)
 
@@ -352,7 +352,7 @@ class Session:
     def _main(self) -> None:
         final = SessionState.DONE
         if self.out_dir is not None:
-            from acq.recording import EventLog
+            from spdepth.acq.recording import EventLog
 
             self.out_dir.mkdir(parents=True, exist_ok=True)
             self._events_log = EventLog(self.out_dir / "events.jsonl")
@@ -409,7 +409,7 @@ class Session:
         self.recon.warm_up()
         if self.replay is not None:
             return
-        from acq.recording import Recorder
+        from spdepth.acq.recording import Recorder
 
         if self.out_dir is not None:
             self.recorder = Recorder(self.out_dir, self.plan, self.recon.requested,
@@ -469,7 +469,7 @@ class Session:
         self._set_state(SessionState.RUNNING)
 
     def _galvo_pattern(self, geom: PassGeometry):
-        from drivers.galvo import Gate, ScanMode, ScanPattern
+        from spdepth.drivers.galvo import Gate, ScanMode, ScanPattern
 
         p = self.plan
         mode = ScanMode.RASTER if geom.pattern == "raster" else ScanMode.SERPENTINE
@@ -481,7 +481,7 @@ class Session:
     def _run_pass(self, geom: PassGeometry) -> bool:
         """One galvo pass over ``geom``; returns True when it was cut short (pause, abort, loss,
         fault, time limit)."""
-        from drivers.galvo import GalvoState
+        from spdepth.drivers.galvo import GalvoState
 
         galvo, reader, store = self.galvo, self.reader, self.store
         store.begin_pass(geom)
@@ -570,7 +570,7 @@ class Session:
         self.galvo.clear_errors()
 
     def _clear_leftover_fault(self) -> None:
-        from drivers.galvo import GalvoState
+        from spdepth.drivers.galvo import GalvoState
 
         if self.galvo.status().state == GalvoState.FAULT:
             self._galvo_fault("before the scan")

@@ -19,9 +19,9 @@ import threading
 
 import numpy as np
 
-from acq.assign import Accumulated, PassGeometry, accumulate, new_state
-from recon.errors import InputError
-from recon.photons import PhotonStore
+from spdepth.acq.assign import Accumulated, PassGeometry, accumulate, new_state
+from spdepth.recon.errors import InputError
+from spdepth.recon.photons import PhotonStore
 
 
 class PixelStore:

@@ -49,7 +49,7 @@ def remembered_spec(settings=None):
 
     from PySide6 import QtCore
 
-    from gui.sources import SourceSpec
+    from spdepth.gui.sources import SourceSpec
 
     settings = settings if settings is not None else QtCore.QSettings("spdepth", "spdepth")
     raw = settings.value("source")
@@ -71,7 +71,7 @@ def run_window(spec=None, *, start: bool = True, screenshot: str | Path | None =
     1 (scan aborted or failed), 2 (the source could not be started and the window is not kept)."""
     from PySide6 import QtCore
 
-    from gui.window import MainWindow
+    from spdepth.gui.window import MainWindow
 
     app = application()
     win = MainWindow(settings=settings)
@@ -114,7 +114,7 @@ def run_demo_window(*, scene: str, size: tuple[int, int], target: int, sbr: floa
                     screenshot: str | Path | None = None) -> int:
     """``spdepth demo`` with a display: the same simulated scan started in the window (size is
     (H, W)); out_dir None keeps the run in memory. Returns ``run_window``'s code."""
-    from gui.sources import SourceSpec
+    from spdepth.gui.sources import SourceSpec
 
     application()
     spec = SourceSpec(kind="sim", scene=scene, size=tuple(size), target=int(target), sbr=sbr,

@@ -18,7 +18,7 @@ from pathlib import Path
 
 
 def _headless(spec, out_dir=None) -> float:
-    from gui.sources import open_run
+    from spdepth.gui.sources import open_run
 
     run = open_run(spec, out_dir)
     try:
@@ -35,8 +35,8 @@ def _headless(spec, out_dir=None) -> float:
 def _windowed(spec) -> tuple[float, int]:
     from PySide6 import QtCore
 
-    from gui.app import application
-    from gui.window import MainWindow
+    from spdepth.gui.app import application
+    from spdepth.gui.window import MainWindow
 
     app = application()
     settings = QtCore.QSettings(str(Path(tempfile.mkdtemp()) / "bench.ini"),
@@ -69,9 +69,9 @@ def _windowed(spec) -> tuple[float, int]:
 
 
 def main(argv=None) -> int:
-    from acq.commands._args import positive_int, size_wxh
-    from gui.app import application
-    from gui.sources import SourceSpec
+    from spdepth.acq.commands._args import positive_int, size_wxh
+    from spdepth.gui.app import application
+    from spdepth.gui.sources import SourceSpec
 
     ap = argparse.ArgumentParser(prog="python -m gui.benchmark", description=__doc__.split("\n")[0])
     ap.add_argument("--size", type=size_wxh, default=(48, 48), metavar="WxH")

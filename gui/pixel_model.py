@@ -14,7 +14,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from recon.model import Binning, build_kernel
+from spdepth.recon.model import Binning, build_kernel
 
 DISPLAY_BINS = 80
 """About this many bins across the window in the inspector."""

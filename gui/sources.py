@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from acq.commands._session import METHODS  # one estimator list for the CLI and the window
-from recon.errors import InputError
+from spdepth.acq.commands._session import METHODS  # one estimator list for the CLI and the window
+from spdepth.recon.errors import InputError
 
 SOURCES = ("sim", "real", "replay", "file")
 """Simulated bench, real devices, a recording replayed through the same pipeline, or a PTU/.mat
@@ -162,9 +162,9 @@ def validate(spec: SourceSpec) -> None:
 def open_run(spec: SourceSpec, out_dir: str | Path | None) -> Run:
     """Open the source and build its session (not started). Raises the ``acq``/``drivers``
     errors as they come (the window shows them); nothing stays open when it fails."""
-    from acq.commands import replay as replay_cmd
-    from acq.commands import scan as scan_cmd
-    from acq.instruments import open_real, open_sim
+    from spdepth.acq.commands import replay as replay_cmd
+    from spdepth.acq.commands import scan as scan_cmd
+    from spdepth.acq.instruments import open_real, open_sim
 
     validate(spec)
     out = Path(out_dir) if out_dir is not None else None
@@ -238,7 +238,7 @@ class SessionView:
                 s.recon.settings.pulse_rms_s)
 
     def pixel(self, r: int, c: int) -> PixelInfo:
-        from acq.session import AcqFlag
+        from spdepth.acq.session import AcqFlag
 
         s = self.session
         rc = s.recon
@@ -275,7 +275,7 @@ class FileResult:
 
     def snapshot(self):
         """The maps as an ``acq.session.Snapshot`` (state done), for the map panels."""
-        from acq.session import Snapshot
+        from spdepth.acq.session import Snapshot
 
         m = self.maps
         h, w = self.shape
@@ -328,9 +328,9 @@ def reconstruct_file(spec: SourceSpec, progress=None) -> FileResult:
     """Read ``spec.file`` and reconstruct it as ``spdepth recon`` does with no window or bin
     option (both derived from the data; the pulse estimated unless ``spec.pulse_rms_ps``).
     Raises ``InputError`` (naming the file) for what cannot be read."""
-    from acq.readers import read_photons
-    from recon.estimate import reconstruct
-    from recon.model import Binning, Irf, ReconSettings
+    from spdepth.acq.readers import read_photons
+    from spdepth.recon.estimate import reconstruct
+    from spdepth.recon.model import Binning, Irf, ReconSettings
 
     validate(spec)
     path = Path(spec.file)

@@ -23,10 +23,10 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtCore, QtGui, QtWidgets
 
-from gui.health import HealthTracker
-from gui.maps import C_M_PER_S, MAP_SPECS, MapPanel
-from gui.pixel_model import pixel_histogram
-from gui.sources import (METHODS, MODES, FileJob, ResultView, SessionView, SourceSpec, open_run,
+from spdepth.gui.health import HealthTracker
+from spdepth.gui.maps import C_M_PER_S, MAP_SPECS, MapPanel
+from spdepth.gui.pixel_model import pixel_histogram
+from spdepth.gui.sources import (METHODS, MODES, FileJob, ResultView, SessionView, SourceSpec, open_run,
                          run_dir)
 
 log = logging.getLogger(__name__)
@@ -321,7 +321,7 @@ class Inspector(QtWidgets.QWidget):
 
     def show_pixel(self, info, pixel: tuple[int, int], pinned: bool) -> None:
         """``info``: a ``gui.sources.PixelInfo`` of ``pixel`` (row, col)."""
-        from recon.maps import PixelFlag
+        from spdepth.recon.maps import PixelFlag
 
         r, c = pixel
         b = info.binning
@@ -665,7 +665,7 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def _start_file(self, spec: SourceSpec) -> bool:
         """Reconstruct a PTU/.mat file on a worker thread (the timer polls it)."""
-        from gui.sources import validate
+        from spdepth.gui.sources import validate
 
         try:
             validate(spec)
@@ -893,7 +893,7 @@ class MainWindow(QtWidgets.QMainWindow):
     def save_maps(self, path: str | Path) -> Path:
         """Write the current maps: .png (a sheet with colour bars), .tif/.tiff (float32 stack
         depth_m, background, photons, depth_sd_m with the settings as JSON), .npz (``recon``'s)."""
-        from recon.errors import InputError
+        from spdepth.recon.errors import InputError
 
         if self.view is None:
             raise InputError("no maps yet: run a scan first")
@@ -913,7 +913,7 @@ class MainWindow(QtWidgets.QMainWindow):
                                                      "settings": maps.settings}, default=str),
                              metadata=None)
         elif suffix == ".png":
-            from acq.report import render_maps_png
+            from spdepth.acq.report import render_maps_png
 
             render_maps_png(path, maps, title=self.run_label.text().split(" — ")[0])
         else:

@@ -98,7 +98,7 @@ def _share_profile(y: np.ndarray, cols: np.ndarray, iters: int = 60) -> np.ndarr
 def ml_dense(y: np.ndarray, kern, s_mat: np.ndarray, ref) -> float:
     """Shift (bins) of exact Poisson ML: global search over every integer shift, then the best of
     the 1/8-bin shifts within one bin of it, then a parabola through its neighbours."""
-    from recon.model import FINE_STEPS
+    from spdepth.recon.model import FINE_STEPS
 
     i = int(np.argmax(_share_profile(y, s_mat)))
     fine = i + np.arange(-FINE_STEPS, FINE_STEPS + 1) / FINE_STEPS
@@ -153,10 +153,10 @@ def bench(argv: list[str]) -> int:
 
     import numba
 
-    from recon import kernels as K
-    from recon.estimate import reconstruct
-    from recon.model import FINE_STEPS, Binning, ReconSettings, build_kernel
-    from recon.photons import PhotonStore
+    from spdepth.recon import kernels as K
+    from spdepth.recon.estimate import reconstruct
+    from spdepth.recon.model import FINE_STEPS, Binning, ReconSettings, build_kernel
+    from spdepth.recon.photons import PhotonStore
 
     binning = Binning(UNIT_S, 2000.0, 2000.0 + M * BIN_UNITS, BIN_UNITS)
     kern = build_kernel(binning, pulse_rms_s=RMS_S)

@@ -8,13 +8,13 @@ from typing import Callable
 
 import numpy as np
 
-from recon import kernels as K
-from recon.errors import InputError
-from recon.irf import estimate_irf, irf_core_rms_s
-from recon.maps import C_M_PER_S, DepthMaps, PixelFlag
-from recon.model import (FINE_STEPS, Binning, PulseKernel, ReconSettings, build_kernel,
+from spdepth.recon import kernels as K
+from spdepth.recon.errors import InputError
+from spdepth.recon.irf import estimate_irf, irf_core_rms_s
+from spdepth.recon.maps import C_M_PER_S, DepthMaps, PixelFlag
+from spdepth.recon.model import (FINE_STEPS, Binning, PulseKernel, ReconSettings, build_kernel,
                          default_binning)
-from recon.photons import PhotonStore
+from spdepth.recon.photons import PhotonStore
 
 #: Pixels per kernel call; progress is reported between chunks.
 CHUNK_PIXELS = 16384
@@ -141,7 +141,7 @@ def reconstruct(store: PhotonStore, settings: ReconSettings,
     if not isinstance(store, PhotonStore):
         raise InputError(f"store must be a PhotonStore, got {type(store).__name__}")
     if settings.method == "spatial":
-        from recon.spatial import reconstruct_spatial
+        from spdepth.recon.spatial import reconstruct_spatial
         return reconstruct_spatial(store, settings, progress)
     b, kern, notes = resolve_model(store, settings)
     # window, first max_photons and binning in one compiled pass (the NumPy route of

@@ -23,9 +23,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from recon.errors import InputError
-from recon.model import Binning, Irf, estimate_pulse_rms_s, pair_difference_histogram
-from recon.photons import PhotonStore
+from spdepth.recon.errors import InputError
+from spdepth.recon.model import Binning, Irf, estimate_pulse_rms_s, pair_difference_histogram
+from spdepth.recon.photons import PhotonStore
 
 ROUNDS = 3
 MAX_PIXELS = 20_000
@@ -281,8 +281,8 @@ def _from_pairs(sample: PhotonStore) -> IrfEstimate:
 
 def _aligned(sample: PhotonStore, binning: Binning | None) -> IrfEstimate:
     """Many detections per pixel: pool them aligned on each pixel's estimate, iterate."""
-    from recon.estimate import reconstruct
-    from recon.model import ReconSettings, default_binning
+    from spdepth.recon.estimate import reconstruct
+    from spdepth.recon.model import ReconSettings, default_binning
 
     unit_s = sample.time_unit_s
     rms_u = _initial_rms_units(sample)

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from recon.errors import InputError
+from spdepth.recon.errors import InputError
 
 #: Speed of light in vacuum, m/s (depth = c * tof / 2).
 C_M_PER_S = 299_792_458.0

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 from scipy.special import log_ndtr, ndtr
 
-from recon.errors import InputError
+from spdepth.recon.errors import InputError
 
 #: Relative level below which the pulse is treated as zero (kernel truncation for uos/ml). The
 #: truncated tail carries less than ~1e-10 of the pulse energy for a Gaussian.

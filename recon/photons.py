@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from recon.errors import InputError
+from spdepth.recon.errors import InputError
 
 
 @dataclass(frozen=True, eq=False)

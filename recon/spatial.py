@@ -44,11 +44,11 @@ from typing import Callable
 import numpy as np
 from scipy.stats import poisson
 
-from recon import spatial_kernels as SK
-from recon.errors import InputError
-from recon.maps import C_M_PER_S, DepthMaps, PixelFlag
-from recon.model import ReconSettings
-from recon.photons import PhotonStore
+from spdepth.recon import spatial_kernels as SK
+from spdepth.recon.errors import InputError
+from spdepth.recon.maps import C_M_PER_S, DepthMaps, PixelFlag
+from spdepth.recon.model import ReconSettings
+from spdepth.recon.photons import PhotonStore
 
 #: Censoring: support within this many pulse RMS widths of a detection.
 TAU_RMS = 1.5
@@ -77,7 +77,7 @@ def reconstruct_spatial(store: PhotonStore, settings: ReconSettings,
     holds this module's constants. Pixels whose depth comes from their neighbours only are flagged
     ``INTERPOLATED`` (their photons, signal and background are their own: 0 with no detections).
     """
-    from recon.estimate import resolve_model, settings_record  # estimate imports this module
+    from spdepth.recon.estimate import resolve_model, settings_record  # estimate imports this module
 
     if not isinstance(settings, ReconSettings):
         raise InputError(f"settings must be ReconSettings, got {type(settings).__name__}")

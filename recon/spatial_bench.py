@@ -23,7 +23,7 @@ RMS_UNITS = 45.0
 
 def simulate(side: int, n: int, sbr: float, seed: int = 0):
     """(store, true tof in s) of a side x side count-gated frame, N detections per pixel."""
-    from recon.photons import PhotonStore
+    from spdepth.recon.photons import PhotonStore
 
     rng = np.random.default_rng(seed)
     yy, xx = np.mgrid[0:side, 0:side]
@@ -41,8 +41,8 @@ def simulate(side: int, n: int, sbr: float, seed: int = 0):
 def bench(argv: list[str]) -> int:
     import numba
 
-    from recon.estimate import reconstruct
-    from recon.model import Binning, ReconSettings
+    from spdepth.recon.estimate import reconstruct
+    from spdepth.recon.model import Binning, ReconSettings
 
     parser = argparse.ArgumentParser(prog="spdepth bench spatial", description=__doc__.splitlines()[0])
     parser.add_argument("--side", type=int, default=256)

@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-from drivers.galvo import (BadArgumentError, BusyError, ErrorCode, Galvo, GalvoState, Gate,
+from spdepth.drivers.galvo import (BadArgumentError, BusyError, ErrorCode, Galvo, GalvoState, Gate,
                            GateMode, OutOfRangeError, PatternCodes, PixelFlag, ScanMode,
                            UnknownCommandError)
 

@@ -7,11 +7,11 @@ import threading
 
 import numpy as np
 
-from drivers.errors import DeviceTimeoutError
-from drivers.events import EVENT_DTYPE, EventKind
-from drivers.galvo.errors import ConnectionLostError
-from drivers.galvo.protocol import encode_reply
-from drivers.sim.rig import SimRig
+from spdepth.drivers.errors import DeviceTimeoutError
+from spdepth.drivers.events import EVENT_DTYPE, EventKind
+from spdepth.drivers.galvo.errors import ConnectionLostError
+from spdepth.drivers.galvo.protocol import encode_reply
+from spdepth.drivers.sim.rig import SimRig
 
 
 def reply(body: str, tag: int | None) -> bytes:

@@ -152,7 +152,7 @@ def ml_integer(y: np.ndarray, s_mat: np.ndarray):
 
 def s_at(kern, shift: float) -> np.ndarray:
     """Column of S for a fractional shift (pulse centroid at bin ``shift``), from the fine table."""
-    from recon.model import FINE_STEPS
+    from spdepth.recon.model import FINE_STEPS
     m = kern.n_bins
     x = np.arange(m) - shift + kern.off
     j = np.rint(x * FINE_STEPS).astype(np.int64)
@@ -163,7 +163,7 @@ def s_at(kern, shift: float) -> np.ndarray:
 def ml_refined(y: np.ndarray, kern, s_mat: np.ndarray):
     """Global integer search, then the best of the fine shifts within one bin of it, then a
     parabola through the fine neighbours (what the ml kernel does, in dense form)."""
-    from recon.model import FINE_STEPS
+    from spdepth.recon.model import FINE_STEPS
     i, _, _ = ml_integer(y, s_mat)
     qs = np.arange(-FINE_STEPS, FINE_STEPS + 1)
     qs = qs[(i + qs / FINE_STEPS >= 0) & (i + qs / FINE_STEPS <= kern.n_bins - 1)]

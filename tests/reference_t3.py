@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from drivers.errors import ProtocolError
-from drivers.events import EVENT_DTYPE, EventKind
+from spdepth.drivers.errors import ProtocolError
+from spdepth.drivers.events import EVENT_DTYPE, EventKind
 
 
 def reference_decode_t3(records: np.ndarray, sync_base: int = 0) -> tuple[np.ndarray, int]:

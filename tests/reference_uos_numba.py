@@ -73,9 +73,9 @@ def main(path: str) -> None:
     import numba
     import reference as ref
 
-    from acq.readers import read_photons
-    from recon.estimate import reconstruct
-    from recon.model import Binning, ReconSettings, build_kernel
+    from spdepth.acq.readers import read_photons
+    from spdepth.recon.estimate import reconstruct
+    from spdepth.recon.model import Binning, ReconSettings, build_kernel
 
     store = read_photons(path, time_unit_s=8e-12).store
     b = Binning.from_ps(8, (16000, 48000), 40)

@@ -1,4 +1,4 @@
-"""acq.ptu: the recording header ptufile and tttrlib read, the record-count patch, one marker kind
+"""spdepth.acq.ptu: the recording header ptufile and tttrlib read, the record-count patch, one marker kind
 per record (same pixels as the device's combined records), and simulate's files as images in
 tttrlib with every photon placed."""
 
@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 from numpy.testing import assert_array_equal
 
-from acq.assign import PixelAssigner
-from acq.ptu import (MARKER_INPUT, PIXEL_MARKER_TAG, encode_events, marker_map, patch_record_count,
+from spdepth.acq.assign import PixelAssigner
+from spdepth.acq.ptu import (MARKER_INPUT, PIXEL_MARKER_TAG, encode_events, marker_map, patch_record_count,
                      ptu_header, read_layout, split_marker_records, write_ptu)
-from drivers.events import EVENT_DTYPE, EventKind, Marker
-from drivers.sim import PhotonWorld, load_scene
-from drivers.tagger.t3 import decode_t3, encode_t3
-from recon.errors import InputError
+from spdepth.drivers.events import EVENT_DTYPE, EventKind, Marker
+from spdepth.drivers.sim import PhotonWorld, load_scene
+from spdepth.drivers.tagger.t3 import decode_t3, encode_t3
+from spdepth.recon.errors import InputError
 
 ORDER = (8, 2, 1, 4)  # FRAME, LINE_START, PIXEL, LINE_STOP
 
@@ -171,7 +171,7 @@ def test_simulate_file_reads_in_tttrlib(tmp_path):
     import ptufile
     import tttrlib
 
-    from acq.cli import main
+    from spdepth.acq.cli import main
 
     _quiet()
     out = tmp_path / "sim.ptu"

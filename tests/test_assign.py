@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from acq.assign import PixelAssigner
-from drivers.events import EVENT_DTYPE, EventKind, Marker
-from recon.errors import InputError
+from spdepth.acq.assign import PixelAssigner
+from spdepth.drivers.events import EVENT_DTYPE, EventKind, Marker
+from spdepth.recon.errors import InputError
 
 
 def reference_assign(events, shape, serpentine):

@@ -7,8 +7,8 @@ import csv
 
 import pytest
 
-from acq.bench_report import CSV_FIELDS, METHODS, QUICK_DETECTIONS, QUICK_SBRS
-from acq.cli import main
+from spdepth.acq.bench_report import CSV_FIELDS, METHODS, QUICK_DETECTIONS, QUICK_SBRS
+from spdepth.acq.cli import main
 
 
 @pytest.fixture(scope="module")

@@ -6,11 +6,11 @@ from types import SimpleNamespace
 
 import pytest
 
-from acq import cli
-from drivers.errors import DeviceTimeoutError, ProtocolError, SettingError
-from drivers.galvo import HardwareFaultError
-from drivers.galvo.errors import ErrorCode
-from recon.errors import InputError
+from spdepth.acq import cli
+from spdepth.drivers.errors import DeviceTimeoutError, ProtocolError, SettingError
+from spdepth.drivers.galvo import HardwareFaultError
+from spdepth.drivers.galvo.errors import ErrorCode
+from spdepth.recon.errors import InputError
 
 
 @pytest.mark.parametrize("exc", [

@@ -11,8 +11,8 @@ import pytest
 import scipy.io
 from matplotlib.image import imread
 
-from acq.cli import main
-from recon.maps import NPZ_KEYS
+from spdepth.acq.cli import main
+from spdepth.recon.maps import NPZ_KEYS
 
 FACE = "fpi/mannequin_face_8ppp.mat"
 PAPER = ["--time-unit-ps", "8", "--window-ps", "16000:48000", "--bin-ps", "40",
@@ -122,7 +122,7 @@ def test_recon_text_file_named_ptu(tmp_path, capsys):
 def test_recon_subprocess(face_crop, tmp_path):
     out = tmp_path / "m.npz"
     proc = subprocess.run(
-        [sys.executable, "-m", "acq.cli", "recon", str(face_crop), *PAPER, "--max-photons", "15",
+        [sys.executable, "-m", "spdepth.acq.cli", "recon", str(face_crop), *PAPER, "--max-photons", "15",
          "--method", "uos", "--out", str(out), "--json"],
         capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr

@@ -13,8 +13,8 @@ import time
 import numpy as np
 import pytest
 
-from acq.cli import main
-from recon.maps import DepthMaps
+from spdepth.acq.cli import main
+from spdepth.recon.maps import DepthMaps
 
 FILES = ("recording.ptu", "events.jsonl", "maps.npz", "maps.png", "run.json")
 
@@ -103,7 +103,7 @@ def test_kill_9_mid_scan_leaves_a_recording_that_replays(tmp_path, kill_after_by
 
     rec = tmp_path / "rec"
     # 128x128 x 15 records about 1.1 MB: both kill points fall mid-scan on a quiet machine too
-    proc = subprocess.Popen([sys.executable, "-m", "acq.cli", "scan", "--sim", "--size", "128x128",
+    proc = subprocess.Popen([sys.executable, "-m", "spdepth.acq.cli", "scan", "--sim", "--size", "128x128",
                              "--target", "15", "--out", str(rec)],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     ptu = rec / "recording.ptu"
@@ -122,7 +122,7 @@ def test_kill_9_mid_scan_leaves_a_recording_that_replays(tmp_path, kill_after_by
         assert n > 0
         assert pf.decode_records().size == n
     out = tmp_path / "replayed"
-    proc2 = subprocess.run([sys.executable, "-m", "acq.cli", "replay", str(rec), "--out", str(out),
+    proc2 = subprocess.run([sys.executable, "-m", "spdepth.acq.cli", "replay", str(rec), "--out", str(out),
                             "--json"], capture_output=True, text=True, timeout=120)
     assert proc2.returncode == 0, proc2.stderr
     summary = _last_json(proc2.stdout)
@@ -150,7 +150,7 @@ def test_recon_of_a_recording_gives_the_sessions_maps(tmp_path, capsys):
 
 def test_ctrl_c_aborts_cleanly_and_keeps_the_files(tmp_path):
     rec = tmp_path / "rec"
-    proc = subprocess.Popen([sys.executable, "-m", "acq.cli", "scan", "--sim", "--size", "128x128",
+    proc = subprocess.Popen([sys.executable, "-m", "spdepth.acq.cli", "scan", "--sim", "--size", "128x128",
                              "--target", "15", "--out", str(rec)],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     ptu = rec / "recording.ptu"

@@ -7,8 +7,8 @@ import re
 import numpy as np
 import pytest
 
-from acq.cli import main
-from recon.photons import PhotonStore
+from spdepth.acq.cli import main
+from spdepth.recon.photons import PhotonStore
 
 
 def _mae(out: str, method: str) -> float:

@@ -12,10 +12,10 @@ import pytest
 
 pytest.importorskip("distributed")
 
-from acq import distributed as D  # noqa: E402
-from acq.cli import main  # noqa: E402
-from recon.errors import InputError  # noqa: E402
-from recon.maps import NPZ_KEYS, DepthMaps  # noqa: E402
+from spdepth.acq import distributed as D  # noqa: E402
+from spdepth.acq.cli import main  # noqa: E402
+from spdepth.recon.errors import InputError  # noqa: E402
+from spdepth.recon.maps import NPZ_KEYS, DepthMaps  # noqa: E402
 
 MODEL = ["--window-ps", "0:100000", "--bin-ps", "40", "--pulse-rms-ps", "360", "--max-photons", "12"]
 
@@ -39,7 +39,7 @@ def client():
 
 
 def _args(argv):
-    from acq.cli import build_parser
+    from spdepth.acq.cli import build_parser
 
     return build_parser().parse_args(["recon", *argv])
 

@@ -1,4 +1,4 @@
-"""acq.evaluate: hand-computable cases, and ML against the per-pixel oracle on a simulated scene."""
+"""spdepth.acq.evaluate: hand-computable cases, and ML against the per-pixel oracle on a simulated scene."""
 
 from __future__ import annotations
 
@@ -8,15 +8,15 @@ import math
 import numpy as np
 import pytest
 
-from acq.evaluate import (OUTLIER_PULSE_WIDTHS, DepthErrors, evaluate_depth, oracle_mae_m,
+from spdepth.acq.evaluate import (OUTLIER_PULSE_WIDTHS, DepthErrors, evaluate_depth, oracle_mae_m,
                           signal_detections)
-from drivers.events import EventKind
-from drivers.sim import PhotonWorld, load_scene
-from recon.errors import InputError
-from recon.estimate import reconstruct
-from recon.maps import C_M_PER_S
-from recon.model import Binning, ReconSettings
-from recon.photons import PhotonStore
+from spdepth.drivers.events import EventKind
+from spdepth.drivers.sim import PhotonWorld, load_scene
+from spdepth.recon.errors import InputError
+from spdepth.recon.estimate import reconstruct
+from spdepth.recon.maps import C_M_PER_S
+from spdepth.recon.model import Binning, ReconSettings
+from spdepth.recon.photons import PhotonStore
 
 SIGMA_S = 2 / C_M_PER_S      # a pulse whose RMS width is exactly 1 m of depth
 

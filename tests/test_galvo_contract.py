@@ -14,16 +14,16 @@ import numpy as np
 import pytest
 import serial
 
-from drivers.errors import DeviceTimeoutError, SettingError
-from drivers.events import EventKind, Marker
-from drivers.galvo import (ConnectionLostError, Galvo, GalvoState, Gate, HardwareFaultError,
+from spdepth.drivers.errors import DeviceTimeoutError, SettingError
+from spdepth.drivers.events import EventKind, Marker
+from spdepth.drivers.galvo import (ConnectionLostError, Galvo, GalvoState, Gate, HardwareFaultError,
                            PatternCodes, PixelFlag, ScanMode, ScanPattern)
-from drivers.galvo import protocol as P
-from drivers.sim import galvo_fw
-from drivers.sim.faults import FaultKind
-from drivers.sim.galvo_fw import GalvoFirmware
-from drivers.sim.pty_link import PtyLink
-from drivers.sim.rig import SimRig
+from spdepth.drivers.galvo import protocol as P
+from spdepth.drivers.sim import galvo_fw
+from spdepth.drivers.sim.faults import FaultKind
+from spdepth.drivers.sim.galvo_fw import GalvoFirmware
+from spdepth.drivers.sim.pty_link import PtyLink
+from spdepth.drivers.sim.rig import SimRig
 from tests import galvo_contract as C
 from tests.galvo_support import poisson_rig
 
@@ -179,7 +179,7 @@ def test_pixel_log_overrun_is_reported(make_bench):
 
 
 def test_end_to_end_with_the_photon_world():
-    from drivers.sim import PhotonWorld, load_scene
+    from spdepth.drivers.sim import PhotonWorld, load_scene
 
     rig = SimRig(PhotonWorld(load_scene("bust", shape=(6, 6)), seed=1))
     galvo_fw.register_rig("e2e-rig", rig)
@@ -219,11 +219,11 @@ def test_url_builds_a_scene_and_rejects_bad_options():
 
 def test_real_galvo_driver_leaves_pyserial_url_handlers_alone():
     # A fresh interpreter: this one has long since imported the simulator.
-    code = ("import sys, serial, drivers.galvo\n"
-            "print('drivers.sim' in serial.protocol_handler_packages, 'drivers.sim' in sys.modules)\n"
-            "import drivers.sim\n"
-            "print('drivers.sim' in serial.protocol_handler_packages)\n"
-            "drivers.galvo.Galvo.open('galvosim://fresh').close()\n")
+    code = ("import sys, serial, spdepth.drivers.galvo\n"
+            "print('spdepth.drivers.sim' in serial.protocol_handler_packages, 'spdepth.drivers.sim' in sys.modules)\n"
+            "import spdepth.drivers.sim\n"
+            "print('spdepth.drivers.sim' in serial.protocol_handler_packages)\n"
+            "spdepth.drivers.galvo.Galvo.open('galvosim://fresh').close()\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
                          cwd=Path(__file__).resolve().parents[1])
     assert out.returncode == 0, out.stderr

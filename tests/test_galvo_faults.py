@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from drivers.errors import SettingError
-from drivers.sim.faults import (GALVO_FAULTS, TAGGER_FAULTS, Fault, FaultKind, FaultSchedule,
+from spdepth.drivers.errors import SettingError
+from spdepth.drivers.sim.faults import (GALVO_FAULTS, TAGGER_FAULTS, Fault, FaultKind, FaultSchedule,
                                 parse_faults)
 
 

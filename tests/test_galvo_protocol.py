@@ -7,12 +7,12 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from drivers.errors import DeviceError, DeviceTimeoutError, ProtocolError, SettingError
-from drivers.galvo import (BadArgumentError, BusyError, ConnectionLostError, ErrorCode, Galvo,
+from spdepth.drivers.errors import DeviceError, DeviceTimeoutError, ProtocolError, SettingError
+from spdepth.drivers.galvo import (BadArgumentError, BusyError, ConnectionLostError, ErrorCode, Galvo,
                            GalvoReplyError, GalvoState, Gate, GateMode, GateSetting,
                            HardwareFaultError, Limits, OutOfRangeError, PatternCodes, PixelFlag,
                            ScanMode, ScanPattern, UnknownCommandError)
-from drivers.galvo import protocol as P
+from spdepth.drivers.galvo import protocol as P
 from tests.galvo_support import LOST, ExpectedTransport, reply
 
 IDN = "OK SPDEPTH,GS-16,SIM0001,1.0"

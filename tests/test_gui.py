@@ -16,8 +16,8 @@ import pytest
 pytest.importorskip("pytestqt")
 from PySide6 import QtCore  # noqa: E402
 
-from gui.sources import SourceSpec, open_run  # noqa: E402
-from gui.window import MainWindow  # noqa: E402
+from spdepth.gui.sources import SourceSpec, open_run  # noqa: E402
+from spdepth.gui.window import MainWindow  # noqa: E402
 
 SMALL = dict(kind="sim", scene="bust", size=(16, 16), target=5)
 
@@ -230,7 +230,7 @@ def test_spdepth_gui_screenshot_offscreen(tmp_path):
     env = {**os.environ, "QT_QPA_PLATFORM": "offscreen", "XDG_CONFIG_HOME": str(tmp_path / "cfg"),
            "HOME": str(tmp_path)}
     shot = tmp_path / "shot.png"
-    p = subprocess.run([sys.executable, "-m", "acq.cli", "gui", "--sim", "--size", "16x12",
+    p = subprocess.run([sys.executable, "-m", "spdepth.acq.cli", "gui", "--sim", "--size", "16x12",
                         "--target", "5", "--screenshot", str(shot), "--exit-after-scan",
                         "--out", str(tmp_path / "runs")],
                        env=env, capture_output=True, text=True, timeout=120,
@@ -241,7 +241,7 @@ def test_spdepth_gui_screenshot_offscreen(tmp_path):
     assert Image.open(shot).size == (1480, 900)
     (run,) = (tmp_path / "runs").iterdir()
     assert json.loads((run / "run.json").read_text())["plan"]["nx"] == 16
-    bad = subprocess.run([sys.executable, "-m", "acq.cli", "gui", "--replay",
+    bad = subprocess.run([sys.executable, "-m", "spdepth.acq.cli", "gui", "--replay",
                           str(tmp_path / "missing"), "--exit-after-scan"],
                          env=env, capture_output=True, text=True, timeout=120,
                          cwd=Path(__file__).resolve().parents[1])
@@ -249,7 +249,7 @@ def test_spdepth_gui_screenshot_offscreen(tmp_path):
 
 
 def test_demo_opens_the_window_only_where_a_display_exists():
-    from gui.app import display_available
+    from spdepth.gui.app import display_available
 
     assert display_available({"DISPLAY": ":0"}, "linux")
     assert display_available({"WAYLAND_DISPLAY": "wayland-0"}, "linux")
@@ -280,7 +280,7 @@ FPI = Path("/work/shared/data/fpi/mannequin_face_8ppp.mat")
 @pytest.fixture(scope="module")
 def small_ptu(tmp_path_factory):
     out = tmp_path_factory.mktemp("ptu") / "steps.ptu"
-    p = subprocess.run([sys.executable, "-m", "acq.cli", "simulate", "--scene", "steps",
+    p = subprocess.run([sys.executable, "-m", "spdepth.acq.cli", "simulate", "--scene", "steps",
                         "--size", "16x12", "--ppp", "20", "--out", str(out)],
                        capture_output=True, text=True, timeout=120,
                        cwd=Path(__file__).resolve().parents[1])
@@ -298,9 +298,9 @@ def _reconstruct_in_window(qtbot, win, spec) -> str:
 
 
 def test_a_ptu_file_is_reconstructed_off_the_gui_thread(qtbot, win, tmp_path, small_ptu):
-    from acq.readers import read_photons
-    from recon.estimate import reconstruct
-    from recon.model import ReconSettings
+    from spdepth.acq.readers import read_photons
+    from spdepth.recon.estimate import reconstruct
+    from spdepth.recon.model import ReconSettings
 
     spec = SourceSpec(kind="file", file=str(small_ptu), method="ml", target=0)
     win.controls.set_spec(spec)

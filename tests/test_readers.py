@@ -10,9 +10,9 @@ import pytest
 import scipy.io
 from numpy.testing import assert_allclose, assert_array_equal
 
-from acq.readers import read_photons, sniff_kind
-from acq.readers.picoquant import _PT3_HEAD, assign_pixels
-from recon.errors import InputError
+from spdepth.acq.readers import read_photons, sniff_kind
+from spdepth.acq.readers.picoquant import _PT3_HEAD, assign_pixels
+from spdepth.recon.errors import InputError
 
 MANNEQUIN = "fpi/mannequin_face_8ppp.mat"
 TOWER = "longrange/tower_9km.mat"

@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 from numpy.testing import assert_array_equal
 
-import acq.readers.picoquant as pq
-from acq.ptu import read_layout, write_ptu
-from acq.readers import read_photons
-from drivers.events import EventKind, Marker
-from drivers.sim import PhotonWorld, load_scene
+import spdepth.acq.readers.picoquant as pq
+from spdepth.acq.ptu import read_layout, write_ptu
+from spdepth.acq.readers import read_photons
+from spdepth.drivers.events import EventKind, Marker
+from spdepth.drivers.sim import PhotonWorld, load_scene
 
 H, W, TARGET = 7, 9, 12
 
@@ -117,7 +117,7 @@ def test_fixed_dwell_simulate_file_by_pixel_markers(tmp_path):
     interpolated image (fixed dwell: both are exact)."""
     import ptufile
 
-    from acq.cli import main
+    from spdepth.acq.cli import main
 
     out = tmp_path / "sim.ptu"
     assert main(["simulate", "--scene", "two-layer", "--size", "10x6", "--ppp", "9",

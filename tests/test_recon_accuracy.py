@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from recon.estimate import reconstruct
-from recon.model import Binning, ReconSettings
-from recon.photons import PhotonStore
+from spdepth.recon.estimate import reconstruct
+from spdepth.recon.model import Binning, ReconSettings
+from spdepth.recon.photons import PhotonStore
 
 UNIT_S = 8e-12
 START, BIN_UNITS, M = 2000.0, 5.0, 801

@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 import scipy.io
 
-from acq.cli import main
-from recon.estimate import reconstruct
-from recon.maps import PixelFlag
-from recon.model import Binning, ReconSettings, estimate_pulse_rms_s
-from recon.photons import PhotonStore
+from spdepth.acq.cli import main
+from spdepth.recon.estimate import reconstruct
+from spdepth.recon.maps import PixelFlag
+from spdepth.recon.model import Binning, ReconSettings, estimate_pulse_rms_s
+from spdepth.recon.photons import PhotonStore
 
 UNIT_S = 8e-12
 METHODS = ("lmf", "uos", "ml")

@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 from matplotlib.image import imread
 
-from acq.cli import main
-from acq.readers import read_photons
-from recon.errors import InputError
-from recon.estimate import reconstruct
-from recon.irf import emg_response, estimate_irf
-from recon.model import Binning, ReconSettings, load_irf
-from recon.photons import PhotonStore
+from spdepth.acq.cli import main
+from spdepth.acq.readers import read_photons
+from spdepth.recon.errors import InputError
+from spdepth.recon.estimate import reconstruct
+from spdepth.recon.irf import emg_response, estimate_irf
+from spdepth.recon.model import Binning, ReconSettings, load_irf
+from spdepth.recon.photons import PhotonStore
 
 UNIT_S = 8e-12
 

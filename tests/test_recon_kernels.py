@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 import reference as ref
-from recon import kernels as K
-from recon.estimate import reconstruct
-from recon.model import Binning, Irf, ReconSettings, build_kernel
-from recon.photons import PhotonStore
+from spdepth.recon import kernels as K
+from spdepth.recon.estimate import reconstruct
+from spdepth.recon.model import Binning, Irf, ReconSettings, build_kernel
+from spdepth.recon.photons import PhotonStore
 
 M = 201
 BIN = Binning(8e-12, 0.0, M * 5.0, 5.0)

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 from hypothesis import given, settings as hsettings, strategies as st
 
-from recon.errors import InputError
-from recon.estimate import reconstruct
-from recon.maps import PixelFlag
-from recon.model import Binning, ReconSettings
-from recon.photons import PhotonStore
+from spdepth.recon.errors import InputError
+from spdepth.recon.estimate import reconstruct
+from spdepth.recon.maps import PixelFlag
+from spdepth.recon.model import Binning, ReconSettings
+from spdepth.recon.photons import PhotonStore
 
 UNIT_S = 8e-12
 BIN_UNITS = 5.0

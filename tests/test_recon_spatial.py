@@ -11,12 +11,12 @@ import pytest
 from numpy.testing import assert_allclose, assert_array_equal
 
 import reference_spatial as ref
-from recon import spatial_kernels as SK
-from recon.errors import InputError
-from recon.estimate import reconstruct
-from recon.maps import C_M_PER_S, PixelFlag
-from recon.model import Binning, ReconSettings
-from recon.photons import PhotonStore
+from spdepth.recon import spatial_kernels as SK
+from spdepth.recon.errors import InputError
+from spdepth.recon.estimate import reconstruct
+from spdepth.recon.maps import C_M_PER_S, PixelFlag
+from spdepth.recon.model import Binning, ReconSettings
+from spdepth.recon.photons import PhotonStore
 
 UNIT_S = 8e-12
 BIN_UNITS, M = 5.0, 801
@@ -244,7 +244,7 @@ def test_cli_recon_spatial_on_simulated_ptu_and_mat(tmp_path, capsys, shared_dat
 
     import scipy.io
 
-    from acq.cli import main
+    from spdepth.acq.cli import main
 
     ptu = tmp_path / "steps.ptu"
     assert main(["simulate", "--scene", "steps", "--size", "24x16", "--ppp", "5", "--sbr", "1",

@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 from hypothesis import given, settings as hsettings, strategies as st
 
-from recon.errors import InputError
-from recon.estimate import reconstruct
-from recon.maps import DepthMaps, PixelFlag
-from recon.model import (DEFAULT_MAX_BINS, Binning, Irf, ReconSettings, build_kernel, default_bin_width,
+from spdepth.recon.errors import InputError
+from spdepth.recon.estimate import reconstruct
+from spdepth.recon.maps import DepthMaps, PixelFlag
+from spdepth.recon.model import (DEFAULT_MAX_BINS, Binning, Irf, ReconSettings, build_kernel, default_bin_width,
                          default_binning, estimate_pulse_rms_s, load_irf)
-from recon.photons import PhotonStore
+from spdepth.recon.photons import PhotonStore
 
 UNIT_S = 8e-12
 M = 201

@@ -10,7 +10,7 @@ import pytest
 from matplotlib.colors import to_rgb
 from matplotlib.image import imread
 
-from acq.report import (NAN_COLOUR, ProgressBar, dense_limits, render_maps_png, render_point_png,
+from spdepth.acq.report import (NAN_COLOUR, ProgressBar, dense_limits, render_maps_png, render_point_png,
                         robust_limits)
 
 

@@ -12,10 +12,10 @@ import time
 import numpy as np
 import pytest
 
-from acq.instruments import open_sim, recon_settings, sim_plan, window_binning
-from acq.recording import ReplaySource, recon_settings_from_dict
-from acq.session import AcqFlag, Session, SessionState, SessionStateError
-from recon.maps import DepthMaps
+from spdepth.acq.instruments import open_sim, recon_settings, sim_plan, window_binning
+from spdepth.acq.recording import ReplaySource, recon_settings_from_dict
+from spdepth.acq.session import AcqFlag, Session, SessionState, SessionStateError
+from spdepth.recon.maps import DepthMaps
 
 
 def _session(inst, shape, out=None, *, target=10, method="lmf", **plan_kwargs):
@@ -198,7 +198,7 @@ def _wait(cond, timeout_s=30.0):
 
 
 def _replay(rec_dir, **kwargs):
-    from acq.commands.replay import build_session
+    from spdepth.acq.commands.replay import build_session
 
     return build_session(rec_dir, **kwargs)
 
@@ -337,7 +337,7 @@ def test_a_tagger_that_does_not_come_back_fails_the_session_cleanly(tmp_path):
 
 
 def test_spatial_session_shows_ml_live_then_the_spatial_frame_and_replays_equal(tmp_path):
-    from recon.estimate import reconstruct
+    from spdepth.recon.estimate import reconstruct
 
     with open_sim("steps", (12, 12), ppp=3, seed=14) as inst:
         s = _session(inst, (12, 12), tmp_path, target=3, method="spatial")
@@ -352,7 +352,7 @@ def test_spatial_session_shows_ml_live_then_the_spatial_frame_and_replays_equal(
 
 
 def test_a_galvo_left_in_fault_is_cleared_before_the_scan(tmp_path):
-    from drivers.sim import galvo_fw
+    from spdepth.drivers.sim import galvo_fw
 
     with open_sim("bust", (6, 6), ppp=10, seed=15) as inst:
         fw = galvo_fw.device_for_url(f"galvosim://{inst._name}")

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from drivers.sim import PhotonWorld, effects, kernels, load_scene
-from drivers.sim.scene import PILEUP_THRESHOLD
+from spdepth.drivers.sim import PhotonWorld, effects, kernels, load_scene
+from spdepth.drivers.sim.scene import PILEUP_THRESHOLD
 
 
 def _group(counts, expected, min_expected=20.0):

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.testing import assert_allclose, assert_array_equal
 
-from drivers.events import EVENT_DTYPE
-from drivers.sim import kernels as K
+from spdepth.drivers.events import EVENT_DTYPE
+from spdepth.drivers.sim import kernels as K
 
 
 def ref_generate_chain(rng, pix, start_sync, n_sync, sig_pp, tof_s, bg_pp, period_s, rms_s,

@@ -8,9 +8,9 @@ import json
 import numpy as np
 import pytest
 
-from acq.cli import main
-from drivers.events import EventKind
-from drivers.sim import PhotonWorld, load_scene
+from spdepth.acq.cli import main
+from spdepth.drivers.events import EventKind
+from spdepth.drivers.sim import PhotonWorld, load_scene
 
 
 def _simulate(tmp_path, *extra, name="scan.ptu"):

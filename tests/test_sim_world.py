@@ -9,12 +9,12 @@ import time
 import numpy as np
 import pytest
 
-from acq.assign import PixelAssigner
+from spdepth.acq.assign import PixelAssigner
 
-from drivers.errors import SettingError
-from drivers.events import EVENT_DTYPE, EventKind, Marker
-from drivers.sim import PhotonWorld, VirtualClock, load_scene, scene_names
-from drivers.sim.scene import C_M_PER_S
+from spdepth.drivers.errors import SettingError
+from spdepth.drivers.events import EVENT_DTYPE, EventKind, Marker
+from spdepth.drivers.sim import PhotonWorld, VirtualClock, load_scene, scene_names
+from spdepth.drivers.sim.scene import C_M_PER_S
 
 SCENES = ["bust", "daylight", "steps", "tilted-plane", "two-layer"]
 

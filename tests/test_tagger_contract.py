@@ -10,12 +10,12 @@ import time
 import numpy as np
 import pytest
 
-from drivers.events import EVENT_DTYPE, Marker
-from drivers.sim.rig import SimRig
-from drivers.sim.tagger_usb import SimTaggerBackend
-from drivers.tagger import DEFAULT_URL, Tagger, TaggerSettings
-from drivers.tagger import protocol as proto
-from drivers.tagger.transport import EndpointStallError
+from spdepth.drivers.events import EVENT_DTYPE, Marker
+from spdepth.drivers.sim.rig import SimRig
+from spdepth.drivers.sim.tagger_usb import SimTaggerBackend
+from spdepth.drivers.tagger import DEFAULT_URL, Tagger, TaggerSettings
+from spdepth.drivers.tagger import protocol as proto
+from spdepth.drivers.tagger.transport import EndpointStallError
 
 
 class TaggerContract:

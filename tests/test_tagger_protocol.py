@@ -10,12 +10,12 @@ import usb.core
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers.errors import DeviceError, DeviceTimeoutError, ProtocolError, SettingError
-from drivers.sim.tagger_usb import TaggerUsbDescriptors
-from drivers.tagger import Tagger, TaggerSettings
-from drivers.tagger import protocol as proto
-from drivers.tagger.protocol import Gap, MarkerConfig, StatusFlag
-from drivers.tagger.transport import DeviceGoneError, EndpointStallError
+from spdepth.drivers.errors import DeviceError, DeviceTimeoutError, ProtocolError, SettingError
+from spdepth.drivers.sim.tagger_usb import TaggerUsbDescriptors
+from spdepth.drivers.tagger import Tagger, TaggerSettings
+from spdepth.drivers.tagger import protocol as proto
+from spdepth.drivers.tagger.protocol import Gap, MarkerConfig, StatusFlag
+from spdepth.drivers.tagger.transport import DeviceGoneError, EndpointStallError
 
 IN, OUT = 0xC0, 0x40
 IDENTITY = (b"SPDT" + struct.pack("<HBBHBBII", 1, 2, 5, 17, 4, 4, 1000, 2 ** 21)

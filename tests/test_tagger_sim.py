@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 import usb.core
 
-from drivers.errors import SettingError
-from drivers.events import EVENT_DTYPE, EventKind, Marker
-from drivers.sim.faults import Fault, FaultKind
-from drivers.sim.tagger_usb import SimTaggerBackend
-from drivers.tagger import DEFAULT_URL, Tagger, TaggerSettings
-from drivers.tagger.transport import DeviceGoneError
+from spdepth.drivers.errors import SettingError
+from spdepth.drivers.events import EVENT_DTYPE, EventKind, Marker
+from spdepth.drivers.sim.faults import Fault, FaultKind
+from spdepth.drivers.sim.tagger_usb import SimTaggerBackend
+from spdepth.drivers.tagger import DEFAULT_URL, Tagger, TaggerSettings
+from spdepth.drivers.tagger.transport import DeviceGoneError
 from test_tagger_contract import PoissonWorld, TapRig, drive_pixels
 
 
@@ -299,7 +299,7 @@ def test_fault_list_accepted_as_objects():
 
 
 def test_real_photon_world_stream_is_exact():
-    from drivers.sim import PhotonWorld, load_scene
+    from spdepth.drivers.sim import PhotonWorld, load_scene
 
     rig = TapRig(PhotonWorld(load_scene("steps", shape=(4, 4)), seed=3))
     backend = SimTaggerBackend(rig)

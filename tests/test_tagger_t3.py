@@ -8,9 +8,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drivers.errors import ProtocolError, SettingError
-from drivers.events import EVENT_DTYPE, EventKind
-from drivers.tagger.t3 import (T3DecoderState, T3EncoderState, decode_t3, encode_t3)
+from spdepth.drivers.errors import ProtocolError, SettingError
+from spdepth.drivers.events import EVENT_DTYPE, EventKind
+from spdepth.drivers.tagger.t3 import (T3DecoderState, T3EncoderState, decode_t3, encode_t3)
 from reference_t3 import reference_decode_t3
 
 
@@ -190,10 +190,10 @@ def test_real_hydraharp_v2_ptu_matches_ptufile(shared_data):
 
 
 def test_bench_prints_all_three_decoders(capsys):
-    from drivers.tagger.bench import bench
+    from spdepth.drivers.tagger.bench import bench
 
     assert bench(["--records", "20000", "--repeat", "1"]) == 0
     out = capsys.readouterr().out
     for name in ("numba decode_t3", "NumPy vectorised", "ptufile decode_t3_records"):
         assert name in out
-    assert bench.__module__ == "drivers.tagger.bench"
+    assert bench.__module__ == "spdepth.drivers.tagger.bench"

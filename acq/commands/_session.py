@@ -8,8 +8,8 @@ import json
 import sys
 from pathlib import Path
 
-from acq.commands._args import positive_float, positive_int
-from recon.errors import InputError
+from spdepth.acq.commands._args import positive_float, positive_int
+from spdepth.recon.errors import InputError
 
 METHODS = ("uos", "ml", "lmf", "spatial")
 
@@ -86,7 +86,7 @@ def run_session(session, label: str):
 
 def finish_outputs(session, out: Path, title: str) -> dict:
     """Write maps.png next to the session's files; return the JSON summary."""
-    from acq.report import render_maps_png
+    from spdepth.acq.report import render_maps_png
 
     maps = session.maps()
     render_maps_png(out / "maps.png", maps, title=title)

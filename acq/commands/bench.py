@@ -11,14 +11,14 @@ import importlib
 HELP = "measure speed (generation, reconstruction, T3 decoding) and accuracy for time (report)"
 
 TARGETS = {
-    "generate": ("drivers.sim.bench", "photon generation of the scene simulator (detections/s)"),
-    "recon": ("recon.bench", "estimators vs plain NumPy references, 1 and 2 threads (pixels/s)"),
-    "decode": ("drivers.tagger.bench", "T3 record decoding: numba vs NumPy vs ptufile (records/s)"),
-    "session": ("acq.bench_session", "acquisition session end to end: scan det/s, live-recon "
+    "generate": ("spdepth.drivers.sim.bench", "photon generation of the scene simulator (detections/s)"),
+    "recon": ("spdepth.recon.bench", "estimators vs plain NumPy references, 1 and 2 threads (pixels/s)"),
+    "decode": ("spdepth.drivers.tagger.bench", "T3 record decoding: numba vs NumPy vs ptufile (records/s)"),
+    "session": ("spdepth.acq.bench_session", "acquisition session end to end: scan det/s, live-recon "
                 "backlog, replay det/s, peak memory"),
-    "report": ("acq.bench_report", "accuracy vs detections per pixel, SBR and estimator, with scan and "
+    "report": ("spdepth.acq.bench_report", "accuracy vs detections per pixel, SBR and estimator, with scan and "
                "compute time: report.md, results.csv, PNGs (--out DIR [--quick])"),
-    "spatial": ("recon.spatial_bench", "spatial estimator on a 256x256 frame beside ml, warm, 1 thread "
+    "spatial": ("spdepth.recon.spatial_bench", "spatial estimator on a 256x256 frame beside ml, warm, 1 thread "
                 "(pixels/s per core)"),
 }
 

@@ -10,7 +10,7 @@ import sys
 import tempfile
 import time
 
-from acq.commands._args import positive_float, positive_int, size_wxh
+from spdepth.acq.commands._args import positive_float, positive_int, size_wxh
 
 HELP = "simulate a recorded count-gated scan session of a built-in scene, reconstruct it, write a PNG"
 
@@ -43,10 +43,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from recon.errors import InputError
-    from recon.model import METHODS
+    from spdepth.recon.errors import InputError
+    from spdepth.recon.model import METHODS
 
-    from gui.app import display_available
+    from spdepth.gui.app import display_available
 
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     unknown = [m for m in methods if m not in METHODS]
@@ -56,7 +56,7 @@ def run(args: argparse.Namespace) -> int:
     if not args.no_window and display_available():
         return _window(args, methods)
     if args.record:
-        from acq.commands._session import prepare_out_dir
+        from spdepth.acq.commands._session import prepare_out_dir
 
         return _demo(args, methods, prepare_out_dir(args.record, overwrite=False))
     with tempfile.TemporaryDirectory(prefix="spdepth-demo-") as tmp:
@@ -65,13 +65,13 @@ def run(args: argparse.Namespace) -> int:
 
 def _window(args, methods) -> int:
     """With a display: the same simulated scan in the live window (spdepth gui)."""
-    from gui.app import run_demo_window
+    from spdepth.gui.app import run_demo_window
 
     print("spdepth demo: opening the window (--no-window for the headless PNG sheet)",
           file=sys.stderr)
     out = None
     if args.record:
-        from acq.commands._session import prepare_out_dir
+        from spdepth.acq.commands._session import prepare_out_dir
 
         out = prepare_out_dir(args.record, overwrite=False)
     return run_demo_window(scene=args.scene, size=args.size, target=args.photons, sbr=args.sbr,
@@ -82,13 +82,13 @@ def _window(args, methods) -> int:
 def _demo(args, methods, out_dir) -> int:
     import numpy as np
 
-    from acq.commands._session import run_session
-    from acq.evaluate import evaluate_depth, signal_detections
-    from acq.instruments import PAPER_BIN_S, PAPER_BINS, open_sim, sim_plan, window_binning
-    from acq.report import render_maps_png
-    from acq.session import Session
-    from recon.estimate import reconstruct
-    from recon.model import ReconSettings
+    from spdepth.acq.commands._session import run_session
+    from spdepth.acq.evaluate import evaluate_depth, signal_detections
+    from spdepth.acq.instruments import PAPER_BIN_S, PAPER_BINS, open_sim, sim_plan, window_binning
+    from spdepth.acq.report import render_maps_png
+    from spdepth.acq.session import Session
+    from spdepth.recon.estimate import reconstruct
+    from spdepth.recon.model import ReconSettings
 
     h, w = args.size
     with open_sim(args.scene, (h, w), ppp=float(args.photons), sbr=args.sbr, seed=args.seed,

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import argparse
 
-from acq.commands._args import non_negative_float, positive_float, positive_int, size_wxh
-from acq.commands._session import METHODS
+from spdepth.acq.commands._args import non_negative_float, positive_float, positive_int, size_wxh
+from spdepth.acq.commands._session import METHODS
 
 HELP = ("open the live window; with --sim, --galvo/--tagger or --replay start that scan at once, "
         "with --file reconstruct a PTU/.mat file in it")
@@ -60,8 +60,8 @@ def spec_from_args(args: argparse.Namespace, base=None):
     window's remembered settings), and whether they name a source to start at once."""
     import dataclasses
 
-    from gui.sources import SourceSpec
-    from recon.errors import InputError
+    from spdepth.gui.sources import SourceSpec
+    from spdepth.recon.errors import InputError
 
     kinds = [k for k, on in (("sim", args.sim), ("real", bool(args.galvo or args.tagger)),
                              ("replay", bool(args.replay)), ("file", bool(args.file))) if on]
@@ -89,7 +89,7 @@ def spec_from_args(args: argparse.Namespace, base=None):
 
 
 def run(args: argparse.Namespace) -> int:
-    from gui.app import WINDOW_SIZE, application, remembered_spec, run_window
+    from spdepth.gui.app import WINDOW_SIZE, application, remembered_spec, run_window
 
     application()
     spec, start = spec_from_args(args, remembered_spec())

@@ -21,8 +21,8 @@ import math
 import sys
 import time
 
-from acq.commands._args import positive_float, positive_int
-from recon.errors import InputError
+from spdepth.acq.commands._args import positive_float, positive_int
+from spdepth.recon.errors import InputError
 
 HELP = "reconstruct depth/background maps from a .mat or PicoQuant PTU/HT3/PT3 T3 file"
 
@@ -87,7 +87,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     if args.dask or len(args.input) > 1:
-        from acq import distributed
+        from spdepth.acq import distributed
 
         return distributed.run(args)
     return run_one(argparse.Namespace(**dict(vars(args), input=args.input[0])))
@@ -97,10 +97,10 @@ def run_one(args: argparse.Namespace) -> int:
     """One input file (``args.input`` a path)."""
     import numpy as np
 
-    from acq.readers import read_photons
-    from acq.report import ProgressBar
-    from recon.estimate import reconstruct
-    from recon.model import Binning, ReconSettings, default_bin_width, load_irf, save_irf
+    from spdepth.acq.readers import read_photons
+    from spdepth.acq.report import ProgressBar
+    from spdepth.recon.estimate import reconstruct
+    from spdepth.recon.model import Binning, ReconSettings, default_bin_width, load_irf, save_irf
 
     t0 = time.perf_counter()
     time_unit_s = args.time_unit_ps * 1e-12 if args.time_unit_ps else None
@@ -170,7 +170,7 @@ def run_one(args: argparse.Namespace) -> int:
     if args.save_irf:
         save_irf(irf_used, args.save_irf)
     if args.png:
-        from acq.report import render_maps_png, render_point_png
+        from spdepth.acq.report import render_maps_png, render_point_png
 
         title = (f"{result.path.rsplit('/', 1)[-1]}: {args.method}, {photons} photons, "
                  f"window {win_u[0] * unit_ps:g}-{win_u[1] * unit_ps:g} ps")
@@ -227,7 +227,7 @@ def run_one(args: argparse.Namespace) -> int:
 
 def _irf_used(settings: dict):
     """The pulse shape a reconstruction used, as an Irf (a sampled Gaussian for a Gaussian pulse)."""
-    from recon.model import Irf, gaussian_irf
+    from spdepth.recon.model import Irf, gaussian_irf
 
     irf = settings.get("irf")
     if irf:

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import argparse
 
-from acq.commands._args import positive_float, positive_int
-from acq.commands._session import (add_output_arguments, add_recon_arguments, finish_outputs,
+from spdepth.acq.commands._args import positive_float, positive_int
+from spdepth.acq.commands._session import (add_output_arguments, add_recon_arguments, finish_outputs,
                                    prepare_out_dir, report, run_session)
 
 HELP = "replay a recording (or a PTU with pixel markers) through the session pipeline"
@@ -40,10 +40,10 @@ def build_session(recording, *, target=None, method=None, pulse_rms_s=None, bin_
     target, method and pulse width replaced."""
     import dataclasses
 
-    from acq.instruments import window_binning
-    from acq.plan import ScanPlan
-    from acq.recording import ReplaySource, recon_settings_from_dict
-    from acq.session import Session
+    from spdepth.acq.instruments import window_binning
+    from spdepth.acq.plan import ScanPlan
+    from spdepth.acq.recording import ReplaySource, recon_settings_from_dict
+    from spdepth.acq.session import Session
 
     src = ReplaySource(recording, speed=speed)
     info = src.info
@@ -64,7 +64,7 @@ def build_session(recording, *, target=None, method=None, pulse_rms_s=None, bin_
             int(round(info.sync_period_s / info.resolution_s))
         units = max(1, int(round(bin_s / info.resolution_s)))
         binning = window_binning(info.resolution_s, n_bins=max(1, range_bins // units), bin_s=bin_s)
-        from recon.model import ReconSettings
+        from spdepth.recon.model import ReconSettings
 
         settings = ReconSettings(method=method or "uos", binning=binning, pulse_rms_s=pulse_rms_s,
                                  max_photons=plan.target)
@@ -75,7 +75,7 @@ def build_session(recording, *, target=None, method=None, pulse_rms_s=None, bin_
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from recon.errors import InputError
+    from spdepth.recon.errors import InputError
 
     rec = Path(args.recording)
     rec_dir = rec if rec.is_dir() else rec.parent

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import argparse
 
-from acq.commands._args import non_negative_float, positive_float, positive_int, size_wxh
-from acq.commands._session import (add_output_arguments, add_recon_arguments, finish_outputs,
+from spdepth.acq.commands._args import non_negative_float, positive_float, positive_int, size_wxh
+from spdepth.acq.commands._session import (add_output_arguments, add_recon_arguments, finish_outputs,
                                    prepare_out_dir, report, run_session)
 
 HELP = "scan (simulated or real devices), record the tag stream, reconstruct live, write the maps"
@@ -61,7 +61,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _window(args):
-    from recon.errors import InputError
+    from spdepth.recon.errors import InputError
 
     if args.window_ps is None:
         return None
@@ -76,8 +76,8 @@ def _window(args):
 
 def open_instruments(args):
     """The instruments the arguments name (simulated or real)."""
-    from acq.instruments import open_real, open_sim
-    from recon.errors import InputError
+    from spdepth.acq.instruments import open_real, open_sim
+    from spdepth.recon.errors import InputError
 
     if args.sim == bool(args.galvo or args.tagger):
         raise InputError("give either --sim or both --galvo PORT and --tagger usb:VID:PID")
@@ -96,9 +96,9 @@ def open_instruments(args):
 
 def build_session(args, inst, out):
     """The plan, estimator settings and session for ``args`` on opened instruments."""
-    from acq.instruments import recon_settings, sim_plan, window_binning
-    from acq.plan import ScanPlan
-    from acq.session import Session
+    from spdepth.acq.instruments import recon_settings, sim_plan, window_binning
+    from spdepth.acq.plan import ScanPlan
+    from spdepth.acq.session import Session
 
     h, w = args.size
     dwell_ms = args.dwell_limit_ms if args.mode == "gated" else args.dwell_ms

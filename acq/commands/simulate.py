@@ -9,8 +9,8 @@ import sys
 import time
 from pathlib import Path
 
-from acq.commands._args import non_negative_float, positive_float, size_wxh
-from recon.errors import InputError
+from spdepth.acq.commands._args import non_negative_float, positive_float, size_wxh
+from spdepth.recon.errors import InputError
 
 HELP = "simulate a scan of a built-in or depth-image scene; write a T3 image PTU and its truth"
 
@@ -53,8 +53,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from acq.ptu import MARKER_INPUT, write_ptu
-    from drivers.sim import PhotonWorld, load_scene
+    from spdepth.acq.ptu import MARKER_INPUT, write_ptu
+    from spdepth.drivers.sim import PhotonWorld, load_scene
 
     out = Path(args.out)
     if out.suffix.lower() != ".ptu":

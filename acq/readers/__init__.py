@@ -12,8 +12,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from acq.readers.common import ReadResult
-from recon.errors import InputError
+from spdepth.acq.readers.common import ReadResult
+from spdepth.recon.errors import InputError
 
 __all__ = ["ReadResult", "read_photons", "sniff_kind"]
 
@@ -65,14 +65,14 @@ def read_photons(path: str | Path, *, time_unit_s: float | None = None, mat_var:
     """
     kind = sniff_kind(path)
     if kind == "mat":
-        from acq.readers.mat import read_mat
+        from spdepth.acq.readers.mat import read_mat
 
         if channel is not None:
             raise InputError(f"{path}: a .mat file has no detector channels; drop the channel option")
         return read_mat(path, time_unit_s=time_unit_s, var=mat_var)
     if mat_var is not None:
         raise InputError(f"{path}: a {kind.upper()} file has no variables; drop the mat-var option")
-    from acq.readers import picoquant
+    from spdepth.acq.readers import picoquant
 
     reader = {"ptu": picoquant.read_ptu, "ht3": picoquant.read_ht3, "pt3": picoquant.read_pt3}[kind]
     return reader(path, time_unit_s=time_unit_s, channel=channel)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from recon.photons import PhotonStore
+from spdepth.recon.photons import PhotonStore
 
 
 @dataclass(frozen=True)

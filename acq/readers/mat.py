@@ -12,9 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
-from acq.readers.common import ReadResult
-from recon.errors import InputError
-from recon.photons import PhotonStore
+from spdepth.acq.readers.common import ReadResult
+from spdepth.recon.errors import InputError
+from spdepth.recon.photons import PhotonStore
 
 
 def _describe(value) -> str:

@@ -27,14 +27,14 @@ from pathlib import Path
 import numpy as np
 from numba import njit
 
-from acq.assign import PixelAssigner
-from acq.ptu import PIXEL_MARKER_TAG, PLAN_TAG, PtuLayout, iter_records, marker_map
-from acq.readers.common import ReadResult
-from drivers.errors import DriverError
-from drivers.events import EVENT_DTYPE, EventKind, Marker
-from drivers.tagger.t3 import T3DecoderState, decode_t3
-from recon.errors import InputError
-from recon.photons import PhotonStore
+from spdepth.acq.assign import PixelAssigner
+from spdepth.acq.ptu import PIXEL_MARKER_TAG, PLAN_TAG, PtuLayout, iter_records, marker_map
+from spdepth.acq.readers.common import ReadResult
+from spdepth.drivers.errors import DriverError
+from spdepth.drivers.events import EVENT_DTYPE, EventKind, Marker
+from spdepth.drivers.tagger.t3 import T3DecoderState, decode_t3
+from spdepth.recon.errors import InputError
+from spdepth.recon.photons import PhotonStore
 
 # ptufile record type codes (TTResultFormat_TTTRRecType) for the legacy formats' records
 _REC_PICOHARP_T3 = 0x00010303    # PicoHarp 300: channel:4 | dtime:12 | nsync:16
@@ -266,7 +266,7 @@ def read_ptu(path: str | Path, *, time_unit_s: float | None = None,
     notes = ()
     if tags.get(PLAN_TAG) and rectype in _GENERIC_T3:
         # a session's recording: its passes and lost spans are in events.jsonl beside it
-        from acq.recording import session_photons
+        from spdepth.acq.recording import session_photons
 
         store, notes, extra = session_photons(path)
         if time_unit_s is not None and time_unit_s != store.time_unit_s:

@@ -12,7 +12,7 @@ import logging
 import time
 from dataclasses import dataclass
 
-from drivers.errors import DeviceError, DeviceTimeoutError, ProtocolError, SettingError
+from spdepth.drivers.errors import DeviceError, DeviceTimeoutError, ProtocolError, SettingError
 
 from . import protocol as P
 from .errors import ConnectionLostError, ErrorCode

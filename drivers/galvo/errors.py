@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from enum import IntEnum
 
-from drivers.errors import DeviceError
+from spdepth.drivers.errors import DeviceError
 
 
 class ErrorCode(IntEnum):

@@ -19,7 +19,7 @@ import re
 from dataclasses import dataclass
 from enum import IntEnum
 
-from drivers.errors import ProtocolError, SettingError
+from spdepth.drivers.errors import ProtocolError, SettingError
 
 from .errors import ErrorCode, GalvoReplyError, reply_error
 

@@ -13,7 +13,7 @@ import time
 
 import serial
 
-from drivers.errors import DeviceTimeoutError, ProtocolError, SettingError
+from spdepth.drivers.errors import DeviceTimeoutError, ProtocolError, SettingError
 
 from .errors import ConnectionLostError
 from .protocol import MAX_REPLY_BYTES, TERMINATOR

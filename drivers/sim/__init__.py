@@ -10,8 +10,8 @@ drivers never import the simulator, so a process that only drives hardware keeps
 
 import serial
 
-from drivers.sim.scene import EFFECTS, Scene, SceneSettings, load_scene, scene_names
-from drivers.sim.world import PhotonWorld, VirtualClock
+from spdepth.drivers.sim.scene import EFFECTS, Scene, SceneSettings, load_scene, scene_names
+from spdepth.drivers.sim.world import PhotonWorld, VirtualClock
 
 __all__ = ["EFFECTS", "PhotonWorld", "Scene", "SceneSettings", "VirtualClock", "load_scene",
            "register_url_handlers", "scene_names"]

@@ -30,7 +30,7 @@ def bench(argv: list[str]) -> int:
     """Print generation speed figures; returns 0."""
     import numpy as np
 
-    from drivers.sim import PhotonWorld, load_scene
+    from spdepth.drivers.sim import PhotonWorld, load_scene
 
     args = _parse(argv)
     try:

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.sim import kernels as K
+from spdepth.drivers.sim import kernels as K
 
 PENDING_CAP = 256
 """Afterpulses waiting to fire; with afterpulse_prob < 0.5 more than a handful never pend."""

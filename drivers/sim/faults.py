@@ -19,7 +19,7 @@ import threading
 from dataclasses import dataclass
 from enum import Enum
 
-from drivers.errors import SettingError
+from spdepth.drivers.errors import SettingError
 
 
 class FaultKind(str, Enum):

@@ -26,15 +26,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.errors import SettingError
-from drivers.events import Marker
-from drivers.galvo.errors import ErrorCode
-from drivers.galvo.protocol import (DAC_MAX_CODE, MAX_COMMAND_BYTES, MAX_DWELL_NS, MAX_FRAMES,
+from spdepth.drivers.errors import SettingError
+from spdepth.drivers.events import Marker
+from spdepth.drivers.galvo.errors import ErrorCode
+from spdepth.drivers.galvo.protocol import (DAC_MAX_CODE, MAX_COMMAND_BYTES, MAX_DWELL_NS, MAX_FRAMES,
                                     MAX_N_TARGET, MAX_PIX_PAGE, MAX_PIXELS_PER_AXIS,
                                     MAX_SETTLE_NS, MAX_TAG, MIN_DWELL_NS, PIXEL_LOG_DEPTH,
                                     GalvoState, GateMode, GateSetting, PatternCodes, ScanMode,
                                     encode_reply)
-from drivers.sim.faults import GALVO_FAULTS, Fault, FaultKind, FaultSchedule, parse_faults
+from spdepth.drivers.sim.faults import GALVO_FAULTS, Fault, FaultKind, FaultSchedule, parse_faults
 
 log = logging.getLogger("spdepth.sim.galvo")
 
@@ -789,10 +789,10 @@ def _firmware_from_options(name: str, opts: dict, url: str) -> GalvoFirmware:
 
 
 def _rig_from_scene(opts: dict, url: str, num):
-    from drivers.sim.rig import SimRig
+    from spdepth.drivers.sim.rig import SimRig
 
     try:
-        from drivers.sim import PhotonWorld, load_scene
+        from spdepth.drivers.sim import PhotonWorld, load_scene
     except ImportError as e:
         raise SettingError(f"galvosim URL {url!r}: building a scene needs drivers.sim.PhotonWorld "
                          f"({e}); register a rig and pass rig=NAME instead") from None

@@ -13,8 +13,8 @@ import time
 
 from serial.serialutil import PortNotOpenError, SerialBase, SerialException
 
-from drivers.errors import SettingError
-from drivers.sim import galvo_fw
+from spdepth.drivers.errors import SettingError
+from spdepth.drivers.sim import galvo_fw
 
 
 class Serial(SerialBase):

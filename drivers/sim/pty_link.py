@@ -21,7 +21,7 @@ import threading
 import time
 import tty
 
-from drivers.sim.galvo_fw import GalvoFirmware, PortUnplugged
+from spdepth.drivers.sim.galvo_fw import GalvoFirmware, PortUnplugged
 
 log = logging.getLogger("spdepth.sim.pty")
 

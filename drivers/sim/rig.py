@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from drivers.events import EVENT_DTYPE, EventKind, Marker
+from spdepth.drivers.events import EVENT_DTYPE, EventKind, Marker
 
 
 @dataclass(frozen=True)

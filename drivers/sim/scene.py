@@ -10,8 +10,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from drivers.errors import SettingError
-from drivers.sim import scenes as _scenes
+from spdepth.drivers.errors import SettingError
+from spdepth.drivers.sim import scenes as _scenes
 
 C_M_PER_S = 299_792_458.0
 

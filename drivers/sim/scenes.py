@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers.errors import SettingError
+from spdepth.drivers.errors import SettingError
 
 
 @dataclass(frozen=True, eq=False)

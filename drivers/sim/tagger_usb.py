@@ -4,8 +4,8 @@
 that speaks exactly the protocol of ``docs/protocols.md`` ("TCSPC time tagger"), so the driver runs
 the same code path as with libusb:
 
-    from drivers.sim.tagger_usb import SimTaggerBackend
-    from drivers.tagger import Tagger
+    from spdepth.drivers.sim.tagger_usb import SimTaggerBackend
+    from spdepth.drivers.tagger import Tagger
     backend = SimTaggerBackend(rig, faults="fifo-overflow@2s", scan_pixels=64 * 64)
     tagger = Tagger.open("usb:1209:7a64", backend=backend)
 
@@ -34,12 +34,12 @@ import numpy as np
 import usb.backend
 import usb.core
 
-from drivers.errors import SettingError
-from drivers.events import EVENT_DTYPE, EventKind, Marker
-from drivers.sim.faults import Fault, FaultKind, FaultSchedule, TAGGER_FAULTS, parse_faults
-from drivers.tagger import protocol as proto
-from drivers.tagger.protocol import Gap, Request, StatusFlag, TaggerIdentity, TaggerStatus
-from drivers.tagger.t3 import T3_DTIME_MAX, T3EncoderState, encode_t3
+from spdepth.drivers.errors import SettingError
+from spdepth.drivers.events import EVENT_DTYPE, EventKind, Marker
+from spdepth.drivers.sim.faults import Fault, FaultKind, FaultSchedule, TAGGER_FAULTS, parse_faults
+from spdepth.drivers.tagger import protocol as proto
+from spdepth.drivers.tagger.protocol import Gap, Request, StatusFlag, TaggerIdentity, TaggerStatus
+from spdepth.drivers.tagger.t3 import T3_DTIME_MAX, T3EncoderState, encode_t3
 
 SIM_IDENTITY = TaggerIdentity(
     protocol_version=proto.PROTOCOL_VERSION,

@@ -16,11 +16,11 @@ from typing import Callable
 
 import numpy as np
 
-from drivers.errors import SettingError
-from drivers.events import EVENT_DTYPE, Marker
+from spdepth.drivers.errors import SettingError
+from spdepth.drivers.events import EVENT_DTYPE, Marker
 
-from drivers.sim import kernels as K
-from drivers.sim.effects import Batch, Counting, DetectorState, build_effects
+from spdepth.drivers.sim import kernels as K
+from spdepth.drivers.sim.effects import Batch, Counting, DetectorState, build_effects
 
 
 class VirtualClock:

@@ -1,12 +1,12 @@
 """TCSPC time tagger over USB: transport (pyusb), protocol (control payloads, T3 records), device
 (``Tagger``) and the reader thread. The wire protocol is in ``docs/protocols.md``."""
 
-from drivers.tagger.device import DEFAULT_URL, Tagger, TaggerSettings
-from drivers.tagger.protocol import (Binning, Gap, MarkerConfig, StatusFlag, TaggerIdentity,
+from spdepth.drivers.tagger.device import DEFAULT_URL, Tagger, TaggerSettings
+from spdepth.drivers.tagger.protocol import (Binning, Gap, MarkerConfig, StatusFlag, TaggerIdentity,
                                      TaggerStatus)
-from drivers.tagger.reader import TaggerReader, lost_event
-from drivers.tagger.t3 import T3DecoderState, T3EncoderState, decode_t3, encode_t3
-from drivers.tagger.transport import DeviceGoneError, EndpointStallError, UsbTransport
+from spdepth.drivers.tagger.reader import TaggerReader, lost_event
+from spdepth.drivers.tagger.t3 import T3DecoderState, T3EncoderState, decode_t3, encode_t3
+from spdepth.drivers.tagger.transport import DeviceGoneError, EndpointStallError, UsbTransport
 
 __all__ = [
     "DEFAULT_URL", "Tagger", "TaggerSettings", "TaggerReader", "lost_event", "UsbTransport",

@@ -15,8 +15,8 @@ import time
 
 import numpy as np
 
-from drivers.events import EVENT_DTYPE, EventKind
-from drivers.tagger.t3 import T3DecoderState, decode_t3, encode_t3
+from spdepth.drivers.events import EVENT_DTYPE, EventKind
+from spdepth.drivers.tagger.t3 import T3DecoderState, decode_t3, encode_t3
 
 
 def make_records(n_records: int, seed: int = 0) -> np.ndarray:

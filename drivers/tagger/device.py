@@ -11,10 +11,10 @@ import logging
 import time
 from dataclasses import dataclass
 
-from drivers.errors import DeviceError, SettingError
-from drivers.tagger import protocol as proto
-from drivers.tagger.protocol import Binning, Gap, MarkerConfig, TaggerIdentity, TaggerStatus
-from drivers.tagger.transport import DeviceGoneError, UsbTransport
+from spdepth.drivers.errors import DeviceError, SettingError
+from spdepth.drivers.tagger import protocol as proto
+from spdepth.drivers.tagger.protocol import Binning, Gap, MarkerConfig, TaggerIdentity, TaggerStatus
+from spdepth.drivers.tagger.transport import DeviceGoneError, UsbTransport
 
 log = logging.getLogger(__name__)
 
@@ -147,7 +147,7 @@ class Tagger:
 
     def reader(self, **kwargs):
         """A ``TaggerReader`` on this tagger (not started); see its docstring for options."""
-        from drivers.tagger.reader import TaggerReader
+        from spdepth.drivers.tagger.reader import TaggerReader
 
         return TaggerReader(self, **kwargs)
 

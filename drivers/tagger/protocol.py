@@ -10,7 +10,7 @@ import struct
 from dataclasses import dataclass
 from enum import IntEnum, IntFlag
 
-from drivers.errors import ProtocolError, SettingError
+from spdepth.drivers.errors import ProtocolError, SettingError
 
 VENDOR_ID = 0x1209
 """pid.codes (open-source hardware) vendor id; the simulated tagger enumerates with it."""

@@ -28,10 +28,10 @@ from typing import Callable
 
 import numpy as np
 
-from drivers.errors import DeviceError, DeviceTimeoutError, ProtocolError, SettingError
-from drivers.events import EVENT_DTYPE, EventKind
-from drivers.tagger.t3 import T3DecoderState, decode_t3
-from drivers.tagger.transport import DeviceGoneError, EndpointStallError
+from spdepth.drivers.errors import DeviceError, DeviceTimeoutError, ProtocolError, SettingError
+from spdepth.drivers.events import EVENT_DTYPE, EventKind
+from spdepth.drivers.tagger.t3 import T3DecoderState, decode_t3
+from spdepth.drivers.tagger.transport import DeviceGoneError, EndpointStallError
 
 log = logging.getLogger(__name__)
 

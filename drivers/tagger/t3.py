@@ -28,8 +28,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from drivers.errors import ProtocolError, SettingError
-from drivers.events import EVENT_DTYPE, EventKind, Marker
+from spdepth.drivers.errors import ProtocolError, SettingError
+from spdepth.drivers.events import EVENT_DTYPE, EventKind, Marker
 
 T3_WRAP_SYNCS = 1024
 """Syncs per overflow period (the 10-bit ``nsync`` field wraps here)."""
@@ -67,7 +67,7 @@ T3_RECORD_DTYPE = np.dtype("<u4")
 little endian. See the module docstring for the meaning of each kind."""
 
 if sys.byteorder != "little":  # the kernels write EVENT_DTYPE rows as two native uint64 words
-    raise ImportError("drivers.tagger.t3 assumes a little-endian host")
+    raise ImportError("spdepth.drivers.tagger.t3 assumes a little-endian host")
 
 # EVENT_DTYPE row as two little-endian 64-bit words: word 0 = sync; word 1 = dtime (bits 0-31) |
 # channel (32-39) | kind (40-47) | marker (48-55) | _pad (56-63). Checked here so a change of

@@ -12,8 +12,8 @@ import threading
 import usb.core
 import usb.util
 
-from drivers.errors import DeviceError, DeviceTimeoutError, ProtocolError
-from drivers.tagger import protocol as proto
+from spdepth.drivers.errors import DeviceError, DeviceTimeoutError, ProtocolError
+from spdepth.drivers.tagger import protocol as proto
 
 log = logging.getLogger(__name__)
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import pytest
 
-from drivers.galvo import Galvo, ScanMode
+from spdepth.drivers.galvo import Galvo, ScanMode
 from tests import galvo_contract as C
 
 pytestmark = pytest.mark.hardware

@@ -10,9 +10,9 @@ import json
 import numpy as np
 import pytest
 
-from acq.instruments import open_real, recon_settings, window_binning
-from acq.plan import ScanPlan
-from acq.session import AcqFlag, Session, SessionState
+from spdepth.acq.instruments import open_real, recon_settings, window_binning
+from spdepth.acq.plan import ScanPlan
+from spdepth.acq.session import AcqFlag, Session, SessionState
 
 pytestmark = pytest.mark.hardware
 

@@ -14,7 +14,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))   # tests/ holds the shared contract
 from test_tagger_contract import TaggerContract  # noqa: E402
 
-from drivers.tagger import Tagger  # noqa: E402
+from spdepth.drivers.tagger import Tagger  # noqa: E402
 
 pytestmark = pytest.mark.hardware
 
