@@ -10,6 +10,7 @@ import pkgutil
 import sys
 
 from spdepth.acq import commands as _commands
+from spdepth.acq.errors import AcqError
 from spdepth.drivers.errors import DeviceError, SettingError
 from spdepth.recon.errors import InputError
 
@@ -17,7 +18,8 @@ EXIT_USAGE = 2
 """Exit status for bad input (a file, field or value) and, as always, for device faults."""
 
 EXIT_CODES: tuple[tuple[type[Exception], int], ...] = (
-    (InputError, EXIT_USAGE),    # recon/acq: a bad file or setting
+    (AcqError, EXIT_USAGE),      # acq: a bad request, recording or output
+    (InputError, EXIT_USAGE),    # recon: a bad file or setting
     (SettingError, EXIT_USAGE),  # drivers: a bad argument to a driver or simulated device
     (DeviceError, EXIT_USAGE),   # drivers: a fault, timeout or undecodable bytes (also recordings)
 )

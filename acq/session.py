@@ -40,6 +40,7 @@ from spdepth.acq.plan import ScanPlan, pass_regions
 from spdepth.acq.store import PixelStore
 from spdepth.drivers.errors import DeviceError
 from spdepth.drivers.events import EVENT_DTYPE
+from spdepth.acq.errors import SessionStateError
 from spdepth.recon.errors import InputError
 from spdepth.recon.model import ReconSettings
 
@@ -91,11 +92,6 @@ _TRANSITIONS = {
     SessionState.DONE: set(), SessionState.ABORTED: set(), SessionState.FAILED: set(),
 }
 _TERMINAL = {SessionState.DONE, SessionState.ABORTED, SessionState.FAILED}
-
-
-class SessionStateError(InputError):
-    """Raised when a command does not fit the session's state (pause when not running, start
-    twice, resume when not paused, abort after the end)."""
 
 
 class AcqFlag(IntEnum):
