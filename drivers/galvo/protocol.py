@@ -306,7 +306,7 @@ def encode_gate(g: GateSetting) -> tuple:
 
 _REPLY_RE = re.compile(r"^(?:(\d{1,5}):)?(OK|ERR)(?: (.*))?$", re.DOTALL)
 _ERR_RE = re.compile(r"^(\d{1,3}) (.+)$", re.DOTALL)
-_INT_RE = re.compile(r"^-?\d{1,20}$")
+_INT_RE = re.compile(r"^-?[0-9]{1,20}\Z")   # \Z, not $: "12\n" is not an integer
 
 
 def decode_reply(line: bytes) -> Reply:
@@ -372,14 +372,22 @@ def parse_ok(payload: str) -> None:
         raise ProtocolError(f"galvo reply: expected a bare OK, got payload {payload[:80]!r}")
 
 
+_SERIAL_RE = re.compile(r"[A-Za-z0-9_.-]{1,32}")
+"""A serial number as the spec allows it; the driver compares it after a reconnect."""
+
+
 def parse_identity(payload: str) -> Identity:
     parts = payload.split(",")
     if len(parts) != 4 or not all(p.strip() for p in parts):
         raise ProtocolError(f"galvo *IDN? reply {payload[:80]!r}: expected maker,model,serial,fw")
-    return Identity(*(p.strip() for p in parts))
+    ident = Identity(*(p.strip() for p in parts))
+    if not _SERIAL_RE.fullmatch(ident.serial):
+        raise ProtocolError(f"galvo *IDN? reply {payload[:80]!r}: serial {ident.serial[:40]!r} is "
+                            f"not 1-32 of A-Z a-z 0-9 _ . -")
+    return ident
 
 
-_FLOAT_RE = re.compile(r"^\d{1,10}(?:\.\d{1,12})?$")
+_FLOAT_RE = re.compile(r"^[0-9]{1,10}(?:\.[0-9]{1,12})?\Z")
 
 
 def parse_calibration(payload: str) -> Calibration:
@@ -448,6 +456,14 @@ def parse_status(payload: str) -> Status:
     scan_id, frame, row, col, completed, total = _ints(toks[1], 6, "STAT?")
     if min(scan_id, completed, total) < 0 or min(frame, row, col) < -1:
         raise ProtocolError(f"galvo STAT? reply {payload[:80]!r}: negative counter")
+    # -1 -1 -1 before the first scan, else a real pixel: never a mix
+    if (frame, row, col) != (-1, -1, -1) and (min(frame, row, col) < 0
+                                              or max(row, col) >= MAX_PIXELS_PER_AXIS):
+        raise ProtocolError(f"galvo STAT? reply {payload[:80]!r}: pixel {frame},{row},{col} "
+                            f"is neither -1,-1,-1 nor a pixel of a pattern")
+    if total > 0 and completed > total:
+        raise ProtocolError(f"galvo STAT? reply {payload[:80]!r}: {completed} pixels done of "
+                            f"{total}")
     return Status(GalvoState[toks[0]], scan_id, frame, row, col, completed, total)
 
 
@@ -473,6 +489,9 @@ def parse_pixels(payload: str, from_seq: int) -> PixelPage:
         frame, row, col, count, dwell = (int(x) for x in f[:5])
         if min(frame, row, col, count, dwell) < 0:
             raise ProtocolError(f"galvo PIX? record {rec[:60]!r} holds a negative value")
+        if max(row, col) >= MAX_PIXELS_PER_AXIS:
+            raise ProtocolError(f"galvo PIX? record {rec[:60]!r}: row or column beyond "
+                                f"{MAX_PIXELS_PER_AXIS - 1}")
         records.append(PixelRecord(first + i, frame, row, col, count, dwell, _FLAG_BY_LETTER[f[5]]))
     return PixelPage(from_seq, first, tuple(records))
 
