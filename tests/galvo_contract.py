@@ -5,13 +5,12 @@ They leave the controller reset (``*RST``) and only move the mirror inside its s
 
 from __future__ import annotations
 
-import time
-
 import pytest
 
 from spdepth.drivers.galvo import (BadArgumentError, BusyError, ErrorCode, Galvo, GalvoState, Gate,
                            GateMode, OutOfRangeError, PatternCodes, PixelFlag, ScanMode,
                            UnknownCommandError)
+from tests.waiting import wait_until
 
 
 def _fresh(g: Galvo) -> None:
@@ -117,8 +116,9 @@ def check_count_gated(g: Galvo, n_target: int = 5) -> None:
 
 def check_busy_and_stop(g: Galvo) -> None:
     _fresh(g)
+    # 64 x 0.2 s: a starved test thread still catches it running; STOP ends it after one pixel
     g.configure_scan(PatternCodes(ScanMode.RASTER, 8, 8, 30000, 33000, 31000, 34000),
-                     Gate.fixed(20e-3))          # 64 x 20 ms: long enough to catch it running
+                     Gate.fixed(0.2))
     g.start()
     st = g.status()
     assert st.state == GalvoState.SCANNING and st.total == 64
@@ -128,7 +128,7 @@ def check_busy_and_stop(g: Galvo) -> None:
         g.set_frames(3)
     with pytest.raises(BusyError):
         g._query("START")
-    time.sleep(0.05)
+    wait_until(lambda: g.status().completed > 0, 10.0, poll_s=0.01, what="a first pixel")
     g.stop()
     st = g.status()
     assert st.state == GalvoState.PARKED and 0 < st.completed < 64

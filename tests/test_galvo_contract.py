@@ -26,6 +26,7 @@ from spdepth.drivers.sim.pty_link import PtyLink
 from spdepth.drivers.sim.rig import SimRig
 from tests import galvo_contract as C
 from tests.galvo_support import poisson_rig
+from tests.waiting import wait_until
 
 _names = itertools.count()
 
@@ -300,11 +301,13 @@ def test_unplug_during_scan_reconnects_and_loses_nothing(make_bench):
                      Gate.fixed(10e-3), settle_s=0.0, frames=1)
     g.start()
     recs = []
+    deadline = time.monotonic() + 30
     while True:
         st = g.status()
         recs += g.poll_pixels().records
         if st.state != GalvoState.SCANNING:
             break
+        assert time.monotonic() < deadline, "the scan never ended"
         time.sleep(0.02)
     recs += g.poll_pixels().records
     assert g.reconnects == 1
@@ -351,7 +354,8 @@ def test_reply_faults_without_retries_raise_typed_errors(make_bench, kind):
     with pytest.raises(expected):
         g.position_codes()
     if kind == "slow-reply":
-        time.sleep(0.35)       # the stale reply arrives now and must be skipped, not taken
+        # the stale reply lands in the host's buffer; the next command must skip it, not take it
+        wait_until(lambda: g.transport._port.in_waiting > 0, 10.0, what="the held-back reply")
     assert g.position_codes() == (32768, 32768)
 
 
