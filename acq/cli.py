@@ -1,5 +1,16 @@
-"""The ``spdepth`` command: finds the subcommands in ``acq.commands`` and turns every error family
-spdepth raises on purpose (``recon``'s and ``drivers``') into a one-line message and an exit status."""
+"""The ``spdepth`` command: finds the subcommands in ``acq.commands``, and turns every error family
+spdepth raises on purpose into a one-line message and a documented exit status.
+
+Exit status:
+
+==== =====================================================================================
+0    done
+1    the session failed or was aborted (the files so far are kept; the error is in run.json)
+2    bad input or usage: a file, field, value or option (one line naming it)
+3    a device that is missing or failed (one line naming it)
+130  interrupted (Ctrl-C or SIGTERM): the session was aborted cleanly, its files kept
+==== =====================================================================================
+"""
 
 from __future__ import annotations
 
@@ -7,29 +18,43 @@ import argparse
 import importlib
 import logging
 import pkgutil
+import signal
 import sys
+import threading
 
 from spdepth.acq import commands as _commands
+from spdepth.acq.commands import (EXIT_DEVICE, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK,  # noqa: F401
+                                  EXIT_USAGE)
 from spdepth.acq.errors import AcqError
 from spdepth.drivers.errors import DeviceError, SettingError
 from spdepth.recon.errors import InputError
 
-EXIT_USAGE = 2
-"""Exit status for bad input (a file, field or value) and, as always, for device faults."""
-
 EXIT_CODES: tuple[tuple[type[Exception], int], ...] = (
-    (AcqError, EXIT_USAGE),      # acq: a bad request, recording or output
+    (AcqError, EXIT_USAGE),      # acq: a bad request, recording or output folder
     (InputError, EXIT_USAGE),    # recon: a bad file or setting
     (SettingError, EXIT_USAGE),  # drivers: a bad argument to a driver or simulated device
-    (DeviceError, EXIT_USAGE),   # drivers: a fault, timeout or undecodable bytes (also recordings)
+    (DeviceError, EXIT_DEVICE),  # drivers: a device missing, faulted, timed out or undecodable
 )
 """Every error family the CLI reports as one line, with its exit status; the first match wins.
 Anything else is a bug and keeps its traceback."""
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread so it unwinds exactly as Ctrl-C does (the session is
+    aborted cleanly and its files are written)."""
+
+
 def exit_code(exc: BaseException) -> int | None:
-    """The exit status for an error of a known family, None for anything else."""
+    """The exit status for an error of a known family, None for anything else (a bug)."""
     return next((code for family, code in EXIT_CODES if isinstance(exc, family)), None)
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """argparse with one-line errors: ``spdepth scan: error: ... (see spdepth scan --help)``
+    instead of the usage block first."""
+
+    def error(self, message: str):
+        self.exit(EXIT_USAGE, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
 def _command_modules():
@@ -38,11 +63,22 @@ def _command_modules():
             yield info.name, importlib.import_module(f"spdepth.acq.commands.{info.name}")
 
 
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("spdepth")
+    except PackageNotFoundError:
+        return "unknown (not installed)"
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="spdepth",
         description="Single-photon depth imaging: drive the scan, record tags, reconstruct depth.",
-    )
+        epilog="exit status: 0 done; 1 session failed or aborted; 2 bad input or usage; "
+               "3 device missing or failed; 130 interrupted (Ctrl-C, SIGTERM)")
+    parser.add_argument("--version", action="version", version=f"spdepth {_version()}")
     parser.add_argument("-v", "--verbose", action="count", default=0,
                         help="more logging on stderr (-vv for device traffic)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
@@ -53,19 +89,30 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _raise_terminated(signum, frame):
+    raise Terminated()
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     level = {0: logging.WARNING, 1: logging.INFO}.get(args.verbose, logging.DEBUG)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    # SIGTERM unwinds as Ctrl-C does (a signal handler can only be set from the main thread)
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _raise_terminated) if main_thread else None
     try:
         return int(args._run(args) or 0)
     except tuple(family for family, _ in EXIT_CODES) as exc:
         print(f"spdepth {args.command}: error: {exc}", file=sys.stderr)
         return exit_code(exc)
-    except KeyboardInterrupt:
-        print(f"spdepth {args.command}: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:
+        what = "terminated" if isinstance(exc, Terminated) else "interrupted"
+        print(f"spdepth {args.command}: {what}", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    finally:
+        if main_thread:
+            signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":

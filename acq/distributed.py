@@ -4,9 +4,10 @@
 Two kinds of task:
 
 - **one per file** when several inputs are given (or one whose settings need every pixel at
-  once): the worker runs exactly what ``spdepth recon FILE`` runs (``acq.commands.recon.run``) and
-  writes ``OUT/<name>.npz`` (and ``.png``) itself, so the data and the output folder must be at the
-  same path on every worker (a shared file system).
+  once): the worker calls the library's ``acq.api.reconstruct_file(request)``, exactly what
+  ``spdepth recon FILE`` calls, which writes ``OUT/<name>.npz`` (and ``.png``) itself, so the data
+  and the output folder must be at the same path on every worker (a shared file system). A worker
+  runs as many files at once as it has task threads.
 - **one per block of image rows** for a single PTU recording with pixel markers when the model is
   fully given (``--window-ps``, ``--bin-ps`` and ``--pulse-rms-ps`` or ``--irf``): estimating a
   pulse or a window from the data would need every pixel at once. The client walks the records once
@@ -16,35 +17,30 @@ Two kinds of task:
   pixels from every chunk and reconstructs them. Pixels are independent given the model, so the
   assembled maps equal the single-process maps exactly.
 
-A local cluster (``local:N``) runs N worker processes, one task thread each, listening on
-127.0.0.1 only, with ``NUMBA_NUM_THREADS`` set to the machine's cores divided by N. A remote
+A local cluster (``local:N``) runs N worker processes listening on 127.0.0.1 only, each with the
+machine's cores divided by N as task threads and one numba thread per task. A remote
 scheduler is reached with dask's own configuration, TLS included (docs/dask.md).
 """
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import copy
-import io
-import json
 import os
 import sys
-import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from spdepth.acq.errors import RequestError
 from spdepth.recon.errors import InputError
 
 CHUNK_RECORDS = 1 << 22
 """Records per chunk task (16 MiB of records)."""
 BLOCK_PIXELS = 1 << 17
 """About this many pixels per block task (whole rows)."""
-
-_STDOUT_LOCK = threading.Lock()
 
 
 def parse_address(text: str) -> tuple[str, int | str]:
@@ -54,12 +50,12 @@ def parse_address(text: str) -> tuple[str, int | str]:
         try:
             workers = int(n) if n else os.cpu_count() or 1
         except ValueError:
-            raise InputError(f"--dask {text!r}: expected local:N with N a whole number of workers") from None
+            raise RequestError(f"--dask {text!r}: expected local:N with N a whole number of workers") from None
         if workers < 1:
-            raise InputError(f"--dask {text!r}: a local cluster needs at least one worker")
+            raise RequestError(f"--dask {text!r}: a local cluster needs at least one worker")
         return "local", workers
     if "://" not in text and ":" not in text:
-        raise InputError(f"--dask {text!r}: expected a scheduler address (tls://host:8786, "
+        raise RequestError(f"--dask {text!r}: expected a scheduler address (tls://host:8786, "
                          f"tcp://host:8786) or local:N")
     return "remote", text
 
@@ -71,7 +67,10 @@ def connect(spec: str):
     os.environ.setdefault("DASK_LOGGING__DISTRIBUTED", "warning")
     import logging
 
-    from distributed import Client, LocalCluster
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError:
+        raise RequestError("--dask needs the dask extra: pip install 'spdepth[dask]'") from None
 
     logging.getLogger("distributed").setLevel(logging.WARNING)
     kind, value = parse_address(spec)
@@ -86,10 +85,11 @@ def connect(spec: str):
             yield client
         return
     threads = max(1, (os.cpu_count() or 1) // value)
-    # 127.0.0.1 for the scheduler, nannies, workers and dashboard alike: no port open to the network
-    with LocalCluster(n_workers=value, threads_per_worker=1, processes=True, host="127.0.0.1",
+    # 127.0.0.1 for the scheduler, nannies, workers and dashboard alike: no port open to the network;
+    # each task thread runs a file (or block) with one numba thread, so the cores are used by tasks
+    with LocalCluster(n_workers=value, threads_per_worker=threads, processes=True, host="127.0.0.1",
                       dashboard_address="127.0.0.1:0",
-                      env={"NUMBA_NUM_THREADS": str(threads), "DASK_LOGGING__DISTRIBUTED": "warning"}
+                      env={"NUMBA_NUM_THREADS": "1", "DASK_LOGGING__DISTRIBUTED": "warning"}
                       ) as cluster, \
             Client(cluster) as client:
         yield client
@@ -99,49 +99,18 @@ def connect(spec: str):
 # one task per file
 
 
-def _outputs(args: argparse.Namespace, path: str, several: bool) -> tuple[str | None, str | None]:
-    """Where one input's maps and picture go: the options themselves for one input, else
-    ``DIR/<name>.npz`` / ``DIR/<name>.png`` with the options read as folders."""
-    if not several:
-        return args.out, args.png
-    stem = Path(path).stem
-    return (str(Path(args.out) / f"{stem}.npz") if args.out else None,
-            str(Path(args.png) / f"{stem}.png") if args.png else None)
+def recon_file(request) -> dict:
+    """One file on a worker (or in this process): the library call ``spdepth recon FILE`` makes;
+    returns its JSON summary (the notes travel in it; progress bars stay on the worker)."""
+    from spdepth.acq.api import reconstruct_file
+
+    return reconstruct_file(request).summary
 
 
-def recon_file(options: dict) -> dict:
-    """Run ``spdepth recon`` on one file with ``options`` (its parsed arguments); returns the
-    JSON summary it prints. Runs on a worker or in this process alike."""
-    from spdepth.acq.commands import recon
-
-    ns = argparse.Namespace(**dict(options, json=True, dask=None))
-    out, err = io.StringIO(), io.StringIO()
-    # redirect_stdout is process-wide: one task at a time may hold it
-    with _STDOUT_LOCK, contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        recon.run_one(ns)
-    summary = json.loads(out.getvalue().strip().splitlines()[-1])
-    # the command's notes travel back to the client (progress bars stay on the worker)
-    summary["notes"] = [ln for ln in err.getvalue().splitlines() if ln.startswith("spdepth recon:")]
-    return summary
-
-
-def _per_file(args: argparse.Namespace, client) -> list[dict]:
-    inputs = list(args.input)
-    several = len(inputs) > 1
-    for folder in (args.out, args.png) if several else ():
-        if folder:
-            Path(folder).mkdir(parents=True, exist_ok=True)
-    jobs = []
-    for path in inputs:
-        out, png = _outputs(args, path, several)
-        jobs.append(dict(vars(args), input=path, out=out, png=png))
-    names = [Path(p).name for p in inputs]
-    if len(set(names)) < len(names) and several and (args.out or args.png):
-        raise InputError("inputs share a file name, so their outputs would overwrite each other")
+def _per_file(requests: list, client) -> list[dict]:
     if client is None:
-        return [recon_file(j) for j in jobs]
-    futures = client.map(recon_file, jobs, pure=False)
-    return client.gather(futures)
+        return [recon_file(r) for r in requests]
+    return client.gather(client.map(recon_file, requests, pure=False))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -164,14 +133,15 @@ class Plan:
 
 def _image_and_unit(path: str, time_unit_s: float | None):
     """(layout, shape, pattern, rectype, time unit) of a PTU with pixel markers, or None."""
-    from spdepth.acq.ptu import PIXEL_MARKER_TAG, read_layout
+    from spdepth.acq.ptu import PIXEL_MARKER_TAG, PLAN_TAG, read_layout
     from spdepth.acq.readers import sniff_kind
 
     if sniff_kind(path) != "ptu":
         return None
     layout = read_layout(path)
     tags = layout.tags
-    if not int(tags.get(PIXEL_MARKER_TAG, 0) or 0):
+    if not int(tags.get(PIXEL_MARKER_TAG, 0) or 0) or tags.get(PLAN_TAG):
+        # a session's recording keeps complete dwells only (acq.recording): one task reads it so
         return None
     h, w = int(tags.get("ImgHdr_PixY", 0) or 0), int(tags.get("ImgHdr_PixX", 0) or 0)
     if h < 1 or w < 1:
@@ -292,39 +262,34 @@ def reconstruct_blocks(client, plan: Plan, settings, time_unit_s: float, keep_ch
     return assemble(client.gather(blocks))
 
 
-def settings_from_args(args: argparse.Namespace, unit_ps: float):
-    """ReconSettings of a fully given model, computed as ``spdepth recon`` computes them (the same
-    float operations, so the binning is the same to the last bit), or None when the window, bins
-    or pulse are left to the data."""
+def block_settings(request, unit_s: float):
+    """ReconSettings of a fully given model (window, bins and pulse), exactly as
+    ``acq.api.reconstruct_file`` resolves them, or None when any is left to the data."""
     from spdepth.recon.model import Binning, ReconSettings, load_irf
 
-    if args.window_ps is None or args.bin_ps is None or (args.pulse_rms_ps is None and not args.irf):
+    if request.window_s is None or request.bin_s is None or \
+            (request.pulse_rms_s is None and request.irf is None):
         return None
-    start_u, stop_u = args.window_ps[0] / unit_ps, args.window_ps[1] / unit_ps
-    bin_u = args.bin_ps / unit_ps
-    if abs(bin_u - round(bin_u)) > 1e-6 * max(1.0, bin_u) or round(bin_u) < 1:
-        raise InputError(f"--bin-ps {args.bin_ps:g} is not a whole number of {unit_ps:g} ps raw units")
-    binning = Binning.from_ps(unit_ps, window_ps=(start_u * unit_ps, stop_u * unit_ps),
-                              bin_ps=round(bin_u) * unit_ps)
-    return ReconSettings(method=args.method, binning=binning,
-                         pulse_rms_s=args.pulse_rms_ps * 1e-12 if args.pulse_rms_ps else None,
-                         irf=load_irf(args.irf) if args.irf else None,
-                         max_photons=args.max_photons, reflectors=args.reflectors)
+    return ReconSettings(method=request.method,
+                         binning=Binning.from_window(unit_s, request.window_s, request.bin_s),
+                         pulse_rms_s=request.pulse_rms_s,
+                         irf=load_irf(request.irf) if request.irf else None,
+                         max_photons=request.max_photons, reflectors=request.reflectors)
 
 
-def _by_blocks(args: argparse.Namespace, client) -> dict | None:
+def _by_blocks(request, client) -> dict | None:
     """The single-recording block path; None when the input cannot be split (see module doc)."""
-    path = args.input[0]
-    if args.method == "spatial":
+    path = request.input
+    if request.method == "spatial":
         # its pixels are not independent: blocks would cut every neighbourhood at their seams
         print(f"spdepth recon: {path}: the spatial method needs each pixel's neighbours: "
               f"reconstructing it as one task", file=sys.stderr)
         return None
-    found = _image_and_unit(path, args.time_unit_ps * 1e-12 if args.time_unit_ps else None)
+    found = _image_and_unit(path, request.time_unit_s)
     if found is None:
         return None
     unit_s = found[4]
-    settings = settings_from_args(args, unit_s * 1e12)
+    settings = block_settings(request, unit_s)
     if settings is None:
         print(f"spdepth recon: {path}: the window, bins or pulse are left to the data, which needs "
               f"every pixel at once: reconstructing it as one task (give --window-ps, --bin-ps and "
@@ -334,44 +299,31 @@ def _by_blocks(args: argparse.Namespace, client) -> dict | None:
     plan = plan_blocks(path, unit_s)
     if plan is None:
         return None
-    maps = reconstruct_blocks(client, plan, settings, unit_s, args.channel)
+    maps = reconstruct_blocks(client, plan, settings, unit_s, request.channel)
     seconds = time.perf_counter() - t0
-    if args.out:
-        maps.save_npz(args.out)
-    if args.png:
+    if request.out:
+        maps.save_npz(request.out)
+    if request.png:
         from spdepth.acq.report import render_maps_png
 
-        render_maps_png(args.png, maps, title=f"{Path(path).name}: {args.method} ({len(plan.rows) - 1} "
-                        f"blocks on dask)")
+        render_maps_png(request.png, maps, title=f"{Path(path).name}: {request.method} "
+                        f"({len(plan.rows) - 1} blocks on dask)")
     depth = np.asarray(maps.depth_m, dtype=float)
     return {"input": str(path), "shape": list(plan.shape), "pixels": int(np.prod(plan.shape)),
             "pixels_with_estimate": int(np.isfinite(depth).sum() if depth.ndim == 2 else
                                         np.isfinite(depth).any(axis=0).sum()),
-            "photons": int(maps.photons.sum()), "method": args.method, "recon_s": round(seconds, 4),
-            "chunks": len(plan.starts), "blocks": len(plan.rows) - 1, "out": args.out, "png": args.png}
+            "photons": int(maps.photons.sum()), "method": request.method,
+            "recon_s": round(seconds, 4), "chunks": len(plan.starts), "blocks": len(plan.rows) - 1,
+            "out": request.out, "png": request.png, "notes": []}
 
 
-def run(args: argparse.Namespace) -> int:
-    """``spdepth recon`` with several inputs or ``--dask``: print one line (or JSON object) per
-    input; exit 0."""
-    t0 = time.perf_counter()
-    with (connect(args.dask) if args.dask else contextlib.nullcontext()) as client:
-        summary = None
-        if client is not None and len(args.input) == 1:
-            summary = _by_blocks(args, client)
-        summaries = [summary] if summary is not None else _per_file(args, client)
-    wall = time.perf_counter() - t0
-    for s in summaries:
-        for note in s.pop("notes", ()):
-            print(note, file=sys.stderr)
-        if args.json:
-            print(json.dumps(s, default=str))
-        else:
-            where = ", ".join(f"{k} {s[k]}" for k in ("out", "png") if s.get(k))
-            print(f"{s['input']}: {s['shape'][0]} x {s['shape'][1]} pixels, {s['photons']} photons, "
-                  f"{s['pixels_with_estimate']} estimated, {s['method']} {s['recon_s']:.2f} s"
-                  + (f"; {where}" if where else ""))
-    if not args.json:
-        print(f"{len(summaries)} input(s) in {wall:.2f} s"
-              + (f" on dask {args.dask}" if args.dask else " in this process"))
-    return 0
+def reconstruct_files(requests: list, dask: str | None = None) -> list[dict]:
+    """Summaries of ``requests`` (``FileReconRequest``), in order: on a dask cluster (``dask`` an
+    address or ``local:N``; one recording with a fully given model is split into blocks of rows),
+    or one after the other in this process when ``dask`` is None."""
+    with (connect(dask) if dask else contextlib.nullcontext()) as client:
+        if client is not None and len(requests) == 1:
+            summary = _by_blocks(requests[0], client)
+            if summary is not None:
+                return [summary]
+        return _per_file(requests, client)

@@ -49,3 +49,15 @@ def size_wxh(text: str) -> tuple[int, int]:
     if w < 1 or h < 1:
         raise argparse.ArgumentTypeError(f"size must be at least 1x1, got {text!r}")
     return h, w
+
+
+def window_ps(text: str) -> tuple[float, float]:
+    """'START:STOP' in ps after the laser sync, 0 <= START < STOP."""
+    parts = text.split(":")
+    try:
+        start, stop = (float(v) for v in parts)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected START:STOP in ps, got {text!r}") from None
+    if not (math.isfinite(start) and math.isfinite(stop) and stop > start >= 0):
+        raise argparse.ArgumentTypeError(f"window needs 0 <= START < STOP, got {text!r}")
+    return start, stop

@@ -1,7 +1,8 @@
 """``spdepth demo``: an acquisition session on a built-in scene through the real drivers talking to
 the simulated instruments (galvo over a pyserial URL, time tagger over pyusb), recorded, then the
 final photons reconstructed with each estimator, compared with the truth and the per-pixel oracle
-bound, written as a PNG sheet."""
+bound, written as a PNG sheet. The session is the one ``spdepth scan --sim`` runs for the same
+options (one request, one library call)."""
 
 from __future__ import annotations
 
@@ -10,29 +11,23 @@ import sys
 import tempfile
 import time
 
-from spdepth.acq.commands._args import positive_float, positive_int, size_wxh
+from spdepth.acq.commands.scan import add_scan_arguments, add_sim_arguments, request_from_args
+from spdepth.acq.requests import DEFAULT_METHOD
+from spdepth.recon.model import METHODS
+
+PIXELWISE = tuple(m for m in METHODS if m != "spatial")
 
 HELP = "simulate a recorded count-gated scan session of a built-in scene, reconstruct it, write a PNG"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--scene", default="bust", help="built-in scene name (default: bust)")
-    parser.add_argument("--size", type=size_wxh, default=(96, 96), metavar="WxH",
-                        help="scan size in pixels (default 96x96)")
-    parser.add_argument("--photons", type=positive_int, default=15, metavar="N",
-                        help="count-gated target: in-window detections per pixel (default 15)")
-    parser.add_argument("--sbr", type=positive_float, default=10.0,
-                        help="signal-to-background ratio (default 10)")
-    parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    parser.add_argument("--methods", default="lmf,uos,ml",
-                        help="estimators to run, comma-separated (default lmf,uos,ml); the last one "
-                             "also runs live during the scan")
-    parser.add_argument("--faults", default="", metavar="SPEC",
-                        help="inject faults into the simulated instruments, KIND@WHEN items "
-                             "(WHEN in virtual seconds '2s' or share of the scan '40%%'), e.g. "
-                             "serial-unplug@2s,usb-timeout@50%%,fifo-overflow@70%%; kinds: "
-                             "serial-unplug, garbled-reply, missing-reply, slow-reply, servo-fault "
-                             "(galvo); usb-timeout, partial-read, fifo-overflow, device-vanish (tagger)")
+    add_sim_arguments(parser)
+    add_scan_arguments(parser)
+    parser.add_argument("--method", choices=METHODS, default=DEFAULT_METHOD,
+                        help=f"estimator of the live maps during the scan (default {DEFAULT_METHOD})")
+    parser.add_argument("--compare", default=",".join(PIXELWISE),
+                        help="estimators reconstructing the final photons against the truth, "
+                             f"comma-separated (default {','.join(PIXELWISE)})")
     parser.add_argument("--record", metavar="DIR",
                         help="keep the session's files (recording.ptu, events.jsonl, maps.npz, "
                              "run.json) in DIR (default: a temporary directory, removed)")
@@ -43,100 +38,93 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from spdepth.recon.errors import InputError
-    from spdepth.recon.model import METHODS
+    from spdepth.acq.api import OutputDir
+    from spdepth.acq.errors import RequestError
+    from spdepth.acq.requests import check_writable
 
-    from spdepth.gui.app import display_available
-
-    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    args.sim, args.galvo, args.tagger = True, None, None
+    request = request_from_args(argparse.Namespace(**vars(args), pulse_rms_ps=None))
+    methods = [m.strip() for m in args.compare.split(",") if m.strip()]
     unknown = [m for m in methods if m not in METHODS]
     if not methods or unknown:
-        raise InputError(f"--methods: unknown {', '.join(unknown) or '(none given)'}; "
-                         f"choose from {', '.join(METHODS)}")
-    if not args.no_window and display_available():
-        return _window(args, methods)
+        raise RequestError(f"--compare: unknown {', '.join(unknown) or '(none given)'}; "
+                           f"choose from {', '.join(METHODS)}")
+    check_writable("--out", args.out)
+    if not args.no_window:
+        from spdepth.gui.app import display_available
+
+        if display_available():
+            return _window(args, request)
     if args.record:
-        from spdepth.acq.commands._session import prepare_out_dir
-
-        return _demo(args, methods, prepare_out_dir(args.record, overwrite=False))
+        with OutputDir(args.record, name="--record") as out:
+            return _demo(args, request, methods, out.path)
     with tempfile.TemporaryDirectory(prefix="spdepth-demo-") as tmp:
-        return _demo(args, methods, tmp)
+        return _demo(args, request, methods, tmp)
 
 
-def _window(args, methods) -> int:
+def _window(args, request) -> int:
     """With a display: the same simulated scan in the live window (spdepth gui)."""
     from spdepth.gui.app import run_demo_window
 
     print("spdepth demo: opening the window (--no-window for the headless PNG sheet)",
           file=sys.stderr)
-    out = None
     if args.record:
-        from spdepth.acq.commands._session import prepare_out_dir
+        from spdepth.acq.api import OutputDir
 
-        out = prepare_out_dir(args.record, overwrite=False)
-    return run_demo_window(scene=args.scene, size=args.size, target=args.photons, sbr=args.sbr,
-                           seed=args.seed, faults=args.faults,
-                           method=methods[-1], out_dir=out)
+        with OutputDir(args.record, name="--record") as out:
+            return run_demo_window(request, out_dir=out.path)
+    return run_demo_window(request, out_dir=None)
 
 
-def _demo(args, methods, out_dir) -> int:
+def _demo(args, request, methods, out_dir) -> int:
     import numpy as np
 
-    from spdepth.acq.commands._session import run_session
+    from spdepth.acq.api import build_session, open_instruments
+    from spdepth.acq.commands._session import exit_status, run_session
     from spdepth.acq.evaluate import evaluate_depth, signal_detections
-    from spdepth.acq.instruments import PAPER_BIN_S, PAPER_BINS, open_sim, sim_plan, window_binning
     from spdepth.acq.report import render_maps_png
-    from spdepth.acq.session import Session
     from spdepth.recon.estimate import reconstruct
-    from spdepth.recon.model import ReconSettings
 
-    h, w = args.size
-    with open_sim(args.scene, (h, w), ppp=float(args.photons), sbr=args.sbr, seed=args.seed,
-                  faults=args.faults) as inst:
+    h, w = request.size
+    scene_name = request.instruments.scene
+    with open_instruments(request) as inst:
         scene = inst.scene
-        plan = sim_plan(inst, (h, w), target=args.photons)
-        # The tagger records the seed paper's window (801 bins of 40 ps), so --sbr is the ratio
-        # among the detections the estimators see.
-        binning = window_binning(inst.tagger.resolution_s)
-        live = ReconSettings(method=methods[-1], binning=binning, pulse_rms_s=scene.pulse_rms_s,
-                             max_photons=args.photons)
-        session = Session(plan, live, galvo=inst.galvo, tagger=inst.tagger, out_dir=out_dir,
-                          sync_period_s=inst.sync_period_s, info=inst.info)
-        run_session(session, "demo")
+        session = build_session(request, out_dir, inst)
+        interrupted = run_session(session, "demo")
         galvo_reconnects = inst.galvo.reconnects
         scan_s = inst.rig.now_s
     snap = session.snapshot()
     store = session.store
     if session.error is not None:
         print(f"session {session.state.value}: {session.error}", file=sys.stderr)
-    print(f"scanned {args.scene} {w}x{h} through the drivers: {snap.detections} detections in "
-          f"{snap.passes} pass{'es' if snap.passes != 1 else ''}, {scan_s:.2f} s of scan time in {snap.elapsed_s:.2f} s "
-          f"({snap.detections_per_s / 1e3:,.0f} k detections/s, live {methods[-1]} lagged at most "
-          f"{session.recon.max_lag} pixels)")
-    if args.faults:
-        print(f"faults injected: {args.faults}; galvo reconnects: {galvo_reconnects}; lost spans "
-              f"in the tag stream: {len(session.lost)}, re-acquired in later passes")
-        for f in session.faults:
+    print(f"scanned {scene_name} {w}x{h} through the drivers: {snap.detections} detections in "
+          f"{snap.passes} pass{'es' if snap.passes != 1 else ''}, {scan_s:.2f} s of scan time in "
+          f"{snap.elapsed_s:.2f} s ({snap.detections_per_s / 1e3:,.0f} k detections/s, live "
+          f"{request.method} lagged at most {session.recon.max_lag} pixels)")
+    if request.instruments.faults:
+        print(f"faults injected: {request.instruments.faults}; galvo reconnects: {galvo_reconnects}; "
+              f"lost spans in the tag stream: {len(session.lost)}, re-acquired in later passes")
+        for f in session.run_record()["faults_seen"]:
             print(f"  {f['kind']}: {f['what']} -> {f['action']}")
-    flagged = session.flagged_pixels()
-    if flagged.size:
-        reasons = session.run_record()["flag_reasons"]
-        print(f"{flagged.size} pixels flagged short of {args.photons} detections ({reasons}); "
-              "they keep what they have")
+    reasons = session.run_record()["flag_reasons"]
+    if sum(reasons.values()):
+        print(f"{sum(reasons.values())} pixels flagged short of {request.target} detections "
+              f"({reasons}); they keep what they have")
 
     truth = scene.truth()
     true_depth = np.asarray(truth["depth_m"], dtype=np.float64)
     if true_depth.ndim == 3:
         true_depth = true_depth[0]
     photons = store.photons()
-    k_signal = signal_detections(truth, store.count.reshape(h, w),
-                                 window_s=PAPER_BINS * PAPER_BIN_S)
+    binning = session.recon.requested.binning
+    k_signal = signal_detections(truth, store.count.reshape(h, w), window_s=binning.window_stop_s)
     results = {}
     print(f"{'method':<8}{'MAE (cm)':>10}{'x oracle':>10}{'missed':>8}{'recon (s)':>11}{'pixels/s':>12}")
     oracle_cm = None
+    live = session.recon.requested
     for method in methods:
-        settings = ReconSettings(method=method, binning=binning, pulse_rms_s=scene.pulse_rms_s,
-                                 max_photons=args.photons)
+        settings = live.__class__(method=method, binning=binning, pulse_rms_s=scene.pulse_rms_s,
+                                  max_photons=request.target)
         reconstruct(store.photons(np.arange(1)), settings)   # compile outside the timing
         t1 = time.perf_counter()
         maps = reconstruct(photons, settings)
@@ -148,10 +136,9 @@ def _demo(args, methods, out_dir) -> int:
         results[method] = (maps, 100 * e.mae_m)
         print(f"{method:<8}{100 * e.mae_m:>10.2f}{e.ratio_to_oracle:>10.2f}"
               f"{100 * e.miss_share:>7.1f}%{dt:>11.3f}{h * w / dt:>12,.0f}")
-    if methods[-1] in results:
-        live_maps = session.maps()
-        same = np.array_equal(live_maps.tof_s, results[methods[-1]][0].tof_s, equal_nan=True)
-        print(f"live {methods[-1]} maps {'equal' if same else 'DIFFER FROM'} the batch "
+    if request.method in results:
+        same = np.array_equal(session.maps().tof_s, results[request.method][0].tof_s, equal_nan=True)
+        print(f"live {request.method} maps {'equal' if same else 'DIFFER FROM'} the batch "
               f"reconstruction of the final store")
 
     sheet = argparse.Namespace(truth_m=true_depth)
@@ -163,6 +150,7 @@ def _demo(args, methods, out_dir) -> int:
     sheet.background = best[0].background
     panels.append(("background", "background", "detections per bin", "magma", "percentile"))
     render_maps_png(args.out, sheet, panels=panels,
-                    title=f"{args.scene} {w}x{h}, {args.photons} detections per pixel, SBR {args.sbr:g}")
+                    title=f"{scene_name} {w}x{h}, {request.target} detections per pixel, "
+                          f"SBR {request.instruments.sbr:g}")
     print(f"wrote {args.out}" + (f"; session files in {out_dir}" if args.record else ""))
-    return 0 if session.state.value == "done" else 1
+    return exit_status(session, interrupted)

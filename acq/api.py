@@ -1,0 +1,454 @@
+"""The library every front end calls: requests in, sessions and maps out.
+
+- :func:`open_instruments` opens what a :class:`~acq.requests.ScanRequest` names (the simulated
+  bench or real devices);
+- :func:`build_session` turns a scan or replay request into a :class:`~acq.session.Session` (not
+  started) with its plan, estimator settings and the request itself saved with it;
+- :func:`reconstruct_file` reads a recorded file and reconstructs it, writing the outputs the
+  request names, and returns the maps with a small JSON-able summary;
+- :class:`OutputDir` is a session's output folder, created and locked while a session writes
+  into it; :func:`finish_session` writes ``maps.png`` beside a finished session's files and
+  returns its summary.
+
+The CLI, the window, Dask workers, the demo and the benchmarks only build requests and call these.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import math
+import os
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from spdepth.acq.errors import OutputError, RecordingError, RequestError
+from spdepth.acq.requests import (DEFAULT_DWELL_S, FileReconRequest, ReplayRequest, ScanRequest,
+                                  SimBench)
+from spdepth.recon.errors import InputError
+from spdepth.recon.model import Binning, ReconSettings
+
+SESSION_FILES = ("recording.ptu", "events.jsonl", "maps.npz", "maps.png", "run.json")
+"""What a session writes into its folder (``--overwrite`` replaces exactly these)."""
+LOCK_NAME = ".spdepth.lock"
+"""Held (``flock``) by the process whose session writes into the folder; the kernel drops it when
+that process dies, so a killed session never leaves a folder locked."""
+
+
+# ---- output folders ------------------------------------------------------------------------------
+class OutputDir:
+    """A session's output folder: created if missing, refused when it holds other files (unless
+    ``overwrite``) or when another running session holds it (``overwrite`` or not). The lock is
+    held until :meth:`close`; an empty folder made here is removed again by ``close(discard=True)``
+    (a run that failed before writing anything leaves nothing behind)."""
+
+    def __init__(self, path: str | Path, *, overwrite: bool = False, name: str = "--out"):
+        self.path = Path(path)
+        if self.path.exists() and not self.path.is_dir():
+            raise OutputError(f"{name} {self.path} exists and is not a folder")
+        self._created = not self.path.exists()
+        try:
+            self.path.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise OutputError(f"{name} {self.path}: cannot create the folder ({exc.strerror})") from None
+        if not os.access(self.path, os.W_OK):
+            raise OutputError(f"{name} {self.path}: cannot be written (permission denied)")
+        self._fh = open(self.path / LOCK_NAME, "a+", encoding="utf-8")
+        try:
+            fcntl.flock(self._fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            self._fh.seek(0)
+            holder = self._fh.read().strip() or "another process"
+            self._fh.close()
+            raise OutputError(f"{name} {self.path} is in use by a running session ({holder}); "
+                              f"pick another folder") from None
+        others = [p for p in self.path.iterdir() if p.name != LOCK_NAME]
+        if others and not overwrite:
+            self._release()
+            raise OutputError(f"{name} {self.path} is not empty (pass --overwrite to write into it)")
+        for n in SESSION_FILES:
+            (self.path / n).unlink(missing_ok=True)
+        self._fh.seek(0)
+        self._fh.truncate()
+        self._fh.write(f"pid {os.getpid()}\n")
+        self._fh.flush()
+
+    def _release(self) -> None:
+        if self._fh is not None:
+            fcntl.flock(self._fh, fcntl.LOCK_UN)
+            self._fh.close()
+            self._fh = None
+            (self.path / LOCK_NAME).unlink(missing_ok=True)
+
+    def close(self, *, discard: bool = False) -> None:
+        """Release the folder; with ``discard``, remove it if this object made it and it is empty."""
+        self._release()
+        if discard and self._created and self.path.is_dir() and not any(self.path.iterdir()):
+            self.path.rmdir()
+
+    def __enter__(self) -> "OutputDir":
+        return self
+
+    def __exit__(self, exc_type, *_) -> None:
+        self.close(discard=exc_type is not None)
+
+
+def new_run_dir(root: str | Path, kind: str) -> OutputDir:
+    """A fresh, locked ``root/YYYYmmdd-HHMMSS-kind`` folder (suffixed when taken): the window's runs."""
+    root = Path(root).expanduser().resolve()
+    stem = time.strftime("%Y%m%d-%H%M%S") + f"-{kind}"
+    path, n = root / stem, 1
+    while path.exists():
+        n += 1
+        path = root / f"{stem}-{n}"
+    return OutputDir(path)
+
+
+# ---- scans -----------------------------------------------------------------------------------------
+def open_instruments(request: ScanRequest):
+    """The instruments a scan request names, opened (``acq.instruments.Instruments``; a context
+    manager: close it when the session has ended)."""
+    from spdepth.acq.instruments import open_real, open_sim
+
+    src = request.instruments
+    if isinstance(src, SimBench):
+        return open_sim(src.scene, request.size, ppp=src.ppp or float(request.target), sbr=src.sbr,
+                        seed=src.seed, faults=src.faults)
+    return open_real(src.galvo, src.tagger, 1.0 / src.sync_rate_hz)
+
+
+def scan_plan(request: ScanRequest, instruments):
+    """The :class:`~acq.plan.ScanPlan` of a scan request on opened instruments: the simulated
+    bench's whole field of view (dwell limit: 20 scene dwells), or ``fov_deg`` centred for real
+    devices."""
+    from spdepth.acq.instruments import sim_plan
+    from spdepth.acq.plan import ScanPlan
+
+    h, w = request.size
+    dwell = request.dwell_limit_s if request.mode == "gated" else request.dwell_s
+    common = dict(mode=request.mode, target=request.target, pattern=request.pattern,
+                  settle_s=request.settle_s, max_passes=request.max_passes,
+                  time_limit_s=request.time_limit_s)
+    if instruments.scene is not None:
+        return sim_plan(instruments, (h, w), dwell_s=dwell, **common)
+    fov = request.instruments.fov_deg
+    half = fov / 2
+    x = [-half + (c + 0.5) * fov / w for c in (0, w - 1)]
+    y = [-half + (r + 0.5) * fov / h for r in (0, h - 1)]
+    return ScanPlan(w, h, x[0], x[1], y[0], y[1], dwell_s=dwell or DEFAULT_DWELL_S[request.mode],
+                    **common)
+
+
+def scan_settings(request: ScanRequest, resolution_s: float, scene=None) -> ReconSettings:
+    """Estimator settings of a scan: the request's window and bins in the tagger's units, its
+    pulse width (else the simulated scene's, else measured from the first pixels)."""
+    binning = Binning.from_window(resolution_s, request.window, request.bin_s)
+    pulse = request.pulse_rms_s or (scene.pulse_rms_s if scene is not None else None)
+    return ReconSettings(method=request.method, binning=binning, pulse_rms_s=pulse,
+                         max_photons=request.target)
+
+
+def build_session(request: ScanRequest | ReplayRequest, out_dir: str | Path | OutputDir | None = None,
+                  instruments=None):
+    """The session a request asks for, not started. A scan needs its ``instruments`` opened
+    (:func:`open_instruments`); a replay opens its recording. The request is saved with the session
+    (``run.json`` ``info.request`` and the recording's header)."""
+    from spdepth.acq.session import Session
+
+    out = out_dir.path if isinstance(out_dir, OutputDir) else out_dir
+    if isinstance(request, ScanRequest):
+        if instruments is None:
+            raise RequestError("a scan session needs its instruments opened (open_instruments)")
+        plan = scan_plan(request, instruments)
+        settings = scan_settings(request, instruments.tagger.resolution_s, instruments.scene)
+        return Session(plan, settings, galvo=instruments.galvo, tagger=instruments.tagger,
+                       out_dir=out, sync_period_s=instruments.sync_period_s,
+                       info={**instruments.info, "request": request.to_dict()})
+    if isinstance(request, ReplayRequest):
+        if out is not None and Path(out).resolve() == request.folder.resolve():
+            raise OutputError(f"--out {out} is the recording's own folder: pick another")
+        return _replay_session(request, out)
+    raise RequestError(f"build_session takes a scan or replay request, got {type(request).__name__}")
+
+
+def _replay_session(request: ReplayRequest, out):
+    from spdepth.acq.plan import ScanPlan
+    from spdepth.acq.recording import ReplaySource, recon_settings_from_dict
+    from spdepth.acq.session import Session
+
+    src = ReplaySource(request.recording, speed=request.speed)
+    info = src.info
+    if info.plan is not None:
+        plan = ScanPlan.from_dict(info.plan)
+    else:
+        # a foreign file (e.g. `spdepth simulate`'s): one fixed-dwell frame of the header's size
+        if request.target is None:
+            raise RequestError(f"{src.path} records no target of ours: give --target N (the "
+                               f"detections per pixel to keep)")
+        h, w = info.shape
+        dwell_s = float(src.layout.tags.get("ImgHdr_TimePerPixel", 0) or 0) * 1e-3
+        plan = ScanPlan(w, h, 0.0, 0.0, 0.0, 0.0, mode="raster", target=request.target,
+                        dwell_s=dwell_s if dwell_s > 0 else DEFAULT_DWELL_S["raster"])
+    gate_target = plan.target if plan.mode == "gated" else None
+    if request.target is not None:
+        plan = replace(plan, target=request.target)
+    if info.recon is not None:
+        settings = recon_settings_from_dict(info.recon, method=request.method,
+                                            pulse_rms_s=request.pulse_rms_s, max_photons=plan.target)
+    else:
+        range_bins = int(src.layout.tags.get("SPDepth_RangeBins", 0) or 0) or \
+            int(round(info.sync_period_s / info.resolution_s))
+        units = max(1, int(round(request.bin_s / info.resolution_s)))
+        window_s = (0.0, (range_bins // units) * units * info.resolution_s)
+        settings = ReconSettings(method=request.method or "uos",
+                                 binning=Binning.from_window(info.resolution_s, window_s,
+                                                             units * info.resolution_s),
+                                 pulse_rms_s=request.pulse_rms_s, max_photons=plan.target)
+    return Session(plan, settings, replay=src, out_dir=out, gate_target=gate_target,
+                   info={"replay_of": str(src.path), **info.info, "request": request.to_dict()})
+
+
+def finish_session(session, out_dir: str | Path | None, title: str | None = None) -> dict:
+    """After a session has ended: ``maps.png`` beside its files (when it has a folder), and the
+    summary every front end reports (JSON-able, small)."""
+    out = Path(out_dir) if out_dir is not None else None
+    if out is not None and out.is_dir():
+        from spdepth.acq.report import render_maps_png
+
+        render_maps_png(out / "maps.png", session.maps(), title=title)
+    snap = session.snapshot()
+    run = session.run_record()
+    return {
+        "state": session.state.value, "out": None if out is None else str(out),
+        "error": run["error"], "pixels": snap.pixels_total,
+        "flagged": int(sum(run["flag_reasons"].values())), "flag_reasons": run["flag_reasons"],
+        "detections": snap.detections, "detections_per_s": round(snap.detections_per_s, 1),
+        "stream_s": session.stream_s, "passes": snap.passes,
+        "lost_spans": snap.lost_spans, "lost_records": snap.lost_records,
+        "faults_seen": len(run["faults_seen"]), "warnings": list(run.get("warnings", ())),
+        "recon_max_lag_pixels": session.recon.max_lag, "elapsed_s": round(snap.elapsed_s, 3),
+    }
+
+
+# ---- files -----------------------------------------------------------------------------------------
+@dataclass
+class FileResult:
+    """A file reconstructed as a whole.
+
+    maps:    ``recon.maps.DepthMaps`` (its ``settings`` hold everything used).
+    store:   the photons read (all of them; the window and ``max_photons`` apply in the estimator).
+    binning, irf, pulse_rms_s: the model used (irf None for a Gaussian pulse).
+    summary: what ``spdepth recon --json`` prints (small: no arrays).
+    """
+
+    request: FileReconRequest
+    maps: object
+    store: object
+    binning: Binning
+    pulse_rms_s: float | None
+    irf: object
+    is_image: bool
+    kind: str
+    notes: tuple = ()
+    read_s: float = 0.0
+    recon_s: float = 0.0
+    summary: dict = field(default_factory=dict)
+
+
+def recorded_recon_settings(path: str | Path) -> dict | None:
+    """The estimator settings a session recording was reconstructed with: ``run.json``'s resolved
+    ``recon`` beside it (the pulse width the live maps used, also when it was measured), else the
+    header's requested ``SPDepth_Recon``; None for files that are not our recordings. A damaged
+    tag or file is a ``RecordingError`` naming it."""
+    import json
+
+    from spdepth.acq.ptu import RECON_TAG, read_layout
+    from spdepth.acq.readers import sniff_kind
+
+    if sniff_kind(path) != "ptu":
+        return None
+    raw = read_layout(path).tags.get(RECON_TAG)
+    if raw is None:
+        return None
+    where = f"{path}: header tag {RECON_TAG}"
+    run_json = Path(path).parent / "run.json"
+    if run_json.is_file():
+        try:
+            raw = json.loads(run_json.read_text(encoding="utf-8")).get("recon") or raw
+            where = f"{run_json}: field recon"
+        except (json.JSONDecodeError, AttributeError, OSError):
+            pass          # a run cut before its end has no (or a half) run.json: the header holds
+    try:
+        d = json.loads(raw) if isinstance(raw, str) else raw
+    except json.JSONDecodeError:
+        raise RecordingError(f"{where} is damaged (not JSON)") from None
+    if not isinstance(d, dict) or (d.get("binning") is not None and not isinstance(d["binning"], dict)):
+        raise RecordingError(f"{where} is damaged (not a settings object)")
+    return d
+
+
+def file_binning(request: FileReconRequest, store, recorded: dict | None) -> Binning | None:
+    """The binning of a file reconstruction: the request's window and bins (a missing one from the
+    data, or from the recorded session settings), or None to let the estimator derive both."""
+    unit_s = store.time_unit_s
+    if request.window_s is None and request.bin_s is None:
+        if recorded and recorded.get("binning"):
+            b = recorded["binning"]
+            return Binning(unit_s, b["window_start"], b["window_stop"], b["bin_width"])
+        return None
+    if request.window_s is not None and request.bin_s is not None:
+        return Binning.from_window(unit_s, request.window_s, request.bin_s)
+    return Binning.from_data(store.times, unit_s, window_s=request.window_s, bin_s=request.bin_s,
+                             pulse_rms_s=request.pulse_rms_s)
+
+
+def reconstruct_file(request: FileReconRequest, progress=None) -> FileResult:
+    """Read ``request.input``, reconstruct it, write the outputs it names (``out`` .npz, ``png``,
+    ``save_irf``), and return the maps with their summary. A session's own recording is read with
+    its recorded settings unless the request overrides them. Raises ``InputError``/
+    ``RecordingError`` naming the file for what cannot be read."""
+    from spdepth.acq.readers import read_photons
+    from spdepth.recon.estimate import reconstruct
+    from spdepth.recon.model import load_irf
+
+    t0 = time.perf_counter()
+    result = read_photons(request.input, time_unit_s=request.time_unit_s, mat_var=request.mat_var,
+                          channel=request.channel)
+    store = result.store
+    if store.n_photons == 0:
+        raise InputError(f"{request.input}: holds no photons")
+    recorded = recorded_recon_settings(request.input) if result.kind == "ptu" else None
+    binning = file_binning(request, store, recorded)
+    if binning is not None and request.window_s is not None:
+        lo, hi = binning.window_start, binning.window_stop
+        inside = np.count_nonzero((store.times >= lo) & (store.times < hi))
+        if inside == 0:
+            unit_ps = store.time_unit_s * 1e12
+            raise InputError(f"{request.input}: no detections in the window "
+                             f"{lo * unit_ps:g}:{hi * unit_ps:g} ps (the file's detections span "
+                             f"{store.times.min() * unit_ps:g} to {store.times.max() * unit_ps:g} ps)")
+    pulse_rms_s, irf = request.pulse_rms_s, load_irf(request.irf) if request.irf else None
+    max_photons = request.max_photons
+    if recorded:
+        if pulse_rms_s is None and irf is None and recorded.get("pulse_rms_s"):
+            pulse_rms_s = float(recorded["pulse_rms_s"])
+        if max_photons is None and recorded.get("max_photons"):
+            max_photons = int(recorded["max_photons"])
+    settings = ReconSettings(method=request.method, binning=binning, pulse_rms_s=pulse_rms_s,
+                             irf=irf, max_photons=max_photons, reflectors=request.reflectors)
+    read_s = time.perf_counter() - t0
+    if request.threads is not None:
+        import numba
+
+        if request.threads > numba.config.NUMBA_NUM_THREADS:
+            raise RequestError(f"--threads {request.threads}: this machine allows at most "
+                               f"{numba.config.NUMBA_NUM_THREADS}")
+        numba.set_num_threads(request.threads)
+    t1 = time.perf_counter()
+    maps = reconstruct(store, settings, progress=progress)
+    recon_s = time.perf_counter() - t1
+    used = maps.settings
+    b = used["binning"]
+    used_binning = Binning(b["time_unit_s"], b["window_start"], b["window_stop"], b["bin_width"])
+    irf_used = _irf_used(used)
+    res = FileResult(request, maps, store, used_binning, used.get("pulse_rms_s"),
+                     irf_used if used.get("irf") else None, result.is_image, result.kind,
+                     tuple(result.notes), read_s, recon_s)
+    _write_file_outputs(res, result)
+    res.summary = _file_summary(res, result)
+    return res
+
+
+def _irf_used(settings: dict):
+    """The pulse shape a reconstruction used, as an Irf (a sampled Gaussian for a Gaussian pulse)."""
+    from spdepth.recon.model import Irf, gaussian_irf
+
+    irf = settings.get("irf")
+    if irf:
+        return Irf(tuple(irf["times_s"]), tuple(irf["counts"]), source=irf.get("source", ""))
+    return gaussian_irf(settings["pulse_rms_s"], source=f"Gaussian, {settings['pulse_source']}")
+
+
+def _write_file_outputs(res: FileResult, read) -> None:
+    req, maps = res.request, res.maps
+    if req.out:
+        maps.save_npz(req.out)
+    irf_used = _irf_used(maps.settings)
+    if req.save_irf:
+        from spdepth.recon.model import save_irf
+
+        save_irf(irf_used, req.save_irf)
+    if req.png:
+        from spdepth.acq.report import render_maps_png, render_point_png
+
+        b = res.binning
+        unit_ps = b.time_unit_s * 1e12
+        photons = int(np.sum(maps.photons))
+        title = (f"{Path(req.input).name}: {req.method}, {photons} photons, "
+                 f"window {b.window_start * unit_ps:g}-{b.window_stop * unit_ps:g} ps")
+        t_irf, c_irf = irf_used.arrays()
+        drawn = (t_irf, c_irf, f"{maps.settings['pulse_source']}: RMS {irf_used.rms_s * 1e12:.0f} ps")
+        if res.is_image:
+            render_maps_png(req.png, maps, title=title, irf=drawn)
+        else:
+            shown = res.store.first_in_window(b.window_start, b.window_stop,
+                                               maps.settings.get("max_photons"))
+            render_point_png(req.png, shown.times * res.store.time_unit_s,
+                             tof_s=float(np.ravel(maps.tof_s)[0]), title=title, irf=drawn)
+
+
+def _small_settings(settings: dict) -> dict:
+    """A result's settings without its sampled arrays (the pulse shape lives in the npz)."""
+    out = {}
+    for k, v in settings.items():
+        if k == "irf" and isinstance(v, dict):
+            v = {kk: vv for kk, vv in v.items() if kk not in ("times_s", "counts")}
+        elif k == "kernel" and isinstance(v, dict):
+            v = {kk: vv for kk, vv in v.items() if not isinstance(vv, (list, tuple, np.ndarray))}
+        out[k] = v
+    return out
+
+
+def _file_summary(res: FileResult, read) -> dict:
+    maps, store, b = res.maps, res.store, res.binning
+    unit_ps = b.time_unit_s * 1e12
+    depth = np.asarray(maps.depth_m, dtype=float)
+    finite = depth[np.isfinite(depth)]
+    req = res.request
+    return {
+        "input": req.input, "kind": res.kind, "is_image": res.is_image,
+        "shape": list(store.shape), "pixels": store.n_pixels,
+        "pixels_with_estimate": int(np.isfinite(depth).sum() if depth.ndim == 2
+                                    else np.isfinite(depth).any(axis=0).sum()),
+        "photons": int(np.sum(maps.photons)), "photons_in_file": store.n_photons,
+        "method": req.method, "read_s": round(res.read_s, 4), "recon_s": round(res.recon_s, 4),
+        "time_unit_ps": unit_ps, "window_ps": [b.window_start * unit_ps, b.window_stop * unit_ps],
+        "bin_ps": b.bin_width * unit_ps, "n_bins": b.n_bins,
+        "pulse_rms_ps": None if res.pulse_rms_s is None else res.pulse_rms_s * 1e12,
+        "max_photons": maps.settings.get("max_photons"),
+        "settings": _jsonable(_small_settings(maps.settings)),
+        "depth_m_median": float(np.median(finite)) if finite.size else None,
+        "out": req.out, "png": req.png, "save_irf": req.save_irf, "request": req.to_dict(),
+        "source": _jsonable(read.meta), "notes": list(res.notes),
+    }
+
+
+def _jsonable(value):
+    if isinstance(value, dict):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+__all__ = ["OutputDir", "new_run_dir", "open_instruments", "scan_plan", "scan_settings",
+           "build_session", "finish_session", "FileResult", "reconstruct_file", "file_binning",
+           "recorded_recon_settings", "SESSION_FILES"]

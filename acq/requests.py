@@ -1,0 +1,418 @@
+"""What a user asks spdepth to do, as frozen, validated data: a scan, a replay, a file reconstruction.
+
+Every front end (the CLI, the window, Dask workers, the demo, the benchmarks) only translates its own
+input into one of these requests and hands it to :mod:`acq.api`. A request is checked as a whole when
+it is made (``__post_init__``), before any device is opened or folder made; a bad or conflicting
+value raises :class:`~acq.errors.RequestError` naming the field (in the CLI's words, e.g.
+``--dwell-limit-ms``) and the value. Requests are saved with every result (``run.json``, the PTU
+header, ``maps.npz`` settings) through ``to_dict`` and read back typed with ``from_dict``.
+
+Units are SI inside (``bin_s``, ``dwell_s``, ``window_s``); the front ends convert at their edges.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+
+from spdepth.acq.errors import RequestError
+from spdepth.drivers.galvo.protocol import MAX_DWELL_NS, MAX_N_TARGET, MAX_PIXELS_PER_AXIS, MIN_DWELL_NS
+from spdepth.recon.model import METHODS
+
+DEFAULT_METHOD = "uos"
+"""The estimator of every command and the window unless the user picks another."""
+DEFAULT_SIZE = (64, 64)
+"""(H, W) of a scan unless the user picks another (scan, demo and the window alike)."""
+DEFAULT_TARGET = 15
+"""In-window detections per pixel: the seed paper's first 15 detections."""
+DEFAULT_BIN_S = 40e-12
+"""Histogram bin of a scan: the seed paper's 40 ps."""
+DEFAULT_WINDOW_S = (0.0, 801 * DEFAULT_BIN_S)
+"""Detection window of a scan after each sync: 801 bins of 40 ps, the seed paper's window length."""
+MAX_TARGET = MAX_N_TARGET
+"""Largest count the galvo controller can gate a pixel on."""
+MAX_STORE_DETECTIONS = 2_000_000_000
+"""Pixels x target above this would not fit the per-pixel store (8 bytes a detection: 16 GB)."""
+DEFAULT_DWELL_S = {"gated": 10e-3, "raster": 1e-3}
+"""Real devices: the gated dwell limit and the raster dwell unless given."""
+SPEEDS = ("max",)
+MODES = ("gated", "raster")
+PATTERNS = ("raster", "serp")
+
+
+def _positive(name: str, value, *, allow_none: bool = False, integer: bool = False) -> None:
+    if value is None and allow_none:
+        return
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) \
+        and value > 0
+    if ok and integer:
+        ok = int(value) == value
+    if not ok:
+        kind = "a whole number >= 1" if integer else "a positive number"
+        raise RequestError(f"{name} must be {kind}, got {value!r}")
+
+
+def _choice(name: str, value, choices) -> None:
+    if value not in choices:
+        raise RequestError(f"{name} must be one of {', '.join(choices)}, got {value!r}")
+
+
+def _window(name: str, window) -> tuple[float, float] | None:
+    if window is None:
+        return None
+    try:
+        start, stop = (float(v) for v in window)
+    except (TypeError, ValueError):
+        raise RequestError(f"{name} must be (start, stop), got {window!r}") from None
+    if not (math.isfinite(start) and math.isfinite(stop) and 0 <= start < stop):
+        raise RequestError(f"{name} needs 0 <= START < STOP, got {start * 1e12:g}:{stop * 1e12:g} ps")
+    return start, stop
+
+
+def check_bin_fits(bin_s: float | None, window_s: tuple[float, float] | None, *,
+                   bin_name: str = "--bin-ps", window_name: str = "--window-ps") -> None:
+    """A bin wider than the window would give every pixel the same depth: refuse it."""
+    if bin_s is None or window_s is None:
+        return
+    span = window_s[1] - window_s[0]
+    if bin_s > span * (1 + 1e-9):
+        raise RequestError(f"{bin_name} {bin_s * 1e12:g} is wider than the window {window_name} "
+                           f"{window_s[0] * 1e12:g}:{window_s[1] * 1e12:g} ({span * 1e12:g} ps)")
+
+
+def check_writable(name: str, path: str | None) -> None:
+    """An output file whose folder does not exist or cannot be written is refused before any work
+    (not after the whole computation)."""
+    if path is None:
+        return
+    p = Path(path)
+    parent = p.parent if str(p.parent) else Path(".")
+    if p.is_dir():
+        raise RequestError(f"{name} {path}: is a folder; give a file name")
+    if not parent.is_dir():
+        raise RequestError(f"{name} {path}: folder {parent} does not exist")
+    if not os.access(parent, os.W_OK) or (p.exists() and not os.access(p, os.W_OK)):
+        raise RequestError(f"{name} {path}: cannot be written (permission denied)")
+
+
+class _Request:
+    """``to_dict``/``from_dict`` for the frozen request dataclasses (nested ones included)."""
+
+    KIND = ""
+    _NESTED: dict = {}
+
+    def to_dict(self) -> dict:
+        d = {}
+        for f in fields(self):
+            v = getattr(self, f.name)
+            d[f.name] = v.to_dict() if isinstance(v, _Request) else list(v) if isinstance(v, tuple) else v
+        return {"kind": self.KIND, **d}
+
+    @classmethod
+    def from_dict(cls, d: dict):
+        if not isinstance(d, dict):
+            raise RequestError(f"a saved {cls.KIND} request must be a JSON object, got {type(d).__name__}")
+        if d.get("kind", cls.KIND) != cls.KIND:
+            raise RequestError(f"a saved request of kind {d.get('kind')!r} is not a {cls.KIND} request")
+        names = {f.name: f for f in fields(cls)}
+        unknown = sorted(set(d) - set(names) - {"kind"})
+        if unknown:
+            raise RequestError(f"saved {cls.KIND} request: unknown field(s) {', '.join(unknown)}")
+        kw = {}
+        for k, v in d.items():
+            if k == "kind":
+                continue
+            if k in cls._NESTED and isinstance(v, dict):
+                v = _instruments_from_dict(v) if k == "instruments" else cls._NESTED[k].from_dict(v)
+            elif isinstance(v, list):
+                v = tuple(v)
+            kw[k] = v
+        try:
+            return cls(**kw)
+        except TypeError as exc:
+            raise RequestError(f"saved {cls.KIND} request: {exc}") from None
+
+
+@dataclass(frozen=True)
+class SimBench(_Request):
+    """The simulated bench: a scene behind the real drivers (galvo emulator, simulated USB tagger).
+
+    scene:  a built-in scene name or ``file:DEPTH`` (``drivers.sim.load_scene``).
+    ppp:    mean detections per pixel per scene dwell (None: the scan's target).
+    sbr:    signal-to-background ratio in the detection window.
+    faults: instrument faults to inject, ``KIND@WHEN`` items (``drivers.sim.faults``).
+    """
+
+    KIND = "sim"
+    scene: str = "bust"
+    ppp: float | None = None
+    sbr: float = 10.0
+    seed: int = 0
+    faults: str = ""
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.scene, str) or not self.scene:
+            raise RequestError(f"--scene must name a scene, got {self.scene!r}")
+        _positive("--ppp", self.ppp, allow_none=True)
+        _positive("--sbr", self.sbr)
+        if not isinstance(self.seed, int) or isinstance(self.seed, bool):
+            raise RequestError(f"--seed must be a whole number, got {self.seed!r}")
+        if not isinstance(self.faults, str):
+            raise RequestError(f"--faults must be KIND@WHEN items, got {self.faults!r}")
+        if self.faults:
+            from spdepth.drivers.errors import SettingError
+            from spdepth.drivers.sim.faults import parse_faults
+
+            try:
+                parse_faults(self.faults)
+            except SettingError as exc:
+                raise RequestError(f"--faults {self.faults!r}: {exc}") from None
+
+    def label(self) -> str:
+        return f"simulated {self.scene}"
+
+
+@dataclass(frozen=True)
+class Devices(_Request):
+    """Real instruments: our galvo controller on a serial port and our tagger at ``usb:VID:PID``.
+
+    sync_rate_hz: the laser repetition rate (recorded in the PTU header).
+    fov_deg:      square field of view in optical degrees, centred on the mirror's zero.
+    """
+
+    KIND = "devices"
+    galvo: str = ""
+    tagger: str = ""
+    sync_rate_hz: float = 0.0
+    fov_deg: float = 20.0
+
+    def __post_init__(self) -> None:
+        if not self.galvo or not self.tagger:
+            raise RequestError("real devices need both --galvo PORT and --tagger usb:VID:PID")
+        if not self.sync_rate_hz:
+            raise RequestError("real devices need --sync-rate-hz (the laser repetition rate)")
+        _positive("--sync-rate-hz", self.sync_rate_hz)
+        _positive("--fov-deg", self.fov_deg)
+        if self.fov_deg > 90:
+            raise RequestError(f"--fov-deg {self.fov_deg:g} is wider than a galvo mirror turns (90)")
+
+    def label(self) -> str:
+        return f"devices {self.galvo} + {self.tagger}"
+
+
+def _instruments_from_dict(d: dict):
+    kinds = {SimBench.KIND: SimBench, Devices.KIND: Devices}
+    if d.get("kind") not in kinds:
+        raise RequestError(f"saved instruments of unknown kind {d.get('kind')!r}")
+    return kinds[d["kind"]].from_dict(d)
+
+
+@dataclass(frozen=True)
+class ScanRequest(_Request):
+    """A scan: instruments, plan and reconstruction settings.
+
+    size:          (H, W) pixels, rows first.
+    target:        in-window detections wanted per pixel.
+    mode:          "gated" (the controller holds each pixel until ``target`` detections or the dwell
+                   limit) or "raster" (fixed dwell, frames repeated until every pixel holds target).
+    dwell_limit_s: gated only: the dwell limit per pixel (None: 20 scene dwells / 10 ms).
+    dwell_s:       raster only: the dwell per pixel and frame (None: the scene's dwell / 1 ms).
+    window_s:      detection window after the sync (None: 801 bins of 40 ps from 0).
+    bin_s:         histogram bin width.
+    pulse_rms_s:   Gaussian pulse RMS (None: the simulated scene's, or estimated from the first
+                   pixels to complete).
+    """
+
+    KIND = "scan"
+    _NESTED = {"instruments": SimBench}
+    instruments: SimBench | Devices = field(default_factory=SimBench)
+    size: tuple[int, int] = DEFAULT_SIZE
+    target: int = DEFAULT_TARGET
+    mode: str = "gated"
+    dwell_limit_s: float | None = None
+    dwell_s: float | None = None
+    pattern: str = "raster"
+    settle_s: float = 0.0
+    max_passes: int | None = None
+    time_limit_s: float | None = None
+    window_s: tuple[float, float] | None = None
+    bin_s: float = DEFAULT_BIN_S
+    method: str = DEFAULT_METHOD
+    pulse_rms_s: float | None = None
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.instruments, (SimBench, Devices)):
+            raise RequestError(f"instruments must be SimBench or Devices, got {self.instruments!r}")
+        try:
+            h, w = (int(v) for v in self.size)
+        except (TypeError, ValueError):
+            raise RequestError(f"--size must be WxH, got {self.size!r}") from None
+        if not (1 <= h <= MAX_PIXELS_PER_AXIS and 1 <= w <= MAX_PIXELS_PER_AXIS):
+            raise RequestError(f"--size {w}x{h}: each side must be 1..{MAX_PIXELS_PER_AXIS} pixels "
+                               f"(the galvo controller's limit)")
+        object.__setattr__(self, "size", (h, w))
+        _positive("--target", self.target, integer=True)
+        _choice("--mode", self.mode, MODES)
+        if self.mode == "gated" and self.target > MAX_TARGET:
+            raise RequestError(f"--target {self.target}: the galvo controller gates on at most "
+                               f"{MAX_TARGET} detections per pixel")
+        if h * w * self.target > MAX_STORE_DETECTIONS:
+            raise RequestError(f"--target {self.target} on {w}x{h} pixels is {h * w * self.target:,} "
+                               f"detections to keep, more than the store holds "
+                               f"({MAX_STORE_DETECTIONS:,}); lower --target or --size")
+        if self.dwell_limit_s is not None and self.dwell_s is not None:
+            raise RequestError("give --dwell-limit-ms (gated) or --dwell-ms (raster), not both")
+        if self.mode == "raster" and self.dwell_limit_s is not None:
+            raise RequestError("--dwell-limit-ms is the gated dwell limit; a raster scan takes "
+                               "--dwell-ms (the fixed dwell per pixel and frame)")
+        if self.mode == "gated" and self.dwell_s is not None:
+            raise RequestError("--dwell-ms is the raster dwell; a gated scan takes --dwell-limit-ms "
+                               "(the longest wait for the target)")
+        _positive("--dwell-limit-ms", self.dwell_limit_s, allow_none=True)
+        _positive("--dwell-ms", self.dwell_s, allow_none=True)
+        for name, v in (("--dwell-limit-ms", self.dwell_limit_s), ("--dwell-ms", self.dwell_s)):
+            if v is not None and not MIN_DWELL_NS * 1e-9 <= v <= MAX_DWELL_NS * 1e-9:
+                raise RequestError(f"{name} {v * 1e3:g}: the galvo controller holds a pixel "
+                                   f"{MIN_DWELL_NS * 1e-6:g}..{MAX_DWELL_NS * 1e-6:g} ms")
+        _choice("--pattern", self.pattern, PATTERNS)
+        if not (isinstance(self.settle_s, (int, float)) and 0 <= self.settle_s <= 1.0):
+            raise RequestError(f"--settle-us must be 0..1e6, got {self.settle_s * 1e6:g}")
+        _positive("--max-passes", self.max_passes, allow_none=True, integer=True)
+        _positive("--time-limit-s", self.time_limit_s, allow_none=True)
+        object.__setattr__(self, "window_s", _window("--window-ps", self.window_s))
+        _positive("--bin-ps", self.bin_s)
+        check_bin_fits(self.bin_s, self.window_s or DEFAULT_WINDOW_S)
+        _choice("--method", self.method, METHODS)
+        _positive("--pulse-rms-ps", self.pulse_rms_s, allow_none=True)
+
+    @property
+    def window(self) -> tuple[float, float]:
+        return self.window_s or DEFAULT_WINDOW_S
+
+    def label(self) -> str:
+        h, w = self.size
+        what = self.instruments.scene if isinstance(self.instruments, SimBench) else "devices"
+        return f"scan {what} {w}x{h}, {self.target} per pixel, {self.method}"
+
+
+@dataclass(frozen=True)
+class ReplayRequest(_Request):
+    """A recording fed through the session pipeline as if it came from the tagger.
+
+    recording:   a session folder or its ``recording.ptu``, or a Generic T3 PTU with pixel markers.
+    target:      detections per pixel to keep (None: the recorded target; fewer shows what a shorter
+                 scan would have given).
+    method, pulse_rms_s: replace the recorded estimator settings (None: as recorded).
+    speed:       "max" (as fast as it decodes) or a factor of recorded time (1: real time).
+    bin_s:       bin width for files that record no settings of ours.
+    """
+
+    KIND = "replay"
+    recording: str = ""
+    target: int | None = None
+    method: str | None = None
+    pulse_rms_s: float | None = None
+    speed: str | float = "max"
+    bin_s: float = DEFAULT_BIN_S
+
+    def __post_init__(self) -> None:
+        if not self.recording:
+            raise RequestError("choose a recording to replay (a session folder or its recording.ptu)")
+        object.__setattr__(self, "recording", str(self.recording))
+        p = Path(self.recording)
+        if not p.exists():
+            raise RequestError(f"recording {p} does not exist")
+        if p.is_dir() and not (p / "recording.ptu").is_file():
+            raise RequestError(f"recording {p}: the folder holds no recording.ptu")
+        _positive("--target", self.target, allow_none=True, integer=True)
+        if self.method is not None:
+            _choice("--method", self.method, METHODS)
+        _positive("--pulse-rms-ps", self.pulse_rms_s, allow_none=True)
+        if self.speed != "max":
+            _positive("--speed", self.speed)
+        _positive("--bin-ps", self.bin_s)
+
+    @property
+    def folder(self) -> Path:
+        """The recording's own folder (a replay must not write into it)."""
+        p = Path(self.recording)
+        return p if p.is_dir() else p.parent
+
+    def label(self) -> str:
+        return f"replay of {Path(self.recording).name}"
+
+
+@dataclass(frozen=True)
+class FileReconRequest(_Request):
+    """A recorded file (first-photon-imaging .mat, PicoQuant PTU/HT3/PT3) reconstructed as a whole.
+
+    time_unit_s: size of one raw time unit (required for .mat; PicoQuant files: the header's).
+    window_s, bin_s, pulse_rms_s, max_photons: None leaves each to the file's recorded session
+                 settings when it has them, else to the data (window: the detections' span; bins: a
+                 ninth of the pulse RMS; pulse: estimated).
+    irf:         a measured response file (CSV time_ps,counts or .npy) instead of a Gaussian.
+    out, png, save_irf: where the maps (.npz), the picture and the pulse shape used go (None: not
+                 written); checked for writability before any work.
+    threads:     estimator threads (None: all cores).
+    """
+
+    KIND = "recon"
+    input: str = ""
+    method: str = DEFAULT_METHOD
+    time_unit_s: float | None = None
+    window_s: tuple[float, float] | None = None
+    bin_s: float | None = None
+    pulse_rms_s: float | None = None
+    irf: str | None = None
+    max_photons: int | None = None
+    reflectors: int = 1
+    mat_var: str | None = None
+    channel: int | None = None
+    threads: int | None = None
+    out: str | None = None
+    png: str | None = None
+    save_irf: str | None = None
+
+    def __post_init__(self) -> None:
+        if not self.input:
+            raise RequestError("choose a file to reconstruct")
+        object.__setattr__(self, "input", str(self.input))
+        if not Path(self.input).is_file():
+            raise RequestError(f"{self.input}: no such file")
+        _choice("--method", self.method, METHODS)
+        _positive("--time-unit-ps", self.time_unit_s, allow_none=True)
+        object.__setattr__(self, "window_s", _window("--window-ps", self.window_s))
+        _positive("--bin-ps", self.bin_s, allow_none=True)
+        check_bin_fits(self.bin_s, self.window_s)
+        _positive("--pulse-rms-ps", self.pulse_rms_s, allow_none=True)
+        if self.irf is not None and self.pulse_rms_s is not None:
+            raise RequestError("give --pulse-rms-ps or --irf, not both")
+        if self.irf is not None and not Path(self.irf).is_file():
+            raise RequestError(f"--irf {self.irf}: no such file")
+        _positive("--max-photons", self.max_photons, allow_none=True, integer=True)
+        _positive("--reflectors", self.reflectors, integer=True)
+        if self.channel is not None and (not isinstance(self.channel, int) or self.channel < 0):
+            raise RequestError(f"--channel must be a detector channel >= 0, got {self.channel!r}")
+        _positive("--threads", self.threads, allow_none=True, integer=True)
+        for name, path in (("--out", self.out), ("--png", self.png), ("--save-irf", self.save_irf)):
+            check_writable(name, path)
+
+    def label(self) -> str:
+        return f"{Path(self.input).name}, {self.method}"
+
+
+REQUEST_KINDS = {cls.KIND: cls for cls in (ScanRequest, ReplayRequest, FileReconRequest)}
+
+
+def request_from_dict(d: dict):
+    """Any saved request, typed by its ``kind``."""
+    if not isinstance(d, dict) or d.get("kind") not in REQUEST_KINDS:
+        raise RequestError(f"not a saved request (kind {d.get('kind') if isinstance(d, dict) else d!r})")
+    return REQUEST_KINDS[d["kind"]].from_dict(d)
+
+
+__all__ = ["SimBench", "Devices", "ScanRequest", "ReplayRequest", "FileReconRequest",
+           "request_from_dict", "DEFAULT_METHOD", "DEFAULT_SIZE", "DEFAULT_TARGET", "DEFAULT_BIN_S",
+           "DEFAULT_WINDOW_S", "MAX_TARGET", "check_writable"]
