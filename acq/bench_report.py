@@ -159,7 +159,8 @@ def run_sweep(detections, sbrs, methods, size: int, rate_hz: float, repeats: int
               two_layer: bool = True) -> list[dict]:
     """Every point of the sweep, as CSV rows (see CSV_FIELDS)."""
     import numba
-    from tqdm import tqdm
+
+    from spdepth.acq.report import ProgressBar
 
     jobs = [(Point("bust", n, s), m, 1) for s in sbrs for n in detections for m in methods]
     if two_layer:
@@ -170,7 +171,7 @@ def run_sweep(detections, sbrs, methods, size: int, rate_hz: float, repeats: int
     old_threads = numba.get_num_threads()
     numba.set_num_threads(1)
     try:
-        with tqdm(total=len(jobs), desc="bench report", unit="point", file=sys.stderr) as bar:
+        with ProgressBar("bench report", len(jobs), unit="point") as bar:
             for i, (point, method, k) in enumerate(jobs):
                 if point not in cache:
                     cache.clear()       # jobs are grouped by point: keep only the current one
@@ -179,8 +180,7 @@ def run_sweep(detections, sbrs, methods, size: int, rate_hz: float, repeats: int
                 store, truth = cache[point]
                 maps, secs = warm_time_s(store, settings_for(method, k), repeats)
                 rows += errors_rows(point, method, k, maps, truth, secs, rate_hz)
-                bar.set_postfix_str(f"{point.scene} N={point.detections} SBR={point.sbr:g} {method}")
-                bar.update()
+                bar.update(1, f"{point.scene} N={point.detections} SBR={point.sbr:g} {method}")
     finally:
         numba.set_num_threads(old_threads)
     return rows

@@ -8,7 +8,6 @@ global figure state.
 from __future__ import annotations
 
 import sys
-import time
 from pathlib import Path
 from typing import Sequence, TextIO
 
@@ -123,56 +122,54 @@ def render_maps_png(path: str | Path, maps, *, title: str | None = None,
 
 
 class ProgressBar:
-    """A one-line progress bar on a stream (stderr by default), usable as the ``progress(done,
-    total)`` callback of ``recon.estimate.reconstruct``.
+    """The one progress bar of every long command (simulate, recon, bench report): tqdm on a
+    stream (stderr by default), silent when that stream is not a terminal (tqdm's
+    ``disable=None``), so logs and captured stderr of scripted runs hold no ``\\r`` redraws.
 
-    It stays silent unless the stream is a terminal or the work has already taken longer than
-    ``after_s``, so quick runs and logs of scripted runs are not cluttered; it redraws at most
-    ``max_rate_hz`` times a second.
+    Use it as the ``progress(done, total)`` callback of ``recon.estimate.reconstruct`` or
+    ``PhotonWorld.raster``, or step it with ``update(n, note)``; ``close()`` (or ``with``) ends its
+    line. ``force`` draws it on any stream (tests); ``max_rate_hz`` caps the redraws.
     """
 
-    def __init__(self, label: str = "", *, stream: TextIO | None = None, after_s: float = 1.0,
-                 width: int = 30, max_rate_hz: float = 10.0, force: bool = False) -> None:
-        self.label = label
-        self.stream = stream if stream is not None else sys.stderr
-        self.after_s = after_s
-        self.width = width
-        self.min_interval_s = 1.0 / max_rate_hz
-        self.start_s = time.monotonic()
-        self._last_draw_s = -np.inf
-        self._drawn = False
-        try:
-            tty = self.stream.isatty()
-        except (AttributeError, ValueError):
-            tty = False
-        self._tty = tty
-        self.force = force
+    def __init__(self, label: str = "", total: int | None = None, *, unit: str = "px",
+                 stream: TextIO | None = None, max_rate_hz: float = 10.0,
+                 force: bool = False) -> None:
+        from tqdm import tqdm
+
+        self._bar = tqdm(total=total, desc=label, unit=unit,
+                         file=stream if stream is not None else sys.stderr,
+                         disable=False if force else None, mininterval=1.0 / max_rate_hz,
+                         dynamic_ncols=True)
+
+    @property
+    def enabled(self) -> bool:
+        """False when nothing is drawn (not a terminal): callers may skip work done for the bar."""
+        return not self._bar.disable
 
     def __call__(self, done: int, total: int) -> None:
-        now = time.monotonic()
-        if not (self.force or self._tty or now - self.start_s > self.after_s):
+        if self._bar.disable:
             return
-        finished = total > 0 and done >= total
-        # a log file (not a terminal) gets a whole line every few seconds, not ten a second
-        interval = self.min_interval_s if self._tty else max(self.min_interval_s, 2.0)
-        if not finished and now - self._last_draw_s < interval:
+        if total != self._bar.total:
+            self._bar.total = total
+        self._bar.update(done - self._bar.n)
+
+    def update(self, n: int = 1, note: str | None = None) -> None:
+        """``n`` more done; ``note`` (what is being worked on) shown after the counts."""
+        if self._bar.disable:
             return
-        self._last_draw_s = now
-        frac = min(max(done / total, 0.0), 1.0) if total > 0 else 0.0
-        filled = int(round(frac * self.width))
-        elapsed = now - self.start_s
-        eta = f" eta {elapsed / frac - elapsed:5.1f} s" if 0 < frac < 1 else ""
-        line = (f"{self.label} [{'#' * filled}{'.' * (self.width - filled)}] {done}/{total} "
-                f"{elapsed:5.1f} s{eta}")
-        self.stream.write(line + ("\r" if self._tty else "\n"))
-        self.stream.flush()
-        self._drawn = True
+        if note is not None:
+            self._bar.set_postfix_str(note, refresh=False)
+        self._bar.update(n)
 
     def close(self) -> None:
-        """End the bar's line on a terminal (call once the work is done)."""
-        if self._drawn and self._tty:
-            self.stream.write("\n")
-            self.stream.flush()
+        """Draw the final state and end the bar's line (once the work is done or given up)."""
+        self._bar.close()
+
+    def __enter__(self) -> "ProgressBar":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
 
 def _draw_irf(ax, times_s, counts, label: str) -> None:

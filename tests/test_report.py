@@ -63,24 +63,14 @@ def test_render_point_png(tmp_path, rng):
     assert _colour_pixels(img, "#d62728", tol=0.05) > 50  # the time-of-flight marker
 
 
-def test_progress_bar_silent_for_quick_runs_on_a_log():
+def test_progress_bar_silent_when_not_on_a_terminal():
     stream = io.StringIO()
-    bar = ProgressBar("x", stream=stream, after_s=10.0)
-    for i in range(101):
-        bar(i, 100)
-    bar.close()
+    with ProgressBar("x", 100, stream=stream) as bar:
+        assert not bar.enabled
+        for i in range(101):
+            bar(i, 100)
+        bar.update(1, "note")
     assert stream.getvalue() == ""
-
-
-def test_progress_bar_lines_on_a_log_when_forced():
-    stream = io.StringIO()
-    bar = ProgressBar("recon", stream=stream, force=True)
-    for i in range(101):
-        bar(i, 100)
-    lines = stream.getvalue().splitlines()
-    assert "\r" not in stream.getvalue()
-    assert 1 <= len(lines) <= 3  # the first draw and the final one, not 101 lines
-    assert lines[-1].startswith("recon [" + "#" * 30 + "] 100/100")
 
 
 class _Tty(io.StringIO):
@@ -88,15 +78,24 @@ class _Tty(io.StringIO):
         return True
 
 
-def test_progress_bar_redraws_in_place_on_a_terminal():
+def test_progress_bar_draws_on_a_terminal():
     stream = _Tty()
-    bar = ProgressBar("r", stream=stream, max_rate_hz=1e9)
+    bar = ProgressBar("recon ml", stream=stream, max_rate_hz=1e9)
+    assert bar.enabled
     for i in range(0, 11):
-        bar(i, 10)
+        bar(i, 10)                    # the callback form: (done, total), total learnt on the way
     bar.close()
     text = stream.getvalue()
-    assert text.count("\r") == 11 and text.endswith("\n")
-    assert "10/10" in text
+    assert "recon ml" in text and "10/10" in text and text.endswith("\n")
+
+
+def test_progress_bar_steps_with_notes_when_forced():
+    stream = io.StringIO()
+    with ProgressBar("bench report", 3, unit="point", stream=stream, force=True) as bar:
+        for name in ("a", "b", "c"):
+            bar.update(1, f"method {name}")
+    last = stream.getvalue().rsplit("\r", 1)[-1]
+    assert "bench report" in last and "3/3" in last and "method c" in last
 
 
 def test_dense_limits_follow_the_scene_not_the_wall(rng):

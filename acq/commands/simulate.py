@@ -54,6 +54,7 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from spdepth.acq.ptu import MARKER_INPUT, write_ptu
+    from spdepth.acq.report import ProgressBar
     from spdepth.drivers.sim import PhotonWorld, load_scene
 
     out = Path(args.out)
@@ -72,16 +73,10 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(f"{s.range_bins} tagger bins per period do not fit T3 records "
                          "(max 32768): raise --resolution-ps or lower --period-ns")
     h, w = scene.shape
-    big = h * w >= 128 * 128
     t0 = time.monotonic()
-
-    def progress(done: int, total: int) -> None:
-        print(f"\rsimulate: {done}/{total} pixels", end="", file=sys.stderr, flush=True)
-
     world = PhotonWorld(scene, seed=args.seed)
-    events = world.raster(progress=progress if big else None)
-    if big:
-        print(file=sys.stderr)
+    with ProgressBar("simulate", h * w, unit="px") as bar:
+        events = world.raster(progress=bar if bar.enabled else None)
     n_photons = int(np.count_nonzero(events["kind"] == 0))
     truth = scene.truth()
     settings = dict(truth["settings"], seed=args.seed, n_photons=n_photons,
