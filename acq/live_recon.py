@@ -77,10 +77,43 @@ class LiveRecon:
         self._pending: list[np.ndarray] = []
         self._n_pending = 0
         self._cond = threading.Condition()
+        self.lock = threading.Lock()
+        """Held while a batch's results are written into the maps and while they are copied
+        (``maps``, ``copy_maps``): a copy never holds part of a batch."""
         self._closing = False
         self._error: BaseException | None = None
-        self._thread = threading.Thread(target=self._run, name="live-recon", daemon=True)
-        self._thread.start()
+        self._empty: dict | None = None         # one empty pixel's results (pixelwise estimators)
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> "LiveRecon":
+        """Start the worker thread (the session does, on ``Session.start``)."""
+        with self._cond:
+            if self._thread is not None:
+                raise RuntimeError("live reconstruction already started")
+            self._thread = threading.Thread(target=self._run, name="live-recon", daemon=True)
+            self._thread.start()
+        return self
+
+    def close(self, timeout_s: float | None = 5.0) -> None:
+        """End the worker without reconstructing what is still queued (idempotent; a worker
+        never started has nothing to end)."""
+        with self._cond:
+            self._closing = True
+            self._pending, self._n_pending = [], 0
+            self._cond.notify_all()
+            thread = self._thread
+        if thread is not None and thread is not threading.current_thread():
+            thread.join(timeout_s)
+
+    @property
+    def error(self) -> BaseException | None:
+        """The exception that ended the worker, if any."""
+        return self._error
+
+    def raise_if_failed(self) -> None:
+        """Re-raise the worker's exception in the caller's thread."""
+        if self._error is not None:
+            raise self._error
 
     @property
     def requested(self) -> ReconSettings:
@@ -121,11 +154,17 @@ class LiveRecon:
             self._cond.notify()
 
     def finish(self, timeout_s: float | None = None) -> None:
-        """Reconstruct everything queued, then end the thread; re-raises a worker error."""
+        """Reconstruct everything queued, then end the thread; re-raises a worker error. A
+        worker never started is started for it (a session ended before it began)."""
         with self._cond:
+            if self._thread is None and self._error is None:
+                self._thread = threading.Thread(target=self._run, name="live-recon", daemon=True)
+                self._thread.start()
             self._closing = True
             self._cond.notify()
-        self._thread.join(timeout_s)
+            thread = self._thread
+        if thread is not None:
+            thread.join(timeout_s)
         if self._error is not None:
             raise self._error
 
@@ -170,12 +209,13 @@ class LiveRecon:
                     irf=self.settings.irf))
                 self.busy_s += time.perf_counter() - t0
         except BaseException as exc:  # noqa: BLE001 - handed to the owner at submit/finish
-            log.exception("live reconstruction failed")
+            # the owner reports it (one line); the traceback only at debug level
+            log.debug("live reconstruction failed", exc_info=True)
             with self._cond:
                 self._error = exc
+                self._pending, self._n_pending = [], 0
 
     def _reconstruct(self, pixels: np.ndarray) -> None:
-        photons = self.store.photons(pixels)
         if self._needs_pulse():
             # freeze the width estimated from this first batch for every later pixel
             sample = self.store.photons(pixels[:PULSE_SAMPLE_PIXELS])
@@ -183,31 +223,60 @@ class LiveRecon:
             self.settings = dataclasses.replace(self.settings, pulse_rms_s=notes["pulse_rms_s"])
             self._pulse_note = {"pulse_source": "estimated from the first "
                                f"{min(PULSE_SAMPLE_PIXELS, pixels.size)} final pixels"}
-        m = reconstruct(photons, self.settings)
+        # pixels without a detection all come out alike (each estimator works pixel by pixel):
+        # reconstruct one such pixel once and copy it, so a huge scan cut short by its time
+        # limit does not run the estimator over millions of empty pixels
+        empty = self.store.count[pixels] == 0
+        full = pixels[~empty]
+        m = reconstruct(self.store.photons(full), self.settings) if full.size else None
+        if self._empty is None and empty.any():
+            self._empty = self._empty_result()
         if self.resolved is None:
-            self.resolved = dict(m.settings)
+            self.resolved = dict(m.settings if m is not None else self._empty["settings"])
             self.resolved.update(self._pulse_note)
-        rows, cols = np.divmod(pixels, self.store.shape[1])
-        for name in ("tof_s", "depth_m", "background", "signal", "photons", "iterations",
-                     "uncertainty_s", "flags"):
-            getattr(self, name)[rows, cols] = getattr(m, name)[0]
-        self.done[rows, cols] = True
+        w = self.store.shape[1]
+        with self.lock:        # one batch appears in the maps at once
+            if m is not None:
+                rows, cols = np.divmod(full, w)
+                for name in _MAP_FIELDS:
+                    getattr(self, name)[rows, cols] = getattr(m, name)[0]
+            if empty.any():
+                rows, cols = np.divmod(pixels[empty], w)
+                for name in _MAP_FIELDS:
+                    getattr(self, name)[rows, cols] = self._empty[name]
+            rows, cols = np.divmod(pixels, w)
+            self.done[rows, cols] = True
         self.processed += int(pixels.size)
+
+    def _empty_result(self) -> dict:
+        """What the estimator gives a pixel without detections (with the frozen settings)."""
+        from spdepth.recon.photons import PhotonStore
+
+        one = PhotonStore(np.zeros(0), np.array([0, 0]), (1, 1), self.store.time_unit_s)
+        m = reconstruct(one, self.settings)
+        out = {name: getattr(m, name)[0, 0] for name in _MAP_FIELDS}
+        out["settings"] = m.settings
+        return out
 
     def _reconstruct_frame(self, settings: ReconSettings) -> None:
         """One reconstruction of the whole final store (the spatial method's last step)."""
         m = reconstruct(self.store.photons(), settings)
-        for name in ("tof_s", "depth_m", "background", "signal", "photons", "iterations",
-                     "uncertainty_s", "flags"):
-            getattr(self, name)[...] = getattr(m, name)
+        with self.lock:
+            for name in _MAP_FIELDS:
+                getattr(self, name)[...] = getattr(m, name)
         self.resolved = dict(m.settings)
         self.resolved["live_maps"] = f"{SPATIAL_LIVE_STAND_IN} pixel by pixel during the scan"
 
     def maps(self) -> DepthMaps:
         """The maps as they stand (copies), in ``spdepth recon``'s format."""
         settings = dict(self.resolved) if self.resolved is not None else self.settings.to_dict()
-        return DepthMaps(tof_s=self.tof_s.copy(), depth_m=self.depth_m.copy(),
-                         background=self.background.copy(), signal=self.signal.copy(),
-                         photons=self.photons.copy(), iterations=self.iterations.copy(),
-                         uncertainty_s=self.uncertainty_s.copy(), flags=self.flags.copy(),
-                         settings=settings)
+        return DepthMaps(settings=settings, **self.copy_maps(*_MAP_FIELDS))
+
+    def copy_maps(self, *names: str) -> dict:
+        """Copies of the named maps, all taken between two batches (never half a batch)."""
+        with self.lock:
+            return {name: getattr(self, name).copy() for name in names}
+
+
+_MAP_FIELDS = ("tof_s", "depth_m", "background", "signal", "photons", "iterations",
+               "uncertainty_s", "flags")

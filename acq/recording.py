@@ -22,6 +22,7 @@ the header's image size.
 from __future__ import annotations
 
 import json
+import logging
 import threading
 import time
 from dataclasses import dataclass
@@ -31,6 +32,7 @@ import numpy as np
 from numba import njit
 
 from spdepth.acq.assign import PassGeometry
+from spdepth.acq.errors import RecordingError, RequestError
 from spdepth.acq.ptu import (INFO_TAG, PIXEL_MARKER_TAG, PLAN_TAG, RECON_TAG, iter_records, marker_map,
                      patch_record_count, ptu_header, read_layout, split_marker_records)
 from spdepth.drivers.errors import ProtocolError
@@ -39,11 +41,14 @@ from spdepth.drivers.tagger.t3 import T3DecoderState, decode_t3
 from spdepth.recon.errors import InputError
 from spdepth.recon.model import Binning, Irf, ReconSettings
 
+log = logging.getLogger(__name__)
+
 FLUSH_S = 0.5
 """Longest time records and events sit in Python's buffers before they go to the OS (the
 recording survives a killed process up to the last flush)."""
 T3_RANGE_BINS = 32768
 _MARKER = int(EventKind.MARKER)
+_END_STATES = {"done", "aborted", "failed"}
 
 
 class Recorder:
@@ -58,7 +63,7 @@ class Recorder:
                  sync_period_s: float | None, log=None, info: dict | None = None):
         out_dir = Path(out_dir)
         if sync_period_s is None:
-            raise InputError("recording needs the laser sync period (sync_period_s)")
+            raise RequestError("recording needs the laser sync period (sync_period_s)")
         header = ptu_header(plan.shape, sync_period_s, resolution_s, plan.dwell_s, T3_RANGE_BINS,
                             comment="spdepth session recording",
                             tags={PLAN_TAG: plan.to_dict(), RECON_TAG: recon_settings.to_dict(),
@@ -174,23 +179,26 @@ class ReplaySource:
         if p.is_dir():
             p = p / "recording.ptu"
         if not p.is_file():
-            raise InputError(f"recording {p} not found")
+            raise RecordingError(f"recording {p} not found")
         self.path = p
         try:
             self.layout = read_layout(p)
-        except InputError:
-            raise
+        except InputError as exc:
+            raise RecordingError(f"recording {p}: {exc}") from None
         except Exception as exc:  # ptufile's own errors for a file that is not a PTU
-            raise InputError(f"recording {p}: not a readable PTU file ({exc})") from None
+            raise RecordingError(f"recording {p}: not a readable PTU file ({exc})") from None
         tags = self.layout.tags
         if int(tags.get("TTResultFormat_TTTRRecType", 0)) != 0x01010304:
-            raise InputError(f"recording {p}: record type "
+            raise RecordingError(f"recording {p}: record type "
                              f"0x{int(tags.get('TTResultFormat_TTTRRecType', 0)):08x} is not "
                              "Generic T3 (HydraHarp v2 / TimeHarp 260 / MultiHarp); use "
                              "`spdepth recon` for other PicoQuant files")
-        lut = marker_map(tags)
+        try:
+            lut = marker_map(tags)
+        except InputError as exc:
+            raise RecordingError(f"recording {p}: {exc}") from None
         if lut is None or not tags.get(PIXEL_MARKER_TAG):
-            raise InputError(f"recording {p}: the header names no pixel marker "
+            raise RecordingError(f"recording {p}: the header names no pixel marker "
                              f"({PIXEL_MARKER_TAG}); replay needs pixel markers; "
                              "`spdepth recon FILE` interpolates pixels between line markers")
         self._lut = lut
@@ -198,35 +206,111 @@ class ReplaySource:
         self.speed = speed
         self.chunk_records = int(chunk_records)
         self.first_read_t: float | None = None
+        self.warnings: list[str] = []
+        """What is wrong with the recording but still replays (a cut file, a missing or cut
+        event log); logged as one warning line and listed in the session's ``run.json``."""
         self.events_path = p.parent / "events.jsonl"
-        self._passes, self._lost = self._read_event_log()
+        plan = _json_tag(p, tags, PLAN_TAG)
+        recon = _json_tag(p, tags, RECON_TAG)
+        _check_settings(p, plan, recon)
+        try:
+            shape = (int(tags.get("ImgHdr_PixY", 1)), int(tags.get("ImgHdr_PixX", 1)))
+            resolution_s = float(tags["MeasDesc_Resolution"])
+            sync_period_s = float(tags["MeasDesc_GlobalResolution"])
+        except KeyError as exc:
+            raise RecordingError(f"recording {p}: header tag {exc.args[0]} is missing") from None
+        except (TypeError, ValueError) as exc:
+            raise RecordingError(f"recording {p}: a header tag of the image or time base is "
+                                 f"not a number ({exc})") from None
+        self._passes, self._lost, ended = self._read_event_log()
         self.info = RecordingInfo(
-            plan=_json_tag(tags, PLAN_TAG), recon=_json_tag(tags, RECON_TAG),
-            info=_json_tag(tags, INFO_TAG) or {},
-            shape=(int(tags.get("ImgHdr_PixY", 1)), int(tags.get("ImgHdr_PixX", 1))),
-            resolution_s=float(tags["MeasDesc_Resolution"]),
-            sync_period_s=float(tags["MeasDesc_GlobalResolution"]),
+            plan=plan, recon=recon, info=_json_tag(p, tags, INFO_TAG) or {},
+            shape=shape, resolution_s=resolution_s, sync_period_s=sync_period_s,
             n_records=min(self.layout.n_records, self.layout.records_in_file),
             has_event_log=self.events_path.is_file())
+        self._check_complete(plan is not None, ended)
+
+    def _check_complete(self, ours: bool, log_ended: bool | None) -> None:
+        """Fill ``warnings``: a record count in the header above the records in the file (a
+        count of 0 is a recording that did not close and no warning by itself), an event log
+        missing beside a session recording, or cut before the session's end."""
+        lay = self.layout
+        if lay.records_in_file < lay.n_records:
+            self.warnings.append(f"{self.path.name} is truncated: its header counts "
+                                 f"{lay.n_records} records, the file holds "
+                                 f"{lay.records_in_file}")
+        if ours and log_ended is None:
+            self.warnings.append(f"{self.events_path.name} is missing beside {self.path.name}: "
+                                 "the stream is replayed as one full-frame pass (re-acquisition "
+                                 "passes and lost spans cannot be placed)")
+        elif ours and not log_ended:
+            self.warnings.append(f"{self.events_path.name} is truncated (it stops before the "
+                                 "session's end): passes and lost spans after the cut are "
+                                 "unknown")
+        if self.warnings:
+            log.warning("replay of %s: %s", self.path, "; ".join(self.warnings))
 
     def _read_event_log(self):
+        """(passes, lost spans, whether the log ends with the session's end: None without a
+        log)."""
         passes: list[tuple[int, PassGeometry]] = []
         lost: list[dict] = []
         if not self.events_path.is_file():
-            return passes, lost
+            return passes, lost, None
+        ended = False
         with open(self.events_path, encoding="utf-8") as fh:
             for n, line in enumerate(fh, 1):
                 if not line.endswith("\n"):
+                    ended = False
                     break                 # the last line of a killed session may be cut
                 try:
                     e = json.loads(line)
                 except json.JSONDecodeError:
-                    raise InputError(f"{self.events_path}, line {n}: not JSON") from None
-                if e.get("event") == "pass" and e.get("record") is not None:
+                    raise RecordingError(f"{self.events_path}, line {n}: not JSON") from None
+                kind = e.get("event")
+                if kind == "pass" and e.get("record") is not None:
                     passes.append((int(e["record"]), PassGeometry(**e["geometry"])))
-                elif e.get("event") == "lost":
+                elif kind == "lost":
                     lost.append(e)
-        return passes, lost
+                ended = kind == "state" and e.get("state") in _END_STATES
+        return passes, lost, ended
+
+    # ---- the Source interface (acq.sources) ------------------------------------------------------
+    name = "replay"
+    lost_action = "replayed as recorded"
+
+    def default_gate_target(self, plan) -> int | None:
+        return None          # the caller knows what the recording gated on
+
+    def arm(self, host) -> None:
+        """Nothing to open: the file is open since the source was made."""
+
+    def run(self, host):
+        """The recorded passes with their chunks and lost spans, as the live session saw them."""
+        from spdepth.acq.flags import AcqFlag
+
+        for geom, chunks in self.segments():
+            host.begin_pass(geom, None)
+            for chunk in chunks:
+                host.checkpoint()
+                host.process(chunk)
+            host.end_pass()
+        return AcqFlag.INCOMPLETE
+
+    def flush(self) -> None:
+        """Nothing to flush: a replay writes no recording."""
+
+    def close(self) -> None:
+        """Nothing to close (the records are read through short-lived memory maps)."""
+
+    def health(self, recent, error) -> dict:
+        return {"galvo": "replay", "tagger": "replay"}
+
+    def identities(self) -> dict:
+        return {}
+
+    def statistics(self) -> dict:
+        return {"records_recorded": None}
 
     def segments(self):
         """(PassGeometry, iterator of EVENT_DTYPE chunks) for each pass, in stream order."""
@@ -312,7 +396,7 @@ class _Decoder:
         try:
             ev = decode_t3(records, self.state, out=self._out[used:])
         except ProtocolError as exc:
-            raise InputError(f"recording: {exc}") from None
+            raise RecordingError(f"recording: {exc}") from None
         if self.lut is not None:
             _map_markers(ev["kind"], ev["marker"], self.lut)
         return ev
@@ -334,6 +418,9 @@ def session_photons(path: str | Path):
     from spdepth.acq.store import PixelStore
 
     src = ReplaySource(path)
+    for name, value in ((PLAN_TAG, src.info.plan), (RECON_TAG, src.info.recon)):
+        if value is None:
+            raise RecordingError(f"recording {src.path}: header tag {name} is missing")
     plan = ScanPlan.from_dict(src.info.plan)
     b = recon_settings_from_dict(src.info.recon).binning
     store = PixelStore(plan.shape, plan.target,
@@ -346,10 +433,7 @@ def session_photons(path: str | Path):
         for chunk in chunks:
             store.feed(chunk)
         store.end_pass()
-    notes = []
-    if not src.info.has_event_log:
-        notes.append(f"{src.path.name}: no events.jsonl beside it: the stream is read as one "
-                     "full-frame pass (re-acquisition passes, if any, cannot be placed)")
+    notes = list(src.warnings)
     short = int(np.count_nonzero(store.count < plan.target))
     if short:
         notes.append(f"{src.path.name}: {short} pixels hold fewer than the session's target of "
@@ -380,11 +464,34 @@ def recon_settings_from_dict(d: dict, **override) -> ReconSettings:
                          max_iterations=int(d.get("max_iterations", 10)))
 
 
-def _json_tag(tags: dict, name: str):
+def _json_tag(path: Path, tags: dict, name: str):
+    """A header tag holding our JSON settings, parsed; None when the file has no such tag.
+    Raises RecordingError naming the file and the tag when the value does not parse to an
+    object (a damaged header must not be replaced by invented settings)."""
     v = tags.get(name)
     if v is None:
         return None
     try:
-        return json.loads(v) if isinstance(v, str) else v
-    except json.JSONDecodeError:
-        return None
+        out = json.loads(v) if isinstance(v, str) else v
+    except json.JSONDecodeError as exc:
+        raise RecordingError(f"recording {path}: header tag {name} is damaged (not JSON: "
+                             f"{exc.msg} at character {exc.pos})") from None
+    if not isinstance(out, dict):
+        raise RecordingError(f"recording {path}: header tag {name} is damaged (a "
+                             f"{type(out).__name__}, not the settings object)")
+    return out
+
+
+def _check_settings(path: Path, plan: dict | None, recon: dict | None) -> None:
+    """Refuse a header whose plan or estimator settings parse as JSON but not as settings."""
+    from spdepth.acq.plan import ScanPlan
+
+    for name, value, parse in ((PLAN_TAG, plan, ScanPlan.from_dict),
+                               (RECON_TAG, recon, recon_settings_from_dict)):
+        if value is None:
+            continue
+        try:
+            parse(value)
+        except Exception as exc:  # noqa: BLE001 - any failure means a damaged tag
+            raise RecordingError(f"recording {path}: header tag {name} is damaged "
+                                 f"({type(exc).__name__}: {exc})") from None

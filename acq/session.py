@@ -1,23 +1,31 @@
-"""An acquisition session: one scan from plan to files, live or replayed.
+"""An acquisition session: one scan from plan to files, from any source (live scan or replay).
 
-A :class:`Session` owns the galvo passes (or a recording's stream), the per-pixel store, the live
-reconstruction, the recording and the snapshots its subscribers get. States::
+A :class:`Session` consumes a :class:`~spdepth.acq.sources.Source` (``acq.sources.ScanSource``:
+our galvo and tagger; ``acq.recording.ReplaySource``: a recording; next, vendor taggers) through
+one interface and cannot tell them apart. The source delivers chunks of events pass by pass and
+reports faults; the session owns the state machine, the per-pixel store, the live
+reconstruction, the flags, the snapshots its subscribers get and the files. States::
 
     idle -> armed -> running <-> paused -> finishing -> done | aborted | failed
 
-Pause takes effect at a pixel boundary (the controller finishes the pixel it is on; the stream is
-drained up to it); resume scans whatever is still short. Abort is accepted in any state before
-finishing. Cleanup always runs, on an exception and on Ctrl-C too: the galvo is stopped and parked,
-the tag stream stopped, the recording flushed and closed, the maps and ``run.json`` written.
+Pause takes effect at a pixel boundary (the source finishes the pixel it is on; the stream is
+drained up to it); resume acquires whatever is still short. Abort is accepted in any state before
+finishing. Cleanup always runs, on an exception and on Ctrl-C too: the source is closed (galvo
+stopped and parked, tag stream stopped, recording flushed and closed), the live reconstruction's
+worker ended, the maps and ``run.json`` written.
 
-How the target is reached (the same loop serves the first pass, resume and re-acquisition): while
-pixels are short of ``plan.target`` in-window detections and not flagged, the short pixels are
-grouped into rectangles (``acq.plan.pass_regions``) and each is one galvo pass (one START). A lost
-span (FIFO overrun, USB error, reconnect) stops the current pass at once, since the position is
-unknown until the next frame marker, and the next pass scans the affected lines again. Each pixel
-keeps its first ``target`` in-window detections of complete dwells (``acq.store``: a rescan tops
-up, nothing is counted twice). Pixels are flagged (:class:`AcqFlag`) when a gated dwell hits the
-dwell limit, when the pass budget or the time limit runs out, or when the session ends first.
+How the target is reached (live, ``ScanSource``; the same loop serves the first pass, resume and
+re-acquisition): while pixels are short of ``plan.target`` in-window detections and not flagged,
+the short pixels are grouped into rectangles (``acq.plan.pass_regions``) and each is one galvo
+pass. A lost span (FIFO overrun, USB error, reconnect) stops the current pass at once, and the
+next pass scans the affected lines again. Each pixel keeps its first ``target`` in-window
+detections of complete dwells (``acq.store``: a rescan tops up, nothing is counted twice).
+Pixels are flagged (:class:`AcqFlag`) when a gated dwell hits the dwell limit, when the pass
+budget or the time limit runs out, or when the session ends first.
+
+Files: ``maps.npz`` holds the maps and the ``acq_flags`` map (uint8 :class:`AcqFlag` per pixel);
+``run.json`` the settings, statistics, counts per flag reason (``flag_reasons``), the source's
+``warnings`` and every fault seen (``faults_seen``, :class:`~spdepth.acq.sources.FaultRecord`).
 """
 
 from __future__ import annotations
@@ -27,39 +35,33 @@ import logging
 import os
 import threading
 import time
+import zipfile
 from dataclasses import asdict, dataclass, field, is_dataclass, replace
-from enum import Enum, IntEnum
+from enum import Enum
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
 from spdepth.acq.assign import PassGeometry
+from spdepth.acq.errors import OutputError, RequestError, SessionStateError
+from spdepth.acq.flags import ACQUIRING, AcqFlag
 from spdepth.acq.live_recon import LiveRecon
-from spdepth.acq.plan import ScanPlan, pass_regions
+from spdepth.acq.plan import ScanPlan
+from spdepth.acq.sources import HEALTH_RECENT_S, FaultRecord, ScanSource, Source
 from spdepth.acq.store import PixelStore
-from spdepth.drivers.errors import DeviceError
 from spdepth.drivers.events import EVENT_DTYPE
-from spdepth.acq.errors import SessionStateError
-from spdepth.recon.errors import InputError
 from spdepth.recon.model import ReconSettings
 
 log = logging.getLogger(__name__)
 
-STATUS_POLL_S = 0.05
-"""How often the galvo's state and pixel log are read during a pass."""
-QUIET_S = 0.3
-"""After the galvo stopped, a stream quiet this long has delivered the pass (used after a loss,
-when the markers cannot tell)."""
-DRAIN_TIMEOUT_S = 5.0
-"""Longest wait for the stream to deliver a stopped pass."""
-MAX_GALVO_FAULTS = 3
-"""Galvo faults cleared and retried before the session fails."""
 SNAPSHOT_MAX_HZ = 30.0
 FLUSH_WHILE_PAUSED_S = 0.5
-HEALTH_RECENT_S = 2.0
-_DEVICE_OF_FAULT = {"lost-data": "tagger", "tagger-reconnect": "tagger", "galvo-fault": "galvo",
-                    "galvo-reconnect": "galvo"}
+OUTPUT_CHECK_S = 0.5
+"""How often the session checks that its output folder still exists."""
+MAX_FAULTS_LISTED = 1000
+"""Faults of one kind listed in ``faults_seen``; more are only counted (``faults_not_listed``),
+so a flood of survived read anomalies cannot bloat ``run.json``."""
 
 
 class SessionState(str, Enum):
@@ -94,28 +96,15 @@ _TRANSITIONS = {
 _TERMINAL = {SessionState.DONE, SessionState.ABORTED, SessionState.FAILED}
 
 
-class AcqFlag(IntEnum):
-    """Why a pixel has fewer than the target detections (``acq_flags`` map, uint8)."""
-
-    COMPLETE = 0
-    """The pixel holds the target number of in-window detections."""
-    DWELL_LIMIT = 1
-    """Gated: a dwell reached the dwell limit before the target count."""
-    PASS_LIMIT = 2
-    """Still short when the pass budget (gated re-acquisition passes, raster frames) ran out."""
-    TIME_LIMIT = 3
-    """Still short when the scan's time limit passed."""
-    INCOMPLETE = 4
-    """The session (abort, failure) or the replayed stream ended before the pixel was complete."""
-
-
 @dataclass(frozen=True)
 class Snapshot:
     """What subscribers see: the state of the scan and copies of the maps (H x W).
 
-    depth_m, background, signal, uncertainty_s: the live reconstruction (NaN: not yet).
+    depth_m, background, signal, uncertainty_s: the live reconstruction (NaN: not yet), copied
+    between two reconstruction batches (a pixel's depth never comes without its background).
     counts: in-window detections kept per pixel; acq_flags: :class:`AcqFlag` of final pixels
-    (255 while a pixel is still being acquired); final: pixels complete or flagged.
+    (``ACQUIRING`` while a pixel is still being acquired); final: pixels complete or flagged.
+    faults: ``FaultRecord.to_dict()`` of each fault so far.
     """
 
     state: str
@@ -138,8 +127,9 @@ class Snapshot:
     faults: tuple = ()
     error: str | None = None
     health: dict = field(default_factory=dict)
-    """Per device ("galvo", "tagger"): "ok", "recovering" (a loss, reconnect or fault in the last
-    HEALTH_RECENT_S), "failed" (the session ended on that device's error) or "replay"."""
+    """Per device ("galvo", "tagger"), from the source: "ok", "recovering" (a loss, reconnect or
+    fault in the last HEALTH_RECENT_S), "failed" (the session ended on that device's error) or
+    "replay"."""
 
 
 class _Aborted(Exception):
@@ -147,62 +137,72 @@ class _Aborted(Exception):
 
 
 class Session:
-    """One scan, live (``galvo`` and ``tagger``) or replayed (``replay``, an
-    ``acq.recording.ReplaySource``).
+    """One scan from a :class:`~spdepth.acq.sources.Source`: a live scan (``galvo`` and
+    ``tagger``, or ``source=ScanSource(...)``), a replay (``replay``, an
+    ``acq.recording.ReplaySource``, or ``source=``) or any other source.
 
     plan:      what to scan; for a replay, the recorded plan with the replay's target.
     recon:     estimator settings with a fixed binning (window and bins in tagger units) and
                ``max_photons`` equal to ``plan.target`` (set here when None).
-    out_dir:   where ``recording.ptu`` (live only), ``events.jsonl``, ``maps.npz`` and
-               ``run.json`` go; None keeps everything in memory (tests, the GUI's dry runs).
-    sync_period_s: the laser period, for the recording's header (live).
+    source:    where the events come from (give this, or ``galvo`` and ``tagger``, or ``replay``).
+    out_dir:   where the source's files (a live scan's ``recording.ptu``), ``events.jsonl``,
+               ``maps.npz`` and ``run.json`` go; None keeps everything in memory (tests, the
+               GUI's dry runs).
+    sync_period_s, reader_options: for the live source built from ``galvo`` and ``tagger`` (the
+               laser period for the recording's header; more ``Tagger.reader`` arguments).
     gate_target: the count the galvo gated on when the stream was recorded (replay of a gated
-               recording; defaults to ``plan.target`` for a live gated scan): a complete dwell
-               with fewer detections ended at the dwell limit.
+               recording; defaults to the source's, ``plan.target`` for a live gated scan): a
+               complete dwell with fewer detections ended at the dwell limit.
     info:      extra JSON-able facts for ``run.json`` (scene, seed, software version, ...).
+
+    Building a session starts no thread: ``start`` (or ``run``) starts the session's thread and
+    the live reconstruction's worker, and both end with the session.
     """
 
     def __init__(self, plan: ScanPlan, recon: ReconSettings, *, galvo=None, tagger=None,
-                 replay=None, out_dir: str | Path | None = None, sync_period_s: float | None = None,
-                 gate_target: int | None = None, info: dict | None = None,
-                 reader_options: dict | None = None):
-        if (replay is None) == (galvo is None or tagger is None):
-            raise InputError("a session needs either a galvo and a tagger, or a replay source")
+                 replay=None, source: Source | None = None, out_dir: str | Path | None = None,
+                 sync_period_s: float | None = None, gate_target: int | None = None,
+                 info: dict | None = None, reader_options: dict | None = None):
+        live = galvo is not None or tagger is not None
+        if sum((source is not None, replay is not None, live)) != 1 or \
+                (live and (galvo is None or tagger is None)):
+            raise RequestError("a session needs exactly one source: a galvo and a tagger, a "
+                               "replay, or source=")
         if recon.binning is None:
-            raise InputError("a session needs a fixed binning (window and bin width)")
+            raise RequestError("a session needs a fixed binning (window and bin width)")
         if recon.max_photons is None:
             recon = replace(recon, max_photons=plan.target)
         if recon.max_photons != plan.target:
-            raise InputError(f"recon max_photons {recon.max_photons} differs from the target "
-                             f"{plan.target}")
+            raise RequestError(f"recon max_photons {recon.max_photons} differs from the target "
+                               f"{plan.target}")
+        if source is None:
+            source = replay if replay is not None else ScanSource(
+                galvo, tagger, sync_period_s=sync_period_s, reader_options=reader_options)
+        self.source: Source = source
         self.plan = plan
-        self.galvo, self.tagger, self.replay = galvo, tagger, replay
         self.out_dir = Path(out_dir) if out_dir is not None else None
-        self.sync_period_s = sync_period_s
         self.info = dict(info or {})
-        self.reader_options = dict(reader_options or {})
-        if gate_target is None and plan.mode == "gated" and replay is None:
-            gate_target = plan.target
+        if gate_target is None:
+            gate_target = source.default_gate_target(plan)
         self.gate_target = gate_target
         b = recon.binning
-        time_unit_s = b.time_unit_s
         self.store = PixelStore(plan.shape, plan.target,
                                 (int(np.floor(b.window_start)), int(np.ceil(b.window_stop))),
-                                time_unit_s)
+                                b.time_unit_s)
         self.recon = LiveRecon(self.store, recon)
-        self.acq_flags = np.full(plan.shape[0] * plan.shape[1], 255, np.uint8)
+        self.acq_flags = np.full(plan.shape[0] * plan.shape[1], ACQUIRING, np.uint8)
         self.final = np.zeros(plan.shape[0] * plan.shape[1], bool)
         self.lost: list = []
-        self.faults: list[dict] = []
+        self.faults: list[FaultRecord] = []
+        self.faults_not_listed: dict[str, int] = {}
         self.passes = 0
         self.detections = 0
         self.error: BaseException | None = None
-        self.recorder = None
-        self.reader = None
         self.stream_s: float | None = None
         self._state = SessionState.IDLE
         self._state_lock = threading.RLock()
         self._state_changed = threading.Condition(self._state_lock)
+        self._fault_lock = threading.Lock()
         self._pause_req = False
         self._abort_req = False
         self._ended = threading.Event()
@@ -210,12 +210,16 @@ class Session:
         self._t0 = time.monotonic()
         self._t_running: float | None = None
         self._t_end: float | None = None
-        self._first_record_t: float | None = None
         self._last_photon_t: float | None = None
+        self._next_output_check = 0.0
         self._stop_reason: AcqFlag = AcqFlag.INCOMPLETE
-        self._lost_in_pass = False              # a lost span arrived during the current pass
-        self._seen_reconnects = (0, 0, 0)       # galvo, tagger reconnects, tagger restarts
         self._events_log = None
+        self._host = _Host(self)
+
+    @property
+    def recorder(self):
+        """The source's recording (``acq.recording.Recorder``), if it writes one."""
+        return getattr(self.source, "recorder", None)
 
     # ---- commands (any thread) -------------------------------------------------------------------
     @property
@@ -227,6 +231,7 @@ class Session:
         with self._state_lock:
             if self._state != SessionState.IDLE or self._thread is not None:
                 raise SessionStateError(f"cannot start a session that is {self._state.value}")
+            self.recon.start()
             self._thread = threading.Thread(target=self._main, name="acq-session", daemon=True)
             self._thread.start()
         return self
@@ -249,6 +254,8 @@ class Session:
             step = 0.1 if deadline is None else min(0.1, max(0.0, deadline - time.monotonic()))
             if self._ended.wait(step) or (deadline is not None and time.monotonic() >= deadline):
                 break
+        if self._ended.is_set() and self._thread is not None:
+            self._thread.join()          # its last steps after the end was signalled
         return self._state
 
     def wait_for_state(self, state: SessionState, timeout_s: float = 10.0) -> bool:
@@ -282,53 +289,52 @@ class Session:
             self._abort_req = True
             self._state_changed.notify_all()
             started = self._thread is not None
-        if not started:   # never started: nothing to clean up but the worker and files
-            self._thread = threading.Thread(target=self._main, name="acq-session", daemon=True)
-            self._thread.start()
+            if not started:   # never started: nothing to clean up but the files
+                self._thread = threading.Thread(target=self._main, name="acq-session",
+                                                daemon=True)
+                self._thread.start()
 
     # ---- what subscribers see ------------------------------------------------------------------
     def snapshot(self) -> Snapshot:
         """The scan as it stands now (map copies; safe from any thread)."""
         h, w = self.plan.shape
-        now = self._t_end or time.monotonic()
-        running_s = (now - self._t_running) if self._t_running else 0.0
-        n_final = int(self.final.sum())
-        n_total = h * w
+        st = self._stats()
+        n_final, n_total, running_s = st["pixels_final"], h * w, st["running_s"]
         eta = None
         if running_s > 0 and 0 < n_final < n_total and self._state not in _TERMINAL:
             eta = (n_total - n_final) * running_s / n_final
         r = self.recon
-        flags = self.acq_flags.reshape(h, w).copy()
+        maps = r.copy_maps("depth_m", "background", "signal", "uncertainty_s")
         return Snapshot(
-            state=self._state.value, elapsed_s=now - self._t0, pixels_total=n_total,
+            state=self._state.value, elapsed_s=st["elapsed_s"], pixels_total=n_total,
             pixels_final=n_final, detections=self.detections,
-            detections_per_s=self.detections / running_s if running_s > 0 else 0.0,
-            lost_spans=len(self.lost), lost_records=sum(s.records_lost for s in self.lost),
-            eta_s=eta, recon_lag=r.lag, passes=self.passes, depth_m=r.depth_m.copy(),
-            background=r.background.copy(), signal=r.signal.copy(),
-            uncertainty_s=r.uncertainty_s.copy(),
-            counts=self.store.count.reshape(h, w).copy(), acq_flags=flags,
-            faults=tuple(dict(f) for f in self.faults),
+            detections_per_s=st["detections_per_s"], lost_spans=len(self.lost),
+            lost_records=st["lost_records"], eta_s=eta, recon_lag=r.lag, passes=self.passes,
+            **maps, counts=self.store.count.reshape(h, w).copy(),
+            acq_flags=self.acq_flags.reshape(h, w).copy(),
+            faults=tuple(f.to_dict() for f in list(self.faults)),
             error=None if self.error is None else str(self.error), health=self._health())
 
+    def _stats(self) -> dict:
+        now = self._t_end or time.monotonic()
+        running_s = (now - self._t_running) if self._t_running else 0.0
+        return {"elapsed_s": now - self._t0, "running_s": running_s,
+                "pixels_final": int(np.count_nonzero(self.final)),
+                "detections_per_s": self.detections / running_s if running_s > 0 else 0.0,
+                "lost_records": sum(s.records_lost for s in list(self.lost))}
+
     def _health(self) -> dict:
-        if self.replay is not None:
-            return {"galvo": "replay", "tagger": "replay"}
         now = time.monotonic() - self._t0
-        out = {"galvo": "ok", "tagger": "ok"}
-        for f in self.faults:
-            dev = _DEVICE_OF_FAULT.get(f["kind"])
-            if dev and now - f["t_s"] < HEALTH_RECENT_S:
-                out[dev] = "recovering"
-        if self._state == SessionState.FAILED and self.error is not None:
-            reader_failed = self.reader is not None and self.reader.error is not None
-            out["tagger" if reader_failed else "galvo"] = "failed"
-        return out
+        recent = [f for f in list(self.faults) if now - f.t_s < HEALTH_RECENT_S]
+        failed = self.error if self._state == SessionState.FAILED else None
+        return self.source.health(recent, failed)
 
     def subscribe(self, fn: Callable[[Snapshot], None], max_hz: float = SNAPSHOT_MAX_HZ):
         """Call ``fn(snapshot)`` from a thread of its own at most ``max_hz`` times a second, and
         once more at the end. A slow ``fn`` only skips snapshots: it always gets the latest, never
-        a queue, and never slows the scan. Returns an object whose ``close()`` unsubscribes."""
+        a queue, and never slows the scan. A ``fn`` that raises is logged once and unsubscribed
+        (the others go on). Returns an object whose ``close()`` unsubscribes and whose
+        ``join()`` waits for the last call after the session's end."""
         return _Subscription(self, fn, max_hz)
 
     @property
@@ -345,49 +351,42 @@ class Session:
         self._log({"event": "state", "state": new.value})
         log.info("session %s", new.value)
 
+    def _fail(self, exc: BaseException) -> None:
+        """Keep the error that ended the session and say so in one line."""
+        if self.error is None:
+            self.error = exc
+            log.error("session failed: %s: %s", type(exc).__name__, exc)
+
     def _main(self) -> None:
         final = SessionState.DONE
-        if self.out_dir is not None:
-            from spdepth.acq.recording import EventLog
-
-            self.out_dir.mkdir(parents=True, exist_ok=True)
-            self._events_log = EventLog(self.out_dir / "events.jsonl")
-            self._log({"event": "session", "plan": self.plan.to_dict(),
-                       "recon": self.recon.requested.to_dict(), "replay": self.replay is not None})
         try:
-            try:
-                if self._abort_req:
-                    raise _Aborted
-                self._set_state(SessionState.ARMED)
-                self._arm()
-                if self._abort_req:
-                    raise _Aborted
-                self._set_state(SessionState.RUNNING)
-                self._t_running = time.monotonic()
-                if self.replay is not None:
-                    self._run_replay()
-                else:
-                    self._run_live()
-            finally:
-                self._cleanup()
+            self._acquire()
         except _Aborted:
             final = SessionState.ABORTED
         except BaseException as exc:  # noqa: BLE001 - kept in .error, shown to every subscriber
-            log.error("session failed: %s: %s", type(exc).__name__, exc)
-            self.error = exc
+            self._fail(exc)
             final = SessionState.FAILED
+        try:
+            self.source.close()
+        except BaseException as exc:  # noqa: BLE001
+            if final == SessionState.FAILED:
+                log.warning("closing the source after the failure failed too: %s", exc)
+            else:
+                self._fail(exc)
+                final = SessionState.FAILED
+        if self._last_photon_t is not None and self.source.first_read_t is not None:
+            self.stream_s = self._last_photon_t - self.source.first_read_t
         if self._abort_req and final == SessionState.DONE:
             final = SessionState.ABORTED
         try:
             if self._state != SessionState.FINISHING:
                 self._set_state(SessionState.FINISHING)
-            self._finish(final)
+            final = self._finish(final)
         except BaseException as exc:  # noqa: BLE001
-            log.exception("session could not finish")
-            if self.error is None:
-                self.error = exc
+            self._fail(exc)
             final = SessionState.FAILED
         finally:
+            self.recon.close()
             self._t_end = time.monotonic()
             with self._state_lock:
                 self._state = final
@@ -396,6 +395,28 @@ class Session:
             self._close_log()
             self._ended.set()
 
+    def _acquire(self) -> None:
+        if self.out_dir is not None:
+            from spdepth.acq.recording import EventLog
+
+            try:
+                self.out_dir.mkdir(parents=True, exist_ok=True)
+                self._events_log = EventLog(self.out_dir / "events.jsonl")
+            except OSError as exc:
+                raise OutputError(f"output folder {self.out_dir}: cannot write "
+                                  f"({exc.strerror or exc})") from None
+            self._log({"event": "session", "plan": self.plan.to_dict(),
+                       "recon": self.recon.requested.to_dict(), "source": self.source.name})
+        if self._abort_req:
+            raise _Aborted
+        self._set_state(SessionState.ARMED)
+        self._arm()
+        if self._abort_req:
+            raise _Aborted
+        self._set_state(SessionState.RUNNING)
+        self._t_running = time.monotonic()
+        self._stop_reason = self.source.run(self._host)
+
     def _arm(self) -> None:
         # load (or compile) the store's kernel now, not when the first photons are waiting: two
         # rows of a kind the kernel ignores give the strided field views a real stream has
@@ -403,54 +424,22 @@ class Session:
         warm["kind"] = 255
         self.store.feed(warm)
         self.recon.warm_up()
-        if self.replay is not None:
-            return
-        from spdepth.acq.recording import Recorder
+        self.source.arm(self._host)
+        if self.source.warnings:
+            self._log({"event": "warnings", "warnings": list(self.source.warnings)})
 
-        if self.out_dir is not None:
-            self.recorder = Recorder(self.out_dir, self.plan, self.recon.requested,
-                                     resolution_s=self.tagger.resolution_s,
-                                     sync_period_s=self.sync_period_s, log=self._log,
-                                     info=self.info)
-        try:
-            self.galvo.stop()             # a scan left running by someone else would mix in
-        except DeviceError as exc:
-            log.warning("galvo STOP before the scan failed: %s", exc)
-        self._clear_leftover_fault()
-        self.reader = self.tagger.reader(tap=self.recorder, **self.reader_options).start()
-
-    # ---- live scanning ---------------------------------------------------------------------------
+    # ---- what a source calls (through _Host) -----------------------------------------------------
     def _needy(self) -> np.ndarray:
         return (~self.final & (self.store.count < self.plan.target)).reshape(self.plan.shape)
-
-    def _run_live(self) -> None:
-        plan = self.plan
-        budget_used = 0
-        while True:
-            self._honour_pause()
-            needy = self._needy()
-            if not needy.any():
-                return
-            if self._time_up():
-                self._stop_reason = AcqFlag.TIME_LIMIT
-                return
-            if budget_used >= plan.passes_allowed:
-                self._stop_reason = AcqFlag.PASS_LIMIT
-                return
-            interrupted = False
-            for geom in pass_regions(needy, plan.pattern):
-                interrupted = self._run_pass(geom)
-                if interrupted:
-                    break
-            if not (interrupted and self._pause_req):
-                budget_used += 1
 
     def _time_up(self) -> bool:
         t = self.plan.time_limit_s
         return t is not None and self._t_running is not None and time.monotonic() - self._t_running > t
 
-    def _honour_pause(self) -> None:
-        """Block while a pause is requested; raise _Aborted on abort."""
+    def _checkpoint(self) -> None:
+        """Block while a pause is requested; raise _Aborted on abort, a live-recon error, or an
+        OutputError when the output folder went away."""
+        self._check_health()
         if self._abort_req:
             raise _Aborted
         if not self._pause_req:
@@ -464,137 +453,26 @@ class Session:
             raise _Aborted
         self._set_state(SessionState.RUNNING)
 
-    def _galvo_pattern(self, geom: PassGeometry):
-        from spdepth.drivers.galvo import Gate, ScanMode, ScanPattern
-
-        p = self.plan
-        mode = ScanMode.RASTER if geom.pattern == "raster" else ScanMode.SERPENTINE
-        pattern = ScanPattern(geom.nx, geom.ny, p.col_deg(geom.col0), p.col_deg(geom.col0 + geom.nx - 1),
-                              p.row_deg(geom.row0), p.row_deg(geom.row0 + geom.ny - 1), mode=mode)
-        gate = Gate.count(p.target, p.dwell_s) if p.mode == "gated" else Gate.fixed(p.dwell_s)
-        return pattern, gate
-
-    def _run_pass(self, geom: PassGeometry) -> bool:
-        """One galvo pass over ``geom``; returns True when it was cut short (pause, abort, loss,
-        fault, time limit)."""
-        from spdepth.drivers.galvo import GalvoState
-
-        galvo, reader, store = self.galvo, self.reader, self.store
-        store.begin_pass(geom)
-        self.passes += 1
-        self._log({"event": "pass", "geometry": geom.to_dict(),
-                   "record": self.recorder.records if self.recorder else None})
-        pattern, gate = self._galvo_pattern(geom)
-        galvo.configure_scan(pattern, gate, settle_s=self.plan.settle_s, frames=1)
-        galvo.start()
-        stop_sent = cut = False
-        completed = None
-        t_stopped = None
-        last_data = time.monotonic()
-        next_poll = 0.0
-        while True:
-            chunk = reader.get(timeout_s=0.02)
-            if chunk is None:
-                raise DeviceError("the time tagger's stream ended during the scan")
-            now = time.monotonic()
-            if chunk.size:
-                last_data = now
-                if self._process(chunk):
-                    cut = True     # position unknown until the next frame: rescan, don't go blind
-            if not stop_sent and (cut or self._pause_req or self._abort_req or self._time_up()):
-                galvo.stop()
-                stop_sent = cut = True
-            if completed is None and now >= next_poll:
-                next_poll = now + STATUS_POLL_S
-                self._flush_files()
-                self._read_pixel_log()
-                st = galvo.status()
-                self._note_reconnects()     # after the calls that may have reconnected
-                if st.state == GalvoState.FAULT:
-                    self._galvo_fault(f"at row {st.row}, col {st.col}")
-                    completed, cut = -1, True
-                elif st.state != GalvoState.SCANNING:
-                    completed = st.completed
-            if completed is None:
-                continue
-            t_stopped = t_stopped or now
-            if store.lines_closed >= geom.ny:
-                break                       # every line closed: the whole pass is in
-            if completed >= 0 and not self._lost_in_pass and store.pixels_opened >= completed \
-                    and not store.dwell_open:
-                break                       # stopped early: the stream reached its last pixel
-            if now - last_data > QUIET_S and now - t_stopped > QUIET_S:
-                break
-            if now - t_stopped > DRAIN_TIMEOUT_S:
-                log.warning("stream still busy %.0f s after the pass ended; going on", DRAIN_TIMEOUT_S)
-                break
-        store.end_pass()
-        self._lost_in_pass = False
-        self._read_pixel_log()
-        return cut
+    def _check_health(self) -> None:
+        self.recon.raise_if_failed()
+        now = time.monotonic()
+        if self.out_dir is not None and now >= self._next_output_check:
+            self._next_output_check = now + OUTPUT_CHECK_S
+            if not self.out_dir.is_dir():
+                raise OutputError(f"output folder {self.out_dir} was removed while the session "
+                                  "wrote into it")
 
     def _flush_files(self) -> None:
-        for f in (self.recorder, self._events_log):
-            if f is not None:
-                f.flush_if_due()
+        self._check_health()
+        self.source.flush()
+        if self._events_log is not None:
+            self._events_log.flush_if_due()
 
-    def _note_reconnects(self) -> None:
-        """Record reconnects the drivers did on their own (galvo serial link, tagger USB)."""
-        g = getattr(self.galvo, "reconnects", 0)
-        stats = self.reader.stats if self.reader is not None else {}
-        t_rec, t_restart = stats.get("reconnects", 0), stats.get("restarts", 0)
-        g0, r0, s0 = self._seen_reconnects
-        if g > g0:
-            self._fault("galvo-reconnect", f"serial link lost and re-opened ({g - g0}x)",
-                        "settings restored, commands retried; the scan went on")
-        if t_rec > r0 or t_restart > s0:
-            self._fault("tagger-reconnect", f"tagger reconnected {t_rec - r0}x, measurement "
-                        f"restarted {t_restart - s0}x", "stream resumed; the lost span is rescanned")
-        self._seen_reconnects = (g, t_rec, t_restart)
+    def _begin_pass(self, geom: PassGeometry, position: int | None) -> None:
+        self.store.begin_pass(geom)
+        self.passes += 1
+        self._log({"event": "pass", "geometry": geom.to_dict(), "record": position})
 
-    def _galvo_fault(self, where: str) -> None:
-        """Record a galvo FAULT seen ``where``, clear it (*CLS re-homes the mirror), or give up
-        after MAX_GALVO_FAULTS. A FAULT left by an earlier run counts too: it refuses START."""
-        n = sum(1 for f in self.faults if f["kind"] == "galvo-fault") + 1
-        code, msg = self.galvo.next_error()
-        action = "cleared (*CLS); short pixels scanned in the next pass"
-        if n > MAX_GALVO_FAULTS:
-            action = "too many faults: session failed"
-        self._fault("galvo-fault", f"galvo FAULT {where}: {code.name} {msg}", action)
-        if n > MAX_GALVO_FAULTS:
-            raise DeviceError(f"galvo faulted {n} times (last: {msg}); giving up")
-        self.galvo.clear_errors()
-
-    def _clear_leftover_fault(self) -> None:
-        from spdepth.drivers.galvo import GalvoState
-
-        if self.galvo.status().state == GalvoState.FAULT:
-            self._galvo_fault("before the scan")
-
-    def _read_pixel_log(self) -> None:
-        while True:
-            page = self.galvo.poll_pixels()
-            if page.lost:
-                self._log({"event": "pixel_log_overrun", "lost": page.lost})
-            if not page.records:
-                return
-            self._log({"event": "pixels", "first_seq": page.first_seq,
-                       "records": [[r.frame, r.row, r.col, r.count, r.dwell_ns, r.flag.name]
-                                   for r in page.records]})
-
-    # ---- replay ----------------------------------------------------------------------------------
-    def _run_replay(self) -> None:
-        for geom, chunks in self.replay.segments():
-            self.store.begin_pass(geom)
-            self.passes += 1
-            for chunk in chunks:
-                self._honour_pause()
-                if self._first_record_t is None:
-                    self._first_record_t = self.replay.first_read_t
-                self._process(chunk)
-            self.store.end_pass()
-
-    # ---- shared: a chunk of events into the store ------------------------------------------------
     def _process(self, chunk: np.ndarray) -> bool:
         """Feed a chunk; hand pixels that became final to the reconstruction. Returns whether
         the chunk held a lost span."""
@@ -616,113 +494,110 @@ class Session:
             self._finalise(ready, AcqFlag.COMPLETE)
         for span in acc.lost:
             self.lost.append(span)
-            self._lost_in_pass = True
             where = "between pixels" if span.pixel < 0 else \
                 f"at pixel {tuple(int(v) for v in divmod(span.pixel, self.plan.nx))}"
             what = (f"{span.records_lost} records lost" if span.records_lost
                     else "stream interrupted (USB error or reconnect; count unknown)")
             self._fault("lost-data", f"{what} from sync {span.sync}, {where}",
-                        "pass stopped; the pixels without a complete dwell are scanned again"
-                        if self.replay is None else "replayed as recorded")
+                        self.source.lost_action)
         return bool(acc.lost)
 
     def _finalise(self, pixels: np.ndarray, flag: AcqFlag) -> None:
         if pixels.size == 0:
             return
-        keep = self.acq_flags[pixels] == 255
+        keep = self.acq_flags[pixels] == ACQUIRING
         self.acq_flags[pixels[keep]] = flag
         self.final[pixels] = True
         self.store.freeze(pixels)
         self.recon.submit(pixels)
 
     def _fault(self, kind: str, what: str, action: str) -> None:
-        entry = {"kind": kind, "t_s": round(time.monotonic() - self._t0, 3), "what": what,
-                 "action": action}
-        self.faults.append(entry)
-        self._log({"event": "fault", **entry})
+        """Record a fault (any thread: the tagger reader reports survived anomalies)."""
+        entry = FaultRecord(kind, round(time.monotonic() - self._t0, 3), what, action)
+        with self._fault_lock:
+            if sum(1 for f in self.faults if f.kind == kind) >= MAX_FAULTS_LISTED:
+                self.faults_not_listed[kind] = self.faults_not_listed.get(kind, 0) + 1
+                return
+            self.faults.append(entry)
+        self._log({"event": "fault", **entry.to_dict()})
         log.warning("%s: %s (%s)", kind, what, action)
 
     # ---- the end ---------------------------------------------------------------------------------
-    def _cleanup(self) -> None:
-        """Stop the instruments and close the stream and recording, whatever happened."""
-        if self.galvo is not None:
-            for step in (self.galvo.stop, self.galvo.park):
-                try:
-                    step()
-                except Exception as exc:  # noqa: BLE001 - cleanup goes on; the cause is logged
-                    log.warning("galvo %s during cleanup failed: %s", step.__name__, exc)
-        if self.reader is not None:
-            try:
-                self.reader.stop()
-            except Exception as exc:  # noqa: BLE001
-                log.warning("tagger reader did not stop cleanly: %s", exc)
-        self._note_reconnects()
-        if self.recorder is not None:
-            self.recorder.close()
-        if self._last_photon_t is not None and self.replay is not None:
-            self.stream_s = self._last_photon_t - (self.replay.first_read_t or self._t_running)
-
-    def _finish(self, final: SessionState) -> None:
+    def _finish(self, final: SessionState) -> SessionState:
+        """Flag what is short, reconstruct the rest, write maps.npz and run.json; returns the
+        final state (FAILED when the reconstruction or the files fail)."""
         reason = AcqFlag.INCOMPLETE if final != SessionState.DONE else self._stop_reason
         rest = np.flatnonzero(~self.final)
         short = rest[self.store.count[rest] < self.plan.target]
         self.acq_flags[short] = reason
-        self._finalise(rest, AcqFlag.COMPLETE)
-        self.recon.finish()
-        if self.out_dir is not None:
-            self.maps().save_npz(self.out_dir / "maps.npz")
-            _write_json_atomic(self.out_dir / "run.json", self.run_record(final))
+        try:
+            self._finalise(rest, AcqFlag.COMPLETE)
+            self.recon.finish()
+        except BaseException as exc:  # noqa: BLE001 - the worker's error ends the session
+            self._fail(exc)
+            final = SessionState.FAILED
+        if self.out_dir is None:
+            return final
+        if not self.out_dir.is_dir():
+            if not isinstance(self.error, OutputError):
+                self._fail(OutputError(f"output folder {self.out_dir} was removed before the "
+                                       "session could write its maps and run.json"))
+            return SessionState.FAILED
+        _save_maps_npz(self.out_dir / "maps.npz", self.maps(),
+                       acq_flags=self.acq_flags.reshape(self.plan.shape))
+        _write_json_atomic(self.out_dir / "run.json", self.run_record(final))
+        return final
 
     def maps(self):
         """The maps as they stand, in ``spdepth recon``'s format (``DepthMaps``)."""
         return self.recon.maps()
 
     def flagged_pixels(self) -> np.ndarray:
-        return np.flatnonzero((self.acq_flags != AcqFlag.COMPLETE) & (self.acq_flags != 255))
+        """Flat indices of the final pixels short of the target (``maps.npz`` holds them as the
+        ``acq_flags`` map)."""
+        return np.flatnonzero((self.acq_flags != AcqFlag.COMPLETE) & (self.acq_flags != ACQUIRING))
 
     def run_record(self, final: SessionState | None = None) -> dict:
-        """What ``run.json`` holds."""
+        """What ``run.json`` holds (small for any scan size: the flags per pixel are in
+        ``maps.npz`` as ``acq_flags``; here only their counts per reason)."""
         from importlib.metadata import PackageNotFoundError, version
 
         try:
             ver = version("spdepth")
         except PackageNotFoundError:
             ver = "unknown"
-        flagged = self.flagged_pixels()
-        snap = self.snapshot()
-        identities = {}
-        for name, dev in (("galvo", self.galvo), ("tagger", self.tagger)):
-            ident = getattr(dev, "identity", None) if dev is not None else None
-            if ident is not None:
-                identities[name] = _jsonable(ident)
-        if self.tagger is not None and getattr(self.tagger, "settings", None) is not None:
-            identities["tagger_settings"] = _jsonable(self.tagger.settings)
-        return {
+        st = self._stats()
+        flags = self.acq_flags[(self.acq_flags != AcqFlag.COMPLETE) & (self.acq_flags != ACQUIRING)]
+        out = {
             "state": (final or self._state).value,
             "error": None if self.error is None else f"{type(self.error).__name__}: {self.error}",
             "software": {"name": "spdepth", "version": ver},
-            "source": "replay" if self.replay is not None else "live",
+            "source": self.source.name,
             "plan": self.plan.to_dict(),
             "recon": self.recon.resolved or self.recon.requested.to_dict(),
-            "devices": identities,
+            "devices": _jsonable(self.source.identities()),
             "info": self.info,
             "statistics": {
                 "detections": self.detections, "kept": self.store.kept,
                 "unassigned_photons": self.store.unassigned,
                 "dropped_dwells": self.store.dropped_dwells, "passes": self.passes,
-                "lost_spans": len(self.lost), "lost_records": snap.lost_records,
-                "elapsed_s": round(snap.elapsed_s, 3),
-                "detections_per_s": round(snap.detections_per_s, 1),
+                "lost_spans": len(self.lost), "lost_records": st["lost_records"],
+                "elapsed_s": round(st["elapsed_s"], 3),
+                "detections_per_s": round(st["detections_per_s"], 1),
                 "recon_max_lag_pixels": self.recon.max_lag,
                 "recon_busy_s": round(self.recon.busy_s, 3),
-                "records_recorded": self.recorder.records if self.recorder else None,
+                **self.source.statistics(),
                 "stream_s": self.stream_s,
             },
-            "flagged_pixels": flagged.tolist(),
             "flag_reasons": {AcqFlag(int(k)).name: int(v) for k, v in
-                             zip(*np.unique(self.acq_flags[flagged], return_counts=True))},
-            "faults_seen": list(self.faults),
+                             zip(*np.unique(flags, return_counts=True))},
+            "flags_map": "maps.npz: acq_flags (uint8 AcqFlag per pixel)",
+            "warnings": list(self.source.warnings),
+            "faults_seen": [f.to_dict() for f in list(self.faults)],
         }
+        if self.faults_not_listed:
+            out["faults_not_listed"] = dict(self.faults_not_listed)
+        return out
 
     # ---- event log -------------------------------------------------------------------------------
     def _log(self, entry: dict) -> None:
@@ -731,8 +606,61 @@ class Session:
 
     def _close_log(self) -> None:
         if self._events_log is not None:
-            self._events_log.close()
+            try:
+                self._events_log.close()
+            except OSError as exc:
+                log.warning("events.jsonl did not close cleanly: %s", exc)
             self._events_log = None
+
+
+class _Host:
+    """The session as its source sees it (``acq.sources.SourceHost``)."""
+
+    def __init__(self, session: Session):
+        self._s = session
+        self.plan = session.plan
+        self.store = session.store
+        self.out_dir = session.out_dir
+        self.info = session.info
+
+    @property
+    def recon_settings(self):
+        return self._s.recon.requested
+
+    @property
+    def pause_requested(self) -> bool:
+        return self._s._pause_req
+
+    def begin_pass(self, geom: PassGeometry, position: int | None = None) -> None:
+        self._s._begin_pass(geom, position)
+
+    def end_pass(self) -> None:
+        self.store.end_pass()
+
+    def process(self, chunk: np.ndarray) -> bool:
+        return self._s._process(chunk)
+
+    def checkpoint(self) -> None:
+        self._s._checkpoint()
+
+    def stop_requested(self) -> bool:
+        s = self._s
+        return s._pause_req or s._abort_req or s._time_up()
+
+    def time_up(self) -> bool:
+        return self._s._time_up()
+
+    def needy(self) -> np.ndarray:
+        return self._s._needy()
+
+    def fault(self, kind: str, what: str, action: str) -> None:
+        self._s._fault(kind, what, action)
+
+    def log(self, entry: dict) -> None:
+        self._s._log(entry)
+
+    def flush(self) -> None:
+        self._s._flush_files()
 
 
 class _Subscription:
@@ -740,6 +668,7 @@ class _Subscription:
         self._session, self._fn = session, fn
         self._period = 1.0 / max(0.1, float(max_hz))
         self._closed = threading.Event()
+        self.failed: BaseException | None = None
         self._thread = threading.Thread(target=self._run, name="session-subscriber", daemon=True)
         self._thread.start()
 
@@ -749,11 +678,19 @@ class _Subscription:
             ended = s.ended.wait(self._period)
             try:
                 self._fn(s.snapshot())
-            except Exception:  # noqa: BLE001 - a broken subscriber must not take others down
-                log.exception("snapshot subscriber failed; unsubscribed")
+            except Exception as exc:  # noqa: BLE001 - a broken subscriber must not take others down
+                self.failed = exc
+                log.error("snapshot subscriber %r failed (%s: %s); unsubscribed",
+                          getattr(self._fn, "__name__", self._fn), type(exc).__name__, exc)
                 return
             if ended:
                 return
+
+    def join(self, timeout_s: float | None = None) -> bool:
+        """Wait for the subscription to end by itself (its last call after the session's end,
+        or its failure); returns whether it has ended."""
+        self._thread.join(timeout_s)
+        return not self._thread.is_alive()
 
     def close(self, timeout_s: float = 2.0) -> None:
         self._closed.set()
@@ -775,6 +712,24 @@ def _jsonable(obj):
     return obj
 
 
+def _save_maps_npz(path: Path, maps, **extra: np.ndarray) -> None:
+    """``maps`` as ``DepthMaps.save_npz`` writes them (same keys, ``DepthMaps.load_npz`` reads
+    it) plus ``extra`` arrays, deflated at level 1: a 4096 x 4096 scan's maps are most of a GB and
+    the default level took seconds per map. Written to a temporary name, then renamed."""
+    from spdepth.recon.maps import NPZ_KEYS
+
+    arrays = {k: np.asarray(getattr(maps, k)) for k in NPZ_KEYS if k != "settings"}
+    arrays["settings"] = np.array(json.dumps(maps.settings))
+    arrays.update(extra)
+    tmp = path.with_name(path.name + ".tmp")
+    with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=1,
+                         allowZip64=True) as zf:
+        for name, arr in arrays.items():
+            with zf.open(name + ".npy", "w", force_zip64=True) as fh:
+                np.lib.format.write_array(fh, np.asanyarray(arr), allow_pickle=False)
+    os.replace(tmp, path)
+
+
 def _write_json_atomic(path: Path, data: dict) -> None:
     tmp = path.with_suffix(path.suffix + ".tmp")
     with open(tmp, "w", encoding="utf-8") as fh:
@@ -784,4 +739,5 @@ def _write_json_atomic(path: Path, data: dict) -> None:
     os.replace(tmp, path)
 
 
-__all__ = ["Session", "SessionState", "SessionStateError", "AcqFlag", "Snapshot", "ScanPlan"]
+__all__ = ["Session", "SessionState", "SessionStateError", "AcqFlag", "ACQUIRING", "Snapshot",
+           "ScanPlan"]

@@ -14,16 +14,18 @@ import pytest
 
 from spdepth.acq.instruments import open_sim, recon_settings, sim_plan, window_binning
 from spdepth.acq.recording import ReplaySource, recon_settings_from_dict
-from spdepth.acq.session import AcqFlag, Session, SessionState, SessionStateError
+from spdepth.acq.session import ACQUIRING, AcqFlag, Session, SessionState, SessionStateError
 from spdepth.recon.maps import DepthMaps
 
 
-def _session(inst, shape, out=None, *, target=10, method="lmf", **plan_kwargs):
+def _session(inst, shape, out=None, *, target=10, method="lmf", reader_options=None,
+             **plan_kwargs):
     plan = sim_plan(inst, shape, target=target, **plan_kwargs)
     settings = recon_settings(method, window_binning(inst.tagger.resolution_s), target,
                               inst.scene.pulse_rms_s)
     return Session(plan, settings, galvo=inst.galvo, tagger=inst.tagger, out_dir=out,
-                   sync_period_s=inst.sync_period_s, info=inst.info)
+                   sync_period_s=inst.sync_period_s, info=inst.info,
+                   reader_options=reader_options)
 
 
 def _dwells_by_pixel(rig, width):
@@ -54,7 +56,7 @@ def assert_complete_or_flagged(session):
     target = session.plan.target
     counts = session.store.count
     flags = session.acq_flags
-    assert np.all(flags != 255), "every pixel ends final"
+    assert np.all(flags != ACQUIRING), "every pixel ends final"
     short = counts < target
     assert np.all(flags[short] != AcqFlag.COMPLETE), "a short pixel passed as complete"
     assert np.all(counts[flags == AcqFlag.COMPLETE] == target)
@@ -70,7 +72,8 @@ def test_gated_session_completes_every_pixel_from_its_own_dwells(tmp_path, galvo
         assert_from_complete_dwells(s, inst.rig)
     assert np.all(s.store.count == 10) and s.passes == 1
     run = json.loads((tmp_path / "run.json").read_text())
-    assert run["state"] == "done" and run["flagged_pixels"] == [] and run["faults_seen"] == []
+    assert run["state"] == "done" and run["flag_reasons"] == {} and run["faults_seen"] == []
+    assert "flagged_pixels" not in run and run["warnings"] == []
     assert run["statistics"]["detections"] == s.detections > 12 * 16 * 10 - 1
     maps = DepthMaps.load_npz(tmp_path / "maps.npz")
     assert np.isfinite(maps.depth_m).mean() > 0.9
@@ -104,8 +107,13 @@ def test_raster_frame_limit_flags_what_stays_short(tmp_path):
     flagged = s.flagged_pixels()
     assert flagged.size > 0 and np.all(s.acq_flags[flagged] == AcqFlag.PASS_LIMIT)
     run = json.loads((tmp_path / "run.json").read_text())
-    assert run["flagged_pixels"] == flagged.tolist()
+    assert "flagged_pixels" not in run           # a huge scan's list would bloat run.json
     assert run["flag_reasons"] == {"PASS_LIMIT": flagged.size}
+    with np.load(tmp_path / "maps.npz") as z:    # the flags are a map beside the depth maps
+        acq_flags = z["acq_flags"]
+    assert acq_flags.shape == (8, 8) and acq_flags.dtype == np.uint8
+    np.testing.assert_array_equal(np.flatnonzero(acq_flags.ravel() != AcqFlag.COMPLETE), flagged)
+    assert np.all(acq_flags.ravel()[flagged] == AcqFlag.PASS_LIMIT)
 
 
 def test_gated_dwell_limit_flags_dark_pixels():
@@ -197,10 +205,20 @@ def _wait(cond, timeout_s=30.0):
     return False
 
 
-def _replay(rec_dir, **kwargs):
-    from spdepth.acq.commands.replay import build_session
+def _replay(rec_dir, *, target=None, out=None):
+    """A replay session of one of our recordings with its recorded plan and settings (what the
+    front ends build from a replay request)."""
+    import dataclasses
 
-    return build_session(rec_dir, **kwargs)
+    from spdepth.acq.plan import ScanPlan
+
+    src = ReplaySource(rec_dir)
+    plan = ScanPlan.from_dict(src.info.plan)
+    gate_target = plan.target if plan.mode == "gated" else None
+    if target is not None:
+        plan = dataclasses.replace(plan, target=target)
+    settings = recon_settings_from_dict(src.info.recon, max_photons=plan.target)
+    return Session(plan, settings, replay=src, out_dir=out, gate_target=gate_target)
 
 
 def _assert_same_maps(a: DepthMaps, b: DepthMaps, skip_flags=False):
@@ -319,8 +337,7 @@ def test_a_tagger_that_does_not_come_back_fails_the_session_cleanly(tmp_path):
     # raced through the whole frame into the FIFO
     with open_sim("bust", (12, 12), ppp=10, seed=13, faults="device-vanish@0.05s",
                   tagger_options={"vanish_s": 5.0}, galvo_options={"pace": 1.0}) as inst:
-        s = _session(inst, (12, 12), tmp_path)
-        s.reader_options = {"reconnect_timeout_s": 0.3}
+        s = _session(inst, (12, 12), tmp_path, reader_options={"reconnect_timeout_s": 0.3})
         seen = []
         s.subscribe(lambda snap: seen.append(snap), max_hz=30)
         assert s.run() == SessionState.FAILED
@@ -362,5 +379,5 @@ def test_a_galvo_left_in_fault_is_cleared_before_the_scan(tmp_path):
         s = _session(inst, (6, 6), tmp_path)
         assert s.run() == SessionState.DONE, s.error
     assert s.flagged_pixels().size == 0
-    assert [f["kind"] for f in s.faults] == ["galvo-fault"]
-    assert "before the scan" in s.faults[0]["what"]
+    assert [f.kind for f in s.faults] == ["galvo-fault"]
+    assert "before the scan" in s.faults[0].what

@@ -251,7 +251,10 @@ class TaggerFirmware:
         if fifo.fill_records >= fifo.capacity_records:
             flags |= StatusFlag.FIFO_FULL
         gap = self._gap or Gap(0, 0, 0)
-        return TaggerStatus(flags, fifo.fill_records, fifo.lost_records - self._lost0,
+        # the fill counts what the host has not read yet: the FIFO and the records already
+        # packed for the bulk endpoint
+        fill = fifo.fill_records + len(self._out) // 4
+        return TaggerStatus(flags, fill, fifo.lost_records - self._lost0,
                             gap.lost_records, gap.position)
 
     # ---- the record stream -----------------------------------------------------------------------
@@ -500,12 +503,14 @@ class SimTaggerBackend(TaggerUsbDescriptors):
                 self._check_present()
                 self._fire_due_faults()
                 self._check_present()
-                if self._timeouts_due:
+                fw = self.firmware
+                fw.pump(len(view))
+                if self._timeouts_due and fw.pending_bytes():
+                    # "times out with data waiting": the records stay in the device for the
+                    # next read (a due timeout waits for records to hold back)
                     self._timeouts_due -= 1
                     raise usb.core.USBTimeoutError("Operation timed out (injected)", -7,
                                                    errno.ETIMEDOUT)
-                fw = self.firmware
-                fw.pump(len(view))
                 n = min(fw.pending_bytes(), len(view))
                 if n and self._partials_due and n > 4:
                     self._partials_due -= 1

@@ -15,7 +15,10 @@ Lost data is reported in-band as ``EventKind.LOST`` events (``sync`` where the h
 After a restart the device's sync counter begins again at 0; the reader offsets it so syncs keep
 increasing across the hole (they then count from an estimate, which is why the LOST event is there).
 A bulk timeout loses nothing (libusb hands over whatever arrived; the device keeps the rest), so
-the reader simply reads again.
+the reader simply reads again; nor does a read that ends mid-record (the record's first bytes wait
+for the next read). Both are survived anomalies: they are counted in ``stats`` and, when the device
+still held records after the timeout or a record was split, reported to ``notice`` so an owner can
+prove that an injected fault ran.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ import array
 import logging
 import queue
 import threading
+from enum import Enum
 from typing import Callable
 
 import numpy as np
@@ -34,6 +38,15 @@ from spdepth.drivers.tagger.t3 import T3DecoderState, decode_t3
 from spdepth.drivers.tagger.transport import DeviceGoneError, EndpointStallError
 
 log = logging.getLogger(__name__)
+
+
+class ReadAnomaly(str, Enum):
+    """A read problem the reader survived with nothing lost (``notice`` kinds)."""
+
+    USB_TIMEOUT = "usb-timeout"
+    """A bulk read timed out while the device held records."""
+    PARTIAL_READ = "partial-read"
+    """A bulk read ended in the middle of a record."""
 
 
 def lost_event(sync: int, n_records: int) -> np.ndarray:
@@ -62,6 +75,10 @@ class TaggerReader:
                          (uint32 array, valid only during the call) and every hole, before the
                          records are decoded: a recorder sees the stream exactly as it came.
                          ``restart`` says the device restarted (its sync counter from 0).
+    notice:              called from the thread as ``notice(kind, what)`` for an anomaly survived
+                         with nothing lost: ``kind`` a :class:`ReadAnomaly` value ("usb-timeout":
+                         a bulk read timed out while the device held records; "partial-read": a
+                         read ended mid-record), ``what`` in words.
 
     Consume with ``get`` (or iterate): a thread error is re-raised there once the chunks queued
     before it have been taken, so it never dies silently.
@@ -71,7 +88,7 @@ class TaggerReader:
                  read_timeout_s: float = 0.05, start_measurement: bool = True,
                  reconnect_timeout_s: float = 5.0,
                  connection_lost: Callable[[BaseException | None], None] | None = None,
-                 tap=None):
+                 tap=None, notice: Callable[[str, str], None] | None = None):
         if buffer_bytes < 512 or buffer_bytes % 512:
             raise SettingError(f"reader buffer_bytes={buffer_bytes} must be a positive multiple of 512")
         if queue_chunks < 1:
@@ -82,6 +99,7 @@ class TaggerReader:
         self.reconnect_timeout_s = float(reconnect_timeout_s)
         self.connection_lost = connection_lost
         self.tap = tap
+        self.notice = notice
         self._queue: queue.Queue[np.ndarray] = queue.Queue(maxsize=queue_chunks)
         # One buffer for the life of the reader; pyusb fills array.array objects in place and the
         # NumPy view below sees the bytes without a copy.
@@ -96,7 +114,8 @@ class TaggerReader:
         self._error: BaseException | None = None
         self._thread: threading.Thread | None = None
         self.stats = {"records": 0, "events": 0, "lost_events": 0, "timeouts": 0,
-                      "restarts": 0, "reconnects": 0}
+                      "timeouts_with_data": 0, "partial_reads": 0, "restarts": 0, "reconnects": 0}
+        self._timed_out = False    # the last bulk read timed out
 
     # ---- owner side ------------------------------------------------------------------------------
     def start(self) -> "TaggerReader":
@@ -217,6 +236,7 @@ class TaggerReader:
             n = self.tagger.read_into(self._buffer, self.read_timeout_s)
         except DeviceTimeoutError:
             self.stats["timeouts"] += 1
+            self._timed_out = True
             n = 0
         except EndpointStallError as exc:
             log.warning("bulk endpoint stalled (%s): restarting the measurement", exc)
@@ -251,9 +271,22 @@ class TaggerReader:
             whole = data.size - data.size % 4
             records = data[:whole].view(np.uint32)
             self._carry = data[whole:].copy()
+            if self._carry.size:
+                self.stats["partial_reads"] += 1
+                self._notify(ReadAnomaly.PARTIAL_READ, f"a bulk read of {n} bytes ended "
+                             f"mid-record; the record's {self._carry.size} bytes waited for the "
+                             "next read")
         else:
             records = np.zeros(0, dtype=np.uint32)
         status = self.tagger.status()
+        if self._timed_out:
+            self._timed_out = False
+            if status.fifo_fill_records > 0:
+                # an idle stream times out all the time; one that times out while the device
+                # holds records is an anomaly (USB hiccup), survived by reading again
+                self.stats["timeouts_with_data"] += 1
+                self._notify(ReadAnomaly.USB_TIMEOUT, "a bulk read timed out while the tagger "
+                             f"held {status.fifo_fill_records} records; read again")
         end = self._position + records.size
         if status.overrun and status.gap_position <= end:
             split = status.gap_position - self._position
@@ -282,6 +315,14 @@ class TaggerReader:
             self._push(decode_t3(records, self.state))
         self._position = end
         self.stats["records"] += int(records.size)
+
+    def _notify(self, kind: "ReadAnomaly", what: str) -> None:
+        log.info("%s: %s", kind.value, what)
+        if self.notice is not None:
+            try:
+                self.notice(kind.value, what)
+            except Exception:  # noqa: BLE001 - a faulty callback must not end the stream
+                log.exception("notice callback failed")
 
     def _session_sync(self, device_sync: int) -> int:
         """A device sync (since its START) in the reader's sync count."""
