@@ -61,16 +61,19 @@ def remembered_spec(settings=None):
         return None
 
 
-def run_window(spec=None, *, start: bool = True, screenshot: str | Path | None = None,
+def run_window(what=None, *, start: bool = True, screenshot: str | Path | None = None,
                exit_after_scan: bool = False, out_dir="auto",
                window_size: tuple[int, int] | None = None, settings=None) -> int:
-    """Show the window with ``spec`` (a ``gui.sources.SourceSpec``) in its controls, started at
-    once when ``start``, and run the Qt loop. With ``screenshot``, the whole window is grabbed into
-    that PNG when the scan ends; with ``exit_after_scan`` the loop ends then. ``window_size``
-    (width, height) overrides the remembered geometry. Returns 0 (scan done, or window closed),
-    1 (scan aborted or failed), 2 (the source could not be started and the window is not kept)."""
+    """Show the window with ``what`` in its controls (a ``gui.sources.SourceSpec``, or an
+    ``acq.requests`` scan/replay/file request, which is run as given), started at once when
+    ``start``, and run the Qt loop. ``out_dir`` as ``MainWindow.start_run`` takes it. With
+    ``screenshot``, the whole window is grabbed into that PNG when the scan ends; with
+    ``exit_after_scan`` the loop ends then. ``window_size`` (width, height) overrides the
+    remembered geometry. Returns 0 (scan done, or window closed), 1 (scan aborted or failed), 2 (the
+    source could not be started and the window is not kept)."""
     from PySide6 import QtCore
 
+    from spdepth.gui.sources import SourceSpec
     from spdepth.gui.window import MainWindow
 
     app = application()
@@ -79,8 +82,10 @@ def run_window(spec=None, *, start: bool = True, screenshot: str | Path | None =
         win.resize(*window_size)
     elif not win.settings.contains("geometry"):
         win.resize(*WINDOW_SIZE)
-    if spec is not None:
-        win.controls.set_spec(spec)
+    if isinstance(what, SourceSpec):
+        win.controls.set_spec(what)
+    elif what is not None:
+        win.controls.set_spec(SourceSpec.from_request(what, win.controls.spec()))
     win.show()
     result = {"code": 0}
 
@@ -94,8 +99,8 @@ def run_window(spec=None, *, start: bool = True, screenshot: str | Path | None =
             QtCore.QTimer.singleShot(0, win.close)
 
     win.scan_ended.connect(ended)
-    if spec is not None and start:
-        if not win.start_run(spec, out_dir=out_dir) and exit_after_scan:
+    if what is not None and start:
+        if not win.start_run(what, out_dir=out_dir) and exit_after_scan:
             print(f"spdepth gui: {win.banner_text.text()}", file=sys.stderr)
             win.close()
             win.deleteLater()
@@ -109,17 +114,13 @@ def run_window(spec=None, *, start: bool = True, screenshot: str | Path | None =
     return result["code"]
 
 
-def run_demo_window(*, scene: str, size: tuple[int, int], target: int, sbr: float, seed: int,
-                    faults: str, method: str, out_dir=None, exit_after_scan: bool = False,
+def run_demo_window(request, out_dir=None, *, exit_after_scan: bool = False,
                     screenshot: str | Path | None = None) -> int:
-    """``spdepth demo`` with a display: the same simulated scan started in the window (size is
-    (H, W)); out_dir None keeps the run in memory. Returns ``run_window``'s code."""
-    from spdepth.gui.sources import SourceSpec
-
+    """``spdepth demo`` with a display: the demo's scan (an ``acq.requests.ScanRequest``) started
+    in the window as given. ``out_dir``: the caller's session folder (the caller holds its lock),
+    None keeps the run in memory. Returns ``run_window``'s code."""
     application()
-    spec = SourceSpec(kind="sim", scene=scene, size=tuple(size), target=int(target), sbr=sbr,
-                      seed=int(seed), faults=faults, method=method, mode="gated")
-    return run_window(spec, start=True, out_dir=out_dir, exit_after_scan=exit_after_scan,
+    return run_window(request, start=True, out_dir=out_dir, exit_after_scan=exit_after_scan,
                       screenshot=screenshot, window_size=WINDOW_SIZE)
 
 

@@ -1,26 +1,26 @@
 """Does the window slow the scan? Detections/s of the same simulated scan (and of a replay of its
 recording at full speed) headless and with the window open, alternated, medians and their ratio.
 
-    QT_QPA_PLATFORM=offscreen python -m gui.benchmark [--size 48x48] [--target 10] [--repeats 3]
+:func:`measure` takes plain arguments; the command line that calls it lives with the CLI
+(``acq/commands/gui.py``'s ``bench``).
 
 Headless runs the session alone (as ``spdepth scan`` does, without its progress bar); windowed
-starts the same source from ``MainWindow.start_run`` and lets the window paint at its timer's rate.
+starts the same request from ``MainWindow.start_run`` and lets the window paint at its timer's
+rate.
 """
 
 from __future__ import annotations
 
-import argparse
 import statistics
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 
-def _headless(spec, out_dir=None) -> float:
+def _headless(request, out_dir=None) -> float:
     from spdepth.gui.sources import open_run
 
-    run = open_run(spec, out_dir)
+    run = open_run(request, out_dir)
     try:
         run.session.start()
         run.session.wait()
@@ -32,7 +32,7 @@ def _headless(spec, out_dir=None) -> float:
     return snap.detections_per_s
 
 
-def _windowed(spec) -> tuple[float, int]:
+def _windowed(request) -> tuple[float, int]:
     from PySide6 import QtCore
 
     from spdepth.gui.app import application
@@ -56,7 +56,7 @@ def _windowed(spec) -> tuple[float, int]:
     win.refresh = counted          # the timer's _tick calls it (and decides when maps repaint)
     loop = QtCore.QEventLoop()
     win.scan_ended.connect(lambda _s: loop.quit())
-    if not win.start_run(spec, out_dir=None):
+    if not win.start_run(request, out_dir=None):
         raise RuntimeError(win.banner_text.text())
     loop.exec()
     snap = win.session.snapshot()
@@ -68,51 +68,41 @@ def _windowed(spec) -> tuple[float, int]:
     return snap.detections_per_s, paints["n"]
 
 
-def main(argv=None) -> int:
-    from spdepth.acq.commands._args import positive_int, size_wxh
+def measure(*, scene: str = "bust", size: tuple[int, int] = (48, 48), target: int = 10,
+            repeats: int = 3, replay: bool = True, out=None) -> dict:
+    """Alternate headless and windowed runs of a simulated scan of ``scene`` (size (H, W),
+    ``target`` detections per pixel) ``repeats`` times, and with ``replay`` of a replay of its
+    recording at full speed; print the medians to ``out`` (each run to stderr as it ends).
+    Returns ``{name: (headless det/s list, windowed det/s list)}``."""
+    from spdepth.acq.requests import ReplayRequest, ScanRequest, SimBench
     from spdepth.gui.app import application
-    from spdepth.gui.sources import SourceSpec
 
-    ap = argparse.ArgumentParser(prog="python -m gui.benchmark", description=__doc__.split("\n")[0])
-    ap.add_argument("--size", type=size_wxh, default=(48, 48), metavar="WxH")
-    ap.add_argument("--target", type=positive_int, default=10)
-    ap.add_argument("--scene", default="bust")
-    ap.add_argument("--repeats", type=positive_int, default=3)
-    ap.add_argument("--no-replay", action="store_true", help="skip the replay comparison")
-    args = ap.parse_args(argv)
+    out = out if out is not None else sys.stdout
     application()
-    spec = SourceSpec(kind="sim", scene=args.scene, size=args.size, target=args.target)
-    _headless(SourceSpec(kind="sim", size=(8, 8), target=2))        # warm the numba caches
-    rows = []
+    scan = ScanRequest(instruments=SimBench(scene=scene), size=tuple(size), target=target)
+    _headless(ScanRequest(size=(8, 8), target=2))        # warm the numba caches
     results = {"scan": ([], [])}
-    tmp = Path(tempfile.mkdtemp(prefix="spdepth-bench-"))
-    rec = tmp / "rec"
-    _headless(spec, rec)
-    replay = SourceSpec(kind="replay", recording=str(rec), target=0, method="uos")
-    if not args.no_replay:
+    rec = Path(tempfile.mkdtemp(prefix="spdepth-bench-")) / "rec"
+    _headless(scan, rec)
+    replayed = ReplayRequest(recording=str(rec), method="uos")
+    if replay:
         results["replay (max speed)"] = ([], [])
-    for i in range(args.repeats):
+    for i in range(repeats):
         for name, (head, win) in results.items():
-            s = spec if name == "scan" else replay
-            h = _headless(s)
-            w, n = _windowed(s)
+            request = scan if name == "scan" else replayed
+            h = _headless(request)
+            w, n = _windowed(request)
             head.append(h)
             win.append(w)
-            rows.append(f"  {name:20s} run {i + 1}: headless {h:12,.0f} det/s   window {w:12,.0f} "
-                        f"det/s   ({n} map repaints)")
-            print(rows[-1], file=sys.stderr, flush=True)
-    h, w = args.size
-    print(f"{args.scene} {w}x{h}, target {args.target}, {args.repeats} alternated runs each "
-          f"(medians):")
+            print(f"  {name:20s} run {i + 1}: headless {h:12,.0f} det/s   window {w:12,.0f} "
+                  f"det/s   ({n} map repaints)", file=sys.stderr, flush=True)
+    h, w = size
+    print(f"{scene} {w}x{h}, target {target}, {repeats} alternated runs each (medians):", file=out)
     for name, (head, win) in results.items():
         mh, mw = statistics.median(head), statistics.median(win)
         print(f"  {name:20s} headless {mh:12,.0f} det/s   window {mw:12,.0f} det/s   "
-              f"window/headless {mw / mh:.3f}")
-    return 0
+              f"window/headless {mw / mh:.3f}", file=out)
+    return results
 
 
-if __name__ == "__main__":
-    t0 = time.monotonic()
-    code = main()
-    print(f"({time.monotonic() - t0:.0f} s)", file=sys.stderr)
-    sys.exit(code)
+__all__ = ["measure"]

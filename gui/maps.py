@@ -10,7 +10,9 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtWidgets
 
-C_M_PER_S = 299_792_458.0
+from spdepth.acq.flags import ACQUIRING
+from spdepth.recon.maps import C_M_PER_S
+
 VIEW_BACKGROUND = "#d4d4d4"
 """Behind the images: unmeasured (NaN) pixels show this grey, apart from every colour map end."""
 FIT_PERCENTILES = (1.0, 99.0)
@@ -23,7 +25,7 @@ pg.setConfigOptions(imageAxisOrder="row-major", antialias=True, foreground="#303
 
 def _measured_counts(snap) -> np.ndarray:
     c = snap.counts.astype(np.float64)
-    c[(snap.counts == 0) & (snap.acq_flags == 255)] = np.nan    # not visited yet: transparent
+    c[(snap.counts == 0) & (snap.acq_flags == ACQUIRING)] = np.nan    # not visited yet: transparent
     return c
 
 

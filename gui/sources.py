@@ -1,51 +1,81 @@
-"""What the window runs: a source described by the controls (no Qt here) turned into an
-``acq`` session, plus the instruments it must close afterwards and, for simulated scenes, the truth.
+"""What the window runs: the control panel's settings (no Qt here) turned into an ``acq`` request,
+and the request into a running session or a file reconstruction through :mod:`acq.api`.
 
-The window never touches a device: it asks ``acq`` to open the instruments and to build the
-session, and hands both back to ``Run.close`` once the session has ended.
+The window is a client of the library like the CLI: :meth:`SourceSpec.to_request` makes the
+request (which validates itself), :func:`open_run` asks ``acq.api`` to open the instruments and
+build the session, and ``FileJob`` calls ``acq.api.reconstruct_file``. The window never touches a
+device; ``Run.close`` hands the instruments and the run folder's lock back once the session has
+ended.
 """
 
 from __future__ import annotations
 
+import re
 import time
-from argparse import Namespace
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from spdepth.acq.commands._session import METHODS  # one estimator list for the CLI and the window
-from spdepth.recon.errors import InputError
+from spdepth.acq.errors import RequestError
+from spdepth.acq.flags import ACQUIRING, AcqFlag
+from spdepth.acq.requests import (DEFAULT_METHOD, DEFAULT_SIZE, DEFAULT_TARGET, MODES, Devices,
+                                  FileReconRequest, ReplayRequest, ScanRequest, SimBench)
+from spdepth.recon.model import METHODS
 
 SOURCES = ("sim", "real", "replay", "file")
 """Simulated bench, real devices, a recording replayed through the same pipeline, or a PTU/.mat
 file reconstructed as a whole (``spdepth recon``'s path, on a worker thread)."""
-MODES = ("gated", "raster")
+
+CONTROL_NAMES = {
+    "--scene": "scene", "--sbr": "SBR", "--seed": "seed", "--faults": "faults",
+    "--galvo PORT": "galvo port", "--tagger usb:VID:PID": "tagger (usb:VID:PID)",
+    "--sync-rate-hz": "sync rate", "--size": "size", "--target": "target", "--mode": "mode",
+    "--dwell-limit-ms": "dwell limit (ms)", "--dwell-ms": "dwell (ms)", "--method": "estimator",
+    "--time-unit-ps": "time unit (ps)", "--pulse-rms-ps": "pulse RMS (ps)",
+}
+"""The request's messages name fields in the CLI's words; the banner names the window's controls."""
+_OPTION = re.compile("|".join(re.escape(k) for k in sorted(CONTROL_NAMES, key=len, reverse=True)))
+
+
+def in_window_words(message: str) -> str:
+    """A request's error message with the CLI's option names replaced by the controls' names."""
+    return _OPTION.sub(lambda m: CONTROL_NAMES[m.group(0)], message)
+
+
+def _ms(v: float) -> float | None:
+    return v * 1e-3 if v else None      # 0 in a control: the request's default
+
+
+def _ps(v: float) -> float | None:
+    return v * 1e-12 if v else None
 
 
 @dataclass
 class SourceSpec:
-    """Everything the control panel holds (also what QSettings remembers).
+    """Everything the control panel holds (also what QSettings remembers), in the controls' units.
+    Zero in a numeric field means "the default" (the request's, or as recorded / from the file).
 
     size:           (H, W) pixels, rows first.
-    dwell_limit_ms: gated dwell limit / raster dwell; 0 means the default for the source.
+    dwell_limit_ms: gated dwell limit / raster dwell.
     sync_rate_hz:   real devices: the laser repetition rate.
-    file:           a PTU/HT3/PT3 or .mat file to reconstruct (kind "file"); target is then the
-                    detections kept per pixel (0: all).
+    target:         detections per pixel; replay: 0 keeps the recorded target; file: detections
+                    kept per pixel, 0 all.
+    file:           a PTU/HT3/PT3 or .mat file to reconstruct (kind "file").
     time_unit_ps:   file: size of one raw time unit (required for .mat, 0: the PTU header's).
-    pulse_rms_ps:   file: Gaussian pulse RMS (0: estimated from the data).
+    pulse_rms_ps:   file: Gaussian pulse RMS (0: as recorded, else estimated from the data).
     out_root:       a folder under which each run gets its own directory (recording, maps, run.json).
     """
 
     kind: str = "sim"
-    scene: str = "bust"
-    size: tuple[int, int] = (32, 32)
-    target: int = 15
+    scene: str = SimBench.scene
+    size: tuple[int, int] = DEFAULT_SIZE
+    target: int = DEFAULT_TARGET
     mode: str = "gated"
-    method: str = "uos"
+    method: str = DEFAULT_METHOD
     dwell_limit_ms: float = 0.0
-    sbr: float = 10.0
-    seed: int = 0
+    sbr: float = SimBench.sbr
+    seed: int = SimBench.seed
     faults: str = ""
     galvo_port: str = ""
     tagger_url: str = ""
@@ -68,129 +98,134 @@ class SourceSpec:
             known["size"] = tuple(int(v) for v in known["size"])
         return cls(**known)
 
-    def label(self) -> str:
-        h, w = self.size
-        if self.kind == "sim":
-            return f"simulated {self.scene} {w}x{h}, {self.target} per pixel, {self.method}"
-        if self.kind == "real":
-            return f"devices {w}x{h}, {self.target} per pixel, {self.method}"
+    def to_request(self) -> ScanRequest | ReplayRequest | FileReconRequest:
+        """The request these settings stand for, validated by the request itself: a
+        ``RequestError`` names the field and value (in the CLI's words; ``in_window_words``)."""
+        if self.kind not in SOURCES:
+            raise RequestError(f"source must be one of {', '.join(SOURCES)}, got {self.kind!r}")
+        if self.kind == "replay":
+            return ReplayRequest(recording=self.recording, target=self.target or None,
+                                 method=self.method)
         if self.kind == "file":
-            return f"{Path(self.file).name}, {self.method}"
-        return f"replay of {Path(self.recording).name}, {self.method}"
+            if Path(self.file).suffix.lower() == ".mat" and not self.time_unit_ps:
+                # the reader would say so only on its worker thread; refused before the start
+                raise RequestError(f"{Path(self.file).name}: a .mat file does not record its time "
+                                   f"unit; set the time unit (8 ps for first-photon-imaging "
+                                   f"files, 1 ps for times in ps)")
+            return FileReconRequest(input=self.file, method=self.method,
+                                    time_unit_s=_ps(self.time_unit_ps),
+                                    pulse_rms_s=_ps(self.pulse_rms_ps),
+                                    max_photons=self.target or None)
+        if self.kind == "sim":
+            instruments = SimBench(scene=self.scene, sbr=self.sbr, seed=self.seed,
+                                   faults=self.faults)
+        else:
+            instruments = Devices(galvo=self.galvo_port, tagger=self.tagger_url,
+                                  sync_rate_hz=self.sync_rate_hz)
+        gated = self.mode == "gated"
+        return ScanRequest(instruments=instruments, size=tuple(self.size), target=self.target,
+                           mode=self.mode, method=self.method,
+                           dwell_limit_s=_ms(self.dwell_limit_ms) if gated else None,
+                           dwell_s=None if gated else _ms(self.dwell_limit_ms))
+
+    @classmethod
+    def from_request(cls, request, base: "SourceSpec | None" = None) -> "SourceSpec":
+        """The controls showing ``request`` (on top of ``base`` for what it does not name). A
+        request can hold more than the controls (window, bins, pattern): the run uses the request
+        itself; the controls show what they can."""
+        d = (base or cls()).to_dict()
+        if isinstance(request, ReplayRequest):
+            d.update(kind="replay", recording=request.recording, target=request.target or 0)
+            if request.method is not None:
+                d["method"] = request.method
+        elif isinstance(request, FileReconRequest):
+            d.update(kind="file", file=request.input, method=request.method,
+                     target=request.max_photons or 0,
+                     time_unit_ps=(request.time_unit_s or 0.0) * 1e12,
+                     pulse_rms_ps=(request.pulse_rms_s or 0.0) * 1e12)
+        elif isinstance(request, ScanRequest):
+            src = request.instruments
+            d.update(size=list(request.size), target=request.target, mode=request.mode,
+                     method=request.method,
+                     dwell_limit_ms=(request.dwell_limit_s or request.dwell_s or 0.0) * 1e3)
+            if isinstance(src, SimBench):
+                d.update(kind="sim", scene=src.scene, sbr=src.sbr, seed=src.seed, faults=src.faults)
+            else:
+                d.update(kind="real", galvo_port=src.galvo, tagger_url=src.tagger,
+                         sync_rate_hz=src.sync_rate_hz)
+        else:
+            raise RequestError(f"the window runs scan, replay and file requests, got "
+                               f"{type(request).__name__}")
+        return cls.from_dict(d)
+
+
+def run_kind(request) -> str:
+    """The run folder's suffix for a request: sim, real or replay."""
+    if isinstance(request, ReplayRequest):
+        return "replay"
+    return "sim" if isinstance(request.instruments, SimBench) else "real"
 
 
 @dataclass
 class Run:
     """A session being shown, with what it needs closed afterwards.
 
+    out_dir:       the session's folder (None: in memory); it stays readable after ``close``.
+    folder:        the ``acq.api.OutputDir`` whose lock this run holds (a folder the window made),
+                   None when the caller owns the folder.
     truth_depth_m: (H, W) true depth of a simulated one-surface scene, else None.
     """
 
     session: object
-    spec: SourceSpec
+    request: ScanRequest | ReplayRequest
     out_dir: Path | None
     instruments: object = None
+    folder: object = None
     truth_depth_m: np.ndarray | None = None
-    label: str = ""
     started_at: float = field(default_factory=time.time)
 
+    @property
+    def label(self) -> str:
+        return self.request.label()
+
     def close(self) -> None:
-        """Release the instruments; call once the session has ended."""
+        """Release the instruments and the run folder's lock; call once the session has ended."""
         if self.instruments is not None:
             self.instruments.close()
             self.instruments = None
+        if self.folder is not None:
+            self.folder.close()
+            self.folder = None
 
 
-def run_dir(out_root: str | Path, kind: str) -> Path:
-    """A fresh directory ``out_root/YYYYmmdd-HHMMSS-kind`` (suffixed when taken)."""
-    root = Path(out_root).expanduser()
-    stem = time.strftime("%Y%m%d-%H%M%S") + f"-{kind}"
-    path = root / stem
-    n = 1
-    while path.exists():
-        n += 1
-        path = root / f"{stem}-{n}"
-    path.mkdir(parents=True)
-    return path
+def open_run(request: ScanRequest | ReplayRequest, out_dir=None) -> Run:
+    """Open the request's source and build its session (not started). ``out_dir``: None keeps
+    the run in memory; a path is the caller's folder (the caller holds any lock on it); an
+    ``acq.api.OutputDir`` (e.g. ``new_run_dir``'s) is handed to the run, which releases it in
+    ``close``. Raises the ``acq``/``drivers`` errors as they come (the window shows them); nothing
+    stays open when it fails (a folder handed over is released and, when empty, removed)."""
+    from spdepth.acq.api import OutputDir, build_session, open_instruments
 
-
-def _scan_args(spec: SourceSpec) -> Namespace:
-    """The ``spdepth scan`` arguments this spec stands for (``acq.commands.scan.build_session``)."""
-    gated = spec.mode == "gated"
-    limit = spec.dwell_limit_ms or None
-    return Namespace(size=tuple(spec.size), target=int(spec.target), mode=spec.mode,
-                     pattern="raster", settle_us=0.0, max_passes=None, time_limit_s=None,
-                     dwell_limit_ms=limit if gated else None, dwell_ms=None if gated else limit,
-                     window_ps=None, bin_ps=40.0, pulse_rms_ps=None, method=spec.method,
-                     fov_deg=20.0)
-
-
-def validate(spec: SourceSpec) -> None:
-    """InputError naming the field for a setting the session would refuse later, or worse."""
-    if spec.kind not in SOURCES:
-        raise InputError(f"source must be one of {', '.join(SOURCES)}, got {spec.kind!r}")
-    h, w = spec.size
-    if h < 1 or w < 1:
-        raise InputError(f"size must be at least 1x1, got {w}x{h}")
-    if spec.target < 1 and spec.kind not in ("replay", "file"):   # 0: as recorded / all
-        raise InputError(f"target detections must be at least 1, got {spec.target}")
-    if spec.mode not in MODES:
-        raise InputError(f"mode must be gated or raster, got {spec.mode!r}")
-    if spec.method not in METHODS:
-        raise InputError(f"estimator must be one of {', '.join(METHODS)}, got {spec.method!r}")
-    if spec.kind == "real":
-        if not spec.galvo_port or not spec.tagger_url:
-            raise InputError("real devices need a galvo port and a tagger USB id (usb:VID:PID)")
-        if not spec.sync_rate_hz > 0:
-            raise InputError("real devices need the laser repetition rate (sync rate)")
-    if spec.kind == "replay":
-        if not spec.recording:
-            raise InputError("choose a recording to replay")
-        if not Path(spec.recording).exists():
-            raise InputError(f"recording {spec.recording} does not exist")
-    if spec.kind == "file":
-        if not spec.file:
-            raise InputError("choose a PTU or .mat file to reconstruct")
-        if not Path(spec.file).is_file():
-            raise InputError(f"file {spec.file} does not exist")
-        if Path(spec.file).suffix.lower() == ".mat" and not spec.time_unit_ps > 0:
-            raise InputError(f"{Path(spec.file).name}: a .mat file does not record its time unit; "
-                             "set the time unit (8 ps for first-photon-imaging files, 1 ps for "
-                             "times in ps)")
-
-
-def open_run(spec: SourceSpec, out_dir: str | Path | None) -> Run:
-    """Open the source and build its session (not started). Raises the ``acq``/``drivers``
-    errors as they come (the window shows them); nothing stays open when it fails."""
-    from spdepth.acq.commands import replay as replay_cmd
-    from spdepth.acq.commands import scan as scan_cmd
-    from spdepth.acq.instruments import open_real, open_sim
-
-    validate(spec)
-    out = Path(out_dir) if out_dir is not None else None
-    if spec.kind == "replay":
-        rec = Path(spec.recording)
-        rec_dir = rec if rec.is_dir() else rec.parent
-        if out is not None and out.resolve() == rec_dir.resolve():
-            raise InputError(f"output folder {out} is the recording's own directory")
-        session = replay_cmd.build_session(str(rec), target=spec.target or None,
-                                           method=spec.method, out=out)
-        return Run(session, spec, out, label=spec.label())
-    if spec.kind == "sim":
-        inst = open_sim(spec.scene, tuple(spec.size), ppp=float(spec.target), sbr=spec.sbr,
-                        seed=spec.seed, faults=spec.faults)
-    else:
-        inst = open_real(spec.galvo_port, spec.tagger_url, 1.0 / spec.sync_rate_hz)
+    folder = out_dir if isinstance(out_dir, OutputDir) else None
+    out = folder.path if folder is not None else (Path(out_dir) if out_dir is not None else None)
+    inst = None
     try:
-        session = scan_cmd.build_session(_scan_args(spec), inst, out)
+        if isinstance(request, ReplayRequest):
+            session = build_session(request, out)
+            return Run(session, request, out, folder=folder)
+        inst = open_instruments(request)
+        session = build_session(request, out, inst)
     except BaseException:
-        inst.close()
+        if inst is not None:
+            inst.close()
+        if folder is not None:
+            folder.close(discard=True)
         raise
     truth = None
     if inst.scene is not None:
         depth = np.asarray(inst.scene.truth()["depth_m"], dtype=np.float64)
         truth = depth if depth.ndim == 2 else None
-    return Run(session, spec, out, instruments=inst, truth_depth_m=truth, label=spec.label())
+    return Run(session, request, out, instruments=inst, folder=folder, truth_depth_m=truth)
 
 
 @dataclass(frozen=True)
@@ -238,8 +273,6 @@ class SessionView:
                 s.recon.settings.pulse_rms_s)
 
     def pixel(self, r: int, c: int) -> PixelInfo:
-        from spdepth.acq.session import AcqFlag
-
         s = self.session
         rc = s.recon
         flat = r * self.shape[1] + c
@@ -251,55 +284,22 @@ class SessionView:
             background=float(rc.background[r, c]), signal=float(rc.signal[r, c]),
             uncertainty_s=float(rc.uncertainty_s[r, c]), estimated=bool(rc.done[r, c]),
             flag=int(rc.flags[r, c]), kept=f"{int(s.store.count[flat])} of {s.plan.target}",
-            acquisition="acquiring" if acq == 255 else AcqFlag(acq).name.lower().replace("_", " "))
-
-
-@dataclass
-class FileResult:
-    """A file reconstructed as a whole: the maps, the kept photons and the model used."""
-
-    path: Path
-    maps: object
-    store: object
-    binning: object
-    pulse_rms_s: float | None
-    irf: object
-    target: int
-    notes: tuple = ()
-    read_s: float = 0.0
-    recon_s: float = 0.0
-
-    @property
-    def shape(self) -> tuple[int, int]:
-        return tuple(self.maps.flags.shape)
-
-    def snapshot(self):
-        """The maps as an ``acq.session.Snapshot`` (state done), for the map panels."""
-        from spdepth.acq.session import Snapshot
-
-        m = self.maps
-        h, w = self.shape
-        return Snapshot(state="done", elapsed_s=self.read_s + self.recon_s, pixels_total=h * w,
-                        pixels_final=h * w, detections=int(m.photons.sum()), detections_per_s=0.0,
-                        lost_spans=0, lost_records=0, eta_s=None, recon_lag=0, passes=0,
-                        depth_m=m.depth_m, background=m.background, signal=m.signal,
-                        uncertainty_s=m.uncertainty_s, counts=m.photons,
-                        acq_flags=np.zeros((h, w), np.uint8))
+            acquisition="acquiring" if acq == ACQUIRING else AcqFlag(acq).name.lower().replace("_", " "))
 
 
 class ResultView:
-    """``SessionView``'s interface over a :class:`FileResult`."""
+    """``SessionView``'s interface over a file reconstruction (``acq.api.FileResult``).
 
-    def __init__(self, result: FileResult):
+    target: the detections kept per pixel (the request's, or the recording's), 0 for all."""
+
+    def __init__(self, result):
         self.result = result
+        self.path = Path(result.request.input)
+        self.target = int(result.maps.settings.get("max_photons") or 0)
 
     @property
     def shape(self) -> tuple[int, int]:
-        return self.result.shape
-
-    @property
-    def target(self) -> int:
-        return self.result.target
+        return tuple(self.result.maps.flags.shape)
 
     def maps(self):
         return self.result.maps
@@ -307,63 +307,46 @@ class ResultView:
     def key(self, r: int, c: int):
         return ()
 
+    def snapshot(self):
+        """The maps as an ``acq.session.Snapshot`` (state done), for the map panels."""
+        from spdepth.acq.session import Snapshot
+
+        res, m = self.result, self.result.maps
+        h, w = self.shape
+        return Snapshot(state="done", elapsed_s=res.read_s + res.recon_s, pixels_total=h * w,
+                        pixels_final=h * w, detections=int(m.photons.sum()), detections_per_s=0.0,
+                        lost_spans=0, lost_records=0, eta_s=None, recon_lag=0, passes=0,
+                        depth_m=m.depth_m, background=m.background, signal=m.signal,
+                        uncertainty_s=m.uncertainty_s, counts=m.photons,
+                        acq_flags=np.zeros((h, w), np.uint8))
+
     def pixel(self, r: int, c: int) -> PixelInfo:
         res, m = self.result, self.result.maps
         b = res.binning
         t = res.store.pixel(r, c)
         t = t[(t >= b.window_start) & (t < b.window_stop)]
-        if res.target:
-            t = t[:res.target]
+        if self.target:
+            t = t[:self.target]
         n = int(m.photons[r, c])
         return PixelInfo(
             times=t, binning=b, pulse_rms_s=res.pulse_rms_s, irf=res.irf,
             tof_s=float(m.tof_s[r, c]), depth_m=float(m.depth_m[r, c]),
             background=float(m.background[r, c]), signal=float(m.signal[r, c]),
             uncertainty_s=float(m.uncertainty_s[r, c]), estimated=n > 0, flag=int(m.flags[r, c]),
-            kept=f"{n} in the window" + (f" (first {res.target})" if res.target else ""),
-            acquisition=f"from {res.path.name}")
-
-
-def reconstruct_file(spec: SourceSpec, progress=None) -> FileResult:
-    """Read ``spec.file`` and reconstruct it as ``spdepth recon`` does with no window or bin
-    option (both derived from the data; the pulse estimated unless ``spec.pulse_rms_ps``).
-    Raises ``InputError`` (naming the file) for what cannot be read."""
-    from spdepth.acq.readers import read_photons
-    from spdepth.recon.estimate import reconstruct
-    from spdepth.recon.model import Binning, Irf, ReconSettings
-
-    validate(spec)
-    path = Path(spec.file)
-    t0 = time.perf_counter()
-    result = read_photons(path, time_unit_s=spec.time_unit_ps * 1e-12 if spec.time_unit_ps else None)
-    store = result.store
-    if store.n_photons == 0:
-        raise InputError(f"{path.name}: holds no photons")
-    settings = ReconSettings(method=spec.method, binning=None,
-                             pulse_rms_s=spec.pulse_rms_ps * 1e-12 if spec.pulse_rms_ps else None,
-                             max_photons=spec.target or None)
-    t1 = time.perf_counter()
-    maps = reconstruct(store, settings, progress=progress)
-    t2 = time.perf_counter()
-    used = maps.settings
-    b = used["binning"]
-    binning = Binning(b["time_unit_s"], b["window_start"], b["window_stop"], b["bin_width"])
-    irf = None
-    if used.get("irf"):
-        irf = Irf(used["irf"]["times_s"], used["irf"]["counts"], used["irf"].get("source", ""))
-    return FileResult(path, maps, store, binning, used.get("pulse_rms_s"), irf, int(spec.target),
-                      tuple(result.notes), t1 - t0, t2 - t1)
+            kept=f"{n} in the window" + (f" (first {self.target})" if self.target else ""),
+            acquisition=f"from {self.path.name}")
 
 
 class FileJob:
-    """``reconstruct_file`` on a worker thread; the window polls ``done``/``result``/``error`` and
-    ``progress`` (pixels done, total) from its timer, so it never blocks."""
+    """``acq.api.reconstruct_file`` on a worker thread; the window polls ``done``/``result``/
+    ``error`` and ``progress`` (pixels done, total) from its timer, so it never blocks."""
 
-    def __init__(self, spec: SourceSpec):
+    def __init__(self, request: FileReconRequest):
         import threading
 
-        self.spec = spec
-        self.result: FileResult | None = None
+        self.request = request
+        self.result = None
+        """The ``acq.api.FileResult`` once done."""
         self.error: BaseException | None = None
         self.progress = (0, 0)
         self.started_at = time.monotonic()
@@ -372,8 +355,10 @@ class FileJob:
         self._thread.start()
 
     def _run(self) -> None:
+        from spdepth.acq.api import reconstruct_file
+
         try:
-            self.result = reconstruct_file(self.spec, progress=self._progress)
+            self.result = reconstruct_file(self.request, progress=self._progress)
         except BaseException as exc:  # noqa: BLE001 - handed to the window, shown in its banner
             self.error = exc
         finally:
@@ -390,5 +375,5 @@ class FileJob:
         return self._done.wait(timeout_s)
 
 
-__all__ = ["SourceSpec", "Run", "open_run", "run_dir", "validate", "SOURCES", "MODES", "METHODS",
-           "PixelInfo", "SessionView", "ResultView", "FileResult", "FileJob", "reconstruct_file"]
+__all__ = ["SourceSpec", "Run", "open_run", "run_kind", "in_window_words", "SOURCES", "MODES",
+           "METHODS", "PixelInfo", "SessionView", "ResultView", "FileJob"]

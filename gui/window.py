@@ -26,8 +26,10 @@ from PySide6 import QtCore, QtGui, QtWidgets
 from spdepth.gui.health import HealthTracker
 from spdepth.gui.maps import C_M_PER_S, MAP_SPECS, MapPanel
 from spdepth.gui.pixel_model import pixel_histogram
-from spdepth.gui.sources import (METHODS, MODES, FileJob, ResultView, SessionView, SourceSpec, open_run,
-                         run_dir)
+from spdepth.acq.errors import RequestError
+from spdepth.acq.requests import MAX_TARGET, FileReconRequest, ReplayRequest
+from spdepth.gui.sources import (METHODS, MODES, FileJob, ResultView, SessionView, SourceSpec,
+                                 in_window_words, open_run, run_kind)
 
 log = logging.getLogger(__name__)
 
@@ -47,7 +49,7 @@ CLOSE_WAIT_S = 15.0
 SCENES = ("bust", "steps", "tilted-plane", "two-layer", "daylight")
 TERMINAL = ("done", "aborted", "failed")
 DEFAULT_OUT_ROOT = "~/spdepth-runs"
-"""Shown as typed; ``run_dir`` expands the ``~``."""
+"""Shown as typed; ``acq.api.new_run_dir`` expands the ``~``."""
 STATE_COLOURS = {"idle": "#8a8a8a", "armed": "#1f6fb5", "running": "#1f6fb5", "paused": "#e0a800",
                  "finishing": "#1f6fb5", "done": "#2e9d4a", "aborted": "#e07000",
                  "failed": "#d0342c"}
@@ -156,8 +158,8 @@ class ControlPanel(QtWidgets.QWidget):
         scan = QtWidgets.QGroupBox("Scan")
         g = QtWidgets.QFormLayout(scan)
         size_row = QtWidgets.QHBoxLayout()
-        self.width_px = QtWidgets.QSpinBox(minimum=1, maximum=4096, value=32)
-        self.height_px = QtWidgets.QSpinBox(minimum=1, maximum=4096, value=32)
+        self.width_px = QtWidgets.QSpinBox(minimum=1, maximum=4096)
+        self.height_px = QtWidgets.QSpinBox(minimum=1, maximum=4096)
         size_row.addWidget(self.width_px)
         size_row.addWidget(QtWidgets.QLabel("×"))
         size_row.addWidget(self.height_px)
@@ -167,7 +169,7 @@ class ControlPanel(QtWidgets.QWidget):
         self.mode.setToolTip("gated: hold each pixel until the target or the dwell limit; "
                              "raster: fixed dwell, frames repeated")
         g.addRow("Mode", self.mode)
-        self.target = QtWidgets.QSpinBox(minimum=0, maximum=100000, value=15)
+        self.target = QtWidgets.QSpinBox(minimum=0, maximum=MAX_TARGET)
         self.target.setSpecialValueText("as recorded")
         self.target.setToolTip("in-window detections per pixel")
         g.addRow("Target", self.target)
@@ -207,6 +209,7 @@ class ControlPanel(QtWidgets.QWidget):
         lay.addWidget(view)
         lay.addStretch(1)
         self.kind.currentIndexChanged.connect(self._kind_changed)
+        self.set_spec(SourceSpec())          # the library's defaults until settings are restored
         self._kind_changed()
 
     def _kind_changed(self) -> None:
@@ -598,28 +601,39 @@ class MainWindow(QtWidgets.QMainWindow):
             return True
         return self.run is not None and not self.run.session.ended.is_set()
 
-    def start_run(self, spec: SourceSpec | None = None, out_dir: str | Path | None = "auto") -> bool:
-        """Open the source and start its session; errors go to the banner (returns False).
-        out_dir: "auto" (a new folder under the runs folder), a path, or None (in memory)."""
+    def start_run(self, what=None, out_dir="auto") -> bool:
+        """Start ``what``: a ``SourceSpec`` (shown in the controls, then made a request), a
+        request (``acq.requests`` scan, replay or file reconstruction: run as given, the controls
+        show what they can of it) or None (the controls' settings). Errors go to the banner
+        (returns False). out_dir: "auto" (a new locked folder under the runs folder, released
+        when the run ends), a path (the caller's folder), or None (in memory)."""
         if self.running():
             self.show_error("A scan is running: abort it first.")
             return False
-        if spec is None:
-            spec = self.controls.spec()
-        else:
-            self.controls.set_spec(spec)
         self._release_run()
         self.banner.hide()
-        if spec.kind == "file":
-            return self._start_file(spec)
-        made = None
+        try:
+            if what is None or isinstance(what, SourceSpec):
+                if what is not None:
+                    self.controls.set_spec(what)
+                request = self.controls.spec().to_request()
+            else:
+                request = what
+                self.controls.set_spec(SourceSpec.from_request(request, self.controls.spec()))
+        except RequestError as exc:
+            self.show_error(f"Could not start: {in_window_words(str(exc))}")
+            self.controls.set_running(None)
+            return False
+        if isinstance(request, FileReconRequest):
+            return self._start_file(request)
         try:
             if out_dir == "auto":
-                made = out_dir = run_dir(spec.out_root or DEFAULT_OUT_ROOT, spec.kind)
-            run = open_run(spec, out_dir)
+                from spdepth.acq.api import new_run_dir
+
+                root = self.controls.out_root.text().strip() or DEFAULT_OUT_ROOT
+                out_dir = new_run_dir(root, run_kind(request))
+            run = open_run(request, out_dir)
         except Exception as exc:  # noqa: BLE001 - every failure to start is shown, window stays usable
-            if made is not None and made.is_dir() and not any(made.iterdir()):
-                made.rmdir()
             self.show_error(f"Could not start: {exc}")
             self.controls.set_running(None)
             return False
@@ -627,7 +641,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.view = SessionView(run.session)
         self.accuracy.show()
         self.save_settings()
-        self.health = HealthTracker(live=spec.kind != "replay")
+        self.health = HealthTracker(live=not isinstance(run.request, ReplayRequest))
         self._n_bins = run.session.recon.settings.binning.n_bins
         # the run's own folder name; the whole path is in the tooltip (and in run.json)
         where = f" — files in …/{run.out_dir.name}/" if run.out_dir else ""
@@ -663,22 +677,15 @@ class MainWindow(QtWidgets.QMainWindow):
         self.run_label.setText(label)
         self.run_label.setToolTip(tooltip)
 
-    def _start_file(self, spec: SourceSpec) -> bool:
+    def _start_file(self, request: FileReconRequest) -> bool:
         """Reconstruct a PTU/.mat file on a worker thread (the timer polls it)."""
-        from spdepth.gui.sources import validate
-
-        try:
-            validate(spec)
-        except Exception as exc:  # noqa: BLE001 - a bad setting is shown, window stays usable
-            self.show_error(f"Could not start: {exc}")
-            return False
         self.run = None
         self.view = None
         self.snap = None
-        self.job = FileJob(spec)
+        self.job = FileJob(request)
         self.save_settings()
         self.health = HealthTracker(live=False)
-        self._new_run(f"{spec.label()} — reconstructing…", spec.file)
+        self._new_run(f"{request.label()} — reconstructing…", request.input)
         self.accuracy.hide()                   # accuracy over scan time: a file has no scan
         self.state_label.setText("reconstructing")
         _pill(self.state_label, STATE_COLOURS["running"])
@@ -700,23 +707,24 @@ class MainWindow(QtWidgets.QMainWindow):
             return
         self.job = None
         self.controls.set_running(None)
+        label = job.request.label()
         if job.error is not None or job.result is None:
             exc = job.error
             self.state_label.setText("failed")
             _pill(self.state_label, STATE_COLOURS["failed"])
-            self.run_label.setText(f"{job.spec.label()} — failed")
-            self.show_error(f"Could not reconstruct {Path(job.spec.file).name}: {exc}")
+            self.run_label.setText(f"{label} — failed")
+            self.show_error(f"Could not reconstruct {Path(job.request.input).name}: {exc}")
             self.scan_ended.emit("failed")
             return
         res = job.result
-        self.view = ResultView(res)
+        view = self.view = ResultView(res)
         self._n_bins = res.binning.n_bins
-        snap = self.snap = res.snapshot()
-        target = res.target or max(1, int(np.max(res.maps.photons)))
+        snap = self.snap = view.snapshot()
+        target = view.target or max(1, int(np.max(res.maps.photons)))
         for p in self.panels:
             p.show(p.spec.extract(snap, self._n_bins), target)
         self.fit_levels()
-        h, w = res.shape
+        h, w = view.shape
         self.state_label.setText("done")
         _pill(self.state_label, STATE_COLOURS["done"])
         self.rate_label.setText(f"{snap.detections:,} det")
@@ -727,7 +735,7 @@ class MainWindow(QtWidgets.QMainWindow):
         b = res.binning
         pulse = (f"pulse {res.pulse_rms_s * 1e12:.0f} ps RMS "
                  f"{res.maps.settings.get('pulse_source', '')}" if res.pulse_rms_s else "")
-        self.run_label.setText(f"{job.spec.label()} — {w}×{h}, {snap.detections:,} detections, "
+        self.run_label.setText(f"{label} — {w}×{h}, {snap.detections:,} detections, "
                                f"window {b.window_start * b.time_unit_s * 1e9:.1f}–"
                                f"{b.window_stop * b.time_unit_s * 1e9:.1f} ns, {pulse}")
         for note in res.notes:

@@ -139,7 +139,7 @@ def test_pause_resume_abort(qtbot, win, tmp_path):
 
 def test_replay_of_a_recording_matches_the_live_maps(qtbot, win, tmp_path):
     rec_dir = tmp_path / "rec"
-    live = open_run(_spec(tmp_path), rec_dir)
+    live = open_run(_spec(tmp_path).to_request(), rec_dir)
     live.session.start()
     assert live.session.wait(60).value == "done"
     live.close()
@@ -265,9 +265,10 @@ def test_demo_window_runs_the_demo_scan(tmp_path):
     env = {**os.environ, "QT_QPA_PLATFORM": "offscreen", "XDG_CONFIG_HOME": str(tmp_path / "cfg"),
            "HOME": str(tmp_path)}
     shot = tmp_path / "demo.png"
-    code = ("import sys; from gui.app import run_demo_window; sys.exit(run_demo_window("
-            "scene='steps', size=(12, 16), target=4, sbr=10.0, seed=1, faults='', method='uos', "
-            f"exit_after_scan=True, screenshot={str(shot)!r}))")
+    code = ("import sys; from spdepth.acq.requests import ScanRequest, SimBench; "
+            "from spdepth.gui.app import run_demo_window; sys.exit(run_demo_window(ScanRequest("
+            "instruments=SimBench(scene='steps', sbr=10.0, seed=1), size=(12, 16), target=4, "
+            f"method='uos'), exit_after_scan=True, screenshot={str(shot)!r}))")
     p = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
                        timeout=120, cwd=Path(__file__).resolve().parents[1])
     assert p.returncode == 0, p.stderr
