@@ -1,6 +1,6 @@
 """Speed of the recon estimators, printed side by side with the plain NumPy references
-(tests/reference.py) in one run, at the paper's settings: 801 bins of 40 ps, Gaussian pulse RMS
-360 ps, 15 detections per pixel, SBR 10.
+(tests/reference.py) in one run, at the paper's settings (``recon.model.SEED_PAPER``: 801 bins of
+40 ps, Gaussian pulse RMS 360 ps, 15 detections per pixel), SBR 10.
 
 Run as ``spdepth bench recon`` or ``python -m recon.bench``. The references live in the source
 checkout's tests/ folder (not installed); without it only the kernels are timed, and it says so.
@@ -23,12 +23,20 @@ import sys
 import time
 from pathlib import Path
 
+import numba
 import numpy as np
 
-M = 801
-UNIT_S = 8e-12
-BIN_UNITS = 5.0
-RMS_S = 360e-12
+from spdepth.recon import kernels as K
+from spdepth.recon.estimate import reconstruct
+from spdepth.recon.model import FINE_STEPS, SEED_PAPER, Binning, ReconSettings, build_kernel
+from spdepth.recon.photons import PhotonStore
+
+M = SEED_PAPER.n_bins
+UNIT_S = SEED_PAPER.time_unit_s
+BIN_UNITS = float(SEED_PAPER.bin_units)
+RMS_S = SEED_PAPER.pulse_rms_s
+#: detections per pixel
+DETECTIONS = SEED_PAPER.max_photons
 
 
 def _load_reference():
@@ -41,7 +49,7 @@ def _load_reference():
     return mod, path
 
 
-def simulate(n_pix: int, seed: int, k: int = 15, sbr: float = 10.0):
+def simulate(n_pix: int, seed: int, k: int = DETECTIONS, sbr: float = 10.0):
     """Per-pixel bin lists (CSR) of the paper's model: Gaussian return + uniform background."""
     rng = np.random.default_rng(seed)
     sig_bins = RMS_S / (UNIT_S * BIN_UNITS)
@@ -98,8 +106,6 @@ def _share_profile(y: np.ndarray, cols: np.ndarray, iters: int = 60) -> np.ndarr
 def ml_dense(y: np.ndarray, kern, s_mat: np.ndarray, ref) -> float:
     """Shift (bins) of exact Poisson ML: global search over every integer shift, then the best of
     the 1/8-bin shifts within one bin of it, then a parabola through its neighbours."""
-    from spdepth.recon.model import FINE_STEPS
-
     i = int(np.argmax(_share_profile(y, s_mat)))
     fine = i + np.arange(-FINE_STEPS, FINE_STEPS + 1) / FINE_STEPS
     fine = fine[(fine >= 0) & (fine <= kern.n_bins - 1)]
@@ -151,14 +157,8 @@ def bench(argv: list[str]) -> int:
     parser.add_argument("--rounds", type=int, default=3, help="alternating 1/2-thread rounds (best kept)")
     args = parser.parse_args(argv)
 
-    import numba
-
-    from spdepth.recon import kernels as K
-    from spdepth.recon.estimate import reconstruct
-    from spdepth.recon.model import FINE_STEPS, Binning, ReconSettings, build_kernel
-    from spdepth.recon.photons import PhotonStore
-
-    binning = Binning(UNIT_S, 2000.0, 2000.0 + M * BIN_UNITS, BIN_UNITS)
+    binning = SEED_PAPER.binning
+    start_u = binning.window_start
     kern = build_kernel(binning, pulse_rms_s=RMS_S)
     bins, offsets = simulate(args.pixels, seed=1)
     n = args.pixels
@@ -176,15 +176,17 @@ def bench(argv: list[str]) -> int:
         shift = np.full((p, 1), np.nan)
         if method == "lmf":
             si = np.empty(p, np.int64)
-            K.lmf_kernel(b, o, M, kern.logg, kern.log_concave, 15, si, np.empty(p), np.empty(p, np.int64))
+            K.lmf_kernel(b, o, M, kern.logg, kern.log_concave, DETECTIONS, si, np.empty(p),
+                         np.empty(p, np.int64))
             shift[:, 0] = np.where(si >= 0, si, np.nan)
         elif method == "uos":
-            K.uos_kernel(b, o, M, kern.g, kern.off, kern.gmax, kern.colsum, kern.pp, kern.dg, 1, 1e-4, 10,
-                         2 * kern.rms_bins, 3.0, 15, shift, np.empty((p, 1)), np.empty(p),
-                         np.empty(p, np.int32), np.empty(p, np.bool_), np.empty((p, 1)), np.empty(p, np.int64))
+            K.uos_kernel(b, o, M, kern.g, kern.off, kern.gmax, kern.colsum, kern.pp, kern.dg, 1,
+                         SEED_PAPER.delta, SEED_PAPER.max_iterations, 2 * kern.rms_bins, 3.0, DETECTIONS,
+                         shift, np.empty((p, 1)), np.empty(p), np.empty(p, np.int32), np.empty(p, np.bool_),
+                         np.empty((p, 1)), np.empty(p, np.int64))
         else:
             K.ml_kernel(b, o, M, kern.g, kern.off, logg_int, dlo, dhi, kern.colsum, log_colsum, kern.fine,
-                        kern.fine_colsum, FINE_STEPS, kern.dg, 15, shift[:, 0], np.empty(p), np.empty(p),
+                        kern.fine_colsum, FINE_STEPS, kern.dg, DETECTIONS, shift[:, 0], np.empty(p), np.empty(p),
                         np.empty(p), np.empty(p, np.int64))
         return shift[:, 0]
 
@@ -210,11 +212,11 @@ def bench(argv: list[str]) -> int:
                 out[p] = ml_dense(y, kern, dense["ml"], ref)
         return out
 
-    times_raw = (bins + 0.5) * BIN_UNITS + 2000.0
+    times_raw = (bins + 0.5) * BIN_UNITS + start_u
     store = PhotonStore(times_raw, offsets, (1, n), UNIT_S)
 
     print(f"recon estimators, {M} bins of {BIN_UNITS * UNIT_S * 1e12:.0f} ps, pulse RMS {RMS_S * 1e12:.0f} ps, "
-          "15 detections/pixel, SBR 10; pixels per second")
+          f"{DETECTIONS} detections/pixel, SBR 10; pixels per second")
     if ref is None:
         print(f"(plain NumPy references not found at {ref_path}: run from a source checkout to compare)")
     else:

@@ -24,8 +24,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from spdepth.recon.errors import InputError
-from spdepth.recon.model import Binning, Irf, estimate_pulse_rms_s, pair_difference_histogram
+from spdepth.recon.model import (Binning, Irf, ReconSettings, default_binning, edge_core_rms,
+                                 estimate_pulse_rms_s, pair_difference_histogram)
 from spdepth.recon.photons import PhotonStore
+from spdepth.recon.pixelwise import reconstruct_given
 
 ROUNDS = 3
 MAX_PIXELS = 20_000
@@ -280,10 +282,8 @@ def _from_pairs(sample: PhotonStore) -> IrfEstimate:
 
 
 def _aligned(sample: PhotonStore, binning: Binning | None) -> IrfEstimate:
-    """Many detections per pixel: pool them aligned on each pixel's estimate, iterate."""
-    from spdepth.recon.estimate import reconstruct
-    from spdepth.recon.model import ReconSettings, default_binning
-
+    """Many detections per pixel: pool them aligned on each pixel's estimate, iterate. Each round's
+    pilot is a pixelwise ml reconstruction with the current pulse given (no estimate needed)."""
     unit_s = sample.time_unit_s
     rms_u = _initial_rms_units(sample)
     irf: Irf | None = None
@@ -298,7 +298,7 @@ def _aligned(sample: PhotonStore, binning: Binning | None) -> IrfEstimate:
             settings = ReconSettings(method="ml", binning=b, pulse_rms_s=rms_u * unit_s)
         else:
             settings = ReconSettings(method="ml", binning=b, irf=irf)
-        maps = reconstruct(sample, settings)
+        maps = reconstruct_given(sample, settings)
         # tof is the response's centroid, which a long tail puts far after its peak: pool around
         # the peak, so the floor window before it stays clear of the edge
         peak_u = 0.0
@@ -312,36 +312,9 @@ def _aligned(sample: PhotonStore, binning: Binning | None) -> IrfEstimate:
     return result
 
 
-def irf_core_rms_s(irf: Irf) -> float:
-    """Width (s) of a response's sharp part: its leading edge read as a Gaussian's (10% to 90% of
-    the peak over 2.563), never more than its RMS. For a Gaussian, its RMS."""
-    t, c = irf.arrays()
-    if t.size < 3 or not np.allclose(np.diff(t), t[1] - t[0], rtol=1e-6):
-        return irf.rms_s
-    return float(min(_edge_core(c, t[1] - t[0]), irf.rms_s))
-
-
 def _fwhm(shape: np.ndarray, step: float) -> float:
     above = np.flatnonzero(shape >= 0.5 * shape.max())
     return float((above[-1] - above[0] + 1) * step)
-
-
-def _edge_core(shape: np.ndarray, step: float) -> float:
-    """Core RMS from the leading edge: 10% to 90% of the peak spans 2.563 RMS of a Gaussian
-    (linear interpolation between samples)."""
-    pk = int(np.argmax(shape))
-    peak = shape[pk]
-
-    def crossing(level):
-        j = pk
-        while j > 0 and shape[j - 1] >= level:
-            j -= 1
-        if j == 0:
-            return 0.0
-        lo, hi = shape[j - 1], shape[j]
-        return (j - 1) + (level - lo) / (hi - lo) if hi > lo else float(j)
-
-    return float(max((crossing(0.9 * peak) - crossing(0.1 * peak)) * step / 2.563, 0.5 * step))
 
 
 def _pool(store: PhotonStore, maps, b: Binning, step: float, core_u: float, peak_u: float) -> IrfEstimate:
@@ -402,7 +375,7 @@ def _pool(store: PhotonStore, maps, b: Binning, step: float, core_u: float, peak
     t_u = centres[start:end + 1]
     irf = Irf(tuple(t_u * unit_s), tuple(out), source="estimated from the data")
     fwhm_u = _fwhm(out, step)
-    core = max(_edge_core(out, step), 0.5)
+    core = max(edge_core_rms(out, step), 0.5)
     tail = float(out[t_u > t_u[int(np.argmax(out))] + 3 * core].sum() / out.sum())
     return IrfEstimate(irf=irf, core_rms_s=core * unit_s, fwhm_s=fwhm_u * unit_s, tail_share=tail,
                        photons=int(r.size), pixels=int(ok.sum()))

@@ -40,6 +40,37 @@ DEFAULT_MAX_BINS = 4096
 PAIR_BLOCK = 1 << 20
 
 
+def _ps(value_s, what: str) -> float:
+    """``value_s`` seconds in ps, rounded to 14 significant digits: a value written in ps and
+    converted (``16000 * 1e-12``) comes back as that ps value exactly (16000.000000000002 would
+    not), so windows in seconds and in ps give bit-identical bins. 14 digits keep 0.01 fs at 100
+    us, far below any tagger's resolution. InputError naming ``what`` when it is not finite."""
+    try:
+        v = float(value_s) * 1e12
+    except (TypeError, ValueError):
+        raise InputError(f"{what} must be a number of seconds, got {value_s!r}") from None
+    if not math.isfinite(v):
+        raise InputError(f"{what} {v:g} ps is not finite")
+    return float(f"{v:.14g}")
+
+
+def _unit_ps(time_unit_s) -> float:
+    """The raw time unit in ps (:func:`_ps`); InputError unless positive."""
+    unit_ps = _ps(time_unit_s, "time unit")
+    if not unit_ps > 0:
+        raise InputError(f"time unit {unit_ps:g} ps must be positive")
+    return unit_ps
+
+
+def _window_units(window_s, unit_ps: float) -> tuple[float, float]:
+    """A (start_s, stop_s) window in raw units of ``unit_ps`` (:func:`_ps` first)."""
+    try:
+        start_s, stop_s = window_s
+    except (TypeError, ValueError):
+        raise InputError(f"window must be (start_s, stop_s), got {window_s!r}") from None
+    return _ps(start_s, "window start") / unit_ps, _ps(stop_s, "window stop") / unit_ps
+
+
 @dataclass(frozen=True)
 class Binning:
     """How detection times become histogram bins.
@@ -78,16 +109,80 @@ class Binning:
             raise InputError(f"binning gives {self.n_bins} bins (more than 1,000,000): widen bin_width")
 
     @classmethod
+    def from_window(cls, time_unit_s: float, window_s: tuple[float, float], bin_s: float) -> "Binning":
+        """THE binning rule from SI seconds: raw unit, ``(start_s, stop_s)`` window and bin width.
+
+        The window becomes ``start/unit, stop/unit`` raw units (fractions allowed); the bin must be a
+        whole number of raw units (relative tolerance 1e-6) and becomes exactly that number. Values
+        are taken to 14 significant digits in ps first (:func:`_ps`), so ``16000e-12`` over
+        ``8e-12`` is unit 2000 as ``16000 / 8`` is, not 2000.0000000000002: a window written in ps
+        and one written in seconds give the same bins (and :meth:`from_ps` the same Binning).
+        Raises InputError naming the value in ps: a non-finite or negative value, a unit or bin
+        that is not positive, an empty window, a bin that is not a whole number of raw units or
+        is wider than the window."""
+        unit_ps = _unit_ps(time_unit_s)
+        start_u, stop_u = _window_units(window_s, unit_ps)
+        return cls._from_raw(time_unit_s, unit_ps, start_u, stop_u, _ps(bin_s, "bin") / unit_ps)
+
+    @classmethod
+    def from_data(cls, times, time_unit_s: float, *, window_s: tuple[float, float] | None = None,
+                  bin_s: float | None = None, pulse_rms_s: float | None = None) -> "Binning":
+        """Binning for detection ``times`` (raw units) with the window and/or bin width left out.
+
+        window_s: (start_s, stop_s); default the span of the detections, whole raw units
+                  ``[floor(min), floor(max) + 1)``.
+        bin_s:    bin width, a whole number of raw units; default :func:`default_bin_width` of the
+                  window's span (a ninth of ``pulse_rms_s`` in whole raw units, else one unit; at
+                  most DEFAULT_MAX_BINS bins).
+        Given values are checked as :meth:`from_window` checks them; a default bin wider than
+        the window (detections spanning less than a ninth of the pulse) makes one bin, as the
+        detections say no more. (With both left out and no pulse width this is not what
+        ``ReconSettings(binning=None)`` does: that derives the bins from the pulse measured in the
+        data.)"""
+        unit_ps = _unit_ps(time_unit_s)
+        if window_s is not None:
+            start_u, stop_u = _window_units(window_s, unit_ps)
+        else:
+            t = np.asarray(times, dtype=np.float64)
+            if t.size == 0:
+                raise InputError("cannot take the window from data without detections; give a window")
+            start_u = float(math.floor(float(t.min())))
+            stop_u = float(math.floor(float(t.max())) + 1)
+        if bin_s is not None:
+            bin_u = _ps(bin_s, "bin") / unit_ps
+        else:
+            rms_u = None if pulse_rms_s is None else _ps(pulse_rms_s, "pulse RMS") / unit_ps
+            bin_u = default_bin_width(stop_u - start_u, rms_u)
+        return cls._from_raw(time_unit_s, unit_ps, start_u, stop_u, bin_u, bin_given=bin_s is not None)
+
+    @classmethod
+    def _from_raw(cls, time_unit_s: float, unit_ps: float, start_u: float, stop_u: float,
+                  bin_u: float, bin_given: bool = True) -> "Binning":
+        """Checks of :meth:`from_window` on a window and bin already in raw units (a bin that is
+        not ``bin_given`` may be wider than the window)."""
+        start_ps, stop_ps = start_u * unit_ps, stop_u * unit_ps
+        if start_u < 0:
+            raise InputError(f"window start {start_ps:g} ps is negative")
+        if not stop_u > start_u:
+            raise InputError(f"window {start_ps:g}-{stop_ps:g} ps is empty: stop must exceed start")
+        bin_ps = bin_u * unit_ps
+        if not bin_u > 0:
+            raise InputError(f"bin {bin_ps:g} ps must be positive")
+        whole = round(bin_u)
+        if abs(bin_u - whole) > 1e-6 * max(1.0, bin_u) or whole < 1:
+            raise InputError(f"bin {bin_ps:g} ps is not a whole number of {unit_ps:g} ps raw units")
+        if bin_given and whole > (stop_u - start_u) * (1.0 + 1e-9):
+            raise InputError(f"bin {bin_ps:g} ps is wider than the window {start_ps:g}-{stop_ps:g} ps")
+        return cls(time_unit_s, start_u, stop_u, float(whole))
+
+    @classmethod
     def from_ps(cls, time_unit_ps: float, window_ps: tuple[float, float], bin_ps: float) -> "Binning":
-        """Binning from picoseconds: raw unit, (start, stop) window and bin width all in ps."""
-        if not (time_unit_ps > 0 and math.isfinite(time_unit_ps)):
-            raise InputError(f"time unit must be positive, got {time_unit_ps} ps")
+        """:meth:`from_window` with the raw unit, (start, stop) window and bin width in ps."""
         try:
             start_ps, stop_ps = (float(v) for v in window_ps)
         except (TypeError, ValueError):
             raise InputError(f"window must be (start_ps, stop_ps), got {window_ps!r}") from None
-        return cls(time_unit_ps * 1e-12, start_ps / time_unit_ps, stop_ps / time_unit_ps,
-                   bin_ps / time_unit_ps)
+        return cls.from_window(time_unit_ps * 1e-12, (start_ps * 1e-12, stop_ps * 1e-12), bin_ps * 1e-12)
 
     @property
     def n_bins(self) -> int:
@@ -252,7 +347,89 @@ def gaussian_irf(rms_s: float, source: str = "Gaussian") -> Irf:
     return Irf(tuple(t), tuple(np.exp(-0.5 * (t / rms_s) ** 2)), source=source)
 
 
-METHODS = ("lmf", "uos", "ml", "spatial")
+def irf_core_rms_s(irf: Irf) -> float:
+    """Width (s) of a response's sharp part: its leading edge read as a Gaussian's (10% to 90% of
+    the peak over 2.563), never more than its RMS. For a Gaussian, its RMS."""
+    t, c = irf.arrays()
+    if t.size < 3 or not np.allclose(np.diff(t), t[1] - t[0], rtol=1e-6):
+        return irf.rms_s
+    return float(min(edge_core_rms(c, t[1] - t[0]), irf.rms_s))
+
+
+def edge_core_rms(shape: np.ndarray, step: float) -> float:
+    """Core RMS (units of ``step``) of a sampled response from its leading edge: 10% to 90% of the
+    peak spans 2.563 RMS of a Gaussian (linear interpolation between samples)."""
+    pk = int(np.argmax(shape))
+    peak = shape[pk]
+
+    def crossing(level):
+        j = pk
+        while j > 0 and shape[j - 1] >= level:
+            j -= 1
+        if j == 0:
+            return 0.0
+        lo, hi = shape[j - 1], shape[j]
+        return (j - 1) + (level - lo) / (hi - lo) if hi > lo else float(j)
+
+    return float(max((crossing(0.9 * peak) - crossing(0.1 * peak)) * step / 2.563, 0.5 * step))
+
+
+#: The estimators that fit each pixel on its own (recon.pixelwise); METHODS adds those that do not.
+PIXELWISE_METHODS = ("lmf", "uos", "ml")
+#: Every estimator's name, the keys of the registry ``recon.estimate.ESTIMATORS``, in this order.
+METHODS = PIXELWISE_METHODS + ("spatial",)
+
+
+@dataclass(frozen=True)
+class SeedPaper:
+    """The settings of the seed paper's experiment: Shin, Shapiro and Goyal, "Single-Photon Depth
+    Imaging Using a Union-of-Subspaces Model", IEEE SPL 2015 (``paper/``): 15 detections per
+    pixel, M = N = 801 bins, delta = 1e-4 (its experiments section); the raw unit, window, bin
+    width, pulse width and iteration cap are those of its published code and data (its ref. [14]).
+
+    time_unit_s:      the time tagger's raw unit (8 ps).
+    window_start:     first raw unit kept (2000, 16 ns after the sync).
+    window_stop:      end of the window, exclusive: [2000, 6000] with a last bin starting at 6000,
+                      so 801 bins of 5 units (6005).
+    bin_units:        bin width in raw units (5: 40 ps).
+    pulse_rms_units:  Gaussian pulse RMS width in raw units (45: 360 ps).
+    delta:            uos stopping threshold.
+    max_iterations:   uos iteration cap.
+    max_photons:      detections used per pixel (the first 15).
+    """
+
+    time_unit_s: float = 8e-12
+    window_start: int = 2000
+    window_stop: int = 6005
+    bin_units: int = 5
+    pulse_rms_units: float = 45.0
+    delta: float = 1e-4
+    max_iterations: int = 10
+    max_photons: int = 15
+
+    @property
+    def n_bins(self) -> int:
+        return self.binning.n_bins
+
+    @property
+    def pulse_rms_s(self) -> float:
+        return self.pulse_rms_units * self.time_unit_s
+
+    @property
+    def binning(self) -> Binning:
+        return Binning(self.time_unit_s, self.window_start, self.window_stop, self.bin_units)
+
+    def settings(self, method: str = "uos", **changes) -> "ReconSettings":
+        """The paper's reconstruction settings for ``method``; ``changes`` override fields."""
+        base = dict(method=method, binning=self.binning, pulse_rms_s=self.pulse_rms_s,
+                    max_photons=self.max_photons, delta=self.delta, max_iterations=self.max_iterations)
+        base.update(changes)
+        return ReconSettings(**base)
+
+
+#: The seed paper's settings (see :class:`SeedPaper`); its delta and iteration cap are
+#: ReconSettings' defaults.
+SEED_PAPER = SeedPaper()
 
 
 @dataclass(frozen=True)
@@ -286,8 +463,8 @@ class ReconSettings:
     irf: Irf | None = None
     max_photons: int | None = None
     reflectors: int = 1
-    delta: float = 1e-4
-    max_iterations: int = 10
+    delta: float = SEED_PAPER.delta
+    max_iterations: int = SEED_PAPER.max_iterations
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:

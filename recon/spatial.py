@@ -49,6 +49,8 @@ from spdepth.recon.errors import InputError
 from spdepth.recon.maps import C_M_PER_S, DepthMaps, PixelFlag
 from spdepth.recon.model import ReconSettings
 from spdepth.recon.photons import PhotonStore
+from spdepth.recon.pixelwise import settings_record
+from spdepth.recon.resolve import resolve_model
 
 #: Censoring: support within this many pulse RMS widths of a detection.
 TAU_RMS = 1.5
@@ -72,13 +74,11 @@ def reconstruct_spatial(store: PhotonStore, settings: ReconSettings,
                         progress: Callable[[int, int], None] | None = None) -> DepthMaps:
     """Depth, background and signal at every pixel of ``store`` from the pixel and its neighbours.
 
-    Same inputs, outputs and settings record as :func:`recon.estimate.reconstruct` (which
-    dispatches here for ``settings.method == "spatial"``); ``settings['spatial']`` in the result
+    Same inputs, outputs and settings record as :func:`recon.estimate.reconstruct` (whose
+    registry holds it under "spatial"); ``settings['spatial']`` in the result
     holds this module's constants. Pixels whose depth comes from their neighbours only are flagged
     ``INTERPOLATED`` (their photons, signal and background are their own: 0 with no detections).
     """
-    from spdepth.recon.estimate import resolve_model, settings_record  # estimate imports this module
-
     if not isinstance(settings, ReconSettings):
         raise InputError(f"settings must be ReconSettings, got {type(settings).__name__}")
     if not isinstance(store, PhotonStore):

@@ -11,18 +11,17 @@ import scipy.io
 from spdepth.acq.cli import main
 from spdepth.recon.estimate import reconstruct
 from spdepth.recon.maps import PixelFlag
-from spdepth.recon.model import Binning, ReconSettings, estimate_pulse_rms_s
+from spdepth.recon.model import PIXELWISE_METHODS, Binning, ReconSettings, estimate_pulse_rms_s
 from spdepth.recon.photons import PhotonStore
 
 UNIT_S = 8e-12
-METHODS = ("lmf", "uos", "ml")
 
 
 def store_of(lists, unit_s=UNIT_S):
     return PhotonStore.from_lists([np.asarray(x, dtype=float) for x in lists], (1, len(lists)), unit_s)
 
 
-@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("method", PIXELWISE_METHODS)
 def test_one_bin_window_without_binning(method):
     # every detection within one bin width and no binning given: ml indexed an empty array
     maps = reconstruct(store_of([[100.0, 100.0, 101.0], [100.0], [102.0, 100.5]]),
@@ -33,7 +32,7 @@ def test_one_bin_window_without_binning(method):
     assert np.all(np.isfinite(maps.uncertainty_s)) and np.all(maps.uncertainty_s < 40e-12)
 
 
-@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("method", PIXELWISE_METHODS)
 def test_explicit_one_bin_window_is_finite_or_flagged(method):
     b = Binning(UNIT_S, 95.0, 100.0, 5.0)
     maps = reconstruct(store_of([[96.0, 97.0, 99.0], [98.0]]),
@@ -79,7 +78,7 @@ def test_ml_sub_bin_pulse_on_a_bin_edge_is_refined():
     assert maps.signal[0, 0] == pytest.approx(10.0, rel=0.02)
 
 
-@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("method", PIXELWISE_METHODS)
 def test_positive_amplitude_never_reads_zero_signal(method):
     b = Binning(UNIT_S, 0.0, 1000.0, 5.0)
     maps = reconstruct(store_of([[499.9] * 5 + [500.1] * 5, [502.0] * 3, [497.0, 503.0]]),

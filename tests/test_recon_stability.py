@@ -10,15 +10,14 @@ from hypothesis import given, settings as hsettings, strategies as st
 from spdepth.recon.errors import InputError
 from spdepth.recon.estimate import reconstruct
 from spdepth.recon.maps import DepthMaps, PixelFlag
-from spdepth.recon.model import (DEFAULT_MAX_BINS, Binning, Irf, ReconSettings, build_kernel, default_bin_width,
-                         default_binning, estimate_pulse_rms_s, load_irf)
+from spdepth.recon.model import (DEFAULT_MAX_BINS, METHODS, Binning, Irf, ReconSettings, build_kernel,
+                                 default_bin_width, default_binning, estimate_pulse_rms_s, load_irf)
 from spdepth.recon.photons import PhotonStore
 
 UNIT_S = 8e-12
 M = 201
 BIN = Binning(UNIT_S, 0.0, M * 5.0, 5.0)
 RMS_S = 4 * 40e-12
-METHODS = ("lmf", "uos", "ml", "spatial")
 
 pytestmark = pytest.mark.filterwarnings("error")
 
