@@ -24,7 +24,7 @@ import threading
 
 from spdepth.acq import commands as _commands
 from spdepth.acq.commands import (EXIT_DEVICE, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK,  # noqa: F401
-                                  EXIT_USAGE)
+                                  EXIT_USAGE, Terminated)
 from spdepth.acq.errors import AcqError
 from spdepth.drivers.errors import DeviceError, SettingError
 from spdepth.recon.errors import InputError
@@ -37,11 +37,6 @@ EXIT_CODES: tuple[tuple[type[Exception], int], ...] = (
 )
 """Every error family the CLI reports as one line, with its exit status; the first match wins.
 Anything else is a bug and keeps its traceback."""
-
-
-class Terminated(KeyboardInterrupt):
-    """SIGTERM, raised in the main thread so it unwinds exactly as Ctrl-C does (the session is
-    aborted cleanly and its files are written)."""
 
 
 def exit_code(exc: BaseException) -> int | None:
@@ -95,7 +90,10 @@ def _raise_terminated(signum, frame):
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:       # --help, --version and usage errors: their status, returned
+        return int(exc.code or 0)
     level = {0: logging.WARNING, 1: logging.INFO}.get(args.verbose, logging.DEBUG)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
     # SIGTERM unwinds as Ctrl-C does (a signal handler can only be set from the main thread)

@@ -73,7 +73,7 @@ def test_replay_reproduces_the_live_maps_and_reports_its_stream_rate(tmp_path, c
                  "--json"]) == 0
     assert np.all(DepthMaps.load_npz(fewer / "maps.npz").photons == 4)
     assert main(["replay", str(live), "--out", str(live), "--overwrite"]) == 2
-    assert "own directory" in capsys.readouterr().err
+    assert "own folder" in capsys.readouterr().err
 
 
 def test_replay_takes_a_simulated_ptu(tmp_path, capsys):
@@ -129,7 +129,7 @@ def test_kill_9_mid_scan_leaves_a_recording_that_replays(tmp_path, kill_after_by
     assert summary["state"] == "done" and summary["detections"] > 0
     # the scan was cut: pixels it never finished are flagged, the others are complete
     run = json.loads((out / "run.json").read_text())
-    assert 0 < len(run["flagged_pixels"]) < 128 * 128
+    assert 0 < sum(run["flag_reasons"].values()) < 128 * 128
     assert set(run["flag_reasons"]) == {"INCOMPLETE"}
 
 
@@ -148,35 +148,62 @@ def test_recon_of_a_recording_gives_the_sessions_maps(tmp_path, capsys):
     np.testing.assert_array_equal(a.tof_s, b.tof_s)
 
 
-def test_ctrl_c_aborts_cleanly_and_keeps_the_files(tmp_path):
-    rec = tmp_path / "rec"
-    proc = subprocess.Popen([sys.executable, "-m", "spdepth.acq.cli", "scan", "--sim", "--size", "128x128",
-                             "--target", "15", "--out", str(rec)],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+def _scan_until_recording(rec, size="128x128", min_bytes=100_000, extra=()):
+    """A scan in a child process, returned once its recording holds ``min_bytes``."""
+    proc = subprocess.Popen([sys.executable, "-m", "spdepth.acq.cli", "scan", "--sim", "--size", size,
+                             "--target", "15", "--out", str(rec), *extra],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     ptu = rec / "recording.ptu"
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline and proc.poll() is None:
-        if ptu.exists() and ptu.stat().st_size > 100_000:
+        if ptu.exists() and ptu.stat().st_size > min_bytes:
             break
         time.sleep(0.01)
-    assert proc.poll() is None, "the scan ended before the interrupt"
-    proc.send_signal(signal.SIGINT)
-    err = proc.communicate(timeout=60)[1]
+    assert proc.poll() is None, "the scan ended before it could be interrupted"
+    return proc
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_ctrl_c_and_sigterm_abort_cleanly_keep_the_files_and_the_json_summary(tmp_path, sig):
+    rec = tmp_path / "rec"
+    proc = _scan_until_recording(rec, extra=["--json"])
+    proc.send_signal(sig)
+    out, err = proc.communicate(timeout=60)
     assert proc.returncode == 130, err
-    assert "interrupted" in err and "Traceback" not in err
+    assert ("interrupted" if sig == signal.SIGINT else "terminated") in err
+    assert "Traceback" not in err
+    summary = _last_json(out)                  # the summary is still the last stdout line
+    assert summary["state"] == "aborted" and summary["out"] == str(rec)
     run = json.loads((rec / "run.json").read_text())
     assert run["state"] == "aborted"
     import ptufile
 
-    with ptufile.PtuFile(ptu) as pf:       # closed cleanly: the record count is patched in
+    with ptufile.PtuFile(rec / "recording.ptu") as pf:   # closed cleanly: record count patched in
         assert pf.number_records == run["statistics"]["records_recorded"] > 0
     assert (rec / "maps.npz").is_file()
+
+
+def test_a_folder_in_use_by_a_running_session_is_refused(tmp_path):
+    rec = tmp_path / "rec"
+    proc = _scan_until_recording(rec, min_bytes=1000)
+    try:
+        for extra in ([], ["--overwrite"]):
+            second = subprocess.run([sys.executable, "-m", "spdepth.acq.cli", "scan", "--sim",
+                                     "--size", "4x4", "--out", str(rec), *extra],
+                                    capture_output=True, text=True, timeout=120)
+            assert second.returncode == 2, second.stderr
+            assert "in use by a running session" in second.stderr
+            assert len(second.stderr.strip().splitlines()) == 1
+    finally:
+        proc.send_signal(signal.SIGINT)
+        proc.communicate(timeout=60)
+    assert json.loads((rec / "run.json").read_text())["state"] == "aborted"   # untouched by the second
 
 
 def test_scan_on_a_missing_device_is_one_line_and_leaves_no_directory(tmp_path, capsys):
     out = tmp_path / "never"
     assert main(["scan", "--galvo", str(tmp_path / "ttyNOPE"), "--tagger", "usb:1209:7a64",
-                 "--sync-rate-hz", "1e7", "--out", str(out)]) == 2
+                 "--sync-rate-hz", "1e7", "--out", str(out)]) == 3
     err = capsys.readouterr().err
     assert "ttyNOPE" in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
     assert not out.exists()

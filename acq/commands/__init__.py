@@ -14,3 +14,8 @@ EXIT_DEVICE = 3
 """A device that is missing or failed."""
 EXIT_INTERRUPTED = 130
 """Ctrl-C or SIGTERM (128 + SIGINT, as shells report it): the session was aborted cleanly."""
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread so it unwinds exactly as Ctrl-C does (the session is
+    aborted cleanly and its files are written)."""

@@ -7,7 +7,8 @@ import argparse
 import json
 import sys
 
-from spdepth.acq.commands import EXIT_DEVICE, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK
+from spdepth.acq.commands import (EXIT_DEVICE, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK,
+                                  Terminated)
 from spdepth.acq.commands._args import positive_float
 from spdepth.acq.requests import DEFAULT_METHOD
 from spdepth.recon.model import METHODS
@@ -63,9 +64,9 @@ def run_session(session, label: str) -> bool:
     try:
         session.run()
         return False
-    except KeyboardInterrupt:
-        print(f"spdepth {label}: interrupted; the recording and maps so far are kept",
-              file=sys.stderr)
+    except KeyboardInterrupt as exc:
+        what = "terminated" if isinstance(exc, Terminated) else "interrupted"
+        print(f"spdepth {label}: {what}; the recording and maps so far are kept", file=sys.stderr)
         return True
     finally:
         bar.close()
