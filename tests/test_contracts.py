@@ -26,10 +26,6 @@ ROOMS = ("acq", "recon", "drivers", "gui")
 CLI = ("acq.cli", "acq.commands")
 """The command-line front end: the only code that may import gui."""
 
-BEING_FIXED = pytest.mark.xfail(strict=True, reason="issue 14: being fixed")
-"""Rules that fail today while issue 14 is under way. strict: the test fails the moment the code is
-fixed, as a reminder to remove the marker so the rule holds from then on."""
-
 
 @dataclass(frozen=True)
 class Import:
@@ -259,12 +255,10 @@ def test_drivers_import_nothing_of_acq_recon_gui(tree):
             imports_against_the_flow(tree, "drivers", ("acq", "recon", "gui")))
 
 
-@BEING_FIXED
 def test_gui_never_imports_the_cli(tree):
     _report("gui imports of acq.cli / acq.commands", gui_imports_of_the_cli(tree))
 
 
-@BEING_FIXED
 def test_gui_never_mentions_argparse(tree):
     _report("gui lines mentioning argparse", mentions(tree, "gui", "argparse"))
 
@@ -273,10 +267,10 @@ def test_only_the_cli_imports_gui(tree):
     _report("imports of gui outside acq.cli / acq.commands", gui_importers_outside_the_cli(tree))
 
 
-@pytest.mark.parametrize("room", [pytest.param("recon", marks=BEING_FIXED), "acq", "drivers", "gui"])
+@pytest.mark.parametrize("room", ROOMS)
 def test_no_import_cycles(tree, room):
-    # one test per room, so the rooms without cycles are held to it today; a cycle across rooms
-    # shows under each room it touches
+    # one test per room, so a failure says whose cycle it is; a cycle across rooms shows under
+    # each room it touches
     found = [(group, imps) for group, imps in import_cycles(tree)
              if any(room_of(m) == room for m in group)]
     _report(f"import cycles touching {room}",
