@@ -3,7 +3,6 @@ for bit, per file and per block of rows of one recording, also when a worker die
 
 from __future__ import annotations
 
-import argparse
 import os
 import signal
 
@@ -14,7 +13,8 @@ pytest.importorskip("distributed")
 
 from spdepth.acq import distributed as D  # noqa: E402
 from spdepth.acq.cli import main  # noqa: E402
-from spdepth.recon.errors import InputError  # noqa: E402
+from spdepth.acq.errors import RequestError  # noqa: E402
+from spdepth.acq.requests import FileReconRequest  # noqa: E402
 from spdepth.recon.maps import NPZ_KEYS, DepthMaps  # noqa: E402
 
 MODEL = ["--window-ps", "0:100000", "--bin-ps", "40", "--pulse-rms-ps", "360", "--max-photons", "12"]
@@ -38,10 +38,10 @@ def client():
         yield c
 
 
-def _args(argv):
-    from spdepth.acq.cli import build_parser
-
-    return build_parser().parse_args(["recon", *argv])
+def _request(path, method="uos", **changes):
+    """The request `spdepth recon PATH --method M MODEL` makes."""
+    model = dict(window_s=(0.0, 100e-9), bin_s=40e-12, pulse_rms_s=360e-12, max_photons=12)
+    return FileReconRequest(input=path, method=method, **{**model, **changes})
 
 
 def _same(a: DepthMaps, b: DepthMaps):
@@ -60,9 +60,8 @@ def _single(path, tmp, method="uos"):
 
 
 def _blocks(client, path, method="uos", on_submitted=None):
-    args = _args([path, "--method", method, *MODEL])
     unit_s = D._image_and_unit(path, None)[4]
-    settings = D.settings_from_args(args, unit_s * 1e12)
+    settings = D.block_settings(_request(path, method), unit_s)
     # small chunks and blocks, so that rows, chunks and blocks all cut across each other
     plan = D.plan_blocks(path, unit_s, chunk_records=3001, block_pixels=7 * 40 + 13)
     assert len(plan.starts) > 3 and len(plan.rows) > 3
@@ -103,9 +102,12 @@ def test_a_worker_killed_mid_run_is_retried_and_the_maps_are_the_same(client, fi
 
 def test_many_files_one_task_each_equal_the_single_runs(client, files, tmp_path):
     d, paths = files
-    args = _args([*paths, "--method", "uos", *MODEL, "--out", str(tmp_path / "dask")])
-    summaries = D._per_file(args, client)
+    (tmp_path / "dask").mkdir()
+    requests = [_request(p, out=str(tmp_path / "dask" / os.path.basename(p).replace(".ptu", ".npz")))
+                for p in paths]
+    summaries = D._per_file(requests, client)
     assert [s["input"] for s in summaries] == paths
+    assert all(s["notes"] == [] and "times_s" not in str(s["settings"]) for s in summaries)
     # the command without --dask runs the same per-file path in this process
     assert main(["recon", *paths, "--method", "uos", *MODEL, "--out", str(tmp_path / "here")]) == 0
     for p in paths:
@@ -119,8 +121,13 @@ def test_addresses():
     assert D.parse_address("local:3") == ("local", 3)
     assert D.parse_address("tls://sched.lab:8786") == ("remote", "tls://sched.lab:8786")
     for bad in ("local:x", "local:0", "nonsense"):
-        with pytest.raises(InputError):
+        with pytest.raises(RequestError, match=bad):
             D.parse_address(bad)
-    # a model left to the data cannot be split into blocks
-    assert D.settings_from_args(_args(["x.ptu"]), 8.0) is None
-    assert isinstance(_args(["a", "b"]), argparse.Namespace)
+
+
+def test_a_model_left_to_the_data_is_not_split(files):
+    _, paths = files
+    for left in ("window_s", "bin_s", "pulse_rms_s"):
+        assert D.block_settings(_request(paths[0], **{left: None}), 8e-12) is None
+    given = D.block_settings(_request(paths[0]), 8e-12)
+    assert given.binning.n_bins == 2500 and given.max_photons == 12
