@@ -186,6 +186,8 @@ class Run:
 
     @property
     def label(self) -> str:
+        if isinstance(self.request, ReplayRequest):   # the estimator: as recorded unless replaced
+            return f"{self.request.label()}, {self.session.recon.settings.method}"
         return self.request.label()
 
     def close(self) -> None:
@@ -284,7 +286,8 @@ class SessionView:
             background=float(rc.background[r, c]), signal=float(rc.signal[r, c]),
             uncertainty_s=float(rc.uncertainty_s[r, c]), estimated=bool(rc.done[r, c]),
             flag=int(rc.flags[r, c]), kept=f"{int(s.store.count[flat])} of {s.plan.target}",
-            acquisition="acquiring" if acq == ACQUIRING else AcqFlag(acq).name.lower().replace("_", " "))
+            acquisition="acquiring" if acq == ACQUIRING
+            else AcqFlag(acq).name.lower().replace("_", " "))
 
 
 class ResultView:

@@ -212,6 +212,67 @@ def test_errors_appear_in_the_window_and_it_stays_usable(qtbot, win, tmp_path):
     qtbot.waitUntil(lambda: _state(win) == "done", timeout=60_000)
 
 
+def test_the_controls_make_the_librarys_requests(tmp_path):
+    """The window only translates its controls (ms, ps, 0 for "default") into acq requests (SI,
+    None); the request validates itself and the banner names the controls."""
+    from spdepth.acq.errors import RequestError
+    from spdepth.acq.requests import (Devices, FileReconRequest, ReplayRequest, ScanRequest,
+                                      SimBench)
+    from spdepth.gui.sources import in_window_words
+
+    gated = _spec(tmp_path, dwell_limit_ms=2.5, sbr=3.0, seed=9,
+                  faults="usb-timeout@50%").to_request()
+    assert isinstance(gated, ScanRequest) and gated.size == (16, 16) and gated.target == 5
+    assert gated.dwell_limit_s == pytest.approx(2.5e-3) and gated.dwell_s is None
+    assert gated.instruments == SimBench(scene="bust", sbr=3.0, seed=9, faults="usb-timeout@50%")
+    raster = _spec(tmp_path, mode="raster", dwell_limit_ms=1.5).to_request()
+    assert raster.dwell_s == pytest.approx(1.5e-3) and raster.dwell_limit_s is None
+    assert _spec(tmp_path).to_request().dwell_limit_s is None              # 0: the default
+    real = SourceSpec(kind="real", galvo_port="loop://", tagger_url="usb:1:2",
+                      sync_rate_hz=20e6).to_request()
+    assert real.instruments == Devices(galvo="loop://", tagger="usb:1:2", sync_rate_hz=20e6)
+    rec = tmp_path / "rec"
+    rec.mkdir()
+    (rec / "recording.ptu").write_bytes(b"")
+    replay = SourceSpec(kind="replay", recording=str(rec), target=0, method="ml").to_request()
+    assert replay == ReplayRequest(recording=str(rec), target=None, method="ml")
+    data = tmp_path / "x.mat"
+    data.write_bytes(b"MATLAB 5.0")
+    f = SourceSpec(kind="file", file=str(data), time_unit_ps=8.0, pulse_rms_ps=360.0,
+                   target=15).to_request()
+    assert isinstance(f, FileReconRequest) and f.max_photons == 15
+    assert f.time_unit_s == pytest.approx(8e-12) and f.pulse_rms_s == pytest.approx(360e-12)
+    # the controls show a request as it was asked (the round trip keeps every control)
+    for spec in (_spec(tmp_path, dwell_limit_ms=2.5, sbr=3.0, seed=9),
+                 _spec(tmp_path, mode="raster", dwell_limit_ms=1.5, method="ml"),
+                 SourceSpec(kind="replay", recording=str(rec), target=7, method="ml"),
+                 SourceSpec(kind="file", file=str(data), time_unit_ps=8.0, target=15)):
+        back = SourceSpec.from_request(spec.to_request(), spec)
+        assert back == spec
+    with pytest.raises(RequestError, match="--target must be a whole number >= 1, got 0"):
+        _spec(tmp_path, target=0).to_request()
+    with pytest.raises(RequestError) as e:
+        SourceSpec(kind="real", galvo_port="loop://", tagger_url="usb:1:2").to_request()
+    assert in_window_words(str(e.value)) == "real devices need sync rate (the laser repetition rate)"
+
+
+def test_a_run_folder_is_locked_while_its_session_runs(qtbot, win, tmp_path):
+    from spdepth.acq.api import LOCK_NAME, OutputDir
+    from spdepth.acq.errors import OutputError
+
+    ended = []
+    win.scan_ended.connect(ended.append)
+    assert win.start_run(_spec(tmp_path, size=(24, 24)))
+    out = win.run.out_dir
+    assert out.parent == tmp_path / "runs" and out.name.endswith("-sim")
+    assert (out / LOCK_NAME).is_file()
+    with pytest.raises(OutputError, match="in use by a running session"):
+        OutputDir(out, overwrite=True)
+    qtbot.waitUntil(lambda: bool(ended), timeout=60_000)
+    assert ended == ["done"] and not (out / LOCK_NAME).exists()     # released with the run
+    OutputDir(out, overwrite=True).close()
+
+
 def test_settings_are_remembered(qtbot, settings, tmp_path):
     w = MainWindow(settings=settings)
     qtbot.addWidget(w)
