@@ -34,6 +34,8 @@ MAX_BATCH_PIXELS = 16384
 """Largest batch one reconstruction call takes (keeps the maps fresh during a fast replay)."""
 SPATIAL_LIVE_STAND_IN = "ml"
 """Pixelwise estimator for the live maps of a spatial session (the best one pixel by pixel)."""
+CLOSING_BATCH_FACTOR = 16
+"""Batches are this many times larger once the session is finishing."""
 MIN_BATCH_PIXELS = 1024
 """A batch starts once this many pixels wait, ..."""
 BATCH_WAIT_S = 0.2
@@ -186,12 +188,23 @@ class LiveRecon:
                 if self._closing:
                     return None
                 self._cond.wait(BATCH_WAIT_S / 4)
-            batch = np.concatenate(self._pending)
-            take = batch[:MAX_BATCH_PIXELS]
-            rest = batch[MAX_BATCH_PIXELS:]
-            self._pending = [rest] if rest.size else []
-            self._n_pending = int(rest.size)
-            return take
+            # up to MAX_BATCH_PIXELS from the front; the rest stays as it was queued (copying
+            # the whole queue for every batch was quadratic: a huge scan cut by its time limit
+            # queues millions of pixels at once)
+            # at the end nobody watches the maps fill: bigger batches, fewer set-ups
+            most = MAX_BATCH_PIXELS * (CLOSING_BATCH_FACTOR if self._closing else 1)
+            parts, n = [], 0
+            while self._pending and n < most:
+                head = self._pending[0]
+                room = most - n
+                if head.size <= room:
+                    parts.append(self._pending.pop(0))
+                else:
+                    parts.append(head[:room])
+                    self._pending[0] = head[room:]
+                n += parts[-1].size
+            self._n_pending -= n
+            return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
     def _needs_pulse(self) -> bool:
         return self.settings.pulse_rms_s is None and self.settings.irf is None
@@ -234,18 +247,15 @@ class LiveRecon:
         if self.resolved is None:
             self.resolved = dict(m.settings if m is not None else self._empty["settings"])
             self.resolved.update(self._pulse_note)
-        w = self.store.shape[1]
         with self.lock:        # one batch appears in the maps at once
             if m is not None:
-                rows, cols = np.divmod(full, w)
                 for name in _MAP_FIELDS:
-                    getattr(self, name)[rows, cols] = getattr(m, name)[0]
+                    getattr(self, name).reshape(-1)[full] = getattr(m, name)[0]
             if empty.any():
-                rows, cols = np.divmod(pixels[empty], w)
+                hollow = pixels[empty]
                 for name in _MAP_FIELDS:
-                    getattr(self, name)[rows, cols] = self._empty[name]
-            rows, cols = np.divmod(pixels, w)
-            self.done[rows, cols] = True
+                    getattr(self, name).reshape(-1)[hollow] = self._empty[name]
+            self.done.reshape(-1)[pixels] = True
         self.processed += int(pixels.size)
 
     def _empty_result(self) -> dict:
@@ -267,10 +277,13 @@ class LiveRecon:
         self.resolved = dict(m.settings)
         self.resolved["live_maps"] = f"{SPATIAL_LIVE_STAND_IN} pixel by pixel during the scan"
 
-    def maps(self) -> DepthMaps:
-        """The maps as they stand (copies), in ``spdepth recon``'s format."""
+    def maps(self, copy: bool = True) -> DepthMaps:
+        """The maps as they stand (copies), in ``spdepth recon``'s format. ``copy=False`` gives
+        the arrays themselves: only once the worker has ended (``finish``), for writing them."""
         settings = dict(self.resolved) if self.resolved is not None else self.settings.to_dict()
-        return DepthMaps(settings=settings, **self.copy_maps(*_MAP_FIELDS))
+        if copy:
+            return DepthMaps(settings=settings, **self.copy_maps(*_MAP_FIELDS))
+        return DepthMaps(settings=settings, **{name: getattr(self, name) for name in _MAP_FIELDS})
 
     def copy_maps(self, *names: str) -> dict:
         """Copies of the named maps, all taken between two batches (never half a batch)."""

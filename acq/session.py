@@ -254,7 +254,8 @@ class Session:
             step = 0.1 if deadline is None else min(0.1, max(0.0, deadline - time.monotonic()))
             if self._ended.wait(step) or (deadline is not None and time.monotonic() >= deadline):
                 break
-        if self._ended.is_set() and self._thread is not None:
+        if self._ended.is_set() and self._thread is not None \
+                and self._thread is not threading.current_thread():
             self._thread.join()          # its last steps after the end was signalled
         return self._state
 
@@ -543,7 +544,8 @@ class Session:
                 self._fail(OutputError(f"output folder {self.out_dir} was removed before the "
                                        "session could write its maps and run.json"))
             return SessionState.FAILED
-        _save_maps_npz(self.out_dir / "maps.npz", self.maps(),
+        maps = self.recon.maps(copy=self.recon.error is not None)   # the worker has ended
+        _save_maps_npz(self.out_dir / "maps.npz", maps,
                        acq_flags=self.acq_flags.reshape(self.plan.shape))
         _write_json_atomic(self.out_dir / "run.json", self.run_record(final))
         return final
@@ -567,7 +569,7 @@ class Session:
         except PackageNotFoundError:
             ver = "unknown"
         st = self._stats()
-        flags = self.acq_flags[(self.acq_flags != AcqFlag.COMPLETE) & (self.acq_flags != ACQUIRING)]
+        per_flag = np.bincount(self.acq_flags, minlength=256)
         out = {
             "state": (final or self._state).value,
             "error": None if self.error is None else f"{type(self.error).__name__}: {self.error}",
@@ -589,8 +591,8 @@ class Session:
                 **self.source.statistics(),
                 "stream_s": self.stream_s,
             },
-            "flag_reasons": {AcqFlag(int(k)).name: int(v) for k, v in
-                             zip(*np.unique(flags, return_counts=True))},
+            "flag_reasons": {f.name: int(per_flag[f]) for f in AcqFlag
+                             if f != AcqFlag.COMPLETE and per_flag[f]},
             "flags_map": "maps.npz: acq_flags (uint8 AcqFlag per pixel)",
             "warnings": list(self.source.warnings),
             "faults_seen": [f.to_dict() for f in list(self.faults)],

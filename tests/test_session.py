@@ -16,6 +16,7 @@ from spdepth.acq.instruments import open_sim, recon_settings, sim_plan, window_b
 from spdepth.acq.recording import ReplaySource, recon_settings_from_dict
 from spdepth.acq.session import ACQUIRING, AcqFlag, Session, SessionState, SessionStateError
 from spdepth.recon.maps import DepthMaps
+from waiting import wait_until
 
 
 def _session(inst, shape, out=None, *, target=10, method="lmf", reader_options=None,
@@ -143,7 +144,8 @@ def test_faults_are_reacquired_and_nothing_is_counted_twice(tmp_path, fault):
     # every fault here is recoverable: the session re-acquires until every pixel is complete
     assert s.flagged_pixels().size == 0
     run = json.loads((tmp_path / "run.json").read_text())
-    if fault.split("@")[0] in ("fifo-overflow", "device-vanish", "servo-fault"):
+    if fault.split("@")[0] in ("fifo-overflow", "device-vanish", "servo-fault", "usb-timeout",
+                               "partial-read"):
         assert run["faults_seen"], "the fault must be listed"
         assert all({"kind", "t_s", "what", "action"} <= set(f) for f in run["faults_seen"])
     if fault.startswith(("fifo-overflow", "servo-fault", "device-vanish")):
@@ -163,7 +165,7 @@ def test_pause_resume_and_abort_from_another_thread(tmp_path):
         s.start()
         with pytest.raises(SessionStateError):
             s.start()
-        assert _wait(lambda: s.snapshot().pixels_final > 20)
+        wait_until(lambda: s.snapshot().pixels_final > 20, what="20 final pixels")
         threading.Thread(target=s.pause).start()
         assert s.wait_for_state(SessionState.PAUSED, 20)
         frozen = s.store.count.copy()
@@ -177,7 +179,8 @@ def test_pause_resume_and_abort_from_another_thread(tmp_path):
             s.pause()
         s.resume()
         assert s.wait_for_state(SessionState.RUNNING, 10)
-        assert _wait(lambda: s.snapshot().pixels_final > frozen.astype(bool).sum() + 20)
+        wait_until(lambda: s.snapshot().pixels_final > frozen.astype(bool).sum() + 20,
+                   what="20 more final pixels")
         threading.Thread(target=s.abort).start()
         assert s.wait(30) == SessionState.ABORTED
         assert_from_complete_dwells(s, inst.rig)
@@ -194,15 +197,6 @@ def test_pause_resume_and_abort_from_another_thread(tmp_path):
     rep = _replay(tmp_path)
     assert rep.run() == SessionState.DONE
     _assert_same_maps(DepthMaps.load_npz(tmp_path / "maps.npz"), rep.maps(), skip_flags=True)
-
-
-def _wait(cond, timeout_s=30.0):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if cond():
-            return True
-        time.sleep(0.01)
-    return False
 
 
 def _replay(rec_dir, *, target=None, out=None):
@@ -257,12 +251,13 @@ def test_subscribers_get_latest_snapshots_at_most_30_hz_and_a_slow_one_does_not_
     with open_sim("bust", (16, 16), ppp=10, seed=9) as inst:
         s = _session(inst, (16, 16))
         fast, slow = [], []
-        s.subscribe(lambda snap: fast.append((time.monotonic(), snap)))
-        s.subscribe(lambda snap: (slow.append(snap), time.sleep(0.5)))
+        fast_sub = s.subscribe(lambda snap: fast.append((time.monotonic(), snap)))
+        slow_sub = s.subscribe(lambda snap: (slow.append(snap), time.sleep(0.5)))
         t0 = time.monotonic()
         assert s.run() == SessionState.DONE
         wall = time.monotonic() - t0
-    time.sleep(0.1)
+    assert fast_sub.join(10), "the fast subscriber's last call after the end"
+    assert slow_sub.join(10)
     assert fast[-1][1].state == "done" and fast[-1][1].pixels_final == 256
     # the last call comes at once when the session ends; the others at most 30 a second
     steady = fast[:-1]
@@ -321,9 +316,9 @@ def test_health_shows_a_device_recovering_then_the_scan_completes(fault, device)
     with open_sim("bust", (16, 16), ppp=10, seed=12, faults=fault) as inst:
         s = _session(inst, (16, 16))
         seen = []
-        s.subscribe(lambda snap: seen.append(dict(snap.health)), max_hz=30)
+        sub = s.subscribe(lambda snap: seen.append(dict(snap.health)), max_hz=30)
         assert s.run() == SessionState.DONE
-    time.sleep(0.1)
+    assert sub.join(10)
     assert seen[0] == {"galvo": "ok", "tagger": "ok"}
     assert any(h[device] == "recovering" for h in seen), seen
     assert all(h[other] == "ok" for h in seen for other in ("galvo", "tagger") if other != device)
@@ -339,11 +334,11 @@ def test_a_tagger_that_does_not_come_back_fails_the_session_cleanly(tmp_path):
                   tagger_options={"vanish_s": 5.0}, galvo_options={"pace": 1.0}) as inst:
         s = _session(inst, (12, 12), tmp_path, reader_options={"reconnect_timeout_s": 0.3})
         seen = []
-        s.subscribe(lambda snap: seen.append(snap), max_hz=30)
+        sub = s.subscribe(lambda snap: seen.append(snap), max_hz=30)
         assert s.run() == SessionState.FAILED
         assert inst.galvo.status().state.name == "PARKED"      # cleanup stopped and parked it
     assert "did not come back" in str(s.error)
-    time.sleep(0.1)
+    assert sub.join(10)
     assert seen[-1].state == "failed" and seen[-1].health["tagger"] == "failed"
     run = json.loads((tmp_path / "run.json").read_text())
     assert run["state"] == "failed" and "did not come back" in run["error"]
