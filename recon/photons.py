@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from spdepth.recon.errors import InputError
 
@@ -61,16 +62,19 @@ class PhotonStore:
     def from_pixel_indices(cls, pixel: np.ndarray, times: np.ndarray, shape: tuple[int, int],
                            time_unit_s: float) -> "PhotonStore":
         """Build from parallel arrays of flat pixel index and detection time (any order of pixels;
-        detection order within a pixel is kept, since the sort is stable)."""
-        pixel = np.asarray(pixel, dtype=np.int64)
+        detection order within a pixel is kept). A counting sort: linear in the detections."""
+        pixel = np.ascontiguousarray(pixel, dtype=np.int64)
+        times = np.ascontiguousarray(times)
+        if pixel.shape != times.shape:
+            raise InputError(f"pixel and time arrays differ in length ({pixel.size} vs {times.size})")
         n_pix = shape[0] * shape[1]
         if pixel.size and (pixel.min() < 0 or pixel.max() >= n_pix):
             raise InputError(f"pixel index out of range for a {shape[0]} x {shape[1]} image")
-        order = np.argsort(pixel, kind="stable")
-        counts = np.bincount(pixel, minlength=n_pix)
         offsets = np.zeros(n_pix + 1, dtype=np.int64)
-        np.cumsum(counts, out=offsets[1:])
-        return cls(np.asarray(times, dtype=np.float64)[order], offsets, shape, time_unit_s)
+        np.cumsum(np.bincount(pixel, minlength=n_pix), out=offsets[1:])
+        out = np.empty(pixel.size, np.float64)
+        _scatter_by_pixel(pixel, times, offsets, out)
+        return cls(out, offsets, shape, time_unit_s)
 
     @property
     def n_pixels(self) -> int:
@@ -119,3 +123,13 @@ class PhotonStore:
         """Detection times of one pixel (a view, in detection order)."""
         p = row * self.shape[1] + col
         return self.times[self.offsets[p]:self.offsets[p + 1]]
+
+
+@njit(cache=True, nogil=True)
+def _scatter_by_pixel(pixel, times, offsets, out):
+    """Stable counting sort: ``out[offsets[p] + j]`` is the j-th time (in input order) of pixel p."""
+    fill = offsets[:-1].copy()
+    for i in range(pixel.size):
+        p = pixel[i]
+        out[fill[p]] = times[i]
+        fill[p] += 1

@@ -176,3 +176,13 @@ def ml_refined(y: np.ndarray, kern, s_mat: np.ndarray):
         if den < 0:
             frac = float(np.clip(0.5 * (ll[j - 1] - ll[j + 1]) / den, -0.5, 0.5))
     return i + (qs[j] + frac) / FINE_STEPS
+
+
+def photons_by_pixel(pixel, times, n_pix):
+    """``PhotonStore.from_pixel_indices``'s grouping by a stable argsort: (times grouped by pixel,
+    detection order kept within a pixel; offsets)."""
+    pixel = np.asarray(pixel, np.int64)
+    order = np.argsort(pixel, kind="stable")
+    offsets = np.zeros(n_pix + 1, np.int64)
+    np.cumsum(np.bincount(pixel, minlength=n_pix), out=offsets[1:])
+    return np.asarray(times, np.float64)[order], offsets

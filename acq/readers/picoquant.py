@@ -45,6 +45,7 @@ _REC_HYDRAHARP2_T3 = 0x01010304  # HydraHarp v2 / Generic T3: overflow record ca
 _GENERIC_T3 = (_REC_HYDRAHARP2_T3, 0x00010305, 0x00010306, 0x00010307)
 CHUNK_RECORDS = 1 << 22
 """Records decoded at a time on the pixel-marker path (64 MiB of events)."""
+_MARKER_KIND, _PHOTON_KIND, _PIXEL_BIT = int(EventKind.MARKER), int(EventKind.PHOTON), int(Marker.PIXEL)
 
 
 @contextlib.contextmanager
@@ -308,26 +309,21 @@ def _read_by_pixel_markers(path: Path, layout: PtuLayout, rectype: int, image: d
     state = T3DecoderState()
     buf = np.empty(min(CHUNK_RECORDS, max(layout.n_records, 1)), EVENT_DTYPE)
     per_channel = np.zeros(64, np.int64)
-    pixels, times = [], []
-    n_pixel_markers = 0
-    outside = 0
+    # every photon of the file lands here in stream order, then one counting sort groups them
+    cap = max(layout.n_records, layout.records_in_file)
+    pixel_all, time_all = np.empty(cap, np.int64), np.empty(cap, np.uint32)
+    n_kept = n_pixel_markers = outside = 0
+    channel = -1 if keep_channel is None else int(keep_channel)
     for chunk in iter_records(layout, CHUNK_RECORDS):
         try:
             ev = decode_t3(chunk, state, out=buf)
         except DriverError as exc:
             raise InputError(f"{path}: {exc}") from None
-        is_marker = ev["kind"] == EventKind.MARKER
-        ev["marker"][is_marker] = lut[ev["marker"][is_marker]]
-        n_pixel_markers += int(np.count_nonzero(ev["marker"] & Marker.PIXEL))
+        n_pixel_markers += _renumber_markers(ev["kind"], ev["marker"], lut)
         pixel = assigner.assign(ev)
-        is_photon = ev["kind"] == EventKind.PHOTON
-        per_channel += np.bincount(ev["channel"][is_photon], minlength=64)
-        if keep_channel is not None:
-            is_photon &= ev["channel"] == keep_channel
-        sel = is_photon & (pixel >= 0)
-        outside += int(np.count_nonzero(is_photon)) - int(np.count_nonzero(sel))
-        pixels.append(pixel[sel])
-        times.append(ev["dtime"][sel].copy())
+        n_kept, out = _collect_photons(ev["kind"], ev["channel"], ev["dtime"], pixel, channel,
+                                       pixel_all, time_all, n_kept, per_channel)
+        outside += out
     if n_pixel_markers == 0:
         return None
     meta = dict(meta, time_unit_s=time_unit_s,
@@ -335,7 +331,7 @@ def _read_by_pixel_markers(path: Path, layout: PtuLayout, rectype: int, image: d
     if keep_channel is not None and keep_channel not in meta["photons_per_channel"]:
         raise InputError(f"{path}: no photons on channel {keep_channel}; channels with photons: "
                          f"{sorted(meta['photons_per_channel']) or 'none'}")
-    store = PhotonStore.from_pixel_indices(np.concatenate(pixels), np.concatenate(times), (h, w),
+    store = PhotonStore.from_pixel_indices(pixel_all[:n_kept], time_all[:n_kept], (h, w),
                                            time_unit_s)
     meta.update(assignment="pixel markers", lines=assigner.lines_closed,
                 frames=max(assigner.frame + 1, 1), pix_x=w, height=h, pixel_markers=n_pixel_markers,
@@ -466,3 +462,39 @@ def _legacy_result(path, kind, data, off, head, rectype, resolution_s, time_unit
             "sync_rate_hz": float(head["SyncRate"]), "format_version": head["FormatVersion"]}
     return _records_to_result(path, kind, _decode(records, rectype), time_unit_s or resolution_s,
                               None, channel, meta)
+
+
+@njit(cache=True, nogil=True)
+def _renumber_markers(kind, marker, lut):
+    """Marker bits of the file's inputs -> ``Marker`` bits (``lut``), in place; returns the number
+    of pixel markers."""
+    n_pixel = 0
+    for i in range(kind.size):
+        if kind[i] == _MARKER_KIND:
+            m = lut[marker[i]]
+            marker[i] = m
+            if m & _PIXEL_BIT:
+                n_pixel += 1
+    return n_pixel
+
+
+@njit(cache=True, nogil=True)
+def _collect_photons(kind, channel, dtime, pixel, keep_channel, pixel_out, time_out, n, per_channel):
+    """Append the photons that land in a pixel (of ``keep_channel`` only, when >= 0) to
+    ``pixel_out``/``time_out`` from index ``n``; count photons per channel. Returns (new n,
+    photons outside any pixel)."""
+    outside = 0
+    for i in range(kind.size):
+        if kind[i] != _PHOTON_KIND:
+            continue
+        c = channel[i]
+        per_channel[c] += 1
+        if keep_channel >= 0 and c != keep_channel:
+            continue
+        if pixel[i] < 0:
+            outside += 1
+            continue
+        pixel_out[n] = pixel[i]
+        time_out[n] = dtime[i]
+        n += 1
+    return n, outside
