@@ -1,4 +1,5 @@
-"""Reconstruction: forward model, photon store, per-pixel estimators and maps. Math only.
+"""Reconstruction: forward model, photon store, estimators behind one registry
+(``recon.estimate.ESTIMATORS``, entry point ``recon.estimate.reconstruct``) and maps. Math only.
 
 ``recon`` imports nothing from ``acq``, ``drivers`` or ``gui``.
 """

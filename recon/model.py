@@ -430,6 +430,9 @@ class SeedPaper:
 #: The seed paper's settings (see :class:`SeedPaper`); its delta and iteration cap are
 #: ReconSettings' defaults.
 SEED_PAPER = SeedPaper()
+#: The default bin is the pulse RMS over this (:func:`default_bin_width`): the seed paper's ratio,
+#: 360 ps / 40 ps = 9.
+BINS_PER_PULSE_RMS = SEED_PAPER.pulse_rms_units / SEED_PAPER.bin_units
 
 
 @dataclass(frozen=True)
@@ -800,7 +803,7 @@ def default_bin_width(span: float, pulse_rms: float | None = None,
     it is known (the seed paper's 40 ps bins for a 360 ps pulse), else one unit; at least one unit;
     widened to whole units so that the window holds at most ``max_bins`` bins
     (``ceil(span / width) <= max_bins``)."""
-    width = max(1.0, float(round(pulse_rms / 9.0))) if pulse_rms else 1.0
+    width = max(1.0, float(round(pulse_rms / BINS_PER_PULSE_RMS))) if pulse_rms else 1.0
     if span / width > max_bins:
         width = float(math.ceil(span / max_bins))
     return width

@@ -9,7 +9,8 @@ import pytest
 from hypothesis import given, settings as hsettings, strategies as st
 
 from spdepth.recon.errors import InputError
-from spdepth.recon.model import SEED_PAPER, Binning, ReconSettings, default_bin_width
+from spdepth.recon.maps import C_M_PER_S
+from spdepth.recon.model import BINS_PER_PULSE_RMS, SEED_PAPER, Binning, ReconSettings, default_bin_width
 
 
 def bits(b: Binning) -> tuple[str, ...]:
@@ -152,6 +153,8 @@ def test_seed_paper():
     assert (s.method, s.max_photons, s.binning, s.pulse_rms_s) == ("lmf", 15, b, 360e-12)
     default = ReconSettings()
     assert (default.delta, default.max_iterations) == (SEED_PAPER.delta, SEED_PAPER.max_iterations) == (1e-4, 10)
+    assert BINS_PER_PULSE_RMS == 9.0 and default_bin_width(4000, SEED_PAPER.pulse_rms_units) == SEED_PAPER.bin_units
+    assert C_M_PER_S == 299_792_458.0
 
 
 def test_a_default_bin_wider_than_the_detections_makes_one_bin():
