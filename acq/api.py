@@ -289,6 +289,30 @@ def recorded_recon_settings(path: str | Path) -> dict | None:
     return d
 
 
+def recorded_request(path: str | Path):
+    """The request a session folder (or its ``recording.ptu``) was made with, typed
+    (``ScanRequest``/``ReplayRequest``): from ``run.json`` when the run ended, else from the
+    recording's header, where it was written before the first record. None for a recording made
+    before requests were saved; a damaged one is a ``RecordingError``/``RequestError``."""
+    import json
+
+    from spdepth.acq.recording import ReplaySource
+    from spdepth.acq.requests import request_from_dict
+
+    p = Path(path)
+    folder = p if p.is_dir() else p.parent
+    run_json = folder / "run.json"
+    saved = None
+    if run_json.is_file():
+        try:
+            saved = (json.loads(run_json.read_text(encoding="utf-8")).get("info") or {}).get("request")
+        except json.JSONDecodeError:
+            raise RecordingError(f"{run_json}: not JSON") from None
+    if saved is None:
+        saved = ReplaySource(p).info.info.get("request")
+    return None if saved is None else request_from_dict(saved)
+
+
 def file_binning(request: FileReconRequest, store, recorded: dict | None) -> Binning | None:
     """The binning of a file reconstruction: the request's window and bins (a missing one from the
     data, or from the recorded session settings), or None to let the estimator derive both."""
@@ -451,4 +475,4 @@ def _jsonable(value):
 
 __all__ = ["OutputDir", "new_run_dir", "open_instruments", "scan_plan", "scan_settings",
            "build_session", "finish_session", "FileResult", "reconstruct_file", "file_binning",
-           "recorded_recon_settings", "SESSION_FILES"]
+           "recorded_recon_settings", "recorded_request", "SESSION_FILES"]
