@@ -26,20 +26,16 @@ def _peak_rss_mb() -> float:
 def scan_and_replay(size, target, method, seed, keep_dir=None, replay=True):
     import numpy as np
 
-    from spdepth.acq.commands.replay import build_session as replay_session
-    from spdepth.acq.instruments import open_sim, recon_settings, sim_plan, window_binning
-    from spdepth.acq.session import Session
+    from spdepth.acq.api import build_session, open_instruments
+    from spdepth.acq.requests import ReplayRequest, ScanRequest, SimBench
 
-    h, w = size
     tmp = Path(keep_dir or tempfile.mkdtemp(prefix="spdepth-bench-"))
     lag = []
+    request = ScanRequest(instruments=SimBench(scene="bust", seed=seed), size=tuple(size),
+                          target=target, method=method)
     try:
-        with open_sim("bust", (h, w), ppp=float(target), seed=seed) as inst:
-            plan = sim_plan(inst, (h, w), target=target)
-            settings = recon_settings(method, window_binning(inst.tagger.resolution_s), target,
-                                      inst.scene.pulse_rms_s)
-            s = Session(plan, settings, galvo=inst.galvo, tagger=inst.tagger, out_dir=tmp / "live",
-                        sync_period_s=inst.sync_period_s)
+        with open_instruments(request) as inst:
+            s = build_session(request, tmp / "live", inst)
             s.subscribe(lambda snap: lag.append((snap.pixels_final / snap.pixels_total,
                                                  snap.recon_lag, snap.state)), max_hz=10)
             t0 = time.perf_counter()
@@ -53,7 +49,7 @@ def scan_and_replay(size, target, method, seed, keep_dir=None, replay=True):
                "recon_busy_s": s.recon.busy_s, "lag_samples": lag,
                "rss_after_scan_mb": _peak_rss_mb()}
         if replay:
-            r = replay_session(tmp / "live", out=tmp / "replay")
+            r = build_session(ReplayRequest(recording=str(tmp / "live")), tmp / "replay")
             r.start()
             r.wait()
             out.update(replay_detections=r.detections, replay_stream_s=r.stream_s,
@@ -70,8 +66,10 @@ def replay_simulated(size, ppp, method="lmf", repeats=3):
     """Replay rate on a bigger stream than a bench scan makes: a fixed-dwell ``spdepth simulate``
     PTU (pixel markers, one frame), replayed ``repeats`` times; returns (detections, best
     stream_s)."""
+    from spdepth.acq.api import build_session
     from spdepth.acq.cli import main
-    from spdepth.acq.commands.replay import build_session
+    from spdepth.acq.requests import ReplayRequest
+    from spdepth.recon.model import SEED_PAPER
 
     w, h = size
     tmp = Path(tempfile.mkdtemp(prefix="spdepth-bench-"))
@@ -81,8 +79,8 @@ def replay_simulated(size, ppp, method="lmf", repeats=3):
               "--out", str(ptu)])
         best = None
         for i in range(repeats):
-            r = build_session(ptu, target=int(ppp), method=method, pulse_rms_s=360e-12,
-                              out=tmp / f"r{i}")
+            r = build_session(ReplayRequest(recording=str(ptu), target=int(ppp), method=method,
+                                            pulse_rms_s=SEED_PAPER.pulse_rms_s), tmp / f"r{i}")
             r.start()
             r.wait()
             best = r.stream_s if best is None else min(best, r.stream_s)
