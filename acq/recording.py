@@ -16,7 +16,16 @@ live reader, puts the logged lost spans back at their record positions (restorin
 a device restart caused, as the live reader did), and cuts the stream at the logged passes, so the
 session assigns the replayed stream exactly as it assigned the live one. A PTU without our event
 log (``spdepth simulate``, or another program's file with pixel markers) replays as one pass over
-the header's image size.
+the header's image size. ``ReplaySource`` is an ``acq.sources.Source``: a session consumes it as it
+consumes a live scan.
+
+Damage: a header whose settings tags (``SPDepth_Plan``, ``SPDepth_Recon``, ``SPDepth_Info``) do
+not parse is refused (``RecordingError`` naming the file and the tag: no invented plan). A PTU
+holding fewer records than its header counts, or a session recording whose ``events.jsonl`` is
+missing or stops before the session's end, still replays, with one warning line and the same
+words in ``ReplaySource.warnings`` (the session's ``run.json`` lists them). A count of 0 is a
+recording that was not closed (``kill -9``): every whole record is read, and that alone is no
+warning.
 """
 
 from __future__ import annotations

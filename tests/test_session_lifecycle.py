@@ -72,6 +72,70 @@ def test_both_sources_satisfy_the_source_protocol(recording):
     assert isinstance(ReplaySource(recording), Source)
 
 
+class MemorySource:
+    """A third kind of source, as a vendor tagger would be: passes of event chunks held in
+    memory, faults reported through the host."""
+
+    name = "memory"
+    lost_action = "kept as delivered"
+
+    def __init__(self, passes):
+        self.passes = passes
+        self.warnings = []
+        self.first_read_t = None
+        self.closed = False
+
+    def default_gate_target(self, plan):
+        return plan.target if plan.mode == "gated" else None
+
+    def arm(self, host):
+        host.fault("memory-note", "armed from memory", "none needed")
+
+    def run(self, host):
+        for geom, chunks in self.passes:
+            host.begin_pass(geom, None)
+            for chunk in chunks:
+                host.checkpoint()
+                host.process(chunk)
+            host.end_pass()
+        return AcqFlag.INCOMPLETE
+
+    def flush(self):
+        pass
+
+    def close(self):
+        self.closed = True
+
+    def health(self, recent, error):
+        return {"tagger": "failed" if error is not None else "ok"}
+
+    def identities(self):
+        return {"tagger": {"model": "in memory"}}
+
+    def statistics(self):
+        return {"records_recorded": None}
+
+
+def test_any_source_gives_the_same_maps_as_the_replay_it_was_taken_from(recording):
+    from spdepth.acq.plan import ScanPlan
+
+    rep = _replay(recording)
+    assert rep.run() == SessionState.DONE
+    src = ReplaySource(recording)
+    passes = [(g, [c.copy() for c in chunks]) for g, chunks in src.segments()]
+    mem = MemorySource(passes)
+    assert isinstance(mem, Source)
+    plan = ScanPlan.from_dict(src.info.plan)
+    s = Session(plan, rep.recon.requested, source=mem)
+    assert s.run() == SessionState.DONE and mem.closed
+    for k in ("depth_m", "background", "signal", "flags"):
+        np.testing.assert_array_equal(getattr(s.maps(), k), getattr(rep.maps(), k), err_msg=k)
+    run = s.run_record()
+    assert run["source"] == "memory" and run["devices"] == {"tagger": {"model": "in memory"}}
+    assert [f["kind"] for f in run["faults_seen"]] == ["memory-note"]
+    assert s.snapshot().health == {"tagger": "ok"}
+
+
 def test_fault_records_are_frozen_and_serialise():
     f = FaultRecord("usb-timeout", 1.5, "a read timed out", RETRIED)
     assert f.to_dict() == {"kind": "usb-timeout", "t_s": 1.5, "what": "a read timed out",
