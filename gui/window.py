@@ -27,7 +27,7 @@ from spdepth.gui.health import HealthTracker
 from spdepth.gui.maps import C_M_PER_S, MAP_SPECS, MapPanel
 from spdepth.gui.pixel_model import pixel_histogram
 from spdepth.acq.errors import RequestError
-from spdepth.acq.requests import MAX_TARGET, FileReconRequest, ReplayRequest
+from spdepth.acq.requests import DEFAULT_TARGET, MAX_TARGET, FileReconRequest, ReplayRequest
 from spdepth.gui.sources import (METHODS, MODES, FileJob, ResultView, SessionView, SourceSpec,
                                  in_window_words, open_run, run_kind)
 
@@ -210,7 +210,6 @@ class ControlPanel(QtWidgets.QWidget):
         lay.addStretch(1)
         self.kind.currentIndexChanged.connect(self._kind_changed)
         self.set_spec(SourceSpec())          # the library's defaults until settings are restored
-        self._kind_changed()
 
     def _kind_changed(self) -> None:
         kind = self.kind.currentData()
@@ -220,6 +219,12 @@ class ControlPanel(QtWidgets.QWidget):
         for w in (self.width_px, self.height_px, self.mode, self.dwell):
             w.setEnabled(kind not in ("replay", "file"))
         self.out_root.setEnabled(kind != "file")      # a file's reconstruction writes nothing
+        # 0 means "as recorded" (replay) or "all" (file); a scan needs a count: a 0 left by a
+        # replay or file run becomes the library's default rather than a refused start
+        scan = kind in ("sim", "real")
+        if scan and self.target.value() == 0:
+            self.target.setValue(DEFAULT_TARGET)
+        self.target.setMinimum(1 if scan else 0)
         self.target.setSpecialValueText("all" if kind == "file" else "as recorded")
 
     def _browse_recording(self) -> None:
@@ -259,6 +264,7 @@ class ControlPanel(QtWidgets.QWidget):
         self.scene.setCurrentText(s.scene)
         self.height_px.setValue(int(s.size[0]))
         self.width_px.setValue(int(s.size[1]))
+        self.target.setMinimum(0)              # 0 stays 0 until _kind_changed decides
         self.target.setValue(int(s.target))
         self.mode.setCurrentText(s.mode)
         self.method.setCurrentText(s.method)
@@ -275,6 +281,7 @@ class ControlPanel(QtWidgets.QWidget):
         self.pulse_rms.setValue(float(s.pulse_rms_ps))
         if s.out_root:
             self.out_root.setText(s.out_root)
+        self._kind_changed()
 
     def set_running(self, state: str | None) -> None:
         active = state is not None and state not in TERMINAL

@@ -307,6 +307,18 @@ def test_spdepth_gui_screenshot_offscreen(tmp_path):
                          env=env, capture_output=True, text=True, timeout=120,
                          cwd=Path(__file__).resolve().parents[1])
     assert bad.returncode == 2 and "does not exist" in bad.stderr
+    # the command line's request is checked before a window opens, in the CLI's words, and run
+    # as given (not as the controls would clamp it)
+    for args, said in ((["--size", "5000x2"], "--size 5000x2: each side must be 1..4096"),
+                       (["--mode", "raster", "--dwell-limit-ms", "0.5"],
+                        "--dwell-limit-ms is the gated dwell limit")):
+        bad = subprocess.run([sys.executable, "-m", "spdepth.acq.cli", "gui", "--sim", *args,
+                              "--exit-after-scan", "--out", str(tmp_path / "runs")],
+                             env=env, capture_output=True, text=True, timeout=120,
+                             cwd=Path(__file__).resolve().parents[1])
+        assert bad.returncode == 2 and said in bad.stderr, bad.stderr
+        assert len(bad.stderr.strip().splitlines()) == 1, bad.stderr
+    assert [run] == list((tmp_path / "runs").iterdir())          # no window, no folder
 
 
 def test_demo_opens_the_window_only_where_a_display_exists():

@@ -45,7 +45,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                       help="in-window detections per pixel (replay: default as recorded)")
     scan.add_argument("--mode", choices=("gated", "raster"))
     scan.add_argument("--dwell-limit-ms", type=non_negative_float, metavar="T",
-                      help="gated: dwell limit; raster: dwell per frame (0: default)")
+                      help="gated only: dwell limit per pixel (0: default)")
+    scan.add_argument("--dwell-ms", type=non_negative_float, metavar="T",
+                      help="raster only: dwell per pixel and frame (0: default)")
     scan.add_argument("--method", choices=METHODS,
                       help="estimator for the maps (spatial: ml live, spatial at the end)")
     out = parser.add_argument_group("output")
@@ -83,6 +85,8 @@ def spec_from_args(args: argparse.Namespace, base=None):
         value = getattr(args, name)
         if value is not None:
             changes[field] = value
+    if args.dwell_ms is not None:        # one control holds the gated limit or the raster dwell
+        changes["dwell_limit_ms"] = args.dwell_ms
     if kinds in (["replay"], ["file"]) and args.target is None:
         changes["target"] = 0            # as recorded / every detection
     if kinds == ["file"]:
@@ -94,12 +98,25 @@ def spec_from_args(args: argparse.Namespace, base=None):
 
 
 def run(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from spdepth.acq.requests import ScanRequest
     from spdepth.gui.app import WINDOW_SIZE, application, remembered_spec, run_window
 
     application()
     spec, start = spec_from_args(args, remembered_spec())
+    # a source to start is checked here: bad arguments are one line and exit 2, no window; the
+    # window then runs exactly this request (its controls could clamp a value)
+    request = spec.to_request() if start else None
+    if isinstance(request, ScanRequest) and \
+            (args.dwell_limit_ms is not None or args.dwell_ms is not None):
+        # the dwell as the options said it (the control holds either): the request refuses a
+        # raster --dwell-limit-ms, a gated --dwell-ms or both, as spdepth scan does
+        ms = lambda v: v * 1e-3 if v else None          # noqa: E731 - 0: the default
+        request = dataclasses.replace(request, dwell_limit_s=ms(args.dwell_limit_ms),
+                                      dwell_s=ms(args.dwell_ms))
     size = args.window_size[::-1] if args.window_size else (WINDOW_SIZE if args.screenshot else None)
-    return run_window(spec, start=start, screenshot=args.screenshot,
+    return run_window(request or spec, controls=spec, start=start, screenshot=args.screenshot,
                       exit_after_scan=args.exit_after_scan, window_size=size)
 
 
