@@ -297,13 +297,9 @@ class ReplaySource:
     def run(self, host):
         """The recorded passes with their chunks and lost spans, as the live session saw them."""
         from spdepth.acq.flags import AcqFlag
+        from spdepth.acq.sources import feed_passes
 
-        for geom, chunks in self.segments():
-            host.begin_pass(geom, None)
-            for chunk in chunks:
-                host.checkpoint()
-                host.process(chunk)
-            host.end_pass()
+        feed_passes(host, self.segments())
         return AcqFlag.INCOMPLETE
 
     def flush(self) -> None:

@@ -155,6 +155,18 @@ class Source(Protocol):
     def statistics(self) -> dict: ...
 
 
+def feed_passes(host: SourceHost, passes, position=None) -> None:
+    """Deliver recorded passes to the session: ``passes`` yields ``(PassGeometry, chunks)``,
+    chunks an iterable of event arrays; ``position(i)`` gives pass ``i``'s first record (None:
+    unknown). For sources whose stream is already cut into passes (a replay, a file)."""
+    for i, (geom, chunks) in enumerate(passes):
+        host.begin_pass(geom, None if position is None else position(i))
+        for chunk in chunks:
+            host.checkpoint()
+            host.process(chunk)
+        host.end_pass()
+
+
 _DEVICE_OF_FAULT = {"lost-data": "tagger", "tagger-reconnect": "tagger", "galvo-fault": "galvo",
                     "galvo-reconnect": "galvo"}
 
@@ -393,4 +405,5 @@ class ScanSource:
         return {"records_recorded": self.recorder.records if self.recorder else None}
 
 
-__all__ = ["Source", "SourceHost", "ScanSource", "FaultRecord", "RETRIED", "HEALTH_RECENT_S"]
+__all__ = ["Source", "SourceHost", "ScanSource", "FaultRecord", "feed_passes", "RETRIED",
+           "HEALTH_RECENT_S"]

@@ -20,7 +20,7 @@ from spdepth.acq.flags import ACQUIRING, AcqFlag
 from spdepth.acq.instruments import open_sim, recon_settings, sim_plan, window_binning
 from spdepth.acq.recording import ReplaySource, recon_settings_from_dict
 from spdepth.acq.session import Session, SessionState
-from spdepth.acq.sources import RETRIED, FaultRecord, ScanSource, Source
+from spdepth.acq.sources import RETRIED, FaultRecord, ScanSource, Source, feed_passes
 from spdepth.recon.maps import DepthMaps
 from waiting import wait_until
 
@@ -92,12 +92,7 @@ class MemorySource:
         host.fault("memory-note", "armed from memory", "none needed")
 
     def run(self, host):
-        for geom, chunks in self.passes:
-            host.begin_pass(geom, None)
-            for chunk in chunks:
-                host.checkpoint()
-                host.process(chunk)
-            host.end_pass()
+        feed_passes(host, self.passes)
         return AcqFlag.INCOMPLETE
 
     def flush(self):
