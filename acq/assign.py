@@ -169,9 +169,14 @@ def _assign_kernel(kind, marker, geom, state, pixel_out, lost_pixel_out):
     an unknown position) and ``lost_pixel_out[j]`` with the pixel open at the j-th LOST event
     (-1 if none). ``state`` is updated in place. Returns the number of LOST events seen."""
     n_lost = 0
+    # the open pixel changes only at markers and losses: photons (most events) reuse it
+    current = _open_pixel(state, geom)
     for i in range(kind.size):
-        pixel_out[i] = -1
         k = kind[i]
+        if k == _PHOTON:
+            pixel_out[i] = current
+            continue
+        pixel_out[i] = -1
         if k == _MARKER:
             m = marker[i]
             if m & _M_FRAME:
@@ -182,12 +187,12 @@ def _assign_kernel(kind, marker, geom, state, pixel_out, lost_pixel_out):
                 _on_pixel(state)
             if m & _M_LINE_STOP:
                 _on_line_stop(state)
-        elif k == _PHOTON:
-            pixel_out[i] = _open_pixel(state, geom)
+            current = _open_pixel(state, geom)
         elif k == _LOST:
-            lost_pixel_out[n_lost] = _open_pixel(state, geom)
+            lost_pixel_out[n_lost] = current
             n_lost += 1
             _on_lost(state)
+            current = _open_pixel(state, geom)
     return n_lost
 
 
@@ -238,17 +243,31 @@ class PixelAssigner:
     def position_known(self) -> bool:
         return bool(self._state[_KNOWN])
 
-    def assign(self, events: np.ndarray) -> np.ndarray:
+    def assign(self, events: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """Flat pixel index (int64) for each event; -1 for markers, lost spans, photons outside a
-        pixel and photons while the position is unknown. LOST events are appended to ``lost``."""
+        pixel and photons while the position is unknown. LOST events are appended to ``lost``.
+        ``out``: an int64 buffer of at least ``events.size`` to fill (a reader reuses one for every
+        chunk instead of faulting in fresh pages); the result is a view of it."""
         _check_events(events)
-        pixel = np.empty(events.size, dtype=np.int64)
-        lost_pixel = np.empty(events.size, dtype=np.int64)
+        if out is None:
+            out = np.empty(events.size, dtype=np.int64)
+        if out.dtype != np.int64 or out.size < events.size:
+            raise InputError(f"assign: out must be int64 with at least {events.size} entries")
+        pixel = out[:events.size]
+        lost_pixel = self._lost_buffer(events.size)
         n_lost = _assign_kernel(events["kind"], events["marker"], self._geom, self._state,
                                 pixel, lost_pixel)
         if n_lost:
             self.lost.extend(_lost_spans(events, lost_pixel))
         return pixel
+
+
+    def _lost_buffer(self, n: int) -> np.ndarray:
+        """Scratch for the pixel open at each LOST event, kept between chunks."""
+        buf = getattr(self, "_lost_scratch", None)
+        if buf is None or buf.size < n:
+            buf = self._lost_scratch = np.empty(n, dtype=np.int64)
+        return buf[:n]
 
 
 def _lost_spans(events: np.ndarray, lost_pixel: np.ndarray) -> list[LostSpan]:

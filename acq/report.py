@@ -13,6 +13,8 @@ from typing import Sequence, TextIO
 
 import numpy as np
 
+from spdepth.recon.maps import C_M_PER_S
+
 #: colour for pixels without an estimate (NaN): a mid grey, distinct from every colour of the maps
 NAN_COLOUR = "#9a9a9a"
 
@@ -215,7 +217,7 @@ def render_point_png(path: str | Path, times_s: np.ndarray, *, tof_s: float | No
     if tof_s is not None and np.isfinite(tof_s):
         ax.axvline(tof_s * 1e9, color="#d62728", linestyle="--",
                    label=f"estimated time of flight {tof_s * 1e9:.3f} ns "
-                         f"(depth {tof_s * 299792458.0 / 2:.3f} m)")
+                         f"(depth {tof_s * C_M_PER_S / 2:.3f} m)")
         ax.legend(loc="upper right", fontsize=8)
     ax.set_title(title or f"point measurement: {times_ns.size} detections")
     fig.savefig(path, dpi=dpi)

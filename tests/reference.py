@@ -1,6 +1,6 @@
 """Plain NumPy reference implementations of the recon estimators: dense matrices, one pixel at a
 time, written to be read rather than to be fast. The kernels in ``recon.kernels`` are compared
-against these in tests/test_recon_kernels.py, and ``recon.bench`` times them side by side.
+against these in tests/test_recon_kernels.py, and ``spdepth bench recon`` (acq/commands/bench/recon.py) times them side by side.
 
 Every function takes one pixel's histogram ``y`` (length M, counts per bin) and the dense matrices
 built by ``dense_s`` from a :class:`recon.model.PulseKernel`.

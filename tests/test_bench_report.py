@@ -7,7 +7,7 @@ import csv
 
 import pytest
 
-from spdepth.acq.bench_report import CSV_FIELDS, METHODS, QUICK_DETECTIONS, QUICK_SBRS
+from spdepth.acq.commands.bench.report import CSV_FIELDS, METHODS, QUICK_DETECTIONS, QUICK_SBRS
 from spdepth.acq.cli import main
 
 

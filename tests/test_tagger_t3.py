@@ -197,7 +197,7 @@ def test_real_hydraharp_v2_ptu_matches_ptufile(shared_data):
 
 
 def test_bench_times_three_decoders_on_the_same_records(capsys):
-    from spdepth.drivers.tagger.bench import bench, make_records
+    from spdepth.acq.commands.bench.decode import bench, make_records
 
     assert bench(["--records", "200000", "--repeat", "1", "--seed", "3"]) == 0
     out = capsys.readouterr().out.splitlines()
@@ -213,7 +213,7 @@ def test_bench_times_three_decoders_on_the_same_records(capsys):
 
 
 def test_bench_numpy_baseline_decodes_like_the_kernel(rng):
-    from spdepth.drivers.tagger.bench import decode_numpy, make_records
+    from spdepth.acq.commands.bench.decode import decode_numpy, make_records
 
     records = make_records(5000, 1)
     want = decode_t3(records, T3DecoderState(sync_base=11))
@@ -227,7 +227,7 @@ def test_bench_numpy_baseline_decodes_like_the_kernel(rng):
 
 @pytest.mark.parametrize("argv", [["--records", "999"], ["--repeat", "0"]])
 def test_bench_refuses_too_few_records_or_runs(argv, capsys):
-    from spdepth.drivers.tagger.bench import bench
+    from spdepth.acq.commands.bench.decode import bench
 
     with pytest.raises(SystemExit) as exc:
         bench(argv)

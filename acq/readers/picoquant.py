@@ -308,6 +308,7 @@ def _read_by_pixel_markers(path: Path, layout: PtuLayout, rectype: int, image: d
     assigner = PixelAssigner((h, w), "serp" if image["bidirectional"] else "raster")
     state = T3DecoderState()
     buf = np.empty(min(CHUNK_RECORDS, max(layout.n_records, 1)), EVENT_DTYPE)
+    pixel_buf = np.empty(buf.size, np.int64)
     per_channel = np.zeros(64, np.int64)
     # every photon of the file lands here in stream order, then one counting sort groups them
     cap = max(layout.n_records, layout.records_in_file)
@@ -320,7 +321,7 @@ def _read_by_pixel_markers(path: Path, layout: PtuLayout, rectype: int, image: d
         except DriverError as exc:
             raise InputError(f"{path}: {exc}") from None
         n_pixel_markers += _renumber_markers(ev["kind"], ev["marker"], lut)
-        pixel = assigner.assign(ev)
+        pixel = assigner.assign(ev, out=pixel_buf)
         n_kept, out = _collect_photons(ev["kind"], ev["channel"], ev["dtime"], pixel, channel,
                                        pixel_all, time_all, n_kept, per_channel)
         outside += out

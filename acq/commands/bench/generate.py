@@ -1,4 +1,4 @@
-"""``spdepth bench generate`` / ``python -m drivers.sim.bench``: how fast the simulator makes
+"""``spdepth bench generate`` / ``python -m spdepth.acq.commands.bench.generate``: how fast the simulator makes
 detections on one core.
 
 Figures printed: detections/s of a fixed-dwell raster (the ``simulate`` path, events with

@@ -2,7 +2,7 @@
 vectorised NumPy decoder, and ptufile's compiled decoder.
 
     spdepth bench decode [--records N] [--repeat R] [--seed S]
-    python -m drivers.tagger.bench [...]
+    python -m spdepth.acq.commands.bench.decode [...]
 
 Prints records/s (best of R runs, one core, output arrays preallocated for every decoder).
 """

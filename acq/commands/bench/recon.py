@@ -2,7 +2,7 @@
 (tests/reference.py) in one run, at the paper's settings (``recon.model.SEED_PAPER``: 801 bins of
 40 ps, Gaussian pulse RMS 360 ps, 15 detections per pixel), SBR 10.
 
-Run as ``spdepth bench recon`` or ``python -m recon.bench``. The references live in the source
+Run as ``spdepth bench recon`` or ``python -m spdepth.acq.commands.bench.recon``. The references live in the source
 checkout's tests/ folder (not installed); without it only the kernels are timed, and it says so.
 Ratios are what to read: other work on the machine moves absolute figures, not the side-by-side
 comparison made within one run.
