@@ -30,7 +30,7 @@ file reconstructed as a whole (``spdepth recon``'s path, on a worker thread)."""
 CONTROL_NAMES = {
     "--scene": "scene", "--sbr": "SBR", "--seed": "seed", "--faults": "faults",
     "--galvo PORT": "galvo port", "--tagger usb:VID:PID": "tagger (usb:VID:PID)",
-    "--sync-rate-hz": "sync rate", "--size": "size", "--target": "target", "--mode": "mode",
+    "--sync-rate-hz": "sync rate", "--fov-deg": "field of view", "--size": "size", "--target": "target", "--mode": "mode",
     "--dwell-limit-ms": "dwell limit (ms)", "--dwell-ms": "dwell (ms)", "--method": "estimator",
     "--time-unit-ps": "time unit (ps)", "--pulse-rms-ps": "pulse RMS (ps)",
 }
@@ -59,6 +59,7 @@ class SourceSpec:
     size:           (H, W) pixels, rows first.
     dwell_limit_ms: gated dwell limit / raster dwell.
     sync_rate_hz:   real devices: the laser repetition rate.
+    fov_deg:        real devices: square field of view in optical degrees, centred.
     target:         detections per pixel; replay: 0 keeps the recorded target; file: detections
                     kept per pixel, 0 all.
     file:           a PTU/HT3/PT3 or .mat file to reconstruct (kind "file").
@@ -80,6 +81,7 @@ class SourceSpec:
     galvo_port: str = ""
     tagger_url: str = ""
     sync_rate_hz: float = 0.0
+    fov_deg: float = Devices.fov_deg
     recording: str = ""
     file: str = ""
     time_unit_ps: float = 0.0
@@ -121,7 +123,7 @@ class SourceSpec:
                                    faults=self.faults)
         else:
             instruments = Devices(galvo=self.galvo_port, tagger=self.tagger_url,
-                                  sync_rate_hz=self.sync_rate_hz)
+                                  sync_rate_hz=self.sync_rate_hz, fov_deg=self.fov_deg)
         gated = self.mode == "gated"
         return ScanRequest(instruments=instruments, size=tuple(self.size), target=self.target,
                            mode=self.mode, method=self.method,
@@ -152,7 +154,7 @@ class SourceSpec:
                 d.update(kind="sim", scene=src.scene, sbr=src.sbr, seed=src.seed, faults=src.faults)
             else:
                 d.update(kind="real", galvo_port=src.galvo, tagger_url=src.tagger,
-                         sync_rate_hz=src.sync_rate_hz)
+                         sync_rate_hz=src.sync_rate_hz, fov_deg=src.fov_deg)
         else:
             raise RequestError(f"the window runs scan, replay and file requests, got "
                                f"{type(request).__name__}")

@@ -128,6 +128,8 @@ class ControlPanel(QtWidgets.QWidget):
         self.tagger = QtWidgets.QLineEdit()
         self.tagger.setPlaceholderText("usb:VID:PID")
         self.sync_mhz = QtWidgets.QDoubleSpinBox(decimals=3, minimum=0.0, maximum=1e4, suffix=" MHz")
+        self.fov = QtWidgets.QDoubleSpinBox(decimals=2, minimum=0.01, maximum=90.0, suffix="°")
+        self.fov.setToolTip("square field of view in optical degrees, centred on the mirror's zero")
         self.recording = QtWidgets.QLineEdit()
         self.recording.setPlaceholderText("run folder or recording.ptu")
         rec_row = _path_row(self.recording, self._browse_recording)
@@ -147,6 +149,7 @@ class ControlPanel(QtWidgets.QWidget):
                               ("sim", "Seed", self.seed), ("sim", "Faults", self.faults),
                               ("real", "Galvo port", self.galvo), ("real", "Tagger", self.tagger),
                               ("real", "Sync rate", self.sync_mhz),
+                              ("real", "Field of view", self.fov),
                               ("replay", "Recording", rec_row), ("file", "File", file_row),
                               ("file", "Time unit", self.time_unit),
                               ("file", "Pulse RMS", self.pulse_rms)):
@@ -254,6 +257,7 @@ class ControlPanel(QtWidgets.QWidget):
             dwell_limit_ms=self.dwell.value(), sbr=self.sbr.value(), seed=self.seed.value(),
             faults=self.faults.text().strip(), galvo_port=self.galvo.text().strip(),
             tagger_url=self.tagger.text().strip(), sync_rate_hz=self.sync_mhz.value() * 1e6,
+            fov_deg=self.fov.value(),
             recording=self.recording.text().strip(), file=self.file.text().strip(),
             time_unit_ps=self.time_unit.value(), pulse_rms_ps=self.pulse_rms.value(),
             out_root=self.out_root.text().strip())
@@ -275,6 +279,7 @@ class ControlPanel(QtWidgets.QWidget):
         self.galvo.setText(s.galvo_port)
         self.tagger.setText(s.tagger_url)
         self.sync_mhz.setValue(float(s.sync_rate_hz) / 1e6)
+        self.fov.setValue(float(s.fov_deg))
         self.recording.setText(s.recording)
         self.file.setText(s.file)
         self.time_unit.setValue(float(s.time_unit_ps))

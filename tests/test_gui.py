@@ -229,8 +229,9 @@ def test_the_controls_make_the_librarys_requests(tmp_path):
     assert raster.dwell_s == pytest.approx(1.5e-3) and raster.dwell_limit_s is None
     assert _spec(tmp_path).to_request().dwell_limit_s is None              # 0: the default
     real = SourceSpec(kind="real", galvo_port="loop://", tagger_url="usb:1:2",
-                      sync_rate_hz=20e6).to_request()
-    assert real.instruments == Devices(galvo="loop://", tagger="usb:1:2", sync_rate_hz=20e6)
+                      sync_rate_hz=20e6, fov_deg=12.5).to_request()
+    assert real.instruments == Devices(galvo="loop://", tagger="usb:1:2", sync_rate_hz=20e6,
+                                       fov_deg=12.5)
     rec = tmp_path / "rec"
     rec.mkdir()
     (rec / "recording.ptu").write_bytes(b"")
@@ -245,6 +246,8 @@ def test_the_controls_make_the_librarys_requests(tmp_path):
     # the controls show a request as it was asked (the round trip keeps every control)
     for spec in (_spec(tmp_path, dwell_limit_ms=2.5, sbr=3.0, seed=9),
                  _spec(tmp_path, mode="raster", dwell_limit_ms=1.5, method="ml"),
+                 SourceSpec(kind="real", galvo_port="loop://", tagger_url="usb:1:2",
+                            sync_rate_hz=20e6, fov_deg=12.5),
                  SourceSpec(kind="replay", recording=str(rec), target=7, method="ml"),
                  SourceSpec(kind="file", file=str(data), time_unit_ps=8.0, target=15)):
         back = SourceSpec.from_request(spec.to_request(), spec)
@@ -277,7 +280,8 @@ def test_settings_are_remembered(qtbot, settings, tmp_path):
     w = MainWindow(settings=settings)
     qtbot.addWidget(w)
     spec = SourceSpec(kind="replay", scene="steps", size=(24, 40), target=7, mode="raster",
-                      method="ml", dwell_limit_ms=2.5, sbr=3.0, seed=9, recording="/x/rec",
+                      method="ml", dwell_limit_ms=2.5, sbr=3.0, seed=9, fov_deg=12.5,
+                      recording="/x/rec",
                       file="/x/scan.mat", time_unit_ps=8.0, pulse_rms_ps=360.0,
                       out_root=str(tmp_path))
     w.controls.set_spec(spec)

@@ -24,6 +24,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     src.add_argument("--tagger", metavar="usb:VID:PID", help="real time tagger")
     src.add_argument("--sync-rate-hz", type=positive_float,
                      help="laser repetition rate (real devices)")
+    src.add_argument("--fov-deg", type=positive_float,
+                     help="real devices: square field of view in optical degrees, centred "
+                          "(default 20)")
     src.add_argument("--replay", metavar="RECORDING",
                      help="replay a run folder or its recording.ptu through the session pipeline")
     src.add_argument("--file", metavar="PTU|MAT",
@@ -79,7 +82,8 @@ def spec_from_args(args: argparse.Namespace, base=None):
                         ("size", "size"), ("target", "target"), ("mode", "mode"),
                         ("dwell_limit_ms", "dwell_limit_ms"), ("method", "method"),
                         ("galvo", "galvo_port"), ("tagger", "tagger_url"),
-                        ("sync_rate_hz", "sync_rate_hz"), ("replay", "recording"),
+                        ("sync_rate_hz", "sync_rate_hz"), ("fov_deg", "fov_deg"),
+                        ("replay", "recording"),
                         ("file", "file"), ("time_unit_ps", "time_unit_ps"),
                         ("pulse_rms_ps", "pulse_rms_ps"), ("out", "out_root")):
         value = getattr(args, name)
