@@ -34,22 +34,20 @@ def add_recon_arguments(parser: argparse.ArgumentParser, default_method: str | N
 
 
 class SessionProgress:
-    """A tqdm bar (pixels, detections/s, ETA) on a terminal, fed by snapshots at 10 Hz; silent
-    when stderr is not a terminal (tqdm's ``disable=None``)."""
+    """The one progress bar (``acq.report.ProgressBar``: pixels, detections/s, state) fed by
+    snapshots at 10 Hz; no subscriber at all when it draws nothing (not a terminal), since each
+    snapshot takes the GIL from the scan."""
 
     def __init__(self, session, label: str):
-        from tqdm import tqdm
+        from spdepth.acq.report import ProgressBar
 
-        self._bar = tqdm(total=session.plan.nx * session.plan.ny, desc=label, unit="px",
-                         disable=None, file=sys.stderr, dynamic_ncols=True)
-        # no terminal, no bar: no subscriber either (each snapshot takes the GIL from the scan)
-        self._sub = None if self._bar.disable else session.subscribe(self._update, max_hz=10)
+        self._bar = ProgressBar(label, session.plan.nx * session.plan.ny)
+        self._sub = session.subscribe(self._update, max_hz=10) if self._bar.enabled else None
 
     def _update(self, snap) -> None:
-        self._bar.n = snap.pixels_final
-        self._bar.set_postfix_str(f"{snap.detections_per_s / 1e6:.2f} Mdet/s, "
-                                  f"{snap.state}, lost {snap.lost_spans}", refresh=False)
-        self._bar.refresh()
+        self._bar(snap.pixels_final, snap.pixels_total)
+        self._bar.update(0, f"{snap.detections_per_s / 1e6:.2f} Mdet/s, {snap.state}, "
+                            f"lost {snap.lost_spans}")
 
     def close(self) -> None:
         if self._sub is not None:
