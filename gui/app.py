@@ -66,12 +66,13 @@ def run_window(what=None, *, start: bool = True, screenshot: str | Path | None =
                window_size: tuple[int, int] | None = None, settings=None, controls=None) -> int:
     """Show the window with ``what`` in its controls (a ``gui.sources.SourceSpec``, or an
     ``acq.requests`` scan/replay/file request, which is run as given), started at once when
-    ``start``, and run the Qt loop. ``out_dir`` as ``MainWindow.start_run`` takes it. With
-    ``screenshot``, the whole window is grabbed into that PNG when the scan ends; with
-    ``exit_after_scan`` the loop ends then. ``window_size`` (width, height) overrides the
-    remembered geometry. ``controls``: a ``SourceSpec`` shown in the controls first (e.g. the
-    remembered settings with the command line's runs folder), under a request. Returns 0 (scan done, or window closed), 1 (scan aborted or failed), 2 (the
-    source could not be started and the window is not kept)."""
+    ``start``, and run the Qt loop. ``controls``: a ``SourceSpec`` shown in the controls first
+    (e.g. the remembered settings with the command line's runs folder), under a request.
+    ``out_dir`` as ``MainWindow.start_run`` takes it. With ``screenshot``, the whole window is
+    grabbed into that PNG when the scan ends; with ``exit_after_scan`` the loop ends then.
+    ``window_size`` (width, height) overrides the remembered geometry. Returns 0 (scan done, or
+    window closed), 1 (scan aborted or failed), 2 (the source could not be started and the window
+    is not kept)."""
     from PySide6 import QtCore
 
     from spdepth.gui.sources import SourceSpec

@@ -30,7 +30,8 @@ file reconstructed as a whole (``spdepth recon``'s path, on a worker thread)."""
 CONTROL_NAMES = {
     "--scene": "scene", "--sbr": "SBR", "--seed": "seed", "--faults": "faults",
     "--galvo PORT": "galvo port", "--tagger usb:VID:PID": "tagger (usb:VID:PID)",
-    "--sync-rate-hz": "sync rate", "--fov-deg": "field of view", "--size": "size", "--target": "target", "--mode": "mode",
+    "--sync-rate-hz": "sync rate", "--fov-deg": "field of view", "--size": "size",
+    "--target": "target", "--mode": "mode",
     "--dwell-limit-ms": "dwell limit (ms)", "--dwell-ms": "dwell (ms)", "--method": "estimator",
     "--time-unit-ps": "time unit (ps)", "--pulse-rms-ps": "pulse RMS (ps)",
 }
@@ -65,7 +66,8 @@ class SourceSpec:
     file:           a PTU/HT3/PT3 or .mat file to reconstruct (kind "file").
     time_unit_ps:   file: size of one raw time unit (required for .mat, 0: the PTU header's).
     pulse_rms_ps:   file: Gaussian pulse RMS (0: as recorded, else estimated from the data).
-    out_root:       a folder under which each run gets its own directory (recording, maps, run.json).
+    out_root:       a folder under which each run gets its own directory (recording, maps,
+                    run.json).
     """
 
     kind: str = "sim"

@@ -23,11 +23,12 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtCore, QtGui, QtWidgets
 
+from spdepth.acq.api import new_run_dir
+from spdepth.acq.errors import RequestError
+from spdepth.acq.requests import DEFAULT_TARGET, MAX_TARGET, FileReconRequest, ReplayRequest
 from spdepth.gui.health import HealthTracker
 from spdepth.gui.maps import C_M_PER_S, MAP_SPECS, MapPanel
 from spdepth.gui.pixel_model import pixel_histogram
-from spdepth.acq.errors import RequestError
-from spdepth.acq.requests import DEFAULT_TARGET, MAX_TARGET, FileReconRequest, ReplayRequest
 from spdepth.gui.sources import (METHODS, MODES, FileJob, ResultView, SessionView, SourceSpec,
                                  in_window_words, open_run, run_kind)
 
@@ -640,8 +641,6 @@ class MainWindow(QtWidgets.QMainWindow):
             return self._start_file(request)
         try:
             if out_dir == "auto":
-                from spdepth.acq.api import new_run_dir
-
                 root = self.controls.out_root.text().strip() or DEFAULT_OUT_ROOT
                 out_dir = new_run_dir(root, run_kind(request))
             run = open_run(request, out_dir)
