@@ -42,8 +42,10 @@ from numba import njit
 
 from spdepth.acq.assign import PassGeometry
 from spdepth.acq.errors import RecordingError, RequestError
+from spdepth.acq.flags import AcqFlag
 from spdepth.acq.ptu import (INFO_TAG, PIXEL_MARKER_TAG, PLAN_TAG, RECON_TAG, iter_records, marker_map,
                      patch_record_count, ptu_header, read_layout, split_marker_records)
+from spdepth.acq.sources import feed_passes
 from spdepth.drivers.errors import ProtocolError
 from spdepth.drivers.events import EVENT_DTYPE, EventKind
 from spdepth.drivers.tagger.t3 import T3DecoderState, decode_t3
@@ -296,9 +298,6 @@ class ReplaySource:
 
     def run(self, host):
         """The recorded passes with their chunks and lost spans, as the live session saw them."""
-        from spdepth.acq.flags import AcqFlag
-        from spdepth.acq.sources import feed_passes
-
         feed_passes(host, self.segments())
         return AcqFlag.INCOMPLETE
 

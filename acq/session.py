@@ -1,6 +1,6 @@
 """An acquisition session: one scan from plan to files, from any source (live scan or replay).
 
-A :class:`Session` consumes a :class:`~spdepth.acq.sources.Source` (``acq.sources.ScanSource``:
+A :class:`Session` consumes a :class:`~spdepth.acq.sources.Source` (``acq.scan_source.ScanSource``:
 our galvo and tagger; ``acq.recording.ReplaySource``: a recording; next, vendor taggers) through
 one interface and cannot tell them apart. The source delivers chunks of events pass by pass and
 reports faults; the session owns the state machine, the per-pixel store, the live
@@ -48,7 +48,8 @@ from spdepth.acq.errors import OutputError, RequestError, SessionStateError
 from spdepth.acq.flags import ACQUIRING, AcqFlag
 from spdepth.acq.live_recon import LiveRecon
 from spdepth.acq.plan import ScanPlan
-from spdepth.acq.sources import HEALTH_RECENT_S, FaultRecord, ScanSource, Source
+from spdepth.acq.scan_source import ScanSource
+from spdepth.acq.sources import HEALTH_RECENT_S, FaultRecord, Source
 from spdepth.acq.store import PixelStore
 from spdepth.drivers.events import EVENT_DTYPE
 from spdepth.recon.model import ReconSettings

@@ -8,7 +8,6 @@ from __future__ import annotations
 import json
 import logging
 import shutil
-import struct
 import threading
 import time
 
@@ -20,7 +19,8 @@ from spdepth.acq.flags import ACQUIRING, AcqFlag
 from spdepth.acq.instruments import open_sim, recon_settings, sim_plan, window_binning
 from spdepth.acq.recording import ReplaySource, recon_settings_from_dict
 from spdepth.acq.session import Session, SessionState
-from spdepth.acq.sources import RETRIED, FaultRecord, ScanSource, Source, feed_passes
+from spdepth.acq.scan_source import ScanSource
+from spdepth.acq.sources import RETRIED, FaultRecord, Source, feed_passes
 from spdepth.recon.maps import DepthMaps
 from waiting import wait_until
 
