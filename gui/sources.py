@@ -194,13 +194,14 @@ class Run:
             return f"{self.request.label()}, {self.session.recon.settings.method}"
         return self.request.label()
 
-    def close(self) -> None:
-        """Release the instruments and the run folder's lock; call once the session has ended."""
+    def close(self, *, discard: bool = False) -> None:
+        """Release the instruments and the run folder's lock; call once the session has ended.
+        ``discard``: remove the folder the window made if it is still empty (a start that failed)."""
         if self.instruments is not None:
             self.instruments.close()
             self.instruments = None
         if self.folder is not None:
-            self.folder.close()
+            self.folder.close(discard=discard)
             self.folder = None
 
 

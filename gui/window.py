@@ -666,7 +666,7 @@ class MainWindow(QtWidgets.QMainWindow):
         try:
             run.session.start()
         except Exception as exc:  # noqa: BLE001 - shown, window stays usable
-            run.close()
+            run.close(discard=True)
             self.run = None
             self.view = None
             self.show_error(f"Could not start: {exc}")

@@ -182,12 +182,14 @@ def test_close_during_a_scan_aborts_and_keeps_the_recording(qtbot, settings, tmp
     w = MainWindow(settings=settings)
     qtbot.addWidget(w)
     w.show()
-    assert w.start_run(_spec(tmp_path, size=(48, 48)))
+    # big enough to be running still when the first pixels show (48x48 could end first)
+    assert w.start_run(_spec(tmp_path, size=(128, 128)))
     qtbot.waitUntil(lambda: w.snap is not None and w.snap.pixels_final > 0, timeout=60_000)
     session, out = w.session, w.run.out_dir
     w.close()
     assert session.state.value == "aborted"
     assert w.run.instruments is None
+    assert w.run.folder is None and not (out / ".spdepth.lock").exists()    # the lock released
     assert json.loads((out / "run.json").read_text())["state"] == "aborted"
     assert (out / "recording.ptu").stat().st_size > 0
 
