@@ -650,6 +650,12 @@ class MainWindow(QtWidgets.QMainWindow):
             return False
         self.run = run
         self.view = SessionView(run.session)
+        if isinstance(request, ReplayRequest):
+            # the recorded plan in the (disabled) scan controls, not the last scan's settings
+            plan, c = run.session.plan, self.controls
+            c.height_px.setValue(plan.shape[0])
+            c.width_px.setValue(plan.shape[1])
+            c.mode.setCurrentText(plan.mode)
         self.accuracy.show()
         self.save_settings()
         self.health = HealthTracker(live=not isinstance(run.request, ReplayRequest))
