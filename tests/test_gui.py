@@ -149,6 +149,9 @@ def test_replay_of_a_recording_matches_the_live_maps(qtbot, win, tmp_path):
     qtbot.waitUntil(lambda: _state(win) == "done", timeout=60_000)
     np.testing.assert_array_equal(win.session.maps().depth_m, live.session.maps().depth_m)
     assert "recording ok" in win.health_label.text()
+    c = win.controls                                  # the recorded plan, not the last scan's
+    assert (c.width_px.value(), c.height_px.value(), c.mode.currentText()) == (16, 16, "gated")
+    assert win.run_label.text().startswith("replay of rec, uos")
 
 
 # The session records a reconnect once the device is back (the galvo controller even scans on
