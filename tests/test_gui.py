@@ -425,3 +425,13 @@ def test_a_first_photon_imaging_mat_file(qtbot, win):
     assert "(first 15)" in win.inspector.last_text and "from mannequin_face_8ppp.mat" in \
         win.inspector.last_text
     assert 0 < win.inspector.hist.getData()[1].sum() <= 15
+
+
+def test_the_window_benchmark_runs_from_the_cli_side(qtbot, capsys):
+    """``gui.benchmark.measure`` takes plain arguments; its command line lives with the CLI."""
+    from spdepth.acq.commands.gui import bench
+
+    assert bench(["--size", "8x6", "--target", "2", "--repeats", "1", "--no-replay"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("bust 8x6, target 2, 1 alternated runs each (medians):")
+    assert "scan" in out and "window/headless" in out and "replay" not in out
