@@ -157,8 +157,8 @@ class SimBench(_Request):
             raise RequestError(f"--scene must name a scene, got {self.scene!r}")
         _positive("--ppp", self.ppp, allow_none=True)
         _positive("--sbr", self.sbr)
-        if not isinstance(self.seed, int) or isinstance(self.seed, bool):
-            raise RequestError(f"--seed must be a whole number, got {self.seed!r}")
+        if not isinstance(self.seed, int) or isinstance(self.seed, bool) or self.seed < 0:
+            raise RequestError(f"--seed must be a whole number >= 0, got {self.seed!r}")
         if not isinstance(self.faults, str):
             raise RequestError(f"--faults must be KIND@WHEN items, got {self.faults!r}")
         if self.faults:
@@ -381,6 +381,9 @@ class FileReconRequest(_Request):
         object.__setattr__(self, "input", str(self.input))
         if not Path(self.input).is_file():
             raise RequestError(f"{self.input}: no such file")
+        if self.time_unit_s is None and Path(self.input).suffix.lower() == ".mat":
+            raise RequestError(f"{self.input}: a .mat file does not record its time unit: give "
+                               f"--time-unit-ps (8 for the first-photon-imaging files, 1 for ps)")
         _choice("--method", self.method, METHODS)
         _positive("--time-unit-ps", self.time_unit_s, allow_none=True)
         object.__setattr__(self, "window_s", _window("--window-ps", self.window_s))

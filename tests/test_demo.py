@@ -17,7 +17,7 @@ def _mae(out: str, method: str) -> float:
 
 def test_demo_scans_reconstructs_and_writes_png(tmp_path, capsys):
     png = tmp_path / "demo.png"
-    assert main(["demo", "--no-window", "--size", "24x20", "--out", str(png)]) == 0
+    assert main(["demo", "--no-window", "--size", "24x20", "--method", "ml", "--out", str(png)]) == 0
     out = capsys.readouterr().out
     assert "scanned bust 24x20 through the drivers" in out
     assert "live ml maps equal the batch reconstruction of the final store" in out
@@ -28,7 +28,7 @@ def test_demo_scans_reconstructs_and_writes_png(tmp_path, capsys):
 
 def test_demo_with_faults_reports_them_and_reacquires(tmp_path, capsys):
     png = tmp_path / "demo.png"
-    code = main(["demo", "--no-window", "--size", "16x16", "--methods", "uos",
+    code = main(["demo", "--no-window", "--size", "16x16", "--compare", "uos",
                  "--faults", "serial-unplug@0.2s,fifo-overflow@50%", "--out", str(png)])
     assert code == 0
     out = capsys.readouterr().out
@@ -42,9 +42,14 @@ def test_demo_with_faults_reports_them_and_reacquires(tmp_path, capsys):
 def test_demo_refuses_bad_options(tmp_path, capsys):
     assert main(["demo", "--no-window", "--faults", "bogus@1s", "--out", str(tmp_path / "x.png")]) == 2
     assert "unknown kind 'bogus'" in capsys.readouterr().err
-    with pytest.raises(SystemExit) as exc:           # argparse-level: same one line, exit 2
-        main(["demo", "--no-window", "--photons", "0", "--out", str(tmp_path / "x.png")])
-    assert exc.value.code == 2 and "--photons: must be at least 1" in capsys.readouterr().err
+    # argparse-level: same one line, exit 2; the target has one name in every command
+    assert main(["demo", "--no-window", "--target", "0", "--out", str(tmp_path / "x.png")]) == 2
+    err = capsys.readouterr().err
+    assert "--target: must be at least 1" in err and err.count("\n") == 1
+    assert main(["demo", "--no-window", "--compare", "uos,magic", "--out", str(tmp_path / "x.png")]) == 2
+    assert "--compare: unknown magic" in capsys.readouterr().err
+    assert main(["demo", "--no-window", "--out", "/nonexistent/x.png"]) == 2
+    assert "folder /nonexistent does not exist" in capsys.readouterr().err
 
 
 def test_without_pixels_empties_exactly_those_pixels():

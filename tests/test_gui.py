@@ -429,7 +429,7 @@ def test_a_first_photon_imaging_mat_file(qtbot, win):
 
 def test_the_window_benchmark_runs_from_the_cli_side(qtbot, capsys):
     """``gui.benchmark.measure`` takes plain arguments; its command line lives with the CLI."""
-    from spdepth.acq.commands.gui import bench
+    from spdepth.acq.commands.bench.gui import bench
 
     assert bench(["--size", "8x6", "--target", "2", "--repeats", "1", "--no-replay"]) == 0
     out = capsys.readouterr().out

@@ -3,12 +3,11 @@ optionally starting a scan or replay at once, grabbing a screenshot and exiting 
 
 The arguments become the window's control settings (``gui.sources.SourceSpec``, on top of the ones
 it remembers), which the window turns into an ``acq.requests`` request. Also the command line of
-the window's benchmark (:func:`bench`, ``gui.benchmark.measure``)."""
+the window's benchmark lives with the others (``spdepth bench gui``)."""
 
 from __future__ import annotations
 
 import argparse
-import sys
 
 from spdepth.acq.commands._args import non_negative_float, positive_float, positive_int, size_wxh
 from spdepth.recon.model import METHODS
@@ -122,26 +121,3 @@ def run(args: argparse.Namespace) -> int:
     size = args.window_size[::-1] if args.window_size else (WINDOW_SIZE if args.screenshot else None)
     return run_window(request or spec, controls=spec, start=start, screenshot=args.screenshot,
                       exit_after_scan=args.exit_after_scan, window_size=size)
-
-
-def bench(argv=None) -> int:
-    """Does the window slow the scan? (``gui.benchmark.measure``; ``spdepth bench gui`` once the
-    bench command lists this module, or ``python -m spdepth.acq.commands.gui``)."""
-    from spdepth.gui.benchmark import measure
-
-    ap = argparse.ArgumentParser(prog="spdepth bench gui",
-                                 description="detections/s of the same simulated scan (and a "
-                                             "replay of it) headless and with the window open")
-    ap.add_argument("--size", type=size_wxh, default=(48, 48), metavar="WxH")
-    ap.add_argument("--target", type=positive_int, default=10)
-    ap.add_argument("--scene", default="bust")
-    ap.add_argument("--repeats", type=positive_int, default=3)
-    ap.add_argument("--no-replay", action="store_true", help="skip the replay comparison")
-    args = ap.parse_args(argv)
-    measure(scene=args.scene, size=args.size, target=args.target, repeats=args.repeats,
-            replay=not args.no_replay)
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(bench())

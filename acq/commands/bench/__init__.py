@@ -17,6 +17,8 @@ TARGETS = {
     "generate": ("spdepth.acq.commands.bench.generate", "photon generation of the scene simulator (detections/s)"),
     "recon": ("spdepth.acq.commands.bench.recon", "estimators vs plain NumPy references, 1 and 2 threads (pixels/s)"),
     "decode": ("spdepth.acq.commands.bench.decode", "T3 record decoding: numba vs NumPy vs ptufile (records/s)"),
+    "gui": ("spdepth.acq.commands.bench.gui", "the window's cost: scan/replay detections/s headless "
+            "vs with the window open"),
     "read": ("spdepth.acq.commands.bench.read", "reading a PTU: spdepth recon's reader beside replay's "
              "stream on the same file (detections/s)"),
     "session": ("spdepth.acq.commands.bench.session", "acquisition session end to end: scan det/s, live-recon "
