@@ -155,6 +155,7 @@ def build_session(request: ScanRequest | ReplayRequest, out_dir: str | Path | Ou
     """The session a request asks for, not started. A scan needs its ``instruments`` opened
     (:func:`open_instruments`); a replay opens its recording. The request is saved with the session
     (``run.json`` ``info.request`` and the recording's header)."""
+    from spdepth.acq.scan_source import ScanSource
     from spdepth.acq.session import Session
 
     out = out_dir.path if isinstance(out_dir, OutputDir) else out_dir
@@ -163,8 +164,9 @@ def build_session(request: ScanRequest | ReplayRequest, out_dir: str | Path | Ou
             raise RequestError("a scan session needs its instruments opened (open_instruments)")
         plan = scan_plan(request, instruments)
         settings = scan_settings(request, instruments.tagger.resolution_s, instruments.scene)
-        return Session(plan, settings, galvo=instruments.galvo, tagger=instruments.tagger,
-                       out_dir=out, sync_period_s=instruments.sync_period_s,
+        source = ScanSource(instruments.galvo, instruments.tagger,
+                            sync_period_s=instruments.sync_period_s)
+        return Session(plan, settings, source, out_dir=out,
                        info={**instruments.info, "request": request.to_dict()})
     if isinstance(request, ReplayRequest):
         if out is not None and Path(out).resolve() == request.folder.resolve():
@@ -206,7 +208,7 @@ def _replay_session(request: ReplayRequest, out):
                                  binning=Binning.from_window(info.resolution_s, window_s,
                                                              units * info.resolution_s),
                                  pulse_rms_s=request.pulse_rms_s, max_photons=plan.target)
-    return Session(plan, settings, replay=src, out_dir=out, gate_target=gate_target,
+    return Session(plan, settings, src, out_dir=out, gate_target=gate_target,
                    info={"replay_of": str(src.path), **info.info, "request": request.to_dict()})
 
 

@@ -7,17 +7,13 @@ import itertools
 import logging
 from dataclasses import dataclass, field
 
+from spdepth.acq.errors import RequestError
 from spdepth.acq.plan import ScanPlan
-from spdepth.recon.errors import InputError
-from spdepth.recon.model import Binning, ReconSettings
+from spdepth.acq.requests import DEFAULT_WINDOW_S
 
 log = logging.getLogger(__name__)
 
 SIM_TAGGER_URL = "usb:1209:7a64"
-PAPER_BIN_S = 40e-12
-"""The seed paper's bin (5 units of 8 ps)."""
-PAPER_BINS = 801
-"""The seed paper's window: 801 bins of 40 ps (32 ns) after each sync."""
 DWELL_LIMIT_FACTOR = 20
 """Simulated gated scans: dwell limit in units of the dwell that gives the scene's mean ppp."""
 
@@ -65,7 +61,7 @@ class Instruments:
         """A plan over the whole simulated field of view (pixel centres of an H x W grid)."""
         h, w = shape
         if self.rig is None:
-            raise InputError("full_plan needs the simulated bench; give angles for real devices")
+            raise RequestError("full_plan needs the simulated bench; give angles for real devices")
         x0, y0 = self.rig.fov.centre_deg(0, 0, (h, w))
         x1, y1 = self.rig.fov.centre_deg(h - 1, w - 1, (h, w))
         return ScanPlan(w, h, x0, x1, y0, y1, **kwargs)
@@ -73,14 +69,15 @@ class Instruments:
 
 def open_sim(scene_name: str = "bust", shape: tuple[int, int] = (64, 64), *, ppp: float = 15.0,
              sbr: float | None = 10.0, seed: int = 0, faults: str = "",
-             n_bins: int = PAPER_BINS, bin_s: float = PAPER_BIN_S, keep_truth: bool = False,
+             window_s: tuple[float, float] = DEFAULT_WINDOW_S, keep_truth: bool = False,
              galvo_link: str = "url", tagger_options: dict | None = None,
              galvo_options: dict | None = None,
              **scene_settings) -> Instruments:
     """The simulated bench: a scene, its photon world and rig, the galvo emulator on a
     ``galvosim://`` URL and the tagger on the simulated pyusb backend, opened through the real
     drivers. ``faults`` as in ``drivers.sim.faults`` (galvo and tagger kinds mixed). The tagger
-    records ``n_bins * bin_s`` after each sync, so ``sbr`` is what the estimators see.
+    records ``window_s`` after each sync (default the scan's default window), so ``sbr`` is what
+    the estimators see.
     keep_truth: the rig keeps every dwell's photons (``rig.truth``) for tests.
     galvo_link: "url" (pyserial URL handler) or "pty" (a real tty from a pty pair, POSIX).
     tagger_options: more arguments of ``SimTaggerBackend`` (e.g. ``vanish_s``).
@@ -94,7 +91,7 @@ def open_sim(scene_name: str = "bust", shape: tuple[int, int] = (64, 64), *, ppp
     from spdepth.drivers.tagger import Tagger, TaggerSettings
 
     h, w = shape
-    scene = load_scene(scene_name, (h, w), ppp=float(ppp), sbr=sbr, tagger_range_s=n_bins * bin_s,
+    scene = load_scene(scene_name, (h, w), ppp=float(ppp), sbr=sbr, tagger_range_s=window_s[1],
                        **scene_settings)
     rig = SimRig(PhotonWorld(scene, seed=seed), keep_truth=keep_truth)
     parsed = parse_faults(faults)
@@ -160,19 +157,4 @@ def sim_plan(inst: Instruments, shape, *, mode: str = "gated", target: int = 15,
     return inst.full_plan(shape, mode=mode, target=target, dwell_s=dwell_s, **kwargs)
 
 
-def window_binning(resolution_s: float, n_bins: int = PAPER_BINS, bin_s: float = PAPER_BIN_S,
-                   start_s: float = 0.0) -> Binning:
-    """``n_bins`` bins of ``bin_s`` from ``start_s`` after the sync, in tagger units."""
-    units = max(1, int(round(bin_s / resolution_s)))
-    start = int(round(start_s / resolution_s))
-    return Binning(time_unit_s=resolution_s, window_start=start,
-                   window_stop=start + n_bins * units, bin_width=units)
-
-
-def recon_settings(method: str, binning: Binning, target: int, pulse_rms_s: float | None,
-                   **kwargs) -> ReconSettings:
-    return ReconSettings(method=method, binning=binning, pulse_rms_s=pulse_rms_s,
-                         max_photons=target, **kwargs)
-
-
-__all__ = ["Instruments", "open_sim", "open_real", "sim_plan", "window_binning", "recon_settings"]
+__all__ = ["Instruments", "open_sim", "open_real", "sim_plan"]

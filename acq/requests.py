@@ -19,17 +19,17 @@ from pathlib import Path
 
 from spdepth.acq.errors import RequestError
 from spdepth.drivers.galvo.protocol import MAX_DWELL_NS, MAX_N_TARGET, MAX_PIXELS_PER_AXIS, MIN_DWELL_NS
-from spdepth.recon.model import METHODS
+from spdepth.recon.model import METHODS, SEED_PAPER
 
 DEFAULT_METHOD = "uos"
 """The estimator of every command and the window unless the user picks another."""
 DEFAULT_SIZE = (64, 64)
 """(H, W) of a scan unless the user picks another (scan, demo and the window alike)."""
-DEFAULT_TARGET = 15
+DEFAULT_TARGET = SEED_PAPER.max_photons
 """In-window detections per pixel: the seed paper's first 15 detections."""
-DEFAULT_BIN_S = 40e-12
+DEFAULT_BIN_S = SEED_PAPER.binning.bin_width_s
 """Histogram bin of a scan: the seed paper's 40 ps."""
-DEFAULT_WINDOW_S = (0.0, 801 * DEFAULT_BIN_S)
+DEFAULT_WINDOW_S = (0.0, SEED_PAPER.n_bins * DEFAULT_BIN_S)
 """Detection window of a scan after each sync: 801 bins of 40 ps, the seed paper's window length."""
 MAX_TARGET = MAX_N_TARGET
 """Largest count the galvo controller can gate a pixel on."""

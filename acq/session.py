@@ -48,7 +48,6 @@ from spdepth.acq.errors import OutputError, RequestError, SessionStateError
 from spdepth.acq.flags import ACQUIRING, AcqFlag
 from spdepth.acq.live_recon import LiveRecon
 from spdepth.acq.plan import ScanPlan
-from spdepth.acq.scan_source import ScanSource
 from spdepth.acq.sources import HEALTH_RECENT_S, FaultRecord, Source
 from spdepth.acq.store import PixelStore
 from spdepth.drivers.events import EVENT_DTYPE
@@ -138,37 +137,31 @@ class _Aborted(Exception):
 
 
 class Session:
-    """One scan from a :class:`~spdepth.acq.sources.Source`: a live scan (``galvo`` and
-    ``tagger``, or ``source=ScanSource(...)``), a replay (``replay``, an
-    ``acq.recording.ReplaySource``, or ``source=``) or any other source.
+    """One scan from a :class:`~spdepth.acq.sources.Source`: a live scan
+    (``acq.scan_source.ScanSource``), a replay (``acq.recording.ReplaySource``) or any other
+    source; the session cannot tell them apart. ``acq.api.build_session`` builds one from a request.
 
     plan:      what to scan; for a replay, the recorded plan with the replay's target.
     recon:     estimator settings with a fixed binning (window and bins in tagger units) and
                ``max_photons`` equal to ``plan.target`` (set here when None).
-    source:    where the events come from (give this, or ``galvo`` and ``tagger``, or ``replay``).
+    source:    where the events come from.
     out_dir:   where the source's files (a live scan's ``recording.ptu``), ``events.jsonl``,
                ``maps.npz`` and ``run.json`` go; None keeps everything in memory (tests, the
                GUI's dry runs).
-    sync_period_s, reader_options: for the live source built from ``galvo`` and ``tagger`` (the
-               laser period for the recording's header; more ``Tagger.reader`` arguments).
     gate_target: the count the galvo gated on when the stream was recorded (replay of a gated
                recording; defaults to the source's, ``plan.target`` for a live gated scan): a
                complete dwell with fewer detections ended at the dwell limit.
-    info:      extra JSON-able facts for ``run.json`` (scene, seed, software version, ...).
+    info:      extra JSON-able facts for ``run.json`` (the request, scene, seed, ...).
 
     Building a session starts no thread: ``start`` (or ``run``) starts the session's thread and
     the live reconstruction's worker, and both end with the session.
     """
 
-    def __init__(self, plan: ScanPlan, recon: ReconSettings, *, galvo=None, tagger=None,
-                 replay=None, source: Source | None = None, out_dir: str | Path | None = None,
-                 sync_period_s: float | None = None, gate_target: int | None = None,
-                 info: dict | None = None, reader_options: dict | None = None):
-        live = galvo is not None or tagger is not None
-        if sum((source is not None, replay is not None, live)) != 1 or \
-                (live and (galvo is None or tagger is None)):
-            raise RequestError("a session needs exactly one source: a galvo and a tagger, a "
-                               "replay, or source=")
+    def __init__(self, plan: ScanPlan, recon: ReconSettings, source: Source, *,
+                 out_dir: str | Path | None = None, gate_target: int | None = None,
+                 info: dict | None = None):
+        if source is None or not hasattr(source, "run"):
+            raise RequestError(f"a session needs a source (a scan, a replay, ...), got {source!r}")
         if recon.binning is None:
             raise RequestError("a session needs a fixed binning (window and bin width)")
         if recon.max_photons is None:
@@ -176,9 +169,6 @@ class Session:
         if recon.max_photons != plan.target:
             raise RequestError(f"recon max_photons {recon.max_photons} differs from the target "
                                f"{plan.target}")
-        if source is None:
-            source = replay if replay is not None else ScanSource(
-                galvo, tagger, sync_period_s=sync_period_s, reader_options=reader_options)
         self.source: Source = source
         self.plan = plan
         self.out_dir = Path(out_dir) if out_dir is not None else None

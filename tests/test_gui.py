@@ -158,7 +158,7 @@ def test_replay_of_a_recording_matches_the_live_maps(qtbot, win, tmp_path):
 # while its serial link is away, about 0.8 s here): the scans are big enough to go on after that,
 # so the indicator can show "recovering" while running (a 16x16 scan often ended first).
 @pytest.mark.parametrize("faults, size, target, device, kind", [
-    ("device-vanish@20%", (48, 48), 5, "tagger", "tagger-reconnect"),
+    ("device-vanish@15%", (64, 64), 10, "tagger", "tagger-reconnect"),
     ("serial-unplug@3%", (64, 64), 10, "galvo", "galvo-reconnect"),
 ])
 def test_health_shows_a_lost_device_and_its_recovery(qtbot, win, tmp_path, faults, size, target,

@@ -12,8 +12,11 @@ import time
 import numpy as np
 import pytest
 
-from spdepth.acq.instruments import open_sim, recon_settings, sim_plan, window_binning
+from spdepth.acq.api import scan_settings
+from spdepth.acq.instruments import open_sim, sim_plan
 from spdepth.acq.recording import ReplaySource, recon_settings_from_dict
+from spdepth.acq.requests import ScanRequest
+from spdepth.acq.scan_source import ScanSource
 from spdepth.acq.session import ACQUIRING, AcqFlag, Session, SessionState, SessionStateError
 from spdepth.recon.maps import DepthMaps
 from waiting import wait_until
@@ -22,11 +25,11 @@ from waiting import wait_until
 def _session(inst, shape, out=None, *, target=10, method="lmf", reader_options=None,
              **plan_kwargs):
     plan = sim_plan(inst, shape, target=target, **plan_kwargs)
-    settings = recon_settings(method, window_binning(inst.tagger.resolution_s), target,
-                              inst.scene.pulse_rms_s)
-    return Session(plan, settings, galvo=inst.galvo, tagger=inst.tagger, out_dir=out,
-                   sync_period_s=inst.sync_period_s, info=inst.info,
-                   reader_options=reader_options)
+    request = ScanRequest(target=target, method=method, pulse_rms_s=inst.scene.pulse_rms_s)
+    source = ScanSource(inst.galvo, inst.tagger, sync_period_s=inst.sync_period_s,
+                        reader_options=reader_options)
+    return Session(plan, scan_settings(request, inst.tagger.resolution_s), source, out_dir=out,
+                   info=inst.info)
 
 
 def _dwells_by_pixel(rig, width):
@@ -212,7 +215,7 @@ def _replay(rec_dir, *, target=None, out=None):
     if target is not None:
         plan = dataclasses.replace(plan, target=target)
     settings = recon_settings_from_dict(src.info.recon, max_photons=plan.target)
-    return Session(plan, settings, replay=src, out_dir=out, gate_target=gate_target)
+    return Session(plan, settings, src, out_dir=out, gate_target=gate_target)
 
 
 def _assert_same_maps(a: DepthMaps, b: DepthMaps, skip_flags=False):

@@ -16,7 +16,10 @@ import pytest
 
 from spdepth.acq.errors import OutputError, RecordingError
 from spdepth.acq.flags import ACQUIRING, AcqFlag
-from spdepth.acq.instruments import open_sim, recon_settings, sim_plan, window_binning
+from spdepth.acq.api import scan_settings
+from spdepth.acq.instruments import open_sim, sim_plan
+from spdepth.acq.requests import ScanRequest
+from spdepth.acq.scan_source import ScanSource
 from spdepth.acq.recording import ReplaySource, recon_settings_from_dict
 from spdepth.acq.session import Session, SessionState
 from spdepth.acq.scan_source import ScanSource
@@ -27,10 +30,11 @@ from waiting import wait_until
 
 def _session(inst, shape, out=None, *, target=10, method="lmf", pulse="scene", **plan_kwargs):
     plan = sim_plan(inst, shape, target=target, **plan_kwargs)
-    settings = recon_settings(method, window_binning(inst.tagger.resolution_s), target,
-                              inst.scene.pulse_rms_s if pulse == "scene" else pulse)
-    return Session(plan, settings, source=ScanSource(inst.galvo, inst.tagger,
-                                                     sync_period_s=inst.sync_period_s),
+    request = ScanRequest(target=target, method=method,
+                          pulse_rms_s=inst.scene.pulse_rms_s if pulse == "scene" else pulse)
+    settings = scan_settings(request, inst.tagger.resolution_s)
+    return Session(plan, settings, ScanSource(inst.galvo, inst.tagger,
+                                              sync_period_s=inst.sync_period_s),
                    out_dir=out, info=inst.info)
 
 
@@ -40,7 +44,7 @@ def _replay(rec_dir, out=None, **override):
     src = ReplaySource(rec_dir)
     plan = ScanPlan.from_dict(src.info.plan)
     settings = recon_settings_from_dict(src.info.recon, max_photons=plan.target, **override)
-    return Session(plan, settings, source=src, out_dir=out,
+    return Session(plan, settings, src, out_dir=out,
                    gate_target=plan.target if plan.mode == "gated" else None)
 
 
@@ -121,7 +125,7 @@ def test_any_source_gives_the_same_maps_as_the_replay_it_was_taken_from(recordin
     mem = MemorySource(passes)
     assert isinstance(mem, Source)
     plan = ScanPlan.from_dict(src.info.plan)
-    s = Session(plan, rep.recon.requested, source=mem)
+    s = Session(plan, rep.recon.requested, mem)
     assert s.run() == SessionState.DONE and mem.closed
     for k in ("depth_m", "background", "signal", "flags"):
         np.testing.assert_array_equal(getattr(s.maps(), k), getattr(rep.maps(), k), err_msg=k)
@@ -186,7 +190,7 @@ def test_a_live_recon_worker_failure_ends_the_session_failed_with_one_line(recor
     b = rec.binning
     settings = dataclasses.replace(rec, pulse_rms_s=None, irf=None, binning=Binning(
         b.time_unit_s, 30000, 30000 + 100 * b.bin_width, b.bin_width))
-    rep = Session(plan, settings, source=src, out_dir=tmp_path / "out")
+    rep = Session(plan, settings, src, out_dir=tmp_path / "out")
     with caplog.at_level(logging.WARNING):
         assert rep.run() == SessionState.FAILED
     assert "pulse" in str(rep.error)

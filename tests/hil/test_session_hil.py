@@ -10,9 +10,14 @@ import json
 import numpy as np
 import pytest
 
-from spdepth.acq.instruments import open_real, recon_settings, window_binning
+from spdepth.acq.api import scan_settings
+from spdepth.acq.flags import ACQUIRING
+from spdepth.acq.instruments import open_real
 from spdepth.acq.plan import ScanPlan
+from spdepth.acq.requests import ScanRequest
+from spdepth.acq.scan_source import ScanSource
 from spdepth.acq.session import AcqFlag, Session, SessionState
+from spdepth.recon.model import SEED_PAPER
 
 pytestmark = pytest.mark.hardware
 
@@ -32,13 +37,14 @@ def instruments(request):
 @pytest.mark.parametrize("mode", ["gated", "raster"])
 def test_session_on_real_devices_ends_complete_or_flagged(instruments, tmp_path, mode):
     plan = ScanPlan(8, 6, -1.0, 1.0, -1.0, 1.0, mode=mode, target=5, dwell_s=2e-3, max_passes=3)
-    settings = recon_settings("lmf", window_binning(instruments.tagger.resolution_s), 5, 360e-12)
-    s = Session(plan, settings, galvo=instruments.galvo, tagger=instruments.tagger,
-                out_dir=tmp_path, sync_period_s=instruments.sync_period_s)
+    request = ScanRequest(target=5, method="lmf", pulse_rms_s=SEED_PAPER.pulse_rms_s)
+    settings = scan_settings(request, instruments.tagger.resolution_s)
+    source = ScanSource(instruments.galvo, instruments.tagger, sync_period_s=instruments.sync_period_s)
+    s = Session(plan, settings, source, out_dir=tmp_path)
     assert s.run(), "session ended"
     assert s.state == SessionState.DONE, s.error
     count, flags = s.store.count, s.acq_flags
-    assert np.all(flags != 255)
+    assert np.all(flags != ACQUIRING)
     assert np.all(count[flags == AcqFlag.COMPLETE] == 5)
     assert np.all(flags[count < 5] != AcqFlag.COMPLETE)
     run = json.loads((tmp_path / "run.json").read_text())
