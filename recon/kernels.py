@@ -845,14 +845,19 @@ def uos_kernel(bins, offsets, m, g, off, gmax, colsum, pp, dg, n_refl, delta, ma
 
 
 @njit(cache=True, nogil=True)
-def mix_ml(r, w, n_in, w_out, uni, s0):
+def mix_ml(r, w, n_in, w_out, uni, s0, cut):
     """max over s in [0, 1] of sum_u w_u log((1 - s) uni + s r_u): the Poisson likelihood of eq. (9)
     with (a, B) profiled onto a C + B M = n (where its maximum lies), s = a C / n the signal share,
-    r_u = g_u / C the pulse's density at photon u, uni = 1 / M. Concave in s: safeguarded Newton.
+    r_u = g_u / C the pulse's density at photon u, uni = 1 / M. Concave in s: safeguarded Newton
+    from s0.
 
     Only the n_in photons under the pulse are listed (r[:n_in], w[:n_in]); the weight w_out of all
     others (r = 0) enters as one term, so a call costs O(pulse support), not O(photons).
-    Returns (s, loglik)."""
+
+    Each Newton pass also gives the log-likelihood at its point, as a product of the rates (one log
+    per pass, not one per photon). ``cut``: after the first pass, when the tangent at s0 (an upper
+    bound of a concave function) stays at or below cut over [0, 1], the maximum cannot beat cut and
+    the call returns (s0, -inf) at once; pass -inf for an exact answer. Returns (s, loglik)."""
     d0 = -w_out * uni
     zero_r = w_out > 0.0
     for u in range(n_in):
@@ -878,16 +883,31 @@ def mix_ml(r, w, n_in, w_out, uni, s0):
     s = s0
     if not (s > 0.0 and s < 1.0):
         s = 0.5
-    for _ in range(60):
-        e = -uni
-        q = e / (uni + s * e)
+    ll = -np.inf
+    for it in range(60):
+        # one pass: f1, f2 (first and second derivative, sign flipped) and the loglik at s
+        lam = uni - s * uni
+        q = -1.0 / (1.0 - s)
         f1 = w_out * q
         f2 = w_out * q * q
+        ll = w_out * math.log(lam) if w_out > 0.0 else 0.0
+        prod = 1.0
         for u in range(n_in):
             e = r[u] - uni
-            q = e / (uni + s * e)
+            lam = uni + s * e
+            q = e / lam
             f1 += w[u] * q
             f2 += w[u] * q * q
+            if w[u] == 1.0:
+                prod *= lam
+                if prod < 1e-200:       # rates are >= uni (1 - s) > 0: renormalise long before underflow
+                    ll += math.log(prod)
+                    prod = 1.0
+            else:
+                ll += w[u] * math.log(lam)
+        ll += math.log(prod)
+        if it == 0 and ll + max(f1 * (1.0 - s), -f1 * s) <= cut:
+            return s, -np.inf
         if f1 > 0.0:
             lo = s
         else:
@@ -895,15 +915,11 @@ def mix_ml(r, w, n_in, w_out, uni, s0):
         sn = s + f1 / f2 if f2 > 0.0 else 0.5 * (lo + hi)
         if not (sn > lo and sn < hi):
             sn = 0.5 * (lo + hi)
-        if abs(sn - s) < 1e-12:
-            s = sn
+        # quadratic convergence: a step below 1e-10 leaves the loglik within ~f2 * 1e-20 of its
+        # maximum, so the point just evaluated is the answer
+        if abs(sn - s) < 1e-10 or hi - lo < 1e-14:
             break
         s = sn
-        if hi - lo < 1e-14:
-            break
-    ll = w_out * math.log(uni - s * uni) if w_out > 0.0 else 0.0
-    for u in range(n_in):
-        ll += w[u] * math.log(uni + s * (r[u] - uni))
     return s, ll
 
 
@@ -916,32 +932,49 @@ def _photon_range(kb, nu, lo, hi):
 
 
 @njit(cache=True, nogil=True)
-def _ml_at_int(kb, kw, nu, wtot, i, g, off, colsum, uni, s0, r):
+def _ml_at_int(kb, kw, nu, wtot, i, g, off, colsum, uni, s0, cut, r):
     nk = g.size
-    c = colsum[i]
+    inv_c = 1.0 / colsum[i]
     # photons under column i: offset d = k - i + off in [0, nk)
     ua, ub = _photon_range(kb, nu, i - off, i - off + nk - 1)
     w_in = 0.0
     for u in range(ua, ub):
-        r[u - ua] = g[kb[u] - i + off] / c
+        r[u - ua] = g[kb[u] - i + off] * inv_c
         w_in += kw[u]
-    return mix_ml(r, kw[ua:ub], ub - ua, wtot - w_in, uni, s0)
+    return mix_ml(r, kw[ua:ub], ub - ua, wtot - w_in, uni, s0, cut)
 
 
 @njit(cache=True, nogil=True)
-def _ml_at_fine(kb, kw, nu, wtot, i, q, fine, off, fine_colsum, fsteps, uni, s0, r):
+def _ml_at_fine(kb, kw, nu, wtot, i, q, fine, off, fine_colsum, fsteps, uni, s0, cut, r):
     """Profile at shift i + q / fsteps (|q| <= fsteps), from the fine kernel table."""
     nf = fine.size
     nk = (nf - 1) // fsteps + 1
-    c = fine_colsum[i * fsteps + q]
+    inv_c = 1.0 / fine_colsum[i * fsteps + q]
     # fine index (k - i + off) * fsteps - q lies in [0, nf) only for k - i + off in [-1, nk]
     ua, ub = _photon_range(kb, nu, i - off - 1, i - off + nk)
     w_in = 0.0
     for u in range(ua, ub):
         j = (kb[u] - i + off) * fsteps - q
-        r[u - ua] = fine[j] / c if (j >= 0 and j < nf) else 0.0
+        r[u - ua] = fine[j] * inv_c if (j >= 0 and j < nf) else 0.0
         w_in += kw[u]
-    return mix_ml(r, kw[ua:ub], ub - ua, wtot - w_in, uni, s0)
+    return mix_ml(r, kw[ua:ub], ub - ua, wtot - w_in, uni, s0, cut)
+
+
+@njit(cache=True, nogil=True)
+def _sort_desc(keys, idx, n):
+    """Reorder idx[:n] by keys[idx] descending (insertion sort for the usual dozen, numpy's for more)."""
+    if n > SMALL_SORT:
+        order = np.argsort(-keys[idx[:n]], kind="mergesort")
+        idx[:n] = idx[:n][order]
+        return
+    for a in range(1, n):
+        v = idx[a]
+        kv = keys[v]
+        b = a - 1
+        while b >= 0 and keys[idx[b]] < kv:
+            idx[b + 1] = idx[b]
+            b -= 1
+        idx[b + 1] = v
 
 
 @njit(parallel=True, cache=True, nogil=True)
@@ -950,24 +983,33 @@ def ml_kernel(bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_colsum, 
     """Exact Poisson ML over (shift, a >= 0, B >= 0), global over all integer shifts, refined to
     1/fsteps bin and then by a parabola.
 
-    Pruning is exact: for every shift, U(i) = sum_u w_u max(log(g_u / C_i), -log M) (+ const) bounds
-    the profile likelihood from above (split the linear term a C + B M evenly over the photons and
-    maximise each photon's term alone), and only offsets d with g[d] M > min C (dlo..dhi) contribute
-    above the floor. Shifts whose bound cannot beat the best likelihood found are skipped.
-    Outputs: out_shift (bins, NaN none), out_amp (unit-area amplitude), out_bg (per bin),
-    out_var (bins^2), out_n (photons).
+    Branch and bound, exact: for every shift, U(i) = sum_u w_u max(log(g_u / C_i), -log M) (+ const)
+    bounds the profile likelihood from above (split the linear term a C + B M evenly over the
+    photons and maximise each photon's term alone), and only offsets d with g[d] M > min C
+    (dlo..dhi) contribute above the floor, so U is built over the photons' reach only (intervals of
+    shifts, not all M). Shifts are solved best bound first and the search stops at the first bound
+    that cannot beat the best likelihood found; each solve also stops after its first Newton pass
+    when the tangent there (a bound, by concavity in the signal share) cannot beat it. The fine
+    shifts are solved outwards from the integer optimum under the same tangent test, and the
+    parabola's neighbours exactly. Outputs: out_shift (bins, NaN none), out_amp (unit-area
+    amplitude), out_bg (per bin), out_var (bins^2), out_n (photons).
     """
     npix = offsets.size - 1
     nblk = (npix + BLOCK - 1) // BLOCK
     uni = 1.0 / m
     logm = math.log(m)
+    nf = 2 * fsteps + 1
     for blk in prange(nblk):
         tmp = np.empty(max(maxn, 1), np.int64)
         kb = np.empty(max(maxn, 1), np.int64)
         kw = np.empty(max(maxn, 1), np.float64)
         r = np.empty(max(maxn, 1), np.float64)
-        acc = np.empty(m)
-        lls = np.empty(2 * fsteps + 1)
+        ivlo = np.empty(max(maxn, 1), np.int64)
+        ivhi = np.empty(max(maxn, 1), np.int64)
+        acc = np.zeros(m)           # zero between pixels: only the photons' intervals are touched
+        cand = np.empty(m, np.int64)
+        lls = np.empty(nf)
+        exact = np.empty(nf, np.bool_)
         for p in range(blk * BLOCK, min(npix, (blk + 1) * BLOCK)):
             o0 = offsets[p]
             o1 = offsets[p + 1]
@@ -982,60 +1024,87 @@ def ml_kernel(bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_colsum, 
             ntot = 0.0
             for u in range(nu):
                 ntot += kw[u]
-            for i in range(m):
-                acc[i] = 0.0
-            for u in range(nu):
-                k = kb[u]
-                for d in range(dlo, dhi + 1):
-                    i = k - d
-                    if i < 0 or i >= m:
-                        continue
-                    v = logg_int[d + off] - log_colsum[i] + logm
-                    if v > 0.0:
-                        acc[i] += kw[u] * v
             floor_ll = -ntot * logm          # s = 0: all background
             best_ll = floor_ll
             best_i = -1
             best_s = 0.0
-            i1 = 0
-            for i in range(1, m):
-                if acc[i] > acc[i1]:
-                    i1 = i
-            if acc[i1] > 0.0:
-                s, ll = _ml_at_int(kb, kw, nu, ntot, i1, g, off, colsum, uni, 0.5, r)
-                if ll > best_ll:
-                    best_ll = ll
-                    best_i = i1
-                    best_s = s
-            for i in range(m):
-                if i == i1 or floor_ll + acc[i] <= best_ll + 1e-12 * abs(best_ll):
-                    continue
-                s, ll = _ml_at_int(kb, kw, nu, ntot, i, g, off, colsum, uni, best_s, r)
-                if ll > best_ll:
-                    best_ll = ll
-                    best_i = i
-                    best_s = s
+            if dhi >= dlo:
+                # U(i) - floor over the shifts i = k - d, d in [dlo, dhi], of the photons
+                niv = photon_intervals(kb, nu, dhi, -dlo, m, ivlo, ivhi)
+                for u in range(nu):
+                    k = kb[u]
+                    for d in range(max(dlo, k - m + 1), min(dhi, k) + 1):
+                        i = k - d
+                        v = logg_int[d + off] - log_colsum[i] + logm
+                        if v > 0.0:
+                            acc[i] += kw[u] * v
+                ncand = 0
+                i1 = -1
+                for t in range(niv):
+                    for i in range(ivlo[t], ivhi[t] + 1):
+                        if acc[i] > 0.0:
+                            cand[ncand] = i
+                            ncand += 1
+                            if i1 < 0 or acc[i] > acc[i1]:
+                                i1 = i
+                if i1 >= 0:
+                    s, ll = _ml_at_int(kb, kw, nu, ntot, i1, g, off, colsum, uni, 0.5, -np.inf, r)
+                    if ll > best_ll:
+                        best_ll = ll
+                        best_i = i1
+                        best_s = s
+                    # the shifts whose bound beats it, best bound first
+                    nc = 0
+                    for t in range(ncand):
+                        i = cand[t]
+                        if i != i1 and floor_ll + acc[i] > best_ll + 1e-12 * abs(best_ll):
+                            cand[nc] = i
+                            nc += 1
+                    _sort_desc(acc, cand, nc)
+                    for t in range(nc):
+                        i = cand[t]
+                        tol = 1e-12 * abs(best_ll)
+                        if floor_ll + acc[i] <= best_ll + tol:
+                            break
+                        s, ll = _ml_at_int(kb, kw, nu, ntot, i, g, off, colsum, uni, best_s, best_ll + tol, r)
+                        if ll > best_ll:
+                            best_ll = ll
+                            best_i = i
+                            best_s = s
+                for t in range(niv):
+                    acc[ivlo[t]:ivhi[t] + 1] = 0.0
             if best_i < 0 or best_s <= 0.0:
                 out_bg[p] = ntot * uni
                 continue
-            # sub-bin: best of the fine shifts strictly between the integer neighbours, then a parabola
+            # sub-bin: best of the fine shifts strictly between the integer neighbours (outwards from
+            # the integer optimum, where the best usually is, so the tangent test prunes the rest),
+            # then a parabola through its exact neighbours
             qlo = -fsteps if best_i > 0 else 0
             qhi = fsteps if best_i < m - 1 else 0
             bq = 0
             bll = best_ll
             bs = best_s
             lls[fsteps] = best_ll
-            for q in range(qlo, qhi + 1):
-                if q == 0:
+            exact[fsteps] = True
+            for a in range(1, 2 * fsteps + 1):
+                q = (a + 1) // 2 if a % 2 == 1 else -(a // 2)
+                if q < qlo or q > qhi:
                     continue
-                s, ll = _ml_at_fine(kb, kw, nu, ntot, best_i, q, fine, off, fine_colsum, fsteps, uni, bs, r)
+                s, ll = _ml_at_fine(kb, kw, nu, ntot, best_i, q, fine, off, fine_colsum, fsteps, uni, bs,
+                                    bll, r)
                 lls[q + fsteps] = ll
+                exact[q + fsteps] = ll > -np.inf
                 if ll > bll:
                     bll = ll
                     bq = q
                     bs = s
             frac = 0.0
             if bq - 1 >= qlo and bq + 1 <= qhi:
+                for q in (bq - 1, bq + 1):
+                    if not exact[q + fsteps]:
+                        s, ll = _ml_at_fine(kb, kw, nu, ntot, best_i, q, fine, off, fine_colsum, fsteps,
+                                            uni, bs, -np.inf, r)
+                        lls[q + fsteps] = ll
                 lm = lls[bq - 1 + fsteps]
                 l0 = lls[bq + fsteps]
                 lp = lls[bq + 1 + fsteps]
