@@ -844,70 +844,125 @@ def uos_kernel(bins, offsets, m, g, off, gmax, colsum, pp, dg, n_refl, delta, ma
 # exact pixelwise Poisson ML, eq. (9), global over shifts
 
 
+#: ml: pixels with at most this many distinct photon bins run every pass over all their photons
+#: (one out of the pulse's reach reads rate 0, as the w_out term does), sparing the binary search
+#: for the ones under the pulse; bigger pixels search, so a pass costs O(pulse support).
+ML_SCAN_ALL = 64
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _mix_pass(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, s):
+    """One pass at signal share s (0 < s < 1) over the photons kb[ua:ub] (weights kw) of
+    f(s) = sum_u w_u log(uni + s e_u), e_u = r_u - uni, r_u = tab[(kb[u] + base) * step - q] * inv_c
+    (0 outside the table), plus w_out photons at r = 0. Returns (f, f', -f'', kap_hi, kap_lo):
+    kap_hi and kap_lo bound -f'' from below over [s, 1] and [0, s]. Each photon's -f'' term
+    w (e / (uni + s e))^2 falls with s where e > 0 and rises where e < 0, so over [0, s] it is at
+    least its value at s (e > 0) or at 0, (e M)^2 (e < 0); over [s, 1] at least its value at 1,
+    w (e / r)^2 >= w (s e / (uni + s e))^2 (e > 0, as uni + s e >= s r), or at s (e < 0).
+    f is a product of the rates (one log per pass, not one per photon), renormalised long before
+    it could underflow."""
+    m_uni = 1.0 / uni
+    nt = tab.size
+    qo = -1.0 / (1.0 - s)
+    f1 = w_out * qo
+    pos2 = 0.0                  # sum over e > 0 of w q^2
+    neg2 = w_out * qo * qo      # sum over e <= 0 of w q^2
+    neg0 = w_out                # sum over e < 0 of w (e M)^2 (r = 0: e M = -1)
+    ll = w_out * math.log(uni - s * uni) if w_out > 0.0 else 0.0
+    prod = 1.0
+    for u in range(ua, ub):
+        j = (kb[u] + base) * step - q
+        # selects, not branches: which photons are signal-like is data, a mispredicted branch a
+        # photon would cost more than the arithmetic
+        jc = min(max(j, 0), nt - 1)
+        rr = tab[jc] * inv_c
+        rr = rr if jc == j else 0.0
+        e = rr - uni
+        lam = uni + s * e
+        qq = e / lam
+        wu = kw[u]
+        f1 += wu * qq
+        wq2 = wu * qq * qq
+        em = e * m_uni
+        pos = e > 0.0
+        pos2 += wq2 if pos else 0.0
+        neg2 += 0.0 if pos else wq2
+        neg0 += 0.0 if pos else wu * em * em
+        if wu == 1.0:
+            prod *= lam
+            if prod < 1e-200:       # rates are >= uni (1 - s) > 0
+                ll += math.log(prod)
+                prod = 1.0
+        else:
+            ll += wu * math.log(lam)
+    return ll + math.log(prod), f1, pos2 + neg2, s * s * pos2 + neg2, pos2 + neg0
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _mix_bound(ll, f1, s, kap_hi, kap_lo):
+    """Upper bound of max over [0, 1] of a concave f with f(s) = ll, f'(s) = f1 and -f'' at least
+    kap_hi on [s, 1], kap_lo on [0, s]: the best of the parabola f(s) + f1 t - kap t^2 / 2."""
+    if f1 >= 0.0:
+        t = 1.0 - s
+        if kap_hi > 0.0 and f1 / kap_hi < t:
+            t = f1 / kap_hi
+        return ll + f1 * t - 0.5 * kap_hi * t * t
+    t = s
+    if kap_lo > 0.0 and -f1 / kap_lo < t:
+        t = -f1 / kap_lo
+    return ll - f1 * t - 0.5 * kap_lo * t * t
+
+
 @njit(cache=True, nogil=True)
-def mix_ml(r, w, n_in, w_out, uni, s0, cut):
+def mix_ml(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, s0, cut):
     """max over s in [0, 1] of sum_u w_u log((1 - s) uni + s r_u): the Poisson likelihood of eq. (9)
     with (a, B) profiled onto a C + B M = n (where its maximum lies), s = a C / n the signal share,
     r_u = g_u / C the pulse's density at photon u, uni = 1 / M. Concave in s: safeguarded Newton
     from s0.
 
-    Only the n_in photons under the pulse are listed (r[:n_in], w[:n_in]); the weight w_out of all
-    others (r = 0) enters as one term, so a call costs O(pulse support), not O(photons).
+    The photons kb[ua:ub] (weights kw) read their rates from the pulse table as
+    :func:`_mix_pass` says; the weight w_out of all others (r = 0) enters as one term, so a call
+    costs O(pulse support), not O(photons), when ua:ub is the pulse's reach.
 
-    Each Newton pass also gives the log-likelihood at its point, as a product of the rates (one log
-    per pass, not one per photon). ``cut``: after the first pass, when the tangent at s0 (an upper
-    bound of a concave function) stays at or below cut over [0, 1], the maximum cannot beat cut and
-    the call returns (s0, -inf) at once; pass -inf for an exact answer. Returns (s, loglik)."""
-    d0 = -w_out * uni
-    zero_r = w_out > 0.0
-    for u in range(n_in):
-        d0 += w[u] * (r[u] - uni)
-        if r[u] <= 0.0:
-            zero_r = True
-    if d0 <= 0.0:
-        ll = w_out
-        for u in range(n_in):
-            ll += w[u]
-        return 0.0, ll * math.log(uni)
-    if not zero_r:
-        d1 = 0.0
-        for u in range(n_in):
-            d1 += w[u] * (r[u] - uni) / r[u]
-        if d1 >= 0.0:
-            ll = 0.0
-            for u in range(n_in):
-                ll += w[u] * math.log(r[u])
-            return 1.0, ll
-    lo = 0.0
-    hi = 1.0
+    ``cut``: when the first pass's bound (:func:`_mix_bound`) cannot beat cut, the call returns
+    (s0, -inf) after that one pass; pass -inf for an exact answer. Returns (s, loglik)."""
     s = s0
     if not (s > 0.0 and s < 1.0):
         s = 0.5
-    ll = -np.inf
-    for it in range(60):
-        # one pass: f1, f2 (first and second derivative, sign flipped) and the loglik at s
-        lam = uni - s * uni
-        q = -1.0 / (1.0 - s)
-        f1 = w_out * q
-        f2 = w_out * q * q
-        ll = w_out * math.log(lam) if w_out > 0.0 else 0.0
-        prod = 1.0
-        for u in range(n_in):
-            e = r[u] - uni
-            lam = uni + s * e
-            q = e / lam
-            f1 += w[u] * q
-            f2 += w[u] * q * q
-            if w[u] == 1.0:
-                prod *= lam
-                if prod < 1e-200:       # rates are >= uni (1 - s) > 0: renormalise long before underflow
-                    ll += math.log(prod)
-                    prod = 1.0
-            else:
-                ll += w[u] * math.log(lam)
-        ll += math.log(prod)
-        if it == 0 and ll + max(f1 * (1.0 - s), -f1 * s) <= cut:
-            return s, -np.inf
+    ll, f1, f2, kh, kl = _mix_pass(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, s)
+    if cut > -np.inf and _mix_bound(ll, f1, s, kh, kl) <= cut:
+        return s, -np.inf
+    nt = tab.size
+    wtot = w_out
+    for u in range(ua, ub):
+        wtot += kw[u]
+    if f1 <= 0.0:
+        # the maximum lies in [0, s]: at 0 when f'(0) = M (sum w r - n uni) <= 0
+        d0 = -wtot * uni
+        for u in range(ua, ub):
+            j = (kb[u] + base) * step - q
+            if j >= 0 and j < nt:
+                d0 += kw[u] * tab[j] * inv_c
+        if d0 <= 0.0:
+            return 0.0, wtot * math.log(uni)
+    elif w_out <= 0.0:
+        # the maximum lies in [s, 1]: at 1 when every photon is under the pulse and f'(1) >= 0
+        d1 = 0.0
+        l1 = 0.0
+        at_one = True
+        for u in range(ua, ub):
+            j = (kb[u] + base) * step - q
+            rr = tab[j] * inv_c if (j >= 0 and j < nt) else 0.0
+            if rr <= 0.0:
+                at_one = False
+                break
+            d1 += kw[u] * (rr - uni) / rr
+            l1 += kw[u] * math.log(rr)
+        if at_one and d1 >= 0.0:
+            return 1.0, l1
+    lo = 0.0
+    hi = 1.0
+    for _it in range(60):
         if f1 > 0.0:
             lo = s
         else:
@@ -915,11 +970,15 @@ def mix_ml(r, w, n_in, w_out, uni, s0, cut):
         sn = s + f1 / f2 if f2 > 0.0 else 0.5 * (lo + hi)
         if not (sn > lo and sn < hi):
             sn = 0.5 * (lo + hi)
-        # quadratic convergence: a step below 1e-10 leaves the loglik within ~f2 * 1e-20 of its
-        # maximum, so the point just evaluated is the answer
-        if abs(sn - s) < 1e-10 or hi - lo < 1e-14:
+        if hi - lo < 1e-14:
             break
+        if abs(sn - s) < 1e-7:
+            # quadratic convergence: sn is within ~1e-13 of the maximum, and the quadratic model's
+            # value there is the loglik to third order in the step (~1e-20 nats)
+            t = sn - s
+            return sn, ll + f1 * t - 0.5 * f2 * t * t
         s = sn
+        ll, f1, f2, kh, kl = _mix_pass(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, s)
     return s, ll
 
 
@@ -932,32 +991,34 @@ def _photon_range(kb, nu, lo, hi):
 
 
 @njit(cache=True, nogil=True)
-def _ml_at_int(kb, kw, nu, wtot, i, g, off, colsum, uni, s0, cut, r):
+def _ml_at_int(kb, kw, nu, wtot, i, g, off, colsum, uni, s0, cut):
+    """Profile at integer shift i (g[k - i + off] is photon k's share of column i)."""
     nk = g.size
-    inv_c = 1.0 / colsum[i]
-    # photons under column i: offset d = k - i + off in [0, nk)
-    ua, ub = _photon_range(kb, nu, i - off, i - off + nk - 1)
-    w_in = 0.0
-    for u in range(ua, ub):
-        r[u - ua] = g[kb[u] - i + off] * inv_c
-        w_in += kw[u]
-    return mix_ml(r, kw[ua:ub], ub - ua, wtot - w_in, uni, s0, cut)
+    if nu <= ML_SCAN_ALL:
+        ua, ub, w_out = 0, nu, 0.0
+    else:
+        ua, ub = _photon_range(kb, nu, i - off, i - off + nk - 1)
+        w_out = wtot
+        for u in range(ua, ub):
+            w_out -= kw[u]
+    return mix_ml(kb, kw, ua, ub, w_out, g, off - i, 1, 0, 1.0 / colsum[i], uni, s0, cut)
 
 
 @njit(cache=True, nogil=True)
-def _ml_at_fine(kb, kw, nu, wtot, i, q, fine, off, fine_colsum, fsteps, uni, s0, cut, r):
+def _ml_at_fine(kb, kw, nu, wtot, i, q, fine, off, fine_colsum, fsteps, uni, s0, cut):
     """Profile at shift i + q / fsteps (|q| <= fsteps), from the fine kernel table."""
     nf = fine.size
     nk = (nf - 1) // fsteps + 1
-    inv_c = 1.0 / fine_colsum[i * fsteps + q]
-    # fine index (k - i + off) * fsteps - q lies in [0, nf) only for k - i + off in [-1, nk]
-    ua, ub = _photon_range(kb, nu, i - off - 1, i - off + nk)
-    w_in = 0.0
-    for u in range(ua, ub):
-        j = (kb[u] - i + off) * fsteps - q
-        r[u - ua] = fine[j] * inv_c if (j >= 0 and j < nf) else 0.0
-        w_in += kw[u]
-    return mix_ml(r, kw[ua:ub], ub - ua, wtot - w_in, uni, s0, cut)
+    if nu <= ML_SCAN_ALL:
+        ua, ub, w_out = 0, nu, 0.0
+    else:
+        # fine index (k - i + off) * fsteps - q lies in [0, nf) only for k - i + off in [-1, nk]
+        ua, ub = _photon_range(kb, nu, i - off - 1, i - off + nk)
+        w_out = wtot
+        for u in range(ua, ub):
+            w_out -= kw[u]
+    return mix_ml(kb, kw, ua, ub, w_out, fine, off - i, fsteps, q, 1.0 / fine_colsum[i * fsteps + q], uni,
+                  s0, cut)
 
 
 @njit(cache=True, nogil=True)
@@ -999,11 +1060,24 @@ def ml_kernel(bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_colsum, 
     uni = 1.0 / m
     logm = math.log(m)
     nf = 2 * fsteps + 1
+    # interior shifts [ia, ib]: the column lies inside the window, so its sum is the kernel's whole
+    # sum (the same float at every such shift); there the bound's term depends on the offset only:
+    # upos[t] = max(term at d = dhi - t, 0), laid out in shift order
+    ia = off
+    ib = m - g.size + off
+    lc_int = log_colsum[off] if 0 <= off < m else 0.0
+    for i in range(max(ia, 0), min(ib, m - 1) + 1):
+        if log_colsum[i] != lc_int:
+            ib = ia - 1     # not a constant run: every photon takes the general path
+            break
+    upos = np.zeros(max(dhi - dlo + 1, 0))
+    for t in range(upos.size):
+        v = logg_int[dhi - t + off] - lc_int + logm
+        upos[t] = v if v > 0.0 else 0.0
     for blk in prange(nblk):
         tmp = np.empty(max(maxn, 1), np.int64)
         kb = np.empty(max(maxn, 1), np.int64)
         kw = np.empty(max(maxn, 1), np.float64)
-        r = np.empty(max(maxn, 1), np.float64)
         ivlo = np.empty(max(maxn, 1), np.int64)
         ivhi = np.empty(max(maxn, 1), np.int64)
         acc = np.zeros(m)           # zero between pixels: only the photons' intervals are touched
@@ -1033,11 +1107,20 @@ def ml_kernel(bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_colsum, 
                 niv = photon_intervals(kb, nu, dhi, -dlo, m, ivlo, ivhi)
                 for u in range(nu):
                     k = kb[u]
-                    for d in range(max(dlo, k - m + 1), min(dhi, k) + 1):
-                        i = k - d
-                        v = logg_int[d + off] - log_colsum[i] + logm
-                        if v > 0.0:
-                            acc[i] += kw[u] * v
+                    wu = kw[u]
+                    if k - dhi >= ia and k - dlo <= ib:
+                        # all of this photon's shifts have the interior column sum: one contiguous
+                        # add of the precomputed terms (the same floating-point values; adding 0.0
+                        # where a term is not positive leaves acc as the test below would)
+                        seg = acc[k - dhi:k - dlo + 1]
+                        for t in range(seg.size):
+                            seg[t] += wu * upos[t]
+                    else:
+                        for d in range(max(dlo, k - m + 1), min(dhi, k) + 1):
+                            i = k - d
+                            v = logg_int[d + off] - log_colsum[i] + logm
+                            if v > 0.0:
+                                acc[i] += wu * v
                 ncand = 0
                 i1 = -1
                 for t in range(niv):
@@ -1048,7 +1131,7 @@ def ml_kernel(bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_colsum, 
                             if i1 < 0 or acc[i] > acc[i1]:
                                 i1 = i
                 if i1 >= 0:
-                    s, ll = _ml_at_int(kb, kw, nu, ntot, i1, g, off, colsum, uni, 0.5, -np.inf, r)
+                    s, ll = _ml_at_int(kb, kw, nu, ntot, i1, g, off, colsum, uni, 0.5, -np.inf)
                     if ll > best_ll:
                         best_ll = ll
                         best_i = i1
@@ -1066,7 +1149,7 @@ def ml_kernel(bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_colsum, 
                         tol = 1e-12 * abs(best_ll)
                         if floor_ll + acc[i] <= best_ll + tol:
                             break
-                        s, ll = _ml_at_int(kb, kw, nu, ntot, i, g, off, colsum, uni, best_s, best_ll + tol, r)
+                        s, ll = _ml_at_int(kb, kw, nu, ntot, i, g, off, colsum, uni, best_s, best_ll + tol)
                         if ll > best_ll:
                             best_ll = ll
                             best_i = i
@@ -1077,7 +1160,7 @@ def ml_kernel(bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_colsum, 
                 out_bg[p] = ntot * uni
                 continue
             # sub-bin: best of the fine shifts strictly between the integer neighbours (outwards from
-            # the integer optimum, where the best usually is, so the tangent test prunes the rest),
+            # the integer optimum, where the best usually is, so the bound test prunes the rest),
             # then a parabola through its exact neighbours
             qlo = -fsteps if best_i > 0 else 0
             qhi = fsteps if best_i < m - 1 else 0
@@ -1091,7 +1174,7 @@ def ml_kernel(bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_colsum, 
                 if q < qlo or q > qhi:
                     continue
                 s, ll = _ml_at_fine(kb, kw, nu, ntot, best_i, q, fine, off, fine_colsum, fsteps, uni, bs,
-                                    bll, r)
+                                    bll)
                 lls[q + fsteps] = ll
                 exact[q + fsteps] = ll > -np.inf
                 if ll > bll:
@@ -1103,7 +1186,7 @@ def ml_kernel(bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_colsum, 
                 for q in (bq - 1, bq + 1):
                     if not exact[q + fsteps]:
                         s, ll = _ml_at_fine(kb, kw, nu, ntot, best_i, q, fine, off, fine_colsum, fsteps,
-                                            uni, bs, -np.inf, r)
+                                            uni, bs, -np.inf)
                         lls[q + fsteps] = ll
                 lm = lls[bq - 1 + fsteps]
                 l0 = lls[bq + fsteps]
