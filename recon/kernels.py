@@ -972,9 +972,9 @@ def mix_ml(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, s0, cut):
             sn = 0.5 * (lo + hi)
         if hi - lo < 1e-14:
             break
-        if abs(sn - s) < 1e-7:
-            # quadratic convergence: sn is within ~1e-13 of the maximum, and the quadratic model's
-            # value there is the loglik to third order in the step (~1e-20 nats)
+        if abs(sn - s) < 1e-5:
+            # quadratic convergence: sn is within ~1e-9 of the maximum, and the quadratic model's
+            # value there is the loglik to third order in the step (|f'''| t^3 / 6, ~1e-13 nats)
             t = sn - s
             return sn, ll + f1 * t - 0.5 * f2 * t * t
         s = sn

@@ -8,6 +8,8 @@ be empty (``0 x 0``), columns (``n x 1``, the fpi files) or rows (``1 x n``, the
 
 from __future__ import annotations
 
+import struct
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -93,6 +95,108 @@ def cells_to_store(cells: np.ndarray, time_unit_s: float, *, source: str = "cell
     return PhotonStore(times, offsets, (h, w), time_unit_s)
 
 
+#: numpy dtype of each level-5 numeric element type (little endian)
+_MI_DTYPE = {1: "<i1", 2: "<u1", 3: "<i2", 4: "<u2", 5: "<i4", 6: "<u4", 7: "<f4", 9: "<f8", 12: "<i8",
+             13: "<u8"}
+
+
+def _top_level(raw: bytes):
+    """The variables of a little-endian level-5 file: (name, mxClass, dims, element bytes, offset of
+    the first byte after the name) each; None when the file is not one this fast path reads."""
+    if len(raw) < 128 or raw[124:128] != b"\x00\x01IM":
+        return None
+    out = []
+    o = 128
+    while o + 8 <= len(raw):
+        t, n = struct.unpack_from("<II", raw, o)
+        if t == 15:                         # miCOMPRESSED: one zlib-compressed element
+            d = zlib.decompress(raw[o + 8:o + 8 + n])
+            o += 8 + n
+        elif t == 14:
+            d = raw[o:o + 8 + n]
+            o += 8 + n + (-n) % 8
+        else:
+            return None
+        if len(d) < 40 or struct.unpack_from("<I", d, 0)[0] != 14:
+            return None
+        if struct.unpack_from("<II", d, 8) != (6, 8):
+            return None
+        cls = struct.unpack_from("<I", d, 16)[0] & 0xFF
+        p = 24
+        t, ndb = struct.unpack_from("<II", d, p)
+        if t != 5:
+            return None
+        dims = struct.unpack_from(f"<{ndb // 4}i", d, p + 8)
+        p += 8 + ndb + (-ndb) % 8
+        t = struct.unpack_from("<I", d, p)[0]
+        if t >> 16:
+            nn = t >> 16
+            name = d[p + 4:p + 4 + nn].decode("ascii", "replace")
+            p += 8
+        else:
+            nn = struct.unpack_from("<I", d, p + 4)[0]
+            name = d[p + 8:p + 8 + nn].decode("ascii", "replace")
+            p += 8 + nn + (-nn) % 8
+        out.append((name, cls, dims, d, p))
+    return out
+
+
+def read_cells_fast(path: Path, var: str | None, time_unit_s: float) -> tuple[str, PhotonStore] | None:
+    """The cell-array variable of a level-5 .mat file as a PhotonStore, by one compiled walk over
+    its elements (:func:`acq.readers.mat_kernels.cell_index`) and one NumPy gather of the times;
+    the same store :func:`load_cells` + :func:`cells_to_store` make (row-major pixels, detection
+    order kept). None whenever the file holds anything this path does not read (big endian, v7.3,
+    several or no cell arrays without ``var``, a cell that is not a real numeric vector, NaN
+    times ...): the caller then reads it with scipy, which names the problem."""
+    from spdepth.acq.readers.mat_kernels import MI_ITEMSIZE, cell_index
+
+    try:
+        raw = path.read_bytes()
+        top = _top_level(raw)
+    except (OSError, zlib.error, struct.error, ValueError):
+        return None
+    if not top:
+        return None
+    cells = {name: v for name, *v in top if v[0] == 1 and len(v[1]) == 2}
+    if var is not None:
+        if var not in cells:
+            return None
+        name = var
+    elif len(cells) == 1:
+        (name,) = cells
+    else:
+        return None
+    _cls, (h, w), d, start = cells[name]
+    n_cells = h * w
+    if n_cells == 0:
+        return None
+    buf = np.frombuffer(d, np.uint8)
+    off = np.empty(n_cells, np.int64)
+    cnt = np.empty(n_cells, np.int64)
+    typ = np.empty(n_cells, np.int64)
+    if cell_index(buf, start, n_cells, MI_ITEMSIZE, off, cnt, typ) < 0:
+        return None
+    # MATLAB's cells run down the columns; pixels run along the rows
+    c = np.arange(n_cells)
+    pix = (c % h) * w + c // h
+    counts = np.empty(n_cells, np.int64)
+    counts[pix] = cnt
+    offsets = np.zeros(n_cells + 1, np.int64)
+    np.cumsum(counts, out=offsets[1:])
+    times = np.empty(int(offsets[-1]), np.float64)
+    dst = offsets[pix]
+    for t in np.unique(typ[cnt > 0]):
+        sel = (typ == t) & (cnt > 0)
+        n = cnt[sel]
+        isz = int(MI_ITEMSIZE[t])
+        view = np.frombuffer(d, dtype=_MI_DTYPE[int(t)], count=len(d) // isz)
+        k = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
+        times[np.repeat(dst[sel], n) + k] = view[np.repeat(off[sel] // isz, n) + k]
+    if times.size == 0 or not np.all(np.isfinite(times)):
+        return None
+    return name, PhotonStore(times, offsets, (h, w), time_unit_s)
+
+
 def read_mat(path: str | Path, *, time_unit_s: float | None, var: str | None = None) -> ReadResult:
     """Read a first-photon-imaging .mat file.
 
@@ -104,6 +208,11 @@ def read_mat(path: str | Path, *, time_unit_s: float | None, var: str | None = N
     if time_unit_s is None:
         raise InputError(f"{path}: a .mat file does not record its time unit; give it "
                          f"(--time-unit-ps 8 for first-photon-imaging files, 1 for times in ps)")
+    fast = read_cells_fast(path, var, time_unit_s)
+    if fast is not None:
+        name, store = fast
+        return ReadResult(store=store, path=str(path), kind="mat", is_image=True,
+                          meta={"mat_var": name, "time_unit_s": time_unit_s})
     name, cells = load_cells(path, var)
     if cells.size == 0:
         raise InputError(f"{path}: variable {name!r} is an empty cell array")

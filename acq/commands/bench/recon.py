@@ -26,6 +26,7 @@ from pathlib import Path
 import numba
 import numpy as np
 
+from spdepth.acq.commands.bench import ml_before
 from spdepth.recon import kernels as K
 from spdepth.recon.estimate import reconstruct
 from spdepth.recon.model import FINE_STEPS, SEED_PAPER, Binning, ReconSettings, build_kernel
@@ -40,7 +41,7 @@ DETECTIONS = SEED_PAPER.max_photons
 
 
 def _load_reference():
-    path = Path(__file__).resolve().parents[1] / "tests" / "reference.py"
+    path = Path(__file__).resolve().parents[3] / "tests" / "reference.py"
     if not path.is_file():
         return None, path
     spec = importlib.util.spec_from_file_location("spdepth_tests_reference", path)
@@ -68,6 +69,7 @@ REFERENCES = {
     "lmf": "eq. 11 as one dense product log(S)^T y per pixel (tests/reference.py lmf)",
     "uos": "Algorithm 1 as published: dense A = [S/max, 1], pinv least squares each iteration "
            "(tests/reference.py uos)",
+    "ml-before": "the same as ml",
     "ml": "exact Poisson ML, every shift's profile likelihood solved by the kernel's safeguarded "
           "Newton in the signal share, vectorised over all shifts, no pruning; then the same "
           "1/8-bin refinement and parabola (ml_dense here)",
@@ -153,7 +155,9 @@ def bench(argv: list[str]) -> int:
     parser.add_argument("--ref-pixels", type=int, default=200,
                         help="pixels of the side-by-side kernel/reference comparison (lmf, uos)")
     parser.add_argument("--ml-ref-pixels", type=int, default=40, help="the same for ml")
-    parser.add_argument("--methods", default="lmf,uos,ml")
+    parser.add_argument("--methods", default="lmf,uos,ml,ml-before",
+                        help="ml-before: the ml kernel as it was before issue 18 (bench/ml_before.py), "
+                             "timed in the same run as today's")
     parser.add_argument("--rounds", type=int, default=3, help="alternating 1/2-thread rounds (best kept)")
     args = parser.parse_args(argv)
 
@@ -185,9 +189,10 @@ def bench(argv: list[str]) -> int:
                          shift, np.empty((p, 1)), np.empty(p), np.empty(p, np.int32), np.empty(p, np.bool_),
                          np.empty((p, 1)), np.empty(p, np.int64))
         else:
-            K.ml_kernel(b, o, M, kern.g, kern.off, logg_int, dlo, dhi, kern.colsum, log_colsum, kern.fine,
-                        kern.fine_colsum, FINE_STEPS, kern.dg, DETECTIONS, shift[:, 0], np.empty(p), np.empty(p),
-                        np.empty(p), np.empty(p, np.int64))
+            mod = ml_before if method == "ml-before" else K
+            mod.ml_kernel(b, o, M, kern.g, kern.off, logg_int, dlo, dhi, kern.colsum, log_colsum, kern.fine,
+                          kern.fine_colsum, FINE_STEPS, kern.dg, DETECTIONS, shift[:, 0], np.empty(p), np.empty(p),
+                          np.empty(p), np.empty(p, np.int64))
         return shift[:, 0]
 
     # the references' dense matrices, built once, outside every timed region
@@ -195,7 +200,7 @@ def bench(argv: list[str]) -> int:
     if ref is not None:
         s_mat = ref.dense_s(kern)
         dense = {"lmf": ref.dense_logs(kern), "uos": np.hstack([s_mat / kern.gmax, np.ones((M, 1))]),
-                 "ml": s_mat}
+                 "ml": s_mat, "ml-before": s_mat}
 
     def run_ref(method, b, o):
         """The reference's shift per pixel (bins), one pixel at a time."""
@@ -225,7 +230,7 @@ def bench(argv: list[str]) -> int:
         for method in args.methods.split(","):
             print(f"  {method}: {REFERENCES[method]}")
     print(f"load average before: {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
-    print(f"{'method':<6} {'kernel 1 thr':>13} {'kernel 2 thr':>13} {'speed-up':>9} "
+    print(f"{'method':<10} {'kernel 1 thr':>13} {'kernel 2 thr':>13} {'speed-up':>9} "
           f"{'reconstruct 1 thr':>18} {'kernel, ref px':>15} {'reference':>11} {'kernel/ref':>11} "
           f"{'agree':>6}")
     old_threads = numba.get_num_threads()
@@ -242,26 +247,42 @@ def bench(argv: list[str]) -> int:
                     numba.set_num_threads(nt)
                     rates[nt] = max(rates[nt], n / _time(lambda: run_kernel(method, bins, offsets), 0.15))
             numba.set_num_threads(1)
-            settings = ReconSettings(method=method, binning=binning, pulse_rms_s=RMS_S)
-            full = n / _time(lambda: reconstruct(store, settings), min_s=0.1)
+            full = np.nan       # ml-before is a kernel only, not an estimator of the registry
+            if method in ("lmf", "uos", "ml"):
+                settings = ReconSettings(method=method, binning=binning, pulse_rms_s=RMS_S)
+                full = n / _time(lambda: reconstruct(store, settings), min_s=0.1)
             ref_rate = same_rate = agree = np.nan
             if ref is not None:
-                npr = min(n, args.ml_ref_pixels if method == "ml" else args.ref_pixels)
+                npr = min(n, args.ml_ref_pixels if method.startswith("ml") else args.ref_pixels)
                 o = offsets[:npr + 1]
                 same_rate = npr / _time(lambda: run_kernel(method, bins, o), 0.1)
-                ref_rate = npr / _time(lambda: run_ref(method, bins, o), 1e-9 if method == "ml" else 0.2)
+                ref_rate = npr / _time(lambda: run_ref(method, bins, o), 1e-9 if method.startswith("ml") else 0.2)
                 # agreement: same shift to 1/8 bin (both NaN counts as agreeing)
                 a, b = run_kernel(method, bins, o), run_ref(method, bins, o)
                 agree = np.mean((np.abs(a - b) <= 1 / 8 + 1e-9) | (np.isnan(a) & np.isnan(b)))
-            print(f"{method:<6} {rates[1]:13,.0f} {rates[2]:13,.0f} {rates[2] / rates[1]:8.2f}x "
+            print(f"{method:<10} {rates[1]:13,.0f} {rates[2]:13,.0f} {rates[2] / rates[1]:8.2f}x "
                   f"{full:18,.0f} {same_rate:15,.0f} {ref_rate:11,.1f} {same_rate / ref_rate:10,.0f}x "
                   f"{100 * agree:5.0f}%", flush=True)
+        pair = [mt for mt in ("ml", "ml-before", "uos") if mt in args.methods.split(",")]
+        if "ml" in pair and len(pair) > 1:
+            # before/after as a ratio of runs taken in turn (a burst of other work on the machine
+            # lands on both): the best of each over the rounds, 1 thread
+            numba.set_num_threads(1)
+            best = {mt: 0.0 for mt in pair}
+            for _round in range(max(3, args.rounds)):
+                for mt in pair:
+                    best[mt] = max(best[mt], n / _time(lambda: run_kernel(mt, bins, offsets), 0.15))
+            print("in turn, 1 thread: " + ", ".join(f"{mt} {best[mt]:,.0f}" for mt in pair) + "; "
+                  + ", ".join(f"ml / {mt} {best['ml'] / best[mt]:.2f}x" for mt in pair if mt != "ml"),
+                  flush=True)
         # one pathological pixel: a point measurement of 50,000 detections over 4096 bins
         numba.set_num_threads(1)
         big_b = Binning(UNIT_S, 0.0, float(BIG_BINS), 1.0)
         big_store = PhotonStore.from_lists([huge_pixel(seed=2)], (1, 1), UNIT_S)
         line = []
         for method in args.methods.split(","):
+            if method not in ("lmf", "uos", "ml"):
+                continue
             s = ReconSettings(method=method, binning=big_b, pulse_rms_s=BIG_RMS_UNITS * UNIT_S)
             line.append(f"{method} {_time(lambda: reconstruct(big_store, s), min_s=0.1):.4f} s")
         print(f"one pixel of {BIG_PHOTONS:,} detections over {BIG_BINS} bins (reconstruct, 1 thr): "
