@@ -19,7 +19,6 @@ from spdepth.recon.photons import PhotonStore
 from spdepth.recon.pixelwise import reconstruct_pixelwise
 # resolve_model is also imported from here by acq.live_recon (it was defined here before the split)
 from spdepth.recon.resolve import resolve_model
-from spdepth.recon.spatial import reconstruct_spatial
 
 #: ``estimator(store, settings, progress)``: the maps of ``store`` by ``settings.method``.
 Estimator = Callable[[PhotonStore, ReconSettings, Callable[[int, int], None] | None], DepthMaps]
@@ -31,6 +30,16 @@ def reconstruct_each_pixel(store: PhotonStore, settings: ReconSettings,
     then fit every pixel on its own (:func:`recon.pixelwise.reconstruct_pixelwise`)."""
     b, kern, notes = resolve_model(store, settings)
     return reconstruct_pixelwise(store, settings, b, kern, notes, progress)
+
+
+def reconstruct_spatial(store: PhotonStore, settings: ReconSettings,
+                        progress: Callable[[int, int], None] | None = None) -> DepthMaps:
+    """:func:`recon.spatial.reconstruct_spatial`, imported on first use: the spatial estimator
+    brings scipy.stats and its own kernels, which a pixelwise reconstruction (``spdepth recon``'s
+    default) has no use for and should not wait for in a new process."""
+    from spdepth.recon.spatial import reconstruct_spatial as spatial
+
+    return spatial(store, settings, progress)
 
 
 #: The estimators by name; its keys are exactly :data:`recon.model.METHODS`, in that order.

@@ -186,3 +186,17 @@ def photons_by_pixel(pixel, times, n_pix):
     offsets = np.zeros(n_pix + 1, np.int64)
     np.cumsum(np.bincount(pixel, minlength=n_pix), out=offsets[1:])
     return np.asarray(times, np.float64)[order], offsets
+
+
+def mat_cells(path, var: str):
+    """A level-5 .mat cell array of detection-time vectors as (times, offsets), pixels row-major
+    and detection order kept, by scipy's loadmat: the reference of the compiled cell walk
+    (acq.readers.mat_kernels.cell_index, through acq.readers.mat.read_cells_fast)."""
+    import scipy.io
+
+    cells = scipy.io.loadmat(path)[var]
+    flat = [np.asarray(c, dtype=np.float64).ravel() for c in cells.ravel(order="C")]
+    offsets = np.zeros(len(flat) + 1, np.int64)
+    offsets[1:] = np.cumsum([f.size for f in flat])
+    times = np.concatenate(flat) if flat else np.zeros(0)
+    return times, offsets

@@ -10,6 +10,7 @@ import pytest
 import scipy.io
 from numpy.testing import assert_allclose, assert_array_equal
 
+import reference as ref
 from spdepth.acq.readers import read_photons, sniff_kind
 from spdepth.acq.readers.picoquant import _PT3_HEAD, assign_pixels
 from spdepth.recon.errors import InputError
@@ -48,6 +49,57 @@ def test_mat_orientation_rows_columns_and_empty_cells(tmp_path):
     assert_array_equal(store.pixel(0, 2), [20, 21])
     assert_array_equal(store.pixel(1, 1), [40, 41, 42, 43])  # detection order kept
     assert store.time_unit_s == 8e-12
+
+
+@pytest.mark.parametrize("compress", [False, True])
+def test_mat_fast_path_equals_scipy_for_every_element_type(tmp_path, compress):
+    # the compiled walk (read_cells_fast) against scipy's loadmat + cells_to_store: every numeric
+    # element type, empty cells, rows and columns, on a 3 x 4 array (MATLAB's column-major cell
+    # order against row-major pixels), compressed or not
+    from spdepth.acq.readers.mat import cells_to_store, load_cells, read_cells_fast
+
+    rng = np.random.default_rng(3)
+    kinds = [np.float64, np.float32, np.uint16, np.int16, np.uint8, np.int8, np.int32, np.uint32,
+             np.int64, np.uint64]
+    rows = []
+    for i in range(3):
+        row = []
+        for j in range(4):
+            t = kinds[(4 * i + j) % len(kinds)]
+            n = int(rng.integers(0, 6))
+            v = rng.integers(0, 100, n).astype(t)
+            row.append(np.zeros((0, 0)) if n == 0 else (v[:, None] if (i + j) % 2 else v[None, :]))
+        rows.append(row)
+    path = tmp_path / "types.mat"
+    scipy.io.savemat(path, {"Ts": _cell(rows), "other": np.arange(3.0)}, do_compression=compress)
+    fast = read_cells_fast(path, None, 8e-12)
+    assert fast is not None, "the fast path declined a plain cell array of numeric vectors"
+    name, store = fast
+    _, cells = load_cells(path)
+    slow = cells_to_store(cells, 8e-12)
+    assert name == "Ts" and store.shape == slow.shape == (3, 4)
+    assert_array_equal(store.offsets, slow.offsets)
+    assert_array_equal(store.times, slow.times)
+    assert store.times.dtype == np.float64
+    times, offsets = ref.mat_cells(path, "Ts")
+    assert_array_equal(store.offsets, offsets)
+    assert_allclose(store.times, times, rtol=0, atol=0)
+
+
+def test_mat_fast_path_declines_what_it_does_not_read(tmp_path):
+    # a matrix cell, complex times and two cell arrays: the fast path says no, the scipy path
+    # gives the message
+    from spdepth.acq.readers.mat import read_cells_fast
+
+    for i, cells in enumerate([_cell([[np.ones((2, 2)), np.ones((3, 1))]]),
+                               _cell([[np.array([1 + 2j]), np.ones((3, 1))]])]):
+        path = tmp_path / f"bad{i}.mat"
+        scipy.io.savemat(path, {"Ts": cells})
+        assert read_cells_fast(path, None, 8e-12) is None
+    path = tmp_path / "two.mat"
+    scipy.io.savemat(path, {"A": _cell([[np.ones(2)]]), "B": _cell([[np.ones(3)]])})
+    assert read_cells_fast(path, None, 8e-12) is None
+    assert read_cells_fast(path, "B", 8e-12)[1].n_photons == 3
 
 
 def test_mannequin_matches_loadmat_cell_by_cell(shared_data):

@@ -106,8 +106,12 @@ def test_uos_k_kernel_matches_reference_on_two_surfaces(kern, rng):
         assert np.all(np.isfinite(var[p]))
 
 
-def test_ml_kernel_global_integer_optimum_matches_reference(kern, rng):
-    lists = random_pixels(rng, 10, sbr=2.0)
+@pytest.mark.parametrize("k", [15, 120])
+def test_ml_kernel_global_integer_optimum_matches_reference(kern, rng, k):
+    # k = 120: more distinct photon bins than ML_SCAN_ALL, so each solve searches the photons under
+    # the pulse (and counts the rest as one rate-0 term) instead of scanning them all
+    assert (k > K.ML_SCAN_ALL) == (k == 120)
+    lists = random_pixels(rng, 10, k=k, sbr=2.0)
     bins, off = csr(lists)
     s_mat = ref.dense_s(kern)
     for p, b in enumerate(lists):
