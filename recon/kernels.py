@@ -844,6 +844,11 @@ def uos_kernel(bins, offsets, m, g, off, gmax, colsum, pp, dg, n_refl, delta, ma
 # exact pixelwise Poisson ML, eq. (9), global over shifts
 
 
+#: ml: logliks within this share of each other are a tie (the pulse on either of two lone
+#: detections gives an exact one, which solves from different starts leave ~1e-16 apart), settled
+#: for the later shift, as the exhaustive scan upwards settled them
+ML_TIE = 1e-13
+
 #: ml: pixels with at most this many distinct photon bins run every pass over all their photons
 #: (one out of the pulse's reach reads rate 0, as the w_out term does), sparing the binary search
 #: for the ones under the pulse; bigger pixels search, so a pass costs O(pulse support).
@@ -972,9 +977,9 @@ def mix_ml(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, s0, cut):
             sn = 0.5 * (lo + hi)
         if hi - lo < 1e-14:
             break
-        if abs(sn - s) < 1e-5:
-            # quadratic convergence: sn is within ~1e-9 of the maximum, and the quadratic model's
-            # value there is the loglik to third order in the step (|f'''| t^3 / 6, ~1e-13 nats)
+        if abs(sn - s) < 1e-7:
+            # quadratic convergence: sn is within ~1e-13 of the maximum, and the quadratic model's
+            # value there is the loglik to third order in the step (|f'''| t^3 / 6, ~1e-19 nats)
             t = sn - s
             return sn, ll + f1 * t - 0.5 * f2 * t * t
         s = sn
@@ -1149,9 +1154,17 @@ def ml_kernel(bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_colsum, 
                         tol = 1e-12 * abs(best_ll)
                         if floor_ll + acc[i] <= best_ll + tol:
                             break
-                        s, ll = _ml_at_int(kb, kw, nu, ntot, i, g, off, colsum, uni, best_s, best_ll + tol)
-                        if ll > best_ll:
+                        # ties (few photons give exact ones: the pulse on either of two detections)
+                        # go as a scan from i1 then upwards would take them: i1, else the smallest
+                        # shift; so a shift that can only tie is solved, not pruned
+                        tie = ML_TIE * max(1.0, abs(best_ll))
+                        s, ll = _ml_at_int(kb, kw, nu, ntot, i, g, off, colsum, uni, best_s, best_ll - tie)
+                        if ll > best_ll + tie or (best_i < 0 and ll > best_ll):
                             best_ll = ll
+                            best_i = i
+                            best_s = s
+                        elif ll >= best_ll - tie and best_i >= 0 and i > best_i:
+                            best_ll = max(best_ll, ll)
                             best_i = i
                             best_s = s
                 for t in range(niv):
@@ -1173,12 +1186,18 @@ def ml_kernel(bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_colsum, 
                 q = (a + 1) // 2 if a % 2 == 1 else -(a // 2)
                 if q < qlo or q > qhi:
                     continue
+                tie = ML_TIE * max(1.0, abs(bll))
                 s, ll = _ml_at_fine(kb, kw, nu, ntot, best_i, q, fine, off, fine_colsum, fsteps, uni, bs,
-                                    bll)
+                                    bll - tie)
                 lls[q + fsteps] = ll
                 exact[q + fsteps] = ll > -np.inf
-                if ll > bll:
+                # ties as a scan upwards from qlo would take them: 0, else the smallest q
+                if ll > bll + tie:
                     bll = ll
+                    bq = q
+                    bs = s
+                elif ll >= bll - tie and q > bq:
+                    bll = max(bll, ll)
                     bq = q
                     bs = s
             frac = 0.0
