@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from spdepth.acq.cli import main
+from spdepth.acq.requests import DEFAULT_METHOD
 from spdepth.recon.photons import PhotonStore
 
 
@@ -28,7 +29,7 @@ def test_demo_scans_reconstructs_and_writes_png(tmp_path, capsys):
 
 def test_demo_with_faults_reports_them_and_reacquires(tmp_path, capsys):
     png = tmp_path / "demo.png"
-    code = main(["demo", "--no-window", "--size", "16x16", "--compare", "uos",
+    code = main(["demo", "--no-window", "--size", "16x16", "--compare", DEFAULT_METHOD,
                  "--faults", "serial-unplug@0.2s,fifo-overflow@50%", "--out", str(png)])
     assert code == 0
     out = capsys.readouterr().out
@@ -36,7 +37,7 @@ def test_demo_with_faults_reports_them_and_reacquires(tmp_path, capsys):
     assert "lost spans in the tag stream: 1, re-acquired in later passes" in out
     assert "in 2 passes" in out                       # the pixels after the hole were scanned again
     assert "flagged" not in out                       # ... and all of them completed
-    assert "live uos maps equal the batch reconstruction" in out
+    assert f"live {DEFAULT_METHOD} maps equal the batch reconstruction" in out   # the default live estimator
 
 
 def test_demo_refuses_bad_options(tmp_path, capsys):
