@@ -16,6 +16,7 @@ import pytest
 pytest.importorskip("pytestqt")
 from PySide6 import QtCore  # noqa: E402
 
+from spdepth.acq.requests import DEFAULT_METHOD  # noqa: E402
 from spdepth.gui.sources import SourceSpec, open_run  # noqa: E402
 from spdepth.gui.window import MainWindow  # noqa: E402
 
@@ -143,7 +144,8 @@ def test_replay_of_a_recording_matches_the_live_maps(qtbot, win, tmp_path):
     live.session.start()
     assert live.session.wait(60).value == "done"
     live.close()
-    spec = SourceSpec(kind="replay", recording=str(rec_dir), target=0, method="uos",
+    # the live scan ran the default estimator; the replay runs it too, so the maps must be equal
+    spec = SourceSpec(kind="replay", recording=str(rec_dir), target=0, method=DEFAULT_METHOD,
                       out_root=str(tmp_path / "runs"))
     assert win.start_run(spec), win.banner_text.text()
     qtbot.waitUntil(lambda: _state(win) == "done", timeout=60_000)
@@ -151,7 +153,7 @@ def test_replay_of_a_recording_matches_the_live_maps(qtbot, win, tmp_path):
     assert "recording ok" in win.health_label.text()
     c = win.controls                                  # the recorded plan, not the last scan's
     assert (c.width_px.value(), c.height_px.value(), c.mode.currentText()) == (16, 16, "gated")
-    assert win.run_label.text().startswith("replay of rec, uos")
+    assert win.run_label.text().startswith(f"replay of rec, {DEFAULT_METHOD}")
 
 
 # The session records a reconnect once the device is back (the galvo controller even scans on
