@@ -1,0 +1,293 @@
+"""Numba kernel of the K-surface pixelwise estimator (:mod:`recon.multi`): a greedy Poisson pursuit.
+
+Per pixel the model is ``lambda_k = B + sum_r a_r g[k - j_r + off]`` (g: the unit-area response on
+the bins, measured from the data, tail and afterpulse bump included, so they are never a surface).
+Returns are added one at a time: each candidate shift (one per cluster of detections, aligned on the
+response's peak) is scored by the Poisson log-likelihood it adds with its amplitude profiled out
+(Newton on a concave function), the best one is refined by a pattern search over shifts, and kept
+when its gain exceeds ``gain_min`` nats; then every amplitude and the background are refitted by EM
+and every earlier return's shift is re-refined with the others fixed. Plain reference:
+``tests/reference.py::multi_return_ref``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+from spdepth.recon.kernels import BLOCK, unique_counts
+
+#: Newton steps on a return's amplitude.
+NEWTON_STEPS = 12
+#: EM sweeps of the amplitudes and background after each added return (and at the end).
+EM_SWEEPS = 12
+
+
+@njit(cache=True, nogil=True)
+def add_gain(j, kb, kw, nu, lam, g, off, colsum):
+    """(gain, amplitude) of adding a return at shift j to the model whose rate at the photons' bins is
+    lam: ``max_a sum_u kw_u log(1 + a g_u / lam_u) - a colsum[j]`` over a >= 0 (nats)."""
+    nk = g.size
+    lo = j - off
+    hi = lo + nk
+    c = colsum[j]
+    if c <= 0.0:
+        return 0.0, 0.0
+    # slope at a = 0 and a start: the detections under the pulse beyond what the model expects
+    d0 = -c
+    nin = 0.0
+    for u in range(nu):
+        k = kb[u]
+        if k >= lo and k < hi:
+            gu = g[k - lo]
+            if gu > 0.0:
+                d0 += kw[u] * gu / lam[u]
+                nin += kw[u]
+    if d0 <= 0.0:
+        return 0.0, 0.0
+    a = max(nin / c, 1e-6)
+    for _ in range(NEWTON_STEPS):
+        f1 = -c
+        f2 = 0.0
+        for u in range(nu):
+            k = kb[u]
+            if k >= lo and k < hi:
+                gu = g[k - lo]
+                if gu > 0.0:
+                    q = gu / (lam[u] + a * gu)
+                    f1 += kw[u] * q
+                    f2 -= kw[u] * q * q
+        if f2 >= 0.0:
+            break
+        na = a - f1 / f2
+        if na <= 0.0:
+            na = 0.5 * a
+        if abs(na - a) <= 1e-9 * a:
+            a = na
+            break
+        a = na
+    gain = -a * c
+    for u in range(nu):
+        k = kb[u]
+        if k >= lo and k < hi:
+            gu = g[k - lo]
+            if gu > 0.0:
+                gain += kw[u] * math.log1p(a * gu / lam[u])
+    return gain, a
+
+
+@njit(cache=True, nogil=True)
+def refine_shift(j, best, amp, kb, kw, nu, lam, g, off, colsum, m, step0, shifts, nr, skip, sep_bins):
+    """Pattern search (steps step0, step0/2, ..., 1 bins) for the shift of most gain from j, never
+    within sep_bins of shifts[:nr] (but shifts[skip])."""
+    step = step0
+    while step >= 1:
+        moved = True
+        while moved:
+            moved = False
+            for sgn in (-1, 1):
+                jj = j + sgn * step
+                if jj < 0 or jj >= m:
+                    continue
+                near = False
+                for r in range(nr):
+                    if r != skip and abs(jj - shifts[r]) < sep_bins:
+                        near = True
+                if near:
+                    continue
+                gn, an = add_gain(jj, kb, kw, nu, lam, g, off, colsum)
+                if gn > best:
+                    best, amp, j = gn, an, jj
+                    moved = True
+                    break
+        step //= 2
+    return j, best, amp
+
+
+@njit(cache=True, nogil=True)
+def model_rate(kb, nu, shifts, amps, nr, bg, g, off, lam):
+    """lam[u] = bg + sum_r amps[r] g[kb_u - shifts[r] + off]."""
+    nk = g.size
+    for u in range(nu):
+        v = bg
+        for r in range(nr):
+            d = kb[u] - shifts[r] + off
+            if d >= 0 and d < nk:
+                v += amps[r] * g[d]
+        lam[u] = v
+
+
+@njit(cache=True, nogil=True)
+def em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, lam, sweeps):
+    """EM for the amplitudes and background at fixed shifts (monotone in the likelihood); returns bg
+    and leaves lam at the final model."""
+    nk = g.size
+    newa = np.empty(max(nr, 1))
+    for _ in range(sweeps):
+        model_rate(kb, nu, shifts, amps, nr, bg, g, off, lam)
+        nb = 0.0
+        for r in range(nr):
+            newa[r] = 0.0
+        for u in range(nu):
+            nb += kw[u] * bg / lam[u]
+            for r in range(nr):
+                d = kb[u] - shifts[r] + off
+                if d >= 0 and d < nk:
+                    newa[r] += kw[u] * amps[r] * g[d] / lam[u]
+        for r in range(nr):
+            amps[r] = newa[r] / colsum[shifts[r]]
+        bg = max(nb / m, bg_floor)
+    model_rate(kb, nu, shifts, amps, nr, bg, g, off, lam)
+    return bg
+
+
+@njit(cache=True, nogil=True)
+def shift_fisher(r, shifts, amps, nr, bg, g, dg, off, m):
+    """Expected Fisher information of return r's shift (1/bins^2) over the window's bins."""
+    nk = g.size
+    info = 0.0
+    lo = shifts[r] - off
+    for t in range(nk):
+        k = lo + t
+        if k < 0 or k >= m:
+            continue
+        lam = bg
+        for s in range(nr):
+            d = k - shifts[s] + off
+            if d >= 0 and d < nk:
+                lam += amps[s] * g[d]
+        if lam > 0.0:
+            v = amps[r] * dg[t]
+            info += v * v / lam
+    return info
+
+
+@njit(cache=True, nogil=True)
+def fit_pixel(kb, kw, nu, m, g, off, colsum, dg, kmax, sep_bins, gain_min, cand_step, step0, dpk,
+              lam, cand, shifts, amps, gains, tmp_s, tmp_a, tmp_lam):
+    """Greedy K-return fit of one pixel's unique bins (kb, kw); returns (nr, bg): shifts[:nr] (sorted),
+    amps[:nr], gains[:nr] (nats each return added when it was taken)."""
+    ntot = 0.0
+    for u in range(nu):
+        ntot += kw[u]
+    bg_floor = 1e-9 * ntot / m
+    bg = ntot / m
+    for u in range(nu):
+        lam[u] = bg
+    # candidate shifts: the response's peak on a detection, one per cand_step bins
+    nc = 0
+    for u in range(nu):
+        j = kb[u] + off - dpk
+        if j < 0:
+            j = 0
+        if j >= m:
+            j = m - 1
+        if nc == 0 or j - cand[nc - 1] >= cand_step:
+            cand[nc] = j
+            nc += 1
+    nr = 0
+    while nr < kmax:
+        best = 0.0
+        bj = -1
+        ba = 0.0
+        for c in range(nc):
+            j = cand[c]
+            near = False
+            for r in range(nr):
+                if abs(j - shifts[r]) < sep_bins:
+                    near = True
+            if near:
+                continue
+            gn, an = add_gain(j, kb, kw, nu, lam, g, off, colsum)
+            if gn > best:
+                best, bj, ba = gn, j, an
+        if bj < 0:
+            break
+        bj, best, ba = refine_shift(bj, best, ba, kb, kw, nu, lam, g, off, colsum, m, step0, shifts, nr, -1,
+                                    sep_bins)
+        if not best > gain_min:
+            break
+        shifts[nr] = bj
+        amps[nr] = ba
+        gains[nr] = best
+        nr += 1
+        bg = em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, lam, EM_SWEEPS)
+        if nr > 1:
+            # re-refine each shift with the others (and the background) fixed
+            for r in range(nr):
+                for s in range(nr):
+                    tmp_s[s] = shifts[s]
+                    tmp_a[s] = amps[s]
+                # the rate without return r
+                tmp_a[r] = 0.0
+                model_rate(kb, nu, tmp_s, tmp_a, nr, bg, g, off, tmp_lam)
+                g0, a0 = add_gain(shifts[r], kb, kw, nu, tmp_lam, g, off, colsum)
+                jn, gn, an = refine_shift(shifts[r], g0, a0, kb, kw, nu, tmp_lam, g, off, colsum, m, 2,
+                                          shifts, nr, r, sep_bins)
+                shifts[r] = jn
+                amps[r] = an
+            bg = em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, lam, EM_SWEEPS)
+    # sort by shift
+    for a in range(1, nr):
+        vs, va, vg = shifts[a], amps[a], gains[a]
+        b = a - 1
+        while b >= 0 and shifts[b] > vs:
+            shifts[b + 1] = shifts[b]
+            amps[b + 1] = amps[b]
+            gains[b + 1] = gains[b]
+            b -= 1
+        shifts[b + 1] = vs
+        amps[b + 1] = va
+        gains[b + 1] = vg
+    return nr, bg
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def multi_return_kernel(bins, offsets, m, g, off, colsum, dg, kmax, sep_bins, gain_min, cand_step, step0,
+                        maxn, out_shift, out_amp, out_bg, out_var, out_gain, out_n):
+    """K-return greedy Poisson pursuit over pixels (see the module docstring).
+
+    bins/offsets: binned in-window detections per pixel (CSR). Outputs per pixel p, return r < kmax
+    (sorted by shift, NaN / 0 past the returns found): out_shift[p, r] (bins), out_amp[p, r]
+    (unit-area amplitude), out_var[p, r] (1 / Fisher information, bins^2), out_gain[p, r] (nats the
+    return added when taken); out_bg[p] (per bin), out_n[p] (detections)."""
+    npix = offsets.size - 1
+    nblk = (npix + BLOCK - 1) // BLOCK
+    dpk = int(np.argmax(g))
+    for blk in prange(nblk):
+        n1 = max(maxn, 1)
+        tmp = np.empty(n1, np.int64)
+        kb = np.empty(n1, np.int64)
+        kw = np.empty(n1, np.float64)
+        lam = np.empty(n1)
+        tmp_lam = np.empty(n1)
+        cand = np.empty(n1, np.int64)
+        shifts = np.empty(kmax, np.int64)
+        amps = np.empty(kmax)
+        gains = np.empty(kmax)
+        tmp_s = np.empty(kmax, np.int64)
+        tmp_a = np.empty(kmax)
+        for p in range(blk * BLOCK, min(npix, (blk + 1) * BLOCK)):
+            o0 = offsets[p]
+            o1 = offsets[p + 1]
+            out_n[p] = o1 - o0
+            for r in range(kmax):
+                out_shift[p, r] = np.nan
+                out_amp[p, r] = 0.0
+                out_var[p, r] = np.nan
+                out_gain[p, r] = 0.0
+            nu = unique_counts(bins, o0, o1, tmp, kb, kw)
+            if nu == 0:
+                out_bg[p] = 0.0
+                continue
+            nr, bg = fit_pixel(kb, kw, nu, m, g, off, colsum, dg, kmax, sep_bins, gain_min, cand_step,
+                               step0, dpk, lam, cand, shifts, amps, gains, tmp_s, tmp_a, tmp_lam)
+            out_bg[p] = bg
+            for r in range(nr):
+                out_shift[p, r] = shifts[r]
+                out_amp[p, r] = amps[r]
+                out_gain[p, r] = gains[r]
+                info = shift_fisher(r, shifts, amps, nr, bg, g, dg, off, m)
+                out_var[p, r] = 1.0 / info if info > 0.0 else np.nan
