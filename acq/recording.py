@@ -463,7 +463,7 @@ def recon_settings_from_dict(d: dict, **override) -> ReconSettings:
             irf = None
     return ReconSettings(method=d.get("method", "uos"), binning=b,
                          pulse_rms_s=None if irf is not None else d.get("pulse_rms_s"), irf=irf,
-                         max_photons=d.get("max_photons"), reflectors=int(d.get("reflectors", 1)),
+                         max_photons=d.get("max_photons"), reflectors=d.get("reflectors", 1),
                          delta=float(d.get("delta", 1e-4)),
                          max_iterations=int(d.get("max_iterations", 10)))
 

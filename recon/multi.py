@@ -11,7 +11,7 @@ rejects "no further surface" at the false-alarm rate asked for.
 **The test** (auto): the statistic of a candidate surface is ``Lambda = 2 (log L1 - log L0)``, the
 log-likelihood ratio with its shift searched over the window and its amplitude (>= 0) profiled. At
 one fixed shift it is distributed under "no surface there" as ``0.5 chi2_0 + 0.5 chi2_1`` (an
-amplitude on the boundary); searching over ``N = window / (2 * core RMS)`` effectively independent
+amplitude on the boundary); searching over ``N = window / FWHM`` (of the response) effectively independent
 shifts, the chance that any of them passes ``c`` is about ``1 - (1 - 0.5 P(chi2_1 > c))^N``. The
 threshold ``c`` makes that chance ``false_alarm`` (per pixel and per added surface; default 1e-3).
 A pixel whose first surface fails the test has none (flag NO_SIGNAL), not a background guess.
@@ -61,9 +61,10 @@ CUT_SIGMAS = 2.0
 POOL_MIN_SIGNAL = 5.0
 
 
-def auto_threshold_nats(false_alarm: float, window_bins: float, core_bins: float) -> float:
-    """Gain (nats, half the statistic) a surface needs under the test in the module docstring."""
-    n_eff = max(1.0, window_bins / (2.0 * max(core_bins, 0.5)))
+def auto_threshold_nats(false_alarm: float, window_bins: float, width_bins: float) -> float:
+    """Gain (nats, half the statistic) a surface needs under the test in the module docstring;
+    width_bins: the response's FWHM (bins), the spacing of independent shifts."""
+    n_eff = max(1.0, window_bins / max(width_bins, 1.0))
     p_one = -math.expm1(math.log1p(-false_alarm) / n_eff)       # 1 - (1 - fa)^(1/N)
     c = float(chi2.isf(min(1.0, 2.0 * p_one), 1))
     return 0.5 * c
@@ -81,11 +82,10 @@ def fwhm_bins(g: np.ndarray) -> int:
     return hi - lo + 1
 
 
-def kmax_and_gain(settings: ReconSettings, b: Binning, core_s: float) -> tuple[int, float, str]:
+def kmax_and_gain(settings: ReconSettings, b: Binning, width_bins: float) -> tuple[int, float, str]:
     """(surfaces at most, gain each needs in nats, how the number is decided)."""
-    core_bins = core_s / b.bin_width_s
     if settings.reflectors == "auto":
-        thr = auto_threshold_nats(settings.false_alarm, b.n_bins, core_bins)
+        thr = auto_threshold_nats(settings.false_alarm, b.n_bins, width_bins)
         return int(settings.max_reflectors), thr, (
             f"likelihood-ratio test, false-alarm rate {settings.false_alarm:g} per pixel and surface "
             f"(2 dlogL > {2 * thr:.2f})")
@@ -104,9 +104,10 @@ def fit_surfaces(store: PhotonStore, settings: ReconSettings, b: Binning, kern: 
                            -1 if settings.max_photons is None else int(settings.max_photons), bins, offsets)
     bins = bins[:n_kept]
     npix = store.n_pixels
-    kmax, gain_min, rule = kmax_and_gain(settings, b, core_s)
+    fw = fwhm_bins(kern.g)
+    kmax, gain_min, rule = kmax_and_gain(settings, b, fw)
     core_bins = core_s / b.bin_width_s
-    sep = max(1, int(round(SEP_FWHM * fwhm_bins(kern.g))))
+    sep = max(1, int(round(SEP_FWHM * fw)))
     cand = max(1, int(round(CAND_CORE * core_bins)))
     step0 = 1
     while step0 * 2 <= max(1.0, core_bins / 2):
@@ -239,7 +240,7 @@ def reconstruct_multi(store: PhotonStore, settings: ReconSettings, b: Binning, k
     signal = np.where(has, amp * kern.colsum[j], 0.0)
     tof_s = np.where(has, b.shift_to_time_s(np.nan_to_num(shift)), np.nan)
     unc_s = np.sqrt(honest_var(var, has, kern.rms_bins, b.n_bins, "uos")) * b.bin_width_s
-    weak_thr = auto_threshold_nats(WEAK_FALSE_ALARM, b.n_bins, core_s / b.bin_width_s)
+    weak_thr = auto_threshold_nats(WEAK_FALSE_ALARM, b.n_bins, fwhm_bins(kern.g))
     weak = has & (gain <= weak_thr)
     surfaces = has.sum(axis=1)
     flags = np.full(npix, PixelFlag.OK, np.uint8)

@@ -186,3 +186,105 @@ def photons_by_pixel(pixel, times, n_pix):
     offsets = np.zeros(n_pix + 1, np.int64)
     np.cumsum(np.bincount(pixel, minlength=n_pix), out=offsets[1:])
     return np.asarray(times, np.float64)[order], offsets
+
+
+# ------------------------------------------------------------------------------------------------
+# several surfaces per pixel (recon.multi_kernels), densely: the whole histogram and S each step
+
+def _multi_gain(y, lam, col, csum, newton=12):
+    """(gain, amplitude) of adding the column ``col`` (column sum csum) to the rate lam (dense)."""
+    nz = (y > 0) & (col > 0)
+    yy, cc, ll = y[nz], col[nz], lam[nz]
+    if csum <= 0 or np.sum(yy * cc / ll) - csum <= 0:
+        return 0.0, 0.0
+    a = max(yy.sum() / csum, 1e-6)
+    for _ in range(newton):
+        q = cc / (ll + a * cc)
+        f1, f2 = np.sum(yy * q) - csum, -np.sum(yy * q * q)
+        if f2 >= 0:
+            break
+        na = a - f1 / f2
+        na = 0.5 * a if na <= 0 else na
+        done = abs(na - a) <= 1e-9 * a
+        a = na
+        if done:
+            break
+    return float(np.sum(yy * np.log1p(a * cc / ll)) - a * csum), float(a)
+
+
+def multi_return(y, kern, s_mat, kmax, sep_bins, gain_min, cand_step, step0, em_sweeps=12):
+    """The K-surface greedy Poisson pursuit of recon.multi_kernels on one histogram y (length M):
+    returns (shifts (sorted), amplitudes, gains, background)."""
+    m = y.size
+    colsum = s_mat.sum(axis=0)
+    ntot = y.sum()
+    if ntot == 0:
+        return np.array([]), np.array([]), np.array([]), 0.0
+    bg_floor = 1e-9 * ntot / m
+    bg = ntot / m
+    dpk = int(np.argmax(kern.g))
+    cands = []
+    for k in np.flatnonzero(y):
+        j = int(np.clip(k + kern.off - dpk, 0, m - 1))
+        if not cands or j - cands[-1] >= cand_step:
+            cands.append(j)
+    shifts, amps, gains = [], [], []
+
+    def rate(sh, am, b):
+        return b + s_mat[:, sh] @ np.asarray(am, float) if sh else np.full(m, b)
+
+    def free(j, skip):
+        return all(abs(j - s) >= sep_bins for r, s in enumerate(shifts) if r != skip)
+
+    def refine(j, best, a, lam, step, skip):
+        while step >= 1:
+            moved = True
+            while moved:
+                moved = False
+                for jj in (j - step, j + step):
+                    if 0 <= jj < m and free(jj, skip):
+                        gn, an = _multi_gain(y, lam, s_mat[:, jj], colsum[jj])
+                        if gn > best:
+                            best, a, j, moved = gn, an, jj, True
+                            break
+            step //= 2
+        return j, best, a
+
+    def em(b):
+        for _ in range(em_sweeps):
+            lam = rate(shifts, amps, b)
+            r = np.where(y > 0, y / lam, 0.0)
+            new = [amps[i] * (s_mat[:, shifts[i]] @ r) / colsum[shifts[i]] for i in range(len(shifts))]
+            b = max(b * r.sum() / m, bg_floor)
+            amps[:] = new
+        return b
+
+    lam = rate(shifts, amps, bg)
+    while len(shifts) < kmax:
+        best, bj, ba = 0.0, -1, 0.0
+        for j in cands:
+            if not free(j, -1):
+                continue
+            gn, an = _multi_gain(y, lam, s_mat[:, j], colsum[j])
+            if gn > best:
+                best, bj, ba = gn, j, an
+        if bj < 0:
+            break
+        bj, best, ba = refine(bj, best, ba, lam, step0, -1)
+        if not best > gain_min:
+            break
+        shifts.append(bj)
+        amps.append(ba)
+        gains.append(best)
+        bg = em(bg)
+        lam = rate(shifts, amps, bg)
+        if len(shifts) > 1:
+            for r in range(len(shifts)):
+                other = [a if i != r else 0.0 for i, a in enumerate(amps)]
+                lam_r = rate(shifts, other, bg)
+                g0, a0 = _multi_gain(y, lam_r, s_mat[:, shifts[r]], colsum[shifts[r]])
+                shifts[r], _, amps[r] = refine(shifts[r], g0, a0, lam_r, 2, r)
+            bg = em(bg)
+            lam = rate(shifts, amps, bg)
+    order = np.argsort(shifts, kind="stable")
+    return np.asarray(shifts, float)[order], np.asarray(amps)[order], np.asarray(gains)[order], float(bg)

@@ -58,8 +58,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(CSV time_ps,counts; .npy for an (n, 2) array), so it is measured once")
     parser.add_argument("--max-photons", type=positive_int, metavar="N",
                         help="keep the first N in-window detections per pixel (the seed paper: 15)")
-    parser.add_argument("--reflectors", type=positive_int, default=1, metavar="K",
-                        help="surfaces per pixel to look for (default 1)")
+    parser.add_argument("--reflectors", type=_k_or_auto, default=1, metavar="K|auto",
+                        help="surfaces per pixel to look for (default 1): up to K, or auto (decided per "
+                             "pixel by a likelihood-ratio test, up to --max-reflectors)")
+    parser.add_argument("--max-reflectors", type=positive_int, default=3, metavar="K",
+                        help="--reflectors auto: most surfaces per pixel (default 3)")
+    parser.add_argument("--false-alarm", type=positive_float, default=1e-3, metavar="P",
+                        help="--reflectors auto: chance per pixel and surface that background passes "
+                             "for a surface (default 1e-3)")
     parser.add_argument("--mat-var", metavar="NAME", help=".mat files: the cell-array variable to read "
                         "when the file holds several")
     parser.add_argument("--channel", type=int, metavar="N",
@@ -72,6 +78,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(needs the dask extra: pip install 'spdepth[dask]')")
 
 
+def _k_or_auto(text: str):
+    """--reflectors: a whole number or 'auto' (the request checks the range)."""
+    if text == "auto":
+        return "auto"
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number or auto, got {text!r}") from None
+
+
 def request_from_args(args: argparse.Namespace, path: str, out: str | None = None,
                       png: str | None = None):
     """The :class:`~acq.requests.FileReconRequest` of one input file."""
@@ -82,7 +98,8 @@ def request_from_args(args: argparse.Namespace, path: str, out: str | None = Non
         input=path, method=args.method, time_unit_s=ps(args.time_unit_ps),
         window_s=None if args.window_ps is None else tuple(v * 1e-12 for v in args.window_ps),
         bin_s=ps(args.bin_ps), pulse_rms_s=ps(args.pulse_rms_ps), irf=args.irf,
-        max_photons=args.max_photons, reflectors=args.reflectors, mat_var=args.mat_var,
+        max_photons=args.max_photons, reflectors=args.reflectors, max_reflectors=args.max_reflectors,
+        false_alarm=args.false_alarm, mat_var=args.mat_var,
         channel=args.channel, threads=args.threads, out=out, png=png, save_irf=args.save_irf)
 
 
