@@ -474,7 +474,7 @@ class ReconSettings:
                     likelihood by more than recon.multi.LLR_MIN nats) or "auto" (decided per pixel
                     by a likelihood-ratio test at ``false_alarm``, up to ``max_reflectors``); K > 1
                     and auto fit every pixel by recon.multi's greedy Poisson pursuit (lmf, uos, ml)
-                    (spatial: one surface only, for now).
+                    or recon.multi's K-surface fit with the neighbours' help (spatial).
     max_reflectors: most surfaces per pixel for reflectors="auto" (default 3).
     false_alarm:    reflectors="auto": chance per pixel and per added surface that background (or the
                     response's own tail) passes for a surface (default 1e-3).
@@ -524,9 +524,6 @@ class ReconSettings:
         if not (isinstance(self.false_alarm, (int, float, np.floating)) and 0 < self.false_alarm < 1):
             raise InputError(f"false_alarm must be a probability in (0, 1), got {self.false_alarm!r}")
         object.__setattr__(self, "false_alarm", float(self.false_alarm))
-        if self.method == "spatial" and self.several:
-            raise InputError("the spatial method finds one surface per pixel (reflectors=1); "
-                             "several surfaces are fitted by the pixelwise methods (lmf, uos, ml)")
         if not (math.isfinite(self.delta) and self.delta > 0):
             raise InputError(f"delta must be positive, got {self.delta!r}")
         if int(self.max_iterations) != self.max_iterations or self.max_iterations < 1:

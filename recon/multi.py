@@ -92,6 +92,14 @@ def kmax_and_gain(settings: ReconSettings, b: Binning, width_bins: float) -> tup
     return int(settings.reflectors), LLR_MIN, f"fixed K={int(settings.reflectors)} (each surface > {LLR_MIN} nats)"
 
 
+def _step0(core_bins: float) -> int:
+    """First step of the shift pattern search: the largest power of 2 up to half the core RMS."""
+    step0 = 1
+    while step0 * 2 <= max(1.0, core_bins / 2):
+        step0 *= 2
+    return step0
+
+
 def fit_surfaces(store: PhotonStore, settings: ReconSettings, b: Binning, kern: PulseKernel, core_s: float,
                  progress: Callable[[int, int], None] | None = None):
     """Run the K-surface kernel on every pixel. Returns (shift bins (P, K), amp (P, K), bg (P,), var
@@ -109,9 +117,7 @@ def fit_surfaces(store: PhotonStore, settings: ReconSettings, b: Binning, kern: 
     core_bins = core_s / b.bin_width_s
     sep = max(1, int(round(SEP_FWHM * fw)))
     cand = max(1, int(round(CAND_CORE * core_bins)))
-    step0 = 1
-    while step0 * 2 <= max(1.0, core_bins / 2):
-        step0 *= 2
+    step0 = _step0(core_bins)
     shift = np.full((npix, kmax), np.nan)
     amp = np.zeros((npix, kmax))
     var = np.full((npix, kmax), np.nan)
@@ -208,31 +214,28 @@ def pooled_response(store: PhotonStore, b: Binning, tof_units: np.ndarray, signa
                source="estimated from the data (pooled on each pixel's surfaces)")
 
 
-def reconstruct_multi(store: PhotonStore, settings: ReconSettings, b: Binning, kern: PulseKernel, notes: dict,
-                      progress: Callable[[int, int], None] | None = None,
-                      measure: bool = False) -> DepthMaps:
-    """K surfaces per pixel (``settings.reflectors`` > 1 or "auto"), on the resolved binning ``b`` and
-    pulse ``kern``; with ``measure`` (the pulse was estimated), the response is re-measured on the
-    surfaces first (module docstring). ``notes`` as for :func:`recon.pixelwise.reconstruct_pixelwise`."""
+def _measured_model(store: PhotonStore, settings: ReconSettings, b: Binning, kern: PulseKernel, notes: dict):
+    """Re-measure the response on the surfaces of a first fit (module docstring): (kern, core_s)
+    and the notes updated."""
+    core_s = float(notes["pulse_core_rms_s"])
+    shift, amp, *_ = fit_surfaces(store, settings, b, kern, core_s)
+    has = np.isfinite(shift)
+    tof_u = np.where(has, b.shift_to_time_s(np.nan_to_num(shift)), np.nan) / store.time_unit_s
+    sig = np.where(has, amp * kern.colsum[np.clip(np.nan_to_num(shift).astype(np.int64), 0, b.n_bins - 1)], 0.0)
+    irf = pooled_response(store, b, tof_u, sig, core_s / store.time_unit_s)
+    kern = build_kernel(b, irf=irf)
+    t, c = irf.arrays()
+    core_s = max(edge_core_rms(c, float(t[1] - t[0])), 0.5 * float(t[1] - t[0]))
+    notes["irf"] = dict(irf.to_dict(), rms_s=irf.rms_s)
+    notes["pulse_rms_s"] = float(irf.rms_s)
+    notes["pulse_core_rms_s"] = float(core_s)
+    notes["pulse_source"] = "estimated, then measured on the surfaces"
+    return kern, core_s
+
+
+def _maps(store, settings, b, kern, notes, shift, amp, bg, var, gain, n_used, kmax, flags_extra=None) -> DepthMaps:
     from spdepth.recon.pixelwise import honest_var, settings_record
 
-    notes = dict(notes)
-    core_s = float(notes["pulse_core_rms_s"])
-    if measure:
-        shift, amp, *_ = fit_surfaces(store, settings, b, kern, core_s)
-        has = np.isfinite(shift)
-        tof_u = np.where(has, b.shift_to_time_s(np.nan_to_num(shift)), np.nan) / store.time_unit_s
-        sig = np.where(has, amp * kern.colsum[np.clip(np.nan_to_num(shift).astype(np.int64), 0, b.n_bins - 1)],
-                       0.0)
-        irf = pooled_response(store, b, tof_u, sig, core_s / store.time_unit_s)
-        kern = build_kernel(b, irf=irf)
-        t, c = irf.arrays()
-        core_s = max(edge_core_rms(c, float(t[1] - t[0])), 0.5 * float(t[1] - t[0]))
-        notes["irf"] = dict(irf.to_dict(), rms_s=irf.rms_s)
-        notes["pulse_rms_s"] = float(irf.rms_s)
-        notes["pulse_core_rms_s"] = float(core_s)
-        notes["pulse_source"] = "estimated, then measured on the surfaces"
-    shift, amp, bg, var, gain, n_used, kmax, gain_min, rule = fit_surfaces(store, settings, b, kern, core_s, progress)
     h, w = store.shape
     npix = h * w
     has = np.isfinite(shift)
@@ -246,10 +249,7 @@ def reconstruct_multi(store: PhotonStore, settings: ReconSettings, b: Binning, k
     flags = np.full(npix, PixelFlag.OK, np.uint8)
     flags[surfaces == 0] = PixelFlag.NO_SIGNAL
     flags[n_used == 0] = PixelFlag.NO_PHOTONS
-    notes["surfaces_rule"] = rule
-    notes["surface_gain_min_nats"] = float(gain_min)
     notes["weak_below_nats"] = float(weak_thr)
-    notes["kernel_k_surfaces"] = "greedy Poisson pursuit (recon.multi)"
     rec = settings_record(settings, notes, b, kern)
 
     def img(a):
@@ -260,3 +260,93 @@ def reconstruct_multi(store: PhotonStore, settings: ReconSettings, b: Binning, k
                      signal=img(signal), photons=n_used.reshape(h, w), iterations=np.ones((h, w), np.int32),
                      uncertainty_s=img(unc_s), flags=flags.reshape(h, w), settings=rec,
                      surfaces=surfaces.reshape(h, w).astype(np.int16), weak=img(weak))
+
+
+def reconstruct_multi(store: PhotonStore, settings: ReconSettings, b: Binning, kern: PulseKernel, notes: dict,
+                      progress: Callable[[int, int], None] | None = None,
+                      measure: bool = False) -> DepthMaps:
+    """K surfaces per pixel (``settings.reflectors`` > 1 or "auto"), on the resolved binning ``b`` and
+    pulse ``kern``; with ``measure`` (the pulse was estimated), the response is re-measured on the
+    surfaces first (module docstring). ``notes`` as for :func:`recon.pixelwise.reconstruct_pixelwise`."""
+    notes = dict(notes)
+    core_s = float(notes["pulse_core_rms_s"])
+    if measure:
+        kern, core_s = _measured_model(store, settings, b, kern, notes)
+    shift, amp, bg, var, gain, n_used, kmax, gain_min, rule = fit_surfaces(store, settings, b, kern, core_s, progress)
+    notes["surfaces_rule"] = rule
+    notes["surface_gain_min_nats"] = float(gain_min)
+    notes["kernel_k_surfaces"] = "greedy Poisson pursuit (recon.multi)"
+    return _maps(store, settings, b, kern, notes, shift, amp, bg, var, gain, n_used, kmax)
+
+
+#: spatial, several surfaces: neighbourhood radius (pixels) of censoring, proposals and smoothing.
+SPATIAL_RADIUS = 1
+#: spatial, several surfaces: "the same surface" in a neighbour: within this many response FWHM.
+SPATIAL_TAU_FWHM = 1.0
+
+
+def reconstruct_multi_spatial(store: PhotonStore, settings: ReconSettings, b: Binning, kern: PulseKernel,
+                              notes: dict, progress: Callable[[int, int], None] | None = None,
+                              measure: bool = False) -> DepthMaps:
+    """``method="spatial"`` with several surfaces: every surface supported by its neighbours.
+
+    1. The pixelwise K-surface fit (:func:`reconstruct_multi`'s, response re-measured when
+       ``measure``); its strong surfaces (passing the test at a false-alarm rate of 1e-6 on their
+       own) stand.
+    2. Per pixel, the detections of its 3 x 3 neighbourhood are pooled and fitted the same way (up to
+       K + 1 surfaces: an edge inside the neighbourhood shows both sides), each surface passing the
+       likelihood-ratio test at ``false_alarm`` on the pooled data: what the neighbourhood supports,
+       where a pixel's own 1-3 detections could not be told from chance.
+    3. Censoring per surface: the pixel keeps a candidate (its own strong surfaces first, then the
+       pooled ones, largest first; up to K) only when it holds a detection within one response FWHM
+       of it; the surface's shift is the pixel's own best within that FWHM, then amplitudes and
+       background by EM. A pixel that sees nothing of a surface does not get it (no interpolation).
+    4. Weighted smoothing per surface that keeps edges: each surface's shift becomes the
+       signal-weighted mean of the surfaces within one FWHM of it in its 3 x 3 neighbourhood (a
+       neighbour across an edge, farther in time, does not enter).
+    """
+    notes = dict(notes)
+    core_s = float(notes["pulse_core_rms_s"])
+    if measure:
+        kern, core_s = _measured_model(store, settings, b, kern, notes)
+    shift0, _, _, _, gain0, _, kmax, gain_min, rule = fit_surfaces(store, settings, b, kern, core_s)
+    fw = fwhm_bins(kern.g)
+    tau = SPATIAL_TAU_FWHM * fw
+    strong = auto_threshold_nats(WEAK_FALSE_ALARM, b.n_bins, fw)
+    pool = auto_threshold_nats(settings.false_alarm, b.n_bins, fw)
+    times = np.ascontiguousarray(store.times, dtype=np.float64)
+    bins = np.empty(times.size, np.int64)
+    offsets = np.empty(store.offsets.size, np.int64)
+    n_kept = K.window_bins(times, np.ascontiguousarray(store.offsets, dtype=np.int64), b.window_start,
+                           b.window_stop, b.bin_width, b.n_bins,
+                           -1 if settings.max_photons is None else int(settings.max_photons), bins, offsets)
+    bins = bins[:n_kept]
+    h, w = store.shape
+    npix = h * w
+    counts = np.diff(offsets)
+    shift = np.full((npix, kmax), np.nan)
+    amp = np.zeros((npix, kmax))
+    var = np.full((npix, kmax), np.nan)
+    gain = np.zeros((npix, kmax))
+    src = np.full((npix, kmax), -1, np.int64)
+    bg = np.zeros(npix)
+    sep = max(1, int(round(SEP_FWHM * fw)))
+    core_bins = core_s / b.bin_width_s
+    MK.neighbour_surfaces(bins, offsets, h, w, SPATIAL_RADIUS, shift0, gain0, float(strong), float(pool), float(tau),
+                          sep, kmax, kmax + 1, max(1, int(round(CAND_CORE * core_bins))), kern.g, kern.off,
+                          kern.colsum, kern.dg, b.n_bins, _step0(core_bins), int(counts.max()) if npix else 0,
+                          shift, amp, bg, var, gain, src)
+    if progress is not None:
+        progress(npix, npix)
+    has = np.isfinite(shift)
+    sig = np.where(has, amp * kern.colsum[np.clip(np.nan_to_num(shift).astype(np.int64), 0, b.n_bins - 1)], 0.0)
+    sm_shift = np.empty_like(shift)
+    sm_var = np.empty_like(var)
+    MK.smooth_surfaces(shift, sig, var, h, w, SPATIAL_RADIUS, float(tau), sm_shift, sm_var)
+    notes["surfaces_rule"] = rule
+    notes["surface_gain_min_nats"] = float(gain_min)
+    notes["kernel_k_surfaces"] = "greedy Poisson pursuit with the neighbours' proposals (recon.multi)"
+    notes["spatial_surfaces"] = {"radius": SPATIAL_RADIUS, "tau_bins": float(tau), "strong_nats": float(strong),
+                                 "pooled_nats": float(pool), "own_strong": int(np.sum(src == 0)),
+                                 "from_neighbourhood": int(np.sum(src == 1))}
+    return _maps(store, settings, b, kern, notes, sm_shift, amp, bg, sm_var, gain, counts, kmax)

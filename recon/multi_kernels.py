@@ -291,3 +291,210 @@ def multi_return_kernel(bins, offsets, m, g, off, colsum, dg, kmax, sep_bins, ga
                 out_gain[p, r] = gains[r]
                 info = shift_fisher(r, shifts, amps, nr, bg, g, dg, off, m)
                 out_var[p, r] = 1.0 / info if info > 0.0 else np.nan
+
+
+# ------------------------------------------------------------------------------------------------
+# several surfaces with the neighbours' help (recon.multi.reconstruct_multi_spatial)
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def neighbour_surfaces(bins, offsets, h, w, radius, shift_in, gain_in, strong_nats, pool_nats, tau_bins,
+                       sep_bins, kmax, kpool, cand_step, g, off, colsum, dg, m, step0, maxn,
+                       out_shift, out_amp, out_bg, out_var, out_gain, out_src):
+    """Each pixel's surfaces with its neighbours' help.
+
+    shift_in, gain_in: (P, kmax) the pixelwise fit (NaN / 0 past the surfaces found). Per pixel:
+    1. the detections of its (2 radius + 1)^2 neighbourhood pooled and fitted by the greedy pursuit
+       (up to kpool surfaces, each raising the pooled likelihood by more than pool_nats): the
+       surfaces the neighbourhood supports;
+    2. the pixel's surfaces, from the candidates: its own pixelwise surfaces that are strong
+       (gain > strong_nats, not chance even alone) and the pooled surfaces. Greedily, the candidate
+       whose best shift within tau_bins (the response peak on each of the pixel's detections there,
+       refined by pattern search) raises the pixel's likelihood most is kept, then amplitudes and
+       background by EM, up to kmax, none closer than sep_bins to another. A candidate needs at
+       least one of the pixel's detections within tau_bins (censoring: a detection the
+       neighbourhood supports in time is signal; a pixel that sees none of a surface does not get
+       it).
+    Outputs as multi_return_kernel; out_src[p, r]: 0 the pixel's own strong surface, 1 from the
+    neighbourhood's pooled fit."""
+    npix = offsets.size - 1
+    nblk = (npix + BLOCK - 1) // BLOCK
+    kk = shift_in.shape[1]
+    nn = (2 * radius + 1) * (2 * radius + 1)
+    dpk = int(np.argmax(g))
+    for blk in prange(nblk):
+        n1 = max(maxn, 1)
+        npool = max(nn * maxn, 1)
+        pbins = np.empty(npool, np.int64)
+        ptmp = np.empty(npool, np.int64)
+        pkb = np.empty(npool, np.int64)
+        pkw = np.empty(npool, np.float64)
+        plam = np.empty(npool)
+        ptl = np.empty(npool)
+        pcand = np.empty(npool, np.int64)
+        tmp = np.empty(n1, np.int64)
+        kb = np.empty(n1, np.int64)
+        kw = np.empty(n1, np.float64)
+        lam = np.empty(n1)
+        pshift = np.empty(kpool, np.int64)
+        pamp = np.empty(kpool)
+        pgain = np.empty(kpool)
+        ptsa = np.empty(kpool, np.int64)
+        ptaa = np.empty(kpool)
+        cand = np.empty(kk + kpool, np.int64)
+        csrc = np.empty(kk + kpool, np.int64)
+        shifts = np.empty(kmax, np.int64)
+        amps = np.empty(kmax)
+        gains = np.empty(kmax)
+        src = np.empty(kmax, np.int64)
+        for p in range(blk * BLOCK, min(npix, (blk + 1) * BLOCK)):
+            o0 = offsets[p]
+            o1 = offsets[p + 1]
+            for r in range(kmax):
+                out_shift[p, r] = np.nan
+                out_amp[p, r] = 0.0
+                out_var[p, r] = np.nan
+                out_gain[p, r] = 0.0
+                out_src[p, r] = -1
+            nu = unique_counts(bins, o0, o1, tmp, kb, kw)
+            if nu == 0:
+                out_bg[p] = 0.0
+                continue
+            ntot = 0.0
+            for u in range(nu):
+                ntot += kw[u]
+            bg_floor = 1e-9 * ntot / m
+            # 1. the neighbourhood's pooled fit
+            y0, x0 = p // w, p % w
+            n = 0
+            for y in range(max(0, y0 - radius), min(h, y0 + radius + 1)):
+                for x in range(max(0, x0 - radius), min(w, x0 + radius + 1)):
+                    q = y * w + x
+                    for i in range(offsets[q], offsets[q + 1]):
+                        pbins[n] = bins[i]
+                        n += 1
+            pnu = unique_counts(pbins, 0, n, ptmp, pkb, pkw)
+            npr, _ = fit_pixel(pkb, pkw, pnu, m, g, off, colsum, dg, kpool, sep_bins, pool_nats, cand_step,
+                               step0, dpk, plam, pcand, pshift, pamp, pgain, ptsa, ptaa, ptl)
+            # 2. candidates: own strong surfaces, then pooled ones by amplitude
+            nc = 0
+            for r in range(kk):
+                v = shift_in[p, r]
+                if v == v and gain_in[p, r] > strong_nats:
+                    cand[nc] = int(v)
+                    csrc[nc] = 0
+                    nc += 1
+            for _ in range(npr):
+                bi = -1
+                for r in range(npr):
+                    if pamp[r] >= 0.0 and (bi < 0 or pamp[r] > pamp[bi]):
+                        bi = r
+                cand[nc] = pshift[bi]
+                csrc[nc] = 1
+                nc += 1
+                pamp[bi] = -1.0
+            nr = 0
+            bg = ntot / m
+            for u in range(nu):
+                lam[u] = bg
+            while nr < kmax:
+                # the candidate the pixel's own detections support most (gain at the best
+                # detection-aligned shift within tau_bins of it)
+                best = 0.0
+                bj = -1
+                ba = 0.0
+                bc = -1
+                for c in range(nc):
+                    if csrc[c] < 0:
+                        continue
+                    j0 = cand[c]
+                    for u in range(nu):
+                        j = kb[u] + off - dpk
+                        if j < 0 or j >= m or abs(j - j0) > tau_bins:
+                            continue
+                        near = False
+                        for r in range(nr):
+                            if abs(j - shifts[r]) < sep_bins:
+                                near = True
+                        if near:
+                            continue
+                        gn, an = add_gain(j, kb, kw, nu, lam, g, off, colsum)
+                        if gn > best:
+                            best, bj, ba, bc = gn, j, an, c
+                if bc < 0:
+                    break
+                bj, best, ba = refine_shift(bj, best, ba, kb, kw, nu, lam, g, off, colsum, m, step0, shifts, nr,
+                                            -1, sep_bins)
+                c = bc
+                # every candidate within sep of the one taken is spent
+                for d in range(nc):
+                    if csrc[d] >= 0 and abs(cand[d] - cand[c]) < sep_bins:
+                        if d != c:
+                            csrc[d] = -1
+                shifts[nr] = bj
+                amps[nr] = ba
+                gains[nr] = best
+                src[nr] = csrc[c]
+                csrc[c] = -1
+                nr += 1
+                bg = em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, lam, EM_SWEEPS)
+            # sort by shift
+            for a in range(1, nr):
+                vs, va, vg, vc = shifts[a], amps[a], gains[a], src[a]
+                b = a - 1
+                while b >= 0 and shifts[b] > vs:
+                    shifts[b + 1] = shifts[b]
+                    amps[b + 1] = amps[b]
+                    gains[b + 1] = gains[b]
+                    src[b + 1] = src[b]
+                    b -= 1
+                shifts[b + 1] = vs
+                amps[b + 1] = va
+                gains[b + 1] = vg
+                src[b + 1] = vc
+            out_bg[p] = bg
+            for r in range(nr):
+                out_shift[p, r] = shifts[r]
+                out_amp[p, r] = amps[r]
+                out_gain[p, r] = gains[r]
+                out_src[p, r] = src[r]
+                info = shift_fisher(r, shifts, amps, nr, bg, g, dg, off, m)
+                out_var[p, r] = 1.0 / info if info > 0.0 else np.nan
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def smooth_surfaces(shift, sig, var, h, w, radius, tau_bins, out_shift, out_var):
+    """Weighted smoothing per surface that keeps edges: each surface's shift becomes the mean of the
+    surfaces within tau_bins of it in its (2 radius + 1)^2 neighbourhood (itself included), weighted
+    by their signal counts; surfaces farther than tau_bins (another surface, or the other side of an
+    edge) do not enter. out_var: the weighted mean's variance, sum(w^2 var) / (sum w)^2, never
+    above the surface's own."""
+    npix = shift.shape[0]
+    kk = shift.shape[1]
+    for p in prange(npix):
+        y0, x0 = p // w, p % w
+        for r in range(kk):
+            s = shift[p, r]
+            out_shift[p, r] = s
+            out_var[p, r] = var[p, r]
+            if s != s:
+                continue
+            sw = 0.0
+            sws = 0.0
+            swv = 0.0
+            for y in range(max(0, y0 - radius), min(h, y0 + radius + 1)):
+                for x in range(max(0, x0 - radius), min(w, x0 + radius + 1)):
+                    q = y * w + x
+                    for t in range(kk):
+                        v = shift[q, t]
+                        if v == v and abs(v - s) <= tau_bins and sig[q, t] > 0.0:
+                            wt = sig[q, t]
+                            sw += wt
+                            sws += wt * v
+                            vv = var[q, t]
+                            swv += wt * wt * (vv if vv == vv else 0.0)
+            if sw > 0.0:
+                out_shift[p, r] = sws / sw
+                mv = swv / (sw * sw)
+                if mv < var[p, r] or var[p, r] != var[p, r]:
+                    out_var[p, r] = mv
