@@ -288,3 +288,90 @@ def multi_return(y, kern, s_mat, kmax, sep_bins, gain_min, cand_step, step0, em_
             lam = rate(shifts, amps, bg)
     order = np.argsort(shifts, kind="stable")
     return np.asarray(shifts, float)[order], np.asarray(amps)[order], np.asarray(gains)[order], float(bg)
+
+
+def neighbour_surfaces(ys, h, w, kern, s_mat, radius, shift_in, gain_in, strong_nats, pool_nats, tau, sep,
+                       kmax, kpool, cand_step, step0):
+    """recon.multi_kernels.neighbour_surfaces densely: ys (P, M) histograms; returns per pixel
+    (shifts, amplitudes, sources) like the kernel (sorted by shift)."""
+    m = ys.shape[1]
+    colsum = s_mat.sum(axis=0)
+    dpk = int(np.argmax(kern.g))
+    out = []
+    for p in range(h * w):
+        y = ys[p]
+        if y.sum() == 0:
+            out.append((np.array([]), np.array([]), np.array([], int)))
+            continue
+        y0, x0 = divmod(p, w)
+        pool = sum(ys[yy * w + xx] for yy in range(max(0, y0 - radius), min(h, y0 + radius + 1))
+                   for xx in range(max(0, x0 - radius), min(w, x0 + radius + 1)))
+        ps, pa, _, _ = multi_return(pool, kern, s_mat, kpool, sep, pool_nats, cand_step, step0)
+        cands = [(int(v), 0) for v, gn in zip(shift_in[p], gain_in[p]) if np.isfinite(v) and gn > strong_nats]
+        cands += [(int(v), 1) for v in ps[np.argsort(-pa, kind="stable")]]
+        live = [True] * len(cands)
+        bg_floor = 1e-9 * y.sum() / m
+        bg = y.sum() / m
+        shifts, amps, srcs = [], [], []
+        lam = np.full(m, bg)
+        aligned = [k + kern.off - dpk for k in np.flatnonzero(y)]
+        while len(shifts) < kmax:
+            best, bj, ba, bc = 0.0, -1, 0.0, -1
+            for c, (j0, _) in enumerate(cands):
+                if not live[c]:
+                    continue
+                for j in aligned:
+                    if 0 <= j < m and abs(j - j0) <= tau and all(abs(j - s) >= sep for s in shifts):
+                        gn, an = _multi_gain(y, lam, s_mat[:, j], colsum[j])
+                        if gn > best:
+                            best, bj, ba, bc = gn, j, an, c
+            if bc < 0:
+                break
+            # pattern search, as refine in multi_return
+            step = step0
+            while step >= 1:
+                moved = True
+                while moved:
+                    moved = False
+                    for jj in (bj - step, bj + step):
+                        if 0 <= jj < m and all(abs(jj - s) >= sep for s in shifts):
+                            gn, an = _multi_gain(y, lam, s_mat[:, jj], colsum[jj])
+                            if gn > best:
+                                best, ba, bj, moved = gn, an, jj, True
+                                break
+                step //= 2
+            for d in range(len(cands)):
+                if live[d] and d != bc and abs(cands[d][0] - cands[bc][0]) < sep:
+                    live[d] = False
+            shifts.append(bj)
+            amps.append(ba)
+            srcs.append(cands[bc][1])
+            live[bc] = False
+            for _ in range(12):
+                lam = bg + s_mat[:, shifts] @ np.asarray(amps)
+                r = np.where(y > 0, y / lam, 0.0)
+                amps = [amps[i] * (s_mat[:, shifts[i]] @ r) / colsum[shifts[i]] for i in range(len(shifts))]
+                bg = max(bg * r.sum() / m, bg_floor)
+            lam = bg + s_mat[:, shifts] @ np.asarray(amps)
+        o = np.argsort(shifts, kind="stable")
+        out.append((np.asarray(shifts, float)[o], np.asarray(amps)[o], np.asarray(srcs, int)[o]))
+    return out
+
+
+def smooth_surfaces(shift, sig, h, w, radius, tau):
+    """recon.multi_kernels.smooth_surfaces' shifts: signal-weighted mean of the surfaces within tau
+    in each surface's neighbourhood."""
+    out = shift.copy()
+    for p in range(h * w):
+        y0, x0 = divmod(p, w)
+        nb = [yy * w + xx for yy in range(max(0, y0 - radius), min(h, y0 + radius + 1))
+              for xx in range(max(0, x0 - radius), min(w, x0 + radius + 1))]
+        for r in range(shift.shape[1]):
+            s = shift[p, r]
+            if np.isnan(s):
+                continue
+            v, wt = shift[nb].ravel(), sig[nb].ravel()
+            ok = np.isfinite(v) & (np.abs(v - s) <= tau) & (wt > 0)
+            if ok.any():
+                out[p, r] = np.sum(wt[ok] * v[ok]) / wt[ok].sum()
+    return out
