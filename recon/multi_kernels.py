@@ -3,8 +3,9 @@
 Per pixel the model is ``lambda_k = B + sum_r a_r g[k - j_r + off]`` (g: the unit-area response on
 the bins, measured from the data, tail and afterpulse bump included, so they are never a surface).
 Returns are added one at a time: each candidate shift (one per cluster of detections, aligned on the
-response's peak) is scored by the Poisson log-likelihood it adds with its amplitude profiled out
-(Newton on a concave function), the best one is refined by a pattern search over shifts, and kept
+response's peak) is screened by the second-order expansion of the log-likelihood it adds; the
+SCREEN best are scored exactly (amplitude profiled out by Newton on a concave function), the best
+one is refined by a pattern search over shifts, and kept
 when its gain exceeds ``gain_min`` nats; then every amplitude and the background are refitted by EM
 and every earlier return's shift is re-refined with the others fixed. Plain reference:
 ``tests/reference.py::multi_return_ref``.
@@ -21,61 +22,102 @@ from spdepth.recon.kernels import BLOCK, unique_counts
 
 #: Newton steps on a return's amplitude.
 NEWTON_STEPS = 12
-#: EM sweeps of the amplitudes and background after each added return (and at the end).
+#: Newton on an amplitude stops at this relative step.
+NEWTON_TOL = 1e-7
+#: EM sweeps of the amplitudes and background after each added return, at most.
 EM_SWEEPS = 12
+#: EM stops when no amplitude nor the background changes by more than this (relative).
+EM_TOL = 1e-7
+#: candidates scored exactly per round: the best by the second-order screen (screen_score).
+SCREEN = 4
+
+
+@njit(cache=True, nogil=True, inline="always")
+def first_at_least(kb, nu, v):
+    """Index of the first of the sorted kb[:nu] that is >= v (nu when none)."""
+    a, z = 0, nu
+    while a < z:
+        h = (a + z) // 2
+        if kb[h] < v:
+            a = h + 1
+        else:
+            z = h
+    return a
 
 
 @njit(cache=True, nogil=True)
 def add_gain(j, kb, kw, nu, lam, g, off, colsum):
     """(gain, amplitude) of adding a return at shift j to the model whose rate at the photons' bins is
-    lam: ``max_a sum_u kw_u log(1 + a g_u / lam_u) - a colsum[j]`` over a >= 0 (nats)."""
+    lam: ``max_a sum_u kw_u log(1 + a g_u / lam_u) - a colsum[j]`` over a >= 0 (nats). Only the
+    detections under the pulse (kb sorted) enter."""
     nk = g.size
     lo = j - off
     hi = lo + nk
     c = colsum[j]
     if c <= 0.0:
         return 0.0, 0.0
-    # slope at a = 0 and a start: the detections under the pulse beyond what the model expects
+    u0 = first_at_least(kb, nu, lo)
+    u1 = first_at_least(kb, nu, hi)
+    # slope at a = 0 and a start: the detections under the pulse
     d0 = -c
     nin = 0.0
-    for u in range(nu):
-        k = kb[u]
-        if k >= lo and k < hi:
-            gu = g[k - lo]
-            if gu > 0.0:
-                d0 += kw[u] * gu / lam[u]
-                nin += kw[u]
+    for u in range(u0, u1):
+        gu = g[kb[u] - lo]
+        if gu > 0.0:
+            d0 += kw[u] * gu / lam[u]
+            nin += kw[u]
     if d0 <= 0.0:
         return 0.0, 0.0
     a = max(nin / c, 1e-6)
     for _ in range(NEWTON_STEPS):
         f1 = -c
         f2 = 0.0
-        for u in range(nu):
-            k = kb[u]
-            if k >= lo and k < hi:
-                gu = g[k - lo]
-                if gu > 0.0:
-                    q = gu / (lam[u] + a * gu)
-                    f1 += kw[u] * q
-                    f2 -= kw[u] * q * q
+        for u in range(u0, u1):
+            gu = g[kb[u] - lo]
+            if gu > 0.0:
+                q = gu / (lam[u] + a * gu)
+                f1 += kw[u] * q
+                f2 -= kw[u] * q * q
         if f2 >= 0.0:
             break
         na = a - f1 / f2
         if na <= 0.0:
             na = 0.5 * a
-        if abs(na - a) <= 1e-9 * a:
+        if abs(na - a) <= NEWTON_TOL * a:
             a = na
             break
         a = na
     gain = -a * c
-    for u in range(nu):
-        k = kb[u]
-        if k >= lo and k < hi:
-            gu = g[k - lo]
-            if gu > 0.0:
-                gain += kw[u] * math.log1p(a * gu / lam[u])
+    for u in range(u0, u1):
+        gu = g[kb[u] - lo]
+        if gu > 0.0:
+            gain += kw[u] * math.log1p(a * gu / lam[u])
     return gain, a
+
+
+@njit(cache=True, nogil=True)
+def screen_score(j, kb, kw, nu, lam, g, off, colsum):
+    """The gain of adding a return at shift j to second order in its amplitude at 0,
+    ``d0^2 / (2 c2)`` (slope d0 and curvature c2 there; 0 when the slope is not positive): one pass,
+    to pick the candidates worth the exact :func:`add_gain`."""
+    nk = g.size
+    lo = j - off
+    c = colsum[j]
+    if c <= 0.0:
+        return 0.0
+    u0 = first_at_least(kb, nu, lo)
+    u1 = first_at_least(kb, nu, lo + nk)
+    d0 = -c
+    c2 = 0.0
+    for u in range(u0, u1):
+        gu = g[kb[u] - lo]
+        if gu > 0.0:
+            q = gu / lam[u]
+            d0 += kw[u] * q
+            c2 += kw[u] * q * q
+    if d0 <= 0.0 or c2 <= 0.0:
+        return 0.0
+    return d0 * d0 / (2.0 * c2)
 
 
 @njit(cache=True, nogil=True)
@@ -136,9 +178,16 @@ def em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, lam,
                 d = kb[u] - shifts[r] + off
                 if d >= 0 and d < nk:
                     newa[r] += kw[u] * amps[r] * g[d] / lam[u]
+        change = 0.0
         for r in range(nr):
-            amps[r] = newa[r] / colsum[shifts[r]]
-        bg = max(nb / m, bg_floor)
+            na = newa[r] / colsum[shifts[r]]
+            change = max(change, abs(na - amps[r]) / max(na, 1e-300))
+            amps[r] = na
+        nbg = max(nb / m, bg_floor)
+        change = max(change, abs(nbg - bg) / nbg)
+        bg = nbg
+        if change < EM_TOL:
+            break
     model_rate(kb, nu, shifts, amps, nr, bg, g, off, lam)
     return bg
 
@@ -188,10 +237,11 @@ def fit_pixel(kb, kw, nu, m, g, off, colsum, dg, kmax, sep_bins, gain_min, cand_
             cand[nc] = j
             nc += 1
     nr = 0
+    top_s = np.empty(SCREEN)
+    top_j = np.empty(SCREEN, np.int64)
     while nr < kmax:
-        best = 0.0
-        bj = -1
-        ba = 0.0
+        # the SCREEN best candidates by the second-order screen, then their exact gains
+        ns = 0
         for c in range(nc):
             j = cand[c]
             near = False
@@ -200,9 +250,28 @@ def fit_pixel(kb, kw, nu, m, g, off, colsum, dg, kmax, sep_bins, gain_min, cand_
                     near = True
             if near:
                 continue
-            gn, an = add_gain(j, kb, kw, nu, lam, g, off, colsum)
+            sc = screen_score(j, kb, kw, nu, lam, g, off, colsum)
+            if sc <= 0.0:
+                continue
+            # insertion into the top list (ties keep the earlier candidate first)
+            t = ns if ns < SCREEN else SCREEN - 1
+            if ns == SCREEN and not sc > top_s[t]:
+                continue
+            while t > 0 and sc > top_s[t - 1]:
+                top_s[t] = top_s[t - 1]
+                top_j[t] = top_j[t - 1]
+                t -= 1
+            top_s[t] = sc
+            top_j[t] = j
+            if ns < SCREEN:
+                ns += 1
+        best = 0.0
+        bj = -1
+        ba = 0.0
+        for t in range(ns):
+            gn, an = add_gain(top_j[t], kb, kw, nu, lam, g, off, colsum)
             if gn > best:
-                best, bj, ba = gn, j, an
+                best, bj, ba = gn, top_j[t], an
         if bj < 0:
             break
         bj, best, ba = refine_shift(bj, best, ba, kb, kw, nu, lam, g, off, colsum, m, step0, shifts, nr, -1,

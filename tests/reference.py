@@ -205,14 +205,31 @@ def _multi_gain(y, lam, col, csum, newton=12):
             break
         na = a - f1 / f2
         na = 0.5 * a if na <= 0 else na
-        done = abs(na - a) <= 1e-9 * a
+        done = abs(na - a) <= 1e-7 * a
         a = na
         if done:
             break
     return float(np.sum(yy * np.log1p(a * cc / ll)) - a * csum), float(a)
 
 
-def multi_return(y, kern, s_mat, kmax, sep_bins, gain_min, cand_step, step0, em_sweeps=12):
+def _em(y, s_mat, colsum, shifts, amps, b, bg_floor, sweeps, tol=1e-7):
+    """EM of the amplitudes (in place) and background at fixed shifts, stopping when nothing changes
+    by more than tol (relative); returns the background."""
+    m = y.size
+    for _ in range(sweeps):
+        lam = b + s_mat[:, shifts] @ np.asarray(amps, float)
+        r = np.where(y > 0, y / lam, 0.0)
+        new = [amps[i] * (s_mat[:, shifts[i]] @ r) / colsum[shifts[i]] for i in range(len(shifts))]
+        nb = max(b * r.sum() / m, bg_floor)
+        change = max([abs(n - a) / max(n, 1e-300) for n, a in zip(new, amps)] + [abs(nb - b) / nb])
+        amps[:] = new
+        b = nb
+        if change < tol:
+            break
+    return b
+
+
+def multi_return(y, kern, s_mat, kmax, sep_bins, gain_min, cand_step, step0, em_sweeps=12, screen=4):
     """The K-surface greedy Poisson pursuit of recon.multi_kernels on one histogram y (length M):
     returns (shifts (sorted), amplitudes, gains, background)."""
     m = y.size
@@ -251,20 +268,22 @@ def multi_return(y, kern, s_mat, kmax, sep_bins, gain_min, cand_step, step0, em_
         return j, best, a
 
     def em(b):
-        for _ in range(em_sweeps):
-            lam = rate(shifts, amps, b)
-            r = np.where(y > 0, y / lam, 0.0)
-            new = [amps[i] * (s_mat[:, shifts[i]] @ r) / colsum[shifts[i]] for i in range(len(shifts))]
-            b = max(b * r.sum() / m, bg_floor)
-            amps[:] = new
-        return b
+        return _em(y, s_mat, colsum, shifts, amps, b, bg_floor, em_sweeps)
 
     lam = rate(shifts, amps, bg)
     while len(shifts) < kmax:
-        best, bj, ba = 0.0, -1, 0.0
+        # screen: d0^2 / (2 c2), the gain to second order in the amplitude; the best `screen` exactly
+        scored = []
         for j in cands:
             if not free(j, -1):
                 continue
+            q = np.where(y > 0, s_mat[:, j] / lam, 0.0)
+            d0, c2 = np.sum(y * q) - colsum[j], np.sum(y * q * q)
+            if d0 > 0 and c2 > 0:
+                scored.append((d0 * d0 / (2 * c2), j))
+        top = [j for _, j in sorted(scored, key=lambda t: -t[0])[:screen]]
+        best, bj, ba = 0.0, -1, 0.0
+        for j in top:
             gn, an = _multi_gain(y, lam, s_mat[:, j], colsum[j])
             if gn > best:
                 best, bj, ba = gn, j, an
@@ -347,11 +366,7 @@ def neighbour_surfaces(ys, h, w, kern, s_mat, radius, shift_in, gain_in, strong_
             amps.append(ba)
             srcs.append(cands[bc][1])
             live[bc] = False
-            for _ in range(12):
-                lam = bg + s_mat[:, shifts] @ np.asarray(amps)
-                r = np.where(y > 0, y / lam, 0.0)
-                amps = [amps[i] * (s_mat[:, shifts[i]] @ r) / colsum[shifts[i]] for i in range(len(shifts))]
-                bg = max(bg * r.sum() / m, bg_floor)
+            bg = _em(y, s_mat, colsum, shifts, amps, bg, bg_floor, 12)
             lam = bg + s_mat[:, shifts] @ np.asarray(amps)
         o = np.argsort(shifts, kind="stable")
         out.append((np.asarray(shifts, float)[o], np.asarray(amps)[o], np.asarray(srcs, int)[o]))

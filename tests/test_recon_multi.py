@@ -116,8 +116,7 @@ def test_auto_threshold_and_settings():
     assert auto_threshold_nats(1e-6, 1000, 10) > auto_threshold_nats(1e-3, 1000, 10)
     assert auto_threshold_nats(1e-3, 10000, 10) > auto_threshold_nats(1e-3, 100, 10)
     assert ReconSettings(reflectors="auto").to_dict()["reflectors"] == "auto"
-    for bad in ({"reflectors": "many"}, {"reflectors": 0}, {"false_alarm": 1.5}, {"max_reflectors": 9},
-                {"method": "spatial", "reflectors": 2}):
+    for bad in ({"reflectors": "many"}, {"reflectors": 0}, {"false_alarm": 1.5}, {"max_reflectors": 9}):
         with pytest.raises(InputError):
             ReconSettings(**bad)
 
