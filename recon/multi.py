@@ -45,8 +45,9 @@ from spdepth.recon.photons import PhotonStore
 LLR_MIN = 3.0
 #: surfaces closer than this many FWHM of the response are one.
 SEP_FWHM = 1.0
-#: one candidate shift per this many core RMS widths of detections.
-CAND_CORE = 0.5
+#: one candidate shift per this many core RMS widths of detections (the pattern search that refines
+#: the best one starts at half a core RMS, so it reaches every shift between candidates).
+CAND_CORE = 1.0
 #: a surface is "weak" when its likelihood-ratio statistic passes the auto test at this false-alarm
 #: rate but not at WEAK_FALSE_ALARM (i.e. it may be chance); applies to K fixed as well.
 WEAK_FALSE_ALARM = 1e-6

@@ -96,10 +96,11 @@ def add_gain(j, kb, kw, nu, lam, g, off, colsum):
 
 
 @njit(cache=True, nogil=True)
-def screen_score(j, kb, kw, nu, lam, g, off, colsum):
+def screen_score(j, kb, kw, nu, ilam, g, off, colsum):
     """The gain of adding a return at shift j to second order in its amplitude at 0,
     ``d0^2 / (2 c2)`` (slope d0 and curvature c2 there; 0 when the slope is not positive): one pass,
-    to pick the candidates worth the exact :func:`add_gain`."""
+    to pick the candidates worth the exact :func:`add_gain`. ilam: 1 / the model's rate at the
+    photons."""
     nk = g.size
     lo = j - off
     c = colsum[j]
@@ -112,7 +113,7 @@ def screen_score(j, kb, kw, nu, lam, g, off, colsum):
     for u in range(u0, u1):
         gu = g[kb[u] - lo]
         if gu > 0.0:
-            q = gu / lam[u]
+            q = gu * ilam[u]
             d0 += kw[u] * q
             c2 += kw[u] * q * q
     if d0 <= 0.0 or c2 <= 0.0:
@@ -241,6 +242,8 @@ def fit_pixel(kb, kw, nu, m, g, off, colsum, dg, kmax, sep_bins, gain_min, cand_
     top_j = np.empty(SCREEN, np.int64)
     while nr < kmax:
         # the SCREEN best candidates by the second-order screen, then their exact gains
+        for u in range(nu):
+            tmp_lam[u] = 1.0 / lam[u]
         ns = 0
         for c in range(nc):
             j = cand[c]
@@ -250,7 +253,7 @@ def fit_pixel(kb, kw, nu, m, g, off, colsum, dg, kmax, sep_bins, gain_min, cand_
                     near = True
             if near:
                 continue
-            sc = screen_score(j, kb, kw, nu, lam, g, off, colsum)
+            sc = screen_score(j, kb, kw, nu, tmp_lam, g, off, colsum)
             if sc <= 0.0:
                 continue
             # insertion into the top list (ties keep the earlier candidate first)

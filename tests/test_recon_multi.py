@@ -10,7 +10,7 @@ from spdepth.recon.estimate import reconstruct
 from spdepth.recon.errors import InputError
 from spdepth.recon.maps import PixelFlag
 from spdepth.recon.model import Binning, ReconSettings, build_kernel
-from spdepth.recon.multi import auto_threshold_nats, fit_surfaces, fwhm_bins
+from spdepth.recon.multi import CAND_CORE, _step0, auto_threshold_nats, fit_surfaces, fwhm_bins
 from spdepth.recon.photons import PhotonStore
 
 import multidepth as MD
@@ -51,10 +51,8 @@ def test_kernel_matches_numpy_reference():
         s_mat = ref.dense_s(kern)
         core_bins = RMS_U / 6.0
         sep = max(1, round(fwhm_bins(kern.g)))
-        cand = max(1, round(0.5 * core_bins))
-        step0 = 1
-        while step0 * 2 <= max(1.0, core_bins / 2):
-            step0 *= 2
+        cand = max(1, round(CAND_CORE * core_bins))
+        step0 = _step0(core_bins)
         for p, t in enumerate(lists):
             t = t[(t >= 0) & (t < 1200)]
             y = np.bincount(np.floor(t / 6.0).astype(int), minlength=b.n_bins).astype(float)
@@ -183,7 +181,6 @@ def weak_far_scene(rng, h=40, w=40, near=20.0, far=2.0, bg=3.0):
 
 def test_spatial_kernels_match_numpy_reference():
     from spdepth.recon import multi_kernels as MK
-    from spdepth.recon.multi import CAND_CORE, _step0
 
     rng = np.random.default_rng(155)
     store, _ = weak_far_scene(rng, 5, 6)
