@@ -147,6 +147,14 @@ def _print_result(result) -> None:
                 if est.get("tail_tau_s") else "")) if est["tail_share"] > 0 else ", no tail"
         print(f"pulse estimated from the data ({est['method']}): RMS {est['rms_s'] * 1e12:.0f} ps, "
               f"core {est['core_rms_s'] * 1e12:.0f} ps, FWHM {est['fwhm_s'] * 1e12:.0f} ps{tail}")
+    if str(maps.settings.get("pulse_source", "")).endswith("measured on the surfaces"):
+        t = np.asarray(maps.settings["irf"]["times_s"])
+        print(f"response re-measured on the surfaces: {t[0] * 1e12:.0f} to {t[-1] * 1e12:.0f} ps about its "
+              f"centroid (tail and later bumps included), RMS {maps.settings['pulse_rms_s'] * 1e12:.0f} ps")
+    if "surfaces_rule" in maps.settings:
+        counts = np.bincount(np.ravel(maps.surfaces), minlength=2)
+        print(f"surfaces per pixel ({maps.settings['surfaces_rule']}): "
+              + ", ".join(f"{k}: {c}" for k, c in enumerate(counts)))
     for what, where in (("maps", s["out"]), ("picture", s["png"]), ("pulse shape", s["save_irf"])):
         if where:
             print(f"{what}: {where}")
