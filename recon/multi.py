@@ -34,12 +34,13 @@ from typing import Callable
 import numpy as np
 from scipy.stats import chi2
 
+from spdepth.recon import kernels as K
 from spdepth.recon import multi_kernels as MK
 from spdepth.recon.errors import InputError
 from spdepth.recon.maps import C_M_PER_S, DepthMaps, PixelFlag
-from spdepth.recon import kernels as K
 from spdepth.recon.model import Binning, Irf, PulseKernel, ReconSettings, build_kernel, edge_core_rms
 from spdepth.recon.photons import PhotonStore
+from spdepth.recon.pixelwise import honest_var, settings_record
 
 #: K fixed: a surface is kept when it raises the Poisson log-likelihood by more than this (nats).
 LLR_MIN = 3.0
@@ -234,9 +235,7 @@ def _measured_model(store: PhotonStore, settings: ReconSettings, b: Binning, ker
     return kern, core_s
 
 
-def _maps(store, settings, b, kern, notes, shift, amp, bg, var, gain, n_used, kmax, flags_extra=None) -> DepthMaps:
-    from spdepth.recon.pixelwise import honest_var, settings_record
-
+def _maps(store, settings, b, kern, notes, shift, amp, bg, var, gain, n_used, kmax) -> DepthMaps:
     h, w = store.shape
     npix = h * w
     has = np.isfinite(shift)
