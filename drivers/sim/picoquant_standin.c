@@ -14,6 +14,7 @@
 #include <stdio.h>
 #include <stdlib.h>
 #include <string.h>
+#include <pthread.h>
 
 #ifndef PFX
 #define PFX MH
@@ -54,6 +55,8 @@ typedef struct {
 
 static dev_t_ devs[MAXDEVNUM];
 static hook_t on_start = 0, on_stop = 0;
+/* the device side (SIM_Push) and the host (ReadFiFo) run in different threads */
+static pthread_mutex_t mu = PTHREAD_MUTEX_INITIALIZER;
 
 static int usable(int i) {
     if (i < 0 || i >= MAXDEVNUM || !devs[i].present) return ERROR_DEVICE_OPEN_FAIL;
@@ -271,10 +274,12 @@ int F(StartMeas)(int devidx, int tacq) {
     int rc = ready(devidx);
     if (rc) return rc;
     if (tacq < 1 || tacq > 360000000) return ERROR_INVALID_ARGUMENT;
+    pthread_mutex_lock(&mu);
     devs[devidx].head = devs[devidx].fill = 0;   /* a new measurement starts with an empty FIFO */
     devs[devidx].fifofull = 0;
     devs[devidx].measuring = 1;
-    if (on_start) on_start(devidx);
+    pthread_mutex_unlock(&mu);
+    if (on_start) on_start(devidx);   /* outside the lock: the hook may push records */
     return 0;
 }
 
@@ -282,7 +287,9 @@ int F(StopMeas)(int devidx) {
     int rc = ready(devidx);
     if (rc) return rc;
     if (devs[devidx].measuring && on_stop) on_stop(devidx);
+    pthread_mutex_lock(&mu);
     devs[devidx].measuring = 0;
+    pthread_mutex_unlock(&mu);
     return 0;
 }
 
@@ -301,12 +308,14 @@ static int read_fifo(int devidx, unsigned int *buffer, int count, int *nactual) 
     if (rc) return rc;
     if (!buffer || !nactual) return ERROR_INVALID_ARGUMENT;
     d = &devs[devidx];
-    if (d->fail_reads > 0) { d->fail_reads--; *nactual = 0; return ERROR_USB_BULKRD_FAIL; }
+    pthread_mutex_lock(&mu);
+    if (d->fail_reads > 0) { d->fail_reads--; *nactual = 0; pthread_mutex_unlock(&mu); return ERROR_USB_BULKRD_FAIL; }
     n = d->fill < count ? d->fill : count;
     for (i = 0; i < n; i++) buffer[i] = d->fifo[(d->head + i) % d->cap];
     d->head = (d->head + n) % d->cap;
     d->fill -= n;
     *nactual = (int)n;
+    pthread_mutex_unlock(&mu);
     return 0;
 }
 
@@ -358,18 +367,21 @@ void SIM_Plug(int devidx, int plugged) {
     if (!plugged) {
         if (devs[devidx].measuring && on_stop) on_stop(devidx);
         devs[devidx].open = devs[devidx].initialized = devs[devidx].measuring = 0;
+        pthread_mutex_lock(&mu);
         devs[devidx].fill = 0;
+        pthread_mutex_unlock(&mu);
     }
 }
 void SIM_FailReads(int devidx, int n) { devs[devidx].fail_reads = n; }
-void SIM_FifoFull(int devidx) { devs[devidx].fifofull = 1; }
+void SIM_FifoFull(int devidx) { pthread_mutex_lock(&mu); devs[devidx].fifofull = 1; pthread_mutex_unlock(&mu); }
 
 /* Records as the device produces them: markers not enabled are dropped (the inputs are off);
  * when the FIFO overflows the measurement halts (FLAG_FIFOFULL) and nothing more is accepted. */
 int SIM_Push(int devidx, const unsigned int *recs, int n) {
     dev_t_ *d = &devs[devidx];
     int i, taken = 0;
-    if (!d->measuring || d->fifofull || !d->plugged) return 0;
+    pthread_mutex_lock(&mu);
+    if (!d->measuring || d->fifofull || !d->plugged) { pthread_mutex_unlock(&mu); return 0; }
     for (i = 0; i < n; i++) {
         unsigned int r = recs[i];
         unsigned int special = r >> 31, channel = (r >> 25) & 0x3F;
@@ -381,6 +393,8 @@ int SIM_Push(int devidx, const unsigned int *recs, int n) {
         if (d->fill >= d->cap) {
             d->fifofull = 1;
             d->dropped += n - i;
+            d->pushed += taken;
+            pthread_mutex_unlock(&mu);
             return taken;
         }
         d->fifo[(d->head + d->fill) % d->cap] = r;
@@ -388,5 +402,6 @@ int SIM_Push(int devidx, const unsigned int *recs, int n) {
         taken++;
     }
     d->pushed += taken;
+    pthread_mutex_unlock(&mu);
     return taken;
 }

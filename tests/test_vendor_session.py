@@ -1,0 +1,98 @@
+"""The session contract on the vendor backends, reached through their real drivers and stand-ins
+of the vendors' own boundaries: a PicoQuant library compiled from C (``drivers/sim/
+picoquant_standin.c``) and a stand-in ``nidaqmx`` module, both driven by the photon world.
+
+A clean scan keeps every pixel's detections from that pixel's own dwells; every fault the device
+can show ends with each pixel complete or flagged and nothing counted twice; a replay of the
+recording equals the live session."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import ptufile
+import pytest
+
+from spdepth.acq.instruments import open_sim
+from spdepth.acq.session import SessionState
+from test_session import (_assert_same_maps, _replay, _session, assert_complete_or_flagged,
+                          assert_from_complete_dwells)
+
+BACKENDS = {
+    "picoquant+nidaq": dict(tagger="picoquant:mh150", galvo="nidaq:Dev1"),
+    "picoquant+ours": dict(tagger="picoquant:mh150"),
+    "hh400+nidaq": dict(tagger="picoquant:hh400", galvo="nidaq:Dev1/ao2:3"),
+    "ours+nidaq": dict(galvo="nidaq:Dev1"),
+}
+
+
+def _mode(backend):
+    return "raster" if "galvo" in BACKENDS[backend] else "gated"
+
+
+@pytest.mark.parametrize("backend", list(BACKENDS))
+def test_clean_scan_keeps_each_pixels_own_dwells_and_replays_equal(tmp_path, backend):
+    with open_sim("bust", (8, 10), ppp=10, seed=11, keep_truth=True, **BACKENDS[backend]) as inst:
+        s = _session(inst, (8, 10), tmp_path / "live", method="uos", mode=_mode(backend))
+        assert s.run() == SessionState.DONE, s.error
+        assert_complete_or_flagged(s)
+        assert_from_complete_dwells(s, inst.rig)
+        assert s.flagged_pixels().size == 0
+        assert not s.lost
+    rep = _replay(tmp_path / "live")
+    assert rep.run() == SessionState.DONE
+    _assert_same_maps(s.maps(), rep.maps())
+    assert np.array_equal(s.store.times, rep.store.times)
+
+
+def test_picoquant_recording_is_a_ptu_of_the_devices_record_type(tmp_path):
+    with open_sim("bust", (6, 6), ppp=10, seed=12, tagger="picoquant:mh150",
+                  galvo="nidaq:Dev1") as inst:
+        s = _session(inst, (6, 6), tmp_path, mode="raster")
+        assert s.run() == SessionState.DONE, s.error
+    with ptufile.PtuFile(tmp_path / "recording.ptu") as f:
+        assert f.tags["TTResultFormat_TTTRRecType"] == ptufile.PtuRecordType.GenericT3
+        assert f.shape[1:3] == (6, 6)
+        rec = f.decode_records()
+    run = json.loads((tmp_path / "run.json").read_text())
+    assert int(np.count_nonzero(rec["channel"] >= 0)) > 0
+    assert run["devices"]["tagger"]["model"].startswith("MultiHarp")
+    assert run["devices"]["galvo"]["calibration"]["deg_per_volt_x"] == 1.0
+
+
+@pytest.mark.parametrize("backend,fault,kind", [
+    ("picoquant+nidaq", "fifo-overflow@40%", "tagger-reconnect"),
+    ("picoquant+ours", "device-vanish@50%", "tagger-reconnect"),
+    ("picoquant+nidaq", "usb-timeout@30%", "tagger-reconnect"),
+    ("picoquant+nidaq", "daq-underflow@50%", "galvo-fault"),
+    ("ours+nidaq", "daq-underflow@30%,fifo-overflow@60%", "galvo-fault"),
+])
+def test_faults_are_reacquired_and_nothing_is_counted_twice(tmp_path, backend, fault, kind):
+    with open_sim("bust", (10, 10), ppp=10, seed=5, faults=fault, keep_truth=True,
+                  **BACKENDS[backend]) as inst:
+        s = _session(inst, (10, 10), tmp_path / "live", mode=_mode(backend), method="uos")
+        assert s.run() == SessionState.DONE, s.error
+        assert_complete_or_flagged(s)
+        assert_from_complete_dwells(s, inst.rig)
+    assert s.flagged_pixels().size == 0, "every fault here is recoverable"
+    run = json.loads((tmp_path / "live" / "run.json").read_text())
+    assert kind in {f["kind"] for f in run["faults_seen"]}, run["faults_seen"]
+    assert s.passes >= 2, "the pixels the fault touched are scanned again"
+    if "galvo" not in fault.split("@")[0] and not fault.startswith("daq"):
+        assert s.lost, "the hole reached the session in-band"
+    rep = _replay(tmp_path / "live")
+    assert rep.run() == SessionState.DONE
+    _assert_same_maps(s.maps(), rep.maps())
+    assert len(rep.lost) == len(s.lost)
+
+
+def test_a_picoquant_device_that_does_not_come_back_fails_the_session(tmp_path):
+    with open_sim("bust", (8, 8), ppp=10, seed=3, faults="device-vanish@30%",
+                  tagger="picoquant:mh150", galvo="nidaq:Dev1",
+                  tagger_options={"vanish_s": 60.0}) as inst:
+        s = _session(inst, (8, 8), tmp_path, mode="raster",
+                     reader_options={"reconnect_timeout_s": 0.3})
+        assert s.run() == SessionState.FAILED
+        assert "did not come back" in str(s.error)
+        assert s.snapshot().health["tagger"] == "failed"
