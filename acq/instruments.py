@@ -229,16 +229,7 @@ def open_devices(devices) -> Instruments:
         return open_real(devices.galvo, devices.tagger, sync_period_s)
     galvo = tagger = None
     try:
-        if g_addr.kind == "nidaq":
-            from spdepth.drivers.daq import DaqCalibration, DaqGalvo
-
-            cal = DaqCalibration(devices.deg_per_volt, devices.deg_per_volt, -devices.v_limit,
-                                 devices.v_limit, tuple(devices.park_deg))
-            galvo = DaqGalvo.open(f"{g_addr.device}/{g_addr.ao}", calibration=cal)
-        else:
-            from spdepth.drivers.galvo import Galvo
-
-            galvo = Galvo.open(g_addr.port)
+        # the tagger first: its vendor library is the likelier thing to be missing
         if t_addr.kind == "picoquant":
             from spdepth.drivers.picoquant import PicoQuantSettings, PicoQuantTagger
 
@@ -251,6 +242,16 @@ def open_devices(devices) -> Instruments:
             tagger = Tagger.open(devices.tagger)
             tagger.stop()
             tagger.configure(TaggerSettings())
+        if g_addr.kind == "nidaq":
+            from spdepth.drivers.daq import DaqCalibration, DaqGalvo
+
+            cal = DaqCalibration(devices.deg_per_volt, devices.deg_per_volt, -devices.v_limit,
+                                 devices.v_limit, tuple(devices.park_deg))
+            galvo = DaqGalvo.open(f"{g_addr.device}/{g_addr.ao}", calibration=cal)
+        else:
+            from spdepth.drivers.galvo import Galvo
+
+            galvo = Galvo.open(g_addr.port)
     except BaseException:
         for dev in (galvo, tagger):
             if dev is not None:
