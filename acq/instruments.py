@@ -14,6 +14,8 @@ from spdepth.acq.requests import DEFAULT_WINDOW_S
 log = logging.getLogger(__name__)
 
 SIM_TAGGER_URL = "usb:1209:7a64"
+SIM_EVENT_DIVIDER = 64
+"""Simulated Swabian tagger: sync event divider (exercises the divider path; fewer sync tags)."""
 DWELL_LIMIT_FACTOR = 20
 """Simulated gated scans: dwell limit in units of the dwell that gives the scene's mean ppp."""
 
@@ -182,11 +184,20 @@ def _open_sim_vendor(scene_name, shape, *, ppp, sbr, seed, faults, window_s, kee
             fw = galvo_fw.GalvoFirmware(rig, faults=g_faults, **(galvo_options or {}))
             galvo_fw.register_device(name, fw)
             g = Galvo.open(f"galvosim://{name}")
-        if tagger:
+        addr = parse_tagger(tagger) if tagger else None
+        if addr is not None and addr.kind == "swabian":
+            from spdepth.drivers.sim.swabian_standin import SwabianStandIn
+            from spdepth.drivers.swabian import SwabianSettings, SwabianTagger
+
+            module = SwabianStandIn(rig, addr.serial or "2138000ABC", faults=t_faults,
+                                    scan_pixels=h * w)
+            t = SwabianTagger.open(addr.serial or None, SwabianSettings(
+                sync_period_s=scene.settings.sync_period_s, event_divider=SIM_EVENT_DIVIDER,
+                resolution_ps=int(round(scene.settings.resolution_s * 1e12))), module=module)
+        elif addr is not None:
             from spdepth.drivers.picoquant import PicoQuantSettings, PicoQuantTagger
             from spdepth.drivers.sim.picoquant_standin import PicoQuantStandIn
 
-            addr = parse_tagger(tagger)
             sim = PicoQuantStandIn(rig, addr.model, serial=addr.serial or "1000042",
                                    faults=t_faults, scan_pixels=h * w, **(tagger_options or {}))
             standins.append(sim)
@@ -230,7 +241,12 @@ def open_devices(devices) -> Instruments:
     galvo = tagger = None
     try:
         # the tagger first: its vendor library is the likelier thing to be missing
-        if t_addr.kind == "picoquant":
+        if t_addr.kind == "swabian":
+            from spdepth.drivers.swabian import SwabianSettings, SwabianTagger
+
+            tagger = SwabianTagger.open(t_addr.serial or None, SwabianSettings(
+                sync_period_s=sync_period_s, event_divider=devices.event_divider))
+        elif t_addr.kind == "picoquant":
             from spdepth.drivers.picoquant import PicoQuantSettings, PicoQuantTagger
 
             tagger = PicoQuantTagger.open(t_addr.model, t_addr.serial or None,

@@ -276,8 +276,6 @@ class SimBench(_Request):
             if t.kind == "usb":
                 raise RequestError(f"--sim --tagger {self.tagger}: the simulated bench's own "
                                    f"tagger is the default; name a vendor tagger or leave it out")
-            if t.kind == "swabian":
-                raise RequestError("--sim --tagger swabian: the Swabian backend is not built yet")
         if self.galvo:
             g = parse_galvo(self.galvo)
             if g.kind != "nidaq":
@@ -306,6 +304,7 @@ class Devices(_Request):
     v_limit:       NI-DAQ galvo: outputs stay within +-v_limit volts.
     park_deg:      NI-DAQ galvo: (x, y) where the mirror rests between scans.
     picoquant_lib: PicoQuant: the library file to load ("" searches; see drivers.picoquant).
+    event_divider: Swabian: tag every n-th laser sync only (high laser rates).
     """
 
     KIND = "devices"
@@ -317,16 +316,17 @@ class Devices(_Request):
     v_limit: float = 10.0
     park_deg: tuple[float, float] = (0.0, 0.0)
     picoquant_lib: str = ""
+    event_divider: int = 1
 
     def __post_init__(self) -> None:
         if not self.galvo or not self.tagger:
             raise RequestError(f"real devices need both --galvo ({GALVO_FORMS}) and --tagger "
                                f"({TAGGER_FORMS})")
         t, g = parse_tagger(self.tagger), parse_galvo(self.galvo)
-        if t.kind == "swabian":
-            raise RequestError("--tagger swabian: the Swabian backend is not built yet (see the "
-                               "README's vendor instruments)")
         _positive("--deg-per-volt", self.deg_per_volt)
+        _positive("--event-divider", self.event_divider, integer=True)
+        if self.event_divider > 65535:
+            raise RequestError(f"--event-divider {self.event_divider}: at most 65535")
         if not (isinstance(self.v_limit, (int, float)) and 0 < self.v_limit <= 10):
             raise RequestError(f"--v-limit must be 0..10 volts, got {self.v_limit!r}")
         try:

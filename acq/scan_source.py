@@ -76,7 +76,7 @@ class ScanSource:
             self.recorder = Recorder(host.out_dir, host.plan, host.recon_settings,
                                      resolution_s=self.tagger.resolution_s,
                                      sync_period_s=self.sync_period_s, log=host.log,
-                                     info=host.info,
+                                     info={**host.info, **getattr(self.tagger, "header_info", {})},
                                      record_type=getattr(self.tagger, "record_type", None))
         try:
             self.galvo.stop()             # a scan left running by someone else would mix in

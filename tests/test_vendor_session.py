@@ -24,6 +24,8 @@ BACKENDS = {
     "picoquant+ours": dict(tagger="picoquant:mh150"),
     "hh400+nidaq": dict(tagger="picoquant:hh400", galvo="nidaq:Dev1/ao2:3"),
     "ours+nidaq": dict(galvo="nidaq:Dev1"),
+    "swabian+nidaq": dict(tagger="swabian", galvo="nidaq:Dev1"),
+    "swabian+ours": dict(tagger="swabian:2138000ABC"),
 }
 
 
@@ -67,6 +69,8 @@ def test_picoquant_recording_is_a_ptu_of_the_devices_record_type(tmp_path):
     ("picoquant+nidaq", "usb-timeout@30%", "tagger-reconnect"),
     ("picoquant+nidaq", "daq-underflow@50%", "galvo-fault"),
     ("ours+nidaq", "daq-underflow@30%,fifo-overflow@60%", "galvo-fault"),
+    ("swabian+nidaq", "fifo-overflow@40%", "lost-data"),
+    ("swabian+ours", "fifo-overflow@50%,servo-fault@70%", "lost-data"),
 ])
 def test_faults_are_reacquired_and_nothing_is_counted_twice(tmp_path, backend, fault, kind):
     with open_sim("bust", (10, 10), ppp=10, seed=5, faults=fault, keep_truth=True,
@@ -85,6 +89,18 @@ def test_faults_are_reacquired_and_nothing_is_counted_twice(tmp_path, backend, f
     assert rep.run() == SessionState.DONE
     _assert_same_maps(s.maps(), rep.maps())
     assert len(rep.lost) == len(s.lost)
+
+
+def test_swabian_recording_carries_the_channel_mapping_and_reads_in_ptufile(tmp_path):
+    with open_sim("bust", (6, 6), ppp=10, seed=12, tagger="swabian", galvo="nidaq:Dev1") as inst:
+        s = _session(inst, (6, 6), tmp_path, mode="raster")
+        assert s.run() == SessionState.DONE, s.error
+    with ptufile.PtuFile(tmp_path / "recording.ptu") as f:
+        assert f.tags["TTResultFormat_TTTRRecType"] == ptufile.PtuRecordType.HydraHarp2T3
+        info = json.loads(f.tags["SPDepth_Info"])
+        assert f.shape[1:3] == (6, 6)
+    assert info["tagger_channels"]["sync"] == 1 and info["tagger_channels"]["event_divider"] == 64
+    assert info["tagger_channels"]["markers"]["PIXEL"] == 3
 
 
 def test_a_picoquant_device_that_does_not_come_back_fails_the_session(tmp_path):

@@ -115,3 +115,47 @@ TTTRMODE_CALLS = {
 def test_declared_signatures_match_the_vendor_demo():
     for name, n in TTTRMODE_CALLS.items():
         assert len(SIGNATURES[name]) == n, name
+
+
+def _real_timetagger():
+    try:
+        import Swabian.TimeTagger as tt
+    except ImportError as exc:
+        pytest.skip(f"the real Swabian-TimeTagger package does not import here ({exc})")
+    return tt
+
+
+def _doc_params(fn) -> list[str]:
+    """Parameter names a SWIG function documents (``:param name:``), in order."""
+    import re
+
+    return re.findall(r":param (\w+):", fn.__doc__ or "")
+
+
+def test_swabian_standin_has_the_packages_names_and_parameters():
+    from spdepth.drivers.sim import swabian_standin as sw
+
+    tt = _real_timetagger()
+    for name in ("createTimeTagger", "freeTimeTagger", "scanTimeTagger", "TimeTagStream", "TagType"):
+        assert hasattr(tt, name), name
+    assert _doc_params(tt.createTimeTagger)[:1] == ["serial"]
+    assert _doc_params(tt.scanTimeTagger) == ["include_model_name"]
+    assert _doc_params(tt.TimeTagStream.__init__) == ["tagger", "n_max_events", "channels"]
+    ours = list(inspect.signature(sw.StandInTimeTagStream.__init__).parameters)[1:]
+    assert ours == ["tagger", "n_max_events", "channels"]
+    for method, params in (("setTriggerLevel", ["channel", "voltage"]),
+                           ("setEventDivider", ["channel", "divider"]),
+                           ("getSerial", []), ("getModel", [])):
+        real = getattr(tt.TimeTagger, method)
+        assert _doc_params(real)[:len(params)] == params, method
+        mine = list(inspect.signature(getattr(sw.StandInTimeTagger, method)).parameters)[1:]
+        assert mine == params, method
+    for method in ("start", "stop", "getData", "isRunning", "clear"):
+        assert hasattr(tt.TimeTagStream, method) and hasattr(sw.StandInTimeTagStream, method)
+    for method in ("getTimestamps", "getChannels", "getEventTypes", "getMissedEvents",
+                   "hasOverflows"):
+        assert hasattr(tt.TimeTagStreamBuffer, method) and hasattr(sw._Buffer, method), method
+    assert {m.name: int(m) for m in tt.TagType} == {m.name: int(m) for m in sw.TagType}
+    from spdepth.drivers.swabian import TagType as Ours
+
+    assert [int(m) for m in Ours] == [int(m) for m in tt.TagType]

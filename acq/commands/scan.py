@@ -25,7 +25,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                           "serial PORT or URL")
     src.add_argument("--tagger", metavar="TAGGER",
                      help="time tagger: picoquant:MODEL[:SERIAL] (mh150, mh160, hh400), "
-                          "swabian[:SERIAL] (not built yet) or usb:VID:PID (ours)")
+                          "swabian[:SERIAL] or usb:VID:PID (ours)")
     add_sim_arguments(parser)
     real = parser.add_argument_group("real devices")
     real.add_argument("--sync-rate-hz", type=positive_float,
@@ -41,6 +41,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     real.add_argument("--picoquant-lib", default="", metavar="PATH",
                       help="PicoQuant: the device library file (default: search the install "
                            "places, the snapi package and SPDEPTH_PICOQUANT_LIB)")
+    real.add_argument("--event-divider", type=positive_int, default=1, metavar="N",
+                      help="Swabian: tag every N-th laser sync only (high laser rates; default 1)")
     add_scan_arguments(parser)
     add_recon_arguments(parser)
     add_output_arguments(parser)
@@ -114,7 +116,8 @@ def request_from_args(args: argparse.Namespace):
         instruments = Devices(galvo=galvo or "", tagger=tagger or "",
                               sync_rate_hz=args.sync_rate_hz or 0.0, fov_deg=args.fov_deg,
                               deg_per_volt=args.deg_per_volt, v_limit=args.v_limit,
-                              park_deg=park, picoquant_lib=args.picoquant_lib)
+                              park_deg=park, picoquant_lib=args.picoquant_lib,
+                              event_divider=args.event_divider)
     ms = lambda v: None if v is None else v * 1e-3          # noqa: E731
     ps = lambda v: None if v is None else v * 1e-12         # noqa: E731
     return ScanRequest(
