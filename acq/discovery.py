@@ -114,7 +114,7 @@ def _swabian(module=None) -> list[Found]:
         serials = list(tt.scanTimeTagger())
     except Exception as exc:  # noqa: BLE001 - the package raises its own errors without its driver
         return [Found("swabian", "", f"Swabian Time Tagger driver ({exc})", hint)]
-    return [Found("swabian", f"swabian:{s}", f"Swabian Time Tagger serial {s} (not drivable yet)")
+    return [Found("swabian", f"swabian:{s}", f"Swabian Time Tagger serial {s}")
             for s in serials]
 
 
