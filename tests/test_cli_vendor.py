@@ -46,6 +46,7 @@ def test_scan_on_picoquant_and_nidaq_standins_records_a_ptu_that_replays_identic
     ("picoquant:mh150", "nidaq:Dev1", "libmhlib.so"),
     ("picoquant:hh400:1234", "/dev/ttyDOESNOTEXIST", None),
     ("picoquant:mh160", "nidaq:Dev1/ao0:1", "libmhlib.so"),
+    ("swabian", "nidaq:Dev1", "Swabian"),
 ])
 def test_missing_vendor_library_or_device_is_one_line_exit_3_and_no_folder(
         tmp_path, capsys, monkeypatch, tagger, galvo, words):
@@ -142,7 +143,6 @@ def test_galvo_strings(text, kind, fields):
     ("picoquant:mh150", "nidaq:Dev1/ao0:2", "adjacent"),
     ("picoquant:mh150", "nidaq:/ao0:1", "nidaq:DEV"),
     ("picoquant:mh150", "usb:1209:7a64", "names a time tagger"),
-    ("swabian", "nidaq:Dev1", "not built yet"),
 ])
 def test_bad_device_strings_are_request_errors(tagger, galvo, message):
     with pytest.raises(RequestError, match=message):
@@ -164,6 +164,18 @@ def test_bad_command_line_device_string_is_exit_2(tmp_path, capsys):
                  "1e7", "--out", str(tmp_path / "o")]) == 2
     assert "unknown PicoQuant device" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+def test_a_swabian_tagger_not_there_is_a_device_error_naming_it():
+    from spdepth.drivers.errors import DeviceError
+    from spdepth.drivers.sim import PhotonWorld, load_scene
+    from spdepth.drivers.sim.rig import SimRig
+    from spdepth.drivers.sim.swabian_standin import SwabianStandIn
+    from spdepth.drivers.swabian import SwabianTagger
+
+    module = SwabianStandIn(SimRig(PhotonWorld(load_scene("steps", (2, 2)), seed=0)), "111")
+    with pytest.raises(DeviceError, match="Swabian Time Tagger 222 not found"):
+        SwabianTagger.open("222", module=module)
 
 
 def test_nidaq_without_ni_driver_is_a_device_error_naming_it():

@@ -61,8 +61,9 @@ class SwabianTagger:
         try:
             dev = tt.createTimeTagger(serial or "")
         except Exception as exc:  # noqa: BLE001 - the package raises RuntimeError without a device
-            raise DeviceError(f"Swabian Time Tagger {serial or ''} not found ({exc}); check USB "
-                              f"and that no other program holds it").replace("  ", " ") from None
+            which = f"Swabian Time Tagger {serial} not" if serial else "no Swabian Time Tagger"
+            raise DeviceError(f"{which} found ({exc}); check USB and that no other program holds "
+                              f"it") from None
         return cls(tt, dev, settings or SwabianSettings())
 
     def configure(self, settings: SwabianSettings) -> None:
