@@ -435,9 +435,6 @@ class ScanRequest(_Request):
         _positive("--pulse-rms-ps", self.pulse_rms_s, allow_none=True)
         galvo = self.instruments.galvo
         if galvo and parse_galvo(galvo).kind == "nidaq":
-            if self.mode == "gated":
-                raise RequestError("--galvo nidaq: count-gated scans are not built yet for the "
-                                   "NI-DAQ galvo; use --mode raster (fixed dwell)")
             if self.settle_s:
                 raise RequestError("--galvo nidaq: --settle-us is not supported yet (the raster "
                                    "steps on the card's sample clock)")

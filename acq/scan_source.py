@@ -132,6 +132,10 @@ class ScanSource:
         galvo, reader, store = self.galvo, self.reader, host.store
         host.begin_pass(geom, self.recorder.records if self.recorder else None)
         pattern, gate = self._galvo_pattern(host.plan, geom)
+        if hasattr(galvo, "counter"):
+            # a galvo the host gates (NI-DAQ): it watches the pixel's count in the session's store
+            width = store.shape[1]
+            galvo.counter = lambda r, c, g=geom: store.pixel_count((g.row0 + r) * width + g.col0 + c)
         galvo.configure_scan(pattern, gate, settle_s=host.plan.settle_s, frames=1)
         galvo.start()
         stop_sent = cut = False

@@ -149,9 +149,10 @@ def test_bad_device_strings_are_request_errors(tagger, galvo, message):
         Devices(galvo=galvo, tagger=tagger, sync_rate_hz=20e6)
 
 
-def test_nidaq_galvo_scans_raster_only_and_within_its_voltage_limits():
-    with pytest.raises(RequestError, match="--mode raster"):
-        ScanRequest(instruments=SimBench(galvo="nidaq:Dev1"))
+def test_nidaq_galvo_requests_within_its_voltage_limits():
+    assert ScanRequest(instruments=SimBench(galvo="nidaq:Dev1")).mode == "gated"
+    with pytest.raises(RequestError, match="--settle-us"):
+        ScanRequest(instruments=SimBench(galvo="nidaq:Dev1"), settle_s=1e-5)
     with pytest.raises(RequestError, match="--v-limit"):
         Devices(galvo="nidaq:Dev1", tagger="picoquant:mh150", sync_rate_hz=20e6, fov_deg=30,
                 deg_per_volt=1.0, v_limit=5)

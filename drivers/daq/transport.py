@@ -120,6 +120,43 @@ class DaqTransport:
             ao_t.start()
         self._wrap("scan start", go)
 
+    def open_static(self) -> None:
+        """Open on-demand (software-timed) tasks for the mirror and the marker lines, for scans
+        the host steps itself (count-gated)."""
+        def go():
+            self._close_static()
+            ao_t, do_t = self._new_task("ao-static"), self._new_task("do-static")
+            self._static = (ao_t, do_t)
+            ao_t.ao_channels.add_ao_voltage_chan(f"{self.device}/{self.ao}", min_val=self.v_min,
+                                                 max_val=self.v_max)
+            do_t.do_channels.add_do_chan(f"{self.device}/{self.do_lines}",
+                                         line_grouping=self.nidaqmx.constants.LineGrouping.CHAN_PER_LINE)
+        self._wrap("static tasks", go)
+
+    def step(self, x_v: float | None, y_v: float | None, lines: list[bool]) -> None:
+        """Raise ``lines`` (marker lines, line0 first), move the mirror to (x_v, y_v) (None: stay),
+        lower the lines: the markers open the next pixel as the mirror leaves for it."""
+        ao_t, do_t = self._static
+
+        def go():
+            do_t.write([bool(v) for v in lines], auto_start=True)
+            if x_v is not None:
+                ao_t.write([float(x_v), float(y_v)], auto_start=True)
+            do_t.write([False] * len(lines), auto_start=True)
+        self._wrap("step", go)
+
+    def _close_static(self) -> None:
+        for t in getattr(self, "_static", ()) or ():
+            try:
+                t.close()
+            except Exception as exc:  # noqa: BLE001
+                log.debug("DAQ static task close: %s", exc)
+        self._static = ()
+
+    def close_static(self) -> None:
+        with self._lock:
+            self._close_static()
+
     def generated(self) -> int:
         """Samples generated so far by the running (or last) waveform."""
         if self._ao_task is None:
@@ -151,6 +188,7 @@ class DaqTransport:
 
     def close(self) -> None:
         self.stop()
+        self.close_static()
 
 
 def list_devices(nidaqmx=None) -> list[dict]:

@@ -71,14 +71,56 @@ def _expand(spec: str) -> list[str]:
 
 
 class _Card:
-    """The simulated device: owns the rig, runs armed waveforms."""
+    """The simulated device: owns the rig, runs armed waveforms; while on-demand (static) tasks
+    are open, a clock thread lets the laser and detector run in real time (``pace`` virtual
+    seconds per second) with the mirror where the last write put it, as a held mirror does while
+    the host decides when to step it."""
 
-    def __init__(self, rig, name, deg_per_volt, faults, scan_pixels):
+    def __init__(self, rig, name, deg_per_volt, faults, scan_pixels, pace=1.0):
         self.rig, self.name, self.deg_per_volt = rig, name, deg_per_volt
         self.schedule = FaultSchedule(faults)
         self.scan_pixels = scan_pixels
         self.armed_do = None        # a DO task waiting for the AO sample clock
         self.fired: list[str] = []
+        self.pace = float(pace)
+        self.lines = None           # on-demand DO state
+        self.static_tasks = 0
+        self.hold = threading.Lock()   # held by a step (lines high .. low): the world waits
+        self._clock = None
+        self._clock_stop = threading.Event()
+
+    def static_opened(self):
+        self.static_tasks += 1
+        if self._clock is None:
+            self._clock_stop.clear()
+            self._clock = threading.Thread(target=self._run_clock, name="daq-standin-clock",
+                                           daemon=True)
+            self._clock.start()
+
+    def static_closed(self):
+        self.static_tasks = max(0, self.static_tasks - 1)
+        if self.static_tasks == 0 and self._clock is not None:
+            self._clock_stop.set()
+            if self._clock is not threading.current_thread():
+                self._clock.join(2.0)
+            self._clock = None
+
+    def _run_clock(self):
+        import time
+
+        last = time.monotonic()
+        period = self.rig.world.sync_period_s
+        while not self._clock_stop.wait(0.0005):
+            with self.hold:
+                now = time.monotonic()
+                dt = (now - last) * self.pace
+                if dt >= period:
+                    self.rig.fixed_dwell(dt)
+                    last = now
+                    if self.fault_due():
+                        self.underflow = True
+
+    underflow = False
 
     def fault_due(self) -> bool:
         frac = self.rig.pixels_pulsed / self.scan_pixels if self.scan_pixels else None
@@ -146,6 +188,7 @@ class StandInTask:
         self.data = None
         self.generated = 0
         self.error: DaqError | None = None
+        self._opened_static = False
         self._thread = None
         self._stop = threading.Event()
         self.ao_channels = _Channels(self, "ao")
@@ -175,9 +218,29 @@ class StandInTask:
             if arr.size and (arr.min() < lo - 1e-9 or arr.max() > hi + 1e-9):
                 raise DaqError("write: value outside the channel's limits", -200561)
         self.data = arr
-        if self.clock is None:        # on-demand: applied at once
+        if self.clock is None:        # on-demand: applied at once; the world runs meanwhile
+            card = self._card
+            if not self._opened_static:
+                self._opened_static = True
+                card.static_opened()
+            if card.underflow:
+                card.underflow = False         # reported once, as the task's error
+                raise DaqError("the stand-in's held output faulted", OUTPUT_FIFO_UNDERFLOW,
+                               self.name)
             if self.channels[0].split("/")[1].startswith("ao"):
-                self._card.rig.set_mirror(*(arr[:, -1] * self._card.deg_per_volt))
+                card.rig.set_mirror(*(arr[:, -1] * card.deg_per_volt))
+            else:
+                now = arr[:, -1].astype(bool)
+                prev = card.lines if card.lines is not None else np.zeros_like(now)
+                rising = now & ~prev
+                if now.any() and not prev.any():
+                    card.hold.acquire()      # a step: the world waits until the lines fall
+                mask = int(np.dot(rising, 1 << np.arange(rising.size)))
+                if mask:
+                    card.rig.pulse_markers(mask)
+                if prev.any() and not now.any():
+                    card.hold.release()
+                card.lines = now
             return arr.shape[1]
         if auto_start:
             self.start()
@@ -241,6 +304,9 @@ class StandInTask:
 
     def close(self):
         self.stop()
+        if self._opened_static:
+            self._opened_static = False
+            self._card.static_closed()
 
 
 class _PhysChan:
@@ -261,7 +327,8 @@ class NiDaqmxStandIn(types.SimpleNamespace):
     list (kind ``daq-underflow``); scan_pixels: for faults given as a share of the scan."""
 
     def __init__(self, rig, device: str = "Dev1", *, deg_per_volt: float = 1.0, faults=None,
-                 scan_pixels: int | None = None, product: str = "USB-6343", serial: int = 0x1A2B3C4):
+                 scan_pixels: int | None = None, product: str = "USB-6343", serial: int = 0x1A2B3C4,
+                 pace: float = 1.0):
         faults = parse_faults(faults) if isinstance(faults, str) or faults is None else list(faults)
         bad = [f for f in faults if f.kind != FaultKind.DAQ_UNDERFLOW]
         if bad:
@@ -269,7 +336,7 @@ class NiDaqmxStandIn(types.SimpleNamespace):
                                f"{', '.join(f.kind.value for f in bad)}")
         if any(f.at_fraction is not None for f in faults) and not scan_pixels:
             raise SettingError("faults given as a share of the scan need scan_pixels")
-        card = _Card(rig, device, float(deg_per_volt), faults, scan_pixels)
+        card = _Card(rig, device, float(deg_per_volt), faults, scan_pixels, pace)
         devices = [_Device(device, product, serial)]
 
         class System:
