@@ -60,7 +60,8 @@ def add_sim_arguments(parser: argparse.ArgumentParser) -> None:
                      help="faults to inject, KIND@WHEN items (WHEN in virtual seconds '2s' or share "
                           "of the scan '40%%'), e.g. fifo-overflow@40%%,device-vanish@2s; kinds: "
                           "serial-unplug, garbled-reply, missing-reply, slow-reply, servo-fault "
-                          "(galvo); usb-timeout, partial-read, fifo-overflow, device-vanish (tagger)")
+                          "(galvo); daq-underflow (NI-DAQ galvo); usb-timeout, partial-read, fifo-overflow, "
+                          "device-vanish (tagger)")
     sim.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
 
 

@@ -140,9 +140,11 @@ class DaqTransport:
 
         def go():
             do_t.write([bool(v) for v in lines], auto_start=True)
-            if x_v is not None:
-                ao_t.write([float(x_v), float(y_v)], auto_start=True)
-            do_t.write([False] * len(lines), auto_start=True)
+            try:
+                if x_v is not None:
+                    ao_t.write([float(x_v), float(y_v)], auto_start=True)
+            finally:
+                do_t.write([False] * len(lines), auto_start=True)   # never leave a line high
         self._wrap("step", go)
 
     def _close_static(self) -> None:
