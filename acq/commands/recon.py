@@ -31,8 +31,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=".mat (first-photon imaging) or PTU/HT3/PT3 T3 file; with several, "
                              "--out and --png name folders (OUT/<name>.npz)")
     parser.add_argument("--method", choices=METHODS, default=None,
-                        help=f"estimator (default {DEFAULT_METHOD}, or uos with --reflectors K > 1, the "
-                             "one estimator of several surfaces per pixel): uos (the seed paper's union of "
+                        help=f"estimator (default {DEFAULT_METHOD}): uos (the seed paper's union of "
                              "subspaces), lmf (log-matched filter, ignores background), ml (Poisson "
                              "maximum likelihood), spatial (uses the neighbours: censoring, fit, TV)")
     parser.add_argument("--out", metavar="MAPS.npz", help="write the maps and the settings used here")
@@ -96,7 +95,7 @@ def request_from_args(args: argparse.Namespace, path: str, out: str | None = Non
 
     ps = lambda v: None if v is None else v * 1e-12          # noqa: E731
     return FileReconRequest(
-        input=path, method=args.method or ("uos" if args.reflectors > 1 else DEFAULT_METHOD),
+        input=path, method=args.method or DEFAULT_METHOD,
         time_unit_s=ps(args.time_unit_ps),
         window_s=None if args.window_ps is None else tuple(v * 1e-12 for v in args.window_ps),
         bin_s=ps(args.bin_ps), pulse_rms_s=ps(args.pulse_rms_ps), irf=args.irf,
