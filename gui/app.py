@@ -63,14 +63,16 @@ def remembered_spec(settings=None):
 
 def run_window(what=None, *, start: bool = True, screenshot: str | Path | None = None,
                exit_after_scan: bool = False, out_dir="auto",
-               window_size: tuple[int, int] | None = None, settings=None, controls=None) -> int:
+               window_size: tuple[int, int] | None = None, settings=None, controls=None,
+               view: str = "maps") -> int:
     """Show the window with ``what`` in its controls (a ``gui.sources.SourceSpec``, or an
     ``acq.requests`` scan/replay/file request, which is run as given), started at once when
     ``start``, and run the Qt loop. ``controls``: a ``SourceSpec`` shown in the controls first
     (e.g. the remembered settings with the command line's runs folder), under a request.
     ``out_dir`` as ``MainWindow.start_run`` takes it. With ``screenshot``, the whole window is
     grabbed into that PNG when the scan ends; with ``exit_after_scan`` the loop ends then.
-    ``window_size`` (width, height) overrides the remembered geometry. Returns 0 (scan done, or
+    ``window_size`` (width, height) overrides the remembered geometry. ``view``: "maps" or "3d",
+    the tab shown. Returns 0 (scan done, or
     window closed), 1 (scan aborted or failed), 2 (the source could not be started and the window
     is not kept)."""
     from PySide6 import QtCore
@@ -90,6 +92,7 @@ def run_window(what=None, *, start: bool = True, screenshot: str | Path | None =
         win.controls.set_spec(what)
     elif what is not None:
         win.controls.set_spec(SourceSpec.from_request(what, win.controls.spec()))
+    win.show_view(view)
     win.show()
     result = {"code": 0}
 

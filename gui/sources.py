@@ -253,6 +253,7 @@ class PixelInfo:
     flag: int
     kept: str
     acquisition: str
+    n_kept: int = 0
 
 
 class SessionView:
@@ -270,7 +271,10 @@ class SessionView:
         return self.session.plan.target
 
     def maps(self):
-        return self.session.maps()
+        """The maps with the scan's geometry in their settings (``acq.api.session_maps``)."""
+        from spdepth.acq.api import session_maps
+
+        return session_maps(self.session)[0]
 
     def key(self, r: int, c: int):
         """Changes whenever what ``pixel(r, c)`` shows may have changed."""
@@ -291,6 +295,7 @@ class SessionView:
             background=float(rc.background[r, c]), signal=float(rc.signal[r, c]),
             uncertainty_s=float(rc.uncertainty_s[r, c]), estimated=bool(rc.done[r, c]),
             flag=int(rc.flags[r, c]), kept=f"{int(s.store.count[flat])} of {s.plan.target}",
+            n_kept=int(s.store.count[flat]),
             acquisition="acquiring" if acq == ACQUIRING
             else AcqFlag(acq).name.lower().replace("_", " "))
 
@@ -336,12 +341,14 @@ class ResultView:
         if self.target:
             t = t[:self.target]
         n = int(m.photons[r, c])
+        first = lambda a: np.asarray(a)[0] if np.ndim(a) == 3 else np.asarray(a)   # noqa: E731
         return PixelInfo(
             times=t, binning=b, pulse_rms_s=res.pulse_rms_s, irf=res.irf,
-            tof_s=float(m.tof_s[r, c]), depth_m=float(m.depth_m[r, c]),
-            background=float(m.background[r, c]), signal=float(m.signal[r, c]),
-            uncertainty_s=float(m.uncertainty_s[r, c]), estimated=n > 0, flag=int(m.flags[r, c]),
+            tof_s=float(first(m.tof_s)[r, c]), depth_m=float(first(m.depth_m)[r, c]),
+            background=float(m.background[r, c]), signal=float(first(m.signal)[r, c]),
+            uncertainty_s=float(first(m.uncertainty_s)[r, c]), estimated=n > 0, flag=int(m.flags[r, c]),
             kept=f"{n} in the window" + (f" (first {self.target})" if self.target else ""),
+            n_kept=n,
             acquisition=f"from {self.path.name}")
 
 

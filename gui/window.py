@@ -27,7 +27,9 @@ from spdepth.acq.api import new_run_dir
 from spdepth.acq.errors import RequestError
 from spdepth.acq.requests import DEFAULT_TARGET, MAX_TARGET, FileReconRequest, ReplayRequest
 from spdepth.gui.health import HealthTracker
-from spdepth.gui.maps import C_M_PER_S, MAP_SPECS, MapPanel
+from spdepth.acq.flags import AcqFlag
+from spdepth.gui.maps import C_M_PER_S, MAP_DEFS, MapPanel, link_panels, snapshot_input
+from spdepth.gui.view3d import PointCloudView
 from spdepth.gui.pixel_model import pixel_histogram
 from spdepth.gui.sources import (METHODS, MODES, FileJob, ResultView, SessionView, SourceSpec,
                                  in_window_words, open_run, run_kind)
@@ -335,8 +337,9 @@ class Inspector(QtWidgets.QWidget):
         self.info.setText("")
         self.title.setText("<b>Pixel inspector</b> — hover or click a map pixel")
 
-    def show_pixel(self, info, pixel: tuple[int, int], pinned: bool) -> None:
-        """``info``: a ``gui.sources.PixelInfo`` of ``pixel`` (row, col)."""
+    def show_pixel(self, info, pixel: tuple[int, int], pinned: bool, truth: float | None = None) -> None:
+        """``info``: a ``gui.sources.PixelInfo`` of ``pixel`` (row, col); ``truth``: the true
+        depth of a simulated scene there."""
         from spdepth.recon.maps import PixelFlag
 
         r, c = pixel
@@ -366,13 +369,18 @@ class Inspector(QtWidgets.QWidget):
         rows = [
             ("depth", f"{depth:.4f} m ± {sd_cm:.2f} cm" if math.isfinite(depth) else "–"),
             ("time of flight", f"{tof * 1e9:.3f} ns" if math.isfinite(tof) else "–"),
-            ("signal", f"{sig:.2f} detections" if done else "–"),
-            ("background", f"{bg * n_bins:.3f} in window ({bg:.2e}/bin)"
+            ("signal", f"{sig:.2f} detections (estimated)" if done else "–"),
+            ("background", f"{bg * n_bins:.2f} detections in window (estimated; {bg:.2e} per bin)"
              if done and math.isfinite(bg) else "–"),
+            ("model total", f"{sig + bg * n_bins:.2f} = signal + background, against "
+             f"{info.n_kept} detections kept" if done and math.isfinite(bg) else "–"),
             ("detections kept", info.kept),
             ("estimate", PixelFlag(info.flag).name.lower().replace("_", " ") if done else "not yet"),
             ("acquisition", info.acquisition),
         ]
+        if truth is not None:
+            rows.insert(1, ("true depth (simulated)", f"{truth:.4f} m" + (
+                f", error {100 * (depth - truth):+.2f} cm" if math.isfinite(depth) else "")))
         self.title.setText(f"<b>Pixel row {r}, col {c}</b>" + (" (pinned: click again to release)"
                                                               if pinned else ""))
         self.last_text = "; ".join(f"{k}: {v}" for k, v in rows)
@@ -398,7 +406,7 @@ class AccuracyPlot(QtWidgets.QWidget):
         top.addStretch(1)
         lay.addLayout(top)
         self.plot = pg.PlotWidget()
-        self.plot.setLabel("left", "depth", units="cm")
+        self.plot.setLabel("left", "depth uncertainty / error", units="cm")
         self.plot.addLegend(offset=(-8, 8), labelTextSize="9pt")
         self.sigma = self.plot.plot([], [], pen=pg.mkPen("#7a2fb5", width=2), symbol="o",
                                     symbolSize=4, symbolBrush="#7a2fb5",
@@ -514,7 +522,17 @@ class MainWindow(QtWidgets.QMainWindow):
         self.maps_view.setBackground("w")
         self.maps_view.ci.setSpacing(4)
         self.panels = [MapPanel(self.maps_view.ci, spec, i // 2, i % 2)
-                       for i, spec in enumerate(MAP_SPECS)]
+                       for i, spec in enumerate(MAP_DEFS)]
+        link_panels(self.panels)
+        for i in range(2):                 # equal cells: the same region shows at the same scale
+            self.maps_view.ci.layout.setColumnStretchFactor(i, 1)
+        for i in range(3):
+            self.maps_view.ci.layout.setRowStretchFactor(i, 1)
+        self.view3d = PointCloudView()
+        self.views = QtWidgets.QTabWidget()
+        self.views.addTab(self.maps_view, "Maps")
+        self.views.addTab(self.view3d, "3D")
+        self.views.currentChanged.connect(lambda _: self._paint_3d())
         self.maps_view.scene().sigMouseMoved.connect(self._mouse_moved)
         self.maps_view.scene().sigMouseClicked.connect(self._mouse_clicked)
         centre = QtWidgets.QWidget()
@@ -522,7 +540,7 @@ class MainWindow(QtWidgets.QMainWindow):
         cl.setContentsMargins(4, 4, 4, 4)
         cl.addWidget(self.banner)
         cl.addWidget(self.run_label)
-        cl.addWidget(self.maps_view, 1)
+        cl.addWidget(self.views, 1)
 
         self.inspector = Inspector()
         self.accuracy = AccuracyPlot()
@@ -576,6 +594,19 @@ class MainWindow(QtWidgets.QMainWindow):
         """GUI-thread CPU of one map repaint, measured (a running average)."""
         self._maps_due = 0.0
         self._restore_settings()
+        # Ctrl+Q / Ctrl+W close the window (a running scan is aborted, its recording kept)
+        for keys in (QtGui.QKeySequence.Quit, QtGui.QKeySequence.Close, "Ctrl+Q", "Ctrl+W"):
+            sc = QtGui.QShortcut(QtGui.QKeySequence(keys), self)
+            sc.setContext(QtCore.Qt.ApplicationShortcut)
+            sc.activated.connect(self.close)
+
+    def panel(self, key: str) -> MapPanel:
+        """The map panel of ``acq.mapdefs`` key (depth, uncertainty, background, sbr, counts)."""
+        return next(p for p in self.panels if p.spec.key == key)
+
+    def show_view(self, which: str) -> None:
+        """Show the "maps" or the "3d" tab."""
+        self.views.setCurrentIndex(1 if which == "3d" else 0)
 
     # ---- settings ------------------------------------------------------------------------------
     def _restore_settings(self) -> None:
@@ -587,10 +618,23 @@ class MainWindow(QtWidgets.QMainWindow):
                 log.warning("ignoring stored settings: %s", exc)
         geom = self.settings.value("geometry")
         if geom is not None:
-            self.restoreGeometry(geom)
+            self.restore_fitting_geometry(geom)
         state = self.settings.value("splitter")
         if state is not None:
             self.splitter.restoreState(state)
+
+    def restore_fitting_geometry(self, geom) -> bool:
+        """Use a remembered window geometry only if it fits a screen here (one saved by an
+        offscreen run, or on a larger monitor, would clip the window's right column)."""
+        before = self.saveGeometry()
+        if not self.restoreGeometry(geom):
+            return False
+        screen = QtGui.QGuiApplication.screenAt(self.frameGeometry().center()) or \
+            QtGui.QGuiApplication.primaryScreen()
+        if screen is not None and screen.availableGeometry().contains(self.frameGeometry()):
+            return True
+        self.restoreGeometry(before)
+        return False
 
     def save_settings(self) -> None:
         self.settings.setValue("source", json.dumps(self.controls.spec().to_dict()))
@@ -662,7 +706,9 @@ class MainWindow(QtWidgets.QMainWindow):
         self._n_bins = run.session.recon.settings.binning.n_bins
         # the run's own folder name; the whole path is in the tooltip (and in run.json)
         where = f" — files in …/{run.out_dir.name}/" if run.out_dir else ""
-        self._new_run(f"{run.label}{where}", str(run.out_dir or ""))
+        self._target = run.session.plan.target
+        self._new_run(f"{run.label}{where}", str(run.out_dir or ""), _plan_geometry(run.session.plan),
+                      run.session.plan.shape)
         h, w = run.session.plan.shape
         self.inspect((h // 2, w // 2), pin=False)     # something to look at until the user points
         # the first paint of a run (new ranges, axes, labels: the whole window) is the dearest:
@@ -681,7 +727,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self._maps_due = time.monotonic() + 1.0 / REFRESH_HZ
         return True
 
-    def _new_run(self, label: str, tooltip: str) -> None:
+    def _new_run(self, label: str, tooltip: str, geometry=None, shape=(1, 1)) -> None:
         self._ended_emitted = False
         self._last_sig = None
         self._inspect_key = None
@@ -691,6 +737,9 @@ class MainWindow(QtWidgets.QMainWindow):
             p.reset()
         self.inspector.clear()
         self.accuracy.clear()
+        self.view3d.reset(geometry)
+        for p in self.panels:
+            p.set_geometry(geometry, shape)
         self.run_label.setText(label)
         self.run_label.setToolTip(tooltip)
 
@@ -703,6 +752,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.save_settings()
         self.health = HealthTracker(live=False)
         self._new_run(f"{request.label()} — reconstructing…", request.input)
+        self.view3d.reset(None)
         self.accuracy.hide()                   # accuracy over scan time: a file has no scan
         self.state_label.setText("reconstructing")
         _pill(self.state_label, STATE_COLOURS["running"])
@@ -738,9 +788,14 @@ class MainWindow(QtWidgets.QMainWindow):
         self._n_bins = res.binning.n_bins
         snap = self.snap = view.snapshot()
         target = view.target or max(1, int(np.max(res.maps.photons)))
+        self._target = target
+        from spdepth.acq.points import geometry_of
+
+        geometry = geometry_of(res.maps)
+        self.view3d.reset(geometry)
         for p in self.panels:
-            p.show(p.spec.extract(snap, self._n_bins), target)
-        self.fit_levels()
+            p.set_geometry(geometry, view.shape)
+        self._paint_maps(snap, target, refit=True)
         h, w = view.shape
         self.state_label.setText("done")
         _pill(self.state_label, STATE_COLOURS["done"])
@@ -816,11 +871,7 @@ class MainWindow(QtWidgets.QMainWindow):
         painted = False
         if maps and versions != self._last_sig:
             self._last_sig = versions
-            for p in self.panels:
-                v = versions["counts" if p.spec.key == "counts" else "estimate"]
-                if v != p.version:
-                    p.show(p.spec.extract(snap, self._n_bins), target, version=v)
-                    painted = True
+            painted = self._paint_maps(snap, target, versions)
         # a point per HISTORY_PERIOD_S whatever the repaint rate; drawn with the maps
         self.accuracy.add(snap, run.truth_depth_m, force=snap.state in TERMINAL and painted,
                           draw=painted)
@@ -833,6 +884,27 @@ class MainWindow(QtWidgets.QMainWindow):
             self._on_end(snap)
         return painted
 
+    def _paint_maps(self, snap, target: int, versions=None, refit: bool = False) -> bool:
+        """Set the maps (those whose version changed) and the 3-D view if it is shown; returns
+        whether anything was set."""
+        mi = snapshot_input(snap, self._n_bins, target)
+        painted = False
+        for p in self.panels:
+            v = None if versions is None else versions["counts" if p.spec.key == "counts"
+                                                       else "estimate"]
+            if v is None or v != p.version or refit:
+                p.show(p.spec.extract(mi), target, version=v, refit=refit)
+                painted = True
+        if painted:
+            self._paint_3d()
+        return painted
+
+    def _paint_3d(self) -> None:
+        """The point cloud, only while its tab is shown (hidden, it costs nothing)."""
+        if self.snap is None or self.views.currentWidget() is not self.view3d:
+            return
+        self.view3d.set_maps(self.snap.depth_m, self.snap.signal)
+
     def _status(self, snap) -> None:
         # only what changed: each setText/setStyleSheet re-lays out and repaints the status bar
         h = self.health.update(snap)
@@ -840,8 +912,10 @@ class MainWindow(QtWidgets.QMainWindow):
         _set_text(self.rate_label, f"{_fmt_rate(snap.detections_per_s)}det/s")
         if self.progress.maximum() != snap.pixels_total:
             self.progress.setMaximum(snap.pixels_total)
-        if self.progress.value() != snap.pixels_final:
-            self.progress.setValue(snap.pixels_final)
+        # progress counts pixels complete (an aborted scan's incomplete pixels are not "done")
+        complete = int(np.count_nonzero(snap.acq_flags == AcqFlag.COMPLETE))
+        if self.progress.value() != complete:
+            self.progress.setValue(complete)
         _set_text(self.eta_label, f"ETA {_fmt_eta(snap.eta_s)}")
         _set_text(self.lost_label, f"lost {snap.lost_records} rec / {snap.lost_spans} spans")
         _set_text(self.health_label, f"● {h.text}", h.colour)
@@ -849,6 +923,14 @@ class MainWindow(QtWidgets.QMainWindow):
             self.health_label.setToolTip(h.tooltip or h.text)
 
     def _on_end(self, snap) -> None:
+        if self.run.out_dir is not None and Path(self.run.out_dir).is_dir():
+            # the run folder gets what `spdepth scan` writes beside the session's files
+            from spdepth.acq.api import finish_session
+
+            try:
+                finish_session(self.run.session, self.run.out_dir, title=self.run.label)
+            except Exception as exc:  # noqa: BLE001 - the maps are still shown; say what failed
+                self.show_error(f"Could not write maps.png/points.ply: {exc}")
         self.run.close()          # instruments; the session's files are already written
         self.fit_levels()
         if snap.state == "failed":
@@ -857,14 +939,12 @@ class MainWindow(QtWidgets.QMainWindow):
         self.scan_ended.emit(snap.state)
 
     def fit_levels(self) -> None:
+        """Refit every map's levels to what it shows now."""
         target = max(1, self.view.target) if self.view is not None else 1
         if isinstance(self.view, ResultView) and not self.view.target:
             target = max(1, int(np.max(self.view.result.maps.photons)))
-        for p in self.panels:
-            p.fit(target)
         if self.snap is not None:
-            for p in self.panels:
-                p.show(p.spec.extract(self.snap, self._n_bins), target)   # new levels: repaint
+            self._paint_maps(self.snap, target, refit=True)
 
     # ---- the inspector -------------------------------------------------------------------------
     def _pixel_at(self, scene_pos):
@@ -912,7 +992,11 @@ class MainWindow(QtWidgets.QMainWindow):
         self._inspect_key = key
         for p in self.panels:
             p.mark(self._hover)
-        self.inspector.show_pixel(view.pixel(r, c), self._hover, self._pinned)
+        truth = None
+        if self.run is not None and self.run.truth_depth_m is not None and \
+                self.run.truth_depth_m.shape == (h, w):
+            truth = float(self.run.truth_depth_m[r, c])
+        self.inspector.show_pixel(view.pixel(r, c), self._hover, self._pinned, truth)
 
     # ---- files ---------------------------------------------------------------------------------
     def save_maps(self, path: str | Path) -> Path:
@@ -940,9 +1024,21 @@ class MainWindow(QtWidgets.QMainWindow):
         elif suffix == ".png":
             from spdepth.acq.report import render_maps_png
 
-            render_maps_png(path, maps, title=self.run_label.text().split(" — ")[0])
+            counts = None if self.snap is None else snapshot_input(self.snap, 1, 0).counts
+            render_maps_png(path, maps, title=self.run_label.text().split(" — ")[0],
+                            counts=counts if counts is not None and counts.shape == maps.flags.shape
+                            else None)
+        elif suffix in (".ply", ".las"):
+            from spdepth.acq.points import geometry_of, write_points
+
+            geometry = geometry_of(maps)
+            if geometry is None:
+                raise InputError("these maps hold no scan geometry (a file needs its field of "
+                                 "view): no points to write")
+            write_points(maps, geometry, **{suffix[1:]: path})
         else:
-            raise InputError(f"save maps: {path.name} must end in .png, .tif, .tiff or .npz")
+            raise InputError(f"save maps: {path.name} must end in .png, .tif, .tiff, .npz, .ply "
+                             f"or .las")
         return path
 
     def _save_dialog(self) -> None:
@@ -953,7 +1049,8 @@ class MainWindow(QtWidgets.QMainWindow):
         start = str((folder or Path.cwd()) / "maps.png")
         path, _ = QtWidgets.QFileDialog.getSaveFileName(
             self, "Save maps", self.settings.value("last_save", start),
-            "PNG sheet (*.png);;TIFF stack (*.tif *.tiff);;NumPy (*.npz)")
+            "PNG sheet (*.png);;TIFF stack (*.tif *.tiff);;NumPy (*.npz);;"
+            "Point cloud PLY (*.ply);;Point cloud LAS (*.las)")
         if not path:
             return
         try:
@@ -993,6 +1090,16 @@ class MainWindow(QtWidgets.QMainWindow):
         self.save_settings()
         self.shutdown()
         super().closeEvent(event)
+
+
+def _plan_geometry(plan):
+    """The scan geometry of a plan, None for a foreign recording's plan without angles."""
+    from spdepth.acq.points import ScanGeometry
+
+    if (plan.nx > 1 and plan.x_first_deg == plan.x_last_deg) or \
+            (plan.ny > 1 and plan.y_first_deg == plan.y_last_deg):
+        return None
+    return ScanGeometry.from_plan(plan)
 
 
 __all__ = ["MainWindow", "ControlPanel", "Inspector", "AccuracyPlot", "REFRESH_HZ"]

@@ -60,6 +60,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                      help="grab the whole window into PNG when the scan ends")
     out.add_argument("--exit-after-scan", action="store_true",
                      help="close the window when the scan ends (exit 0 when done, 1 otherwise)")
+    out.add_argument("--view", choices=("maps", "3d"), default="maps",
+                     help="what the window shows: the maps, or the 3-D point cloud (needs OpenGL: "
+                          "a display, or xvfb-run with Mesa)")
     out.add_argument("--window-size", type=size_wxh, metavar="WxH",
                      help="window size in screen pixels (default 1480x900)")
 
@@ -120,4 +123,4 @@ def run(args: argparse.Namespace) -> int:
                                       dwell_s=ms(args.dwell_ms))
     size = args.window_size[::-1] if args.window_size else (WINDOW_SIZE if args.screenshot else None)
     return run_window(request or spec, controls=spec, start=start, screenshot=args.screenshot,
-                      exit_after_scan=args.exit_after_scan, window_size=size)
+                      exit_after_scan=args.exit_after_scan, window_size=size, view=args.view)
