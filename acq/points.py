@@ -98,13 +98,14 @@ class ScanGeometry:
         return d / np.linalg.norm(d, axis=-1, keepdims=True)
 
     def to_dict(self) -> dict:
+        # "rows"/"cols", not "shape": tifffile takes a JSON description holding "shape" for its own
         d = asdict(self)
-        d["shape"] = list(self.shape)
-        return d
+        del d["shape"]
+        return {"rows": self.shape[0], "cols": self.shape[1], **d}
 
     @classmethod
     def from_dict(cls, d: dict) -> "ScanGeometry":
-        return cls(tuple(int(v) for v in d["shape"]), float(d["x_first_deg"]),
+        return cls((int(d["rows"]), int(d["cols"])), float(d["x_first_deg"]),
                    float(d["x_last_deg"]), float(d["y_first_deg"]), float(d["y_last_deg"]))
 
 
