@@ -352,8 +352,7 @@ def file_binning(request: FileReconRequest, store, recorded: dict | None) -> Bin
     unit_s = store.time_unit_s
     if request.window_s is None and request.bin_s is None:
         if recorded and recorded.get("binning"):
-            b = recorded["binning"]
-            return Binning(unit_s, b["window_start"], b["window_stop"], b["bin_width"])
+            return Binning.from_dict({**recorded["binning"], "time_unit_s": unit_s})
         return None
     if request.window_s is not None and request.bin_s is not None:
         return Binning.from_window(unit_s, request.window_s, request.bin_s)
@@ -408,8 +407,7 @@ def reconstruct_file(request: FileReconRequest, progress=None) -> FileResult:
     recon_s = time.perf_counter() - t1
     maps = _with_geometry_and_offset(maps, request, store.shape)
     used = maps.settings
-    b = used["binning"]
-    used_binning = Binning(b["time_unit_s"], b["window_start"], b["window_stop"], b["bin_width"])
+    used_binning = Binning.from_dict(used["binning"])
     irf_used = _irf_used(used)
     notes = tuple(result.notes)
     per_pixel = float(np.sum(maps.photons)) / max(1, store.n_pixels)
@@ -465,7 +463,7 @@ def _irf_used(settings: dict):
 
     irf = settings.get("irf")
     if irf:
-        return Irf(tuple(irf["times_s"]), tuple(irf["counts"]), source=irf.get("source", ""))
+        return Irf.from_dict(irf)
     return gaussian_irf(settings["pulse_rms_s"], source=f"Gaussian, {settings['pulse_source']}")
 
 

@@ -80,7 +80,7 @@ def build_parser() -> argparse.ArgumentParser:
     for name, module in _command_modules():
         cmd = sub.add_parser(name, help=module.HELP, description=module.HELP)
         module.add_arguments(cmd)
-        cmd.set_defaults(_run=module.run)
+        cmd.set_defaults(_run=module.run, _parser=cmd)
     return parser
 
 
@@ -91,7 +91,9 @@ def _raise_terminated(signum, frame):
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     try:
-        args = parser.parse_args(argv)
+        args, extra = parser.parse_known_args(argv)
+        if extra:     # named by the subcommand that was given them, not by the top level
+            args._parser.error(f"unrecognized arguments: {' '.join(extra)}")
     except SystemExit as exc:       # --help, --version and usage errors: their status, returned
         return int(exc.code or 0)
     level = {0: logging.WARNING, 1: logging.INFO}.get(args.verbose, logging.DEBUG)

@@ -50,7 +50,7 @@ from spdepth.drivers.errors import ProtocolError
 from spdepth.drivers.events import EVENT_DTYPE, EventKind
 from spdepth.drivers.tagger.t3 import T3DecoderState, decode_t3
 from spdepth.recon.errors import InputError
-from spdepth.recon.model import Binning, Irf, ReconSettings
+from spdepth.recon.model import ReconSettings
 
 log = logging.getLogger(__name__)
 
@@ -449,23 +449,8 @@ def session_photons(path: str | Path):
 
 def recon_settings_from_dict(d: dict, **override) -> ReconSettings:
     """``ReconSettings`` from its ``to_dict`` form (as a recording's header keeps it), with any
-    field replaced by ``override`` (None values are ignored)."""
-    d = {**d, **{k: v for k, v in override.items() if v is not None}}
-    b = d.get("binning")
-    if isinstance(b, dict):
-        b = Binning(b["time_unit_s"], b["window_start"], b["window_stop"], b["bin_width"])
-    irf = d.get("irf")
-    if isinstance(irf, dict):
-        irf = Irf(tuple(irf["times_s"]), tuple(irf["counts"]), irf.get("source", ""))
-    if "pulse_rms_s" in override or "irf" in override:
-        # a width given now replaces the recorded pulse model whichever form it had
-        if override.get("pulse_rms_s") is not None:
-            irf = None
-    return ReconSettings(method=d.get("method", "uos"), binning=b,
-                         pulse_rms_s=None if irf is not None else d.get("pulse_rms_s"), irf=irf,
-                         max_photons=d.get("max_photons"), reflectors=int(d.get("reflectors", 1)),
-                         delta=float(d.get("delta", 1e-4)),
-                         max_iterations=int(d.get("max_iterations", 10)))
+    field replaced by ``override`` (None values are ignored): ``ReconSettings.from_dict``."""
+    return ReconSettings.from_dict(d, **override)
 
 
 def _json_tag(path: Path, tags: dict, name: str):

@@ -219,6 +219,15 @@ class Binning:
         return {"time_unit_s": self.time_unit_s, "window_start": self.window_start,
                 "window_stop": self.window_stop, "bin_width": self.bin_width, "n_bins": self.n_bins}
 
+    @classmethod
+    def from_dict(cls, d: dict) -> "Binning":
+        """Back from :meth:`to_dict` (``n_bins`` is derived, not read)."""
+        try:
+            return cls(d["time_unit_s"], d["window_start"], d["window_stop"], d["bin_width"])
+        except (KeyError, TypeError):
+            raise InputError(f"a saved binning needs time_unit_s, window_start, window_stop and "
+                             f"bin_width, got {d!r}") from None
+
 
 @dataclass(frozen=True)
 class Irf:
@@ -266,6 +275,14 @@ class Irf:
 
     def to_dict(self) -> dict:
         return {"times_s": list(self.times_s), "counts": list(self.counts), "source": self.source}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Irf":
+        """Back from :meth:`to_dict` (other keys, such as a recorded ``rms_s``, are ignored)."""
+        try:
+            return cls(tuple(d["times_s"]), tuple(d["counts"]), d.get("source", ""))
+        except (KeyError, TypeError):
+            raise InputError("a saved pulse shape needs times_s and counts") from None
 
 
 def load_irf(path) -> Irf:
@@ -506,6 +523,26 @@ class ReconSettings:
              "delta": self.delta, "max_iterations": int(self.max_iterations)}
         json.dumps(d)   # fail here, not when saving, if something is not serialisable
         return d
+
+    @classmethod
+    def from_dict(cls, d: dict, **override) -> "ReconSettings":
+        """Back from :meth:`to_dict` (or a result's settings record, whose extra keys are
+        ignored), typed, with any field replaced by ``override`` (None values are ignored). A
+        pulse width given in ``override`` replaces a recorded pulse shape."""
+        if not isinstance(d, dict):
+            raise InputError(f"saved settings must be a dict, got {type(d).__name__}")
+        d = {**d, **{k: v for k, v in override.items() if v is not None}}
+        b = d.get("binning")
+        binning = Binning.from_dict(b) if isinstance(b, dict) else b
+        irf = d.get("irf")
+        irf = Irf.from_dict(irf) if isinstance(irf, dict) else irf
+        if override.get("pulse_rms_s") is not None:
+            irf = None
+        return cls(method=d.get("method", "uos"), binning=binning,
+                   pulse_rms_s=None if irf is not None else d.get("pulse_rms_s"), irf=irf,
+                   max_photons=d.get("max_photons"), reflectors=int(d.get("reflectors", 1)),
+                   delta=float(d.get("delta", SEED_PAPER.delta)),
+                   max_iterations=int(d.get("max_iterations", SEED_PAPER.max_iterations)))
 
 
 # ------------------------------------------------------------------------------------------------

@@ -100,7 +100,7 @@ class MemorySource:
         return AcqFlag.INCOMPLETE
 
     def flush(self):
-        pass
+        """Nothing is buffered: the passes are in memory."""
 
     def close(self):
         self.closed = True
