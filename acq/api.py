@@ -217,8 +217,8 @@ def _replay_session(request: ReplayRequest, out):
 def session_maps(session):
     """A session's maps (``DepthMaps``) with its scan geometry in the settings
     (``acq.points.geometry_of`` reads it), and its kept counts with NaN for pixels never
-    measured, as the PNG sheets and the window draw them."""
-    from spdepth.acq.flags import ACQUIRING
+    measured (none kept and not complete), as the PNG sheets and the window draw them."""
+    from spdepth.acq.flags import AcqFlag
     from spdepth.acq.points import GEOMETRY_KEY, ScanGeometry
 
     maps = session.maps()
@@ -230,7 +230,7 @@ def session_maps(session):
         maps = replace(maps, settings=settings)
     h, w = session.plan.shape
     counts = session.store.count.reshape(h, w).astype(np.float64)
-    counts[(counts == 0) & (session.acq_flags.reshape(h, w) == ACQUIRING)] = np.nan
+    counts[(counts == 0) & (session.acq_flags.reshape(h, w) != AcqFlag.COMPLETE)] = np.nan
     return maps, counts
 
 

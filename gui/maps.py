@@ -12,7 +12,7 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtCore, QtWidgets
 
-from spdepth.acq.flags import ACQUIRING
+from spdepth.acq.flags import AcqFlag
 from spdepth.acq.mapdefs import (MAP_DEFS, NAN_COLOUR, MapDef, MapInput, constant_value, display,
                                  levels_for, widen)
 from spdepth.recon.maps import C_M_PER_S
@@ -25,9 +25,10 @@ pg.setConfigOptions(imageAxisOrder="row-major", antialias=True, foreground="#303
 
 
 def measured_counts(snap) -> np.ndarray:
-    """Detections kept per pixel, NaN for pixels not visited yet."""
+    """Detections kept per pixel, NaN (grey) for pixels with none that are not complete: not
+    visited yet, or left unmeasured by an abort."""
     c = snap.counts.astype(np.float64)
-    c[(snap.counts == 0) & (snap.acq_flags == ACQUIRING)] = np.nan
+    c[(snap.counts == 0) & (snap.acq_flags != AcqFlag.COMPLETE)] = np.nan
     return c
 
 
