@@ -45,6 +45,8 @@ CPU_BUDGET = 0.05
 """Share of one core the map repaints may use during a scan."""
 FIRST_PAINT_COST_S = 0.03
 """Assumed cost of a map repaint until one is measured."""
+VIEW3D_PERIOD_S = 2.0
+"""Shortest interval between two redraws of the 3-D view during a scan."""
 HISTORY_PERIOD_S = 0.25
 """Accuracy-plot points are taken at most this often."""
 CLOSE_WAIT_S = 15.0
@@ -593,6 +595,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.paint_cost_s = FIRST_PAINT_COST_S
         """GUI-thread CPU of one map repaint, measured (a running average)."""
         self._maps_due = 0.0
+        self._last_3d = 0.0
         self._restore_settings()
         # Ctrl+Q / Ctrl+W close the window (a running scan is aborted, its recording kept)
         for keys in (QtGui.QKeySequence.Quit, QtGui.QKeySequence.Close, "Ctrl+Q", "Ctrl+W"):
@@ -903,6 +906,12 @@ class MainWindow(QtWidgets.QMainWindow):
         """The point cloud, only while its tab is shown (hidden, it costs nothing)."""
         if self.snap is None or self.views.currentWidget() is not self.view3d:
             return
+        now = time.monotonic()
+        # software OpenGL (Mesa) renders on threads of its own that the maps' CPU budget does not
+        # see: during a scan the cloud is redrawn at most every VIEW3D_PERIOD_S
+        if self.running() and now - self._last_3d < VIEW3D_PERIOD_S:
+            return
+        self._last_3d = now
         self.view3d.set_maps(self.snap.depth_m, self.snap.signal)
 
     def _status(self, snap) -> None:
