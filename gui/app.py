@@ -35,8 +35,13 @@ def application():
     """The QApplication (created once)."""
     from PySide6 import QtWidgets
 
+    from PySide6 import QtCore
+
     app = QtWidgets.QApplication.instance()
     if app is None:
+        # one GL resource space for every 3-D view of the process: pyqtgraph compiles each
+        # item's shader once per process, so a second view (a new window) must share the first's
+        QtCore.QCoreApplication.setAttribute(QtCore.Qt.AA_ShareOpenGLContexts)
         app = QtWidgets.QApplication(sys.argv[:1])
         app.setOrganizationName("spdepth")
         app.setApplicationName("spdepth")

@@ -3,7 +3,11 @@ or by intensity, one colour per surface when a pixel holds several; rotate with 
 button, zoom with the wheel, pan with the middle button (pyqtgraph's ``GLViewWidget``).
 
 It needs OpenGL: pyqtgraph.opengl (PyOpenGL) and a platform that gives an OpenGL context (a real
-display, or Xvfb with Mesa). Qt's ``offscreen`` platform gives none ("QOpenGLWidget is not supported
+display, or Xvfb with Mesa). The view is a ``QOpenGLWindow`` in a window container, not a
+``QOpenGLWidget``: a QOpenGLWidget makes Qt composite the *whole* top-level window through OpenGL,
+so every status-bar update (10 a second) re-rendered the window in OpenGL (in software under Mesa:
+the scan ran at 0.44 of its headless rate); a native child window repaints only when the cloud
+changes or the user turns it. Qt's ``offscreen`` platform gives none ("QOpenGLWidget is not supported
 on this platform"), so there :func:`opengl_unavailable` names the reason and the window shows a
 note instead of the view.
 """
@@ -34,6 +38,26 @@ def opengl_unavailable() -> str | None:
     except Exception as exc:  # noqa: BLE001 - any import failure means no 3-D view
         return f"no OpenGL for Python ({exc}): pip install PyOpenGL"
     return None
+
+
+def _gl_view_class():
+    """pyqtgraph's GL view on a QOpenGLWindow (made on first use: it needs pyqtgraph.opengl)."""
+    global _GLViewWindow
+    if _GLViewWindow is None:
+        from PySide6.QtOpenGL import QOpenGLWindow
+        from pyqtgraph.opengl.GLViewWidget import GLViewMixin
+
+        class GLViewWindow(GLViewMixin, QOpenGLWindow):
+            """``GLViewWidget``'s camera, items and mouse handling in a native window."""
+
+            def devicePixelRatioF(self):  # noqa: N802 - the mixin's name (QWidget's)
+                return float(self.devicePixelRatio())
+
+        _GLViewWindow = GLViewWindow
+    return _GLViewWindow
+
+
+_GLViewWindow = None
 
 
 def _turbo(values: np.ndarray, levels: tuple[float, float]) -> np.ndarray:
@@ -71,7 +95,10 @@ class PointCloudView(QtWidgets.QWidget):
         if self.reason is None:
             import pyqtgraph.opengl as gl
 
-            self.gl = gl.GLViewWidget()
+            self.gl = _gl_view_class()()
+            fmt = QtGui.QSurfaceFormat.defaultFormat()
+            fmt.setDepthBufferSize(24)         # a QOpenGLWindow has none unless asked: no occlusion
+            self.gl.setFormat(fmt)
             self.gl.setBackgroundColor("w")
             self.scatter = gl.GLScatterPlotItem(pos=np.zeros((0, 3)), size=POINT_SIZE_PX,
                                                 pxMode=True)
@@ -79,7 +106,9 @@ class PointCloudView(QtWidgets.QWidget):
             self.gl.addItem(self.scatter)
             self.axes = gl.GLAxisItem()
             self.gl.addItem(self.axes)
-            lay.addWidget(self.gl, 1)
+            self.container = QtWidgets.QWidget.createWindowContainer(self.gl, self)
+            self.container.setMinimumSize(200, 200)
+            lay.addWidget(self.container, 1)
         else:
             note = QtWidgets.QLabel(f"3-D view not available: {self.reason}")
             note.setWordWrap(True)
@@ -158,9 +187,20 @@ class PointCloudView(QtWidgets.QWidget):
         self._camera_set = False
         self._redraw()
 
+    def release(self) -> None:
+        """Destroy the GL window now (before its parents): deleted along with them, Qt crashed
+        (segmentation fault) in the window container's teardown."""
+        if self.gl is None:
+            return
+        import shiboken6
+
+        self.scatter = None
+        self.gl = None
+        shiboken6.delete(self.container)
+        self.container = None
+
     def grab_view(self):
-        """The rendered picture (a QImage), for screenshots: a widget grab of an OpenGL view is
-        blank on some platforms."""
+        """The rendered picture (a QImage): a widget grab does not see into a native window."""
         return self.gl.grabFramebuffer() if self.gl is not None else None
 
 

@@ -1070,9 +1070,19 @@ class MainWindow(QtWidgets.QMainWindow):
             self.show_error(f"Could not save maps: {exc}")
 
     def screenshot(self, path: str | Path) -> Path:
-        """A grab of the whole window as PNG."""
+        """A grab of the whole window as PNG (with the 3-D view's picture drawn in where it is
+        shown: a widget grab does not see into its native window)."""
         path = Path(path)
-        if not self.grab().save(str(path)):
+        pixmap = self.grab()
+        v = self.view3d
+        if v.available and self.views.currentWidget() is v and v.container.isVisible():
+            img = v.grab_view()
+            if img is not None and not img.isNull():
+                painter = QtGui.QPainter(pixmap)
+                top_left = v.container.mapTo(self, QtCore.QPoint(0, 0))
+                painter.drawImage(QtCore.QRect(top_left, v.container.size()), img)
+                painter.end()
+        if not pixmap.save(str(path)):
             raise OSError(f"could not write screenshot {path}")
         return path
 
@@ -1098,6 +1108,7 @@ class MainWindow(QtWidgets.QMainWindow):
     def closeEvent(self, event: QtGui.QCloseEvent) -> None:  # noqa: N802 - Qt override
         self.save_settings()
         self.shutdown()
+        self.view3d.release()
         super().closeEvent(event)
 
 
