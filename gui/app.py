@@ -39,8 +39,7 @@ def application():
 
     app = QtWidgets.QApplication.instance()
     if app is None:
-        # one GL resource space for every 3-D view of the process: pyqtgraph compiles each
-        # item's shader once per process, so a second view (a new window) must share the first's
+        # one GL resource space for every 3-D view of the process (gui.view3d)
         QtCore.QCoreApplication.setAttribute(QtCore.Qt.AA_ShareOpenGLContexts)
         app = QtWidgets.QApplication(sys.argv[:1])
         app.setOrganizationName("spdepth")

@@ -3,11 +3,12 @@ or by intensity, one colour per surface when a pixel holds several; rotate with 
 button, zoom with the wheel, pan with the middle button (pyqtgraph's ``GLViewWidget``).
 
 It needs OpenGL: pyqtgraph.opengl (PyOpenGL) and a platform that gives an OpenGL context (a real
-display, or Xvfb with Mesa). The view is a ``QOpenGLWindow`` in a window container, not a
-``QOpenGLWidget``: a QOpenGLWidget makes Qt composite the *whole* top-level window through OpenGL,
-so every status-bar update (10 a second) re-rendered the window in OpenGL (in software under Mesa:
-the scan ran at 0.44 of its headless rate); a native child window repaints only when the cloud
-changes or the user turns it. Qt's ``offscreen`` platform gives none ("QOpenGLWidget is not supported
+display, or Xvfb with Mesa). It is pyqtgraph's ``GLViewWidget`` (a QOpenGLWidget), made when the
+3D tab is first shown: from then on Qt composites the whole window through OpenGL, so every
+status-bar update costs an OpenGL frame (in software under Mesa). A ``QOpenGLWindow`` in a window
+container avoids that, but crashed Qt (xcb, Mesa) when a second window ran a scan.
+
+Qt's ``offscreen`` platform gives no OpenGL context ("QOpenGLWidget is not supported
 on this platform"), so there :func:`opengl_unavailable` names the reason and the window shows a
 note instead of the view.
 """
@@ -18,6 +19,12 @@ import numpy as np
 from PySide6 import QtCore, QtGui, QtWidgets
 
 from spdepth.acq.mapdefs import levels_for, MAPS_BY_KEY
+
+if QtCore.QCoreApplication.instance() is None:
+    # one GL resource space for every 3-D view of the process (set before the QApplication exists,
+    # also when a test or another program makes it): pyqtgraph compiles each item's shader once
+    # per process, and a second view (a new window) must be able to use it
+    QtCore.QCoreApplication.setAttribute(QtCore.Qt.AA_ShareOpenGLContexts)
 
 SURFACE_COLOURS = ((0.12, 0.47, 0.71, 1.0), (1.0, 0.50, 0.05, 1.0), (0.17, 0.63, 0.17, 1.0),
                    (0.84, 0.15, 0.16, 1.0), (0.58, 0.40, 0.74, 1.0))
@@ -38,26 +45,6 @@ def opengl_unavailable() -> str | None:
     except Exception as exc:  # noqa: BLE001 - any import failure means no 3-D view
         return f"no OpenGL for Python ({exc}): pip install PyOpenGL"
     return None
-
-
-def _gl_view_class():
-    """pyqtgraph's GL view on a QOpenGLWindow (made on first use: it needs pyqtgraph.opengl)."""
-    global _GLViewWindow
-    if _GLViewWindow is None:
-        from PySide6.QtOpenGL import QOpenGLWindow
-        from pyqtgraph.opengl.GLViewWidget import GLViewMixin
-
-        class GLViewWindow(GLViewMixin, QOpenGLWindow):
-            """``GLViewWidget``'s camera, items and mouse handling in a native window."""
-
-            def devicePixelRatioF(self):  # noqa: N802 - the mixin's name (QWidget's)
-                return float(self.devicePixelRatio())
-
-        _GLViewWindow = GLViewWindow
-    return _GLViewWindow
-
-
-_GLViewWindow = None
 
 
 def _turbo(values: np.ndarray, levels: tuple[float, float]) -> np.ndarray:
@@ -92,23 +79,9 @@ class PointCloudView(QtWidgets.QWidget):
         self.reason = opengl_unavailable()
         self.gl = None
         self.scatter = None
+        self._layout = lay
         if self.reason is None:
-            import pyqtgraph.opengl as gl
-
-            self.gl = _gl_view_class()()
-            fmt = QtGui.QSurfaceFormat.defaultFormat()
-            fmt.setDepthBufferSize(24)         # a QOpenGLWindow has none unless asked: no occlusion
-            self.gl.setFormat(fmt)
-            self.gl.setBackgroundColor("w")
-            self.scatter = gl.GLScatterPlotItem(pos=np.zeros((0, 3)), size=POINT_SIZE_PX,
-                                                pxMode=True)
-            self.scatter.setGLOptions("opaque")
-            self.gl.addItem(self.scatter)
-            self.axes = gl.GLAxisItem()
-            self.gl.addItem(self.axes)
-            self.container = QtWidgets.QWidget.createWindowContainer(self.gl, self)
-            self.container.setMinimumSize(200, 200)
-            lay.addWidget(self.container, 1)
+            pass                               # the GL view is made when first shown (showEvent)
         else:
             note = QtWidgets.QLabel(f"3-D view not available: {self.reason}")
             note.setWordWrap(True)
@@ -123,7 +96,30 @@ class PointCloudView(QtWidgets.QWidget):
 
     @property
     def available(self) -> bool:
-        return self.gl is not None
+        return self.reason is None
+
+    def showEvent(self, event) -> None:  # noqa: N802 - Qt override
+        self._ensure_view()
+        super().showEvent(event)
+
+    def _ensure_view(self) -> None:
+        """Make the GL view the first time the tab is shown: a window that never shows its 3-D
+        view never pays for OpenGL (a QOpenGLWidget makes Qt composite the whole window through
+        OpenGL)."""
+        if self.gl is not None or self.reason is not None:
+            return
+        import pyqtgraph.opengl as gl
+
+        self.gl = gl.GLViewWidget()
+        self.gl.setBackgroundColor("w")
+        self.scatter = gl.GLScatterPlotItem(pos=np.zeros((0, 3)), size=POINT_SIZE_PX, pxMode=True)
+        self.scatter.setGLOptions("opaque")
+        self.gl.addItem(self.scatter)
+        self.axes = gl.GLAxisItem()
+        self.gl.addItem(self.axes)
+        self._layout.addWidget(self.gl, 1)
+        self._camera_set = False
+        self._redraw()
 
     def reset(self, geometry) -> None:
         """A new run: its geometry (``acq.points.ScanGeometry``; None: no 3-D)."""
@@ -188,19 +184,10 @@ class PointCloudView(QtWidgets.QWidget):
         self._redraw()
 
     def release(self) -> None:
-        """Destroy the GL window now (before its parents): deleted along with them, Qt crashed
-        (segmentation fault) in the window container's teardown."""
-        if self.gl is None:
-            return
-        import shiboken6
-
-        self.scatter = None
-        self.gl = None
-        shiboken6.delete(self.container)
-        self.container = None
+        """Nothing to hand back (kept for the window's close)."""
 
     def grab_view(self):
-        """The rendered picture (a QImage): a widget grab does not see into a native window."""
+        """The rendered picture (a QImage), None before the view was first shown."""
         return self.gl.grabFramebuffer() if self.gl is not None else None
 
 

@@ -1075,12 +1075,12 @@ class MainWindow(QtWidgets.QMainWindow):
         path = Path(path)
         pixmap = self.grab()
         v = self.view3d
-        if v.available and self.views.currentWidget() is v and v.container.isVisible():
+        if v.gl is not None and self.views.currentWidget() is v and v.gl.isVisible():
             img = v.grab_view()
             if img is not None and not img.isNull():
                 painter = QtGui.QPainter(pixmap)
-                top_left = v.container.mapTo(self, QtCore.QPoint(0, 0))
-                painter.drawImage(QtCore.QRect(top_left, v.container.size()), img)
+                top_left = v.gl.mapTo(self, QtCore.QPoint(0, 0))
+                painter.drawImage(QtCore.QRect(top_left, v.gl.size()), img)
                 painter.end()
         if not pixmap.save(str(path)):
             raise OSError(f"could not write screenshot {path}")
