@@ -15,10 +15,17 @@ note instead of the view.
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 from PySide6 import QtCore, QtGui, QtWidgets
 
 from spdepth.acq.mapdefs import levels_for, MAPS_BY_KEY
+
+# Mesa's software renderer (llvmpipe: Xvfb, machines without a GPU driver) renders on a thread per
+# core by default, outside the GUI thread whose CPU time the window budgets, and those threads took
+# cores from the scan; rendering in the GUI thread keeps the budget honest. No effect on GPU drivers.
+os.environ.setdefault("LP_NUM_THREADS", "0")
 
 if QtCore.QCoreApplication.instance() is None:
     # one GL resource space for every 3-D view of the process (set before the QApplication exists,

@@ -45,6 +45,8 @@ CPU_BUDGET = 0.05
 """Share of one core the map repaints may use during a scan."""
 FIRST_PAINT_COST_S = 0.03
 """Assumed cost of a map repaint until one is measured."""
+VIEW3D_STATUS_PERIOD_S = 1.0
+"""With the 3D tab shown during a scan, the status bar and plots update at most this often."""
 VIEW3D_PERIOD_S = 2.0
 """Shortest interval between two redraws of the 3-D view during a scan."""
 HISTORY_PERIOD_S = 0.25
@@ -534,7 +536,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.views = QtWidgets.QTabWidget()
         self.views.addTab(self.maps_view, "Maps")
         self.views.addTab(self.view3d, "3D")
-        self.views.currentChanged.connect(lambda _: self._paint_3d())
+        self.views.currentChanged.connect(self._view_changed)
         self.maps_view.scene().sigMouseMoved.connect(self._mouse_moved)
         self.maps_view.scene().sigMouseClicked.connect(self._mouse_clicked)
         centre = QtWidgets.QWidget()
@@ -596,6 +598,8 @@ class MainWindow(QtWidgets.QMainWindow):
         """GUI-thread CPU of one map repaint, measured (a running average)."""
         self._maps_due = 0.0
         self._last_3d = 0.0
+        self._status_due = 0.0
+        self._maps_stale = False
         self._restore_settings()
         # Ctrl+Q / Ctrl+W close the window (a running scan is aborted, its recording kept)
         for keys in (QtGui.QKeySequence.Quit, QtGui.QKeySequence.Close, "Ctrl+Q", "Ctrl+W"):
@@ -846,6 +850,12 @@ class MainWindow(QtWidgets.QMainWindow):
         the scan has ended). The GUI thread's CPU time from a tick that repainted the maps to the
         next (Qt paints in between) is what a repaint costs."""
         cpu, now = time.thread_time(), time.monotonic()
+        if self.running() and self.views.currentWidget() is self.view3d and \
+                now < self._status_due:
+            # with the 3D tab shown Qt composites the whole window through OpenGL at every
+            # update (Mesa: in software, on threads the CPU budget does not see): fewer updates
+            return
+        self._status_due = now + VIEW3D_STATUS_PERIOD_S
         if self._painted_last_tick:
             self.paint_cost_s = 0.7 * self.paint_cost_s + 0.3 * (cpu - self._tick_cpu)
         paint = not self.running() or now >= self._maps_due
@@ -890,8 +900,14 @@ class MainWindow(QtWidgets.QMainWindow):
     def _paint_maps(self, snap, target: int, versions=None, refit: bool = False) -> bool:
         """Set the maps (those whose version changed) and the 3-D view if it is shown; returns
         whether anything was set."""
-        mi = snapshot_input(snap, self._n_bins, target)
         painted = False
+        if self.running() and self.views.currentWidget() is not self.maps_view:
+            # hidden maps are set when their tab is shown again (each set renders an image)
+            self._maps_stale = True
+            self._paint_3d()
+            return False
+        self._maps_stale = False
+        mi = snapshot_input(snap, self._n_bins, target)
         for p in self.panels:
             v = None if versions is None else versions["counts" if p.spec.key == "counts"
                                                        else "estimate"]
@@ -901,6 +917,14 @@ class MainWindow(QtWidgets.QMainWindow):
         if painted:
             self._paint_3d()
         return painted
+
+    def _view_changed(self, _index: int) -> None:
+        if self.views.currentWidget() is self.maps_view and self._maps_stale and self.snap is not None:
+            target = self.run.session.plan.target if self.run is not None else 1
+            self._last_sig = None
+            self._paint_maps(self.snap, target)
+        self._last_3d = 0.0
+        self._paint_3d()
 
     def _paint_3d(self) -> None:
         """The point cloud, only while its tab is shown (hidden, it costs nothing)."""
