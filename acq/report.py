@@ -135,7 +135,9 @@ def render_maps_png(path: str | Path, maps, *, title: str | None = None,
             ax.set_ylabel("row")
         finite = arr[np.isfinite(arr)]
         notes = []
-        if const is not None:
+        if finite.size == 0:
+            notes.append("no pixel has a value")      # and no colour bar to read
+        elif const is not None:
             # one value everywhere: a colour bar would spread rounding noise over its length
             notes.append(f"every pixel: {const:g} {d.unit}")
         else:

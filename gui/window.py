@@ -956,20 +956,25 @@ class MainWindow(QtWidgets.QMainWindow):
             self.health_label.setToolTip(h.tooltip or h.text)
 
     def _on_end(self, snap) -> None:
-        if self.run.out_dir is not None and Path(self.run.out_dir).is_dir():
-            # the run folder gets what `spdepth scan` writes beside the session's files
-            from spdepth.acq.api import finish_session
-
-            try:
-                finish_session(self.run.session, self.run.out_dir, title=self.run.label)
-            except Exception as exc:  # noqa: BLE001 - the maps are still shown; say what failed
-                self.show_error(f"Could not write maps.png/points.ply: {exc}")
+        self._write_run_pictures()
         self.run.close()          # instruments; the session's files are already written
         self.fit_levels()
         if snap.state == "failed":
             self.show_error(f"Scan failed: {snap.error or 'unknown error'}. What was recorded is "
                             f"kept{' in ' + str(self.run.out_dir) if self.run.out_dir else ''}.")
         self.scan_ended.emit(snap.state)
+
+    def _write_run_pictures(self) -> None:
+        """The run folder gets what `spdepth scan` writes beside the session's files: maps.png
+        and points.ply."""
+        if self.run.out_dir is None or not Path(self.run.out_dir).is_dir():
+            return
+        from spdepth.acq.api import finish_session
+
+        try:
+            finish_session(self.run.session, self.run.out_dir, title=self.run.label)
+        except Exception as exc:  # noqa: BLE001 - the maps are still shown; say what failed
+            self.show_error(f"Could not write maps.png/points.ply: {exc}")
 
     def fit_levels(self) -> None:
         """Refit every map's levels to what it shows now."""
@@ -1118,13 +1123,17 @@ class MainWindow(QtWidgets.QMainWindow):
         if run is None:
             return
         s = run.session
+        aborted_here = False
         if not s.ended.is_set():
             try:
                 s.abort()
+                aborted_here = True
             except Exception as exc:  # noqa: BLE001 - it may have ended meanwhile
                 log.info("abort at close: %s", exc)
             s.wait(timeout_s)
         if s.ended.is_set():
+            if aborted_here and not self._ended_emitted:
+                self._write_run_pictures()
             run.close()
         else:
             log.error("session did not end within %.0f s of the abort", timeout_s)

@@ -58,3 +58,19 @@ def test_window_opens_without_opengl(qtbot, win, tmp_path):
     assert not v.available and v.reason
     _run(qtbot, win, tmp_path)
     assert v.n_points == int(np.isfinite(win.snap.depth_m).sum())   # computed, just not drawn
+
+
+def test_missing_x_libraries_are_named_before_qt_aborts():
+    from spdepth.gui.app import missing_libraries, platform_problem
+
+    ldd = ("\tlinux-vdso.so.1 (0x00007ffd)\n\tlibxcb-icccm.so.4 => not found\n"
+           "\tlibxcb-keysyms.so.1 => not found\n\tlibxcb.so.1 => /lib/libxcb.so.1 (0x7f)\n"
+           "\tlibxcb-icccm.so.4 => not found\n")
+    assert missing_libraries(ldd) == ["libxcb-icccm.so.4", "libxcb-keysyms.so.1"]
+    env = {"DISPLAY": ":0"}
+    line = platform_problem(env, ldd=lambda path: ldd)
+    assert "libxcb-icccm.so.4, libxcb-keysyms.so.1" in line
+    assert "apt-get install libxcb-icccm4 libxcb-keysyms1" in line
+    assert platform_problem(env, ldd=lambda path: "\tlibxcb.so.1 => /lib/libxcb.so.1\n") is None
+    assert platform_problem({"QT_QPA_PLATFORM": "offscreen", "DISPLAY": ":0"},
+                            ldd=lambda path: ldd) is None

@@ -107,8 +107,17 @@ def run(args: argparse.Namespace) -> int:
     import dataclasses
 
     from spdepth.acq.requests import ScanRequest
-    from spdepth.gui.app import WINDOW_SIZE, application, remembered_spec, run_window
+    from spdepth.gui.app import (WINDOW_SIZE, application, platform_problem, remembered_spec,
+                                 run_window)
 
+    problem = platform_problem()
+    if problem:
+        import sys
+
+        from spdepth.acq.commands import EXIT_FAILED
+
+        print(f"spdepth gui: {problem}", file=sys.stderr)
+        return EXIT_FAILED
     application()
     spec, start = spec_from_args(args, remembered_spec())
     # a source to start is checked here: bad arguments are one line and exit 2, no window; the
