@@ -45,6 +45,8 @@ CPU_BUDGET = 0.05
 """Share of one core the map repaints may use during a scan."""
 FIRST_PAINT_COST_S = 0.03
 """Assumed cost of a map repaint until one is measured."""
+PATH_FIELDS = ("out_root", "recording", "file")
+"""The controls' paths: remembered absolute, and only those that worked."""
 VIEW3D_STATUS_PERIOD_S = 1.0
 """With the 3D tab shown during a scan, the status bar and plots update at most this often."""
 VIEW3D_PERIOD_S = 2.0
@@ -618,9 +620,12 @@ class MainWindow(QtWidgets.QMainWindow):
     # ---- settings ------------------------------------------------------------------------------
     def _restore_settings(self) -> None:
         raw = self.settings.value("source")
+        self._good_paths = {}
         if raw:
             try:
-                self.controls.set_spec(SourceSpec.from_dict(json.loads(raw)))
+                spec = SourceSpec.from_dict(json.loads(raw))
+                self.controls.set_spec(spec)
+                self._good_paths = {k: getattr(spec, k) for k in PATH_FIELDS if getattr(spec, k)}
             except (ValueError, TypeError) as exc:
                 log.warning("ignoring stored settings: %s", exc)
         geom = self.settings.value("geometry")
@@ -631,21 +636,38 @@ class MainWindow(QtWidgets.QMainWindow):
             self.splitter.restoreState(state)
 
     def restore_fitting_geometry(self, geom) -> bool:
-        """Use a remembered window geometry only if it fits a screen here (one saved by an
-        offscreen run, or on a larger monitor, would clip the window's right column)."""
+        """Use a remembered window geometry only if it fits a screen here and holds the window's
+        contents (one saved on a larger monitor, or squeezed, would clip the right column)."""
         before = self.saveGeometry()
         if not self.restoreGeometry(geom):
             return False
         screen = QtGui.QGuiApplication.screenAt(self.frameGeometry().center()) or \
             QtGui.QGuiApplication.primaryScreen()
-        if screen is not None and screen.availableGeometry().contains(self.frameGeometry()):
+        hint = self.minimumSizeHint()
+        if screen is not None and screen.availableGeometry().contains(self.frameGeometry()) and \
+                self.width() >= hint.width() and self.height() >= hint.height():
             return True
         self.restoreGeometry(before)
         return False
 
-    def save_settings(self) -> None:
-        self.settings.setValue("source", json.dumps(self.controls.spec().to_dict()))
-        self.settings.setValue("geometry", self.saveGeometry())
+    def save_settings(self, worked: bool = False) -> None:
+        """Remember the controls. Paths (runs folder, recording, file) are remembered absolute,
+        and only once they worked (``worked``: a run just started, or a file was read, with
+        them); otherwise the last ones that did are kept."""
+        d = self.controls.spec().to_dict()
+        for k in PATH_FIELDS:
+            if d[k]:
+                d[k] = str(Path(d[k]).expanduser().resolve())
+            if worked:
+                if d[k]:
+                    self._good_paths[k] = d[k]
+            else:
+                d[k] = self._good_paths.get(k, "")
+        self.settings.setValue("source", json.dumps(d))
+        # a headless run's screen is Qt's invented one (offscreen: 800x800): its geometry would
+        # squeeze the window on a real screen, so it is not remembered
+        if QtGui.QGuiApplication.platformName() not in ("offscreen", "minimal"):
+            self.settings.setValue("geometry", self.saveGeometry())
         self.settings.setValue("splitter", self.splitter.saveState())
         self.settings.sync()
 
@@ -708,7 +730,7 @@ class MainWindow(QtWidgets.QMainWindow):
             c.width_px.setValue(plan.shape[1])
             c.mode.setCurrentText(plan.mode)
         self.accuracy.show()
-        self.save_settings()
+        self.save_settings(worked=True)
         self.health = HealthTracker(live=not isinstance(run.request, ReplayRequest))
         self._n_bins = run.session.recon.settings.binning.n_bins
         # the run's own folder name; the whole path is in the tooltip (and in run.json)
@@ -756,7 +778,6 @@ class MainWindow(QtWidgets.QMainWindow):
         self.view = None
         self.snap = None
         self.job = FileJob(request)
-        self.save_settings()
         self.health = HealthTracker(live=False)
         self._new_run(f"{request.label()} — reconstructing…", request.input)
         self.view3d.reset(None)
@@ -791,6 +812,7 @@ class MainWindow(QtWidgets.QMainWindow):
             self.scan_ended.emit("failed")
             return
         res = job.result
+        self.save_settings(worked=True)          # the file was read: its path is worth keeping
         view = self.view = ResultView(res)
         self._n_bins = res.binning.n_bins
         snap = self.snap = view.snapshot()

@@ -296,7 +296,21 @@ def test_settings_are_remembered(qtbot, settings, tmp_path):
     w.close()
     w2 = MainWindow(settings=settings)
     qtbot.addWidget(w2)
-    assert w2.controls.spec() == spec
+    # paths are remembered only once they worked: these never did
+    import dataclasses
+
+    from spdepth.gui.window import DEFAULT_OUT_ROOT
+
+    assert w2.controls.spec() == dataclasses.replace(spec, recording="", file="",
+                                                     out_root=DEFAULT_OUT_ROOT)
+    # one that worked (a run started with it) is remembered, absolute
+    w2.controls.set_spec(dataclasses.replace(spec, out_root="runs-here"))
+    w2.save_settings(worked=True)
+    w2.controls.set_spec(dataclasses.replace(spec, out_root="/nonexistent/typo"))
+    w2.close()
+    w3 = MainWindow(settings=settings)
+    qtbot.addWidget(w3)
+    assert w3.controls.spec().out_root == str(Path("runs-here").resolve())
 
 
 def test_spdepth_gui_screenshot_offscreen(tmp_path):
@@ -438,3 +452,14 @@ def test_the_window_benchmark_runs_from_the_cli_side(qtbot, capsys):
     out = capsys.readouterr().out
     assert out.startswith("bust 8x6, target 2, 1 alternated runs each (medians):")
     assert "scan" in out and "window/headless" in out and "replay" not in out
+
+
+def test_a_headless_run_leaves_no_window_geometry_behind(qtbot, settings):
+    # offscreen Qt invents an 800x800 screen: a geometry saved there squeezed the window (its
+    # right column clipped) when restored on a real screen
+    w = MainWindow(settings=settings)
+    qtbot.addWidget(w)
+    w.resize(700, 500)
+    w.close()
+    assert not settings.contains("geometry")
+    assert settings.contains("source")
