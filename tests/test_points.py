@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -92,3 +94,57 @@ def test_unmeasured_pixels_have_no_background():
                   n_bins=801, target=15)
     bg = MAPS_BY_KEY["background"].extract(mi)
     assert np.isnan(bg[0, 1]) and np.isnan(bg[1, 0]) and bg[0, 0] == 0.0
+
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+if not DATA.is_dir():
+    DATA = Path("/work/shared/data")
+
+
+def _data(rel):
+    p = DATA / rel
+    if not p.is_file():
+        pytest.skip(f"{p} not here (../shared/data)")
+    return str(p)
+
+
+def test_gated_long_range_data_land_at_their_range(tmp_path):
+    from spdepth.acq.api import reconstruct_file
+    from spdepth.acq.requests import FileReconRequest
+
+    path = _data("longrange/tower_9km.mat")
+    plain = reconstruct_file(FileReconRequest(input=path, time_unit_s=1e-12, method="lmf"))
+    assert 700 < plain.summary["depth_m_median"] < 900            # times after the range gate
+    res = reconstruct_file(FileReconRequest(
+        input=path, time_unit_s=1e-12, method="lmf", range_offset_m=9015.0, fov_deg=1.0,
+        las=str(tmp_path / "t.las")))
+    assert res.summary["depth_m_median"] == pytest.approx(plain.summary["depth_m_median"] + 9015)
+    import laspy
+
+    las = laspy.read(str(tmp_path / "t.las"))
+    r = np.sqrt(np.asarray(las.x) ** 2 + np.asarray(las.y) ** 2 + np.asarray(las.z) ** 2)
+    assert len(r) == int(np.isfinite(res.maps.depth_m).sum())
+    assert 9700 < np.median(r) < 9900                             # the tower at 9.8 km
+    delay = reconstruct_file(FileReconRequest(input=path, time_unit_s=1e-12, method="lmf",
+                                              gate_delay_s=2 * 9015.0 / 299792458.0))
+    np.testing.assert_allclose(delay.maps.depth_m, res.maps.depth_m, rtol=1e-12)
+
+
+def test_sparse_data_suggest_the_spatial_method():
+    from spdepth.acq.api import reconstruct_file
+    from spdepth.acq.requests import FileReconRequest
+
+    res = reconstruct_file(FileReconRequest(input=_data("fpi/chart_depth.mat"), time_unit_s=8e-12,
+                                            pulse_rms_s=360e-12, method="lmf"))
+    assert any("--method spatial" in n for n in res.summary["notes"])
+
+
+def test_points_of_a_mat_file_need_its_field_of_view(tmp_path):
+    from spdepth.acq.errors import RequestError
+    from spdepth.acq.requests import FileReconRequest
+
+    path = _data("fpi/chart_depth.mat")
+    with pytest.raises(RequestError, match="--fov-deg"):
+        FileReconRequest(input=path, time_unit_s=8e-12, ply=str(tmp_path / "p.ply"))
+    with pytest.raises(RequestError, match="not both"):
+        FileReconRequest(input=path, time_unit_s=8e-12, range_offset_m=1.0, gate_delay_s=1e-6)
