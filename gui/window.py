@@ -280,7 +280,10 @@ class ControlPanel(QtWidgets.QWidget):
         self.target.setMinimum(0)              # 0 stays 0 until _kind_changed decides
         self.target.setValue(int(s.target))
         self.mode.setCurrentText(s.mode)
+        # settings shown, not a choice made: the window reconstructs again only on a user's change
+        self.method.blockSignals(True)
         self.method.setCurrentText(s.method)
+        self.method.blockSignals(False)
         self.dwell.setValue(float(s.dwell_limit_ms))
         self.sbr.setValue(float(s.sbr))
         self.seed.setValue(int(s.seed))
@@ -587,6 +590,7 @@ class MainWindow(QtWidgets.QMainWindow):
         c.resume.clicked.connect(self.resume)
         c.abort.clicked.connect(self.abort)
         c.fit.clicked.connect(self.fit_levels)
+        c.method.currentTextChanged.connect(self._estimator_changed)
         c.save.clicked.connect(self._save_dialog)
         c.set_running(None)
 
@@ -939,6 +943,37 @@ class MainWindow(QtWidgets.QMainWindow):
         if painted:
             self._paint_3d()
         return painted
+
+    def _estimator_changed(self, method: str) -> None:
+        """A new estimator chosen after a run: the same detections reconstructed again with it
+        (a file, or the finished scan's recording read as a file); a run kept in memory has no
+        recording to read again, and the status bar says so."""
+        if self.running() or self._in_set_spec or not method:
+            return
+        request = None
+        if isinstance(self.view, ResultView):
+            if self.view.result.request.method != method:
+                import dataclasses
+
+                request = dataclasses.replace(self.view.result.request, method=method)
+        elif self.run is not None and self.run.session.ended.is_set():
+            if self.run.session.recon.settings.method == method:
+                return
+            rec = self.run.out_dir / "recording.ptu" if self.run.out_dir is not None else None
+            if rec is not None and rec.is_file():
+                request = FileReconRequest(input=str(rec), method=method)
+            else:
+                self.statusBar().showMessage(
+                    f"{method} applies to the next run: this run kept no recording to "
+                    f"reconstruct again", 10000)
+        if request is not None:
+            self._in_set_spec = True
+            try:
+                self.start_run(request)
+            finally:
+                self._in_set_spec = False
+
+    _in_set_spec = False
 
     def _view_changed(self, _index: int) -> None:
         if self.views.currentWidget() is self.maps_view and self._maps_stale and self.snap is not None:

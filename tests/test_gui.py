@@ -463,3 +463,22 @@ def test_a_headless_run_leaves_no_window_geometry_behind(qtbot, settings):
     w.close()
     assert not settings.contains("geometry")
     assert settings.contains("source")
+
+
+def test_a_new_estimator_after_a_scan_reconstructs_its_recording(qtbot, win, tmp_path):
+    ended = []
+    win.scan_ended.connect(ended.append)
+    assert win.start_run(_spec(tmp_path, size=(10, 12), method="uos"), out_dir=tmp_path / "run")
+    qtbot.waitUntil(lambda: ended == ["done"], timeout=60_000)
+    assert "uos" in win.run_label.text()
+    win.controls.method.setCurrentText("ml")          # as a user picks it
+    qtbot.waitUntil(lambda: len(ended) == 2, timeout=60_000)
+    assert ended[1] == "done"
+    assert "ml" in win.run_label.text() and "recording.ptu" in win.run_label.text()
+    assert win.view.maps().settings["method"] == "ml"
+    assert win.view.shape == (10, 12)
+    # a run kept in memory has nothing to read again: said, not done
+    assert win.start_run(_spec(tmp_path, size=(6, 6), method="uos"), out_dir=None)
+    qtbot.waitUntil(lambda: len(ended) == 3, timeout=60_000)
+    win.controls.method.setCurrentText("lmf")
+    assert "next run" in win.statusBar().currentMessage()
