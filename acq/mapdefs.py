@@ -50,6 +50,8 @@ class MapInput:
     counts: np.ndarray
     n_bins: int
     target: int = 0
+    surfaces: np.ndarray | None = None
+    """(H, W) surfaces found per pixel when K > 1 surfaces were looked for (None: one)."""
 
     def __post_init__(self) -> None:
         # a pixel with no detection kept has no background estimate (the estimator says 0): grey,
@@ -97,6 +99,8 @@ class MapDef:
     extract: Callable[[MapInput], np.ndarray]
     about: str = ""
     per_surface: bool = False
+    optional: bool = False
+    """Drawn only when ``extract`` gives an array (None: the maps do not have it)."""
 
 
 MAP_DEFS: tuple[MapDef, ...] = (
@@ -115,6 +119,10 @@ MAP_DEFS: tuple[MapDef, ...] = (
     MapDef("counts", "Detections kept", "per pixel", "cividis", "target",
            lambda m: np.asarray(m.counts, dtype=np.float64),
            "in-window detections used by the estimate (at most the target)"),
+    MapDef("surfaces", "Surfaces found", "per pixel", "viridis", "zero",
+           lambda m: None if m.surfaces is None else np.asarray(m.surfaces, dtype=np.float64),
+           "returns found per pixel when several surfaces were looked for (--reflectors K)",
+           optional=True),
 )
 """Every map, in display order."""
 
@@ -186,8 +194,21 @@ def map_input_from_maps(maps, *, n_bins: int | None = None, target: int | None =
     return MapInput(depth_m=maps.depth_m, background=maps.background, signal=maps.signal,
                     uncertainty_s=maps.uncertainty_s,
                     counts=np.asarray(maps.photons if counts is None else counts, dtype=np.float64),
-                    n_bins=max(1, int(n_bins)), target=target)
+                    n_bins=max(1, int(n_bins)), target=target, surfaces=surfaces_of(maps))
+
+
+def surfaces_of(maps) -> np.ndarray | None:
+    """(H, W) surfaces found per pixel: the maps' own ``surfaces`` map when they have one, else
+    counted from (K, H, W) depth maps; None for one surface per pixel."""
+    got = getattr(maps, "surfaces", None)
+    if got is not None:
+        return np.asarray(got)
+    depth = np.asarray(maps.depth_m)
+    if depth.ndim == 3 and depth.shape[0] > 1:
+        return np.isfinite(depth).sum(axis=0)
+    return None
 
 
 __all__ = ["MapDef", "MapInput", "MAP_DEFS", "MAPS_BY_KEY", "NAN_COLOUR", "ROBUST_PERCENTILES",
-           "constant_value", "display", "levels_for", "widen", "map_input_from_maps", "first_surface"]
+           "constant_value", "display", "levels_for", "widen", "map_input_from_maps", "first_surface",
+           "surfaces_of"]

@@ -83,7 +83,10 @@ def render_maps_png(path: str | Path, maps, *, title: str | None = None,
     if panels is None:
         mi = map_input_from_maps(maps, n_bins=n_bins, target=target, counts=counts)
         for d in MAP_DEFS:
-            a = np.asarray(d.extract(mi), dtype=np.float64)
+            got = d.extract(mi)
+            if got is None:
+                continue                       # an optional map these maps do not have
+            a = np.asarray(got, dtype=np.float64)
             if a.ndim == 3 and a.shape[0] > 1:
                 for r in range(a.shape[0]):
                     drawn.append((d, f"{d.title}, surface {r + 1}", a[r], mi.target))

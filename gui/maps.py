@@ -32,11 +32,12 @@ def measured_counts(snap) -> np.ndarray:
     return c
 
 
-def snapshot_input(snap, n_bins: int, target: int) -> MapInput:
-    """A session snapshot (or a file result's) as the maps' input."""
+def snapshot_input(snap, n_bins: int, target: int, surfaces=None) -> MapInput:
+    """A session snapshot (or a file result's) as the maps' input; ``surfaces``: the (H, W)
+    surfaces-found map of K > 1 maps."""
     return MapInput(depth_m=snap.depth_m, background=snap.background, signal=snap.signal,
                     uncertainty_s=snap.uncertainty_s, counts=measured_counts(snap),
-                    n_bins=n_bins, target=target)
+                    n_bins=n_bins, target=target, surfaces=surfaces)
 
 
 class MapPanel:
@@ -115,7 +116,8 @@ class MapPanel:
         self.marker.setData([], [])
         self.plot.setTitle(self.spec.title, size="10pt")
 
-    def show(self, data: np.ndarray, target: int, version=None, *, refit: bool = False) -> None:
+    def show(self, data: np.ndarray, target: int, version=None, *, refit: bool = False,
+             surface: int = 0) -> None:
         """New data. Levels by the map's rule on the data, widened (never narrowed) during a run,
         or refitted with ``refit``. ``version``: equal to the last one shown, the data is unchanged
         and the image is not set again (each setImage re-renders the whole image in Python)."""
@@ -123,8 +125,8 @@ class MapPanel:
             return
         self.version = version
         data = np.asarray(data, dtype=np.float64)
-        if data.ndim == 3:
-            data = data[0]
+        if data.ndim == 3:                       # K surfaces: the one picked
+            data = data[min(surface, data.shape[0] - 1)]
         self.data = data
         new = levels_for(self.spec, data, target)
         lv = new if (refit or self.levels is None) else widen(self.levels, new)

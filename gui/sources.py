@@ -66,6 +66,7 @@ class SourceSpec:
     file:           a PTU/HT3/PT3 or .mat file to reconstruct (kind "file").
     time_unit_ps:   file: size of one raw time unit (required for .mat, 0: the PTU header's).
     pulse_rms_ps:   file: Gaussian pulse RMS (0: as recorded, else estimated from the data).
+    reflectors:     file: surfaces per pixel to look for (K).
     out_root:       a folder under which each run gets its own directory (recording, maps,
                     run.json).
     """
@@ -88,6 +89,7 @@ class SourceSpec:
     file: str = ""
     time_unit_ps: float = 0.0
     pulse_rms_ps: float = 0.0
+    reflectors: int = 1
     out_root: str = ""
 
     def to_dict(self) -> dict:
@@ -119,7 +121,8 @@ class SourceSpec:
             return FileReconRequest(input=self.file, method=self.method,
                                     time_unit_s=_ps(self.time_unit_ps),
                                     pulse_rms_s=_ps(self.pulse_rms_ps),
-                                    max_photons=self.target or None)
+                                    max_photons=self.target or None,
+                                    reflectors=int(self.reflectors or 1))
         if self.kind == "sim":
             instruments = SimBench(scene=self.scene, sbr=self.sbr, seed=self.seed,
                                    faults=self.faults)
@@ -146,7 +149,8 @@ class SourceSpec:
             d.update(kind="file", file=request.input, method=request.method,
                      target=request.max_photons or 0,
                      time_unit_ps=(request.time_unit_s or 0.0) * 1e12,
-                     pulse_rms_ps=(request.pulse_rms_s or 0.0) * 1e12)
+                     pulse_rms_ps=(request.pulse_rms_s or 0.0) * 1e12,
+                     reflectors=request.reflectors)
         elif isinstance(request, ScanRequest):
             src = request.instruments
             d.update(size=list(request.size), target=request.target, mode=request.mode,
@@ -254,6 +258,8 @@ class PixelInfo:
     kept: str
     acquisition: str
     n_kept: int = 0
+    surfaces: tuple = ()
+    """K > 1 surfaces: (tof_s, depth_m, signal, uncertainty_s) of each surface fitted, nearest first."""
 
 
 class SessionView:
@@ -349,6 +355,10 @@ class ResultView:
             uncertainty_s=float(first(m.uncertainty_s)[r, c]), estimated=n > 0, flag=int(m.flags[r, c]),
             kept=f"{n} in the window" + (f" (first {self.target})" if self.target else ""),
             n_kept=n,
+            surfaces=tuple((float(m.tof_s[k, r, c]), float(m.depth_m[k, r, c]),
+                            float(m.signal[k, r, c]), float(m.uncertainty_s[k, r, c]))
+                           for k in range(np.shape(m.depth_m)[0])
+                           if np.isfinite(m.depth_m[k, r, c])) if np.ndim(m.depth_m) == 3 else (),
             acquisition=f"from {self.path.name}")
 
 

@@ -153,6 +153,9 @@ class ControlPanel(QtWidgets.QWidget):
         self.pulse_rms.setSpecialValueText("estimate")
         self.pulse_rms.setToolTip("Gaussian pulse RMS width (the seed paper: 360 ps); "
                                   "'estimate' measures the response from the data")
+        self.reflectors = QtWidgets.QSpinBox(minimum=1, maximum=8, value=1)
+        self.reflectors.setToolTip("surfaces per pixel to look for (e.g. 2 through a net or "
+                                   "glass); the maps then show one surface at a time")
         self._rows = {}
         for key, label, w in (("sim", "Scene", self.scene), ("sim", "SBR", self.sbr),
                               ("sim", "Seed", self.seed), ("sim", "Faults", self.faults),
@@ -161,7 +164,8 @@ class ControlPanel(QtWidgets.QWidget):
                               ("real", "Field of view", self.fov),
                               ("replay", "Recording", rec_row), ("file", "File", file_row),
                               ("file", "Time unit", self.time_unit),
-                              ("file", "Pulse RMS", self.pulse_rms)):
+                              ("file", "Pulse RMS", self.pulse_rms),
+                              ("file", "Surfaces", self.reflectors)):
             f.addRow(label, w)
             self._rows.setdefault(key, []).append(w)
         lay.addWidget(src)
@@ -219,9 +223,27 @@ class ControlPanel(QtWidgets.QWidget):
         v.addWidget(self.fit)
         v.addWidget(self.save)
         lay.addWidget(view)
+        self.surface_row = QtWidgets.QWidget()
+        sr = QtWidgets.QHBoxLayout(self.surface_row)
+        sr.setContentsMargins(6, 0, 6, 0)
+        sr.addWidget(QtWidgets.QLabel("Surface shown"))
+        self.surface = QtWidgets.QComboBox()
+        self.surface.setToolTip("maps of several surfaces per pixel (nearest first): the one the "
+                                "depth and uncertainty maps show; the 3D view shows them all")
+        sr.addWidget(self.surface, 1)
+        lay.addWidget(self.surface_row)
+        self.set_surfaces(1)
         lay.addStretch(1)
         self.kind.currentIndexChanged.connect(self._kind_changed)
         self.set_spec(SourceSpec())          # the library's defaults until settings are restored
+
+    def set_surfaces(self, k: int) -> None:
+        """Offer surfaces 1..k in the picker (hidden for one)."""
+        self.surface.blockSignals(True)
+        self.surface.clear()
+        self.surface.addItems([f"{i + 1}" + (" (nearest)" if i == 0 else "") for i in range(k)])
+        self.surface.blockSignals(False)
+        self.surface_row.setVisible(k > 1)
 
     def _kind_changed(self) -> None:
         kind = self.kind.currentData()
@@ -269,7 +291,7 @@ class ControlPanel(QtWidgets.QWidget):
             fov_deg=self.fov.value(),
             recording=self.recording.text().strip(), file=self.file.text().strip(),
             time_unit_ps=self.time_unit.value(), pulse_rms_ps=self.pulse_rms.value(),
-            out_root=self.out_root.text().strip())
+            reflectors=self.reflectors.value(), out_root=self.out_root.text().strip())
 
     def set_spec(self, s: SourceSpec) -> None:
         i = self.kind.findData(s.kind)
@@ -296,6 +318,7 @@ class ControlPanel(QtWidgets.QWidget):
         self.file.setText(s.file)
         self.time_unit.setValue(float(s.time_unit_ps))
         self.pulse_rms.setValue(float(s.pulse_rms_ps))
+        self.reflectors.setValue(int(s.reflectors or 1))
         if s.out_root:
             self.out_root.setText(s.out_root)
         self._kind_changed()
@@ -329,6 +352,8 @@ class Inspector(QtWidgets.QWidget):
                                    name="detections")
         self.model = self.plot.plot([], [], pen=pg.mkPen("#d0342c", width=2),
                                     name="fitted model")
+        self.surface_lines: list = []
+        """One dashed line per fitted surface (K > 1) at its time of flight."""
         self.plot.setMinimumHeight(160)
         lay.addWidget(self.plot, 1)
         self.info = QtWidgets.QLabel()
@@ -370,23 +395,42 @@ class Inspector(QtWidgets.QWidget):
         self.plot.enableAutoRange(axis="y")
         centres = 0.5 * (ph.edges_s[1:] + ph.edges_s[:-1])
         self.model.setData(centres, ph.model) if ph.model is not None else self.model.setData([], [])
+        for line in self.surface_lines:
+            self.plot.removeItem(line)
+        self.surface_lines = []
+        for k, (s_tof, _d, _sig, _sd) in enumerate(info.surfaces):
+            colour = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd")[k % 5]
+            line = pg.InfiniteLine(s_tof, angle=90, pen=pg.mkPen(colour, width=2,
+                                                                 style=QtCore.Qt.DashLine),
+                                   label=f"surface {k + 1}", labelOpts={"color": colour})
+            self.plot.addItem(line)
+            self.surface_lines.append(line)
+        if len(info.surfaces) > 1:
+            tofs = [t for t, *_ in info.surfaces]
+            half = max(3e-9, 10 * (pulse_rms_s or 0))
+            self.plot.setXRange(min(tofs) - half, max(tofs) + half, padding=0)
         self.pixel = pixel
         done = info.estimated
         depth = info.depth_m
         sd_cm = info.uncertainty_s * C_M_PER_S / 2 * 100
         n_bins = b.n_bins
+        # all surfaces' signal counts against the detections kept (the first alone would not add up)
+        sig_all = sum(x[2] for x in info.surfaces) if info.surfaces else sig
         rows = [
             ("depth", f"{depth:.4f} m ± {sd_cm:.2f} cm" if math.isfinite(depth) else "–"),
             ("time of flight", f"{tof * 1e9:.3f} ns" if math.isfinite(tof) else "–"),
             ("signal", f"{sig:.2f} detections (estimated)" if done else "–"),
             ("background", f"{bg * n_bins:.2f} detections in window (estimated; {bg:.2e} per bin)"
              if done and math.isfinite(bg) else "–"),
-            ("model total", f"{sig + bg * n_bins:.2f} = signal + background, against "
+            ("model total", f"{sig_all + bg * n_bins:.2f} = signal + background, against "
              f"{info.n_kept} detections kept" if done and math.isfinite(bg) else "–"),
             ("detections kept", info.kept),
             ("estimate", PixelFlag(info.flag).name.lower().replace("_", " ") if done else "not yet"),
             ("acquisition", info.acquisition),
         ]
+        for k, (_t, s_depth, s_sig, s_sd) in enumerate(info.surfaces):
+            rows.insert(1 + k, (f"surface {k + 1}", f"{s_depth:.4f} m ± "
+                                f"{s_sd * C_M_PER_S / 2 * 100:.2f} cm, {s_sig:.2f} signal detections"))
         if truth is not None:
             rows.insert(1, ("true depth (simulated)", f"{truth:.4f} m" + (
                 f", error {100 * (depth - truth):+.2f} cm" if math.isfinite(depth) else "")))
@@ -532,6 +576,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self.maps_view.ci.setSpacing(4)
         self.panels = [MapPanel(self.maps_view.ci, spec, i // 2, i % 2)
                        for i, spec in enumerate(MAP_DEFS)]
+        self._surfaces = None
+        """(H, W) surfaces found per pixel of K > 1 maps (a file read with several surfaces)."""
         link_panels(self.panels)
         for i in range(2):                 # equal cells: the same region shows at the same scale
             self.maps_view.ci.layout.setColumnStretchFactor(i, 1)
@@ -591,6 +637,7 @@ class MainWindow(QtWidgets.QMainWindow):
         c.abort.clicked.connect(self.abort)
         c.fit.clicked.connect(self.fit_levels)
         c.method.currentTextChanged.connect(self._estimator_changed)
+        c.surface.currentIndexChanged.connect(lambda _: self.fit_levels())
         c.save.clicked.connect(self._save_dialog)
         c.set_running(None)
 
@@ -740,6 +787,8 @@ class MainWindow(QtWidgets.QMainWindow):
         # the run's own folder name; the whole path is in the tooltip (and in run.json)
         where = f" — files in …/{run.out_dir.name}/" if run.out_dir else ""
         self._target = run.session.plan.target
+        self._surfaces = None
+        self.controls.set_surfaces(1)
         self._new_run(f"{run.label}{where}", str(run.out_dir or ""), _plan_geometry(run.session.plan),
                       run.session.plan.shape)
         h, w = run.session.plan.shape
@@ -825,6 +874,11 @@ class MainWindow(QtWidgets.QMainWindow):
         from spdepth.acq.points import geometry_of
 
         geometry = geometry_of(res.maps)
+        from spdepth.acq.mapdefs import surfaces_of
+
+        self._surfaces = surfaces_of(res.maps)
+        k = int(np.asarray(res.maps.depth_m).shape[0]) if np.ndim(res.maps.depth_m) == 3 else 1
+        self.controls.set_surfaces(k)
         self.view3d.reset(geometry)
         for p in self.panels:
             p.set_geometry(geometry, view.shape)
@@ -933,12 +987,18 @@ class MainWindow(QtWidgets.QMainWindow):
             self._paint_3d()
             return False
         self._maps_stale = False
-        mi = snapshot_input(snap, self._n_bins, target)
+        mi = snapshot_input(snap, self._n_bins, target, self._surfaces)
+        surface = max(0, self.controls.surface.currentIndex())
         for p in self.panels:
             v = None if versions is None else versions["counts" if p.spec.key == "counts"
                                                        else "estimate"]
             if v is None or v != p.version or refit:
-                p.show(p.spec.extract(mi), target, version=v, refit=refit)
+                data = p.spec.extract(mi)
+                if data is None:                 # an optional map these maps do not have
+                    p.plot.setVisible(False)
+                    continue
+                p.plot.setVisible(True)
+                p.show(data, target, version=v, refit=refit, surface=surface)
                 painted = True
         if painted:
             self._paint_3d()

@@ -450,7 +450,7 @@ def test_the_window_benchmark_runs_from_the_cli_side(qtbot, capsys):
 
     assert bench(["--size", "8x6", "--target", "2", "--repeats", "1", "--no-replay"]) == 0
     out = capsys.readouterr().out
-    assert out.startswith("bust 8x6, target 2, 1 alternated runs each (medians):")
+    assert out.startswith("bust 8x6, target 2, window showing maps, 1 alternated runs each (medians):")
     assert "scan" in out and "window/headless" in out and "replay" not in out
 
 

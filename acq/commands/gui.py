@@ -35,6 +35,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                      help="--file: raw time unit (required for .mat: 8 for first-photon imaging)")
     src.add_argument("--pulse-rms-ps", type=positive_float, metavar="PS",
                      help="--file: Gaussian pulse RMS (default: estimated from the data)")
+    src.add_argument("--reflectors", type=positive_int, metavar="K",
+                     help="--file: surfaces per pixel to look for (default 1)")
     sim = parser.add_argument_group("simulated bench")
     sim.add_argument("--scene", help="built-in scene or file:DEPTH (default bust)")
     sim.add_argument("--sbr", type=positive_float, help="signal-to-background ratio (default 10)")
@@ -87,7 +89,8 @@ def spec_from_args(args: argparse.Namespace, base=None):
                         ("sync_rate_hz", "sync_rate_hz"), ("fov_deg", "fov_deg"),
                         ("replay", "recording"),
                         ("file", "file"), ("time_unit_ps", "time_unit_ps"),
-                        ("pulse_rms_ps", "pulse_rms_ps"), ("out", "out_root")):
+                        ("pulse_rms_ps", "pulse_rms_ps"), ("reflectors", "reflectors"),
+                        ("out", "out_root")):
         value = getattr(args, name)
         if value is not None:
             changes[field] = value
