@@ -112,13 +112,13 @@ def new_run_dir(root: str | Path, kind: str) -> OutputDir:
 def open_instruments(request: ScanRequest):
     """The instruments a scan request names, opened (``acq.instruments.Instruments``; a context
     manager: close it when the session has ended)."""
-    from spdepth.acq.instruments import open_real, open_sim
+    from spdepth.acq.instruments import open_devices, open_sim
 
     src = request.instruments
     if isinstance(src, SimBench):
         return open_sim(src.scene, request.size, ppp=src.ppp or float(request.target), sbr=src.sbr,
-                        seed=src.seed, faults=src.faults)
-    return open_real(src.galvo, src.tagger, 1.0 / src.sync_rate_hz)
+                        seed=src.seed, faults=src.faults, tagger=src.tagger, galvo=src.galvo)
+    return open_devices(src)
 
 
 def scan_plan(request: ScanRequest, instruments):

@@ -14,6 +14,8 @@ from spdepth.acq.requests import DEFAULT_WINDOW_S
 log = logging.getLogger(__name__)
 
 SIM_TAGGER_URL = "usb:1209:7a64"
+SIM_EVENT_DIVIDER = 64
+"""Simulated Swabian tagger: sync event divider (exercises the divider path; fewer sync tags)."""
 DWELL_LIMIT_FACTOR = 20
 """Simulated gated scans: dwell limit in units of the dwell that gives the scene's mean ppp."""
 
@@ -36,9 +38,10 @@ class Instruments:
     info: dict = field(default_factory=dict)
     _name: str | None = None
     _link: object = None
+    _standins: tuple = ()
 
     def close(self) -> None:
-        for dev in (self.galvo, self.tagger, self._link):
+        for dev in (self.galvo, self.tagger, self._link, *self._standins):
             if dev is None:
                 continue
             try:
@@ -71,7 +74,7 @@ def open_sim(scene_name: str = "bust", shape: tuple[int, int] = (64, 64), *, ppp
              sbr: float | None = 10.0, seed: int = 0, faults: str = "",
              window_s: tuple[float, float] = DEFAULT_WINDOW_S, keep_truth: bool = False,
              galvo_link: str = "url", tagger_options: dict | None = None,
-             galvo_options: dict | None = None,
+             galvo_options: dict | None = None, tagger: str = "", galvo: str = "",
              **scene_settings) -> Instruments:
     """The simulated bench: a scene, its photon world and rig, the galvo emulator on a
     ``galvosim://`` URL and the tagger on the simulated pyusb backend, opened through the real
@@ -82,7 +85,15 @@ def open_sim(scene_name: str = "bust", shape: tuple[int, int] = (64, 64), *, ppp
     galvo_link: "url" (pyserial URL handler) or "pty" (a real tty from a pty pair, POSIX).
     tagger_options: more arguments of ``SimTaggerBackend`` (e.g. ``vanish_s``).
     galvo_options: more arguments of ``GalvoFirmware`` (e.g. ``pace``: real seconds per virtual
-           second of dwell, so a scan takes wall time as a real one would)."""
+           second of dwell, so a scan takes wall time as a real one would).
+    tagger, galvo: vendor device strings (``picoquant:mh150``, ``nidaq:Dev1``): the bench is then
+           reached through that vendor's driver and a stand-in of its library or package
+           (:func:`_open_sim_vendor`); "" keeps our own devices."""
+    if tagger or galvo:
+        return _open_sim_vendor(scene_name, shape, ppp=ppp, sbr=sbr, seed=seed, faults=faults,
+                                window_s=window_s, keep_truth=keep_truth, tagger=tagger,
+                                galvo=galvo, galvo_link=galvo_link, tagger_options=tagger_options,
+                                galvo_options=galvo_options, **scene_settings)
     from spdepth.drivers.galvo import Galvo
     from spdepth.drivers.sim import PhotonWorld, galvo_fw, load_scene
     from spdepth.drivers.sim.faults import GALVO_FAULTS, TAGGER_FAULTS, parse_faults
@@ -91,10 +102,14 @@ def open_sim(scene_name: str = "bust", shape: tuple[int, int] = (64, 64), *, ppp
     from spdepth.drivers.tagger import Tagger, TaggerSettings
 
     h, w = shape
+    parsed = parse_faults(faults)
+    if any(f.kind.value == "daq-underflow" for f in parsed):
+        from spdepth.drivers.errors import SettingError
+
+        raise SettingError("daq-underflow needs --galvo nidaq:DEV")
     scene = load_scene(scene_name, (h, w), ppp=float(ppp), sbr=sbr, tagger_range_s=window_s[1],
                        **scene_settings)
     rig = SimRig(PhotonWorld(scene, seed=seed), keep_truth=keep_truth)
-    parsed = parse_faults(faults)
     name = f"spdepth-sim-{next(_names)}"
     fw = galvo_fw.GalvoFirmware(rig, faults=[f for f in parsed if f.kind in GALVO_FAULTS],
                                 **(galvo_options or {}))
@@ -122,6 +137,147 @@ def open_sim(scene_name: str = "bust", shape: tuple[int, int] = (64, 64), *, ppp
     info = {"scene": scene_name, "shape": [h, w], "ppp": ppp, "sbr": scene.settings.sbr,
             "seed": seed, "faults": faults, "pulse_rms_s": scene.pulse_rms_s}
     return Instruments(galvo, tagger, scene.settings.sync_period_s, scene, rig, info, name, link)
+
+
+def _open_sim_vendor(scene_name, shape, *, ppp, sbr, seed, faults, window_s, keep_truth, tagger,
+                     galvo, galvo_link, tagger_options, galvo_options, **scene_settings) -> Instruments:
+    """The simulated bench behind vendor drivers: a PicoQuant stand-in library (compiled from C,
+    fed by the photon world) and/or a stand-in ``nidaqmx`` module moving the rig's mirror. The
+    side not named uses our own simulated device. Faults: tagger kinds go to the tagger side,
+    ``daq-underflow`` to the NI-DAQ galvo, the other galvo kinds to our galvo emulator."""
+    from spdepth.acq.requests import parse_galvo, parse_tagger
+    from spdepth.drivers.errors import SettingError
+    from spdepth.drivers.sim import PhotonWorld, galvo_fw, load_scene
+    from spdepth.drivers.sim.faults import GALVO_FAULTS, TAGGER_FAULTS, FaultKind, parse_faults
+    from spdepth.drivers.sim.rig import SimRig
+
+    h, w = shape
+    scene = load_scene(scene_name, (h, w), ppp=float(ppp), sbr=sbr, tagger_range_s=window_s[1],
+                       **scene_settings)
+    rig = SimRig(PhotonWorld(scene, seed=seed), keep_truth=keep_truth)
+    parsed = parse_faults(faults)
+    t_faults = [f for f in parsed if f.kind in TAGGER_FAULTS]
+    daq_faults = [f for f in parsed if f.kind == FaultKind.DAQ_UNDERFLOW]
+    g_faults = [f for f in parsed if f.kind in GALVO_FAULTS and f.kind != FaultKind.DAQ_UNDERFLOW]
+    if galvo and g_faults:
+        raise SettingError(f"faults {', '.join(str(f) for f in g_faults)} are our serial galvo's; "
+                           "the NI-DAQ galvo injects daq-underflow")
+    if not galvo and daq_faults:
+        raise SettingError("daq-underflow needs --galvo nidaq:DEV")
+    standins: list = []
+    name = None
+    g = t = link = None
+    try:
+        if galvo:
+            from spdepth.drivers.daq import DaqCalibration, DaqGalvo
+            from spdepth.drivers.sim.nidaqmx_standin import NiDaqmxStandIn
+
+            addr = parse_galvo(galvo)
+            cal = DaqCalibration()
+            module = NiDaqmxStandIn(rig, addr.device, deg_per_volt=cal.deg_per_volt_x,
+                                    faults=daq_faults, scan_pixels=h * w)
+            g = DaqGalvo.open(f"{addr.device}/{addr.ao}", nidaqmx=module, calibration=cal)
+        else:
+            from spdepth.drivers.galvo import Galvo
+
+            name = f"spdepth-sim-{next(_names)}"
+            fw = galvo_fw.GalvoFirmware(rig, faults=g_faults, **(galvo_options or {}))
+            galvo_fw.register_device(name, fw)
+            g = Galvo.open(f"galvosim://{name}")
+        addr = parse_tagger(tagger) if tagger else None
+        if addr is not None and addr.kind == "swabian":
+            from spdepth.drivers.sim.swabian_standin import SwabianStandIn
+            from spdepth.drivers.swabian import SwabianSettings, SwabianTagger
+
+            module = SwabianStandIn(rig, addr.serial or "2138000ABC", faults=t_faults,
+                                    scan_pixels=h * w)
+            t = SwabianTagger.open(addr.serial or None, SwabianSettings(
+                sync_period_s=scene.settings.sync_period_s, event_divider=SIM_EVENT_DIVIDER,
+                resolution_ps=int(round(scene.settings.resolution_s * 1e12))), module=module)
+        elif addr is not None:
+            from spdepth.drivers.picoquant import PicoQuantSettings, PicoQuantTagger
+            from spdepth.drivers.sim.picoquant_standin import PicoQuantStandIn
+
+            sim = PicoQuantStandIn(rig, addr.model, serial=addr.serial or "1000042",
+                                   faults=t_faults, scan_pixels=h * w, **(tagger_options or {}))
+            standins.append(sim)
+            t = PicoQuantTagger.open(addr.model, addr.serial or None, lib=sim.path)
+            t.configure(PicoQuantSettings())
+        else:
+            from spdepth.drivers.sim.tagger_usb import SimTaggerBackend
+            from spdepth.drivers.tagger import Tagger, TaggerSettings
+
+            backend = SimTaggerBackend(rig, faults=t_faults, scan_pixels=h * w,
+                                       **(tagger_options or {}))
+            t = Tagger.open(SIM_TAGGER_URL, backend=backend)
+            t.configure(TaggerSettings())
+    except BaseException:
+        for dev in (g, t, *standins):
+            if dev is not None:
+                try:
+                    dev.close()
+                except Exception as exc:  # noqa: BLE001 - the first error is the one to report
+                    log.warning("closing %s failed: %s", type(dev).__name__, exc)
+        if name is not None:
+            galvo_fw.unregister(name)
+        raise
+    info = {"scene": scene_name, "shape": [h, w], "ppp": ppp, "sbr": scene.settings.sbr,
+            "seed": seed, "faults": faults, "pulse_rms_s": scene.pulse_rms_s,
+            "tagger": tagger or SIM_TAGGER_URL, "galvo": galvo or "galvosim"}
+    return Instruments(g, t, scene.settings.sync_period_s, scene, rig, info, name, link,
+                       tuple(standins))
+
+
+def open_devices(devices) -> Instruments:
+    """Real devices named by an ``acq.requests.Devices``: our serial galvo or an NI-DAQ galvo, our
+    USB tagger or a PicoQuant device. A missing library or device raises ``DeviceError`` (one line
+    naming it and how to install it)."""
+    from spdepth.acq.requests import parse_galvo, parse_tagger
+
+    t_addr, g_addr = parse_tagger(devices.tagger), parse_galvo(devices.galvo)
+    sync_period_s = 1.0 / devices.sync_rate_hz
+    if t_addr.kind == "usb" and g_addr.kind == "serial":
+        return open_real(devices.galvo, devices.tagger, sync_period_s)
+    galvo = tagger = None
+    try:
+        # the tagger first: its vendor library is the likelier thing to be missing
+        if t_addr.kind == "swabian":
+            from spdepth.drivers.swabian import SwabianSettings, SwabianTagger
+
+            tagger = SwabianTagger.open(t_addr.serial or None, SwabianSettings(
+                sync_period_s=sync_period_s, event_divider=devices.event_divider))
+        elif t_addr.kind == "picoquant":
+            from spdepth.drivers.picoquant import PicoQuantSettings, PicoQuantTagger
+
+            tagger = PicoQuantTagger.open(t_addr.model, t_addr.serial or None,
+                                          lib_path=devices.picoquant_lib or None)
+            tagger.configure(PicoQuantSettings())
+        else:
+            from spdepth.drivers.tagger import Tagger, TaggerSettings
+
+            tagger = Tagger.open(devices.tagger)
+            tagger.stop()
+            tagger.configure(TaggerSettings())
+        if g_addr.kind == "nidaq":
+            from spdepth.drivers.daq import DaqCalibration, DaqGalvo
+
+            cal = DaqCalibration(devices.deg_per_volt, devices.deg_per_volt, -devices.v_limit,
+                                 devices.v_limit, tuple(devices.park_deg))
+            galvo = DaqGalvo.open(f"{g_addr.device}/{g_addr.ao}", calibration=cal)
+        else:
+            from spdepth.drivers.galvo import Galvo
+
+            galvo = Galvo.open(g_addr.port)
+    except BaseException:
+        for dev in (galvo, tagger):
+            if dev is not None:
+                try:
+                    dev.close()
+                except Exception as exc:  # noqa: BLE001
+                    log.warning("closing %s failed: %s", type(dev).__name__, exc)
+        raise
+    return Instruments(galvo, tagger, sync_period_s,
+                       info={"galvo": devices.galvo, "tagger": devices.tagger})
 
 
 def open_real(galvo_port: str, tagger_url: str, sync_period_s: float,
@@ -157,4 +313,4 @@ def sim_plan(inst: Instruments, shape, *, mode: str = "gated", target: int = 15,
     return inst.full_plan(shape, mode=mode, target=target, dwell_s=dwell_s, **kwargs)
 
 
-__all__ = ["Instruments", "open_sim", "open_real", "sim_plan"]
+__all__ = ["Instruments", "open_sim", "open_real", "open_devices", "sim_plan"]

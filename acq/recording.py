@@ -43,8 +43,9 @@ from numba import njit
 from spdepth.acq.assign import PassGeometry
 from spdepth.acq.errors import RecordingError, RequestError
 from spdepth.acq.flags import AcqFlag
-from spdepth.acq.ptu import (INFO_TAG, PIXEL_MARKER_TAG, PLAN_TAG, RECON_TAG, iter_records, marker_map,
-                     patch_record_count, ptu_header, read_layout, split_marker_records)
+from spdepth.acq.ptu import (GENERIC_T3_LAYOUT_TYPES, INFO_TAG, PIXEL_MARKER_TAG, PLAN_TAG,
+                             RECON_TAG, RECORD_TYPE_HYDRAHARP2_T3, iter_records, marker_map,
+                             patch_record_count, ptu_header, read_layout, split_marker_records)
 from spdepth.acq.sources import feed_passes
 from spdepth.drivers.errors import ProtocolError
 from spdepth.drivers.events import EVENT_DTYPE, EventKind
@@ -71,14 +72,16 @@ class Recorder:
     """
 
     def __init__(self, out_dir: Path, plan, recon_settings, *, resolution_s: float,
-                 sync_period_s: float | None, log=None, info: dict | None = None):
+                 sync_period_s: float | None, log=None, info: dict | None = None,
+                 record_type: int | None = None):
         out_dir = Path(out_dir)
         if sync_period_s is None:
             raise RequestError("recording needs the laser sync period (sync_period_s)")
         header = ptu_header(plan.shape, sync_period_s, resolution_s, plan.dwell_s, T3_RANGE_BINS,
                             comment="spdepth session recording",
                             tags={PLAN_TAG: plan.to_dict(), RECON_TAG: recon_settings.to_dict(),
-                                  INFO_TAG: info or {}})
+                                  INFO_TAG: info or {}},
+                            record_type=record_type or RECORD_TYPE_HYDRAHARP2_T3)
         self.path = out_dir / "recording.ptu"
         self._fh = open(self.path, "w+b")
         self._fh.write(header)
@@ -199,7 +202,7 @@ class ReplaySource:
         except Exception as exc:  # ptufile's own errors for a file that is not a PTU
             raise RecordingError(f"recording {p}: not a readable PTU file ({exc})") from None
         tags = self.layout.tags
-        if int(tags.get("TTResultFormat_TTTRRecType", 0)) != 0x01010304:
+        if int(tags.get("TTResultFormat_TTTRRecType", 0)) not in GENERIC_T3_LAYOUT_TYPES:
             raise RecordingError(f"recording {p}: record type "
                              f"0x{int(tags.get('TTResultFormat_TTTRRecType', 0)):08x} is not "
                              "Generic T3 (HydraHarp v2 / TimeHarp 260 / MultiHarp); use "

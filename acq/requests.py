@@ -97,6 +97,102 @@ def check_writable(name: str, path: str | None) -> None:
         raise RequestError(f"{name} {path}: cannot be written (permission denied)")
 
 
+# ---- device strings (one style for scan and gui; parsed here only) ----------------------------------
+@dataclass(frozen=True)
+class TaggerAddress:
+    """A parsed ``--tagger``: ``kind`` "usb" (ours; ``vid``/``pid``), "picoquant" (``model``,
+    ``serial``) or "swabian" (``serial``)."""
+
+    kind: str
+    model: str = ""
+    serial: str = ""
+    vid: int = 0
+    pid: int = 0
+    text: str = ""
+
+
+@dataclass(frozen=True)
+class GalvoAddress:
+    """A parsed ``--galvo``: ``kind`` "serial" (ours; ``port``: a serial port or pyserial URL) or
+    "nidaq" (``device`` e.g. Dev1, ``ao`` e.g. ao0:1)."""
+
+    kind: str
+    port: str = ""
+    device: str = ""
+    ao: str = "ao0:1"
+    text: str = ""
+
+
+TAGGER_FORMS = "picoquant:MODEL[:SERIAL] (mh150, mh160, hh400), swabian[:SERIAL] or usb:VID:PID"
+GALVO_FORMS = "nidaq:DEV[/aoN:M] (e.g. nidaq:Dev1/ao0:1) or a serial PORT"
+
+
+def parse_tagger(text: str) -> TaggerAddress:
+    """``picoquant:mh150[:SERIAL]``, ``swabian[:SERIAL]``, ``usb:VID:PID``; RequestError naming
+    the forms otherwise."""
+    if not isinstance(text, str) or not text.strip():
+        raise RequestError(f"--tagger must be {TAGGER_FORMS}, got {text!r}")
+    parts = text.strip().split(":")
+    head = parts[0].lower()
+    if head == "picoquant":
+        if len(parts) not in (2, 3) or not parts[1]:
+            raise RequestError(f"--tagger {text}: expected picoquant:MODEL[:SERIAL], e.g. "
+                               f"picoquant:mh150")
+        from spdepth.drivers.errors import SettingError
+        from spdepth.drivers.picoquant.protocol import family
+
+        try:
+            fam = family(parts[1])
+        except SettingError as exc:
+            raise RequestError(f"--tagger {text}: {exc}") from None
+        serial = parts[2] if len(parts) == 3 else ""
+        if serial and not (serial.isalnum() and len(serial) <= 8):
+            raise RequestError(f"--tagger {text}: a PicoQuant serial number is up to 8 letters "
+                               f"or digits, got {serial!r}")
+        return TaggerAddress("picoquant", model=fam.key, serial=serial, text=text)
+    if head == "swabian":
+        if len(parts) > 2 or (len(parts) == 2 and not parts[1]):
+            raise RequestError(f"--tagger {text}: expected swabian[:SERIAL]")
+        return TaggerAddress("swabian", serial=parts[1] if len(parts) == 2 else "", text=text)
+    if head == "usb":
+        try:
+            if len(parts) != 3:
+                raise ValueError
+            vid, pid = int(parts[1], 16), int(parts[2], 16)
+            if not (0 <= vid <= 0xFFFF and 0 <= pid <= 0xFFFF):
+                raise ValueError
+        except ValueError:
+            raise RequestError(f"--tagger {text}: expected usb:VID:PID in hex, e.g. "
+                               f"usb:1209:7a64") from None
+        return TaggerAddress("usb", vid=vid, pid=pid, text=text)
+    raise RequestError(f"--tagger must be {TAGGER_FORMS}, got {text!r}")
+
+
+def parse_galvo(text: str) -> GalvoAddress:
+    """``nidaq:Dev1[/ao0:1]`` or a serial port / pyserial URL; RequestError otherwise."""
+    if not isinstance(text, str) or not text.strip():
+        raise RequestError(f"--galvo must be {GALVO_FORMS}, got {text!r}")
+    text = text.strip()
+    if text.lower().startswith("nidaq:"):
+        spec = text[len("nidaq:"):]
+        dev, _, ao = spec.partition("/")
+        ao = ao or "ao0:1"
+        import re
+
+        if not re.fullmatch(r"[A-Za-z][A-Za-z0-9_]*", dev or "") or \
+                not re.fullmatch(r"ao\d+:\d+", ao):
+            raise RequestError(f"--galvo {text}: expected nidaq:DEV[/aoN:M] with two analog "
+                               f"outputs, e.g. nidaq:Dev1/ao0:1")
+        a, b = (int(v) for v in ao[2:].split(":"))
+        if b != a + 1:
+            raise RequestError(f"--galvo {text}: {ao} must name two adjacent outputs (x, y), "
+                               f"e.g. ao0:1")
+        return GalvoAddress("nidaq", device=dev, ao=ao, text=text)
+    if text.lower().startswith(("usb:", "picoquant:", "swabian")):
+        raise RequestError(f"--galvo {text} names a time tagger; --galvo must be {GALVO_FORMS}")
+    return GalvoAddress("serial", port=text, text=text)
+
+
 class _Request:
     """``to_dict``/``from_dict`` for the frozen request dataclasses (nested ones included)."""
 
@@ -143,6 +239,10 @@ class SimBench(_Request):
     ppp:    mean detections per pixel per scene dwell (None: the scan's target).
     sbr:    signal-to-background ratio in the detection window.
     faults: instrument faults to inject, ``KIND@WHEN`` items (``drivers.sim.faults``).
+    tagger: "" (our USB tagger) or a vendor device string (``picoquant:mh150``): the bench is then
+            reached through that vendor's driver and a stand-in of its library.
+    galvo:  "" (our serial galvo) or ``nidaq:Dev1[/ao0:1]`` (the NI-DAQ driver on a stand-in
+            ``nidaqmx``).
     """
 
     KIND = "sim"
@@ -151,6 +251,8 @@ class SimBench(_Request):
     sbr: float = 10.0
     seed: int = 0
     faults: str = ""
+    tagger: str = ""
+    galvo: str = ""
 
     def __post_init__(self) -> None:
         if not isinstance(self.scene, str) or not self.scene:
@@ -169,17 +271,40 @@ class SimBench(_Request):
                 parse_faults(self.faults)
             except SettingError as exc:
                 raise RequestError(f"--faults {self.faults!r}: {exc}") from None
+        if self.tagger:
+            t = parse_tagger(self.tagger)
+            if t.kind == "usb":
+                raise RequestError(f"--sim --tagger {self.tagger}: the simulated bench's own "
+                                   f"tagger is the default; name a vendor tagger or leave it out")
+        if self.galvo:
+            g = parse_galvo(self.galvo)
+            if g.kind != "nidaq":
+                raise RequestError(f"--sim --galvo {self.galvo}: the simulated bench's own galvo "
+                                   f"is the default; name nidaq:DEV or leave it out")
+
+    @property
+    def vendor(self) -> bool:
+        """Whether the bench is reached through a vendor backend."""
+        return bool(self.tagger or self.galvo)
 
     def label(self) -> str:
-        return f"simulated {self.scene}"
+        via = " via " + " + ".join(x for x in (self.tagger, self.galvo) if x) if self.vendor else ""
+        return f"simulated {self.scene}{via}"
 
 
 @dataclass(frozen=True)
 class Devices(_Request):
-    """Real instruments: our galvo controller on a serial port and our tagger at ``usb:VID:PID``.
+    """Real instruments: a galvo (``--galvo``: our controller on a serial port, or ``nidaq:Dev1``)
+    and a tagger (``--tagger``: ``usb:VID:PID`` ours, ``picoquant:mh150[:SERIAL]``,
+    ``swabian[:SERIAL]``); device strings are parsed by :func:`parse_tagger`/:func:`parse_galvo`.
 
-    sync_rate_hz: the laser repetition rate (recorded in the PTU header).
-    fov_deg:      square field of view in optical degrees, centred on the mirror's zero.
+    sync_rate_hz:  the laser repetition rate (recorded in the PTU header).
+    fov_deg:       square field of view in optical degrees, centred on the mirror's zero.
+    deg_per_volt:  NI-DAQ galvo: optical degrees per volt (both axes).
+    v_limit:       NI-DAQ galvo: outputs stay within +-v_limit volts.
+    park_deg:      NI-DAQ galvo: (x, y) where the mirror rests between scans.
+    picoquant_lib: PicoQuant: the library file to load ("" searches; see drivers.picoquant).
+    event_divider: Swabian: tag every n-th laser sync only (high laser rates).
     """
 
     KIND = "devices"
@@ -187,10 +312,32 @@ class Devices(_Request):
     tagger: str = ""
     sync_rate_hz: float = 0.0
     fov_deg: float = 20.0
+    deg_per_volt: float = 1.0
+    v_limit: float = 10.0
+    park_deg: tuple[float, float] = (0.0, 0.0)
+    picoquant_lib: str = ""
+    event_divider: int = 1
 
     def __post_init__(self) -> None:
         if not self.galvo or not self.tagger:
-            raise RequestError("real devices need both --galvo PORT and --tagger usb:VID:PID")
+            raise RequestError(f"real devices need both --galvo ({GALVO_FORMS}) and --tagger "
+                               f"({TAGGER_FORMS})")
+        t, g = parse_tagger(self.tagger), parse_galvo(self.galvo)
+        _positive("--deg-per-volt", self.deg_per_volt)
+        _positive("--event-divider", self.event_divider, integer=True)
+        if self.event_divider > 65535:
+            raise RequestError(f"--event-divider {self.event_divider}: at most 65535")
+        if not (isinstance(self.v_limit, (int, float)) and 0 < self.v_limit <= 10):
+            raise RequestError(f"--v-limit must be 0..10 volts, got {self.v_limit!r}")
+        try:
+            px, py = (float(v) for v in self.park_deg)
+        except (TypeError, ValueError):
+            raise RequestError(f"--park-deg must be X,Y degrees, got {self.park_deg!r}") from None
+        object.__setattr__(self, "park_deg", (px, py))
+        if g.kind == "nidaq" and self.fov_deg / 2 / self.deg_per_volt > self.v_limit:
+            raise RequestError(f"--fov-deg {self.fov_deg:g} needs +-{self.fov_deg / 2 / self.deg_per_volt:g} V "
+                               f"at --deg-per-volt {self.deg_per_volt:g}, beyond --v-limit "
+                               f"{self.v_limit:g}")
         if not self.sync_rate_hz:
             raise RequestError("real devices need --sync-rate-hz (the laser repetition rate)")
         _positive("--sync-rate-hz", self.sync_rate_hz)
@@ -286,6 +433,11 @@ class ScanRequest(_Request):
         check_bin_fits(self.bin_s, self.window_s or DEFAULT_WINDOW_S)
         _choice("--method", self.method, METHODS)
         _positive("--pulse-rms-ps", self.pulse_rms_s, allow_none=True)
+        galvo = self.instruments.galvo
+        if galvo and parse_galvo(galvo).kind == "nidaq":
+            if self.settle_s:
+                raise RequestError("--galvo nidaq: --settle-us is not supported yet (the raster "
+                                   "steps on the card's sample clock)")
 
     @property
     def window(self) -> tuple[float, float]:
@@ -440,6 +592,6 @@ def request_from_dict(d: dict):
     return REQUEST_KINDS[d["kind"]].from_dict(d)
 
 
-__all__ = ["SimBench", "Devices", "ScanRequest", "ReplayRequest", "FileReconRequest",
+__all__ = ["SimBench", "Devices", "TaggerAddress", "GalvoAddress", "parse_tagger", "parse_galvo", "ScanRequest", "ReplayRequest", "FileReconRequest",
            "request_from_dict", "DEFAULT_METHOD", "DEFAULT_SIZE", "DEFAULT_TARGET", "DEFAULT_BIN_S",
            "DEFAULT_WINDOW_S", "MAX_TARGET", "check_writable"]

@@ -1,5 +1,12 @@
-"""The live scan source: our galvo (passes over the pixels still short) and our USB time tagger
-(reader thread, recording tap), behind the ``acq.sources.Source`` interface."""
+"""The live scan source: a galvo (passes over the pixels still short) and a time tagger (reader
+thread, recording tap), behind the ``acq.sources.Source`` interface.
+
+The galvo is our serial controller (``drivers.galvo.Galvo``) or one with its scan interface
+(``drivers.daq.DaqGalvo``: configure_scan, start, status, stop, park, poll_pixels, next_error,
+clear_errors); the tagger is our USB tagger (``drivers.tagger.Tagger``) or one with its reader
+interface (``drivers.picoquant.PicoQuantTagger``: ``reader(tap=, notice=)`` giving a
+``TaggerReader``, ``resolution_s``, optionally ``record_type`` for the recording's header). So
+faults, in-band lost spans, re-acquisition, recording and replay are the same for every backend."""
 
 from __future__ import annotations
 
@@ -69,7 +76,8 @@ class ScanSource:
             self.recorder = Recorder(host.out_dir, host.plan, host.recon_settings,
                                      resolution_s=self.tagger.resolution_s,
                                      sync_period_s=self.sync_period_s, log=host.log,
-                                     info=host.info)
+                                     info={**host.info, **getattr(self.tagger, "header_info", {})},
+                                     record_type=getattr(self.tagger, "record_type", None))
         try:
             self.galvo.stop()             # a scan left running by someone else would mix in
         except DeviceError as exc:
@@ -124,6 +132,10 @@ class ScanSource:
         galvo, reader, store = self.galvo, self.reader, host.store
         host.begin_pass(geom, self.recorder.records if self.recorder else None)
         pattern, gate = self._galvo_pattern(host.plan, geom)
+        if hasattr(galvo, "counter"):
+            # a galvo the host gates (NI-DAQ): it watches the pixel's count in the session's store
+            width = store.shape[1]
+            galvo.counter = lambda r, c, g=geom: store.pixel_count((g.row0 + r) * width + g.col0 + c)
         galvo.configure_scan(pattern, gate, settle_s=host.plan.settle_s, frames=1)
         galvo.start()
         stop_sent = cut = False

@@ -125,6 +125,16 @@ class PixelStore:
         with self._lock:
             self.frozen[pixels] = 1
 
+    def pixel_count(self, p: int) -> int:
+        """In-window detections flat pixel ``p`` holds, counting those of its dwell still open
+        (buffered until the dwell completes): what a galvo that the host gates watches. Read
+        without the lock from another thread: a count one chunk old only delays the step."""
+        st = self._state
+        kept = int(self.count[p])
+        if int(st[7]) == p:               # _DWELL_PIXEL: this pixel's dwell is open
+            kept += int(st[10])           # _DWELL_KEPT: its detections buffered so far
+        return kept
+
     def complete(self) -> np.ndarray:
         """Mask of pixels holding ``n_keep`` detections."""
         return self.count >= self.n_keep

@@ -19,13 +19,27 @@ def pytest_addoption(parser):
                      help="serial port or pyserial URL of a real galvo controller (enables hardware tests)")
     parser.addoption("--tagger", default=None,
                      help="real time tagger as usb:VID:PID (enables hardware tests)")
+    parser.addoption("--picoquant", default=None, metavar="MODEL[:SERIAL]",
+                     help="real PicoQuant device, e.g. mh150 or mh150:1234567 (enables its "
+                          "hardware tests)")
+    parser.addoption("--picoquant-lib", default=None, metavar="PATH",
+                     help="the PicoQuant library file (default: the driver's search)")
+    parser.addoption("--nidaq", default=None, metavar="DEV[/aoN:M]",
+                     help="real NI-DAQ device driving a galvo, e.g. Dev1/ao0:1 (moves the mirror; "
+                          "enables its hardware tests)")
+    parser.addoption("--swabian", default=None, metavar="SERIAL|any",
+                     help="real Swabian Time Tagger (enables its hardware tests)")
+
+
+HARDWARE_OPTIONS = ("--galvo-port", "--tagger", "--picoquant", "--nidaq", "--swabian")
 
 
 def pytest_collection_modifyitems(config, items):
-    have_hw = config.getoption("--galvo-port") or config.getoption("--tagger")
+    have_hw = any(config.getoption(o) for o in HARDWARE_OPTIONS)
     if have_hw:
         return
-    skip = pytest.mark.skip(reason="hardware test: name a device with --galvo-port or --tagger")
+    skip = pytest.mark.skip(reason="hardware test: name a device with --galvo-port, --tagger, "
+                                   "--picoquant, --nidaq or --swabian")
     for item in items:
         if "hardware" in item.keywords:
             item.add_marker(skip)

@@ -61,7 +61,7 @@ BAD_COMMAND_LINES = [
     (["scan", "--sim", "--bin-ps", "1e9"], "--bin-ps 1e+09 is wider than the window"),
     (["scan", "--sim", "--size", "10"], "argument --size: size must be WxH"),
     (["scan", "--sim", "--faults", "bogus@3s"], "unknown kind 'bogus'"),
-    (["scan", "--galvo", "loop://"], "both --galvo PORT and --tagger"),
+    (["scan", "--galvo", "loop://"], "real devices need both --galvo"),
     (["scan", "--galvo", "loop://", "--tagger", "usb:1:2"], "--sync-rate-hz"),
     (["scan", "--sim", "--size", "4096x4096", "--target", "200", "--mode", "raster"], "more than the store holds"),
     (["replay", "/nonexistent/rec"], "recording /nonexistent/rec does not exist"),

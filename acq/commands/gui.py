@@ -19,8 +19,11 @@ HELP = ("open the live window; with --sim, --galvo/--tagger or --replay start th
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     src = parser.add_argument_group("source (optional: without one the window waits for Start)")
     src.add_argument("--sim", action="store_true", help="simulated galvo and tagger (a scene)")
-    src.add_argument("--galvo", metavar="PORT", help="real galvo controller: serial port or URL")
-    src.add_argument("--tagger", metavar="usb:VID:PID", help="real time tagger")
+    src.add_argument("--galvo", metavar="GALVO",
+                     help="real galvo: nidaq:DEV[/aoN:M] or our controller's serial PORT or URL")
+    src.add_argument("--tagger", metavar="TAGGER",
+                     help="real time tagger: picoquant:MODEL[:SERIAL], swabian[:SERIAL] or "
+                          "usb:VID:PID")
     src.add_argument("--sync-rate-hz", type=positive_float,
                      help="laser repetition rate (real devices)")
     src.add_argument("--fov-deg", type=positive_float,

@@ -16,15 +16,33 @@ HELP = "scan (simulated or real devices), record the tag stream, reconstruct liv
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     src = parser.add_argument_group("source (one of)")
-    src.add_argument("--sim", action="store_true", help="simulated galvo and tagger (a scene)")
-    src.add_argument("--galvo", metavar="PORT", help="real galvo controller: serial port or URL")
-    src.add_argument("--tagger", metavar="usb:VID:PID", help="real time tagger")
+    src.add_argument("--sim", action="store_true",
+                     help="simulated galvo and tagger (a scene); with --tagger/--galvo naming a "
+                          "vendor device, the scene is reached through that vendor's driver and a "
+                          "stand-in of its library")
+    src.add_argument("--galvo", metavar="GALVO",
+                     help="galvo: nidaq:DEV[/aoN:M] (NI-DAQ analog outputs) or our controller's "
+                          "serial PORT or URL")
+    src.add_argument("--tagger", metavar="TAGGER",
+                     help="time tagger: picoquant:MODEL[:SERIAL] (mh150, mh160, hh400), "
+                          "swabian[:SERIAL] or usb:VID:PID (ours)")
     add_sim_arguments(parser)
     real = parser.add_argument_group("real devices")
     real.add_argument("--sync-rate-hz", type=positive_float,
                       help="laser repetition rate (real devices; recorded in the PTU header)")
     real.add_argument("--fov-deg", type=positive_float, default=20.0,
                       help="square field of view in optical degrees, centred (default 20)")
+    real.add_argument("--deg-per-volt", type=positive_float, default=1.0,
+                      help="NI-DAQ galvo: optical degrees per volt (default 1)")
+    real.add_argument("--v-limit", type=positive_float, default=10.0,
+                      help="NI-DAQ galvo: keep the outputs within +-V volts (default 10)")
+    real.add_argument("--park-deg", default="0,0", metavar="X,Y",
+                      help="NI-DAQ galvo: where the mirror rests between scans (default 0,0)")
+    real.add_argument("--picoquant-lib", default="", metavar="PATH",
+                      help="PicoQuant: the device library file (default: search the install "
+                           "places, the snapi package and SPDEPTH_PICOQUANT_LIB)")
+    real.add_argument("--event-divider", type=positive_int, default=1, metavar="N",
+                      help="Swabian: tag every N-th laser sync only (high laser rates; default 1)")
     add_scan_arguments(parser)
     add_recon_arguments(parser)
     add_output_arguments(parser)
@@ -42,7 +60,8 @@ def add_sim_arguments(parser: argparse.ArgumentParser) -> None:
                      help="faults to inject, KIND@WHEN items (WHEN in virtual seconds '2s' or share "
                           "of the scan '40%%'), e.g. fifo-overflow@40%%,device-vanish@2s; kinds: "
                           "serial-unplug, garbled-reply, missing-reply, slow-reply, servo-fault "
-                          "(galvo); usb-timeout, partial-read, fifo-overflow, device-vanish (tagger)")
+                          "(galvo); daq-underflow (NI-DAQ galvo); usb-timeout, partial-read, fifo-overflow, "
+                          "device-vanish (tagger)")
     sim.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
 
 
@@ -81,16 +100,25 @@ def request_from_args(args: argparse.Namespace):
 
     sim = getattr(args, "sim", True)
     galvo, tagger = getattr(args, "galvo", None), getattr(args, "tagger", None)
-    if sim == bool(galvo or tagger):
-        raise RequestError("give either --sim or both --galvo PORT and --tagger usb:VID:PID")
+    if not sim and not (galvo or tagger):
+        raise RequestError("give either --sim or both --galvo and --tagger (real devices)")
     if sim:
         instruments = SimBench(scene=args.scene, ppp=args.ppp, sbr=args.sbr, seed=args.seed,
-                               faults=args.faults)
+                               faults=args.faults, tagger=tagger or "", galvo=galvo or "")
     else:
         if args.faults:
             raise RequestError("--faults only applies to the simulated devices (--sim)")
+        try:
+            park = tuple(float(v) for v in str(args.park_deg).split(","))
+            if len(park) != 2:
+                raise ValueError
+        except ValueError:
+            raise RequestError(f"--park-deg must be X,Y degrees, got {args.park_deg!r}") from None
         instruments = Devices(galvo=galvo or "", tagger=tagger or "",
-                              sync_rate_hz=args.sync_rate_hz or 0.0, fov_deg=args.fov_deg)
+                              sync_rate_hz=args.sync_rate_hz or 0.0, fov_deg=args.fov_deg,
+                              deg_per_volt=args.deg_per_volt, v_limit=args.v_limit,
+                              park_deg=park, picoquant_lib=args.picoquant_lib,
+                              event_divider=args.event_divider)
     ms = lambda v: None if v is None else v * 1e-3          # noqa: E731
     ps = lambda v: None if v is None else v * 1e-12         # noqa: E731
     return ScanRequest(

@@ -43,6 +43,8 @@ class FaultKind(str, Enum):
     """Tagger: the hardware FIFO overruns and records are lost (reported in-band)."""
     DEVICE_VANISH = "device-vanish"
     """Tagger: the USB device disappears from the bus."""
+    DAQ_UNDERFLOW = "daq-underflow"
+    """NI-DAQ galvo: the card's output buffer runs dry; the scan stops with NI's error -200621."""
 
     @property
     def device(self) -> str:
@@ -52,7 +54,7 @@ class FaultKind(str, Enum):
 
 _GALVO_KINDS = frozenset({FaultKind.SERIAL_UNPLUG, FaultKind.GARBLED_REPLY,
                           FaultKind.MISSING_REPLY, FaultKind.SLOW_REPLY,
-                          FaultKind.SERVO_FAULT})
+                          FaultKind.SERVO_FAULT, FaultKind.DAQ_UNDERFLOW})
 
 
 @dataclass(frozen=True)
