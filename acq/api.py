@@ -393,7 +393,8 @@ def reconstruct_file(request: FileReconRequest, progress=None) -> FileResult:
         if max_photons is None and recorded.get("max_photons"):
             max_photons = int(recorded["max_photons"])
     settings = ReconSettings(method=request.method, binning=binning, pulse_rms_s=pulse_rms_s,
-                             irf=irf, max_photons=max_photons, reflectors=request.reflectors)
+                             irf=irf, max_photons=max_photons, reflectors=request.reflectors,
+                             max_reflectors=request.max_reflectors, false_alarm=request.false_alarm)
     read_s = time.perf_counter() - t0
     if request.threads is not None:
         import numba

@@ -274,7 +274,8 @@ def block_settings(request, unit_s: float):
                          binning=Binning.from_window(unit_s, request.window_s, request.bin_s),
                          pulse_rms_s=request.pulse_rms_s,
                          irf=load_irf(request.irf) if request.irf else None,
-                         max_photons=request.max_photons, reflectors=request.reflectors)
+                         max_photons=request.max_photons, reflectors=request.reflectors,
+                         max_reflectors=request.max_reflectors, false_alarm=request.false_alarm)
 
 
 def _by_blocks(request, client) -> dict | None:

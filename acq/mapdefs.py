@@ -200,13 +200,11 @@ def map_input_from_maps(maps, *, n_bins: int | None = None, target: int | None =
 def surfaces_of(maps) -> np.ndarray | None:
     """(H, W) surfaces found per pixel: the maps' own ``surfaces`` map when they have one, else
     counted from (K, H, W) depth maps; None for one surface per pixel."""
-    got = getattr(maps, "surfaces", None)
-    if got is not None:
-        return np.asarray(got)
     depth = np.asarray(maps.depth_m)
-    if depth.ndim == 3 and depth.shape[0] > 1:
-        return np.isfinite(depth).sum(axis=0)
-    return None
+    if depth.ndim != 3 or depth.shape[0] < 2:
+        return None                       # one surface looked for: nothing to count
+    got = getattr(maps, "surfaces", None)
+    return np.asarray(got) if got is not None else np.isfinite(depth).sum(axis=0)
 
 
 __all__ = ["MapDef", "MapInput", "MAP_DEFS", "MAPS_BY_KEY", "NAN_COLOUR", "ROBUST_PERCENTILES",

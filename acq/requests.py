@@ -54,6 +54,25 @@ def _positive(name: str, value, *, allow_none: bool = False, integer: bool = Fal
         raise RequestError(f"{name} must be {kind}, got {value!r}")
 
 
+def _reflectors(req) -> None:
+    """--reflectors K|auto, --max-reflectors, --false-alarm of a request (recon.model.ReconSettings
+    holds the same limits)."""
+    if req.reflectors != "auto":
+        if isinstance(req.reflectors, str) and req.reflectors.isdigit():
+            object.__setattr__(req, "reflectors", int(req.reflectors))
+        _positive("--reflectors", req.reflectors, integer=True)
+        if req.reflectors > 8:
+            raise RequestError(f"--reflectors must be at most 8 or auto, got {req.reflectors!r}")
+        object.__setattr__(req, "reflectors", int(req.reflectors))
+    _positive("--max-reflectors", req.max_reflectors, integer=True)
+    if req.max_reflectors > 8:
+        raise RequestError(f"--max-reflectors must be at most 8, got {req.max_reflectors!r}")
+    ok = isinstance(req.false_alarm, (int, float)) and not isinstance(req.false_alarm, bool) \
+        and 0 < req.false_alarm < 1
+    if not ok:
+        raise RequestError(f"--false-alarm must be a probability between 0 and 1, got {req.false_alarm!r}")
+
+
 def _choice(name: str, value, choices) -> None:
     if value not in choices:
         raise RequestError(f"{name} must be one of {', '.join(choices)}, got {value!r}")
@@ -505,6 +524,8 @@ class FileReconRequest(_Request):
                  settings when it has them, else to the data (window: the detections' span; bins: a
                  ninth of the pulse RMS; pulse: estimated).
     irf:         a measured response file (CSV time_ps,counts or .npy) instead of a Gaussian.
+    reflectors:  surfaces per pixel: K (1 to 8) or "auto" (decided per pixel by a likelihood-ratio test
+                 at ``false_alarm`` per pixel and surface, up to ``max_reflectors``); recon.multi.
     out, png, save_irf: where the maps (.npz), the picture and the pulse shape used go (None: not
                  written); checked for writability before any work.
     ply, las:    point clouds of the maps (``acq.points``; None: not written).
@@ -524,7 +545,9 @@ class FileReconRequest(_Request):
     pulse_rms_s: float | None = None
     irf: str | None = None
     max_photons: int | None = None
-    reflectors: int = 1
+    reflectors: int | str = 1
+    max_reflectors: int = 3
+    false_alarm: float = 1e-3
     mat_var: str | None = None
     channel: int | None = None
     threads: int | None = None
@@ -570,7 +593,7 @@ class FileReconRequest(_Request):
         if self.irf is not None and not Path(self.irf).is_file():
             raise RequestError(f"--irf {self.irf}: no such file")
         _positive("--max-photons", self.max_photons, allow_none=True, integer=True)
-        _positive("--reflectors", self.reflectors, integer=True)
+        _reflectors(self)
         if self.channel is not None and (not isinstance(self.channel, int) or self.channel < 0):
             raise RequestError(f"--channel must be a detector channel >= 0, got {self.channel!r}")
         _positive("--threads", self.threads, allow_none=True, integer=True)

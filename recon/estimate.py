@@ -15,6 +15,7 @@ from typing import Callable, Mapping
 from spdepth.recon.errors import InputError
 from spdepth.recon.maps import DepthMaps
 from spdepth.recon.model import METHODS, PIXELWISE_METHODS, ReconSettings
+from spdepth.recon.multi import reconstruct_multi
 from spdepth.recon.photons import PhotonStore
 from spdepth.recon.pixelwise import reconstruct_pixelwise
 # resolve_model is also imported from here by acq.live_recon (it was defined here before the split)
@@ -30,6 +31,10 @@ def reconstruct_each_pixel(store: PhotonStore, settings: ReconSettings,
     """lmf, uos and ml: resolve the model (estimating the pulse when the settings give none),
     then fit every pixel on its own (:func:`recon.pixelwise.reconstruct_pixelwise`)."""
     b, kern, notes = resolve_model(store, settings)
+    if settings.several:
+        # a response estimated from the data is re-measured on the surfaces (recon.multi)
+        return reconstruct_multi(store, settings, b, kern, notes, progress,
+                                 measure=notes.get("pulse_source") == "estimated")
     return reconstruct_pixelwise(store, settings, b, kern, notes, progress)
 
 

@@ -18,7 +18,9 @@ from spdepth.recon.errors import InputError
 C_M_PER_S: float = float(_C)
 
 NPZ_KEYS = ("tof_s", "depth_m", "background", "signal", "photons", "iterations", "uncertainty_s",
-            "flags", "settings")
+            "flags", "surfaces", "weak", "settings")
+#: Keys a file written before the several-surface maps may lack (derived on reading).
+OPTIONAL_NPZ_KEYS = ("surfaces", "weak")
 
 
 class PixelFlag(IntEnum):
@@ -38,9 +40,10 @@ class PixelFlag(IntEnum):
 
 @dataclass(frozen=True, eq=False)
 class DepthMaps:
-    """Maps of one reconstruction. H x W pixels; K returns per pixel when ``settings['reflectors']``
-    is K > 1 (then tof_s, depth_m, signal and uncertainty_s are (K, H, W), returns sorted by time,
-    NaN / 0 where fewer than K returns are supported by the data).
+    """Maps of one reconstruction. H x W pixels; K surfaces per pixel when ``settings['reflectors']``
+    is K > 1 or "auto" (then tof_s, depth_m, signal, uncertainty_s and weak are (K, H, W) with K the
+    most surfaces looked for (``max_reflectors`` for auto), surfaces sorted by time, NaN / 0 / False
+    past the ones the data support; ``surfaces`` says how many per pixel).
 
     tof_s:         round-trip time of flight from the laser sync to the pulse centroid, s (NaN: none).
     depth_m:       c * tof_s / 2, m.
@@ -52,6 +55,10 @@ class DepthMaps:
     uncertainty_s: standard deviation of tof_s, s (from the Poisson likelihood's curvature).
     flags:         :class:`PixelFlag` codes, uint8.
     settings:      every setting used, including the pulse RMS actually used (estimated or given).
+    surfaces:      (H, W) int16, surfaces found per pixel (0: none; the finite entries of tof_s).
+    weak:          like tof_s, bool: the surface raised the likelihood too little to rule out a
+                   chance cluster of background at a false-alarm rate of 1e-6 (``settings
+                   ['weak_below_nats']``); all False for one surface per pixel.
     """
 
     tof_s: np.ndarray
@@ -63,6 +70,16 @@ class DepthMaps:
     uncertainty_s: np.ndarray
     flags: np.ndarray
     settings: dict
+    surfaces: np.ndarray | None = None
+    weak: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        tof = np.asarray(self.tof_s)
+        if self.surfaces is None:
+            n = np.isfinite(tof).astype(np.int16)
+            object.__setattr__(self, "surfaces", n.sum(axis=0).astype(np.int16) if tof.ndim == 3 else n)
+        if self.weak is None:
+            object.__setattr__(self, "weak", np.zeros(tof.shape, np.bool_))
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -81,10 +98,10 @@ class DepthMaps:
             raise InputError(f"depth maps file {p} not found")
         try:
             with np.load(p, allow_pickle=False) as z:
-                missing = [k for k in NPZ_KEYS if k not in z.files]
+                missing = [k for k in NPZ_KEYS if k not in z.files and k not in OPTIONAL_NPZ_KEYS]
                 if missing:
                     raise InputError(f"depth maps file {p}: missing {', '.join(missing)}")
-                data = {k: z[k] for k in NPZ_KEYS}
+                data = {k: z[k] for k in NPZ_KEYS if k in z.files}
         except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
             raise InputError(f"depth maps file {p}: not a readable .npz ({exc})") from None
         try:

@@ -456,8 +456,7 @@ BINS_PER_PULSE_RMS = SEED_PAPER.pulse_rms_units / SEED_PAPER.bin_units
 class ReconSettings:
     """Everything a reconstruction depends on; saved with every result (``to_dict``).
 
-    method:         "lmf" (log-matched filter, eq. 11), "uos" (Algorithm 1; with ``reflectors`` K > 1
-                    its K-sparse generalization), "ml" (exact pixelwise Poisson ML of eq. 9) or
+    method:         "lmf" (log-matched filter, eq. 11), "uos" (Algorithm 1), "ml" (exact pixelwise Poisson ML of eq. 9) or
                     "spatial" (censoring, pixelwise fit and TV over neighbours: recon.spatial).
     binning:        None derives it from the data: window = [min, max] of all detection times
                     (stop just past the max), bin width = pulse RMS / 9 rounded to whole raw units
@@ -471,7 +470,14 @@ class ReconSettings:
     irf:            a measured instrument response (:class:`Irf`, see :func:`load_irf`) instead of a
                     Gaussian.
     max_photons:    use only the first N in-window detections of each pixel (None: all).
-    reflectors:     K returns per pixel (uos only for K > 1).
+    reflectors:     surfaces per pixel: 1, K > 1 (up to K, each kept when it raises the Poisson
+                    likelihood by more than recon.multi.LLR_MIN nats) or "auto" (decided per pixel
+                    by a likelihood-ratio test at ``false_alarm``, up to ``max_reflectors``); K > 1
+                    and auto fit every pixel by recon.multi's greedy Poisson pursuit (lmf, uos, ml)
+                    or recon.multi's K-surface fit with the neighbours' help (spatial).
+    max_reflectors: most surfaces per pixel for reflectors="auto" (default 3).
+    false_alarm:    reflectors="auto": chance per pixel and per added surface that background (or the
+                    response's own tail) passes for a surface (default 1e-3).
     delta:          uos stopping threshold on ``||x_k - x_{k-1}||^2`` (paper: 1e-4, with the pulse
                     columns scaled to peak 1 as in the published code).
     max_iterations: uos iteration cap (paper: 10).
@@ -482,9 +488,11 @@ class ReconSettings:
     pulse_rms_s: float | None = None
     irf: Irf | None = None
     max_photons: int | None = None
-    reflectors: int = 1
+    reflectors: int | str = 1
     delta: float = SEED_PAPER.delta
     max_iterations: int = SEED_PAPER.max_iterations
+    max_reflectors: int = 3
+    false_alarm: float = 1e-3
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -504,10 +512,18 @@ class ReconSettings:
             raise InputError("give either pulse_rms_s or irf, not both")
         if self.max_photons is not None and (int(self.max_photons) != self.max_photons or self.max_photons < 1):
             raise InputError(f"max_photons must be a positive integer, got {self.max_photons!r}")
-        if int(self.reflectors) != self.reflectors or not 1 <= self.reflectors <= 8:
-            raise InputError(f"reflectors must be an integer from 1 to 8, got {self.reflectors!r}")
-        if self.reflectors > 1 and self.method != "uos":
-            raise InputError(f"reflectors > 1 needs method 'uos' (its K-sparse pursuit), got {self.method!r}")
+        if self.reflectors != "auto":
+            if isinstance(self.reflectors, str) or int(self.reflectors) != self.reflectors \
+                    or not 1 <= self.reflectors <= 8:
+                raise InputError(f"reflectors must be an integer from 1 to 8 or 'auto', got {self.reflectors!r}")
+            object.__setattr__(self, "reflectors", int(self.reflectors))
+        if isinstance(self.max_reflectors, str) or int(self.max_reflectors) != self.max_reflectors \
+                or not 1 <= self.max_reflectors <= 8:
+            raise InputError(f"max_reflectors must be an integer from 1 to 8, got {self.max_reflectors!r}")
+        object.__setattr__(self, "max_reflectors", int(self.max_reflectors))
+        if not (isinstance(self.false_alarm, (int, float, np.floating)) and 0 < self.false_alarm < 1):
+            raise InputError(f"false_alarm must be a probability in (0, 1), got {self.false_alarm!r}")
+        object.__setattr__(self, "false_alarm", float(self.false_alarm))
         if not (math.isfinite(self.delta) and self.delta > 0):
             raise InputError(f"delta must be positive, got {self.delta!r}")
         if int(self.max_iterations) != self.max_iterations or self.max_iterations < 1:
@@ -519,10 +535,16 @@ class ReconSettings:
              "binning": None if self.binning is None else self.binning.to_dict(),
              "pulse_rms_s": self.pulse_rms_s,
              "irf": None if self.irf is None else self.irf.to_dict(),
-             "max_photons": self.max_photons, "reflectors": int(self.reflectors),
-             "delta": self.delta, "max_iterations": int(self.max_iterations)}
+             "max_photons": self.max_photons, "reflectors": self.reflectors,
+             "delta": self.delta, "max_iterations": int(self.max_iterations),
+             "max_reflectors": self.max_reflectors, "false_alarm": self.false_alarm}
         json.dumps(d)   # fail here, not when saving, if something is not serialisable
         return d
+
+    @property
+    def several(self) -> bool:
+        """True when more than one surface per pixel is looked for (K > 1 or auto)."""
+        return self.reflectors == "auto" or self.reflectors > 1
 
     @classmethod
     def from_dict(cls, d: dict, **override) -> "ReconSettings":
@@ -540,7 +562,9 @@ class ReconSettings:
             irf = None
         return cls(method=d.get("method", "uos"), binning=binning,
                    pulse_rms_s=None if irf is not None else d.get("pulse_rms_s"), irf=irf,
-                   max_photons=d.get("max_photons"), reflectors=int(d.get("reflectors", 1)),
+                   max_photons=d.get("max_photons"), reflectors=d.get("reflectors", 1),
+                   max_reflectors=int(d.get("max_reflectors", 3)),
+                   false_alarm=float(d.get("false_alarm", 1e-3)),
                    delta=float(d.get("delta", SEED_PAPER.delta)),
                    max_iterations=int(d.get("max_iterations", SEED_PAPER.max_iterations)))
 

@@ -143,6 +143,10 @@ def reconstruct_pixelwise(store: PhotonStore, settings: ReconSettings, b: Binnin
     """
     if settings.method not in PIXELWISE_METHODS:
         raise InputError(f"pixelwise estimators are {', '.join(PIXELWISE_METHODS)}, got {settings.method!r}")
+    if settings.several:
+        # several surfaces are recon.multi's (it sits above this module; recon.estimate routes there)
+        raise InputError("reconstruct_pixelwise fits one surface per pixel; several: "
+                         "recon.multi.reconstruct_multi (or recon.estimate.reconstruct)")
     notes = dict(notes)
     # window, first max_photons and binning in one compiled pass (the NumPy route of
     # first_in_window + bin_index cost as much as the lmf kernel itself)

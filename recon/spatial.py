@@ -83,9 +83,12 @@ def reconstruct_spatial(store: PhotonStore, settings: ReconSettings,
         raise InputError(f"settings must be ReconSettings, got {type(settings).__name__}")
     if not isinstance(store, PhotonStore):
         raise InputError(f"store must be a PhotonStore, got {type(store).__name__}")
-    if int(settings.reflectors) != 1:
-        raise InputError(f"the spatial method finds one return per pixel, got reflectors={settings.reflectors}")
     b, kern, notes = resolve_model(store, settings)
+    if settings.several:
+        # several surfaces per pixel, each supported by its neighbours (recon.multi)
+        from spdepth.recon.multi import reconstruct_multi_spatial
+        return reconstruct_multi_spatial(store, settings, b, kern, notes, progress,
+                                         measure=notes.get("pulse_source") == "estimated")
     h, w = store.shape
     npix = h * w
     m = b.n_bins

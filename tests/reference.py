@@ -186,3 +186,207 @@ def photons_by_pixel(pixel, times, n_pix):
     offsets = np.zeros(n_pix + 1, np.int64)
     np.cumsum(np.bincount(pixel, minlength=n_pix), out=offsets[1:])
     return np.asarray(times, np.float64)[order], offsets
+
+
+# ------------------------------------------------------------------------------------------------
+# several surfaces per pixel (recon.multi_kernels), densely: the whole histogram and S each step
+
+def _multi_gain(y, lam, col, csum, newton=12):
+    """(gain, amplitude) of adding the column ``col`` (column sum csum) to the rate lam (dense)."""
+    nz = (y > 0) & (col > 0)
+    yy, cc, ll = y[nz], col[nz], lam[nz]
+    if csum <= 0 or np.sum(yy * cc / ll) - csum <= 0:
+        return 0.0, 0.0
+    a = max(yy.sum() / csum, 1e-6)
+    for _ in range(newton):
+        q = cc / (ll + a * cc)
+        f1, f2 = np.sum(yy * q) - csum, -np.sum(yy * q * q)
+        if f2 >= 0:
+            break
+        na = a - f1 / f2
+        na = 0.5 * a if na <= 0 else na
+        done = abs(na - a) <= 1e-7 * a
+        a = na
+        if done:
+            break
+    return float(np.sum(yy * np.log1p(a * cc / ll)) - a * csum), float(a)
+
+
+def _em(y, s_mat, colsum, shifts, amps, b, bg_floor, sweeps, tol=1e-7):
+    """EM of the amplitudes (in place) and background at fixed shifts, stopping when nothing changes
+    by more than tol (relative); returns the background."""
+    m = y.size
+    for _ in range(sweeps):
+        lam = b + s_mat[:, shifts] @ np.asarray(amps, float)
+        r = np.where(y > 0, y / lam, 0.0)
+        new = [amps[i] * (s_mat[:, shifts[i]] @ r) / colsum[shifts[i]] for i in range(len(shifts))]
+        nb = max(b * r.sum() / m, bg_floor)
+        change = max([abs(n - a) / max(n, 1e-300) for n, a in zip(new, amps)] + [abs(nb - b) / nb])
+        amps[:] = new
+        b = nb
+        if change < tol:
+            break
+    return b
+
+
+def multi_return(y, kern, s_mat, kmax, sep_bins, gain_min, cand_step, step0, em_sweeps=12, screen=4):
+    """The K-surface greedy Poisson pursuit of recon.multi_kernels on one histogram y (length M):
+    returns (shifts (sorted), amplitudes, gains, background)."""
+    m = y.size
+    colsum = s_mat.sum(axis=0)
+    ntot = y.sum()
+    if ntot == 0:
+        return np.array([]), np.array([]), np.array([]), 0.0
+    bg_floor = 1e-9 * ntot / m
+    bg = ntot / m
+    dpk = int(np.argmax(kern.g))
+    cands = []
+    for k in np.flatnonzero(y):
+        j = int(np.clip(k + kern.off - dpk, 0, m - 1))
+        if not cands or j - cands[-1] >= cand_step:
+            cands.append(j)
+    shifts, amps, gains = [], [], []
+
+    def rate(sh, am, b):
+        return b + s_mat[:, sh] @ np.asarray(am, float) if sh else np.full(m, b)
+
+    def free(j, skip):
+        return all(abs(j - s) >= sep_bins for r, s in enumerate(shifts) if r != skip)
+
+    def refine(j, best, a, lam, step, skip):
+        while step >= 1:
+            moved = True
+            while moved:
+                moved = False
+                for jj in (j - step, j + step):
+                    if 0 <= jj < m and free(jj, skip):
+                        gn, an = _multi_gain(y, lam, s_mat[:, jj], colsum[jj])
+                        if gn > best:
+                            best, a, j, moved = gn, an, jj, True
+                            break
+            step //= 2
+        return j, best, a
+
+    def em(b):
+        return _em(y, s_mat, colsum, shifts, amps, b, bg_floor, em_sweeps)
+
+    lam = rate(shifts, amps, bg)
+    while len(shifts) < kmax:
+        # screen: d0^2 / (2 c2), the gain to second order in the amplitude; the best `screen` exactly
+        scored = []
+        for j in cands:
+            if not free(j, -1):
+                continue
+            q = np.where(y > 0, s_mat[:, j] / lam, 0.0)
+            d0, c2 = np.sum(y * q) - colsum[j], np.sum(y * q * q)
+            if d0 > 0 and c2 > 0:
+                scored.append((d0 * d0 / (2 * c2), j))
+        top = [j for _, j in sorted(scored, key=lambda t: -t[0])[:screen]]
+        best, bj, ba = 0.0, -1, 0.0
+        for j in top:
+            gn, an = _multi_gain(y, lam, s_mat[:, j], colsum[j])
+            if gn > best:
+                best, bj, ba = gn, j, an
+        if bj < 0:
+            break
+        bj, best, ba = refine(bj, best, ba, lam, step0, -1)
+        if not best > gain_min:
+            break
+        shifts.append(bj)
+        amps.append(ba)
+        gains.append(best)
+        bg = em(bg)
+        lam = rate(shifts, amps, bg)
+        if len(shifts) > 1:
+            for r in range(len(shifts)):
+                other = [a if i != r else 0.0 for i, a in enumerate(amps)]
+                lam_r = rate(shifts, other, bg)
+                g0, a0 = _multi_gain(y, lam_r, s_mat[:, shifts[r]], colsum[shifts[r]])
+                shifts[r], _, amps[r] = refine(shifts[r], g0, a0, lam_r, 2, r)
+            bg = em(bg)
+            lam = rate(shifts, amps, bg)
+    order = np.argsort(shifts, kind="stable")
+    return np.asarray(shifts, float)[order], np.asarray(amps)[order], np.asarray(gains)[order], float(bg)
+
+
+def neighbour_surfaces(ys, h, w, kern, s_mat, radius, shift_in, gain_in, strong_nats, pool_nats, tau, sep,
+                       kmax, kpool, cand_step, step0):
+    """recon.multi_kernels.neighbour_surfaces densely: ys (P, M) histograms; returns per pixel
+    (shifts, amplitudes, sources) like the kernel (sorted by shift)."""
+    m = ys.shape[1]
+    colsum = s_mat.sum(axis=0)
+    dpk = int(np.argmax(kern.g))
+    out = []
+    for p in range(h * w):
+        y = ys[p]
+        if y.sum() == 0:
+            out.append((np.array([]), np.array([]), np.array([], int)))
+            continue
+        y0, x0 = divmod(p, w)
+        pool = sum(ys[yy * w + xx] for yy in range(max(0, y0 - radius), min(h, y0 + radius + 1))
+                   for xx in range(max(0, x0 - radius), min(w, x0 + radius + 1)))
+        ps, pa, _, _ = multi_return(pool, kern, s_mat, kpool, sep, pool_nats, cand_step, step0)
+        cands = [(int(v), 0) for v, gn in zip(shift_in[p], gain_in[p]) if np.isfinite(v) and gn > strong_nats]
+        cands += [(int(v), 1) for v in ps[np.argsort(-pa, kind="stable")]]
+        live = [True] * len(cands)
+        bg_floor = 1e-9 * y.sum() / m
+        bg = y.sum() / m
+        shifts, amps, srcs = [], [], []
+        lam = np.full(m, bg)
+        aligned = [k + kern.off - dpk for k in np.flatnonzero(y)]
+        while len(shifts) < kmax:
+            best, bj, ba, bc = 0.0, -1, 0.0, -1
+            for c, (j0, _) in enumerate(cands):
+                if not live[c]:
+                    continue
+                for j in aligned:
+                    if 0 <= j < m and abs(j - j0) <= tau and all(abs(j - s) >= sep for s in shifts):
+                        gn, an = _multi_gain(y, lam, s_mat[:, j], colsum[j])
+                        if gn > best:
+                            best, bj, ba, bc = gn, j, an, c
+            if bc < 0:
+                break
+            # pattern search, as refine in multi_return
+            step = step0
+            while step >= 1:
+                moved = True
+                while moved:
+                    moved = False
+                    for jj in (bj - step, bj + step):
+                        if 0 <= jj < m and all(abs(jj - s) >= sep for s in shifts):
+                            gn, an = _multi_gain(y, lam, s_mat[:, jj], colsum[jj])
+                            if gn > best:
+                                best, ba, bj, moved = gn, an, jj, True
+                                break
+                step //= 2
+            for d in range(len(cands)):
+                if live[d] and d != bc and abs(cands[d][0] - cands[bc][0]) < sep:
+                    live[d] = False
+            shifts.append(bj)
+            amps.append(ba)
+            srcs.append(cands[bc][1])
+            live[bc] = False
+            bg = _em(y, s_mat, colsum, shifts, amps, bg, bg_floor, 12)
+            lam = bg + s_mat[:, shifts] @ np.asarray(amps)
+        o = np.argsort(shifts, kind="stable")
+        out.append((np.asarray(shifts, float)[o], np.asarray(amps)[o], np.asarray(srcs, int)[o]))
+    return out
+
+
+def smooth_surfaces(shift, sig, h, w, radius, tau):
+    """recon.multi_kernels.smooth_surfaces' shifts: signal-weighted mean of the surfaces within tau
+    in each surface's neighbourhood."""
+    out = shift.copy()
+    for p in range(h * w):
+        y0, x0 = divmod(p, w)
+        nb = [yy * w + xx for yy in range(max(0, y0 - radius), min(h, y0 + radius + 1))
+              for xx in range(max(0, x0 - radius), min(w, x0 + radius + 1))]
+        for r in range(shift.shape[1]):
+            s = shift[p, r]
+            if np.isnan(s):
+                continue
+            v, wt = shift[nb].ravel(), sig[nb].ravel()
+            ok = np.isfinite(v) & (np.abs(v - s) <= tau) & (wt > 0)
+            if ok.any():
+                out[p, r] = np.sum(wt[ok] * v[ok]) / wt[ok].sum()
+    return out

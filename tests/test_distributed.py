@@ -53,15 +53,16 @@ def _same(a: DepthMaps, b: DepthMaps):
             assert x.dtype == y.dtype and np.array_equal(x, y, equal_nan=True), k
 
 
-def _single(path, tmp, method="uos"):
-    out = tmp / f"single-{os.path.basename(path)}-{method}.npz"
-    assert main(["recon", path, "--method", method, *MODEL, "--out", str(out)]) == 0
+def _single(path, tmp, method="uos", reflectors=1):
+    out = tmp / f"single-{os.path.basename(path)}-{method}-{reflectors}.npz"
+    assert main(["recon", path, "--method", method, *MODEL, "--reflectors", str(reflectors),
+                 "--out", str(out)]) == 0
     return DepthMaps.load_npz(out)
 
 
-def _blocks(client, path, method="uos", on_submitted=None):
+def _blocks(client, path, method="uos", on_submitted=None, reflectors=1):
     unit_s = D._image_and_unit(path, None)[4]
-    settings = D.block_settings(_request(path, method), unit_s)
+    settings = D.block_settings(_request(path, method, reflectors=reflectors), unit_s)
     # small chunks and blocks, so that rows, chunks and blocks all cut across each other
     plan = D.plan_blocks(path, unit_s, chunk_records=3001, block_pixels=7 * 40 + 13)
     assert len(plan.starts) > 3 and len(plan.rows) > 3
@@ -79,6 +80,14 @@ def test_blocks_of_one_recording_give_the_single_process_maps(client, files):
     d, paths = files
     for method in ("uos", "ml"):
         _same(_blocks(client, paths[0], method), _single(paths[0], d, method))
+
+
+def test_blocks_with_several_surfaces_give_the_single_process_maps(client, files):
+    d, paths = files
+    for reflectors in (2, "auto"):
+        blocks = _blocks(client, paths[2], reflectors=reflectors)
+        _same(blocks, _single(paths[2], d, reflectors=reflectors))
+        assert blocks.surfaces.shape == blocks.shape and blocks.tof_s.ndim == 3
 
 
 def test_a_worker_killed_mid_run_is_retried_and_the_maps_are_the_same(client, files):

@@ -198,7 +198,7 @@ def test_empty_store_and_bad_settings():
     maps = reconstruct(store, settings("spatial"))
     assert np.all(np.isnan(maps.tof_s)) and np.all(maps.flags == PixelFlag.NO_PHOTONS)
     with pytest.raises(InputError, match="reflectors"):
-        ReconSettings(method="spatial", reflectors=2)
+        ReconSettings(method="spatial", reflectors=0)
     assert maps.settings["method"] == "spatial" and "spatial" in maps.settings
 
 

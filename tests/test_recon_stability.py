@@ -137,7 +137,7 @@ def test_invalid_settings_refused(tmp_path):
     with pytest.raises(InputError):
         ReconSettings(method="magic")
     with pytest.raises(InputError):
-        ReconSettings(method="ml", reflectors=2)
+        ReconSettings(method="ml", reflectors="two")
 
 
 def test_one_default_bin_rule():
@@ -198,7 +198,7 @@ def test_npz_round_trip(tmp_path, rng):
     assert back.settings == maps.settings
     with np.load(tmp_path / "m.npz") as z:
         assert set(z.files) == {"tof_s", "depth_m", "background", "signal", "photons", "iterations",
-                                "uncertainty_s", "flags", "settings"}
+                                "uncertainty_s", "flags", "surfaces", "weak", "settings"}
 
 
 def test_progress_and_reflectors(rng):

@@ -72,8 +72,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(CSV time_ps,counts; .npy for an (n, 2) array), so it is measured once")
     parser.add_argument("--max-photons", type=positive_int, metavar="N",
                         help="keep the first N in-window detections per pixel (the seed paper: 15)")
-    parser.add_argument("--reflectors", type=positive_int, default=1, metavar="K",
-                        help="surfaces per pixel to look for (default 1)")
+    parser.add_argument("--reflectors", type=_k_or_auto, default=1, metavar="K|auto",
+                        help="surfaces per pixel to look for (default 1): up to K, or auto (decided per "
+                             "pixel by a likelihood-ratio test, up to --max-reflectors)")
+    parser.add_argument("--max-reflectors", type=positive_int, default=3, metavar="K",
+                        help="--reflectors auto: most surfaces per pixel (default 3)")
+    parser.add_argument("--false-alarm", type=positive_float, default=1e-3, metavar="P",
+                        help="--reflectors auto: chance per pixel and surface that background passes "
+                             "for a surface (default 1e-3)")
     parser.add_argument("--mat-var", metavar="NAME", help=".mat files: the cell-array variable to read "
                         "when the file holds several")
     parser.add_argument("--channel", type=int, metavar="N",
@@ -86,6 +92,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(needs the dask extra: pip install 'spdepth[dask]')")
 
 
+def _k_or_auto(text: str):
+    """--reflectors: a whole number or 'auto' (the request checks the range)."""
+    if text == "auto":
+        return "auto"
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number or auto, got {text!r}") from None
+
+
 def request_from_args(args: argparse.Namespace, path: str, out: str | None = None,
                       png: str | None = None):
     """The :class:`~acq.requests.FileReconRequest` of one input file."""
@@ -96,7 +112,8 @@ def request_from_args(args: argparse.Namespace, path: str, out: str | None = Non
         input=path, method=args.method, time_unit_s=ps(args.time_unit_ps),
         window_s=None if args.window_ps is None else tuple(v * 1e-12 for v in args.window_ps),
         bin_s=ps(args.bin_ps), pulse_rms_s=ps(args.pulse_rms_ps), irf=args.irf,
-        max_photons=args.max_photons, reflectors=args.reflectors, mat_var=args.mat_var,
+        max_photons=args.max_photons, reflectors=args.reflectors, max_reflectors=args.max_reflectors,
+        false_alarm=args.false_alarm, mat_var=args.mat_var,
         channel=args.channel, threads=args.threads, out=out, png=png, save_irf=args.save_irf,
         ply=getattr(args, "ply", None), las=getattr(args, "las", None),
         fov_deg=getattr(args, "fov_deg", None), range_offset_m=getattr(args, "range_offset_m", None),
@@ -147,6 +164,14 @@ def _print_result(result) -> None:
                 if est.get("tail_tau_s") else "")) if est["tail_share"] > 0 else ", no tail"
         print(f"pulse estimated from the data ({est['method']}): RMS {est['rms_s'] * 1e12:.0f} ps, "
               f"core {est['core_rms_s'] * 1e12:.0f} ps, FWHM {est['fwhm_s'] * 1e12:.0f} ps{tail}")
+    if str(maps.settings.get("pulse_source", "")).endswith("measured on the surfaces"):
+        t = np.asarray(maps.settings["irf"]["times_s"])
+        print(f"response re-measured on the surfaces: {t[0] * 1e12:.0f} to {t[-1] * 1e12:.0f} ps about its "
+              f"centroid (tail and later bumps included), RMS {maps.settings['pulse_rms_s'] * 1e12:.0f} ps")
+    if "surfaces_rule" in maps.settings:
+        counts = np.bincount(np.ravel(maps.surfaces), minlength=2)
+        print(f"surfaces per pixel ({maps.settings['surfaces_rule']}): "
+              + ", ".join(f"{k}: {c}" for k, c in enumerate(counts)))
     if s.get("range_offset_m"):
         print(f"range offset {s['range_offset_m']:.3f} m added to every depth")
     for what, where in (("maps", s["out"]), ("picture", s["png"]), ("pulse shape", s["save_irf"]),

@@ -25,6 +25,8 @@ TARGETS = {
                 "backlog, replay det/s, peak memory"),
     "report": ("spdepth.acq.commands.bench.report", "accuracy vs detections per pixel, SBR and estimator, with scan and "
                "compute time: report.md, results.csv, PNGs (--out DIR [--quick])"),
+    "surfaces": ("spdepth.acq.commands.bench.surfaces", "several surfaces per pixel: --reflectors 2 and auto beside "
+                 "1 at 50 detections per pixel, warm, 1 thread (pixels/s)"),
     "spatial": ("spdepth.acq.commands.bench.spatial", "spatial estimator on a 256x256 frame beside ml, warm, 1 thread "
                 "(pixels/s per core)"),
 }

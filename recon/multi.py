@@ -1,0 +1,352 @@
+"""Several surfaces per pixel: the pixelwise K-surface estimator, its response and its test.
+
+``reflectors`` K > 1 or "auto" (the pixelwise methods): every pixel is fitted by a greedy Poisson
+pursuit in the union of K shifted copies of the response plus a flat background
+(:mod:`recon.multi_kernels`): a surface is added where it raises the Poisson log-likelihood most,
+with its amplitude profiled out, then the amplitudes and background are refitted and the shifts
+re-refined. K fixed keeps up to K surfaces that each raise the likelihood by more than ``LLR_MIN``
+nats; "auto" keeps adding surfaces (up to ``max_reflectors``) while the likelihood-ratio test below
+rejects "no further surface" at the false-alarm rate asked for.
+
+**The test** (auto): the statistic of a candidate surface is ``Lambda = 2 (log L1 - log L0)``, the
+log-likelihood ratio with its shift searched over the window and its amplitude (>= 0) profiled. At
+one fixed shift it is distributed under "no surface there" as ``0.5 chi2_0 + 0.5 chi2_1`` (an
+amplitude on the boundary); searching over ``N = window / FWHM`` (of the response) effectively independent
+shifts, the chance that any of them passes ``c`` is about ``1 - (1 - 0.5 P(chi2_1 > c))^N``. The
+threshold ``c`` makes that chance ``false_alarm`` (per pixel and per added surface; default 1e-3).
+A pixel whose first surface fails the test has none (flag NO_SIGNAL), not a background guess.
+
+**The response** (when the settings give none): a single-surface response measured from data with
+two surfaces per pixel would be blurred by the second one, and a response that misses the detector's
+diffusion tail or the afterpulse bump turns them into surfaces. So the model is measured from the
+data in two rounds: fit K surfaces with the pulse measured by :mod:`recon.irf`, then pool every
+detection on the surface before it (up to the next surface's leading edge, counting for each lag
+how many surfaces were observed there, so a second surface never enters the first one's tail),
+subtract the flat floor and refit with that shape; the shape keeps the tail and any later bump as
+part of every return.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Callable
+
+import numpy as np
+from scipy.stats import chi2
+
+from spdepth.recon import kernels as K
+from spdepth.recon import multi_kernels as MK
+from spdepth.recon.errors import InputError
+from spdepth.recon.maps import C_M_PER_S, DepthMaps, PixelFlag
+from spdepth.recon.model import Binning, Irf, PulseKernel, ReconSettings, build_kernel, edge_core_rms
+from spdepth.recon.photons import PhotonStore
+from spdepth.recon.pixelwise import honest_var, settings_record
+
+#: K fixed: a surface is kept when it raises the Poisson log-likelihood by more than this (nats).
+LLR_MIN = 3.0
+#: surfaces closer than this many FWHM of the response are one.
+SEP_FWHM = 1.0
+#: one candidate shift per this many core RMS widths of detections (the pattern search that refines
+#: the best one starts at half a core RMS, so it reaches every shift between candidates).
+CAND_CORE = 1.0
+#: a surface is "weak" when its likelihood-ratio statistic passes the auto test at this false-alarm
+#: rate but not at WEAK_FALSE_ALARM (i.e. it may be chance); applies to K fixed as well.
+WEAK_FALSE_ALARM = 1e-6
+#: response pooling: lags before the leading edge used for the floor, in core RMS widths.
+FLOOR_CORE = (8.0, 25.0)
+#: response pooling: longest lag kept, in core RMS widths.
+MAX_LAG_CORE = 60.0
+#: response pooling: it ends where its running mean (a window growing with the lag) falls below this
+#: many standard errors of the floor (as recon.irf does for one surface).
+CUT_SIGMAS = 2.0
+#: response pooling: surfaces need this many expected signal detections to be pooled on.
+POOL_MIN_SIGNAL = 5.0
+
+
+def auto_threshold_nats(false_alarm: float, window_bins: float, width_bins: float) -> float:
+    """Gain (nats, half the statistic) a surface needs under the test in the module docstring;
+    width_bins: the response's FWHM (bins), the spacing of independent shifts."""
+    n_eff = max(1.0, window_bins / max(width_bins, 1.0))
+    p_one = -math.expm1(math.log1p(-false_alarm) / n_eff)       # 1 - (1 - fa)^(1/N)
+    c = float(chi2.isf(min(1.0, 2.0 * p_one), 1))
+    return 0.5 * c
+
+
+def fwhm_bins(g: np.ndarray) -> int:
+    """Full width at half maximum of the binned response (bins, contiguous around its peak)."""
+    pk = int(np.argmax(g))
+    half = 0.5 * g[pk]
+    lo, hi = pk, pk
+    while lo > 0 and g[lo - 1] >= half:
+        lo -= 1
+    while hi < g.size - 1 and g[hi + 1] >= half:
+        hi += 1
+    return hi - lo + 1
+
+
+def kmax_and_gain(settings: ReconSettings, b: Binning, width_bins: float) -> tuple[int, float, str]:
+    """(surfaces at most, gain each needs in nats, how the number is decided)."""
+    if settings.reflectors == "auto":
+        thr = auto_threshold_nats(settings.false_alarm, b.n_bins, width_bins)
+        return int(settings.max_reflectors), thr, (
+            f"likelihood-ratio test, false-alarm rate {settings.false_alarm:g} per pixel and surface "
+            f"(2 dlogL > {2 * thr:.2f})")
+    return int(settings.reflectors), LLR_MIN, f"fixed K={int(settings.reflectors)} (each surface > {LLR_MIN} nats)"
+
+
+def _step0(core_bins: float) -> int:
+    """First step of the shift pattern search: the largest power of 2 up to half the core RMS."""
+    step0 = 1
+    while step0 * 2 <= max(1.0, core_bins / 2):
+        step0 *= 2
+    return step0
+
+
+def fit_surfaces(store: PhotonStore, settings: ReconSettings, b: Binning, kern: PulseKernel, core_s: float,
+                 progress: Callable[[int, int], None] | None = None):
+    """Run the K-surface kernel on every pixel. Returns (shift bins (P, K), amp (P, K), bg (P,), var
+    (P, K), gain (P, K), n_used (P,), kmax, gain_min, rule)."""
+    times = np.ascontiguousarray(store.times, dtype=np.float64)
+    bins = np.empty(times.size, np.int64)
+    offsets = np.empty(store.offsets.size, np.int64)
+    n_kept = K.window_bins(times, np.ascontiguousarray(store.offsets, dtype=np.int64), b.window_start,
+                           b.window_stop, b.bin_width, b.n_bins,
+                           -1 if settings.max_photons is None else int(settings.max_photons), bins, offsets)
+    bins = bins[:n_kept]
+    npix = store.n_pixels
+    fw = fwhm_bins(kern.g)
+    kmax, gain_min, rule = kmax_and_gain(settings, b, fw)
+    core_bins = core_s / b.bin_width_s
+    sep = max(1, int(round(SEP_FWHM * fw)))
+    cand = max(1, int(round(CAND_CORE * core_bins)))
+    step0 = _step0(core_bins)
+    shift = np.full((npix, kmax), np.nan)
+    amp = np.zeros((npix, kmax))
+    var = np.full((npix, kmax), np.nan)
+    gain = np.zeros((npix, kmax))
+    bg = np.zeros(npix)
+    n_used = np.zeros(npix, np.int64)
+    counts = np.diff(offsets)
+    chunk = 16384
+    for p0 in range(0, npix, chunk):
+        p1 = min(npix, p0 + chunk)
+        o = offsets[p0:p1 + 1]
+        maxn = int(counts[p0:p1].max()) if p1 > p0 else 0
+        MK.multi_return_kernel(bins[o[0]:o[-1]], o - o[0], b.n_bins, kern.g, kern.off, kern.colsum, kern.dg,
+                               kmax, sep, float(gain_min), cand, step0, maxn, shift[p0:p1], amp[p0:p1],
+                               bg[p0:p1], var[p0:p1], gain[p0:p1], n_used[p0:p1])
+        if progress is not None:
+            progress(p1, npix)
+    return shift, amp, bg, var, gain, n_used, kmax, gain_min, rule
+
+
+def pooled_response(store: PhotonStore, b: Binning, tof_units: np.ndarray, signal: np.ndarray,
+                    core_u: float) -> Irf:
+    """The response pooled on each pixel's surfaces (module docstring). tof_units: (P, K) surface
+    times in raw units, sorted, NaN past the last; signal: (P, K) expected signal detections."""
+    step = max(1.0, round(core_u / 4.0)) if np.all(np.mod(store.times, 1) == 0) else core_u / 4.0
+    left = FLOOR_CORE[1] * core_u
+    right = min(MAX_LAG_CORE * core_u, float(b.window_stop - b.window_start))
+    nl, nr_ = int(math.ceil(left / step)), int(math.ceil(right / step))
+    edges = (np.arange(-nl, nr_ + 1) - 0.5) * step
+    nb = edges.size - 1
+    hist = np.zeros(nb)
+    expo = np.zeros(nb + 1)
+    counts = np.diff(store.offsets)
+    pix = np.repeat(np.arange(store.n_pixels), counts)
+    t = store.times
+    inwin = (t >= b.window_start) & (t < b.window_stop)
+    kk = tof_units.shape[1]
+    ok = np.isfinite(tof_units) & (signal >= POOL_MIN_SIGNAL)
+    for r in range(kk):
+        tr = tof_units[:, r]
+        nxt = np.full(tr.shape, float(b.window_stop))
+        # the next surface's leading edge (any later surface, kept or not, ends the exposure)
+        for s in range(kk - 1, r, -1):
+            ts = tof_units[:, s]
+            nxt = np.where(np.isfinite(ts), ts - FLOOR_CORE[0] * core_u, nxt)
+        lo = np.maximum(tr - left, b.window_start)
+        hi = np.minimum(np.minimum(nxt, tr + right), b.window_stop)
+        use = ok[:, r] & (hi > lo)
+        sel = inwin & use[pix] & (t >= lo[pix]) & (t < hi[pix])
+        res = t[sel] - tr[pix[sel]]
+        hist += np.histogram(res, bins=edges)[0]
+        # exposure per lag bin: surfaces whose observed span covers the bin
+        a = np.clip(np.searchsorted(edges, (lo - tr)[use]), 0, nb)
+        z = np.clip(np.searchsorted(edges, (hi - tr)[use]), 0, nb)
+        np.add.at(expo, a, 1.0)
+        np.add.at(expo, z, -1.0)
+    ex = np.cumsum(expo)[:nb]
+    centres = 0.5 * (edges[1:] + edges[:-1])
+    rate = np.where(ex > 0, hist / np.maximum(ex, 1.0), 0.0)
+    pre = (centres < -FLOOR_CORE[0] * core_u) & (ex > 0)
+    floor = float(np.sum(hist[pre]) / np.sum(ex[pre])) if np.any(pre) else 0.0
+    net = rate - floor
+    pk = int(np.argmax(net))
+    if not net[pk] > 0:
+        raise InputError("cannot measure the response on the surfaces: no peak above the floor")
+    # standard error of the rate per lag bin; the response ends where it stays below 2 of them
+    se = np.sqrt(np.maximum(floor, 1e-12) / np.maximum(ex, 1.0))
+    csum = np.concatenate(([0.0], np.cumsum(net)))
+    csq = np.concatenate(([0.0], np.cumsum(se * se)))
+    end = nb - 1
+    for j in range(pk + 1, nb):
+        half = max(1, (j - pk) // 4)
+        a, z = max(pk + 1, j - half), min(nb, j + half + 1)
+        if (csum[z] - csum[a]) / (z - a) < CUT_SIGMAS * math.sqrt(csq[z] - csq[a]) / (z - a):
+            end = j
+            break
+    start = pk
+    while start > 0 and net[start - 1] > 2.0 * se[start - 1]:
+        start -= 1
+    start = max(0, start - 1)
+    shape = np.clip(net[start:end + 1], 0.0, None)
+    # smooth the tail (not the edge) with a window growing with the distance from the peak
+    out = shape.copy()
+    cs = np.concatenate(([0.0], np.cumsum(shape)))
+    p0 = pk - start
+    for j in range(p0 + 4, shape.size):
+        half = (j - p0) // 8
+        if half < 1:
+            continue
+        a, z = max(p0 + 1, j - half), min(shape.size, j + half + 1)
+        out[j] = (cs[z] - cs[a]) / (z - a)
+    unit_s = store.time_unit_s
+    return Irf(tuple(centres[start:end + 1] * unit_s), tuple(out),
+               source="estimated from the data (pooled on each pixel's surfaces)")
+
+
+def _measured_model(store: PhotonStore, settings: ReconSettings, b: Binning, kern: PulseKernel, notes: dict):
+    """Re-measure the response on the surfaces of a first fit (module docstring): (kern, core_s)
+    and the notes updated."""
+    core_s = float(notes["pulse_core_rms_s"])
+    shift, amp, *_ = fit_surfaces(store, settings, b, kern, core_s)
+    has = np.isfinite(shift)
+    tof_u = np.where(has, b.shift_to_time_s(np.nan_to_num(shift)), np.nan) / store.time_unit_s
+    sig = np.where(has, amp * kern.colsum[np.clip(np.nan_to_num(shift).astype(np.int64), 0, b.n_bins - 1)], 0.0)
+    irf = pooled_response(store, b, tof_u, sig, core_s / store.time_unit_s)
+    kern = build_kernel(b, irf=irf)
+    t, c = irf.arrays()
+    core_s = max(edge_core_rms(c, float(t[1] - t[0])), 0.5 * float(t[1] - t[0]))
+    notes["irf"] = dict(irf.to_dict(), rms_s=irf.rms_s)
+    notes["pulse_rms_s"] = float(irf.rms_s)
+    notes["pulse_core_rms_s"] = float(core_s)
+    notes["pulse_source"] = "estimated, then measured on the surfaces"
+    return kern, core_s
+
+
+def _maps(store, settings, b, kern, notes, shift, amp, bg, var, gain, n_used, kmax) -> DepthMaps:
+    h, w = store.shape
+    npix = h * w
+    has = np.isfinite(shift)
+    j = np.clip(np.nan_to_num(shift).astype(np.int64), 0, b.n_bins - 1)
+    signal = np.where(has, amp * kern.colsum[j], 0.0)
+    tof_s = np.where(has, b.shift_to_time_s(np.nan_to_num(shift)), np.nan)
+    unc_s = np.sqrt(honest_var(var, has, kern.rms_bins, b.n_bins, "uos")) * b.bin_width_s
+    weak_thr = auto_threshold_nats(WEAK_FALSE_ALARM, b.n_bins, fwhm_bins(kern.g))
+    weak = has & (gain <= weak_thr)
+    surfaces = has.sum(axis=1)
+    flags = np.full(npix, PixelFlag.OK, np.uint8)
+    flags[surfaces == 0] = PixelFlag.NO_SIGNAL
+    flags[n_used == 0] = PixelFlag.NO_PHOTONS
+    notes["weak_below_nats"] = float(weak_thr)
+    rec = settings_record(settings, notes, b, kern)
+
+    def img(a):
+        return np.ascontiguousarray(a.T).reshape(kmax, h, w)
+
+    tof_img = img(tof_s)
+    return DepthMaps(tof_s=tof_img, depth_m=C_M_PER_S * tof_img / 2.0, background=bg.reshape(h, w),
+                     signal=img(signal), photons=n_used.reshape(h, w), iterations=np.ones((h, w), np.int32),
+                     uncertainty_s=img(unc_s), flags=flags.reshape(h, w), settings=rec,
+                     surfaces=surfaces.reshape(h, w).astype(np.int16), weak=img(weak))
+
+
+def reconstruct_multi(store: PhotonStore, settings: ReconSettings, b: Binning, kern: PulseKernel, notes: dict,
+                      progress: Callable[[int, int], None] | None = None,
+                      measure: bool = False) -> DepthMaps:
+    """K surfaces per pixel (``settings.reflectors`` > 1 or "auto"), on the resolved binning ``b`` and
+    pulse ``kern``; with ``measure`` (the pulse was estimated), the response is re-measured on the
+    surfaces first (module docstring). ``notes`` as for :func:`recon.pixelwise.reconstruct_pixelwise`."""
+    notes = dict(notes)
+    core_s = float(notes["pulse_core_rms_s"])
+    if measure:
+        kern, core_s = _measured_model(store, settings, b, kern, notes)
+    shift, amp, bg, var, gain, n_used, kmax, gain_min, rule = fit_surfaces(store, settings, b, kern, core_s, progress)
+    notes["surfaces_rule"] = rule
+    notes["surface_gain_min_nats"] = float(gain_min)
+    notes["kernel_k_surfaces"] = "greedy Poisson pursuit (recon.multi)"
+    return _maps(store, settings, b, kern, notes, shift, amp, bg, var, gain, n_used, kmax)
+
+
+#: spatial, several surfaces: neighbourhood radius (pixels) of censoring, proposals and smoothing.
+SPATIAL_RADIUS = 1
+#: spatial, several surfaces: "the same surface" in a neighbour: within this many response FWHM.
+SPATIAL_TAU_FWHM = 1.0
+
+
+def reconstruct_multi_spatial(store: PhotonStore, settings: ReconSettings, b: Binning, kern: PulseKernel,
+                              notes: dict, progress: Callable[[int, int], None] | None = None,
+                              measure: bool = False) -> DepthMaps:
+    """``method="spatial"`` with several surfaces: every surface supported by its neighbours.
+
+    1. The pixelwise K-surface fit (:func:`reconstruct_multi`'s, response re-measured when
+       ``measure``); its strong surfaces (passing the test at a false-alarm rate of 1e-6 on their
+       own) stand.
+    2. Per pixel, the detections of its 3 x 3 neighbourhood are pooled and fitted the same way (up to
+       K + 1 surfaces: an edge inside the neighbourhood shows both sides), each surface passing the
+       likelihood-ratio test at ``false_alarm`` on the pooled data: what the neighbourhood supports,
+       where a pixel's own 1-3 detections could not be told from chance.
+    3. Censoring per surface: the pixel keeps a candidate (its own strong surfaces first, then the
+       pooled ones, largest first; up to K) only when it holds a detection within one response FWHM
+       of it; the surface's shift is the pixel's own best within that FWHM, then amplitudes and
+       background by EM. A pixel that sees nothing of a surface does not get it (no interpolation).
+    4. Weighted smoothing per surface that keeps edges: each surface's shift becomes the
+       signal-weighted mean of the surfaces within one FWHM of it in its 3 x 3 neighbourhood (a
+       neighbour across an edge, farther in time, does not enter).
+    """
+    notes = dict(notes)
+    core_s = float(notes["pulse_core_rms_s"])
+    if measure:
+        kern, core_s = _measured_model(store, settings, b, kern, notes)
+    shift0, _, _, _, gain0, _, kmax, gain_min, rule = fit_surfaces(store, settings, b, kern, core_s)
+    fw = fwhm_bins(kern.g)
+    tau = SPATIAL_TAU_FWHM * fw
+    strong = auto_threshold_nats(WEAK_FALSE_ALARM, b.n_bins, fw)
+    pool = auto_threshold_nats(settings.false_alarm, b.n_bins, fw)
+    times = np.ascontiguousarray(store.times, dtype=np.float64)
+    bins = np.empty(times.size, np.int64)
+    offsets = np.empty(store.offsets.size, np.int64)
+    n_kept = K.window_bins(times, np.ascontiguousarray(store.offsets, dtype=np.int64), b.window_start,
+                           b.window_stop, b.bin_width, b.n_bins,
+                           -1 if settings.max_photons is None else int(settings.max_photons), bins, offsets)
+    bins = bins[:n_kept]
+    h, w = store.shape
+    npix = h * w
+    counts = np.diff(offsets)
+    shift = np.full((npix, kmax), np.nan)
+    amp = np.zeros((npix, kmax))
+    var = np.full((npix, kmax), np.nan)
+    gain = np.zeros((npix, kmax))
+    src = np.full((npix, kmax), -1, np.int64)
+    bg = np.zeros(npix)
+    sep = max(1, int(round(SEP_FWHM * fw)))
+    core_bins = core_s / b.bin_width_s
+    MK.neighbour_surfaces(bins, offsets, h, w, SPATIAL_RADIUS, shift0, gain0, float(strong), float(pool), float(tau),
+                          sep, kmax, kmax + 1, max(1, int(round(CAND_CORE * core_bins))), kern.g, kern.off,
+                          kern.colsum, kern.dg, b.n_bins, _step0(core_bins), int(counts.max()) if npix else 0,
+                          shift, amp, bg, var, gain, src)
+    if progress is not None:
+        progress(npix, npix)
+    has = np.isfinite(shift)
+    sig = np.where(has, amp * kern.colsum[np.clip(np.nan_to_num(shift).astype(np.int64), 0, b.n_bins - 1)], 0.0)
+    sm_shift = np.empty_like(shift)
+    sm_var = np.empty_like(var)
+    MK.smooth_surfaces(shift, sig, var, h, w, SPATIAL_RADIUS, float(tau), sm_shift, sm_var)
+    notes["surfaces_rule"] = rule
+    notes["surface_gain_min_nats"] = float(gain_min)
+    notes["kernel_k_surfaces"] = "greedy Poisson pursuit with the neighbours' proposals (recon.multi)"
+    notes["spatial_surfaces"] = {"radius": SPATIAL_RADIUS, "tau_bins": float(tau), "strong_nats": float(strong),
+                                 "pooled_nats": float(pool), "own_strong": int(np.sum(src == 0)),
+                                 "from_neighbourhood": int(np.sum(src == 1))}
+    return _maps(store, settings, b, kern, notes, sm_shift, amp, bg, sm_var, gain, counts, kmax)

@@ -1,0 +1,572 @@
+"""Numba kernel of the K-surface pixelwise estimator (:mod:`recon.multi`): a greedy Poisson pursuit.
+
+Per pixel the model is ``lambda_k = B + sum_r a_r g[k - j_r + off]`` (g: the unit-area response on
+the bins, measured from the data, tail and afterpulse bump included, so they are never a surface).
+Returns are added one at a time: each candidate shift (one per cluster of detections, aligned on the
+response's peak) is screened by the second-order expansion of the log-likelihood it adds; the
+SCREEN best are scored exactly (amplitude profiled out by Newton on a concave function), the best
+one is refined by a pattern search over shifts, and kept
+when its gain exceeds ``gain_min`` nats; then every amplitude and the background are refitted by EM
+and every earlier return's shift is re-refined with the others fixed. Plain reference:
+``tests/reference.py::multi_return_ref``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+from spdepth.recon.kernels import BLOCK, unique_counts
+
+#: Newton steps on a return's amplitude.
+NEWTON_STEPS = 12
+#: Newton on an amplitude stops at this relative step.
+NEWTON_TOL = 1e-7
+#: EM sweeps of the amplitudes and background after each added return, at most.
+EM_SWEEPS = 12
+#: EM stops when no amplitude nor the background changes by more than this (relative).
+EM_TOL = 1e-7
+#: candidates scored exactly per round: the best by the second-order screen (screen_score).
+SCREEN = 4
+
+
+@njit(cache=True, nogil=True, inline="always")
+def first_at_least(kb, nu, v):
+    """Index of the first of the sorted kb[:nu] that is >= v (nu when none)."""
+    a, z = 0, nu
+    while a < z:
+        h = (a + z) // 2
+        if kb[h] < v:
+            a = h + 1
+        else:
+            z = h
+    return a
+
+
+@njit(cache=True, nogil=True)
+def add_gain(j, kb, kw, nu, lam, g, off, colsum):
+    """(gain, amplitude) of adding a return at shift j to the model whose rate at the photons' bins is
+    lam: ``max_a sum_u kw_u log(1 + a g_u / lam_u) - a colsum[j]`` over a >= 0 (nats). Only the
+    detections under the pulse (kb sorted) enter."""
+    nk = g.size
+    lo = j - off
+    hi = lo + nk
+    c = colsum[j]
+    if c <= 0.0:
+        return 0.0, 0.0
+    u0 = first_at_least(kb, nu, lo)
+    u1 = first_at_least(kb, nu, hi)
+    # slope at a = 0 and a start: the detections under the pulse
+    d0 = -c
+    nin = 0.0
+    for u in range(u0, u1):
+        gu = g[kb[u] - lo]
+        if gu > 0.0:
+            d0 += kw[u] * gu / lam[u]
+            nin += kw[u]
+    if d0 <= 0.0:
+        return 0.0, 0.0
+    a = max(nin / c, 1e-6)
+    for _ in range(NEWTON_STEPS):
+        f1 = -c
+        f2 = 0.0
+        for u in range(u0, u1):
+            gu = g[kb[u] - lo]
+            if gu > 0.0:
+                q = gu / (lam[u] + a * gu)
+                f1 += kw[u] * q
+                f2 -= kw[u] * q * q
+        if f2 >= 0.0:
+            break
+        na = a - f1 / f2
+        if na <= 0.0:
+            na = 0.5 * a
+        if abs(na - a) <= NEWTON_TOL * a:
+            a = na
+            break
+        a = na
+    gain = -a * c
+    for u in range(u0, u1):
+        gu = g[kb[u] - lo]
+        if gu > 0.0:
+            gain += kw[u] * math.log1p(a * gu / lam[u])
+    return gain, a
+
+
+@njit(cache=True, nogil=True)
+def screen_score(j, kb, kw, nu, ilam, g, off, colsum):
+    """The gain of adding a return at shift j to second order in its amplitude at 0,
+    ``d0^2 / (2 c2)`` (slope d0 and curvature c2 there; 0 when the slope is not positive): one pass,
+    to pick the candidates worth the exact :func:`add_gain`. ilam: 1 / the model's rate at the
+    photons."""
+    nk = g.size
+    lo = j - off
+    c = colsum[j]
+    if c <= 0.0:
+        return 0.0
+    u0 = first_at_least(kb, nu, lo)
+    u1 = first_at_least(kb, nu, lo + nk)
+    d0 = -c
+    c2 = 0.0
+    for u in range(u0, u1):
+        gu = g[kb[u] - lo]
+        if gu > 0.0:
+            q = gu * ilam[u]
+            d0 += kw[u] * q
+            c2 += kw[u] * q * q
+    if d0 <= 0.0 or c2 <= 0.0:
+        return 0.0
+    return d0 * d0 / (2.0 * c2)
+
+
+@njit(cache=True, nogil=True)
+def refine_shift(j, best, amp, kb, kw, nu, lam, g, off, colsum, m, step0, shifts, nr, skip, sep_bins):
+    """Pattern search (steps step0, step0/2, ..., 1 bins) for the shift of most gain from j, never
+    within sep_bins of shifts[:nr] (but shifts[skip])."""
+    step = step0
+    while step >= 1:
+        moved = True
+        while moved:
+            moved = False
+            for sgn in (-1, 1):
+                jj = j + sgn * step
+                if jj < 0 or jj >= m:
+                    continue
+                near = False
+                for r in range(nr):
+                    if r != skip and abs(jj - shifts[r]) < sep_bins:
+                        near = True
+                if near:
+                    continue
+                gn, an = add_gain(jj, kb, kw, nu, lam, g, off, colsum)
+                if gn > best:
+                    best, amp, j = gn, an, jj
+                    moved = True
+                    break
+        step //= 2
+    return j, best, amp
+
+
+@njit(cache=True, nogil=True)
+def model_rate(kb, nu, shifts, amps, nr, bg, g, off, lam):
+    """lam[u] = bg + sum_r amps[r] g[kb_u - shifts[r] + off]."""
+    nk = g.size
+    for u in range(nu):
+        v = bg
+        for r in range(nr):
+            d = kb[u] - shifts[r] + off
+            if d >= 0 and d < nk:
+                v += amps[r] * g[d]
+        lam[u] = v
+
+
+@njit(cache=True, nogil=True)
+def em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, lam, sweeps):
+    """EM for the amplitudes and background at fixed shifts (monotone in the likelihood); returns bg
+    and leaves lam at the final model."""
+    nk = g.size
+    newa = np.empty(max(nr, 1))
+    for _ in range(sweeps):
+        model_rate(kb, nu, shifts, amps, nr, bg, g, off, lam)
+        nb = 0.0
+        for r in range(nr):
+            newa[r] = 0.0
+        for u in range(nu):
+            nb += kw[u] * bg / lam[u]
+            for r in range(nr):
+                d = kb[u] - shifts[r] + off
+                if d >= 0 and d < nk:
+                    newa[r] += kw[u] * amps[r] * g[d] / lam[u]
+        change = 0.0
+        for r in range(nr):
+            na = newa[r] / colsum[shifts[r]]
+            change = max(change, abs(na - amps[r]) / max(na, 1e-300))
+            amps[r] = na
+        nbg = max(nb / m, bg_floor)
+        change = max(change, abs(nbg - bg) / nbg)
+        bg = nbg
+        if change < EM_TOL:
+            break
+    model_rate(kb, nu, shifts, amps, nr, bg, g, off, lam)
+    return bg
+
+
+@njit(cache=True, nogil=True)
+def shift_fisher(r, shifts, amps, nr, bg, g, dg, off, m):
+    """Expected Fisher information of return r's shift (1/bins^2) over the window's bins."""
+    nk = g.size
+    info = 0.0
+    lo = shifts[r] - off
+    for t in range(nk):
+        k = lo + t
+        if k < 0 or k >= m:
+            continue
+        lam = bg
+        for s in range(nr):
+            d = k - shifts[s] + off
+            if d >= 0 and d < nk:
+                lam += amps[s] * g[d]
+        if lam > 0.0:
+            v = amps[r] * dg[t]
+            info += v * v / lam
+    return info
+
+
+@njit(cache=True, nogil=True)
+def fit_pixel(kb, kw, nu, m, g, off, colsum, dg, kmax, sep_bins, gain_min, cand_step, step0, dpk,
+              lam, cand, shifts, amps, gains, tmp_s, tmp_a, tmp_lam):
+    """Greedy K-return fit of one pixel's unique bins (kb, kw); returns (nr, bg): shifts[:nr] (sorted),
+    amps[:nr], gains[:nr] (nats each return added when it was taken)."""
+    ntot = 0.0
+    for u in range(nu):
+        ntot += kw[u]
+    bg_floor = 1e-9 * ntot / m
+    bg = ntot / m
+    for u in range(nu):
+        lam[u] = bg
+    # candidate shifts: the response's peak on a detection, one per cand_step bins
+    nc = 0
+    for u in range(nu):
+        j = kb[u] + off - dpk
+        if j < 0:
+            j = 0
+        if j >= m:
+            j = m - 1
+        if nc == 0 or j - cand[nc - 1] >= cand_step:
+            cand[nc] = j
+            nc += 1
+    nr = 0
+    top_s = np.empty(SCREEN)
+    top_j = np.empty(SCREEN, np.int64)
+    while nr < kmax:
+        # the SCREEN best candidates by the second-order screen, then their exact gains
+        for u in range(nu):
+            tmp_lam[u] = 1.0 / lam[u]
+        ns = 0
+        for c in range(nc):
+            j = cand[c]
+            near = False
+            for r in range(nr):
+                if abs(j - shifts[r]) < sep_bins:
+                    near = True
+            if near:
+                continue
+            sc = screen_score(j, kb, kw, nu, tmp_lam, g, off, colsum)
+            if sc <= 0.0:
+                continue
+            # insertion into the top list (ties keep the earlier candidate first)
+            t = ns if ns < SCREEN else SCREEN - 1
+            if ns == SCREEN and not sc > top_s[t]:
+                continue
+            while t > 0 and sc > top_s[t - 1]:
+                top_s[t] = top_s[t - 1]
+                top_j[t] = top_j[t - 1]
+                t -= 1
+            top_s[t] = sc
+            top_j[t] = j
+            if ns < SCREEN:
+                ns += 1
+        best = 0.0
+        bj = -1
+        ba = 0.0
+        for t in range(ns):
+            gn, an = add_gain(top_j[t], kb, kw, nu, lam, g, off, colsum)
+            if gn > best:
+                best, bj, ba = gn, top_j[t], an
+        if bj < 0:
+            break
+        bj, best, ba = refine_shift(bj, best, ba, kb, kw, nu, lam, g, off, colsum, m, step0, shifts, nr, -1,
+                                    sep_bins)
+        if not best > gain_min:
+            break
+        shifts[nr] = bj
+        amps[nr] = ba
+        gains[nr] = best
+        nr += 1
+        bg = em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, lam, EM_SWEEPS)
+        if nr > 1:
+            # re-refine each shift with the others (and the background) fixed
+            for r in range(nr):
+                for s in range(nr):
+                    tmp_s[s] = shifts[s]
+                    tmp_a[s] = amps[s]
+                # the rate without return r
+                tmp_a[r] = 0.0
+                model_rate(kb, nu, tmp_s, tmp_a, nr, bg, g, off, tmp_lam)
+                g0, a0 = add_gain(shifts[r], kb, kw, nu, tmp_lam, g, off, colsum)
+                jn, gn, an = refine_shift(shifts[r], g0, a0, kb, kw, nu, tmp_lam, g, off, colsum, m, 2,
+                                          shifts, nr, r, sep_bins)
+                shifts[r] = jn
+                amps[r] = an
+            bg = em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, lam, EM_SWEEPS)
+    # sort by shift
+    for a in range(1, nr):
+        vs, va, vg = shifts[a], amps[a], gains[a]
+        b = a - 1
+        while b >= 0 and shifts[b] > vs:
+            shifts[b + 1] = shifts[b]
+            amps[b + 1] = amps[b]
+            gains[b + 1] = gains[b]
+            b -= 1
+        shifts[b + 1] = vs
+        amps[b + 1] = va
+        gains[b + 1] = vg
+    return nr, bg
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def multi_return_kernel(bins, offsets, m, g, off, colsum, dg, kmax, sep_bins, gain_min, cand_step, step0,
+                        maxn, out_shift, out_amp, out_bg, out_var, out_gain, out_n):
+    """K-return greedy Poisson pursuit over pixels (see the module docstring).
+
+    bins/offsets: binned in-window detections per pixel (CSR). Outputs per pixel p, return r < kmax
+    (sorted by shift, NaN / 0 past the returns found): out_shift[p, r] (bins), out_amp[p, r]
+    (unit-area amplitude), out_var[p, r] (1 / Fisher information, bins^2), out_gain[p, r] (nats the
+    return added when taken); out_bg[p] (per bin), out_n[p] (detections)."""
+    npix = offsets.size - 1
+    nblk = (npix + BLOCK - 1) // BLOCK
+    dpk = int(np.argmax(g))
+    for blk in prange(nblk):
+        n1 = max(maxn, 1)
+        tmp = np.empty(n1, np.int64)
+        kb = np.empty(n1, np.int64)
+        kw = np.empty(n1, np.float64)
+        lam = np.empty(n1)
+        tmp_lam = np.empty(n1)
+        cand = np.empty(n1, np.int64)
+        shifts = np.empty(kmax, np.int64)
+        amps = np.empty(kmax)
+        gains = np.empty(kmax)
+        tmp_s = np.empty(kmax, np.int64)
+        tmp_a = np.empty(kmax)
+        for p in range(blk * BLOCK, min(npix, (blk + 1) * BLOCK)):
+            o0 = offsets[p]
+            o1 = offsets[p + 1]
+            out_n[p] = o1 - o0
+            for r in range(kmax):
+                out_shift[p, r] = np.nan
+                out_amp[p, r] = 0.0
+                out_var[p, r] = np.nan
+                out_gain[p, r] = 0.0
+            nu = unique_counts(bins, o0, o1, tmp, kb, kw)
+            if nu == 0:
+                out_bg[p] = 0.0
+                continue
+            nr, bg = fit_pixel(kb, kw, nu, m, g, off, colsum, dg, kmax, sep_bins, gain_min, cand_step,
+                               step0, dpk, lam, cand, shifts, amps, gains, tmp_s, tmp_a, tmp_lam)
+            out_bg[p] = bg
+            for r in range(nr):
+                out_shift[p, r] = shifts[r]
+                out_amp[p, r] = amps[r]
+                out_gain[p, r] = gains[r]
+                info = shift_fisher(r, shifts, amps, nr, bg, g, dg, off, m)
+                out_var[p, r] = 1.0 / info if info > 0.0 else np.nan
+
+
+# ------------------------------------------------------------------------------------------------
+# several surfaces with the neighbours' help (recon.multi.reconstruct_multi_spatial)
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def neighbour_surfaces(bins, offsets, h, w, radius, shift_in, gain_in, strong_nats, pool_nats, tau_bins,
+                       sep_bins, kmax, kpool, cand_step, g, off, colsum, dg, m, step0, maxn,
+                       out_shift, out_amp, out_bg, out_var, out_gain, out_src):
+    """Each pixel's surfaces with its neighbours' help.
+
+    shift_in, gain_in: (P, kmax) the pixelwise fit (NaN / 0 past the surfaces found). Per pixel:
+    1. the detections of its (2 radius + 1)^2 neighbourhood pooled and fitted by the greedy pursuit
+       (up to kpool surfaces, each raising the pooled likelihood by more than pool_nats): the
+       surfaces the neighbourhood supports;
+    2. the pixel's surfaces, from the candidates: its own pixelwise surfaces that are strong
+       (gain > strong_nats, not chance even alone) and the pooled surfaces. Greedily, the candidate
+       whose best shift within tau_bins (the response peak on each of the pixel's detections there,
+       refined by pattern search) raises the pixel's likelihood most is kept, then amplitudes and
+       background by EM, up to kmax, none closer than sep_bins to another. A candidate needs at
+       least one of the pixel's detections within tau_bins (censoring: a detection the
+       neighbourhood supports in time is signal; a pixel that sees none of a surface does not get
+       it).
+    Outputs as multi_return_kernel; out_src[p, r]: 0 the pixel's own strong surface, 1 from the
+    neighbourhood's pooled fit."""
+    npix = offsets.size - 1
+    nblk = (npix + BLOCK - 1) // BLOCK
+    kk = shift_in.shape[1]
+    nn = (2 * radius + 1) * (2 * radius + 1)
+    dpk = int(np.argmax(g))
+    for blk in prange(nblk):
+        n1 = max(maxn, 1)
+        npool = max(nn * maxn, 1)
+        pbins = np.empty(npool, np.int64)
+        ptmp = np.empty(npool, np.int64)
+        pkb = np.empty(npool, np.int64)
+        pkw = np.empty(npool, np.float64)
+        plam = np.empty(npool)
+        ptl = np.empty(npool)
+        pcand = np.empty(npool, np.int64)
+        tmp = np.empty(n1, np.int64)
+        kb = np.empty(n1, np.int64)
+        kw = np.empty(n1, np.float64)
+        lam = np.empty(n1)
+        pshift = np.empty(kpool, np.int64)
+        pamp = np.empty(kpool)
+        pgain = np.empty(kpool)
+        ptsa = np.empty(kpool, np.int64)
+        ptaa = np.empty(kpool)
+        cand = np.empty(kk + kpool, np.int64)
+        csrc = np.empty(kk + kpool, np.int64)
+        shifts = np.empty(kmax, np.int64)
+        amps = np.empty(kmax)
+        gains = np.empty(kmax)
+        src = np.empty(kmax, np.int64)
+        for p in range(blk * BLOCK, min(npix, (blk + 1) * BLOCK)):
+            o0 = offsets[p]
+            o1 = offsets[p + 1]
+            for r in range(kmax):
+                out_shift[p, r] = np.nan
+                out_amp[p, r] = 0.0
+                out_var[p, r] = np.nan
+                out_gain[p, r] = 0.0
+                out_src[p, r] = -1
+            nu = unique_counts(bins, o0, o1, tmp, kb, kw)
+            if nu == 0:
+                out_bg[p] = 0.0
+                continue
+            ntot = 0.0
+            for u in range(nu):
+                ntot += kw[u]
+            bg_floor = 1e-9 * ntot / m
+            # 1. the neighbourhood's pooled fit
+            y0, x0 = p // w, p % w
+            n = 0
+            for y in range(max(0, y0 - radius), min(h, y0 + radius + 1)):
+                for x in range(max(0, x0 - radius), min(w, x0 + radius + 1)):
+                    q = y * w + x
+                    for i in range(offsets[q], offsets[q + 1]):
+                        pbins[n] = bins[i]
+                        n += 1
+            pnu = unique_counts(pbins, 0, n, ptmp, pkb, pkw)
+            npr, _ = fit_pixel(pkb, pkw, pnu, m, g, off, colsum, dg, kpool, sep_bins, pool_nats, cand_step,
+                               step0, dpk, plam, pcand, pshift, pamp, pgain, ptsa, ptaa, ptl)
+            # 2. candidates: own strong surfaces, then pooled ones by amplitude
+            nc = 0
+            for r in range(kk):
+                v = shift_in[p, r]
+                if v == v and gain_in[p, r] > strong_nats:
+                    cand[nc] = int(v)
+                    csrc[nc] = 0
+                    nc += 1
+            for _ in range(npr):
+                bi = -1
+                for r in range(npr):
+                    if pamp[r] >= 0.0 and (bi < 0 or pamp[r] > pamp[bi]):
+                        bi = r
+                cand[nc] = pshift[bi]
+                csrc[nc] = 1
+                nc += 1
+                pamp[bi] = -1.0
+            nr = 0
+            bg = ntot / m
+            for u in range(nu):
+                lam[u] = bg
+            while nr < kmax:
+                # the candidate the pixel's own detections support most (gain at the best
+                # detection-aligned shift within tau_bins of it)
+                best = 0.0
+                bj = -1
+                ba = 0.0
+                bc = -1
+                for c in range(nc):
+                    if csrc[c] < 0:
+                        continue
+                    j0 = cand[c]
+                    for u in range(nu):
+                        j = kb[u] + off - dpk
+                        if j < 0 or j >= m or abs(j - j0) > tau_bins:
+                            continue
+                        near = False
+                        for r in range(nr):
+                            if abs(j - shifts[r]) < sep_bins:
+                                near = True
+                        if near:
+                            continue
+                        gn, an = add_gain(j, kb, kw, nu, lam, g, off, colsum)
+                        if gn > best:
+                            best, bj, ba, bc = gn, j, an, c
+                if bc < 0:
+                    break
+                bj, best, ba = refine_shift(bj, best, ba, kb, kw, nu, lam, g, off, colsum, m, step0, shifts, nr,
+                                            -1, sep_bins)
+                c = bc
+                # every candidate within sep of the one taken is spent
+                for d in range(nc):
+                    if csrc[d] >= 0 and abs(cand[d] - cand[c]) < sep_bins:
+                        if d != c:
+                            csrc[d] = -1
+                shifts[nr] = bj
+                amps[nr] = ba
+                gains[nr] = best
+                src[nr] = csrc[c]
+                csrc[c] = -1
+                nr += 1
+                bg = em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, lam, EM_SWEEPS)
+            # sort by shift
+            for a in range(1, nr):
+                vs, va, vg, vc = shifts[a], amps[a], gains[a], src[a]
+                b = a - 1
+                while b >= 0 and shifts[b] > vs:
+                    shifts[b + 1] = shifts[b]
+                    amps[b + 1] = amps[b]
+                    gains[b + 1] = gains[b]
+                    src[b + 1] = src[b]
+                    b -= 1
+                shifts[b + 1] = vs
+                amps[b + 1] = va
+                gains[b + 1] = vg
+                src[b + 1] = vc
+            out_bg[p] = bg
+            for r in range(nr):
+                out_shift[p, r] = shifts[r]
+                out_amp[p, r] = amps[r]
+                out_gain[p, r] = gains[r]
+                out_src[p, r] = src[r]
+                info = shift_fisher(r, shifts, amps, nr, bg, g, dg, off, m)
+                out_var[p, r] = 1.0 / info if info > 0.0 else np.nan
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def smooth_surfaces(shift, sig, var, h, w, radius, tau_bins, out_shift, out_var):
+    """Weighted smoothing per surface that keeps edges: each surface's shift becomes the mean of the
+    surfaces within tau_bins of it in its (2 radius + 1)^2 neighbourhood (itself included), weighted
+    by their signal counts; surfaces farther than tau_bins (another surface, or the other side of an
+    edge) do not enter. out_var: the weighted mean's variance, sum(w^2 var) / (sum w)^2, never
+    above the surface's own."""
+    npix = shift.shape[0]
+    kk = shift.shape[1]
+    for p in prange(npix):
+        y0, x0 = p // w, p % w
+        for r in range(kk):
+            s = shift[p, r]
+            out_shift[p, r] = s
+            out_var[p, r] = var[p, r]
+            if s != s:
+                continue
+            sw = 0.0
+            sws = 0.0
+            swv = 0.0
+            for y in range(max(0, y0 - radius), min(h, y0 + radius + 1)):
+                for x in range(max(0, x0 - radius), min(w, x0 + radius + 1)):
+                    q = y * w + x
+                    for t in range(kk):
+                        v = shift[q, t]
+                        if v == v and abs(v - s) <= tau_bins and sig[q, t] > 0.0:
+                            wt = sig[q, t]
+                            sw += wt
+                            sws += wt * v
+                            vv = var[q, t]
+                            swv += wt * wt * (vv if vv == vv else 0.0)
+            if sw > 0.0:
+                out_shift[p, r] = sws / sw
+                mv = swv / (sw * sw)
+                if mv < var[p, r] or var[p, r] != var[p, r]:
+                    out_var[p, r] = mv
