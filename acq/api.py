@@ -30,8 +30,10 @@ from spdepth.acq.requests import (DEFAULT_DWELL_S, FileReconRequest, ReplayReque
 from spdepth.recon.errors import InputError
 from spdepth.recon.model import Binning, ReconSettings
 
-SESSION_FILES = ("recording.ptu", "events.jsonl", "maps.npz", "maps.png", "run.json")
+SESSION_FILES = ("recording.ptu", "events.jsonl", "maps.npz", "maps.png", "points.ply", "run.json")
 """What a session writes into its folder (``--overwrite`` replaces exactly these)."""
+SPARSE_PER_PIXEL = 2.0
+"""Below this many detections used per pixel, a file's summary suggests ``--method spatial``."""
 LOCK_NAME = ".spdepth.lock"
 """Held (``flock``) by the process whose session writes into the folder; the kernel drops it when
 that process dies, so a killed session never leaves a folder locked."""
@@ -212,14 +214,42 @@ def _replay_session(request: ReplayRequest, out):
                    info={"replay_of": str(src.path), **info.info, "request": request.to_dict()})
 
 
+def session_maps(session):
+    """A session's maps (``DepthMaps``) with its scan geometry in the settings
+    (``acq.points.geometry_of`` reads it), and its kept counts with NaN for pixels never
+    measured (none kept and not complete), as the PNG sheets and the window draw them."""
+    from spdepth.acq.flags import AcqFlag
+    from spdepth.acq.points import GEOMETRY_KEY, ScanGeometry
+
+    maps = session.maps()
+    p = session.plan
+    # a foreign recording replayed has no angles (all 0): no geometry rather than a false one
+    if not ((p.nx > 1 and p.x_first_deg == p.x_last_deg) or (p.ny > 1 and p.y_first_deg == p.y_last_deg)):
+        settings = dict(maps.settings)
+        settings[GEOMETRY_KEY] = ScanGeometry.from_plan(p).to_dict()
+        maps = replace(maps, settings=settings)
+    h, w = session.plan.shape
+    counts = session.store.count.reshape(h, w).astype(np.float64)
+    counts[(counts == 0) & (session.acq_flags.reshape(h, w) != AcqFlag.COMPLETE)] = np.nan
+    return maps, counts
+
+
 def finish_session(session, out_dir: str | Path | None, title: str | None = None) -> dict:
-    """After a session has ended: ``maps.png`` beside its files (when it has a folder), and the
-    summary every front end reports (JSON-able, small)."""
+    """After a session has ended: ``maps.png`` and ``points.ply`` (``acq.points``: one point per
+    estimated pixel and surface) beside its files (when it has a folder), and the summary every
+    front end reports (JSON-able, small)."""
     out = Path(out_dir) if out_dir is not None else None
+    n_points = None
     if out is not None and out.is_dir():
+        from spdepth.acq.points import geometry_of, write_points
         from spdepth.acq.report import render_maps_png
 
-        render_maps_png(out / "maps.png", session.maps(), title=title)
+        maps, counts = session_maps(session)
+        render_maps_png(out / "maps.png", maps, title=title, counts=counts,
+                        target=session.plan.target)
+        geometry = geometry_of(maps)
+        if geometry is not None:
+            n_points = write_points(maps, geometry, ply=out / "points.ply", note=title or "")
     snap = session.snapshot()
     run = session.run_record()
     return {
@@ -231,6 +261,7 @@ def finish_session(session, out_dir: str | Path | None, title: str | None = None
         "lost_spans": snap.lost_spans, "lost_records": snap.lost_records,
         "faults_seen": len(run["faults_seen"]), "warnings": list(run.get("warnings", ())),
         "recon_max_lag_pixels": session.recon.max_lag, "elapsed_s": round(snap.elapsed_s, 3),
+        "points": n_points,
     }
 
 
@@ -375,15 +406,56 @@ def reconstruct_file(request: FileReconRequest, progress=None) -> FileResult:
     t1 = time.perf_counter()
     maps = reconstruct(store, settings, progress=progress)
     recon_s = time.perf_counter() - t1
+    maps = _with_geometry_and_offset(maps, request, store.shape)
     used = maps.settings
     used_binning = Binning.from_dict(used["binning"])
     irf_used = _irf_used(used)
+    notes = tuple(result.notes)
+    per_pixel = float(np.sum(maps.photons)) / max(1, store.n_pixels)
+    if result.is_image and request.method != "spatial" and per_pixel < SPARSE_PER_PIXEL:
+        notes += (f"about {per_pixel:.1f} detections per pixel: too few for a pixel on its own; "
+                  f"--method spatial uses the neighbours",)
     res = FileResult(request, maps, store, used_binning, used.get("pulse_rms_s"),
                      irf_used if used.get("irf") else None, result.is_image, result.kind,
-                     tuple(result.notes), read_s, recon_s)
+                     notes, read_s, recon_s)
     _write_file_outputs(res, result)
     res.summary = _file_summary(res, result)
     return res
+
+
+def _with_geometry_and_offset(maps, request: FileReconRequest, shape):
+    """The maps with their scan geometry in the settings (``--fov-deg``, else a session
+    recording's plan) and the range offset of gated data added to depth and time of flight."""
+    import json
+
+    from spdepth.acq.points import GEOMETRY_KEY, ScanGeometry, range_offset_m
+    from spdepth.recon.maps import C_M_PER_S
+
+    settings = dict(maps.settings)
+    geometry = None
+    if request.fov_deg is not None:
+        geometry = ScanGeometry.from_fov(shape, request.fov_deg)
+    else:
+        run_json = Path(request.input).parent / "run.json"
+        if Path(request.input).suffix.lower() == ".ptu" and run_json.is_file():
+            try:
+                plan = json.loads(run_json.read_text(encoding="utf-8")).get("plan")
+                from spdepth.acq.plan import ScanPlan
+
+                p = ScanPlan.from_dict(plan)
+                if p.shape == tuple(shape) and (p.x_first_deg != p.x_last_deg or p.nx == 1):
+                    geometry = ScanGeometry.from_plan(p)
+            except (ValueError, TypeError, KeyError, AttributeError, InputError):
+                geometry = None          # a run.json cut short: no geometry rather than a wrong one
+    if geometry is not None:
+        settings[GEOMETRY_KEY] = geometry.to_dict()
+    offset = range_offset_m(request.range_offset_m, request.gate_delay_s)
+    changes = {"settings": settings}
+    if offset:
+        settings["range_offset_m"] = offset
+        changes["depth_m"] = maps.depth_m + offset
+        changes["tof_s"] = maps.tof_s + 2 * offset / C_M_PER_S
+    return replace(maps, **changes)
 
 
 def _irf_used(settings: dict):
@@ -400,6 +472,14 @@ def _write_file_outputs(res: FileResult, read) -> None:
     req, maps = res.request, res.maps
     if req.out:
         maps.save_npz(req.out)
+    if req.ply or req.las:
+        from spdepth.acq.points import geometry_of, write_points
+
+        geometry = geometry_of(maps)
+        if geometry is None:
+            raise RequestError(f"{req.input} holds no scan geometry: give --fov-deg to write "
+                               f"points (--ply/--las)")
+        write_points(maps, geometry, ply=req.ply, las=req.las, note=Path(req.input).name)
     irf_used = _irf_used(maps.settings)
     if req.save_irf:
         from spdepth.recon.model import save_irf
@@ -455,7 +535,8 @@ def _file_summary(res: FileResult, read) -> dict:
         "max_photons": maps.settings.get("max_photons"),
         "settings": _jsonable(_small_settings(maps.settings)),
         "depth_m_median": float(np.median(finite)) if finite.size else None,
-        "out": req.out, "png": req.png, "save_irf": req.save_irf, "request": req.to_dict(),
+        "out": req.out, "png": req.png, "save_irf": req.save_irf, "ply": req.ply, "las": req.las,
+        "range_offset_m": maps.settings.get("range_offset_m", 0.0), "request": req.to_dict(),
         "source": _jsonable(read.meta), "notes": list(res.notes),
     }
 

@@ -346,15 +346,28 @@ class ReplaySource:
                 break
             events = decoder.decode(np.asarray(records[:take]))
             if pace and events.size:
-                t_rec = float(events["sync"][-1]) * self.info.sync_period_s / float(self.speed)
+                # paced within the chunk too (one chunk often holds a whole pass): slices of
+                # PACE_SLICE_S of replayed time, each let out when the recorded laser time of its
+                # last event has passed
+                t = events["sync"].astype(np.float64) * (self.info.sync_period_s / float(self.speed))
+                t = np.maximum.accumulate(t)          # inserted loss events carry no time order
                 if t_wall0 is None:
-                    t_wall0 = time.monotonic() - t_rec
-                delay = t_wall0 + t_rec - time.monotonic()
-                if delay > 0:
-                    time.sleep(delay)
-            yield events
+                    t_wall0 = time.monotonic() - t[0]
+                cuts = np.searchsorted(t, np.arange(t[0] + PACE_SLICE_S, t[-1], PACE_SLICE_S))
+                bounds = np.unique(np.concatenate([[0], cuts, [events.size]]))
+                for lo, hi in zip(bounds[:-1], bounds[1:]):
+                    delay = t_wall0 + t[hi - 1] - time.monotonic()
+                    if delay > 0:
+                        time.sleep(delay)
+                    yield events[lo:hi]
+            else:
+                yield events
             if decoder.position >= b:
                 break
+
+
+PACE_SLICE_S = 0.05
+"""A paced replay lets its events out in slices of this much replayed time."""
 
 
 class _Decoder:

@@ -15,19 +15,7 @@ import numpy as np
 
 from spdepth.recon.maps import C_M_PER_S
 
-#: colour for pixels without an estimate (NaN): a mid grey, distinct from every colour of the maps
-NAN_COLOUR = "#9a9a9a"
-
-#: the panels of a standard sheet: (attribute of the maps object, title, unit, colour map, limits).
-#: limits "dense": the shortest interval holding 75% of the pixels, so a scene in front of a far
-#: wall shows its own relief instead of spending the colours on the gap to the wall;
-#: "percentile": the 2nd to 98th percentile.
-DEFAULT_PANELS: tuple[tuple[str, str, str, str, str], ...] = (
-    ("depth_m", "depth", "m", "turbo", "dense"),
-    ("background", "background", "detections per bin", "magma", "percentile"),
-    ("photons", "detections used", "photons per pixel", "viridis", "percentile"),
-)
-
+from spdepth.acq.mapdefs import NAN_COLOUR  # noqa: E402 - the one grey of unmeasured pixels
 
 def robust_limits(values: np.ndarray, lower_pct: float = 2.0, upper_pct: float = 98.0) -> tuple[float, float]:
     """Colour limits from percentiles of the finite values, so a few outliers (a stray detection
@@ -59,63 +47,116 @@ def dense_limits(values: np.ndarray, coverage: float = 0.75) -> tuple[float, flo
 
 
 def render_maps_png(path: str | Path, maps, *, title: str | None = None,
-                    panels: Sequence[tuple[str, str, str, str, str]] = DEFAULT_PANELS,
-                    dpi: int = 110, irf: tuple[np.ndarray, np.ndarray, str] | None = None) -> Path:
+                    panels: Sequence[tuple[str, str, str, str, str]] | None = None,
+                    dpi: int = 110, irf: tuple[np.ndarray, np.ndarray, str] | None = None,
+                    geometry=None, counts: np.ndarray | None = None,
+                    n_bins: int | None = None, target: int | None = None) -> Path:
     """Write a PNG with one panel per map: image, colour bar with unit, title.
 
-    maps:   any object with the panel attributes as 2-D arrays of equal shape (``DepthMaps`` has
-            ``depth_m``, ``background``, ``photons``); a missing attribute raises AttributeError.
-            (K, H, W) maps of K returns per pixel: one panel per return for the first panel's
-            map (depth: "surface 1", "surface 2", ... nearest first), the first return elsewhere.
-    irf:    ``(times_s, counts, label)`` of the pulse shape used: an extra panel draws it (log
-            counts against ps from its peak).
-    panels: ``(attribute, title, unit, colour map, "dense" | "percentile")`` for each panel; values
-            beyond the colour limits saturate (the colour bar's pointed ends say so).
-    Pixels that are NaN show in NAN_COLOUR, named under the panel when there are any.
+    maps:     a ``recon.maps.DepthMaps`` (or anything with ``depth_m``, ``background``, ``signal``,
+              ``uncertainty_s``, ``photons``; a missing attribute raises AttributeError): drawn as
+              the maps of ``acq.mapdefs.MAP_DEFS`` (the window's maps, same names, units, colour
+              maps and levels). (K, H, W) maps of K surfaces get one depth and one uncertainty
+              panel per surface.
+    panels:   instead, ``(attribute, title, unit, colour map, "percentile" | "dense")`` of
+              arrays on ``maps`` (the demo's sheet of estimators); both rules take the robust
+              1-99% levels.
+    geometry: an ``acq.points.ScanGeometry`` (default: the one in ``maps.settings``, if any):
+              axes in scan degrees and each pixel drawn with its true aspect; without one, pixel
+              indices with square pixels.
+    counts:   detections kept per pixel to draw instead of ``maps.photons`` (NaN: not measured).
+    n_bins, target: bins per window and the target (default from ``maps.settings``).
+    irf:      ``(times_s, counts, label)`` of the pulse shape used: an extra panel draws it.
+    Pixels without a value show in NAN_COLOUR, named under the panel; a constant map is drawn
+    without a colour bar and says its value.
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
     import matplotlib
 
+    from spdepth.acq.mapdefs import (MAP_DEFS, MapDef, constant_value, display, levels_for,
+                                     map_input_from_maps)
+    from spdepth.acq.points import geometry_of
+
     path = Path(path)
-    # K > 1 returns per pixel come as (K, H, W): the first panel's map (depth) gets one panel per
-    # return, the others show the first (nearest) return
-    arrays, specs = [], []
-    for i, spec in enumerate(panels):
-        a = np.asarray(getattr(maps, spec[0]), dtype=np.float64)
-        if a.ndim == 3 and i == 0 and a.shape[0] > 1:
-            for r in range(a.shape[0]):
-                arrays.append(a[r])
-                specs.append((spec[0], f"{spec[1]}, surface {r + 1}", *spec[2:]))
-            continue
-        arrays.append(a[0] if a.ndim == 3 else a)
-        specs.append(tuple(spec))
-    h, w = arrays[0].shape
-    aspect = h / w
-    panel_w = 4.2
-    n_ax = len(specs) + (irf is not None)
-    fig = Figure(figsize=(panel_w * n_ax, panel_w * min(max(aspect, 0.3), 3.0) + 0.9),
-                 layout="constrained")
+    drawn: list[tuple[MapDef, str, np.ndarray, int]] = []
+    if panels is None:
+        mi = map_input_from_maps(maps, n_bins=n_bins, target=target, counts=counts)
+        for d in MAP_DEFS:
+            got = d.extract(mi)
+            if got is None:
+                continue                       # an optional map these maps do not have
+            a = np.asarray(got, dtype=np.float64)
+            if a.ndim == 3 and a.shape[0] > 1:
+                for r in range(a.shape[0]):
+                    drawn.append((d, f"{d.title}, surface {r + 1}", a[r], mi.target))
+            else:
+                drawn.append((d, d.title, a[0] if a.ndim == 3 else a, mi.target))
+    else:
+        for attr, name, unit, cmap_name, _rule in panels:
+            a = np.asarray(getattr(maps, attr), dtype=np.float64)
+            d = MapDef(attr, name, unit, cmap_name, "robust", lambda m: m)
+            drawn.append((d, name, a[0] if a.ndim == 3 else a, 0))
+    h, w = drawn[0][2].shape
+    if geometry is None:
+        geometry = geometry_of(maps)
+    if geometry is not None and tuple(geometry.shape) != (h, w):
+        geometry = None
+    if geometry is not None:
+        left, right, top, bottom = geometry.extent_deg
+        extent = (left, right, bottom, top)
+        fx, fy = geometry.fov_deg
+        aspect = fy / fx
+    else:
+        extent, aspect = None, h / w
+    n_ax = len(drawn) + (irf is not None)
+    ncols = min(n_ax, 3)
+    nrows = -(-n_ax // ncols)
+    panel_w = 4.4
+    panel_h = panel_w * min(max(aspect, 0.3), 3.0) * 0.85 + 0.8
+    fig = Figure(figsize=(panel_w * ncols, panel_h * nrows + 0.5), layout="constrained")
     FigureCanvasAgg(fig)
-    axes = fig.subplots(1, n_ax, squeeze=False)[0]
+    axes = fig.subplots(nrows, ncols, squeeze=False).ravel()
+    for ax in axes[n_ax:]:
+        ax.set_visible(False)
     if irf is not None:
-        _draw_irf(axes[-1], *irf)
-    for ax, arr, (attr, name, unit, cmap_name, limits) in zip(axes, arrays, specs):
-        cmap = matplotlib.colormaps[cmap_name].with_extremes(bad=NAN_COLOUR)
-        vmin, vmax = dense_limits(arr) if limits == "dense" else robust_limits(arr)
-        im = ax.imshow(np.ma.masked_invalid(arr), cmap=cmap, vmin=vmin, vmax=vmax,
-                       interpolation="nearest", origin="upper")
-        ax.set_title(f"{name} ({unit})")
-        ax.set_xlabel("column")
-        ax.set_ylabel("row")
+        _draw_irf(axes[n_ax - 1], *irf)
+    for ax, (d, name, arr, tgt) in zip(axes, drawn):
+        cmap = matplotlib.colormaps[d.cmap].with_extremes(bad=NAN_COLOUR)
+        const = constant_value(arr)
+        lv = levels_for(d, arr, tgt) or (0.0, 1.0)
+        vmin, vmax = lv
+        im = ax.imshow(np.ma.masked_invalid(display(arr, lv)), cmap=cmap, vmin=vmin, vmax=vmax,
+                       interpolation="nearest", origin="upper", extent=extent,
+                       aspect="equal")
+        ax.set_title(f"{name} ({d.unit})")
+        if geometry is not None:
+            ax.set_xlabel("scan angle x (deg)")
+            ax.set_ylabel("scan angle y (deg)")
+        else:
+            ax.set_xlabel("column")
+            ax.set_ylabel("row")
         finite = arr[np.isfinite(arr)]
-        extend = {(False, False): "neither", (True, False): "min", (False, True): "max",
-                  (True, True): "both"}[(bool(np.any(finite < vmin)), bool(np.any(finite > vmax)))]
-        bar = fig.colorbar(im, ax=ax, shrink=0.85, extend=extend)
-        bar.set_label(unit)
-        n_nan = int(np.sum(~np.isfinite(arr)))
+        notes = []
+        if finite.size == 0:
+            notes.append("no pixel has a value")      # and no colour bar to read
+        elif const is not None:
+            # one value everywhere: a colour bar would spread rounding noise over its length
+            notes.append(f"every pixel: {const:g} {d.unit}")
+        else:
+            extend = {(False, False): "neither", (True, False): "min", (False, True): "max",
+                      (True, True): "both"}[(bool(np.any(finite < vmin)),
+                                             bool(np.any(finite > vmax)))]
+            bar = fig.colorbar(im, ax=ax, shrink=0.85, extend=extend)
+            bar.set_label(d.unit)
+        n_inf = int(np.sum(np.isposinf(arr)))
+        if n_inf:
+            notes.append(f"{n_inf} px above the scale (no background found)")
+        n_nan = int(np.sum(np.isnan(arr)))
         if n_nan:
-            ax.text(0.0, -0.16 if h >= 8 else -0.3, f"grey: no estimate ({n_nan} px)",
+            notes.append(f"grey: no value ({n_nan} px)")
+        if notes:
+            ax.text(0.0, -0.18 if h >= 8 else -0.3, "; ".join(notes),
                     transform=ax.transAxes, fontsize=8, color="#444444", va="top")
     if title:
         fig.suptitle(title)

@@ -530,6 +530,11 @@ class FileReconRequest(_Request):
                  at ``false_alarm`` per pixel and surface, up to ``max_reflectors``); recon.multi.
     out, png, save_irf: where the maps (.npz), the picture and the pulse shape used go (None: not
                  written); checked for writability before any work.
+    ply, las:    point clouds of the maps (``acq.points``; None: not written).
+    fov_deg:     field of view (degrees, square, centred) for files without scan geometry (.mat):
+                 gives the pixels' angles for points and for the pictures' true aspect.
+    range_offset_m, gate_delay_s: gated long-range data record times after a range gate: the
+                 range added to every depth (or the gate delay, c * delay / 2 added); one or none.
     threads:     estimator threads (None: all cores).
     """
 
@@ -551,10 +556,28 @@ class FileReconRequest(_Request):
     out: str | None = None
     png: str | None = None
     save_irf: str | None = None
+    ply: str | None = None
+    las: str | None = None
+    fov_deg: float | None = None
+    range_offset_m: float | None = None
+    gate_delay_s: float | None = None
 
     def __post_init__(self) -> None:
         if not self.input:
             raise RequestError("choose a file to reconstruct")
+        _positive("--fov-deg", self.fov_deg, allow_none=True)
+        if self.fov_deg is not None and self.fov_deg >= 180:
+            raise RequestError(f"--fov-deg {self.fov_deg:g}: a field of view must be under 180")
+        if self.range_offset_m is not None and self.gate_delay_s is not None:
+            raise RequestError("give --range-offset-m or --gate-delay-ns, not both")
+        for name, v in (("--range-offset-m", self.range_offset_m),
+                        ("--gate-delay-ns", self.gate_delay_s)):
+            if v is not None and not (isinstance(v, (int, float)) and math.isfinite(v)):
+                raise RequestError(f"{name} must be a number, got {v!r}")
+        if (self.ply or self.las) and self.fov_deg is None and \
+                Path(str(self.input)).suffix.lower() == ".mat":
+            raise RequestError(f"{self.input}: a .mat file holds no scan geometry: give --fov-deg "
+                               f"to write points (--ply/--las)")
         object.__setattr__(self, "input", str(self.input))
         if not Path(self.input).is_file():
             raise RequestError(f"{self.input}: no such file")
@@ -576,7 +599,8 @@ class FileReconRequest(_Request):
         if self.channel is not None and (not isinstance(self.channel, int) or self.channel < 0):
             raise RequestError(f"--channel must be a detector channel >= 0, got {self.channel!r}")
         _positive("--threads", self.threads, allow_none=True, integer=True)
-        for name, path in (("--out", self.out), ("--png", self.png), ("--save-irf", self.save_irf)):
+        for name, path in (("--out", self.out), ("--png", self.png), ("--save-irf", self.save_irf),
+                           ("--ply", self.ply), ("--las", self.las)):
             check_writable(name, path)
 
     def label(self) -> str:

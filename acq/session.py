@@ -536,8 +536,12 @@ class Session:
                                        "session could write its maps and run.json"))
             return SessionState.FAILED
         maps = self.recon.maps(copy=self.recon.error is not None)   # the worker has ended
+        # the pixels' scan angles (degrees), so the maps can be turned into points later
+        p = self.plan
         _save_maps_npz(self.out_dir / "maps.npz", maps,
-                       acq_flags=self.acq_flags.reshape(self.plan.shape))
+                       acq_flags=self.acq_flags.reshape(self.plan.shape),
+                       row_deg=np.linspace(p.y_first_deg, p.y_last_deg, p.ny),
+                       col_deg=np.linspace(p.x_first_deg, p.x_last_deg, p.nx))
         _write_json_atomic(self.out_dir / "run.json", self.run_record(final))
         return final
 

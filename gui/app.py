@@ -31,12 +31,76 @@ def display_available(environ=None, platform: str | None = None) -> bool:
     return bool(env.get("DISPLAY") or env.get("WAYLAND_DISPLAY"))
 
 
+XCB_PACKAGES = {
+    "libxcb-cursor.so.0": "libxcb-cursor0", "libxcb-icccm.so.4": "libxcb-icccm4",
+    "libxcb-keysyms.so.1": "libxcb-keysyms1", "libxcb-image.so.0": "libxcb-image0",
+    "libxcb-render-util.so.0": "libxcb-render-util0", "libxkbcommon-x11.so.0": "libxkbcommon-x11-0",
+    "libxcb-shape.so.0": "libxcb-shape0", "libxcb-xkb.so.1": "libxcb-xkb1",
+    "libxcb-randr.so.0": "libxcb-randr0", "libxcb-xinerama.so.0": "libxcb-xinerama0",
+}
+"""Debian/Ubuntu package of each X library Qt's xcb plugin links (DESIGN.md, "Qt on X11")."""
+
+
+def missing_libraries(ldd_output: str) -> list[str]:
+    """The libraries ``ldd`` reports as "not found", in order, once each."""
+    out = []
+    for line in ldd_output.splitlines():
+        if "not found" in line:
+            name = line.split("=>")[0].strip()
+            if name and name not in out:
+                out.append(name)
+    return out
+
+
+def platform_problem(environ=None, ldd=None) -> str | None:
+    """One line saying why Qt could not open a window here (its xcb platform plugin needs system
+    libraries that are missing), or None when it can, or when no window is asked for. Qt itself
+    aborts the process (exit 134) in that case, with a message naming another library, so this is
+    checked before the QApplication is made. ``ldd(path) -> str`` replaces running ``ldd``
+    (tests)."""
+    env = os.environ if environ is None else environ
+    if not sys.platform.startswith("linux") or not display_available(env, "linux"):
+        return None
+    qpa = env.get("QT_QPA_PLATFORM", "").split(":")[0].strip().lower()
+    if qpa not in ("", "xcb") or (not env.get("DISPLAY") and not qpa):
+        return None                          # Wayland or another plugin: not checked here
+    import PySide6
+
+    qt = Path(PySide6.__file__).parent / "Qt"
+    plugin = qt / "plugins" / "platforms" / "libqxcb.so"
+    if not plugin.is_file():
+        return None
+    if ldd is None:
+        import subprocess
+
+        def ldd(path):
+            run_env = dict(os.environ)
+            run_env["LD_LIBRARY_PATH"] = os.pathsep.join(
+                [str(qt / "lib"), run_env.get("LD_LIBRARY_PATH", "")])
+            try:
+                return subprocess.run(["ldd", str(path)], capture_output=True, text=True,
+                                      env=run_env, timeout=20).stdout
+            except (OSError, subprocess.SubprocessError):
+                return ""
+    missing = missing_libraries(ldd(plugin))
+    if not missing:
+        return None
+    packages = [XCB_PACKAGES[m] for m in missing if m in XCB_PACKAGES]
+    hint = f" (Debian/Ubuntu: apt-get install {' '.join(packages)})" if packages else ""
+    return (f"Qt cannot open a window: its X11 plugin needs {', '.join(missing)}, missing "
+            f"here{hint}")
+
+
 def application():
     """The QApplication (created once)."""
     from PySide6 import QtWidgets
 
+    from PySide6 import QtCore
+
     app = QtWidgets.QApplication.instance()
     if app is None:
+        # one GL resource space for every 3-D view of the process (gui.view3d)
+        QtCore.QCoreApplication.setAttribute(QtCore.Qt.AA_ShareOpenGLContexts)
         app = QtWidgets.QApplication(sys.argv[:1])
         app.setOrganizationName("spdepth")
         app.setApplicationName("spdepth")
@@ -63,14 +127,16 @@ def remembered_spec(settings=None):
 
 def run_window(what=None, *, start: bool = True, screenshot: str | Path | None = None,
                exit_after_scan: bool = False, out_dir="auto",
-               window_size: tuple[int, int] | None = None, settings=None, controls=None) -> int:
+               window_size: tuple[int, int] | None = None, settings=None, controls=None,
+               view: str = "maps") -> int:
     """Show the window with ``what`` in its controls (a ``gui.sources.SourceSpec``, or an
     ``acq.requests`` scan/replay/file request, which is run as given), started at once when
     ``start``, and run the Qt loop. ``controls``: a ``SourceSpec`` shown in the controls first
     (e.g. the remembered settings with the command line's runs folder), under a request.
     ``out_dir`` as ``MainWindow.start_run`` takes it. With ``screenshot``, the whole window is
     grabbed into that PNG when the scan ends; with ``exit_after_scan`` the loop ends then.
-    ``window_size`` (width, height) overrides the remembered geometry. Returns 0 (scan done, or
+    ``window_size`` (width, height) overrides the remembered geometry. ``view``: "maps" or "3d",
+    the tab shown. Returns 0 (scan done, or
     window closed), 1 (scan aborted or failed), 2 (the source could not be started and the window
     is not kept)."""
     from PySide6 import QtCore
@@ -90,6 +156,7 @@ def run_window(what=None, *, start: bool = True, screenshot: str | Path | None =
         win.controls.set_spec(what)
     elif what is not None:
         win.controls.set_spec(SourceSpec.from_request(what, win.controls.spec()))
+    win.show_view(view)
     win.show()
     result = {"code": 0}
 
@@ -103,6 +170,7 @@ def run_window(what=None, *, start: bool = True, screenshot: str | Path | None =
             QtCore.QTimer.singleShot(0, win.close)
 
     win.scan_ended.connect(ended)
+    _close_on_signals(win)
     if what is not None and start:
         if not win.start_run(what, out_dir=out_dir) and exit_after_scan:
             print(f"spdepth gui: {win.banner_text.text()}", file=sys.stderr)
@@ -118,6 +186,29 @@ def run_window(what=None, *, start: bool = True, screenshot: str | Path | None =
     return result["code"]
 
 
+def _close_on_signals(win) -> None:
+    """Ctrl-C (SIGINT) and SIGTERM in the terminal close the window as Ctrl+Q does (a running scan
+    is aborted, its recording kept). Python runs signal handlers only between bytecodes, and Qt's
+    loop keeps it in C++: a timer hands control back to Python a few times a second."""
+    import signal
+
+    from PySide6 import QtCore
+
+    def close(_signum, _frame) -> None:
+        print("spdepth gui: interrupted; closing the window (the recording is kept)",
+              file=sys.stderr)
+        QtCore.QTimer.singleShot(0, win.close)
+
+    try:
+        signal.signal(signal.SIGINT, close)
+        signal.signal(signal.SIGTERM, close)
+    except ValueError:                 # not the main thread (tests): leave the handlers alone
+        return
+    win._signal_timer = QtCore.QTimer(win)
+    win._signal_timer.timeout.connect(lambda: None)
+    win._signal_timer.start(200)
+
+
 def run_demo_window(request, out_dir=None, *, exit_after_scan: bool = False,
                     screenshot: str | Path | None = None) -> int:
     """``spdepth demo`` with a display: the demo's scan (an ``acq.requests.ScanRequest``) started
@@ -129,4 +220,4 @@ def run_demo_window(request, out_dir=None, *, exit_after_scan: bool = False,
 
 
 __all__ = ["application", "run_window", "run_demo_window", "display_available",
-           "remembered_spec", "WINDOW_SIZE"]
+           "remembered_spec", "WINDOW_SIZE", "platform_problem", "missing_libraries"]

@@ -32,7 +32,7 @@ def _headless(request, out_dir=None) -> float:
     return snap.detections_per_s
 
 
-def _windowed(request) -> tuple[float, int]:
+def _windowed(request, view: str = "maps") -> tuple[float, int]:
     from PySide6 import QtCore
 
     from spdepth.gui.app import application
@@ -43,6 +43,7 @@ def _windowed(request) -> tuple[float, int]:
                                 QtCore.QSettings.IniFormat)
     win = MainWindow(settings=settings)
     win.resize(1480, 900)
+    win.show_view(view)
     win.show()
     app.processEvents()            # the window is on screen before Start, as at the bench
     paints = {"n": 0}
@@ -69,10 +70,10 @@ def _windowed(request) -> tuple[float, int]:
 
 
 def measure(*, scene: str = "bust", size: tuple[int, int] = (48, 48), target: int = 10,
-            repeats: int = 3, replay: bool = True, out=None) -> dict:
+            repeats: int = 3, replay: bool = True, out=None, view: str = "maps") -> dict:
     """Alternate headless and windowed runs of a simulated scan of ``scene`` (size (H, W),
     ``target`` detections per pixel) ``repeats`` times, and with ``replay`` of a replay of its
-    recording at full speed; print the medians to ``out`` (each run to stderr as it ends).
+    recording at full speed, the window showing ``view`` ("maps" or "3d"); print the medians to ``out`` (each run to stderr as it ends).
     Returns ``{name: (headless det/s list, windowed det/s list)}``."""
     from spdepth.acq.requests import ReplayRequest, ScanRequest, SimBench
     from spdepth.gui.app import application
@@ -91,13 +92,14 @@ def measure(*, scene: str = "bust", size: tuple[int, int] = (48, 48), target: in
         for name, (head, win) in results.items():
             request = scan if name == "scan" else replayed
             h = _headless(request)
-            w, n = _windowed(request)
+            w, n = _windowed(request, view)
             head.append(h)
             win.append(w)
             print(f"  {name:20s} run {i + 1}: headless {h:12,.0f} det/s   window {w:12,.0f} "
                   f"det/s   ({n} map repaints)", file=sys.stderr, flush=True)
     h, w = size
-    print(f"{scene} {w}x{h}, target {target}, {repeats} alternated runs each (medians):", file=out)
+    print(f"{scene} {w}x{h}, target {target}, window showing {view}, {repeats} alternated runs "
+          f"each (medians):", file=out)
     for name, (head, win) in results.items():
         mh, mw = statistics.median(head), statistics.median(win)
         print(f"  {name:20s} headless {mh:12,.0f} det/s   window {mw:12,.0f} det/s   "

@@ -1,87 +1,56 @@
-"""The live map panels: one image per map with a colour bar in physical units, unmeasured pixels
-transparent (over a grey view background), levels that stay put during a scan until asked to fit."""
+"""The live map panels: one image per map of ``acq.mapdefs.MAP_DEFS`` (the PNG sheets' maps, same
+names, units, colour maps and level rules), drawn in scan degrees with each pixel's true aspect,
+axes linked between the panels, pixels without a value grey.
+
+Levels: during a scan they follow the map's rule on what has arrived and only ever widen (a scan's
+first rows never fix them); "Fit levels" and the end of a run refit them to what is shown.
+"""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Callable
-
 import numpy as np
 import pyqtgraph as pg
-from PySide6 import QtWidgets
+from PySide6 import QtCore, QtWidgets
 
-from spdepth.acq.flags import ACQUIRING
+from spdepth.acq.flags import AcqFlag
+from spdepth.acq.mapdefs import (MAP_DEFS, NAN_COLOUR, MapDef, MapInput, constant_value, display,
+                                 levels_for, widen)
 from spdepth.recon.maps import C_M_PER_S
 
-VIEW_BACKGROUND = "#d4d4d4"
-"""Behind the images: unmeasured (NaN) pixels show this grey, apart from every colour map end."""
-FIT_PERCENTILES = (1.0, 99.0)
-"""Fitted levels span these percentiles of the finite pixels (a few outliers do not flatten the
-rest of the map)."""
+VIEW_BACKGROUND = NAN_COLOUR
+"""Behind the images: pixels without a value (NaN draws transparent) show this grey, as in the PNG."""
 
 # dark axes and labels on the white plots (pyqtgraph's default grey is faint there)
 pg.setConfigOptions(imageAxisOrder="row-major", antialias=True, foreground="#303030")
 
 
-def _measured_counts(snap) -> np.ndarray:
+def measured_counts(snap) -> np.ndarray:
+    """Detections kept per pixel, NaN (grey) for pixels with none that are not complete: not
+    visited yet, or left unmeasured by an abort."""
     c = snap.counts.astype(np.float64)
-    c[(snap.counts == 0) & (snap.acq_flags == ACQUIRING)] = np.nan    # not visited yet: transparent
+    c[(snap.counts == 0) & (snap.acq_flags != AcqFlag.COMPLETE)] = np.nan
     return c
 
 
-def _background_window(snap, n_bins: int) -> np.ndarray:
-    return snap.background * n_bins
-
-
-def _sigma_cm(snap) -> np.ndarray:
-    return snap.uncertainty_s * (C_M_PER_S / 2) * 100.0
-
-
-@dataclass(frozen=True)
-class MapSpec:
-    """key, title, unit for the colour bar, colour map, and how to get the (H, W) array from a
-    snapshot (``extract(snap, n_bins)``); fixed_levels(target) for maps with natural limits."""
-
-    key: str
-    title: str
-    unit: str
-    cmap: str
-    extract: Callable
-    fixed_levels: Callable | None = None
-
-
-MAP_SPECS = (
-    MapSpec("depth", "Depth", "m", "viridis", lambda s, n: s.depth_m),
-    # reversed: most pixels of a short dwell estimate no background at all, and magma's black
-    # low end made them one black field; light for none reads as "clean"
-    MapSpec("background", "Background", "detections in window", "magma_r", _background_window),
-    MapSpec("counts", "Detections kept", "per pixel", "cividis", lambda s, n: _measured_counts(s),
-            fixed_levels=lambda target: (0.0, float(target))),
-    MapSpec("uncertainty", "Depth uncertainty (1 sigma)", "cm", "plasma", lambda s, n: _sigma_cm(s)),
-)
-
-
-def fit_levels(data: np.ndarray) -> tuple[float, float] | None:
-    """Robust levels of the finite pixels, None when there are none."""
-    v = data[np.isfinite(data)]
-    if v.size == 0:
-        return None
-    lo, hi = np.percentile(v, FIT_PERCENTILES) if v.size >= 20 else (v.min(), v.max())
-    lo, hi = float(lo), float(hi)
-    if not hi > lo:
-        pad = max(abs(lo) * 0.05, 1e-6)
-        lo, hi = lo - pad, hi + pad
-    return lo, hi
+def snapshot_input(snap, n_bins: int, target: int, surfaces=None) -> MapInput:
+    """A session snapshot (or a file result's) as the maps' input; ``surfaces``: the (H, W)
+    surfaces-found map of K > 1 maps."""
+    return MapInput(depth_m=snap.depth_m, background=snap.background, signal=snap.signal,
+                    uncertainty_s=snap.uncertainty_s, counts=measured_counts(snap),
+                    n_bins=n_bins, target=target, surfaces=surfaces)
 
 
 class MapPanel:
-    """One map in a GraphicsLayout cell: plot (title), image, colour bar with the unit, and a
-    square marking the inspected pixel."""
+    """One map in a GraphicsLayout cell: plot (title), image placed in scan degrees, colour bar
+    with the unit, and a square marking the inspected pixel.
 
-    def __init__(self, layout: pg.GraphicsLayout, spec: MapSpec, row: int, col: int):
+    geometry: an ``acq.points.ScanGeometry`` (or None: pixel indices, square pixels), set by
+    ``set_geometry`` before the first data of a run."""
+
+    def __init__(self, layout: pg.GraphicsLayout, spec: MapDef, row: int, col: int):
         self.spec = spec
         self.plot = layout.addPlot(row=row, col=col)
-        self.plot.setTitle(spec.title, size="11pt")
+        self.plot.setTitle(spec.title, size="10pt")
         self.plot.setAspectLocked(True)
         self.plot.invertY(True)
         self.plot.hideButtons()
@@ -91,13 +60,12 @@ class MapPanel:
         self.plot.vb.setBackgroundColor(VIEW_BACKGROUND)
         self.image = pg.ImageItem(axisOrder="row-major")
         self.plot.addItem(self.image)
-        cmap = pg.colormap.get(spec.cmap.removesuffix("_r"))
-        if spec.cmap.endswith("_r"):
-            cmap.reverse()
+        cmap = pg.colormap.get(spec.cmap, source="matplotlib")
         self.bar = pg.ColorBarItem(values=(0.0, 1.0), colorMap=cmap,
-                                   label=f"{spec.title} ({spec.unit})", width=16,
+                                   label=f"{spec.title} ({spec.unit})", width=14,
                                    interactive=True, pen="#444", colorMapMenu=False)
         self.bar.setImageItem(self.image, insert_in=self.plot)
+        self.bar.setToolTip(spec.about)
         # an image update repaints what overlaps it; the axes and the bar's axis are the dearest
         # items to paint (pyqtgraph draws them in Python) and rarely change: keep them as pixmaps
         for item in (self.plot.getAxis("left"), self.plot.getAxis("bottom"), self.bar.axis,
@@ -109,60 +77,120 @@ class MapPanel:
         self.levels: tuple[float, float] | None = None
         self.data: np.ndarray | None = None
         self.version = None
+        self.geometry = None
         self._shape = None
+        self._const = None
 
+    # ---- geometry ------------------------------------------------------------------------------
+    def set_geometry(self, geometry, shape: tuple[int, int]) -> None:
+        """Place the image: in scan degrees (true pixel aspect) or, without a geometry, in pixel
+        indices; axes labelled to match."""
+        self.geometry = geometry
+        self._shape = tuple(shape)
+        h, w = self._shape
+        if geometry is not None:
+            left, right, top, bottom = geometry.extent_deg
+            self.rect = QtCore.QRectF(left, top, right - left, bottom - top)
+            self.plot.setLabel("bottom", "scan angle x (°)")
+            self.plot.setLabel("left", "scan angle y (°)")
+        else:
+            self.rect = QtCore.QRectF(0, 0, w, h)
+            self.plot.setLabel("bottom", "column")
+            self.plot.setLabel("left", "row")
+        self.image.setRect(self.rect)
+        self.plot.setRange(self.rect, padding=0.02)
+
+    def pixel_rect(self, r: int, c: int) -> QtCore.QRectF:
+        """Pixel (row, col) in view coordinates."""
+        h, w = self._shape
+        pw, ph = self.rect.width() / w, self.rect.height() / h
+        return QtCore.QRectF(self.rect.left() + c * pw, self.rect.top() + r * ph, pw, ph)
+
+    # ---- data ----------------------------------------------------------------------------------
     def reset(self) -> None:
         self.levels = None
         self.data = None
         self.version = None
-        self._shape = None
+        self._const = None
         self.image.clear()
         self.marker.setData([], [])
+        self.plot.setTitle(self.spec.title, size="10pt")
 
-    def show(self, data: np.ndarray, target: int, version=None) -> None:
-        """New data; levels fixed on the first data (or the spec's natural limits) and then kept.
-        ``version``: when given and equal to the last one shown, the data is unchanged and the
-        image is not set again (each setImage re-renders the whole image in Python)."""
-        if version is not None and version == self.version:
+    def show(self, data: np.ndarray, target: int, version=None, *, refit: bool = False,
+             surface: int = 0) -> None:
+        """New data. Levels by the map's rule on the data, widened (never narrowed) during a run,
+        or refitted with ``refit``. ``version``: equal to the last one shown, the data is unchanged
+        and the image is not set again (each setImage re-renders the whole image in Python)."""
+        if version is not None and version == self.version and not refit:
             return
         self.version = version
+        data = np.asarray(data, dtype=np.float64)
+        if data.ndim == 3:                       # K surfaces: the one picked
+            data = data[min(surface, data.shape[0] - 1)]
         self.data = data
-        if self.levels is None:
-            self.levels = (self.spec.fixed_levels(target) if self.spec.fixed_levels
-                           else fit_levels(data))
-            if self.levels is not None:
-                self.bar.setLevels(self.levels)
-        # the bar holds the levels (the user may drag them); streaming never auto-levels
-        self.image.setImage(data, autoLevels=False, levels=self.bar.levels())
-        if data.shape != self._shape:
-            self._shape = data.shape
-            h, w = data.shape
-            self.plot.setRange(xRange=(0, w), yRange=(0, h), padding=0.02)
-
-    def fit(self, target: int) -> None:
-        """Levels to the data now (the spec's natural limits for counts)."""
-        if self.data is None:
-            return
-        lv = self.spec.fixed_levels(target) if self.spec.fixed_levels else fit_levels(self.data)
-        if lv is not None:
+        new = levels_for(self.spec, data, target)
+        lv = new if (refit or self.levels is None) else widen(self.levels, new)
+        if lv is not None and lv != self.levels:
             self.levels = lv
             self.bar.setLevels(lv)
+        const = constant_value(data)
+        if const != self._const:
+            # one value everywhere: say it in the title (the bar's ends would be rounding noise)
+            self._const = const
+            self.plot.setTitle(self.spec.title + (f": {const:g} {self.spec.unit} in every pixel"
+                                                  if const is not None else ""), size="10pt")
+        # the bar holds the levels (the user may drag them); streaming never auto-levels
+        self.image.setImage(display(data, self.levels), autoLevels=False, levels=self.bar.levels())
+        if self.rect is not None:
+            self.image.setRect(self.rect)
+
+    rect = None
+
+    def fit(self, target: int) -> None:
+        """Levels refitted to the data now."""
+        if self.data is not None:
+            self.show(self.data, target, self.version, refit=True)
 
     def mark(self, pixel: tuple[int, int] | None) -> None:
-        if pixel is None:
+        if pixel is None or self._shape is None:
             self.marker.setData([], [])
             return
-        r, c = pixel
-        self.marker.setData([c, c + 1, c + 1, c, c], [r, r, r + 1, r + 1, r])
+        q = self.pixel_rect(*pixel)
+        x0, x1, y0, y1 = q.left(), q.right(), q.top(), q.bottom()
+        self.marker.setData([x0, x1, x1, x0, x0], [y0, y0, y1, y1, y0])
 
     def pixel_at(self, scene_pos) -> tuple[int, int] | None:
         """(row, col) under a scene position, None outside this map's image."""
         if self._shape is None or not self.plot.vb.sceneBoundingRect().contains(scene_pos):
             return None
         p = self.plot.vb.mapSceneToView(scene_pos)
-        r, c = int(np.floor(p.y())), int(np.floor(p.x()))
         h, w = self._shape
+        c = int(np.floor((p.x() - self.rect.left()) / self.rect.width() * w))
+        r = int(np.floor((p.y() - self.rect.top()) / self.rect.height() * h))
         return (r, c) if 0 <= r < h and 0 <= c < w else None
 
 
-__all__ = ["MapPanel", "MapSpec", "MAP_SPECS", "fit_levels", "C_M_PER_S"]
+def link_panels(panels: list[MapPanel]) -> None:
+    """Zoom and pan one map, and all follow: the same region of the scan in every panel, each
+    with its aspect locked. (pyqtgraph's setXLink/setYLink fight the aspect locks of views of
+    different sizes and zoom out without end, so the region is copied instead.)"""
+    busy = [False]
+
+    def follow(source: MapPanel) -> None:
+        if busy[0]:
+            return
+        busy[0] = True
+        try:
+            rect = source.plot.vb.viewRect()
+            for p in panels:
+                if p is not source:
+                    p.plot.vb.setRange(rect, padding=0)
+        finally:
+            busy[0] = False
+
+    for p in panels:
+        p.plot.vb.sigRangeChangedManually.connect(lambda *_, src=p: follow(src))
+
+
+__all__ = ["MapPanel", "MAP_DEFS", "link_panels", "snapshot_input", "measured_counts",
+           "C_M_PER_S", "VIEW_BACKGROUND"]

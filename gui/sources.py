@@ -66,6 +66,7 @@ class SourceSpec:
     file:           a PTU/HT3/PT3 or .mat file to reconstruct (kind "file").
     time_unit_ps:   file: size of one raw time unit (required for .mat, 0: the PTU header's).
     pulse_rms_ps:   file: Gaussian pulse RMS (0: as recorded, else estimated from the data).
+    reflectors:     file: surfaces per pixel to look for (K).
     out_root:       a folder under which each run gets its own directory (recording, maps,
                     run.json).
     """
@@ -88,6 +89,7 @@ class SourceSpec:
     file: str = ""
     time_unit_ps: float = 0.0
     pulse_rms_ps: float = 0.0
+    reflectors: int = 1
     out_root: str = ""
 
     def to_dict(self) -> dict:
@@ -119,7 +121,8 @@ class SourceSpec:
             return FileReconRequest(input=self.file, method=self.method,
                                     time_unit_s=_ps(self.time_unit_ps),
                                     pulse_rms_s=_ps(self.pulse_rms_ps),
-                                    max_photons=self.target or None)
+                                    max_photons=self.target or None,
+                                    reflectors=int(self.reflectors or 1))
         if self.kind == "sim":
             instruments = SimBench(scene=self.scene, sbr=self.sbr, seed=self.seed,
                                    faults=self.faults)
@@ -146,7 +149,8 @@ class SourceSpec:
             d.update(kind="file", file=request.input, method=request.method,
                      target=request.max_photons or 0,
                      time_unit_ps=(request.time_unit_s or 0.0) * 1e12,
-                     pulse_rms_ps=(request.pulse_rms_s or 0.0) * 1e12)
+                     pulse_rms_ps=(request.pulse_rms_s or 0.0) * 1e12,
+                     reflectors=request.reflectors)
         elif isinstance(request, ScanRequest):
             src = request.instruments
             d.update(size=list(request.size), target=request.target, mode=request.mode,
@@ -253,6 +257,9 @@ class PixelInfo:
     flag: int
     kept: str
     acquisition: str
+    n_kept: int = 0
+    surfaces: tuple = ()
+    """K > 1 surfaces: (tof_s, depth_m, signal, uncertainty_s) of each surface fitted, nearest first."""
 
 
 class SessionView:
@@ -270,7 +277,10 @@ class SessionView:
         return self.session.plan.target
 
     def maps(self):
-        return self.session.maps()
+        """The maps with the scan's geometry in their settings (``acq.api.session_maps``)."""
+        from spdepth.acq.api import session_maps
+
+        return session_maps(self.session)[0]
 
     def key(self, r: int, c: int):
         """Changes whenever what ``pixel(r, c)`` shows may have changed."""
@@ -291,6 +301,7 @@ class SessionView:
             background=float(rc.background[r, c]), signal=float(rc.signal[r, c]),
             uncertainty_s=float(rc.uncertainty_s[r, c]), estimated=bool(rc.done[r, c]),
             flag=int(rc.flags[r, c]), kept=f"{int(s.store.count[flat])} of {s.plan.target}",
+            n_kept=int(s.store.count[flat]),
             acquisition="acquiring" if acq == ACQUIRING
             else AcqFlag(acq).name.lower().replace("_", " "))
 
@@ -336,12 +347,18 @@ class ResultView:
         if self.target:
             t = t[:self.target]
         n = int(m.photons[r, c])
+        first = lambda a: np.asarray(a)[0] if np.ndim(a) == 3 else np.asarray(a)   # noqa: E731
         return PixelInfo(
             times=t, binning=b, pulse_rms_s=res.pulse_rms_s, irf=res.irf,
-            tof_s=float(m.tof_s[r, c]), depth_m=float(m.depth_m[r, c]),
-            background=float(m.background[r, c]), signal=float(m.signal[r, c]),
-            uncertainty_s=float(m.uncertainty_s[r, c]), estimated=n > 0, flag=int(m.flags[r, c]),
+            tof_s=float(first(m.tof_s)[r, c]), depth_m=float(first(m.depth_m)[r, c]),
+            background=float(m.background[r, c]), signal=float(first(m.signal)[r, c]),
+            uncertainty_s=float(first(m.uncertainty_s)[r, c]), estimated=n > 0, flag=int(m.flags[r, c]),
             kept=f"{n} in the window" + (f" (first {self.target})" if self.target else ""),
+            n_kept=n,
+            surfaces=tuple((float(m.tof_s[k, r, c]), float(m.depth_m[k, r, c]),
+                            float(m.signal[k, r, c]), float(m.uncertainty_s[k, r, c]))
+                           for k in range(np.shape(m.depth_m)[0])
+                           if np.isfinite(m.depth_m[k, r, c])) if np.ndim(m.depth_m) == 3 else (),
             acquisition=f"from {self.path.name}")
 
 

@@ -27,7 +27,9 @@ from spdepth.acq.api import new_run_dir
 from spdepth.acq.errors import RequestError
 from spdepth.acq.requests import DEFAULT_TARGET, MAX_TARGET, FileReconRequest, ReplayRequest
 from spdepth.gui.health import HealthTracker
-from spdepth.gui.maps import C_M_PER_S, MAP_SPECS, MapPanel
+from spdepth.acq.flags import AcqFlag
+from spdepth.gui.maps import C_M_PER_S, MAP_DEFS, MapPanel, link_panels, snapshot_input
+from spdepth.gui.view3d import PointCloudView
 from spdepth.gui.pixel_model import pixel_histogram
 from spdepth.gui.sources import (METHODS, MODES, FileJob, ResultView, SessionView, SourceSpec,
                                  in_window_words, open_run, run_kind)
@@ -43,6 +45,12 @@ CPU_BUDGET = 0.05
 """Share of one core the map repaints may use during a scan."""
 FIRST_PAINT_COST_S = 0.03
 """Assumed cost of a map repaint until one is measured."""
+PATH_FIELDS = ("out_root", "recording", "file")
+"""The controls' paths: remembered absolute, and only those that worked."""
+VIEW3D_STATUS_PERIOD_S = 1.0
+"""With the 3D tab shown during a scan, the status bar and plots update at most this often."""
+VIEW3D_PERIOD_S = 2.0
+"""Shortest interval between two redraws of the 3-D view during a scan."""
 HISTORY_PERIOD_S = 0.25
 """Accuracy-plot points are taken at most this often."""
 CLOSE_WAIT_S = 15.0
@@ -145,6 +153,9 @@ class ControlPanel(QtWidgets.QWidget):
         self.pulse_rms.setSpecialValueText("estimate")
         self.pulse_rms.setToolTip("Gaussian pulse RMS width (the seed paper: 360 ps); "
                                   "'estimate' measures the response from the data")
+        self.reflectors = QtWidgets.QSpinBox(minimum=1, maximum=8, value=1)
+        self.reflectors.setToolTip("surfaces per pixel to look for (e.g. 2 through a net or "
+                                   "glass); the maps then show one surface at a time")
         self._rows = {}
         for key, label, w in (("sim", "Scene", self.scene), ("sim", "SBR", self.sbr),
                               ("sim", "Seed", self.seed), ("sim", "Faults", self.faults),
@@ -153,7 +164,8 @@ class ControlPanel(QtWidgets.QWidget):
                               ("real", "Field of view", self.fov),
                               ("replay", "Recording", rec_row), ("file", "File", file_row),
                               ("file", "Time unit", self.time_unit),
-                              ("file", "Pulse RMS", self.pulse_rms)):
+                              ("file", "Pulse RMS", self.pulse_rms),
+                              ("file", "Surfaces", self.reflectors)):
             f.addRow(label, w)
             self._rows.setdefault(key, []).append(w)
         lay.addWidget(src)
@@ -211,9 +223,27 @@ class ControlPanel(QtWidgets.QWidget):
         v.addWidget(self.fit)
         v.addWidget(self.save)
         lay.addWidget(view)
+        self.surface_row = QtWidgets.QWidget()
+        sr = QtWidgets.QHBoxLayout(self.surface_row)
+        sr.setContentsMargins(6, 0, 6, 0)
+        sr.addWidget(QtWidgets.QLabel("Surface shown"))
+        self.surface = QtWidgets.QComboBox()
+        self.surface.setToolTip("maps of several surfaces per pixel (nearest first): the one the "
+                                "depth and uncertainty maps show; the 3D view shows them all")
+        sr.addWidget(self.surface, 1)
+        lay.addWidget(self.surface_row)
+        self.set_surfaces(1)
         lay.addStretch(1)
         self.kind.currentIndexChanged.connect(self._kind_changed)
         self.set_spec(SourceSpec())          # the library's defaults until settings are restored
+
+    def set_surfaces(self, k: int) -> None:
+        """Offer surfaces 1..k in the picker (hidden for one)."""
+        self.surface.blockSignals(True)
+        self.surface.clear()
+        self.surface.addItems([f"{i + 1}" + (" (nearest)" if i == 0 else "") for i in range(k)])
+        self.surface.blockSignals(False)
+        self.surface_row.setVisible(k > 1)
 
     def _kind_changed(self) -> None:
         kind = self.kind.currentData()
@@ -261,7 +291,7 @@ class ControlPanel(QtWidgets.QWidget):
             fov_deg=self.fov.value(),
             recording=self.recording.text().strip(), file=self.file.text().strip(),
             time_unit_ps=self.time_unit.value(), pulse_rms_ps=self.pulse_rms.value(),
-            out_root=self.out_root.text().strip())
+            reflectors=self.reflectors.value(), out_root=self.out_root.text().strip())
 
     def set_spec(self, s: SourceSpec) -> None:
         i = self.kind.findData(s.kind)
@@ -272,7 +302,10 @@ class ControlPanel(QtWidgets.QWidget):
         self.target.setMinimum(0)              # 0 stays 0 until _kind_changed decides
         self.target.setValue(int(s.target))
         self.mode.setCurrentText(s.mode)
+        # settings shown, not a choice made: the window reconstructs again only on a user's change
+        self.method.blockSignals(True)
         self.method.setCurrentText(s.method)
+        self.method.blockSignals(False)
         self.dwell.setValue(float(s.dwell_limit_ms))
         self.sbr.setValue(float(s.sbr))
         self.seed.setValue(int(s.seed))
@@ -285,6 +318,7 @@ class ControlPanel(QtWidgets.QWidget):
         self.file.setText(s.file)
         self.time_unit.setValue(float(s.time_unit_ps))
         self.pulse_rms.setValue(float(s.pulse_rms_ps))
+        self.reflectors.setValue(int(s.reflectors or 1))
         if s.out_root:
             self.out_root.setText(s.out_root)
         self._kind_changed()
@@ -318,6 +352,8 @@ class Inspector(QtWidgets.QWidget):
                                    name="detections")
         self.model = self.plot.plot([], [], pen=pg.mkPen("#d0342c", width=2),
                                     name="fitted model")
+        self.surface_lines: list = []
+        """One dashed line per fitted surface (K > 1) at its time of flight."""
         self.plot.setMinimumHeight(160)
         lay.addWidget(self.plot, 1)
         self.info = QtWidgets.QLabel()
@@ -335,8 +371,9 @@ class Inspector(QtWidgets.QWidget):
         self.info.setText("")
         self.title.setText("<b>Pixel inspector</b> — hover or click a map pixel")
 
-    def show_pixel(self, info, pixel: tuple[int, int], pinned: bool) -> None:
-        """``info``: a ``gui.sources.PixelInfo`` of ``pixel`` (row, col)."""
+    def show_pixel(self, info, pixel: tuple[int, int], pinned: bool, truth: float | None = None) -> None:
+        """``info``: a ``gui.sources.PixelInfo`` of ``pixel`` (row, col); ``truth``: the true
+        depth of a simulated scene there."""
         from spdepth.recon.maps import PixelFlag
 
         r, c = pixel
@@ -358,21 +395,45 @@ class Inspector(QtWidgets.QWidget):
         self.plot.enableAutoRange(axis="y")
         centres = 0.5 * (ph.edges_s[1:] + ph.edges_s[:-1])
         self.model.setData(centres, ph.model) if ph.model is not None else self.model.setData([], [])
+        for line in self.surface_lines:
+            self.plot.removeItem(line)
+        self.surface_lines = []
+        for k, (s_tof, _d, _sig, _sd) in enumerate(info.surfaces):
+            colour = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd")[k % 5]
+            line = pg.InfiniteLine(s_tof, angle=90, pen=pg.mkPen(colour, width=2,
+                                                                 style=QtCore.Qt.DashLine),
+                                   label=f"surface {k + 1}", labelOpts={"color": colour})
+            self.plot.addItem(line)
+            self.surface_lines.append(line)
+        if len(info.surfaces) > 1:
+            tofs = [t for t, *_ in info.surfaces]
+            half = max(3e-9, 10 * (pulse_rms_s or 0))
+            self.plot.setXRange(min(tofs) - half, max(tofs) + half, padding=0)
         self.pixel = pixel
         done = info.estimated
         depth = info.depth_m
         sd_cm = info.uncertainty_s * C_M_PER_S / 2 * 100
         n_bins = b.n_bins
+        # all surfaces' signal counts against the detections kept (the first alone would not add up)
+        sig_all = sum(x[2] for x in info.surfaces) if info.surfaces else sig
         rows = [
             ("depth", f"{depth:.4f} m ± {sd_cm:.2f} cm" if math.isfinite(depth) else "–"),
             ("time of flight", f"{tof * 1e9:.3f} ns" if math.isfinite(tof) else "–"),
-            ("signal", f"{sig:.2f} detections" if done else "–"),
-            ("background", f"{bg * n_bins:.3f} in window ({bg:.2e}/bin)"
+            ("signal", f"{sig:.2f} detections (estimated)" if done else "–"),
+            ("background", f"{bg * n_bins:.2f} detections in window (estimated; {bg:.2e} per bin)"
              if done and math.isfinite(bg) else "–"),
+            ("model total", f"{sig_all + bg * n_bins:.2f} = signal + background, against "
+             f"{info.n_kept} detections kept" if done and math.isfinite(bg) else "–"),
             ("detections kept", info.kept),
             ("estimate", PixelFlag(info.flag).name.lower().replace("_", " ") if done else "not yet"),
             ("acquisition", info.acquisition),
         ]
+        for k, (_t, s_depth, s_sig, s_sd) in enumerate(info.surfaces):
+            rows.insert(1 + k, (f"surface {k + 1}", f"{s_depth:.4f} m ± "
+                                f"{s_sd * C_M_PER_S / 2 * 100:.2f} cm, {s_sig:.2f} signal detections"))
+        if truth is not None:
+            rows.insert(1, ("true depth (simulated)", f"{truth:.4f} m" + (
+                f", error {100 * (depth - truth):+.2f} cm" if math.isfinite(depth) else "")))
         self.title.setText(f"<b>Pixel row {r}, col {c}</b>" + (" (pinned: click again to release)"
                                                               if pinned else ""))
         self.last_text = "; ".join(f"{k}: {v}" for k, v in rows)
@@ -398,7 +459,7 @@ class AccuracyPlot(QtWidgets.QWidget):
         top.addStretch(1)
         lay.addLayout(top)
         self.plot = pg.PlotWidget()
-        self.plot.setLabel("left", "depth", units="cm")
+        self.plot.setLabel("left", "depth uncertainty / error", units="cm")
         self.plot.addLegend(offset=(-8, 8), labelTextSize="9pt")
         self.sigma = self.plot.plot([], [], pen=pg.mkPen("#7a2fb5", width=2), symbol="o",
                                     symbolSize=4, symbolBrush="#7a2fb5",
@@ -514,7 +575,19 @@ class MainWindow(QtWidgets.QMainWindow):
         self.maps_view.setBackground("w")
         self.maps_view.ci.setSpacing(4)
         self.panels = [MapPanel(self.maps_view.ci, spec, i // 2, i % 2)
-                       for i, spec in enumerate(MAP_SPECS)]
+                       for i, spec in enumerate(MAP_DEFS)]
+        self._surfaces = None
+        """(H, W) surfaces found per pixel of K > 1 maps (a file read with several surfaces)."""
+        link_panels(self.panels)
+        for i in range(2):                 # equal cells: the same region shows at the same scale
+            self.maps_view.ci.layout.setColumnStretchFactor(i, 1)
+        for i in range(3):
+            self.maps_view.ci.layout.setRowStretchFactor(i, 1)
+        self.view3d = PointCloudView()
+        self.views = QtWidgets.QTabWidget()
+        self.views.addTab(self.maps_view, "Maps")
+        self.views.addTab(self.view3d, "3D")
+        self.views.currentChanged.connect(self._view_changed)
         self.maps_view.scene().sigMouseMoved.connect(self._mouse_moved)
         self.maps_view.scene().sigMouseClicked.connect(self._mouse_clicked)
         centre = QtWidgets.QWidget()
@@ -522,7 +595,7 @@ class MainWindow(QtWidgets.QMainWindow):
         cl.setContentsMargins(4, 4, 4, 4)
         cl.addWidget(self.banner)
         cl.addWidget(self.run_label)
-        cl.addWidget(self.maps_view, 1)
+        cl.addWidget(self.views, 1)
 
         self.inspector = Inspector()
         self.accuracy = AccuracyPlot()
@@ -563,6 +636,8 @@ class MainWindow(QtWidgets.QMainWindow):
         c.resume.clicked.connect(self.resume)
         c.abort.clicked.connect(self.abort)
         c.fit.clicked.connect(self.fit_levels)
+        c.method.currentTextChanged.connect(self._estimator_changed)
+        c.surface.currentIndexChanged.connect(lambda _: self.fit_levels())
         c.save.clicked.connect(self._save_dialog)
         c.set_running(None)
 
@@ -575,26 +650,75 @@ class MainWindow(QtWidgets.QMainWindow):
         self.paint_cost_s = FIRST_PAINT_COST_S
         """GUI-thread CPU of one map repaint, measured (a running average)."""
         self._maps_due = 0.0
+        self._last_3d = 0.0
+        self._status_due = 0.0
+        self._maps_stale = False
         self._restore_settings()
+        # Ctrl+Q / Ctrl+W close the window (a running scan is aborted, its recording kept)
+        for keys in (QtGui.QKeySequence.Quit, QtGui.QKeySequence.Close, "Ctrl+Q", "Ctrl+W"):
+            sc = QtGui.QShortcut(QtGui.QKeySequence(keys), self)
+            sc.setContext(QtCore.Qt.ApplicationShortcut)
+            sc.activated.connect(self.close)
+
+    def panel(self, key: str) -> MapPanel:
+        """The map panel of ``acq.mapdefs`` key (depth, uncertainty, background, sbr, counts)."""
+        return next(p for p in self.panels if p.spec.key == key)
+
+    def show_view(self, which: str) -> None:
+        """Show the "maps" or the "3d" tab."""
+        self.views.setCurrentIndex(1 if which == "3d" else 0)
 
     # ---- settings ------------------------------------------------------------------------------
     def _restore_settings(self) -> None:
         raw = self.settings.value("source")
+        self._good_paths = {}
         if raw:
             try:
-                self.controls.set_spec(SourceSpec.from_dict(json.loads(raw)))
+                spec = SourceSpec.from_dict(json.loads(raw))
+                self.controls.set_spec(spec)
+                self._good_paths = {k: getattr(spec, k) for k in PATH_FIELDS if getattr(spec, k)}
             except (ValueError, TypeError) as exc:
                 log.warning("ignoring stored settings: %s", exc)
         geom = self.settings.value("geometry")
         if geom is not None:
-            self.restoreGeometry(geom)
+            self.restore_fitting_geometry(geom)
         state = self.settings.value("splitter")
         if state is not None:
             self.splitter.restoreState(state)
 
-    def save_settings(self) -> None:
-        self.settings.setValue("source", json.dumps(self.controls.spec().to_dict()))
-        self.settings.setValue("geometry", self.saveGeometry())
+    def restore_fitting_geometry(self, geom) -> bool:
+        """Use a remembered window geometry only if it fits a screen here and holds the window's
+        contents (one saved on a larger monitor, or squeezed, would clip the right column)."""
+        before = self.saveGeometry()
+        if not self.restoreGeometry(geom):
+            return False
+        screen = QtGui.QGuiApplication.screenAt(self.frameGeometry().center()) or \
+            QtGui.QGuiApplication.primaryScreen()
+        hint = self.minimumSizeHint()
+        if screen is not None and screen.availableGeometry().contains(self.frameGeometry()) and \
+                self.width() >= hint.width() and self.height() >= hint.height():
+            return True
+        self.restoreGeometry(before)
+        return False
+
+    def save_settings(self, worked: bool = False) -> None:
+        """Remember the controls. Paths (runs folder, recording, file) are remembered absolute,
+        and only once they worked (``worked``: a run just started, or a file was read, with
+        them); otherwise the last ones that did are kept."""
+        d = self.controls.spec().to_dict()
+        for k in PATH_FIELDS:
+            if d[k]:
+                d[k] = str(Path(d[k]).expanduser().resolve())
+            if worked:
+                if d[k]:
+                    self._good_paths[k] = d[k]
+            else:
+                d[k] = self._good_paths.get(k, "")
+        self.settings.setValue("source", json.dumps(d))
+        # a headless run's screen is Qt's invented one (offscreen: 800x800): its geometry would
+        # squeeze the window on a real screen, so it is not remembered
+        if QtGui.QGuiApplication.platformName() not in ("offscreen", "minimal"):
+            self.settings.setValue("geometry", self.saveGeometry())
         self.settings.setValue("splitter", self.splitter.saveState())
         self.settings.sync()
 
@@ -657,12 +781,16 @@ class MainWindow(QtWidgets.QMainWindow):
             c.width_px.setValue(plan.shape[1])
             c.mode.setCurrentText(plan.mode)
         self.accuracy.show()
-        self.save_settings()
+        self.save_settings(worked=True)
         self.health = HealthTracker(live=not isinstance(run.request, ReplayRequest))
         self._n_bins = run.session.recon.settings.binning.n_bins
         # the run's own folder name; the whole path is in the tooltip (and in run.json)
         where = f" — files in …/{run.out_dir.name}/" if run.out_dir else ""
-        self._new_run(f"{run.label}{where}", str(run.out_dir or ""))
+        self._target = run.session.plan.target
+        self._surfaces = None
+        self.controls.set_surfaces(1)
+        self._new_run(f"{run.label}{where}", str(run.out_dir or ""), _plan_geometry(run.session.plan),
+                      run.session.plan.shape)
         h, w = run.session.plan.shape
         self.inspect((h // 2, w // 2), pin=False)     # something to look at until the user points
         # the first paint of a run (new ranges, axes, labels: the whole window) is the dearest:
@@ -681,7 +809,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self._maps_due = time.monotonic() + 1.0 / REFRESH_HZ
         return True
 
-    def _new_run(self, label: str, tooltip: str) -> None:
+    def _new_run(self, label: str, tooltip: str, geometry=None, shape=(1, 1)) -> None:
         self._ended_emitted = False
         self._last_sig = None
         self._inspect_key = None
@@ -691,6 +819,9 @@ class MainWindow(QtWidgets.QMainWindow):
             p.reset()
         self.inspector.clear()
         self.accuracy.clear()
+        self.view3d.reset(geometry)
+        for p in self.panels:
+            p.set_geometry(geometry, shape)
         self.run_label.setText(label)
         self.run_label.setToolTip(tooltip)
 
@@ -700,9 +831,9 @@ class MainWindow(QtWidgets.QMainWindow):
         self.view = None
         self.snap = None
         self.job = FileJob(request)
-        self.save_settings()
         self.health = HealthTracker(live=False)
         self._new_run(f"{request.label()} — reconstructing…", request.input)
+        self.view3d.reset(None)
         self.accuracy.hide()                   # accuracy over scan time: a file has no scan
         self.state_label.setText("reconstructing")
         _pill(self.state_label, STATE_COLOURS["running"])
@@ -734,13 +865,24 @@ class MainWindow(QtWidgets.QMainWindow):
             self.scan_ended.emit("failed")
             return
         res = job.result
+        self.save_settings(worked=True)          # the file was read: its path is worth keeping
         view = self.view = ResultView(res)
         self._n_bins = res.binning.n_bins
         snap = self.snap = view.snapshot()
         target = view.target or max(1, int(np.max(res.maps.photons)))
+        self._target = target
+        from spdepth.acq.points import geometry_of
+
+        geometry = geometry_of(res.maps)
+        from spdepth.acq.mapdefs import surfaces_of
+
+        self._surfaces = surfaces_of(res.maps)
+        k = int(np.asarray(res.maps.depth_m).shape[0]) if np.ndim(res.maps.depth_m) == 3 else 1
+        self.controls.set_surfaces(k)
+        self.view3d.reset(geometry)
         for p in self.panels:
-            p.show(p.spec.extract(snap, self._n_bins), target)
-        self.fit_levels()
+            p.set_geometry(geometry, view.shape)
+        self._paint_maps(snap, target, refit=True)
         h, w = view.shape
         self.state_label.setText("done")
         _pill(self.state_label, STATE_COLOURS["done"])
@@ -788,6 +930,12 @@ class MainWindow(QtWidgets.QMainWindow):
         the scan has ended). The GUI thread's CPU time from a tick that repainted the maps to the
         next (Qt paints in between) is what a repaint costs."""
         cpu, now = time.thread_time(), time.monotonic()
+        if self.running() and self.views.currentWidget() is self.view3d and \
+                now < self._status_due:
+            # with the 3D tab shown Qt composites the whole window through OpenGL at every
+            # update (Mesa: in software, on threads the CPU budget does not see): fewer updates
+            return
+        self._status_due = now + VIEW3D_STATUS_PERIOD_S
         if self._painted_last_tick:
             self.paint_cost_s = 0.7 * self.paint_cost_s + 0.3 * (cpu - self._tick_cpu)
         paint = not self.running() or now >= self._maps_due
@@ -816,11 +964,7 @@ class MainWindow(QtWidgets.QMainWindow):
         painted = False
         if maps and versions != self._last_sig:
             self._last_sig = versions
-            for p in self.panels:
-                v = versions["counts" if p.spec.key == "counts" else "estimate"]
-                if v != p.version:
-                    p.show(p.spec.extract(snap, self._n_bins), target, version=v)
-                    painted = True
+            painted = self._paint_maps(snap, target, versions)
         # a point per HISTORY_PERIOD_S whatever the repaint rate; drawn with the maps
         self.accuracy.add(snap, run.truth_depth_m, force=snap.state in TERMINAL and painted,
                           draw=painted)
@@ -833,6 +977,84 @@ class MainWindow(QtWidgets.QMainWindow):
             self._on_end(snap)
         return painted
 
+    def _paint_maps(self, snap, target: int, versions=None, refit: bool = False) -> bool:
+        """Set the maps (those whose version changed) and the 3-D view if it is shown; returns
+        whether anything was set."""
+        painted = False
+        if self.running() and self.views.currentWidget() is not self.maps_view:
+            # hidden maps are set when their tab is shown again (each set renders an image)
+            self._maps_stale = True
+            self._paint_3d()
+            return False
+        self._maps_stale = False
+        mi = snapshot_input(snap, self._n_bins, target, self._surfaces)
+        surface = max(0, self.controls.surface.currentIndex())
+        for p in self.panels:
+            v = None if versions is None else versions["counts" if p.spec.key == "counts"
+                                                       else "estimate"]
+            if v is None or v != p.version or refit:
+                data = p.spec.extract(mi)
+                if data is None:                 # an optional map these maps do not have
+                    p.plot.setVisible(False)
+                    continue
+                p.plot.setVisible(True)
+                p.show(data, target, version=v, refit=refit, surface=surface)
+                painted = True
+        if painted:
+            self._paint_3d()
+        return painted
+
+    def _estimator_changed(self, method: str) -> None:
+        """A new estimator chosen after a run: the same detections reconstructed again with it
+        (a file, or the finished scan's recording read as a file); a run kept in memory has no
+        recording to read again, and the status bar says so."""
+        if self.running() or self._in_set_spec or not method:
+            return
+        request = None
+        if isinstance(self.view, ResultView):
+            if self.view.result.request.method != method:
+                import dataclasses
+
+                request = dataclasses.replace(self.view.result.request, method=method)
+        elif self.run is not None and self.run.session.ended.is_set():
+            if self.run.session.recon.settings.method == method:
+                return
+            rec = self.run.out_dir / "recording.ptu" if self.run.out_dir is not None else None
+            if rec is not None and rec.is_file():
+                request = FileReconRequest(input=str(rec), method=method)
+            else:
+                self.statusBar().showMessage(
+                    f"{method} applies to the next run: this run kept no recording to "
+                    f"reconstruct again", 10000)
+        if request is not None:
+            self._in_set_spec = True
+            try:
+                self.start_run(request)
+            finally:
+                self._in_set_spec = False
+
+    _in_set_spec = False
+
+    def _view_changed(self, _index: int) -> None:
+        if self.views.currentWidget() is self.maps_view and self._maps_stale and self.snap is not None:
+            target = self.run.session.plan.target if self.run is not None else 1
+            self._last_sig = None
+            self._paint_maps(self.snap, target)
+        self._last_3d = 0.0
+        self._paint_3d()
+
+    def _paint_3d(self) -> None:
+        """The point cloud, only while its tab is shown (hidden, it costs nothing)."""
+        if self.snap is None or self.views.currentWidget() is not self.view3d:
+            return
+        now = time.monotonic()
+        # software OpenGL (Mesa) renders on threads of its own that the maps' CPU budget does not
+        # see: during a scan the cloud is redrawn at most every VIEW3D_PERIOD_S
+        if self.running() and now - self._last_3d < VIEW3D_PERIOD_S:
+            return
+        self._last_3d = now
+        self.view3d.set_maps(self.snap.depth_m, self.snap.signal)
+
     def _status(self, snap) -> None:
         # only what changed: each setText/setStyleSheet re-lays out and repaints the status bar
         h = self.health.update(snap)
@@ -840,8 +1062,10 @@ class MainWindow(QtWidgets.QMainWindow):
         _set_text(self.rate_label, f"{_fmt_rate(snap.detections_per_s)}det/s")
         if self.progress.maximum() != snap.pixels_total:
             self.progress.setMaximum(snap.pixels_total)
-        if self.progress.value() != snap.pixels_final:
-            self.progress.setValue(snap.pixels_final)
+        # progress counts pixels complete (an aborted scan's incomplete pixels are not "done")
+        complete = int(np.count_nonzero(snap.acq_flags == AcqFlag.COMPLETE))
+        if self.progress.value() != complete:
+            self.progress.setValue(complete)
         _set_text(self.eta_label, f"ETA {_fmt_eta(snap.eta_s)}")
         _set_text(self.lost_label, f"lost {snap.lost_records} rec / {snap.lost_spans} spans")
         _set_text(self.health_label, f"● {h.text}", h.colour)
@@ -849,6 +1073,7 @@ class MainWindow(QtWidgets.QMainWindow):
             self.health_label.setToolTip(h.tooltip or h.text)
 
     def _on_end(self, snap) -> None:
+        self._write_run_pictures()
         self.run.close()          # instruments; the session's files are already written
         self.fit_levels()
         if snap.state == "failed":
@@ -856,15 +1081,25 @@ class MainWindow(QtWidgets.QMainWindow):
                             f"kept{' in ' + str(self.run.out_dir) if self.run.out_dir else ''}.")
         self.scan_ended.emit(snap.state)
 
+    def _write_run_pictures(self) -> None:
+        """The run folder gets what `spdepth scan` writes beside the session's files: maps.png
+        and points.ply."""
+        if self.run.out_dir is None or not Path(self.run.out_dir).is_dir():
+            return
+        from spdepth.acq.api import finish_session
+
+        try:
+            finish_session(self.run.session, self.run.out_dir, title=self.run.label)
+        except Exception as exc:  # noqa: BLE001 - the maps are still shown; say what failed
+            self.show_error(f"Could not write maps.png/points.ply: {exc}")
+
     def fit_levels(self) -> None:
+        """Refit every map's levels to what it shows now."""
         target = max(1, self.view.target) if self.view is not None else 1
         if isinstance(self.view, ResultView) and not self.view.target:
             target = max(1, int(np.max(self.view.result.maps.photons)))
-        for p in self.panels:
-            p.fit(target)
         if self.snap is not None:
-            for p in self.panels:
-                p.show(p.spec.extract(self.snap, self._n_bins), target)   # new levels: repaint
+            self._paint_maps(self.snap, target, refit=True)
 
     # ---- the inspector -------------------------------------------------------------------------
     def _pixel_at(self, scene_pos):
@@ -912,7 +1147,11 @@ class MainWindow(QtWidgets.QMainWindow):
         self._inspect_key = key
         for p in self.panels:
             p.mark(self._hover)
-        self.inspector.show_pixel(view.pixel(r, c), self._hover, self._pinned)
+        truth = None
+        if self.run is not None and self.run.truth_depth_m is not None and \
+                self.run.truth_depth_m.shape == (h, w):
+            truth = float(self.run.truth_depth_m[r, c])
+        self.inspector.show_pixel(view.pixel(r, c), self._hover, self._pinned, truth)
 
     # ---- files ---------------------------------------------------------------------------------
     def save_maps(self, path: str | Path) -> Path:
@@ -940,9 +1179,21 @@ class MainWindow(QtWidgets.QMainWindow):
         elif suffix == ".png":
             from spdepth.acq.report import render_maps_png
 
-            render_maps_png(path, maps, title=self.run_label.text().split(" — ")[0])
+            counts = None if self.snap is None else snapshot_input(self.snap, 1, 0).counts
+            render_maps_png(path, maps, title=self.run_label.text().split(" — ")[0],
+                            counts=counts if counts is not None and counts.shape == maps.flags.shape
+                            else None)
+        elif suffix in (".ply", ".las"):
+            from spdepth.acq.points import geometry_of, write_points
+
+            geometry = geometry_of(maps)
+            if geometry is None:
+                raise InputError("these maps hold no scan geometry (a file needs its field of "
+                                 "view): no points to write")
+            write_points(maps, geometry, **{suffix[1:]: path})
         else:
-            raise InputError(f"save maps: {path.name} must end in .png, .tif, .tiff or .npz")
+            raise InputError(f"save maps: {path.name} must end in .png, .tif, .tiff, .npz, .ply "
+                             f"or .las")
         return path
 
     def _save_dialog(self) -> None:
@@ -953,7 +1204,8 @@ class MainWindow(QtWidgets.QMainWindow):
         start = str((folder or Path.cwd()) / "maps.png")
         path, _ = QtWidgets.QFileDialog.getSaveFileName(
             self, "Save maps", self.settings.value("last_save", start),
-            "PNG sheet (*.png);;TIFF stack (*.tif *.tiff);;NumPy (*.npz)")
+            "PNG sheet (*.png);;TIFF stack (*.tif *.tiff);;NumPy (*.npz);;"
+            "Point cloud PLY (*.ply);;Point cloud LAS (*.las)")
         if not path:
             return
         try:
@@ -964,9 +1216,19 @@ class MainWindow(QtWidgets.QMainWindow):
             self.show_error(f"Could not save maps: {exc}")
 
     def screenshot(self, path: str | Path) -> Path:
-        """A grab of the whole window as PNG."""
+        """A grab of the whole window as PNG (with the 3-D view's picture drawn in where it is
+        shown: a widget grab does not see into its native window)."""
         path = Path(path)
-        if not self.grab().save(str(path)):
+        pixmap = self.grab()
+        v = self.view3d
+        if v.gl is not None and self.views.currentWidget() is v and v.gl.isVisible():
+            img = v.grab_view()
+            if img is not None and not img.isNull():
+                painter = QtGui.QPainter(pixmap)
+                top_left = v.gl.mapTo(self, QtCore.QPoint(0, 0))
+                painter.drawImage(QtCore.QRect(top_left, v.gl.size()), img)
+                painter.end()
+        if not pixmap.save(str(path)):
             raise OSError(f"could not write screenshot {path}")
         return path
 
@@ -978,13 +1240,17 @@ class MainWindow(QtWidgets.QMainWindow):
         if run is None:
             return
         s = run.session
+        aborted_here = False
         if not s.ended.is_set():
             try:
                 s.abort()
+                aborted_here = True
             except Exception as exc:  # noqa: BLE001 - it may have ended meanwhile
                 log.info("abort at close: %s", exc)
             s.wait(timeout_s)
         if s.ended.is_set():
+            if aborted_here and not self._ended_emitted:
+                self._write_run_pictures()
             run.close()
         else:
             log.error("session did not end within %.0f s of the abort", timeout_s)
@@ -992,7 +1258,18 @@ class MainWindow(QtWidgets.QMainWindow):
     def closeEvent(self, event: QtGui.QCloseEvent) -> None:  # noqa: N802 - Qt override
         self.save_settings()
         self.shutdown()
+        self.view3d.release()
         super().closeEvent(event)
+
+
+def _plan_geometry(plan):
+    """The scan geometry of a plan, None for a foreign recording's plan without angles."""
+    from spdepth.acq.points import ScanGeometry
+
+    if (plan.nx > 1 and plan.x_first_deg == plan.x_last_deg) or \
+            (plan.ny > 1 and plan.y_first_deg == plan.y_last_deg):
+        return None
+    return ScanGeometry.from_plan(plan)
 
 
 __all__ = ["MainWindow", "ControlPanel", "Inspector", "AccuracyPlot", "REFRESH_HZ"]

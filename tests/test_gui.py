@@ -62,19 +62,21 @@ def test_sim_scan_from_the_controls_fills_the_maps(qtbot, win, tmp_path):
         qtbot.waitUntil(lambda: _state(win) in ("paused", "done"), timeout=60_000)
     if _state(win) == "paused":
         win.refresh()
-        painted = int(np.isfinite(win.panels[2].data).sum())
-        assert painted > 0 and win.progress.value() == win.snap.pixels_final
-        assert int(np.isfinite(win.panels[0].data).sum()) <= win.snap.pixels_final
+        painted = int(np.isfinite(win.panel("counts").data).sum())
+        assert painted > 0
+        # progress counts complete pixels
+        assert win.progress.value() == int(np.count_nonzero(win.snap.acq_flags == 0))
+        assert int(np.isfinite(win.panel("depth").data).sum()) <= win.snap.pixels_final
         qtbot.mouseClick(c.resume, QtCore.Qt.LeftButton)
     qtbot.waitUntil(lambda: bool(ended), timeout=60_000)
     assert ended == ["done"]
-    depth, counts = win.panels[0].data, win.panels[2].data
+    depth, counts = win.panel("depth").data, win.panel("counts").data
     assert np.isfinite(depth).mean() > 0.9
     assert np.all(counts == 5)
-    assert win.panels[2].levels == (0.0, 5.0)
-    lo, hi = win.panels[0].levels
+    assert win.panel("counts").levels == (0.0, 5.0)
+    lo, hi = win.panel("depth").levels
     assert 2.0 < lo < hi < 5.0                                # metres, the bust's range
-    assert "depth (m)" in win.panels[0].bar.getAxis("left").labelText.lower()
+    assert "depth (m)" in win.panel("depth").bar.getAxis("left").labelText.lower()
     assert win.state_label.text() == "done"
     assert win.progress.value() == 576
     assert "ok" in win.health_label.text()
@@ -106,10 +108,11 @@ def test_inspector_shows_histogram_and_fitted_model(qtbot, win, tmp_path):
     assert "row 8, col 3" in win.inspector.title.text() and "depth: 3." in text
     assert "5 of 5" in text
     # hovering does not move a pinned pixel
-    win._mouse_moved(win.panels[0].plot.vb.mapViewToScene(QtCore.QPointF(1.5, 1.5)))
+    depth = win.panel("depth")
+    win._mouse_moved(depth.plot.vb.mapViewToScene(depth.pixel_rect(1, 1).center()))
     assert win.inspector.pixel == (8, 3)
     win._pinned = False
-    win._mouse_moved(win.panels[0].plot.vb.mapViewToScene(QtCore.QPointF(1.5, 2.5)))
+    win._mouse_moved(depth.plot.vb.mapViewToScene(depth.pixel_rect(2, 1).center()))
     assert win.inspector.pixel == (2, 1)
 
 
@@ -295,7 +298,21 @@ def test_settings_are_remembered(qtbot, settings, tmp_path):
     w.close()
     w2 = MainWindow(settings=settings)
     qtbot.addWidget(w2)
-    assert w2.controls.spec() == spec
+    # paths are remembered only once they worked: these never did
+    import dataclasses
+
+    from spdepth.gui.window import DEFAULT_OUT_ROOT
+
+    assert w2.controls.spec() == dataclasses.replace(spec, recording="", file="",
+                                                     out_root=DEFAULT_OUT_ROOT)
+    # one that worked (a run started with it) is remembered, absolute
+    w2.controls.set_spec(dataclasses.replace(spec, out_root="runs-here"))
+    w2.save_settings(worked=True)
+    w2.controls.set_spec(dataclasses.replace(spec, out_root="/nonexistent/typo"))
+    w2.close()
+    w3 = MainWindow(settings=settings)
+    qtbot.addWidget(w3)
+    assert w3.controls.spec().out_root == str(Path("runs-here").resolve())
 
 
 def test_spdepth_gui_screenshot_offscreen(tmp_path):
@@ -392,7 +409,7 @@ def test_a_ptu_file_is_reconstructed_off_the_gui_thread(qtbot, win, tmp_path, sm
     assert not win.controls.width_px.isEnabled() and win.controls.target.specialValueText() == "all"
     assert _reconstruct_in_window(qtbot, win, spec) == "done"
     want = reconstruct(read_photons(small_ptu).store, ReconSettings(method="ml"))
-    np.testing.assert_array_equal(win.panels[0].data, want.depth_m)     # spdepth recon's maps
+    np.testing.assert_array_equal(win.panel("depth").data, want.depth_m)     # spdepth recon's maps
     assert win.state_label.text() == "done" and win.controls.start.isEnabled()
     assert "steps.ptu" in win.run_label.text()
     win.inspect((6, 8), pin=True)
@@ -420,7 +437,7 @@ def test_a_first_photon_imaging_mat_file(qtbot, win):
     spec = SourceSpec(kind="file", file=str(FPI), time_unit_ps=8.0, pulse_rms_ps=360.0,
                       method="uos", target=15)
     assert _reconstruct_in_window(qtbot, win, spec) == "done", win.banner_text.text()
-    depth = win.panels[0].data
+    depth = win.panel("depth").data
     assert np.isfinite(depth).mean() > 0.5
     h, w = depth.shape
     win.inspect((h // 2, w // 2), pin=True)
@@ -435,5 +452,35 @@ def test_the_window_benchmark_runs_from_the_cli_side(qtbot, capsys):
 
     assert bench(["--size", "8x6", "--target", "2", "--repeats", "1", "--no-replay"]) == 0
     out = capsys.readouterr().out
-    assert out.startswith("bust 8x6, target 2, 1 alternated runs each (medians):")
+    assert out.startswith("bust 8x6, target 2, window showing maps, 1 alternated runs each (medians):")
     assert "scan" in out and "window/headless" in out and "replay" not in out
+
+
+def test_a_headless_run_leaves_no_window_geometry_behind(qtbot, settings):
+    # offscreen Qt invents an 800x800 screen: a geometry saved there squeezed the window (its
+    # right column clipped) when restored on a real screen
+    w = MainWindow(settings=settings)
+    qtbot.addWidget(w)
+    w.resize(700, 500)
+    w.close()
+    assert not settings.contains("geometry")
+    assert settings.contains("source")
+
+
+def test_a_new_estimator_after_a_scan_reconstructs_its_recording(qtbot, win, tmp_path):
+    ended = []
+    win.scan_ended.connect(ended.append)
+    assert win.start_run(_spec(tmp_path, size=(10, 12), method="uos"), out_dir=tmp_path / "run")
+    qtbot.waitUntil(lambda: ended == ["done"], timeout=60_000)
+    assert "uos" in win.run_label.text()
+    win.controls.method.setCurrentText("ml")          # as a user picks it
+    qtbot.waitUntil(lambda: len(ended) == 2, timeout=60_000)
+    assert ended[1] == "done"
+    assert "ml" in win.run_label.text() and "recording.ptu" in win.run_label.text()
+    assert win.view.maps().settings["method"] == "ml"
+    assert win.view.shape == (10, 12)
+    # a run kept in memory has nothing to read again: said, not done
+    assert win.start_run(_spec(tmp_path, size=(6, 6), method="uos"), out_dir=None)
+    qtbot.waitUntil(lambda: len(ended) == 3, timeout=60_000)
+    win.controls.method.setCurrentText("lmf")
+    assert "next run" in win.statusBar().currentMessage()

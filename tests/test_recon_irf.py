@@ -182,9 +182,12 @@ def test_png_draws_a_depth_map_per_surface(tmp_path, capsys):
                  "--out", str(tmp_path / "k2.npz")]) == 0
     out = capsys.readouterr().out
     assert "pulse estimated from the data" in out
-    # one more panel (the second surface's depth) than the single-surface sheet
-    w1, w2 = imread(one).shape[1], imread(two).shape[1]
-    assert w2 / w1 == pytest.approx(5 / 4, rel=0.05)
+    # the single-surface sheet: 5 maps + the pulse, 2 rows of 3 panels; with two surfaces depth and
+    # uncertainty per surface and the surfaces-found map: 9 panels, 3 rows (acq.report)
+    (h1, w1), (h2, w2) = imread(one).shape[:2], imread(two).shape[:2]
+    assert w2 == w1
+    panel_h = 4.4 * 0.85 + 0.8
+    assert h2 / h1 == pytest.approx((3 * panel_h + 0.5) / (2 * panel_h + 0.5), rel=0.05)
     with np.load(tmp_path / "k2.npz") as z:
         depth = z["depth_m"]
     assert depth.shape == (2, 20, 20)

@@ -37,7 +37,9 @@ def _maps(rng, shape=(40, 60), nan=True):
     if nan:
         depth[5:15, 10:30] = np.nan
     return types.SimpleNamespace(depth_m=depth, background=rng.random(shape),
-                                 photons=rng.integers(0, 15, shape))
+                                 signal=rng.uniform(1, 15, shape),
+                                 uncertainty_s=np.where(np.isnan(depth), np.nan, 1e-10),
+                                 photons=rng.integers(1, 15, shape), settings={})
 
 
 def test_render_maps_png_draws_nan_in_its_own_colour(tmp_path, rng):

@@ -51,10 +51,13 @@ def run(args: argparse.Namespace) -> int:
                            f"choose from {', '.join(METHODS)}")
     check_writable("--out", args.out)
     if not args.no_window:
-        from spdepth.gui.app import display_available
+        from spdepth.gui.app import display_available, platform_problem
 
         if display_available():
-            return _window(args, request)
+            problem = platform_problem()
+            if problem is None:
+                return _window(args, request)
+            print(f"spdepth demo: {problem}; writing the PNG sheet instead", file=sys.stderr)
     if args.record:
         with OutputDir(args.record, name="--record") as out:
             return _demo(args, request, methods, out.path)

@@ -38,6 +38,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                      help="--file: raw time unit (required for .mat: 8 for first-photon imaging)")
     src.add_argument("--pulse-rms-ps", type=positive_float, metavar="PS",
                      help="--file: Gaussian pulse RMS (default: estimated from the data)")
+    src.add_argument("--reflectors", type=positive_int, metavar="K",
+                     help="--file: surfaces per pixel to look for (default 1)")
     sim = parser.add_argument_group("simulated bench")
     sim.add_argument("--scene", help="built-in scene or file:DEPTH (default bust)")
     sim.add_argument("--sbr", type=positive_float, help="signal-to-background ratio (default 10)")
@@ -63,6 +65,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                      help="grab the whole window into PNG when the scan ends")
     out.add_argument("--exit-after-scan", action="store_true",
                      help="close the window when the scan ends (exit 0 when done, 1 otherwise)")
+    out.add_argument("--view", choices=("maps", "3d"), default="maps",
+                     help="what the window shows: the maps, or the 3-D point cloud (needs OpenGL: "
+                          "a display, or xvfb-run with Mesa)")
     out.add_argument("--window-size", type=size_wxh, metavar="WxH",
                      help="window size in screen pixels (default 1480x900)")
 
@@ -87,7 +92,8 @@ def spec_from_args(args: argparse.Namespace, base=None):
                         ("sync_rate_hz", "sync_rate_hz"), ("fov_deg", "fov_deg"),
                         ("replay", "recording"),
                         ("file", "file"), ("time_unit_ps", "time_unit_ps"),
-                        ("pulse_rms_ps", "pulse_rms_ps"), ("out", "out_root")):
+                        ("pulse_rms_ps", "pulse_rms_ps"), ("reflectors", "reflectors"),
+                        ("out", "out_root")):
         value = getattr(args, name)
         if value is not None:
             changes[field] = value
@@ -107,8 +113,17 @@ def run(args: argparse.Namespace) -> int:
     import dataclasses
 
     from spdepth.acq.requests import ScanRequest
-    from spdepth.gui.app import WINDOW_SIZE, application, remembered_spec, run_window
+    from spdepth.gui.app import (WINDOW_SIZE, application, platform_problem, remembered_spec,
+                                 run_window)
 
+    problem = platform_problem()
+    if problem:
+        import sys
+
+        from spdepth.acq.commands import EXIT_FAILED
+
+        print(f"spdepth gui: {problem}", file=sys.stderr)
+        return EXIT_FAILED
     application()
     spec, start = spec_from_args(args, remembered_spec())
     # a source to start is checked here: bad arguments are one line and exit 2, no window; the
@@ -123,4 +138,4 @@ def run(args: argparse.Namespace) -> int:
                                       dwell_s=ms(args.dwell_ms))
     size = args.window_size[::-1] if args.window_size else (WINDOW_SIZE if args.screenshot else None)
     return run_window(request or spec, controls=spec, start=start, screenshot=args.screenshot,
-                      exit_after_scan=args.exit_after_scan, window_size=size)
+                      exit_after_scan=args.exit_after_scan, window_size=size, view=args.view)

@@ -37,6 +37,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", metavar="MAPS.npz", help="write the maps and the settings used here")
     parser.add_argument("--png", metavar="MAPS.png", help="write a picture of the depth, background and "
                         "photon-count maps (a time histogram for a point measurement)")
+    parser.add_argument("--ply", metavar="POINTS.ply",
+                        help="write the maps as points (x, y, z in metres in the scanner frame, "
+                             "intensity, uncertainty, surface, flags; README 'Points')")
+    parser.add_argument("--las", metavar="POINTS.las", help="the same points as LAS 1.4")
+    parser.add_argument("--fov-deg", type=positive_float, metavar="DEG",
+                        help="field of view (square, centred) of a file without scan geometry "
+                             "(.mat): the pixels' angles for --ply/--las and the picture's axes")
+    offset = parser.add_mutually_exclusive_group()
+    offset.add_argument("--range-offset-m", type=float, metavar="M",
+                        help="add M metres to every depth (gated long-range data whose times "
+                             "start at a range gate)")
+    offset.add_argument("--gate-delay-ns", type=float, metavar="NS",
+                        help="the range gate's delay after the laser pulse: adds c*delay/2 to "
+                             "every depth")
     parser.add_argument("--json", action="store_true",
                         help="print one JSON summary object as the last stdout line")
     parser.add_argument("--time-unit-ps", type=positive_float, metavar="PS",
@@ -101,7 +115,10 @@ def request_from_args(args: argparse.Namespace, path: str, out: str | None = Non
         bin_s=ps(args.bin_ps), pulse_rms_s=ps(args.pulse_rms_ps), irf=args.irf,
         max_photons=args.max_photons, reflectors=args.reflectors, max_reflectors=args.max_reflectors,
         false_alarm=args.false_alarm, mat_var=args.mat_var,
-        channel=args.channel, threads=args.threads, out=out, png=png, save_irf=args.save_irf)
+        channel=args.channel, threads=args.threads, out=out, png=png, save_irf=args.save_irf,
+        ply=getattr(args, "ply", None), las=getattr(args, "las", None),
+        fov_deg=getattr(args, "fov_deg", None), range_offset_m=getattr(args, "range_offset_m", None),
+        gate_delay_s=None if getattr(args, "gate_delay_ns", None) is None else args.gate_delay_ns * 1e-9)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -156,7 +173,10 @@ def _print_result(result) -> None:
         counts = np.bincount(np.ravel(maps.surfaces), minlength=2)
         print(f"surfaces per pixel ({maps.settings['surfaces_rule']}): "
               + ", ".join(f"{k}: {c}" for k, c in enumerate(counts)))
-    for what, where in (("maps", s["out"]), ("picture", s["png"]), ("pulse shape", s["save_irf"])):
+    if s.get("range_offset_m"):
+        print(f"range offset {s['range_offset_m']:.3f} m added to every depth")
+    for what, where in (("maps", s["out"]), ("picture", s["png"]), ("pulse shape", s["save_irf"]),
+                        ("points (PLY)", s.get("ply")), ("points (LAS)", s.get("las"))):
         if where:
             print(f"{what}: {where}")
 
@@ -170,6 +190,8 @@ def _run_many(args: argparse.Namespace) -> int:
     from spdepth.acq.errors import RequestError
 
     several = len(args.input) > 1
+    if args.ply or args.las:
+        raise RequestError("--ply/--las write one file's points: give one input (without --dask)")
     names = [Path(p).name for p in args.input]
     if several and (args.out or args.png) and len(set(names)) < len(names):
         raise RequestError("inputs share a file name, so their outputs would overwrite each other")

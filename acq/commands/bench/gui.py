@@ -18,9 +18,11 @@ def bench(argv=None) -> int:
     ap.add_argument("--scene", default="bust")
     ap.add_argument("--repeats", type=positive_int, default=3)
     ap.add_argument("--no-replay", action="store_true", help="skip the replay comparison")
+    ap.add_argument("--view", choices=("maps", "3d"), default="maps",
+                    help="the window's tab during the runs (3d needs OpenGL: xvfb-run)")
     args = ap.parse_args(argv)
     measure(scene=args.scene, size=args.size, target=args.target, repeats=args.repeats,
-            replay=not args.no_replay)
+            replay=not args.no_replay, view=args.view)
     return 0
 
 

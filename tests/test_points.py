@@ -1,0 +1,150 @@
+"""Point clouds (acq.points) read back with plyfile and laspy; the map definitions' levels."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from spdepth.acq.mapdefs import MAPS_BY_KEY, MapInput, constant_value, levels_for, widen
+from spdepth.acq.points import ScanGeometry, geometry_of, points_from_maps, write_points
+from spdepth.recon.maps import DepthMaps
+
+
+def _maps(rng, h=12, w=16, k=None):
+    shape = (h, w) if k is None else (k, h, w)
+    depth = 3.0 + rng.normal(0, 0.1, shape)
+    depth[..., 2, 3] = np.nan                       # a pixel without an estimate
+    depth[..., 5, :4] = np.nan
+    return DepthMaps(tof_s=2 * depth / 299792458.0, depth_m=depth,
+                     background=rng.uniform(0, 1e-3, (h, w)), signal=rng.uniform(5, 15, shape),
+                     photons=np.full((h, w), 15), iterations=np.ones((h, w), np.int32),
+                     uncertainty_s=np.full(shape, 1e-10), flags=np.zeros((h, w), np.uint8),
+                     settings={})
+
+
+def test_ply_and_las_read_back(tmp_path, rng):
+    plyfile = pytest.importorskip("plyfile")
+    laspy = pytest.importorskip("laspy")
+    maps = _maps(rng)
+    g = ScanGeometry.from_fov((12, 16), 20.0)
+    n = write_points(maps, g, ply=tmp_path / "p.ply", las=tmp_path / "p.las")
+    ok = np.isfinite(maps.depth_m)
+    assert n == ok.sum()                                        # points = estimated pixels
+    v = plyfile.PlyData.read(str(tmp_path / "p.ply"))["vertex"]
+    assert len(v) == n
+    xyz = np.stack([v["x"], v["y"], v["z"]], axis=1)
+    rng_m = np.linalg.norm(xyz, axis=1)
+    np.testing.assert_allclose(rng_m, maps.depth_m[v["row"], v["col"]], rtol=1e-12)  # range = depth
+    np.testing.assert_allclose(v["intensity"], maps.signal[v["row"], v["col"]], rtol=1e-6)
+    # the frame: column angle > 0 -> x > 0, row angle > 0 -> y > 0, z forward
+    assert np.all(v["z"] > 0)
+    right = v["col"] > 7
+    assert np.all(v["x"][right] > 0) and np.all(v["x"][~right] < 0)
+    las = laspy.read(str(tmp_path / "p.las"))
+    assert len(las.points) == n
+    xyz_l = np.stack([las.x, las.y, las.z], axis=1)
+    np.testing.assert_allclose(np.linalg.norm(xyz_l, axis=1),
+                               maps.depth_m[las.row, las.col], atol=2e-4)  # 0.1 mm scale
+    assert set(np.unique(las.surface)) == {0}
+
+
+def test_several_surfaces_give_one_point_each(rng):
+    maps = _maps(rng, k=2)
+    cloud = points_from_maps(maps, ScanGeometry.from_fov((12, 16), 10.0))
+    assert len(cloud) == np.isfinite(maps.depth_m).sum()
+    assert set(np.unique(cloud.surface)) == {0, 1}
+    np.testing.assert_allclose(cloud.range_m, maps.depth_m[cloud.surface, cloud.row, cloud.col])
+
+
+def test_geometry_of_a_non_square_scan():
+    g = ScanGeometry.from_fov((96, 128), 20.0)
+    dx, dy = g.pixel_deg
+    assert dx == pytest.approx(20 / 128) and dy == pytest.approx(20 / 96)
+    assert g.fov_deg == pytest.approx((20.0, 20.0))
+    left, right, top, bottom = g.extent_deg
+    assert (left, right, top, bottom) == pytest.approx((-10, 10, -10, 10))
+    assert geometry_of(type("M", (), {"settings": {"geometry": g.to_dict()}})()) == g
+
+
+def test_depth_levels_show_object_and_wall(rng):
+    # a head (2.8-3.1 m) in front of a wall at 3.6 m: both inside the levels, as in the bust
+    depth = np.full((64, 64), 3.6) + rng.normal(0, 0.01, (64, 64))
+    depth[16:40, 20:44] = np.linspace(2.8, 3.1, 24)[None, :]
+    lo, hi = levels_for(MAPS_BY_KEY["depth"], depth)
+    assert lo < 2.85 and hi > 3.55
+    # steps 10 cm apart: every step has its own colour (none saturates)
+    steps = np.repeat(np.arange(5) * 0.1 + 2.0, 64 * 64 // 5 + 1)[:64 * 64].reshape(64, 64)
+    lo, hi = levels_for(MAPS_BY_KEY["depth"], steps)
+    assert lo <= 2.0 and hi >= 2.4
+
+
+def test_levels_widen_and_constant_maps():
+    assert widen((1.0, 2.0), (1.5, 3.0)) == (1.0, 3.0)
+    assert widen(None, (0.0, 1.0)) == (0.0, 1.0)
+    assert constant_value(np.array([15.0, 15.0, np.nan])) == 15.0
+    assert constant_value(np.array([15.0, 14.0])) is None
+
+
+def test_unmeasured_pixels_have_no_background():
+    counts = np.array([[15.0, 0.0], [np.nan, 15.0]])
+    mi = MapInput(depth_m=np.array([[3.0, np.nan], [np.nan, 3.0]]), background=np.zeros((2, 2)),
+                  signal=np.full((2, 2), 15.0), uncertainty_s=np.zeros((2, 2)), counts=counts,
+                  n_bins=801, target=15)
+    bg = MAPS_BY_KEY["background"].extract(mi)
+    assert np.isnan(bg[0, 1]) and np.isnan(bg[1, 0]) and bg[0, 0] == 0.0
+
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+if not DATA.is_dir():
+    DATA = Path("/work/shared/data")
+
+
+def _data(rel):
+    p = DATA / rel
+    if not p.is_file():
+        pytest.skip(f"{p} not here (../shared/data)")
+    return str(p)
+
+
+def test_gated_long_range_data_land_at_their_range(tmp_path):
+    from spdepth.acq.api import reconstruct_file
+    from spdepth.acq.requests import FileReconRequest
+
+    path = _data("longrange/tower_9km.mat")
+    plain = reconstruct_file(FileReconRequest(input=path, time_unit_s=1e-12, method="lmf"))
+    assert 700 < plain.summary["depth_m_median"] < 900            # times after the range gate
+    res = reconstruct_file(FileReconRequest(
+        input=path, time_unit_s=1e-12, method="lmf", range_offset_m=9015.0, fov_deg=1.0,
+        las=str(tmp_path / "t.las")))
+    assert res.summary["depth_m_median"] == pytest.approx(plain.summary["depth_m_median"] + 9015)
+    import laspy
+
+    las = laspy.read(str(tmp_path / "t.las"))
+    r = np.sqrt(np.asarray(las.x) ** 2 + np.asarray(las.y) ** 2 + np.asarray(las.z) ** 2)
+    assert len(r) == int(np.isfinite(res.maps.depth_m).sum())
+    assert 9700 < np.median(r) < 9900                             # the tower at 9.8 km
+    delay = reconstruct_file(FileReconRequest(input=path, time_unit_s=1e-12, method="lmf",
+                                              gate_delay_s=2 * 9015.0 / 299792458.0))
+    np.testing.assert_allclose(delay.maps.depth_m, res.maps.depth_m, rtol=1e-12)
+
+
+def test_sparse_data_suggest_the_spatial_method():
+    from spdepth.acq.api import reconstruct_file
+    from spdepth.acq.requests import FileReconRequest
+
+    res = reconstruct_file(FileReconRequest(input=_data("fpi/chart_depth.mat"), time_unit_s=8e-12,
+                                            pulse_rms_s=360e-12, method="lmf"))
+    assert any("--method spatial" in n for n in res.summary["notes"])
+
+
+def test_points_of_a_mat_file_need_its_field_of_view(tmp_path):
+    from spdepth.acq.errors import RequestError
+    from spdepth.acq.requests import FileReconRequest
+
+    path = _data("fpi/chart_depth.mat")
+    with pytest.raises(RequestError, match="--fov-deg"):
+        FileReconRequest(input=path, time_unit_s=8e-12, ply=str(tmp_path / "p.ply"))
+    with pytest.raises(RequestError, match="not both"):
+        FileReconRequest(input=path, time_unit_s=8e-12, range_offset_m=1.0, gate_delay_s=1e-6)
