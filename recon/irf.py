@@ -362,16 +362,7 @@ def _pool(store: PhotonStore, maps, b: Binning, step: float, core_u: float, peak
         start -= 1
     start = max(0, start - 1)
     shape = np.clip(net[start:end + 1], 0.0, None)
-    # smooth the tail (not the edge) with a window growing with the distance from the peak
-    out = shape.copy()
-    cs = np.concatenate(([0.0], np.cumsum(shape)))
-    p0 = pk - start
-    for j in range(p0 + 4, shape.size):
-        half = (j - p0) // 8
-        if half < 1:
-            continue
-        a, z = max(p0 + 1, j - half), min(shape.size, j + half + 1)
-        out[j] = (cs[z] - cs[a]) / (z - a)
+    out = smooth_tail(shape, pk - start)
     t_u = centres[start:end + 1]
     irf = Irf(tuple(t_u * unit_s), tuple(out), source="estimated from the data")
     fwhm_u = _fwhm(out, step)
@@ -379,3 +370,17 @@ def _pool(store: PhotonStore, maps, b: Binning, step: float, core_u: float, peak
     tail = float(out[t_u > t_u[int(np.argmax(out))] + 3 * core].sum() / out.sum())
     return IrfEstimate(irf=irf, core_rms_s=core * unit_s, fwhm_s=fwhm_u * unit_s, tail_share=tail,
                        photons=int(r.size), pixels=int(ok.sum()))
+
+
+def smooth_tail(shape: np.ndarray, peak: int) -> np.ndarray:
+    """A measured response with its tail (not its edge) smoothed by a window growing with the
+    distance from the ``peak`` index, so the sparse far tail is not noise."""
+    out = shape.copy()
+    cs = np.concatenate(([0.0], np.cumsum(shape)))
+    for j in range(peak + 4, shape.size):
+        half = (j - peak) // 8
+        if half < 1:
+            continue
+        a, z = max(peak + 1, j - half), min(shape.size, j + half + 1)
+        out[j] = (cs[z] - cs[a]) / (z - a)
+    return out

@@ -34,13 +34,13 @@ from typing import Callable
 import numpy as np
 from scipy.stats import chi2
 
-from spdepth.recon import kernels as K
 from spdepth.recon import multi_kernels as MK
 from spdepth.recon.errors import InputError
+from spdepth.recon.irf import smooth_tail
 from spdepth.recon.maps import C_M_PER_S, DepthMaps, PixelFlag
 from spdepth.recon.model import Binning, Irf, PulseKernel, ReconSettings, build_kernel, edge_core_rms
 from spdepth.recon.photons import PhotonStore
-from spdepth.recon.pixelwise import honest_var, settings_record
+from spdepth.recon.pixelwise import binned_photons, honest_var, settings_record
 
 #: K fixed: a surface is kept when it raises the Poisson log-likelihood by more than this (nats).
 LLR_MIN = 3.0
@@ -106,13 +106,7 @@ def fit_surfaces(store: PhotonStore, settings: ReconSettings, b: Binning, kern: 
                  progress: Callable[[int, int], None] | None = None):
     """Run the K-surface kernel on every pixel. Returns (shift bins (P, K), amp (P, K), bg (P,), var
     (P, K), gain (P, K), n_used (P,), kmax, gain_min, rule)."""
-    times = np.ascontiguousarray(store.times, dtype=np.float64)
-    bins = np.empty(times.size, np.int64)
-    offsets = np.empty(store.offsets.size, np.int64)
-    n_kept = K.window_bins(times, np.ascontiguousarray(store.offsets, dtype=np.int64), b.window_start,
-                           b.window_stop, b.bin_width, b.n_bins,
-                           -1 if settings.max_photons is None else int(settings.max_photons), bins, offsets)
-    bins = bins[:n_kept]
+    bins, offsets = binned_photons(store, b, settings.max_photons)
     npix = store.n_pixels
     fw = fwhm_bins(kern.g)
     kmax, gain_min, rule = kmax_and_gain(settings, b, fw)
@@ -201,16 +195,7 @@ def pooled_response(store: PhotonStore, b: Binning, tof_units: np.ndarray, signa
         start -= 1
     start = max(0, start - 1)
     shape = np.clip(net[start:end + 1], 0.0, None)
-    # smooth the tail (not the edge) with a window growing with the distance from the peak
-    out = shape.copy()
-    cs = np.concatenate(([0.0], np.cumsum(shape)))
-    p0 = pk - start
-    for j in range(p0 + 4, shape.size):
-        half = (j - p0) // 8
-        if half < 1:
-            continue
-        a, z = max(p0 + 1, j - half), min(shape.size, j + half + 1)
-        out[j] = (cs[z] - cs[a]) / (z - a)
+    out = smooth_tail(shape, pk - start)
     unit_s = store.time_unit_s
     return Irf(tuple(centres[start:end + 1] * unit_s), tuple(out),
                source="estimated from the data (pooled on each pixel's surfaces)")
@@ -314,13 +299,7 @@ def reconstruct_multi_spatial(store: PhotonStore, settings: ReconSettings, b: Bi
     tau = SPATIAL_TAU_FWHM * fw
     strong = auto_threshold_nats(WEAK_FALSE_ALARM, b.n_bins, fw)
     pool = auto_threshold_nats(settings.false_alarm, b.n_bins, fw)
-    times = np.ascontiguousarray(store.times, dtype=np.float64)
-    bins = np.empty(times.size, np.int64)
-    offsets = np.empty(store.offsets.size, np.int64)
-    n_kept = K.window_bins(times, np.ascontiguousarray(store.offsets, dtype=np.int64), b.window_start,
-                           b.window_stop, b.bin_width, b.n_bins,
-                           -1 if settings.max_photons is None else int(settings.max_photons), bins, offsets)
-    bins = bins[:n_kept]
+    bins, offsets = binned_photons(store, b, settings.max_photons)
     h, w = store.shape
     npix = h * w
     counts = np.diff(offsets)

@@ -150,13 +150,7 @@ def reconstruct_pixelwise(store: PhotonStore, settings: ReconSettings, b: Binnin
     notes = dict(notes)
     # window, first max_photons and binning in one compiled pass (the NumPy route of
     # first_in_window + bin_index cost as much as the lmf kernel itself)
-    times = np.ascontiguousarray(store.times, dtype=np.float64)
-    bins = np.empty(times.size, np.int64)
-    offsets = np.empty(store.offsets.size, np.int64)
-    n_kept = K.window_bins(times, np.ascontiguousarray(store.offsets, dtype=np.int64), b.window_start,
-                           b.window_stop, b.bin_width, b.n_bins,
-                           -1 if settings.max_photons is None else int(settings.max_photons), bins, offsets)
-    bins = bins[:n_kept]
+    bins, offsets = binned_photons(store, b, settings.max_photons)
     h, w = store.shape
     npix = h * w
     m = b.n_bins
@@ -242,3 +236,16 @@ def reconstruct_pixelwise(store: PhotonStore, settings: ReconSettings, b: Binnin
     return DepthMaps(tof_s=tof_img, depth_m=C_M_PER_S * tof_img / 2.0, background=bg.reshape(h, w),
                      signal=img(signal), photons=n_used.reshape(h, w), iterations=iters.reshape(h, w),
                      uncertainty_s=img(unc_s), flags=flags.reshape(h, w), settings=rec)
+
+
+def binned_photons(store: PhotonStore, b: Binning, max_photons: int | None) -> tuple[np.ndarray, np.ndarray]:
+    """The in-window detections of every pixel (the first ``max_photons`` of each, None: all) as
+    bin indices, grouped by pixel: (bins int64, offsets int64 (P + 1,)). One compiled pass (the
+    NumPy route of first_in_window + bin_index cost as much as the lmf kernel itself)."""
+    times = np.ascontiguousarray(store.times, dtype=np.float64)
+    bins = np.empty(times.size, np.int64)
+    offsets = np.empty(store.offsets.size, np.int64)
+    n_kept = K.window_bins(times, np.ascontiguousarray(store.offsets, dtype=np.int64), b.window_start,
+                           b.window_stop, b.bin_width, b.n_bins,
+                           -1 if max_photons is None else int(max_photons), bins, offsets)
+    return bins[:n_kept], offsets
