@@ -216,8 +216,9 @@ def _replay_session(request: ReplayRequest, out):
 
 def session_maps(session):
     """A session's maps (``DepthMaps``) with its scan geometry in the settings
-    (``acq.points.geometry_of`` reads it), and its kept counts with NaN for pixels never
-    measured (none kept and not complete), as the PNG sheets and the window draw them."""
+    (``acq.points.geometry_of`` reads it), its kept counts with NaN for pixels never
+    measured (none kept and not complete), as the PNG sheets and the window draw them, and the
+    laser time each pixel was observed over (``Session.exposure_s``)."""
     from spdepth.acq.flags import AcqFlag
     from spdepth.acq.points import GEOMETRY_KEY, ScanGeometry
 
@@ -231,7 +232,7 @@ def session_maps(session):
     h, w = session.plan.shape
     counts = session.store.count.reshape(h, w).astype(np.float64)
     counts[(counts == 0) & (session.acq_flags.reshape(h, w) != AcqFlag.COMPLETE)] = np.nan
-    return maps, counts
+    return maps, counts, session.exposure_s()
 
 
 def finish_session(session, out_dir: str | Path | None, title: str | None = None) -> dict:
@@ -244,9 +245,9 @@ def finish_session(session, out_dir: str | Path | None, title: str | None = None
         from spdepth.acq.points import geometry_of, write_points
         from spdepth.acq.report import render_maps_png
 
-        maps, counts = session_maps(session)
+        maps, counts, exposure_s = session_maps(session)
         render_maps_png(out / "maps.png", maps, title=title, counts=counts,
-                        target=session.plan.target)
+                        exposure_s=exposure_s, target=session.plan.target)
         geometry = geometry_of(maps)
         if geometry is not None:
             n_points = write_points(maps, geometry, ply=out / "points.ply", note=title or "")

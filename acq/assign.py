@@ -57,7 +57,9 @@ _DWELL_PIXEL = 7    # flat pixel of the open dwell, -1 when none
 _DWELL_SYNC = 8     # sync of its PIXEL marker
 _DWELL_TOTAL = 9    # detections in it (all, in or out of the window)
 _DWELL_KEPT = 10    # of those, buffered in ``pend`` for its pixel
-STATE_SLOTS = 11
+_DWELL_LAST = 11    # sync of the last of them
+_DWELL_CUT = 12     # 1 once an in-window detection found its pixel full (not kept)
+STATE_SLOTS = 13
 
 # geometry vector (int64): pass origin and size in the image, image width, serpentine flag
 _G_ROW0, _G_COL0, _G_NY, _G_NX, _G_WIDTH, _G_SERP = range(6)
@@ -286,7 +288,7 @@ def photons_by_pixel(events: np.ndarray, pixel: np.ndarray):
 # ---- feeding a store dwell by dwell -----------------------------------------------------------------
 
 @njit(cache=True, nogil=True, inline="always")
-def _close_dwell(state, sync, pend, times, count, detected, dwells, frozen,
+def _close_dwell(state, sync, pend, times, count, detected, dwells, periods, frozen,
                  closed_pixel, closed_total, closed_syncs, n_closed):
     """Complete the open dwell: its buffered photons join its pixel. Returns the new n_closed."""
     p = state[_DWELL_PIXEL]
@@ -294,6 +296,13 @@ def _close_dwell(state, sync, pend, times, count, detected, dwells, frozen,
         return n_closed
     if frozen[p] == 0:
         c = count[p]
+        if c < times.shape[1]:
+            # the laser periods the kept detections were collected over: the whole dwell, or up to
+            # the detection that filled the pixel when later ones could not be kept
+            if state[_DWELL_CUT]:
+                periods[p] += state[_DWELL_LAST] - state[_DWELL_SYNC] + 1
+            else:
+                periods[p] += sync - state[_DWELL_SYNC]
         for j in range(state[_DWELL_KEPT]):
             times[p, c + j] = pend[j]
         count[p] = c + state[_DWELL_KEPT]
@@ -321,6 +330,8 @@ def _open_dwell(state, geom, sync):
     state[_DWELL_SYNC] = sync
     state[_DWELL_TOTAL] = 0
     state[_DWELL_KEPT] = 0
+    state[_DWELL_LAST] = sync
+    state[_DWELL_CUT] = 0
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -337,7 +348,7 @@ def _dwell_locals(state, count, frozen, n_keep):
 
 @njit(cache=True, nogil=True)
 def _accumulate_kernel(sync, dtime, kind, marker, geom, state, lo, hi, pend, times, count,
-                       detected, dwells, frozen, closed_pixel, closed_total, closed_syncs,
+                       detected, dwells, periods, frozen, closed_pixel, closed_total, closed_syncs,
                        lost_pixel_out, counters):
     """Feed one chunk of events into the store arrays (see :func:`accumulate`).
 
@@ -352,6 +363,7 @@ def _accumulate_kernel(sync, dtime, kind, marker, geom, state, lo, hi, pend, tim
     # shared helpers take over. Arrays the compiler must assume aliased would cost a load and a
     # store per photon.
     dp, dtot, dkept, room = _dwell_locals(state, count, frozen, n_keep)
+    dlast, dcut = state[_DWELL_LAST], state[_DWELL_CUT]
     n_seen = 0
     n_outside = 0
     n_kept = 0
@@ -364,14 +376,20 @@ def _accumulate_kernel(sync, dtime, kind, marker, geom, state, lo, hi, pend, tim
                 continue
             dtot += 1
             t = dtime[i]
-            if room > 0 and lo <= t < hi:
-                pend[dkept] = t
-                dkept += 1
-                room -= 1
-                n_kept += 1
+            if lo <= t < hi:
+                if room > 0:
+                    pend[dkept] = t
+                    dkept += 1
+                    room -= 1
+                    n_kept += 1
+                    dlast = np.int64(sync[i])
+                else:
+                    dcut = 1
             continue
         state[_DWELL_TOTAL] = dtot
         state[_DWELL_KEPT] = dkept
+        state[_DWELL_LAST] = dlast
+        state[_DWELL_CUT] = dcut
         if k == _MARKER:
             m = marker[i]
             s = np.int64(sync[i])
@@ -381,13 +399,13 @@ def _accumulate_kernel(sync, dtime, kind, marker, geom, state, lo, hi, pend, tim
             if m & _M_LINE_START:
                 _on_line_start(state)
             if m & _M_PIXEL:
-                n_closed = _close_dwell(state, s, pend, times, count, detected, dwells, frozen,
-                                        closed_pixel, closed_total, closed_syncs, n_closed)
+                n_closed = _close_dwell(state, s, pend, times, count, detected, dwells, periods,
+                                        frozen, closed_pixel, closed_total, closed_syncs, n_closed)
                 _on_pixel(state)
                 _open_dwell(state, geom, s)
             if m & _M_LINE_STOP:
-                n_closed = _close_dwell(state, s, pend, times, count, detected, dwells, frozen,
-                                        closed_pixel, closed_total, closed_syncs, n_closed)
+                n_closed = _close_dwell(state, s, pend, times, count, detected, dwells, periods,
+                                        frozen, closed_pixel, closed_total, closed_syncs, n_closed)
                 _on_line_stop(state)
         elif k == _LOST:
             lost_pixel_out[counters[2] - n_lost0] = _open_pixel(state, geom)
@@ -395,8 +413,11 @@ def _accumulate_kernel(sync, dtime, kind, marker, geom, state, lo, hi, pend, tim
             counters[1] += _drop_dwell(state)
             _on_lost(state)
         dp, dtot, dkept, room = _dwell_locals(state, count, frozen, n_keep)
+        dlast, dcut = state[_DWELL_LAST], state[_DWELL_CUT]
     state[_DWELL_TOTAL] = dtot
     state[_DWELL_KEPT] = dkept
+    state[_DWELL_LAST] = dlast
+    state[_DWELL_CUT] = dcut
     counters[0] += n_outside
     counters[3] += n_kept
     counters[4] += n_seen
@@ -420,13 +441,18 @@ class Accumulated:
 
 def accumulate(events: np.ndarray, geom: np.ndarray, state: np.ndarray, window: tuple[int, int],
                pend: np.ndarray, times: np.ndarray, count: np.ndarray, detected: np.ndarray,
-               dwells: np.ndarray, frozen: np.ndarray, counters: np.ndarray) -> Accumulated:
+               dwells: np.ndarray, periods: np.ndarray, frozen: np.ndarray,
+               counters: np.ndarray) -> Accumulated:
     """Feed ``events`` dwell by dwell into per-pixel arrays (``acq.store.PixelStore`` owns them).
 
     A completed dwell adds its in-window detections (``window = (lo, hi)``, raw units,
     ``lo <= dtime < hi``) to its pixel's row of ``times`` (n_pixels x n_keep) until the pixel holds
     n_keep; later ones are not kept. Pixels with ``frozen`` set keep what they have (they were
-    handed to the reconstruction). ``pend`` (n_keep) buffers the open dwell between chunks."""
+    handed to the reconstruction). ``pend`` (n_keep) buffers the open dwell between chunks.
+    ``periods`` gets, per pixel, the laser periods its kept detections were collected over: each
+    complete dwell that found the pixel short adds its length in syncs, or, when the pixel filled
+    up during it and later in-window detections were not kept, the span up to the sync of the
+    detection that filled it (so kept detections / periods is a rate whatever the target did)."""
     _check_events(events)
     n = events.size
     closed_pixel = np.empty(n + 1, np.int64)
@@ -436,7 +462,7 @@ def accumulate(events: np.ndarray, geom: np.ndarray, state: np.ndarray, window: 
     n_lost0 = int(counters[2])
     n_closed = _accumulate_kernel(events["sync"], events["dtime"], events["kind"], events["marker"],
                                   geom, state, np.int64(window[0]), np.int64(window[1]), pend,
-                                  times, count, detected, dwells, frozen, closed_pixel,
+                                  times, count, detected, dwells, periods, frozen, closed_pixel,
                                   closed_total, closed_syncs, lost_pixel, counters)
     lost = _lost_spans(events, lost_pixel) if counters[2] > n_lost0 else []
     return Accumulated(closed_pixel[:n_closed], closed_total[:n_closed], closed_syncs[:n_closed], lost)

@@ -52,6 +52,9 @@ class MapInput:
     target: int = 0
     surfaces: np.ndarray | None = None
     """(H, W) surfaces found per pixel when K > 1 surfaces were looked for (None: one)."""
+    exposure_s: np.ndarray | None = None
+    """(H, W) laser time each pixel's kept detections span, s (NaN: unknown; None: a file
+    without one, e.g. a .mat of photon times)."""
 
     def __post_init__(self) -> None:
         # a pixel with no detection kept has no background estimate (the estimator says 0): grey,
@@ -70,6 +73,20 @@ def first_surface(a: np.ndarray) -> np.ndarray:
 
 def _background_window(m: MapInput) -> np.ndarray:
     return np.asarray(m.background, dtype=np.float64) * m.n_bins
+
+
+def _background_rate(m: MapInput) -> np.ndarray | None:
+    """Background detections per second over the window, in thousands (kcps): the background in
+    the window over the laser time the pixel was observed. Unlike the count per kept set it does
+    not depend on how fast the pixel reached its target, so a bright object leaves no
+    silhouette in it."""
+    if m.exposure_s is None:
+        return None
+    t = np.asarray(m.exposure_s, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = _background_window(m) / t / 1e3
+    r[~(t > 0)] = np.nan
+    return r
 
 
 def _sbr(m: MapInput) -> np.ndarray:
@@ -101,6 +118,9 @@ class MapDef:
     per_surface: bool = False
     optional: bool = False
     """Drawn only when ``extract`` gives an array (None: the maps do not have it)."""
+    replaces: str | None = None
+    """Key of the map this one is drawn instead of, in the same place, when it has data (the
+    background rate of a scan replaces the background count of a file's maps)."""
 
 
 MAP_DEFS: tuple[MapDef, ...] = (
@@ -113,6 +133,10 @@ MAP_DEFS: tuple[MapDef, ...] = (
     MapDef("background", "Background", "detections in window", "magma", "zero",
            _background_window,
            "background detections among those kept, over the whole detection window"),
+    MapDef("background_rate", "Background rate", "kcps", "magma", "zero", _background_rate,
+           "background detections per second over the detection window (thousands), from the "
+           "laser time each pixel was observed: a flux, independent of the target",
+           optional=True, replaces="background"),
     MapDef("sbr", "Signal / background", "dB", "viridis", "robust", _sbr,
            "10 log10 of the detections attributed to the return(s) over the background "
            "detections in the window; no background found: above the scale"),
@@ -127,6 +151,21 @@ MAP_DEFS: tuple[MapDef, ...] = (
 """Every map, in display order."""
 
 MAPS_BY_KEY = {d.key: d for d in MAP_DEFS}
+
+PANEL_DEFS: tuple[MapDef, ...] = tuple(d for d in MAP_DEFS if d.replaces is None)
+"""The places a sheet or window has, in display order (a map that replaces another takes its
+place: :func:`resolve`)."""
+
+
+def resolve(place: MapDef, m: MapInput) -> tuple[MapDef, np.ndarray | None]:
+    """What is drawn at ``place`` (one of ``PANEL_DEFS``) for ``m``: the map that replaces it when
+    that one has data, else its own; and the data (None: an optional map ``m`` does not have)."""
+    for d in MAP_DEFS:
+        if d.replaces == place.key:
+            got = d.extract(m)
+            if got is not None:
+                return d, got
+    return place, place.extract(m)
 
 
 def display(data: np.ndarray, levels: tuple[float, float] | None) -> np.ndarray:
@@ -180,10 +219,10 @@ def widen(old: tuple[float, float] | None, new: tuple[float, float] | None):
 
 
 def map_input_from_maps(maps, *, n_bins: int | None = None, target: int | None = None,
-                        counts=None) -> MapInput:
+                        counts=None, exposure_s=None) -> MapInput:
     """A ``recon.maps.DepthMaps`` (settings hold the binning and max_photons) as a MapInput;
     ``counts`` replaces the detections used (e.g. a session's kept counts with NaN where not
-    measured)."""
+    measured); ``exposure_s``: a scan's observed laser time per pixel (the background rate)."""
     s = getattr(maps, "settings", None) or {}
     if n_bins is None:
         b = s.get("binning") or {}
@@ -194,7 +233,8 @@ def map_input_from_maps(maps, *, n_bins: int | None = None, target: int | None =
     return MapInput(depth_m=maps.depth_m, background=maps.background, signal=maps.signal,
                     uncertainty_s=maps.uncertainty_s,
                     counts=np.asarray(maps.photons if counts is None else counts, dtype=np.float64),
-                    n_bins=max(1, int(n_bins)), target=target, surfaces=surfaces_of(maps))
+                    n_bins=max(1, int(n_bins)), target=target, surfaces=surfaces_of(maps),
+                    exposure_s=exposure_s)
 
 
 def surfaces_of(maps) -> np.ndarray | None:
@@ -207,6 +247,6 @@ def surfaces_of(maps) -> np.ndarray | None:
     return np.asarray(got) if got is not None else np.isfinite(depth).sum(axis=0)
 
 
-__all__ = ["MapDef", "MapInput", "MAP_DEFS", "MAPS_BY_KEY", "NAN_COLOUR", "ROBUST_PERCENTILES",
+__all__ = ["MapDef", "MapInput", "MAP_DEFS", "MAPS_BY_KEY", "PANEL_DEFS", "resolve", "NAN_COLOUR", "ROBUST_PERCENTILES",
            "constant_value", "display", "levels_for", "widen", "map_input_from_maps", "first_surface",
            "surfaces_of"]

@@ -242,6 +242,7 @@ class ReplaySource:
             shape=shape, resolution_s=resolution_s, sync_period_s=sync_period_s,
             n_records=min(self.layout.n_records, self.layout.records_in_file),
             has_event_log=self.events_path.is_file())
+        self.sync_period_s = sync_period_s
         self._check_complete(plan is not None, ended)
 
     def _check_complete(self, ours: bool, log_ended: bool | None) -> None:

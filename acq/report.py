@@ -50,6 +50,7 @@ def render_maps_png(path: str | Path, maps, *, title: str | None = None,
                     panels: Sequence[tuple[str, str, str, str, str]] | None = None,
                     dpi: int = 110, irf: tuple[np.ndarray, np.ndarray, str] | None = None,
                     geometry=None, counts: np.ndarray | None = None,
+                    exposure_s: np.ndarray | None = None,
                     n_bins: int | None = None, target: int | None = None) -> Path:
     """Write a PNG with one panel per map: image, colour bar with unit, title.
 
@@ -65,6 +66,7 @@ def render_maps_png(path: str | Path, maps, *, title: str | None = None,
               axes in scan degrees and each pixel drawn with its true aspect; without one, pixel
               indices with square pixels.
     counts:   detections kept per pixel to draw instead of ``maps.photons`` (NaN: not measured).
+    exposure_s: a scan's laser time per pixel (``Session.exposure_s``): adds the background rate.
     n_bins, target: bins per window and the target (default from ``maps.settings``).
     irf:      ``(times_s, counts, label)`` of the pulse shape used: an extra panel draws it.
     Pixels without a value show in NAN_COLOUR, named under the panel; a constant map is drawn
@@ -74,16 +76,17 @@ def render_maps_png(path: str | Path, maps, *, title: str | None = None,
     from matplotlib.figure import Figure
     import matplotlib
 
-    from spdepth.acq.mapdefs import (MAP_DEFS, MapDef, constant_value, display, levels_for,
-                                     map_input_from_maps)
+    from spdepth.acq.mapdefs import (PANEL_DEFS, MapDef, constant_value, display, levels_for,
+                                     map_input_from_maps, resolve)
     from spdepth.acq.points import geometry_of
 
     path = Path(path)
     drawn: list[tuple[MapDef, str, np.ndarray, int]] = []
     if panels is None:
-        mi = map_input_from_maps(maps, n_bins=n_bins, target=target, counts=counts)
-        for d in MAP_DEFS:
-            got = d.extract(mi)
+        mi = map_input_from_maps(maps, n_bins=n_bins, target=target, counts=counts,
+                                 exposure_s=exposure_s)
+        for place in PANEL_DEFS:
+            d, got = resolve(place, mi)
             if got is None:
                 continue                       # an optional map these maps do not have
             a = np.asarray(got, dtype=np.float64)

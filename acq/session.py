@@ -126,6 +126,9 @@ class Snapshot:
     acq_flags: np.ndarray
     faults: tuple = ()
     error: str | None = None
+    exposure_s: np.ndarray | None = None
+    """Laser time each pixel's kept detections were collected over, s (NaN: none, or the laser
+    period is not known): background detections over it are a rate."""
     health: dict = field(default_factory=dict)
     """Per device ("galvo", "tagger"), from the source: "ok", "recovering" (a loss, reconnect or
     fault in the last HEALTH_RECENT_S), "failed" (the session ended on that device's error) or
@@ -305,7 +308,19 @@ class Session:
             **maps, counts=self.store.count.reshape(h, w).copy(),
             acq_flags=self.acq_flags.reshape(h, w).copy(),
             faults=tuple(f.to_dict() for f in list(self.faults)),
-            error=None if self.error is None else str(self.error), health=self._health())
+            error=None if self.error is None else str(self.error), health=self._health(),
+            exposure_s=self.exposure_s())
+
+    def exposure_s(self, pixel: int | None = None):
+        """(H, W) laser time, s, that each pixel's kept detections span (``PixelStore.periods``
+        times the laser period); NaN for pixels with none, or when the period is not known.
+        ``pixel``: that flat pixel's alone (a float)."""
+        period = getattr(self.source, "sync_period_s", None)
+        periods = self.store.periods if pixel is None else self.store.periods[pixel:pixel + 1]
+        out = np.full(periods.shape, np.nan)
+        if period:
+            np.multiply(periods, float(period), out=out, where=periods > 0)
+        return float(out[0]) if pixel is not None else out.reshape(self.plan.shape)
 
     def _stats(self) -> dict:
         now = self._t_end or time.monotonic()
@@ -540,6 +555,7 @@ class Session:
         p = self.plan
         _save_maps_npz(self.out_dir / "maps.npz", maps,
                        acq_flags=self.acq_flags.reshape(self.plan.shape),
+                       exposure_s=self.exposure_s(),
                        row_deg=np.linspace(p.y_first_deg, p.y_last_deg, p.ny),
                        col_deg=np.linspace(p.x_first_deg, p.x_last_deg, p.nx))
         _write_json_atomic(self.out_dir / "run.json", self.run_record(final))

@@ -123,6 +123,8 @@ class Source(Protocol):
     """Problems with the source's data the result must carry (a truncated recording, ...)."""
     first_read_t: float | None
     """monotonic time the first records were read, when the source times its stream."""
+    sync_period_s: float | None
+    """The laser period (s) its stream counts syncs in (None: not known)."""
 
     def default_gate_target(self, plan) -> int | None: ...
 

@@ -54,6 +54,7 @@ class PixelStore:
         self.count = np.zeros(n, np.int32)        # in-window detections kept
         self.detected = np.zeros(n, np.int64)     # all detections of complete dwells
         self.dwells = np.zeros(n, np.int32)       # complete dwells
+        self.periods = np.zeros(n, np.int64)      # laser periods the kept detections span
         self.frozen = np.zeros(n, np.uint8)       # handed to the reconstruction
         self._pend = np.zeros(self.n_keep, np.uint32)
         # photons outside any dwell, dwells dropped, LOST events, photons kept, photons seen
@@ -119,7 +120,8 @@ class PixelStore:
         """Assign one chunk of events (``drivers.events.EVENT_DTYPE``) and keep its photons."""
         with self._lock:
             return accumulate(events, self._geom, self._state, self.window, self._pend, self.times,
-                              self.count, self.detected, self.dwells, self.frozen, self._counters)
+                              self.count, self.detected, self.dwells, self.periods, self.frozen,
+                              self._counters)
 
     def freeze(self, pixels: np.ndarray) -> None:
         with self._lock:

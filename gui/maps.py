@@ -13,7 +13,7 @@ import pyqtgraph as pg
 from PySide6 import QtCore, QtWidgets
 
 from spdepth.acq.flags import AcqFlag
-from spdepth.acq.mapdefs import (MAP_DEFS, NAN_COLOUR, MapDef, MapInput, constant_value, display,
+from spdepth.acq.mapdefs import (MAP_DEFS, NAN_COLOUR, PANEL_DEFS, MapDef, MapInput, constant_value, display,
                                  levels_for, widen)
 from spdepth.recon.maps import C_M_PER_S
 
@@ -37,7 +37,8 @@ def snapshot_input(snap, n_bins: int, target: int, surfaces=None) -> MapInput:
     surfaces-found map of K > 1 maps."""
     return MapInput(depth_m=snap.depth_m, background=snap.background, signal=snap.signal,
                     uncertainty_s=snap.uncertainty_s, counts=measured_counts(snap),
-                    n_bins=n_bins, target=target, surfaces=surfaces)
+                    n_bins=n_bins, target=target, surfaces=surfaces,
+                    exposure_s=getattr(snap, "exposure_s", None))
 
 
 class MapPanel:
@@ -48,6 +49,8 @@ class MapPanel:
     ``set_geometry`` before the first data of a run."""
 
     def __init__(self, layout: pg.GraphicsLayout, spec: MapDef, row: int, col: int):
+        self.place = spec
+        """The place (one of ``PANEL_DEFS``); ``spec`` is what it shows now (``resolve``)."""
         self.spec = spec
         self.plot = layout.addPlot(row=row, col=col)
         self.plot.setTitle(spec.title, size="10pt")
@@ -80,6 +83,17 @@ class MapPanel:
         self.geometry = None
         self._shape = None
         self._const = None
+
+    def set_spec(self, spec: MapDef) -> None:
+        """Show another map in this place (a scan's background rate where a file's maps have the
+        background count): its title, unit, colour map and levels from scratch."""
+        if spec is self.spec:
+            return
+        self.spec = spec
+        self.bar.setColorMap(pg.colormap.get(spec.cmap, source="matplotlib"))
+        self.bar.getAxis("left").setLabel(f"{spec.title} ({spec.unit})")    # where the bar's label is
+        self.bar.setToolTip(spec.about)
+        self.reset()
 
     # ---- geometry ------------------------------------------------------------------------------
     def set_geometry(self, geometry, shape: tuple[int, int]) -> None:
@@ -192,5 +206,5 @@ def link_panels(panels: list[MapPanel]) -> None:
         p.plot.vb.sigRangeChangedManually.connect(lambda *_, src=p: follow(src))
 
 
-__all__ = ["MapPanel", "MAP_DEFS", "link_panels", "snapshot_input", "measured_counts",
+__all__ = ["MapPanel", "MAP_DEFS", "PANEL_DEFS", "link_panels", "snapshot_input", "measured_counts",
            "C_M_PER_S", "VIEW_BACKGROUND"]

@@ -10,6 +10,7 @@ ended.
 
 from __future__ import annotations
 
+import math
 import re
 import time
 from dataclasses import asdict, dataclass, field
@@ -258,6 +259,8 @@ class PixelInfo:
     kept: str
     acquisition: str
     n_kept: int = 0
+    exposure_s: float = math.nan
+    """Laser time the kept detections span, s (NaN: not known, e.g. a file of photon times)."""
     surfaces: tuple = ()
     """K > 1 surfaces: (tof_s, depth_m, signal, uncertainty_s) of each surface fitted, nearest first."""
 
@@ -301,7 +304,7 @@ class SessionView:
             background=float(rc.background[r, c]), signal=float(rc.signal[r, c]),
             uncertainty_s=float(rc.uncertainty_s[r, c]), estimated=bool(rc.done[r, c]),
             flag=int(rc.flags[r, c]), kept=f"{int(s.store.count[flat])} of {s.plan.target}",
-            n_kept=int(s.store.count[flat]),
+            n_kept=int(s.store.count[flat]), exposure_s=s.exposure_s(flat),
             acquisition="acquiring" if acq == ACQUIRING
             else AcqFlag(acq).name.lower().replace("_", " "))
 

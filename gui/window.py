@@ -28,7 +28,8 @@ from spdepth.acq.errors import RequestError
 from spdepth.acq.requests import DEFAULT_TARGET, MAX_TARGET, FileReconRequest, ReplayRequest
 from spdepth.gui.health import HealthTracker
 from spdepth.acq.flags import AcqFlag
-from spdepth.gui.maps import C_M_PER_S, MAP_DEFS, MapPanel, link_panels, snapshot_input
+from spdepth.acq.mapdefs import resolve
+from spdepth.gui.maps import C_M_PER_S, PANEL_DEFS, MapPanel, link_panels, snapshot_input
 from spdepth.gui.view3d import PointCloudView
 from spdepth.gui.pixel_model import pixel_histogram
 from spdepth.gui.sources import (METHODS, MODES, FileJob, ResultView, SessionView, SourceSpec,
@@ -422,6 +423,9 @@ class Inspector(QtWidgets.QWidget):
             ("signal", f"{sig:.2f} detections (estimated)" if done else "–"),
             ("background", f"{bg * n_bins:.2f} detections in window (estimated; {bg:.2e} per bin)"
              if done and math.isfinite(bg) else "–"),
+            ("background rate", f"{bg * n_bins / info.exposure_s / 1e3:.3g} kcps over "
+             f"{info.exposure_s * 1e3:.3g} ms of laser time"
+             if done and math.isfinite(bg) and info.exposure_s > 0 else "–"),
             ("model total", f"{sig_all + bg * n_bins:.2f} = signal + background, against "
              f"{info.n_kept} detections kept" if done and math.isfinite(bg) else "–"),
             ("detections kept", info.kept),
@@ -575,7 +579,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.maps_view.setBackground("w")
         self.maps_view.ci.setSpacing(4)
         self.panels = [MapPanel(self.maps_view.ci, spec, i // 2, i % 2)
-                       for i, spec in enumerate(MAP_DEFS)]
+                       for i, spec in enumerate(PANEL_DEFS)]
         self._surfaces = None
         """(H, W) surfaces found per pixel of K > 1 maps (a file read with several surfaces)."""
         link_panels(self.panels)
@@ -661,8 +665,9 @@ class MainWindow(QtWidgets.QMainWindow):
             sc.activated.connect(self.close)
 
     def panel(self, key: str) -> MapPanel:
-        """The map panel of ``acq.mapdefs`` key (depth, uncertainty, background, sbr, counts)."""
-        return next(p for p in self.panels if p.spec.key == key)
+        """The map panel showing ``acq.mapdefs`` key (depth, uncertainty, background or
+        background_rate, sbr, counts), or in that place."""
+        return next(p for p in self.panels if key in (p.spec.key, p.place.key))
 
     def show_view(self, which: str) -> None:
         """Show the "maps" or the "3d" tab."""
@@ -993,7 +998,8 @@ class MainWindow(QtWidgets.QMainWindow):
             v = None if versions is None else versions["counts" if p.spec.key == "counts"
                                                        else "estimate"]
             if v is None or v != p.version or refit:
-                data = p.spec.extract(mi)
+                spec, data = resolve(p.place, mi)
+                p.set_spec(spec)
                 if data is None:                 # an optional map these maps do not have
                     p.plot.setVisible(False)
                     continue
@@ -1179,10 +1185,11 @@ class MainWindow(QtWidgets.QMainWindow):
         elif suffix == ".png":
             from spdepth.acq.report import render_maps_png
 
-            counts = None if self.snap is None else snapshot_input(self.snap, 1, 0).counts
+            mi = None if self.snap is None else snapshot_input(self.snap, 1, 0)
+            same = mi is not None and mi.counts.shape == maps.flags.shape
             render_maps_png(path, maps, title=self.run_label.text().split(" — ")[0],
-                            counts=counts if counts is not None and counts.shape == maps.flags.shape
-                            else None)
+                            counts=mi.counts if same else None,
+                            exposure_s=mi.exposure_s if same else None)
         elif suffix in (".ply", ".las"):
             from spdepth.acq.points import geometry_of, write_points
 

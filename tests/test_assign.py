@@ -105,3 +105,48 @@ def test_bad_arguments_are_refused():
         PixelAssigner((0, 2))
     with pytest.raises(InputError, match="EVENT_DTYPE"):
         PixelAssigner((2, 2)).assign(np.zeros(3, np.uint32))
+
+
+def _dwell_stream(rng, n_pixels, n_keep, window):
+    """One line of ``n_pixels`` dwells with random lengths and detection times, and, per pixel, the
+    laser periods its kept detections span (worked out record by record, independently of the
+    kernel): a whole dwell while the pixel is short, up to the detection that fills it."""
+    rows, periods, count = [], np.zeros(n_pixels, np.int64), np.zeros(n_pixels, np.int64)
+    sync = 0
+    for p in range(n_pixels):
+        m = Marker.PIXEL | (Marker.LINE_START if p == 0 else 0)
+        rows.append((EventKind.MARKER, m, 0, sync))
+        start = sync
+        last_kept, cut = None, False
+        for _ in range(int(rng.integers(0, 3 * n_keep))):
+            sync += int(rng.integers(1, 50))
+            t = int(rng.integers(0, 2 * window[1]))
+            rows.append((EventKind.PHOTON, 0, t, sync))
+            if window[0] <= t < window[1]:
+                if count[p] < n_keep:
+                    count[p] += 1
+                    last_kept = sync
+                else:
+                    cut = True
+        sync += int(rng.integers(1, 50))
+        periods[p] = (last_kept - start + 1) if cut else (sync - start)
+    rows.append((EventKind.MARKER, Marker.LINE_STOP, 0, sync))
+    ev = np.zeros(len(rows), EVENT_DTYPE)
+    for name, col in zip(("kind", "marker", "dtime", "sync"), zip(*rows)):
+        ev[name] = col
+    return ev, periods, count
+
+
+@pytest.mark.parametrize("chunk", [1, 7, 10_000])
+def test_the_store_counts_the_laser_periods_its_kept_detections_span(chunk):
+    from spdepth.acq.store import PixelStore
+
+    rng = np.random.default_rng(3)
+    n_keep, window = 5, (100, 400)
+    ev, periods, count = _dwell_stream(rng, 60, n_keep, window)
+    assert (count == n_keep).any() and (count < n_keep).any()     # both cases are exercised
+    store = PixelStore((1, 60), n_keep, window, 1e-12)
+    for i in range(0, ev.size, chunk):
+        store.feed(ev[i:i + chunk])
+    np.testing.assert_array_equal(store.count, count)
+    np.testing.assert_array_equal(store.periods, periods)

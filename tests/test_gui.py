@@ -107,6 +107,12 @@ def test_inspector_shows_histogram_and_fitted_model(qtbot, win, tmp_path):
     text = win.inspector.last_text
     assert "row 8, col 3" in win.inspector.title.text() and "depth: 3." in text
     assert "5 of 5" in text
+    # the background as a rate over the laser time the pixel was observed
+    t = win.session.exposure_s(8 * win.session.plan.shape[1] + 3)
+    assert t > 0
+    if m.background[8, 3] > 0:
+        assert f"{m.background[8, 3] * 801 / t / 1e3:.3g} kcps" in text
+    assert f"{t * 1e3:.3g} ms of laser time" in text
     # hovering does not move a pinned pixel
     depth = win.panel("depth")
     win._mouse_moved(depth.plot.vb.mapViewToScene(depth.pixel_rect(1, 1).center()))

@@ -388,3 +388,38 @@ def test_a_galvo_left_in_fault_is_cleared_before_the_scan(tmp_path):
     assert s.flagged_pixels().size == 0
     assert [f.kind for f in s.faults] == ["galvo-fault"]
     assert "before the scan" in s.faults[0].what
+
+
+def test_the_background_rate_is_a_flux_the_target_does_not_shape(tmp_path):
+    """Count-gated, the bust reaches its target sooner than the wall, so fewer background
+    detections are kept there (a silhouette in the count map); over the laser time each pixel
+    was observed they are the scene's background flux, the same on both."""
+    from spdepth.acq.mapdefs import MAPS_BY_KEY, map_input_from_maps, resolve
+
+    with open_sim("bust", (32, 32), ppp=15, sbr=2.0, seed=11) as inst:
+        s = _session(inst, (32, 32), tmp_path, target=15, method="ml")
+        assert s.run() == SessionState.DONE, s.error
+        scene, period = inst.scene, inst.sync_period_s
+    saved = np.load(tmp_path / "maps.npz")
+    exposure = saved["exposure_s"]
+    np.testing.assert_array_equal(exposure, s.exposure_s())
+    assert np.all(exposure > 0)
+    lo, hi = s.store.window
+    in_window = (hi - lo) * s.store.time_unit_s / period          # share of a period recorded
+    true_rate = scene.background_pp * in_window / period           # detections/s in the window
+    maps = s.maps()
+    mi = map_input_from_maps(maps, counts=s.store.count.reshape(32, 32), exposure_s=exposure)
+    bg_window = MAPS_BY_KEY["background"].extract(mi)
+    spec, rate = resolve(MAPS_BY_KEY["background"], mi)
+    assert spec.key == "background_rate" and spec.unit == "kcps"
+    near = maps.depth_m < np.nanpercentile(maps.depth_m, 30)
+    far = maps.depth_m > np.nanpercentile(maps.depth_m, 70)
+    # the count map has the silhouette ...
+    assert bg_window[near].mean() < 0.75 * bg_window[far].mean()
+    # ... the rate, pooled over each region, is the true flux on both (a few hundred background
+    # detections per region: about 5% noise)
+    for region in (near, far):
+        est = (bg_window[region].sum() / exposure[region].sum())
+        truth = (true_rate[region] * exposure[region]).sum() / exposure[region].sum()
+        assert est == pytest.approx(truth, rel=0.15)
+        np.testing.assert_allclose(rate[region], bg_window[region] / exposure[region] / 1e3)
