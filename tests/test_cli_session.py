@@ -211,3 +211,24 @@ def test_scan_on_a_missing_device_is_one_line_and_leaves_no_directory(tmp_path, 
     assert main(["scan", "--galvo", "nosuchscheme://x", "--tagger", "usb:1209:7a64",
                  "--sync-rate-hz", "1e7", "--out", str(out)]) == 2
     assert "nosuchscheme" in capsys.readouterr().err
+
+
+def test_ctrl_c_closes_the_window_aborts_its_scan_and_exits_130(tmp_path):
+    runs = tmp_path / "runs"                   # the window's runs folder: one folder per run
+    env = {**os.environ, "QT_QPA_PLATFORM": "offscreen"}
+    proc = subprocess.Popen([sys.executable, "-m", "spdepth.acq.cli", "gui", "--sim", "--size",
+                             "128x128", "--target", "15", "--out", str(runs)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and proc.poll() is None:
+        if any(p.stat().st_size > 100_000 for p in runs.glob("*/recording.ptu")):
+            break
+        time.sleep(0.01)
+    assert proc.poll() is None, "the scan ended before it could be interrupted"
+    proc.send_signal(signal.SIGINT)
+    _out, err = proc.communicate(timeout=90)
+    assert proc.returncode == 130, err
+    assert "interrupted; closing the window" in err and "Traceback" not in err
+    (run,) = runs.glob("*/run.json")
+    assert json.loads(run.read_text())["state"] == "aborted"
+    assert (run.parent / "maps.npz").is_file()
