@@ -244,6 +244,7 @@ def test_replay_equals_live(tmp_path, fault):
     _assert_same_maps(live.maps(), rep.maps())
     assert np.array_equal(live.store.count, rep.store.count)
     assert np.array_equal(live.store.times, rep.store.times)
+    assert np.array_equal(live.exposure_s(), rep.exposure_s())      # the background rate too
     assert len(rep.lost) == len(live.lost)
     assert rep.detections == live.detections
 

@@ -83,8 +83,9 @@ class MemorySource:
     name = "memory"
     lost_action = "kept as delivered"
 
-    def __init__(self, passes):
+    def __init__(self, passes, sync_period_s=None):
         self.passes = passes
+        self.sync_period_s = sync_period_s
         self.warnings = []
         self.first_read_t = None
         self.closed = False
@@ -122,13 +123,15 @@ def test_any_source_gives_the_same_maps_as_the_replay_it_was_taken_from(recordin
     assert rep.run() == SessionState.DONE
     src = ReplaySource(recording)
     passes = [(g, [c.copy() for c in chunks]) for g, chunks in src.segments()]
-    mem = MemorySource(passes)
+    mem = MemorySource(passes, src.sync_period_s)
     assert isinstance(mem, Source)
     plan = ScanPlan.from_dict(src.info.plan)
     s = Session(plan, rep.recon.requested, mem)
     assert s.run() == SessionState.DONE and mem.closed
     for k in ("depth_m", "background", "signal", "flags"):
         np.testing.assert_array_equal(getattr(s.maps(), k), getattr(rep.maps(), k), err_msg=k)
+    assert np.all(rep.exposure_s() > 0)
+    np.testing.assert_array_equal(s.exposure_s(), rep.exposure_s())
     run = s.run_record()
     assert run["source"] == "memory" and run["devices"] == {"tagger": {"model": "in memory"}}
     assert [f["kind"] for f in run["faults_seen"]] == ["memory-note"]
