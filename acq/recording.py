@@ -7,7 +7,8 @@ A recording directory holds:
   settings as tags. ``TTResult_NumberOfRecords`` stays 0 until a clean close patches it, so after a
   crash (``kill -9``) ptufile and our replay read every whole record up to the last flush.
 * ``events.jsonl``: append-only, one JSON object a line, flushed with the records: state changes,
-  faults, every galvo pass (its geometry and the record position where it starts), every lost
+  faults, every galvo pass (its geometry, the record position where it starts and, as
+  ``pass_end``, where the session stopped using the stream: a replay ends the pass there), every lost
   span (record position, sync, count, whether the device restarted), and the galvo's pixel log.
 * ``run.json``: written at the end (write-to-temp-then-rename) by the session.
 
@@ -266,9 +267,10 @@ class ReplaySource:
             log.warning("replay of %s: %s", self.path, "; ".join(self.warnings))
 
     def _read_event_log(self):
-        """(passes, lost spans, whether the log ends with the session's end: None without a
-        log)."""
-        passes: list[tuple[int, PassGeometry]] = []
+        """(passes as [first record, geometry, record where the session stopped using its
+        stream or None], lost spans, whether the log ends with the session's end: None without
+        a log)."""
+        passes: list[list] = []
         lost: list[dict] = []
         if not self.events_path.is_file():
             return passes, lost, None
@@ -284,7 +286,9 @@ class ReplaySource:
                     raise RecordingError(f"{self.events_path}, line {n}: not JSON") from None
                 kind = e.get("event")
                 if kind == "pass" and e.get("record") is not None:
-                    passes.append((int(e["record"]), PassGeometry(**e["geometry"])))
+                    passes.append([int(e["record"]), PassGeometry(**e["geometry"]), None])
+                elif kind == "pass_end" and passes and passes[-1][2] is None:
+                    passes[-1][2] = int(e["record"])
                 elif kind == "lost":
                     lost.append(e)
                 ended = kind == "state" and e.get("state") in _END_STATES
@@ -321,20 +325,39 @@ class ReplaySource:
         return {"records_recorded": None}
 
     def segments(self):
-        """(PassGeometry, iterator of EVENT_DTYPE chunks) for each pass, in stream order."""
+        """(PassGeometry, iterator of EVENT_DTYPE chunks) for each pass, in stream order: each
+        pass from its first record to where the session stopped using the stream (the event
+        log's ``pass_end``); records outside every pass (before the first, or the tail of a
+        pass the session had stopped waiting for) are decoded, for the sync count, and left
+        out, as the live session left them out. A recording from before ``pass_end`` was logged
+        runs each pass up to the next one, the first from record 0."""
         n = self.info.n_records
         if self._passes:
-            starts = [max(0, min(r, n)) for r, _ in self._passes]
-            geoms = [g for _, g in self._passes]
-            starts[0] = 0                 # records before the first pass are idle stream
+            starts = [max(0, min(r, n)) for r, _, _ in self._passes]
+            geoms = [g for _, g, _ in self._passes]
+            logged_ends = [e for _, _, e in self._passes]
+            if all(e is None for e in logged_ends):
+                starts[0] = 0             # records before the first pass are idle stream
         else:
-            starts, geoms = [0], [PassGeometry.full(self.info.shape)]
-        ends = starts[1:] + [n]
+            starts, geoms, logged_ends = [0], [PassGeometry.full(self.info.shape)], [None]
+        nexts = starts[1:] + [n]
+        ends = [nx if e is None else max(a, min(e, nx))
+                for a, e, nx in zip(starts, logged_ends, nexts)]
         decoder = _Decoder(self._lut, self._lost)
         for g, a, b in zip(geoms, starts, ends):
             yield g, self._chunks(decoder, a, b)
 
+    def _skip_to(self, decoder: "_Decoder", a: int) -> None:
+        """Decode the records up to ``a`` and drop their events (the T3 sync count runs on
+        through them, as it did in the live reader)."""
+        for records in iter_records(self.layout, self.chunk_records, start=decoder.position):
+            take = min(records.size, a - decoder.position)
+            if take <= 0:
+                break
+            decoder.decode(np.asarray(records[:take]))
+
     def _chunks(self, decoder: "_Decoder", a: int, b: int):
+        self._skip_to(decoder, a)
         if b <= a:
             return
         pace = self.speed not in ("max", None)

@@ -130,7 +130,8 @@ class ScanSource:
         from spdepth.drivers.galvo import GalvoState
 
         galvo, reader, store = self.galvo, self.reader, host.store
-        host.begin_pass(geom, self.recorder.records if self.recorder else None)
+        start = self.recorder.records if self.recorder else None
+        host.begin_pass(geom, start)
         pattern, gate = self._galvo_pattern(host.plan, geom)
         if hasattr(galvo, "counter"):
             # a galvo the host gates (NI-DAQ): it watches the pixel's count in the session's store
@@ -148,6 +149,11 @@ class ScanSource:
             if chunk is None:
                 raise DeviceError("the time tagger's stream ended during the scan")
             now = time.monotonic()
+            if chunk.size and start is not None and reader.recorded_through is not None \
+                    and reader.recorded_through <= start:
+                # recorded before this pass began: the tail of the last pass, which stopped
+                # waiting for it (a replay leaves it out too: the pass ends where it was cut)
+                continue
             if chunk.size:
                 last_data = now
                 if host.process(chunk):
@@ -181,7 +187,7 @@ class ScanSource:
                 log.warning("stream still busy %.0f s after the pass ended; going on",
                             DRAIN_TIMEOUT_S)
                 break
-        host.end_pass()
+        host.end_pass(reader.recorded_through if self.recorder else None)
         self._lost_in_pass = False
         self._read_pixel_log(host)
         return cut

@@ -82,7 +82,9 @@ class SourceHost(Protocol):
     def begin_pass(self, geom: PassGeometry, position: int | None = None) -> None:
         """A pass over ``geom`` starts; ``position``: its first record in the recording."""
 
-    def end_pass(self) -> None: ...
+    def end_pass(self, position: int | None = None) -> None:
+        """The pass is over; ``position``: the record of the recording where its consumed stream
+        ends (records after it, up to the next pass, were not used; None: unknown)."""
 
     def process(self, chunk: np.ndarray) -> bool:
         """Feed a chunk of events; returns whether it held a lost span."""

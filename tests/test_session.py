@@ -424,3 +424,60 @@ def test_the_background_rate_is_a_flux_the_target_does_not_shape(tmp_path):
         truth = (true_rate[region] * exposure[region]).sum() / exposure[region].sum()
         assert est == pytest.approx(truth, rel=0.15)
         np.testing.assert_allclose(rate[region], bg_window[region] / exposure[region] / 1e3)
+
+
+class _LateReader:
+    """A tagger reader whose chunks reach the session ``delay_s`` after the reader queued them
+    (a host that falls behind the stream): a pass's tail can then come after the session has
+    stopped waiting for it, while the recording holds it."""
+
+    def __init__(self, reader, delay_s):
+        from spdepth.drivers.events import EVENT_DTYPE
+
+        self._r, self._delay_s, self._held = reader, delay_s, []
+        self._empty = np.zeros(0, EVENT_DTYPE)
+        self.recorded_through = None
+
+    def __getattr__(self, name):
+        return getattr(self._r, name)
+
+    def get(self, timeout_s=None):
+        while (chunk := self._r.get(timeout_s=0)) is not None and chunk.size:
+            self._held.append((time.monotonic(), chunk.copy(),
+                               getattr(self._r, "recorded_through", None)))
+        if self._held and time.monotonic() - self._held[0][0] >= self._delay_s:
+            _t, chunk, self.recorded_through = self._held.pop(0)
+            return chunk
+        time.sleep(timeout_s or 0)
+        return self._empty
+
+
+def test_a_host_that_falls_behind_ends_each_pass_where_its_replay_does(tmp_path):
+    with open_sim("bust", (24, 24), ppp=10, seed=9, keep_truth=True,
+                  galvo_options={"pace": 2.0}) as inst:
+        s = _session(inst, (24, 24), tmp_path)
+        src = s.source
+        arm = src.arm
+
+        def late_arm(host):
+            arm(host)
+            src.reader = _LateReader(src.reader, 0.6)      # twice the quiet time a drain waits
+        src.arm = late_arm
+
+        def complete() -> int:
+            return int(np.count_nonzero(s.store.count >= 10))
+
+        s.start()
+        wait_until(lambda: complete() > 40, timeout_s=180, what="40 complete pixels")
+        s.pause()
+        assert s.wait_for_state(SessionState.PAUSED, 30)
+        s.resume()
+        assert s.wait(120) == SessionState.DONE, s.error
+        assert_from_complete_dwells(s, inst.rig)
+    ends = [json.loads(line) for line in (tmp_path / "events.jsonl").open()]
+    assert sum(e.get("event") == "pass_end" for e in ends) == s.passes >= 2
+    rep = _replay(tmp_path)
+    assert rep.run() == SessionState.DONE
+    _assert_same_maps(DepthMaps.load_npz(tmp_path / "maps.npz"), rep.maps())
+    assert np.array_equal(s.store.count, rep.store.count)
+    assert np.array_equal(s.store.times, rep.store.times)

@@ -100,7 +100,12 @@ class TaggerReader:
         self.connection_lost = connection_lost
         self.tap = tap
         self.notice = notice
-        self._queue: queue.Queue[np.ndarray] = queue.Queue(maxsize=queue_chunks)
+        # (events, the tap's record count once their records were in it)
+        self._queue: queue.Queue[tuple[np.ndarray, int | None]] = queue.Queue(maxsize=queue_chunks)
+        self.recorded_through: int | None = None
+        """Records the tap (a recording) held once the records of the last chunk ``get`` returned
+        were in it: where that chunk ends in the recording (None: no tap that counts records).
+        A session ends a galvo pass there, and a replay ends the pass at the same record."""
         # One buffer for the life of the reader; pyusb fills array.array objects in place and the
         # NumPy view below sees the bytes without a copy.
         self._buffer = array.array("B", bytes(buffer_bytes))
@@ -151,7 +156,11 @@ class TaggerReader:
         while True:
             step = 0.05 if timeout_s is None else min(0.05, max(0.0, timeout_s - waited))
             try:
-                return self._queue.get(timeout=step) if step > 0 else self._queue.get_nowait()
+                events, through = self._queue.get(timeout=step) if step > 0 \
+                    else self._queue.get_nowait()
+                if through is not None:
+                    self.recorded_through = through
+                return events
             except queue.Empty:
                 # nothing yet: see whether the thread has ended, else keep waiting
                 pass
@@ -204,9 +213,12 @@ class TaggerReader:
             return
         self.stats["events"] += int(events.size)
         self.stats["lost_events"] += int(np.count_nonzero(events["kind"] == EventKind.LOST))
+        # the tap took these events' records before they come here (same thread), so its count
+        # now is where they end in the recording
+        through = getattr(self.tap, "records", None)
         while True:
             try:
-                self._queue.put(events, timeout=0.05)
+                self._queue.put((events, through), timeout=0.05)
                 return
             except queue.Full:
                 if self._stop.is_set():
