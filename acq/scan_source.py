@@ -85,7 +85,10 @@ class ScanSource:
         if self.galvo.status().state.name == "FAULT":
             self._galvo_fault("before the scan")
         self.reader = self.tagger.reader(tap=self.recorder, notice=self._notice,
-                                         **self.reader_options).start()
+                                         **self.reader_options)
+        # returns once the tagger measures: the first pass's markers must not go unrecorded
+        # (a failed START is the tagger's: health() finds it on the reader)
+        self.reader.start()
 
     def _notice(self, kind: str, what: str) -> None:
         """A read anomaly the tagger reader survived with nothing lost (reader thread)."""

@@ -131,8 +131,8 @@ class Snapshot:
     period is not known): background detections over it are a rate."""
     health: dict = field(default_factory=dict)
     """Per device ("galvo", "tagger"), from the source: "ok", "recovering" (a loss, reconnect or
-    fault in the last HEALTH_RECENT_S), "failed" (the session ended on that device's error) or
-    "replay"."""
+    fault in the last HEALTH_RECENT_S, or since the caller's previous snapshot: ``snapshot``'s
+    ``faults_since_s``), "failed" (the session ended on that device's error) or "replay"."""
 
 
 class _Aborted(Exception):
@@ -290,8 +290,14 @@ class Session:
                 self._thread.start()
 
     # ---- what subscribers see ------------------------------------------------------------------
-    def snapshot(self) -> Snapshot:
-        """The scan as it stands now (map copies; safe from any thread)."""
+    def snapshot(self, faults_since_s: float | None = None) -> Snapshot:
+        """The scan as it stands now (map copies; safe from any thread).
+
+        faults_since_s: the ``elapsed_s`` of the caller's previous snapshot. A device with a fault
+        recorded after it is "recovering" in this one's ``health`` even when the fault is older
+        than HEALTH_RECENT_S: a caller that looked late (a window whose paint stalled for seconds
+        on a busy machine, a slow subscriber) still sees every recovery, not only those that fell
+        within its looks."""
         h, w = self.plan.shape
         st = self._stats()
         n_final, n_total, running_s = st["pixels_final"], h * w, st["running_s"]
@@ -308,8 +314,8 @@ class Session:
             **maps, counts=self.store.count.reshape(h, w).copy(),
             acq_flags=self.acq_flags.reshape(h, w).copy(),
             faults=tuple(f.to_dict() for f in list(self.faults)),
-            error=None if self.error is None else str(self.error), health=self._health(),
-            exposure_s=self.exposure_s())
+            error=None if self.error is None else str(self.error),
+            health=self._health(faults_since_s), exposure_s=self.exposure_s())
 
     def exposure_s(self, pixel: int | None = None):
         """(H, W) laser time, s, that each pixel's kept detections span (``PixelStore.periods``
@@ -330,9 +336,11 @@ class Session:
                 "detections_per_s": self.detections / running_s if running_s > 0 else 0.0,
                 "lost_records": sum(s.records_lost for s in list(self.lost))}
 
-    def _health(self) -> dict:
+    def _health(self, since_s: float | None = None) -> dict:
         now = time.monotonic() - self._t0
-        recent = [f for f in list(self.faults) if now - f.t_s < HEALTH_RECENT_S]
+        # t_s is rounded to the ms: a fault within a ms before the last look counts once more
+        recent = [f for f in list(self.faults) if now - f.t_s < HEALTH_RECENT_S
+                  or (since_s is not None and f.t_s > since_s - 1e-3)]
         failed = self.error if self._state == SessionState.FAILED else None
         return self.source.health(recent, failed)
 
@@ -692,10 +700,13 @@ class _Subscription:
 
     def _run(self) -> None:
         s = self._session
+        last = None
         while not self._closed.is_set():
             ended = s.ended.wait(self._period)
             try:
-                self._fn(s.snapshot())
+                snap = s.snapshot(faults_since_s=last)
+                last = snap.elapsed_s
+                self._fn(snap)
             except Exception as exc:  # noqa: BLE001 - a broken subscriber must not take others down
                 self.failed = exc
                 log.error("snapshot subscriber %r failed (%s: %s); unsubscribed",

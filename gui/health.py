@@ -12,6 +12,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from spdepth.acq.sources import HEALTH_RECENT_S
+
 STALL_S = 0.75
 """Running without a new detection this long counts as a stalled stream (a gated dwell limit on the
 simulated bench is tens of ms; a real dark pixel is capped by the dwell limit too)."""
@@ -46,10 +48,15 @@ class HealthTracker:
         self.live = live
         self._last_det = -1
         self._last_det_t = 0.0
+        self._recovering_until: dict[str, float] = {}
+        self.last_elapsed_s: float | None = None
+        """``elapsed_s`` of the last snapshot fed: pass it as the next ``Session.snapshot``'s
+        ``faults_since_s`` so a fault recorded while the window could not look is not missed."""
         self.health = Health(IDLE, "no source")
 
     def update(self, snap) -> Health:
         t = snap.elapsed_s
+        self.last_elapsed_s = t
         if snap.detections != self._last_det:
             self._last_det, self._last_det_t = snap.detections, t
         faults = list(snap.faults)
@@ -64,6 +71,14 @@ class HealthTracker:
             self.health = Health(level, text, tip, (("recording", text.split()[1]),))
             return self.health
         words = {d: per.get(d, "ok") for d in DEVICES}
+        # a recovery first seen late (the window stalled) is still shown for HEALTH_RECENT_S
+        # from that look, as one seen at once is
+        for d, w in words.items():
+            held = t < self._recovering_until.get(d, -1.0)
+            if w == RECOVERING and not held:
+                self._recovering_until[d] = t + HEALTH_RECENT_S
+            elif w == OK and held:
+                words[d] = RECOVERING
         if ended:       # nothing recovers after the end: a recent fault is history now
             words = {d: ("ok" if w == "recovering" else w) for d, w in words.items()}
         stalled = (snap.state == "running" and snap.pixels_final < snap.pixels_total

@@ -959,7 +959,7 @@ class MainWindow(QtWidgets.QMainWindow):
         run = self.run
         if run is None:
             return False
-        snap = run.session.snapshot()
+        snap = run.session.snapshot(faults_since_s=self.health.last_elapsed_s)
         self.snap = snap
         target = run.session.plan.target
         # what changed: the estimate maps only when the reconstruction finished more pixels, the

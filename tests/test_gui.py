@@ -167,10 +167,10 @@ def test_replay_of_a_recording_matches_the_live_maps(qtbot, win, tmp_path):
 
 # The session records a reconnect once the device is back (the galvo controller even scans on
 # while its serial link is away, about 0.8 s here): the scans are big enough to go on after that,
-# so the indicator can show "recovering" while running (a 16x16 scan often ended first).
-@pytest.mark.xfail(strict=False, reason="known flake (session note): on a loaded or cold-cache "
-                   "machine the window can sample its display only at a scan's start and end and "
-                   "miss the 2 s 'recovering' state; still run and listed")
+# so the indicator can show "recovering" while running (a 16x16 scan often ended first). A window
+# that could not look for a while (paints stalled seconds on a loaded machine) still shows it: the
+# snapshot counts faults since the window's last look. On a loaded 2-core machine the 64x64 scan
+# (with its estimator's warm-up) can run over a minute, hence the longer wait.
 @pytest.mark.parametrize("faults, size, target, device, kind", [
     ("device-vanish@15%", (64, 64), 10, "tagger", "tagger-reconnect"),
     ("serial-unplug@3%", (64, 64), 10, "galvo", "galvo-reconnect"),
@@ -185,7 +185,7 @@ def test_health_shows_a_lost_device_and_its_recovery(qtbot, win, tmp_path, fault
         return _state(win) in ("done", "failed")
 
     assert win.start_run(_spec(tmp_path, faults=faults, size=size, target=target), out_dir=None)
-    qtbot.waitUntil(watch, timeout=60_000)
+    qtbot.waitUntil(watch, timeout=180_000)
     assert _state(win) == "done"
     # the session's own verdict, per device, reached the indicator while the scan went on
     assert any(lv == "recovering" and dev == "recovering" and f"{device} recovering" in text
@@ -193,6 +193,31 @@ def test_health_shows_a_lost_device_and_its_recovery(qtbot, win, tmp_path, fault
     assert win.health.health.level == "recovered"
     assert f"{device} ok" in win.health_label.text() and "fault" in win.health_label.text()
     assert any(f["kind"] == kind for f in win.snap.faults)
+
+
+def test_the_health_indicator_shows_a_recovery_it_saw_late_for_as_long():
+    """The window stalled from 1 s to 4 s (a slow paint on a busy machine): the session reports
+    the fault recorded meanwhile once (``faults_since_s``), and the indicator keeps it shown."""
+    from types import SimpleNamespace
+
+    from spdepth.acq.sources import HEALTH_RECENT_S
+    from spdepth.gui.health import HealthTracker
+
+    fault = ({"t_s": 1.5, "kind": "galvo-reconnect", "what": "serial link", "action": "re-opened"},)
+
+    def snap(t, galvo, faults=fault):
+        return SimpleNamespace(elapsed_s=t, detections=int(t * 100), faults=faults,
+                               state="running", health={"galvo": galvo, "tagger": "ok"},
+                               pixels_final=1, pixels_total=10, error=None)
+
+    h = HealthTracker()
+    assert h.update(snap(1.0, "ok", ())).level == "ok"
+    assert h.update(snap(4.0, "recovering")).level == "recovering"
+    assert h.last_elapsed_s == 4.0
+    held = h.update(snap(4.1, "ok"))
+    assert held.level == "recovering" and dict(held.devices)["galvo"] == "recovering"
+    after = h.update(snap(4.0 + HEALTH_RECENT_S + 0.1, "ok"))
+    assert after.level == "recovered" and dict(after.devices) == {"galvo": "ok", "tagger": "ok"}
 
 
 def test_close_during_a_scan_aborts_and_keeps_the_recording(qtbot, settings, tmp_path):

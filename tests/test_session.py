@@ -338,6 +338,27 @@ def test_health_shows_a_device_recovering_then_the_scan_completes(fault, device)
     assert s.flagged_pixels().size == 0
 
 
+def test_a_caller_that_looks_late_still_sees_each_recovery_once(monkeypatch):
+    """A window whose paint stalls for seconds (a busy machine) looks less often than a device
+    stays "recovering" (HEALTH_RECENT_S); made 0 here, only the faults recorded since a caller's
+    previous snapshot can show it."""
+    import spdepth.acq.session as session_module
+
+    monkeypatch.setattr(session_module, "HEALTH_RECENT_S", 0.0)
+    with open_sim("bust", (16, 16), ppp=10, seed=12, faults="serial-unplug@40%") as inst:
+        s = _session(inst, (16, 16))
+        seen = []
+        sub = s.subscribe(lambda snap: seen.append(dict(snap.health)), max_hz=30)
+        assert s.run() == SessionState.DONE
+    assert sub.join(10)
+    # once (twice when a look fell within the ms that t_s is rounded to)
+    assert 1 <= sum(h["galvo"] == "recovering" for h in seen) <= 2, seen
+    t_fault = next(f.t_s for f in s.faults if f.kind == "galvo-reconnect")
+    assert s.snapshot(faults_since_s=t_fault - 0.5).health["galvo"] == "recovering"
+    assert s.snapshot(faults_since_s=t_fault + 0.5).health["galvo"] == "ok"
+    assert s.snapshot().health["galvo"] == "ok"
+
+
 def test_a_tagger_that_does_not_come_back_fails_the_session_cleanly(tmp_path):
     import ptufile
 

@@ -4,13 +4,14 @@ recovery, never wrong data)."""
 
 from __future__ import annotations
 
+import threading
 import time
 
 import numpy as np
 import pytest
 import usb.core
 
-from spdepth.drivers.errors import SettingError
+from spdepth.drivers.errors import DeviceError, DeviceTimeoutError, SettingError
 from spdepth.drivers.events import EVENT_DTYPE, EventKind, Marker
 from spdepth.drivers.sim.faults import Fault, FaultKind
 from spdepth.drivers.sim.tagger_usb import SimTaggerBackend
@@ -306,6 +307,47 @@ def test_stop_joins_and_callback_sees_clean_end():
     assert not reader.alive
     assert ended == [None] and reader.get(timeout_s=0.1) is None
     assert not rig.tagger_running
+
+
+def test_start_returns_once_the_tagger_measures():
+    """A scan is started as soon as ``start`` returns: START done later (a busy host, a slow USB
+    round trip) would lose the first pass's FRAME and LINE_START markers."""
+    rig, backend, tagger = open_bench()
+    start = tagger.start
+
+    def slow_start():
+        time.sleep(0.2)
+        start()
+
+    tagger.start = slow_start
+    reader = tagger.reader(read_timeout_s=0.01).start()
+    try:
+        assert rig.tagger_running
+    finally:
+        reader.stop(timeout_s=5.0)
+
+
+def test_a_start_that_fails_or_hangs_is_raised_by_start():
+    rig, backend, tagger = open_bench()
+
+    def refused():
+        raise DeviceError("START refused")
+
+    tagger.start = refused
+    reader = tagger.reader(read_timeout_s=0.01)
+    with pytest.raises(DeviceError, match="START refused"):
+        reader.start()
+    assert not reader.alive
+    with pytest.raises(DeviceError, match="START refused"):
+        reader.get(timeout_s=1.0)             # the owner's reads see it as well
+    release = threading.Event()
+    tagger.start = lambda: release.wait(10.0)
+    reader = tagger.reader(read_timeout_s=0.01, start_timeout_s=0.2)
+    with pytest.raises(DeviceTimeoutError, match="did not start measuring"):
+        reader.start()
+    release.set()
+    reader.stop(timeout_s=5.0)               # asked to end: it does once START returns
+    assert not reader.alive
 
 
 def test_fault_list_accepted_as_objects():

@@ -9,6 +9,7 @@ recording equals the live session."""
 from __future__ import annotations
 
 import json
+import time
 
 import numpy as np
 import ptufile
@@ -30,21 +31,6 @@ BACKENDS = {
 }
 
 
-# Known defect, not fixed (issue 17's note): with the NI-DAQ galvo stand-in stepping a raster on its
-# own real-time clock, one run in four or five of this file keeps at the first pixel of a pass
-# detections that are not from that pixel's complete dwells ("kept times not from its dwells"),
-# seen on a quiet machine too and never when a test runs alone. Until it is found, the dwell-by-dwell
-# check on those backends is an expected failure that is still run and reported (-ra lists it).
-NIDAQ_RASTER_DEFECT = pytest.mark.xfail(
-    strict=False, reason="known defect: NI-DAQ raster stand-in sometimes gives a pass's first pixel "
-                         "detections from outside its complete dwells (issue 17 note)")
-
-
-def _param(backend, *rest):
-    raster_daq = "galvo" in BACKENDS[backend] and "gated" not in backend
-    return pytest.param(backend, *rest, marks=NIDAQ_RASTER_DEFECT if raster_daq else ())
-
-
 def _mode(backend):
     return "raster" if "galvo" in BACKENDS[backend] and "gated" not in backend else "gated"
 
@@ -58,7 +44,7 @@ def _plan(inst, backend):
     return {"mode": mode}
 
 
-@pytest.mark.parametrize("backend", [_param(b) for b in BACKENDS])
+@pytest.mark.parametrize("backend", list(BACKENDS))
 def test_clean_scan_keeps_each_pixels_own_dwells_and_replays_equal(tmp_path, backend):
     with open_sim("bust", (8, 10), ppp=10, seed=11, keep_truth=True, **BACKENDS[backend]) as inst:
         s = _session(inst, (8, 10), tmp_path / "live", method="uos", **_plan(inst, backend))
@@ -71,6 +57,25 @@ def test_clean_scan_keeps_each_pixels_own_dwells_and_replays_equal(tmp_path, bac
     assert rep.run() == SessionState.DONE
     _assert_same_maps(s.maps(), rep.maps())
     assert np.array_equal(s.store.times, rep.store.times)
+
+
+@pytest.mark.parametrize("backend", ["picoquant+nidaq", "swabian+nidaq"])
+def test_the_scan_starts_only_once_a_slow_tagger_measures(tmp_path, monkeypatch, backend):
+    """The NI-DAQ card steps a raster on its own clock from the moment it starts: a tagger whose
+    START came later (a busy host) missed the first lines, and without their LINE_START markers
+    the session put every later line's detections on the line before it."""
+    with open_sim("bust", (8, 10), ppp=10, seed=11, keep_truth=True, **BACKENDS[backend]) as inst:
+        start = inst.tagger.start
+
+        def slow_start():
+            time.sleep(0.1)
+            start()
+
+        monkeypatch.setattr(inst.tagger, "start", slow_start)
+        s = _session(inst, (8, 10), tmp_path, method="uos", mode="raster")
+        assert s.run() == SessionState.DONE, s.error
+        assert_complete_or_flagged(s)
+        assert_from_complete_dwells(s, inst.rig)
 
 
 def test_picoquant_recording_is_a_ptu_of_the_devices_record_type(tmp_path):
@@ -88,7 +93,7 @@ def test_picoquant_recording_is_a_ptu_of_the_devices_record_type(tmp_path):
     assert run["devices"]["galvo"]["calibration"]["deg_per_volt_x"] == 1.0
 
 
-@pytest.mark.parametrize("backend,fault,kind", [_param(*p) for p in [
+@pytest.mark.parametrize("backend,fault,kind", [
     ("picoquant+nidaq", "fifo-overflow@40%", "tagger-reconnect"),
     ("picoquant+ours", "device-vanish@50%", "tagger-reconnect"),
     ("picoquant+nidaq", "usb-timeout@30%", "tagger-reconnect"),
@@ -98,7 +103,7 @@ def test_picoquant_recording_is_a_ptu_of_the_devices_record_type(tmp_path):
     ("ours+nidaq (gated)", "fifo-overflow@40%", "lost-data"),
     ("swabian+nidaq", "fifo-overflow@40%", "lost-data"),
     ("swabian+ours", "fifo-overflow@50%,servo-fault@70%", "lost-data"),
-]])
+])
 def test_faults_are_reacquired_and_nothing_is_counted_twice(tmp_path, backend, fault, kind):
     with open_sim("bust", (10, 10), ppp=10, seed=5, faults=fault, keep_truth=True,
                   **BACKENDS[backend]) as inst:

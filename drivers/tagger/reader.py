@@ -27,6 +27,7 @@ import array
 import logging
 import queue
 import threading
+import time
 from enum import Enum
 from typing import Callable
 
@@ -66,7 +67,9 @@ class TaggerReader:
                          the device FIFO fills and an overrun is reported in-band.
     buffer_bytes:        size of the preallocated bulk buffer (a multiple of 512).
     read_timeout_s:      bulk read timeout; also how quickly ``stop`` is noticed.
-    start_measurement:   send START when the thread starts and STOP when it ends.
+    start_measurement:   send START when the thread starts and STOP when it ends; ``start``
+                         returns only once START has been done (see there).
+    start_timeout_s:     how long ``start`` waits for START (DeviceTimeoutError after it).
     reconnect_timeout_s: how long to wait for a vanished device to come back.
     connection_lost:     called from the thread as ``connection_lost(exc)`` when it ends (``exc``
                          None after ``stop``), like pyserial's ``ReaderThread``.
@@ -86,7 +89,7 @@ class TaggerReader:
 
     def __init__(self, tagger, queue_chunks: int = 64, buffer_bytes: int = 1 << 20,
                  read_timeout_s: float = 0.05, start_measurement: bool = True,
-                 reconnect_timeout_s: float = 5.0,
+                 start_timeout_s: float = 10.0, reconnect_timeout_s: float = 5.0,
                  connection_lost: Callable[[BaseException | None], None] | None = None,
                  tap=None, notice: Callable[[str, str], None] | None = None):
         if buffer_bytes < 512 or buffer_bytes % 512:
@@ -96,6 +99,7 @@ class TaggerReader:
         self.tagger = tagger
         self.read_timeout_s = float(read_timeout_s)
         self.start_measurement = bool(start_measurement)
+        self.start_timeout_s = float(start_timeout_s)
         self.reconnect_timeout_s = float(reconnect_timeout_s)
         self.connection_lost = connection_lost
         self.tap = tap
@@ -115,6 +119,7 @@ class TaggerReader:
         self._position = 0         # records received since the device's START
         self._offset = 0           # reader sync of the device's sync 0 (grows at each restart)
         self._stop = threading.Event()
+        self._measuring = threading.Event()    # set once the thread has done START (or skipped it)
         self._done = threading.Event()
         self._error: BaseException | None = None
         self._thread: threading.Thread | None = None
@@ -124,10 +129,24 @@ class TaggerReader:
 
     # ---- owner side ------------------------------------------------------------------------------
     def start(self) -> "TaggerReader":
+        """Start the thread and return once the device measures. Markers and photons that arrive
+        before START are never recorded, so an owner that started its scan as soon as the thread
+        existed could lose a pass's first FRAME/LINE_START markers and assign every line to the
+        one before it. Raises the thread's error when START failed (``get`` raises it as well) and
+        DeviceTimeoutError when START took longer than ``start_timeout_s`` (the thread is asked
+        to end)."""
         if self._thread is not None:
             raise DeviceError("tagger reader already started")
         self._thread = threading.Thread(target=self._run, name="tagger-reader", daemon=True)
         self._thread.start()
+        deadline = time.monotonic() + self.start_timeout_s
+        while not self._measuring.wait(0.01):
+            if self._done.is_set():     # only START's error ends the thread before it is set
+                raise self._error
+            if time.monotonic() > deadline:
+                self._stop.set()
+                raise DeviceTimeoutError(f"the tagger did not start measuring within "
+                                         f"{self.start_timeout_s:g} s")
         return self
 
     def stop(self, timeout_s: float = 2.0) -> None:
@@ -189,6 +208,7 @@ class TaggerReader:
         try:
             if self.start_measurement:
                 self.tagger.start()
+            self._measuring.set()
             while not self._stop.is_set():
                 self.step()
         except BaseException as e:  # noqa: BLE001 - handed to the owner, never swallowed
