@@ -23,6 +23,9 @@ BACKENDS = {
     "picoquant+nidaq": dict(tagger="picoquant:mh150", galvo="nidaq:Dev1"),
     "picoquant+ours": dict(tagger="picoquant:mh150"),
     "hh400+nidaq": dict(tagger="picoquant:hh400", galvo="nidaq:Dev1/ao2:3"),
+    "th260+ours": dict(tagger="picoquant:th260"),
+    "th260N+ours": dict(tagger="picoquant:th260", tagger_options={"hw_model": "TimeHarp 260 N"}),
+    "ph330+ours": dict(tagger="picoquant:ph330"),
     "ours+nidaq": dict(galvo="nidaq:Dev1"),
     "ours+nidaq (gated)": dict(galvo="nidaq:Dev1/ao0:1"),
     "swabian+nidaq": dict(tagger="swabian", galvo="nidaq:Dev1"),
@@ -38,6 +41,12 @@ BACKENDS = {
 NIDAQ_RASTER_DEFECT = pytest.mark.xfail(
     strict=False, reason="known defect: NI-DAQ raster stand-in sometimes gives a pass's first pixel "
                          "detections from outside its complete dwells (issue 17 note)")
+
+
+RECORD_TYPES = {"picoquant+ours": "GenericT3", "hh400+nidaq": "HydraHarp2T3",
+                "th260+ours": "TimeHarp260PT3", "th260N+ours": "TimeHarp260NT3",
+                "ph330+ours": "GenericT3"}
+"""The PTU record type each PicoQuant backend's recording carries: the device's own."""
 
 
 def _param(backend, *rest):
@@ -67,6 +76,11 @@ def test_clean_scan_keeps_each_pixels_own_dwells_and_replays_equal(tmp_path, bac
         assert_from_complete_dwells(s, inst.rig)
         assert s.flagged_pixels().size == 0
         assert not s.lost
+    if backend in RECORD_TYPES:
+        with ptufile.PtuFile(tmp_path / "live" / "recording.ptu") as f:
+            assert f.tags["TTResultFormat_TTTRRecType"] == \
+                getattr(ptufile.PtuRecordType, RECORD_TYPES[backend])
+            assert int(np.count_nonzero(f.decode_records()["channel"] >= 0)) > 0
     rep = _replay(tmp_path / "live")
     assert rep.run() == SessionState.DONE
     _assert_same_maps(s.maps(), rep.maps())
@@ -93,6 +107,9 @@ def test_picoquant_recording_is_a_ptu_of_the_devices_record_type(tmp_path):
     ("picoquant+ours", "device-vanish@50%", "tagger-reconnect"),
     ("picoquant+nidaq", "usb-timeout@30%", "tagger-reconnect"),
     ("picoquant+nidaq", "daq-underflow@50%", "galvo-fault"),
+    ("th260+ours", "fifo-overflow@40%", "tagger-reconnect"),
+    ("th260N+ours", "usb-timeout@30%", "tagger-reconnect"),
+    ("ph330+ours", "device-vanish@50%", "tagger-reconnect"),
     ("ours+nidaq", "daq-underflow@30%,fifo-overflow@60%", "galvo-fault"),
     ("ours+nidaq (gated)", "daq-underflow@40%", "galvo-fault"),
     ("ours+nidaq (gated)", "fifo-overflow@40%", "lost-data"),
