@@ -293,3 +293,60 @@ def test_raster_outside_the_voltage_limits_is_refused():
         raster_waveform(2, 1, np.array([-6.0, 6.0]), np.array([0.0]), 1e-3, cal)
     with pytest.raises(SettingError, match="sample clock"):
         raster_waveform(2, 1, np.array([0.0, 1.0]), np.array([0.0]), 1e-7, cal)
+
+
+@pytest.mark.parametrize("fault,stat", [("usb-timeout@0.002s", "restarts"),
+                                        ("device-vanish@0.002s", "reconnects")])
+def test_a_failed_swabian_stream_is_a_loss_in_band_then_a_new_stream(fault, stat):
+    """A stream error (USB) restarts the stream on the same tagger; a vanished tagger is opened
+    again by serial; either way one LOST event sits where the hole is, syncs keep increasing, and
+    the stream goes on with the dwells after the hole."""
+    import time
+
+    from spdepth.drivers.events import EventKind
+    from spdepth.drivers.sim import PhotonWorld, load_scene
+    from spdepth.drivers.sim.rig import SimRig
+    from spdepth.drivers.sim.swabian_standin import SwabianStandIn
+    from spdepth.drivers.swabian import SwabianSettings, SwabianTagger
+
+    scene = load_scene("steps", (4, 4), ppp=20.0)
+    rig = SimRig(PhotonWorld(scene, seed=2))
+    module = SwabianStandIn(rig, faults=fault, vanish_s=0.1)
+    settings = SwabianSettings(sync_period_s=scene.settings.sync_period_s, event_divider=64,
+                               resolution_ps=int(round(scene.settings.resolution_s * 1e12)))
+    t = SwabianTagger.open(None, settings, module=module)
+    first = t.device
+    r = t.reader().start()
+    chunks = []
+    try:
+        deadline = time.monotonic() + 60
+        while not rig.tagger_running and time.monotonic() < deadline:
+            time.sleep(0.01)
+        for k in range(16):          # one dwell per pixel; the fault fires early in virtual time
+            rig.set_mirror(*rig.fov.centre_deg(k // 4, k % 4, (4, 4)))
+            rig.pulse_markers(1)
+            rig.fixed_dwell(scene.dwell_s * 5)
+            # once the fault is due, let the reader meet it before more dwells are pushed (the
+            # new stream starts with what comes after it)
+            while rig.now_s >= 0.002 and not r.stats[stat] and time.monotonic() < deadline:
+                c = r.get(timeout_s=0.05)
+                if c is not None and c.size:
+                    chunks.append(c)
+        while time.monotonic() < deadline:
+            c = r.get(timeout_s=0.3)
+            if c is None or not c.size:
+                break
+            chunks.append(c)
+        ev = np.concatenate(chunks)
+    finally:
+        r.stop()
+        t.close()
+    assert r.error is None and r.stats[stat] == 1 and r.stats["stream_errors"] == 1
+    assert module.card.fired == [fault.split("@")[0]]
+    assert (t.device is first) == (stat == "restarts")
+    lost = np.flatnonzero(ev["kind"] == EventKind.LOST)
+    assert lost.size == 1
+    assert np.all(np.diff(ev["sync"].astype(np.int64)) >= 0)
+    after = ev[lost[0] + 1:]
+    assert np.count_nonzero(after["kind"] == EventKind.MARKER) >= 10, "dwells after the hole"
+    assert np.count_nonzero(after["kind"] == EventKind.PHOTON) > 0

@@ -115,6 +115,8 @@ def test_picoquant_recording_is_a_ptu_of_the_devices_record_type(tmp_path):
     ("ours+nidaq (gated)", "fifo-overflow@40%", "lost-data"),
     ("swabian+nidaq", "fifo-overflow@40%", "lost-data"),
     ("swabian+ours", "fifo-overflow@50%,servo-fault@70%", "lost-data"),
+    ("swabian+ours", "usb-timeout@40%", "tagger-reconnect"),
+    ("swabian+ours", "device-vanish@50%", "tagger-reconnect"),
 ]])
 def test_faults_are_reacquired_and_nothing_is_counted_twice(tmp_path, backend, fault, kind):
     with open_sim("bust", (10, 10), ppp=10, seed=5, faults=fault, keep_truth=True,
@@ -147,9 +149,10 @@ def test_swabian_recording_carries_the_channel_mapping_and_reads_in_ptufile(tmp_
     assert info["tagger_channels"]["markers"]["PIXEL"] == 3
 
 
-def test_a_picoquant_device_that_does_not_come_back_fails_the_session(tmp_path):
+@pytest.mark.parametrize("tagger", ["picoquant:mh150", "swabian"])
+def test_a_tagger_that_does_not_come_back_fails_the_session(tmp_path, tagger):
     with open_sim("bust", (8, 8), ppp=10, seed=3, faults="device-vanish@30%",
-                  tagger="picoquant:mh150", galvo="nidaq:Dev1",
+                  tagger=tagger, galvo="nidaq:Dev1",
                   tagger_options={"vanish_s": 60.0}) as inst:
         s = _session(inst, (8, 8), tmp_path, mode="raster",
                      reader_options={"reconnect_timeout_s": 0.3})
