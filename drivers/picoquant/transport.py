@@ -176,9 +176,6 @@ class LibTransport:
             self._funcs[name] = f
         return f
 
-    def has(self, name: str) -> bool:
-        return hasattr(self.lib, f"{self.family.prefix}_{name}")
-
     def call(self, name: str, *args, quiet: bool = False) -> int:
         """Call ``<prefix>_<name>(*args)``; returns the (non-negative) code."""
         f = self._func(name)
