@@ -56,6 +56,7 @@ OPEN = [
     ("Initialize", [0, 3, 0], 0, []),
     ("GetHardwareInfo", [0], 0, [b"MultiHarp 150 4N", b"930099", b"1.0"]),
     ("GetSerialNumber", [0], 0, [b"1000042"]),
+    ("GetFeatures", [0], 0, [0x7]),
     ("GetLibraryVersion", [], 0, [b"3.0"]),
 ]
 
@@ -98,6 +99,7 @@ def _open_calls(init_args, model):
             ("Initialize", [0, *init_args], 0, []),
             ("GetHardwareInfo", [0], 0, [model, b"930099", b"1.0"]),
             ("GetSerialNumber", [0], 0, [b"1000042"]),
+            ("GetFeatures", [0], 0, [0x7]),
             ("GetLibraryVersion", [], 0, [b"3.2"])]
 
 
@@ -151,6 +153,33 @@ def test_a_sync_divider_beyond_the_familys_range_is_refused_before_it_is_sent():
     with pytest.raises(SettingError, match="1..8"):
         t.configure(PicoQuantSettings(sync_divider=16))
     lib.done()
+
+
+@pytest.mark.parametrize("features,where,words", [(0x3, "configure", "no marker inputs"),
+                                                   (0x5, "open", "no time-tagging")])
+def test_a_device_without_the_marker_or_tttr_option_is_refused_with_its_name(features, where,
+                                                                             words):
+    """Markers and T3 mode are licensed options (``*_GetFeatures``): without them a scan would
+    stream nothing or assign no photon, so the driver says which option is missing."""
+    from spdepth.drivers.sim import PhotonWorld, load_scene
+    from spdepth.drivers.sim.picoquant_standin import PicoQuantStandIn
+    from spdepth.drivers.sim.rig import SimRig
+
+    sim = PicoQuantStandIn(SimRig(PhotonWorld(load_scene("steps", (4, 4)), seed=1)), "th260",
+                           serial="1000077")
+    try:
+        sim.lib.SIM_SetFeatures(sim.dev, features)
+        if where == "open":
+            with pytest.raises(DeviceError, match=f"1000077 has {words}"):
+                PicoQuantTagger.open("th260", lib=sim.path)
+            return
+        t = PicoQuantTagger.open("th260", lib=sim.path)
+        with pytest.raises(DeviceError, match=f"1000077 has {words}"):
+            t.configure(PicoQuantSettings())
+        t.configure(PicoQuantSettings(marker_enabled=0))     # no markers asked for: fine
+        t.close()
+    finally:
+        sim.close()
 
 
 def test_the_standins_refuse_the_trigger_call_the_header_does_not_allow():

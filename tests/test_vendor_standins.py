@@ -93,7 +93,7 @@ def test_nidaqmx_real_package_without_driver_is_a_missing_library_line():
 # the same) and ph330lib.h v2.0. The families differ in the trigger calls, Initialize and ReadFiFo.
 _COMMON_CALLS = {
     "GetLibraryVersion": 1, "GetErrorString": 2, "OpenDevice": 2, "CloseDevice": 1,
-    "GetHardwareInfo": 4, "GetSerialNumber": 2, "GetBaseResolution": 3,
+    "GetHardwareInfo": 4, "GetSerialNumber": 2, "GetFeatures": 2, "GetBaseResolution": 3,
     "GetNumOfInputChannels": 2, "SetSyncDiv": 2, "SetSyncChannelOffset": 2,
     "SetInputChannelOffset": 3, "SetBinning": 2, "SetOffset": 2, "GetResolution": 2,
     "GetSyncRate": 2, "GetCountRate": 3, "GetFlags": 2, "SetMarkerEdges": 5, "SetMarkerEnable": 5,

@@ -16,8 +16,8 @@ import time
 import numpy as np
 
 from spdepth.drivers.errors import DeviceError, SettingError
-from spdepth.drivers.picoquant.protocol import (CFD_ZEROCROSS_MV, TRGMODE_ETR, Family, Flag,
-                                                LibError, MeasMode, PicoQuantIdentity,
+from spdepth.drivers.picoquant.protocol import (CFD_ZEROCROSS_MV, TRGMODE_ETR, Family, Feature,
+                                                Flag, LibError, MeasMode, PicoQuantIdentity,
                                                 PicoQuantSettings, Trigger, family)
 from spdepth.drivers.picoquant.transport import LibTransport, PicoQuantError
 from spdepth.drivers.tagger.reader import TaggerReader
@@ -65,6 +65,7 @@ class PicoQuantTagger:
         self._resolution_s: float | None = None
         self._running = False
         self.hw_model = ""
+        self.features = Feature(0)
         self.identity: dict = {}
         self.initialize()
 
@@ -112,6 +113,13 @@ class PicoQuantTagger:
         sn = ct.create_string_buffer(16)
         self.transport.call("GetSerialNumber", self.index, sn)
         self.serial = _text(sn)
+        features = ct.c_int()
+        self.transport.call("GetFeatures", self.index, ct.byref(features))
+        self.features = Feature(features.value & int(Feature.TTTR | Feature.MARKERS))
+        if Feature.TTTR not in self.features:
+            # T3 mode is a licensed option: without it Initialize worked but nothing streams
+            raise DeviceError(f"{self.family.model} {self.serial} has no time-tagging (TTTR) "
+                              "option; spdepth records in T3 mode")
         self.identity = PicoQuantIdentity(self.family.key, _text(model), _text(part), _text(ver),
                                           self.serial, self.transport.library_version(),
                                           self.index).to_dict()
@@ -129,6 +137,10 @@ class PicoQuantTagger:
             raise SettingError(f"PicoQuant settings must be PicoQuantSettings, not "
                                f"{type(settings).__name__}")
         fam, t, i = self.family, self.transport, self.index
+        if settings.marker_enabled and Feature.MARKERS not in self.features:
+            # the pixel clock arrives on the marker inputs: without them no photon finds its pixel
+            raise DeviceError(f"{fam.model} {self.serial} has no marker inputs (a licensed "
+                              "option); the galvo's pixel, line and frame markers need them")
         if settings.sync_divider > fam.sync_div_max:
             raise SettingError(f"PicoQuant sync_divider={settings.sync_divider}: the {fam.model} "
                                f"divides by 1..{fam.sync_div_max}")

@@ -62,6 +62,16 @@ class Flag(IntFlag):
     """Counts were dropped (input rate beyond what the device transfers)."""
 
 
+class Feature(IntFlag):
+    """``*_GetFeatures`` bits we need (the same in mhdefin.h, hhdefin.h, th260defin.h and
+    ph330defin.h): options a device may lack (they are licensed per device)."""
+
+    TTTR = 0x0002
+    """Time-tagging modes (T2/T3)."""
+    MARKERS = 0x0004
+    """Marker inputs (the galvo's pixel, line and frame markers)."""
+
+
 class LibError(IntEnum):
     """Return codes of the library functions we meet (errorcodes.h; 0 is success). Others are
     reported with the library's own error string."""
@@ -316,7 +326,7 @@ class PicoQuantIdentity:
         return dict(self.__dict__)
 
 
-__all__ = ["MeasMode", "RefSource", "Edge", "Flag", "LibError", "Family", "FAMILIES", "family",
+__all__ = ["MeasMode", "RefSource", "Edge", "Flag", "Feature", "LibError", "Family", "FAMILIES", "family",
            "PicoQuantSettings", "PicoQuantIdentity", "RECORD_TYPE_GENERIC_T3",
            "RECORD_TYPE_HYDRAHARP2_T3", "RECORD_TYPE_TIMEHARP260N_T3",
            "RECORD_TYPE_TIMEHARP260P_T3", "MAX_DEVICES", "DEVICE_GONE_ERRORS",

@@ -42,6 +42,7 @@ SIGNATURES: dict[str, tuple] = {
     "Initialize": (_I, _I, _I),
     "GetHardwareInfo": (_I, _PC, _PC, _PC),
     "GetSerialNumber": (_I, _PC),
+    "GetFeatures": (_I, _PI),
     "GetBaseResolution": (_I, _PD, _PI),
     "GetNumOfInputChannels": (_I, _PI),
     "SetSyncDiv": (_I, _I),

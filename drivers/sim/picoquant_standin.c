@@ -58,6 +58,9 @@
 #define ERROR_UNSUPPORTED_FUNCTION -80
 
 #define FLAG_FIFOFULL 0x0002
+#define FEATURE_DLL 0x0001
+#define FEATURE_TTTR 0x0002
+#define FEATURE_MARKERS 0x0004
 #define FLAG_ACTIVE 0x0020
 
 typedef void (*hook_t)(int devidx);
@@ -68,6 +71,7 @@ typedef struct {
     double base_res_ps;
     int n_inputs, binning, syncdiv, marker_enable, marker_edges, fail_reads;
     int sync_trgmode, input_trgmode[8];      /* PicoHarp 330: -1 until set */
+    int features;                            /* FEATURE_* bits (licensed options) */
     unsigned int *fifo;
     long cap, head, fill;
     long long pushed, dropped;
@@ -160,6 +164,14 @@ int F(GetSerialNumber)(int devidx, char *serial) {
     if (rc) return rc;
     if (!serial) return ERROR_INVALID_ARGUMENT;
     strcpy(serial, devs[devidx].serial);
+    return 0;
+}
+
+int F(GetFeatures)(int devidx, int *features) {
+    int rc = ready(devidx);
+    if (rc) return rc;
+    if (!features) return ERROR_INVALID_ARGUMENT;
+    *features = devs[devidx].features;
     return 0;
 }
 
@@ -428,6 +440,7 @@ int SIM_AddDevice(const char *serial, const char *model, double base_res_ps, int
             devs[i].n_inputs = n_inputs;
             devs[i].cap = capacity;
             devs[i].syncdiv = 1;
+            devs[i].features = FEATURE_DLL | FEATURE_TTTR | FEATURE_MARKERS;
             devs[i].fifo = (unsigned int *)malloc(sizeof(unsigned int) * capacity);
             return devs[i].fifo ? i : -1;
         }
@@ -457,6 +470,7 @@ void SIM_Plug(int devidx, int plugged) {
     }
 }
 void SIM_FailReads(int devidx, int n) { devs[devidx].fail_reads = n; }
+void SIM_SetFeatures(int devidx, int features) { devs[devidx].features = features; }
 void SIM_FifoFull(int devidx) { pthread_mutex_lock(&mu); devs[devidx].fifofull = 1; pthread_mutex_unlock(&mu); }
 
 /* Records as the device produces them: markers not enabled are dropped (the inputs are off);

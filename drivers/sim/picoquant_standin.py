@@ -158,7 +158,7 @@ class PicoQuantStandIn:
             getattr(L, name).restype = ct.c_int
         L.SIM_Dropped.argtypes = [ct.c_int]
         L.SIM_Dropped.restype = ct.c_longlong
-        for name in ("SIM_Plug", "SIM_FailReads"):
+        for name in ("SIM_Plug", "SIM_FailReads", "SIM_SetFeatures"):
             getattr(L, name).argtypes = [ct.c_int, ct.c_int]
             getattr(L, name).restype = None
         L.SIM_FifoFull.argtypes = [ct.c_int]
