@@ -5,8 +5,7 @@ re-shaped call fails here in CI instead of in a lab's scan.
   ``nidaqmx``, imports without NI's driver).
 * PicoQuant: per family, the stand-in library's exported C functions and our ctypes declarations
   (``drivers.picoquant.transport.signature``) against the functions and argument counts of the
-  vendor's header (mhlib.h, hhlib.h, th260lib.h, ph330lib.h), and against the argument counts
-  MultiHarp's ``tttrmode.py`` uses.
+  vendor's header (mhlib.h, hhlib.h, th260lib.h, ph330lib.h).
 """
 
 from __future__ import annotations
@@ -90,7 +89,8 @@ def test_nidaqmx_real_package_without_driver_is_a_missing_library_line():
 # For each family, the functions of ``SIGNATURES`` its vendor header declares and their argument
 # counts (None: the header has no such function), read from mhlib.h v3.0 (MH150-Demos), hhlib.h
 # v3.0 (HH400-v3.x-Demos), th260lib.h v3.2 (TH260-Demos; TimeHarp260-Linux library/th260lib.h is
-# the same) and ph330lib.h v2.0. The families differ in the trigger calls, Initialize and ReadFiFo.
+# the same) and ph330lib.h v2.0 (the MultiHarp and TimeHarp 260 demos' tttrmode.py call them with
+# these counts). The families differ in the trigger calls, Initialize and ReadFiFo.
 _COMMON_CALLS = {
     "GetLibraryVersion": 1, "GetErrorString": 2, "OpenDevice": 2, "CloseDevice": 1,
     "GetHardwareInfo": 4, "GetSerialNumber": 2, "GetFeatures": 2, "GetBaseResolution": 3,
@@ -131,22 +131,6 @@ def test_picoquant_standin_and_declarations_match_the_vendor_header(key):
         assert hasattr(lib, full) == (n_args is not None), full
         if n_args is not None:
             assert len(signature(fam, name)) == n_args, full
-
-
-# calls and argument counts of PicoQuant's MH150-Demos Linux/Python/tttrmode.py and mhlib.h (v3.0)
-TTTRMODE_CALLS = {
-    "GetLibraryVersion": 1, "GetErrorString": 2, "OpenDevice": 2, "CloseDevice": 1,
-    "Initialize": 3, "GetHardwareInfo": 4, "GetNumOfInputChannels": 2, "SetSyncDiv": 2,
-    "SetSyncEdgeTrg": 3, "SetSyncChannelOffset": 2, "SetInputEdgeTrg": 4,
-    "SetInputChannelOffset": 3, "SetBinning": 2, "SetOffset": 2, "GetResolution": 2,
-    "GetSyncRate": 2, "GetCountRate": 3, "StartMeas": 2, "GetFlags": 2, "ReadFiFo": 3,
-    "CTCStatus": 2, "StopMeas": 1, "SetMarkerEdges": 5, "SetMarkerEnable": 5,
-}
-
-
-def test_declared_signatures_match_the_vendor_demo():
-    for name, n in TTTRMODE_CALLS.items():
-        assert len(SIGNATURES[name]) == n, name
 
 
 def _real_timetagger():
