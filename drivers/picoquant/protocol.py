@@ -230,8 +230,6 @@ KNOWN_UNSUPPORTED = {"hh500": "HydraHarp 500"}
 public copy of ``hh500lib.h`` was available to check its calls against (PicoQuant's HH500 demo
 repository could not be read), and we do not guess a C signature."""
 
-MAX_DEVICES = max(f.max_devices for f in FAMILIES.values())
-"""The most device indices any library scans (each family's own is ``Family.max_devices``)."""
 SYNC_DIV_RANGE = (1, 16)
 """Widest divider range; a family's own limit is ``Family.sync_div_max``."""
 BINNING_RANGE = (0, 24)
@@ -329,6 +327,6 @@ class PicoQuantIdentity:
 __all__ = ["MeasMode", "RefSource", "Edge", "Flag", "Feature", "LibError", "Family", "FAMILIES", "family",
            "PicoQuantSettings", "PicoQuantIdentity", "RECORD_TYPE_GENERIC_T3",
            "RECORD_TYPE_HYDRAHARP2_T3", "RECORD_TYPE_TIMEHARP260N_T3",
-           "RECORD_TYPE_TIMEHARP260P_T3", "MAX_DEVICES", "DEVICE_GONE_ERRORS",
+           "RECORD_TYPE_TIMEHARP260P_T3", "DEVICE_GONE_ERRORS",
            "KNOWN_UNSUPPORTED", "Trigger", "TRGMODE_ETR", "CFD_ZEROCROSS_MV", "TH260_PICO",
            "TH260_NANO"]
