@@ -209,21 +209,21 @@ FAMILIES: dict[str, Family] = {
                cfd_sign=1),
         Family("th260", "TimeHarp 260", "TH260",
                ("th260lib.so", "libth260.so", "th260lib64.dll", "th260lib.dll"), True, 131072,
-               RECORD_TYPE_TIMEHARP260P_T3, init_refsource=False,
-               trigger=Trigger.BY_MODEL, cfd_sign=-1, cfd_level_max_mv=1200, max_devices=4, sync_div_max=8,
+               RECORD_TYPE_TIMEHARP260P_T3, init_refsource=False, trigger=Trigger.BY_MODEL,
+               cfd_sign=-1, cfd_level_max_mv=1200, max_devices=4, sync_div_max=8,
                record_types=((TH260_PICO, RECORD_TYPE_TIMEHARP260P_T3),
                              (TH260_NANO, RECORD_TYPE_TIMEHARP260N_T3))),
         Family("ph330", "PicoHarp 330", "PH330",
-               ("libph330.so", "ph330lib.so", "PH330Lib.dll", "ph330lib64.dll"), False, 1048576,
-               RECORD_TYPE_GENERIC_T3, trigger=Trigger.SELECTABLE,
-               sync_div_max=8),
+               ("libph330.so", "PH330Lib.dll"), False, 1048576, RECORD_TYPE_GENERIC_T3,
+               trigger=Trigger.SELECTABLE, sync_div_max=8),
     )
 }
 """The families whose library headers we read: MultiHarp (MH150-Demos ``mhlib.h``/``mhdefin.h``
 v3.0), HydraHarp 400 (HH400-v3.x-Demos ``hhlib.h``/``hhdefin.h`` v3.0), TimeHarp 260
 (TH260-Demos and TimeHarp260-Linux ``th260lib.h``/``th260defin.h`` v3.2), PicoHarp 330
-(``ph330lib.h`` v2.0 and the ``ph330defin.h`` constants as quoted by a public driver). Linux
-library names from the demos' Python ``CDLL`` calls and makefiles."""
+(``ph330lib.h`` v2.0 and the ``ph330defin.h`` constants as quoted by a public driver). Library
+names from the demos' Python ``CDLL`` calls, makefiles and install scripts (PicoHarp 330: from
+public drivers that load it)."""
 
 KNOWN_UNSUPPORTED = {"hh500": "HydraHarp 500"}
 """PicoQuant devices named in device strings that this version cannot drive yet, and why: no
