@@ -190,7 +190,7 @@ def _open_sim_vendor(scene_name, shape, *, ppp, sbr, seed, faults, window_s, kee
             from spdepth.drivers.swabian import SwabianSettings, SwabianTagger
 
             module = SwabianStandIn(rig, addr.serial or "2138000ABC", faults=t_faults,
-                                    scan_pixels=h * w)
+                                    scan_pixels=h * w, **(tagger_options or {}))
             t = SwabianTagger.open(addr.serial or None, SwabianSettings(
                 sync_period_s=scene.settings.sync_period_s, event_divider=SIM_EVENT_DIVIDER,
                 resolution_ps=int(round(scene.settings.resolution_s * 1e12))), module=module)

@@ -19,6 +19,7 @@ from pathlib import Path
 
 from spdepth.acq.errors import RequestError
 from spdepth.drivers.galvo.protocol import MAX_DWELL_NS, MAX_N_TARGET, MAX_PIXELS_PER_AXIS, MIN_DWELL_NS
+from spdepth.drivers.picoquant.protocol import FAMILIES as PICOQUANT_FAMILIES
 from spdepth.recon.model import METHODS, SEED_PAPER
 
 DEFAULT_METHOD = "ml"
@@ -144,7 +145,8 @@ class GalvoAddress:
     text: str = ""
 
 
-TAGGER_FORMS = "picoquant:MODEL[:SERIAL] (mh150, mh160, hh400), swabian[:SERIAL] or usb:VID:PID"
+TAGGER_FORMS = (f"picoquant:MODEL[:SERIAL] ({', '.join(PICOQUANT_FAMILIES)}), swabian[:SERIAL] or "
+                "usb:VID:PID")
 GALVO_FORMS = "nidaq:DEV[/aoN:M] (e.g. nidaq:Dev1/ao0:1) or a serial PORT"
 
 

@@ -43,9 +43,9 @@ def test_scan_on_picoquant_and_nidaq_standins_records_a_ptu_that_replays_identic
 
 
 @pytest.mark.parametrize("tagger,galvo,words", [
-    ("picoquant:mh150", "nidaq:Dev1", "libmhlib.so"),
+    ("picoquant:mh150", "nidaq:Dev1", "libmh150.so"),
     ("picoquant:hh400:1234", "/dev/ttyDOESNOTEXIST", None),
-    ("picoquant:mh160", "nidaq:Dev1/ao0:1", "libmhlib.so"),
+    ("picoquant:mh160", "nidaq:Dev1/ao0:1", "libmh150.so"),
     ("swabian", "nidaq:Dev1", "Swabian"),
 ])
 def test_missing_vendor_library_or_device_is_one_line_exit_3_and_no_folder(
@@ -64,10 +64,10 @@ def test_missing_vendor_library_or_device_is_one_line_exit_3_and_no_folder(
 
 def test_picoquant_library_given_by_path_that_does_not_exist_names_it(tmp_path, capsys):
     code = main(["scan", "--tagger", "picoquant:mh150", "--galvo", "nidaq:Dev1", "--sync-rate-hz",
-                 "20e6", "--mode", "raster", "--picoquant-lib", str(tmp_path / "libmhlib.so"),
+                 "20e6", "--mode", "raster", "--picoquant-lib", str(tmp_path / "libmh150.so"),
                  "--out", str(tmp_path / "x")])
     err = capsys.readouterr().err
-    assert code == 3 and str(tmp_path / "libmhlib.so") in err and "snapi" in err
+    assert code == 3 and str(tmp_path / "libmh150.so") in err and "snapi" in err
 
 
 def test_devices_with_nothing_attached_exits_0(capsys):
@@ -91,13 +91,15 @@ def test_devices_lists_standin_instruments():
     rig = SimRig(PhotonWorld(load_scene("steps", (4, 4)), seed=0))
     sim = PicoQuantStandIn(rig, serial="7654321")
     try:
-        found = find_instruments(serial=False, picoquant_libs={"mh150": sim.path,
-                                                               "hh400": build_library("hh400")},
+        libs = {"mh150": sim.path, **{k: build_library(k) for k in ("hh400", "th260", "ph330")}}
+        found = find_instruments(serial=False, picoquant_libs=libs,
                                  nidaqmx=NiDaqmxStandIn(rig, "Dev3"), swabian=_NoTaggers())
     finally:
         sim.close()
     devices = [f.device for f in found if not f.missing]
     assert "picoquant:mh150:7654321" in devices and "nidaq:Dev3" in devices
+    # every family's library was found (no device on the others): none is reported missing
+    assert not [f for f in found if f.kind == "picoquant" and f.missing]
 
 
 class _NoTaggers:
@@ -134,7 +136,7 @@ def test_galvo_strings(text, kind, fields):
 
 
 @pytest.mark.parametrize("tagger,galvo,message", [
-    ("picoquant:th260", "nidaq:Dev1", "not supported yet"),
+    ("picoquant:hh500", "nidaq:Dev1", "not supported yet"),
     ("picoquant:xx9", "nidaq:Dev1", "unknown PicoQuant device"),
     ("picoquant:mh150:bad serial!", "nidaq:Dev1", "serial"),
     ("picoquant", "nidaq:Dev1", "picoquant:MODEL"),

@@ -24,11 +24,20 @@ BACKENDS = {
     "picoquant+nidaq": dict(tagger="picoquant:mh150", galvo="nidaq:Dev1"),
     "picoquant+ours": dict(tagger="picoquant:mh150"),
     "hh400+nidaq": dict(tagger="picoquant:hh400", galvo="nidaq:Dev1/ao2:3"),
+    "th260+ours": dict(tagger="picoquant:th260"),
+    "th260N+ours": dict(tagger="picoquant:th260", tagger_options={"hw_model": "TimeHarp 260 N"}),
+    "ph330+ours": dict(tagger="picoquant:ph330"),
     "ours+nidaq": dict(galvo="nidaq:Dev1"),
     "ours+nidaq (gated)": dict(galvo="nidaq:Dev1/ao0:1"),
     "swabian+nidaq": dict(tagger="swabian", galvo="nidaq:Dev1"),
     "swabian+ours": dict(tagger="swabian:2138000ABC"),
 }
+
+
+RECORD_TYPES = {"picoquant+ours": "GenericT3", "hh400+nidaq": "HydraHarp2T3",
+                "th260+ours": "TimeHarp260PT3", "th260N+ours": "TimeHarp260NT3",
+                "ph330+ours": "GenericT3"}
+"""The PTU record type each PicoQuant backend's recording carries: the device's own."""
 
 
 def _mode(backend):
@@ -53,6 +62,11 @@ def test_clean_scan_keeps_each_pixels_own_dwells_and_replays_equal(tmp_path, bac
         assert_from_complete_dwells(s, inst.rig)
         assert s.flagged_pixels().size == 0
         assert not s.lost
+    if backend in RECORD_TYPES:
+        with ptufile.PtuFile(tmp_path / "live" / "recording.ptu") as f:
+            assert f.tags["TTResultFormat_TTTRRecType"] == \
+                getattr(ptufile.PtuRecordType, RECORD_TYPES[backend])
+            assert int(np.count_nonzero(f.decode_records()["channel"] >= 0)) > 0
     rep = _replay(tmp_path / "live")
     assert rep.run() == SessionState.DONE
     _assert_same_maps(s.maps(), rep.maps())
@@ -98,11 +112,16 @@ def test_picoquant_recording_is_a_ptu_of_the_devices_record_type(tmp_path):
     ("picoquant+ours", "device-vanish@50%", "tagger-reconnect"),
     ("picoquant+nidaq", "usb-timeout@30%", "tagger-reconnect"),
     ("picoquant+nidaq", "daq-underflow@50%", "galvo-fault"),
+    ("th260+ours", "fifo-overflow@40%", "tagger-reconnect"),
+    ("th260N+ours", "usb-timeout@30%", "tagger-reconnect"),
+    ("ph330+ours", "device-vanish@50%", "tagger-reconnect"),
     ("ours+nidaq", "daq-underflow@30%,fifo-overflow@60%", "galvo-fault"),
     ("ours+nidaq (gated)", "daq-underflow@40%", "galvo-fault"),
     ("ours+nidaq (gated)", "fifo-overflow@40%", "lost-data"),
     ("swabian+nidaq", "fifo-overflow@40%", "lost-data"),
     ("swabian+ours", "fifo-overflow@50%,servo-fault@70%", "lost-data"),
+    ("swabian+ours", "usb-timeout@40%", "tagger-reconnect"),
+    ("swabian+ours", "device-vanish@50%", "tagger-reconnect"),
 ])
 def test_faults_are_reacquired_and_nothing_is_counted_twice(tmp_path, backend, fault, kind):
     with open_sim("bust", (10, 10), ppp=10, seed=5, faults=fault, keep_truth=True,
@@ -135,9 +154,10 @@ def test_swabian_recording_carries_the_channel_mapping_and_reads_in_ptufile(tmp_
     assert info["tagger_channels"]["markers"]["PIXEL"] == 3
 
 
-def test_a_picoquant_device_that_does_not_come_back_fails_the_session(tmp_path):
+@pytest.mark.parametrize("tagger", ["picoquant:mh150", "swabian"])
+def test_a_tagger_that_does_not_come_back_fails_the_session(tmp_path, tagger):
     with open_sim("bust", (8, 8), ppp=10, seed=3, faults="device-vanish@30%",
-                  tagger="picoquant:mh150", galvo="nidaq:Dev1",
+                  tagger=tagger, galvo="nidaq:Dev1",
                   tagger_options={"vanish_s": 60.0}) as inst:
         s = _session(inst, (8, 8), tmp_path, mode="raster",
                      reader_options={"reconnect_timeout_s": 0.3})
@@ -191,3 +211,27 @@ def test_count_gated_nidaq_steps_on_the_streams_counts_and_its_latency_is_measur
     pixel_log = [json.loads(x) for x in (tmp_path / "events.jsonl").read_text().splitlines()
                  if '"pixels"' in x]
     assert sum(len(p["records"]) for p in pixel_log) == 64
+
+
+def test_a_tagger_that_starts_measuring_late_does_not_shift_the_rows(tmp_path, monkeypatch):
+    """The race behind the old intermittent defect, made certain: the reader thread reaches
+    StartMeas 20 ms late (a loaded host), with our galvo this time. The reader's start() returns
+    only once the tagger measures, so the galvo's first markers are recorded and no pixel keeps
+    another line's detections."""
+    import time
+
+    from spdepth.drivers.picoquant import PicoQuantTagger
+
+    start = PicoQuantTagger.start
+
+    def late_start(self):
+        time.sleep(0.02)
+        start(self)
+
+    monkeypatch.setattr(PicoQuantTagger, "start", late_start)
+    with open_sim("bust", (8, 10), ppp=10, seed=11, keep_truth=True,
+                  **BACKENDS["picoquant+ours"]) as inst:
+        s = _session(inst, (8, 10), tmp_path, method="uos",
+                     **_plan(inst, "picoquant+ours"))
+        assert s.run() == SessionState.DONE, s.error
+        assert_from_complete_dwells(s, inst.rig)

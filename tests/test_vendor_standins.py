@@ -3,9 +3,9 @@ re-shaped call fails here in CI instead of in a lab's scan.
 
 * ``nidaqmx``: the stand-in module's classes and methods against the real package (PyPI
   ``nidaqmx``, imports without NI's driver).
-* PicoQuant: the stand-in library's exported C functions against the declarations in
-  ``drivers.picoquant.transport.SIGNATURES`` (which were written from mhlib.h/hhlib.h of
-  PicoQuant's demo repositories), and against the argument counts ``tttrmode.py`` uses.
+* PicoQuant: per family, the stand-in library's exported C functions and our ctypes declarations
+  (``drivers.picoquant.transport.signature``) against the functions and argument counts of the
+  vendor's header (mhlib.h, hhlib.h, th260lib.h, ph330lib.h).
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ import inspect
 import pytest
 
 from spdepth.drivers.picoquant import FAMILIES
-from spdepth.drivers.picoquant.transport import SIGNATURES
+from spdepth.drivers.picoquant.transport import SIGNATURES, signature
 from spdepth.drivers.sim import nidaqmx_standin as fake
 from spdepth.drivers.sim.picoquant_standin import build_library
 
@@ -86,35 +86,51 @@ def test_nidaqmx_real_package_without_driver_is_a_missing_library_line():
         pytest.skip("NI-DAQmx is installed here")
 
 
-@pytest.mark.parametrize("key", ["mh150", "hh400"])
-def test_picoquant_standin_exports_every_declared_function(key):
-    fam = FAMILIES[key]
-    lib = ct.CDLL(str(build_library(key)))
-    for name in SIGNATURES:
-        full = f"{fam.prefix}_{name}"
-        if name in ("SetSyncEdgeTrg", "SetInputEdgeTrg") and fam.readfifo_count:
-            assert not hasattr(lib, full), f"{full}: HydraHarp 400 uses CFDs"
-            continue
-        if name in ("SetSyncCFD", "SetInputCFD") and not fam.readfifo_count:
-            assert not hasattr(lib, full), f"{full}: MultiHarp uses edge triggers"
-            continue
-        assert hasattr(lib, full), full
-
-
-# calls and argument counts of PicoQuant's MH150-Demos Linux/Python/tttrmode.py and mhlib.h (v3.0)
-TTTRMODE_CALLS = {
+# For each family, the functions of ``SIGNATURES`` its vendor header declares and their argument
+# counts (None: the header has no such function), read from mhlib.h v3.0 (MH150-Demos), hhlib.h
+# v3.0 (HH400-v3.x-Demos), th260lib.h v3.2 (TH260-Demos; TimeHarp260-Linux library/th260lib.h is
+# the same) and ph330lib.h v2.0 (the MultiHarp and TimeHarp 260 demos' tttrmode.py call them with
+# these counts). The families differ in the trigger calls, Initialize and ReadFiFo.
+_COMMON_CALLS = {
     "GetLibraryVersion": 1, "GetErrorString": 2, "OpenDevice": 2, "CloseDevice": 1,
-    "Initialize": 3, "GetHardwareInfo": 4, "GetNumOfInputChannels": 2, "SetSyncDiv": 2,
-    "SetSyncEdgeTrg": 3, "SetSyncChannelOffset": 2, "SetInputEdgeTrg": 4,
+    "GetHardwareInfo": 4, "GetSerialNumber": 2, "GetFeatures": 2, "GetBaseResolution": 3,
+    "GetNumOfInputChannels": 2, "SetSyncDiv": 2, "SetSyncChannelOffset": 2,
     "SetInputChannelOffset": 3, "SetBinning": 2, "SetOffset": 2, "GetResolution": 2,
-    "GetSyncRate": 2, "GetCountRate": 3, "StartMeas": 2, "GetFlags": 2, "ReadFiFo": 3,
-    "CTCStatus": 2, "StopMeas": 1, "SetMarkerEdges": 5, "SetMarkerEnable": 5,
+    "GetSyncRate": 2, "GetCountRate": 3, "GetFlags": 2, "SetMarkerEdges": 5, "SetMarkerEnable": 5,
+    "StartMeas": 2, "StopMeas": 1, "CTCStatus": 2,
+    "SetSyncTrgMode": None, "SetInputTrgMode": None, "SetSyncEdgeTrg": None,
+    "SetInputEdgeTrg": None, "SetSyncCFD": None, "SetInputCFD": None,
+}
+_EDGE = {"SetSyncEdgeTrg": 3, "SetInputEdgeTrg": 4}
+_CFD = {"SetSyncCFD": 3, "SetInputCFD": 4}
+_MH = {**_COMMON_CALLS, **_EDGE, "Initialize": 3, "ReadFiFo": 3}
+HEADER_CALLS = {
+    "mh150": _MH,
+    "mh160": _MH,
+    "hh400": {**_COMMON_CALLS, **_CFD, "Initialize": 3, "ReadFiFo": 4},
+    "th260": {**_COMMON_CALLS, **_EDGE, **_CFD, "Initialize": 2, "ReadFiFo": 4},
+    "ph330": {**_COMMON_CALLS, **_EDGE, **_CFD, "SetSyncTrgMode": 2, "SetInputTrgMode": 3,
+              "Initialize": 3, "ReadFiFo": 3},
 }
 
 
-def test_declared_signatures_match_the_vendor_demo():
-    for name, n in TTTRMODE_CALLS.items():
-        assert len(SIGNATURES[name]) == n, name
+def test_every_supported_family_has_its_header_checked():
+    assert set(HEADER_CALLS) == set(FAMILIES)
+    for calls in HEADER_CALLS.values():
+        assert set(calls) == set(SIGNATURES)
+
+
+@pytest.mark.parametrize("key", sorted(FAMILIES))
+def test_picoquant_standin_and_declarations_match_the_vendor_header(key):
+    """The stand-in of ``key`` exports exactly the header's functions (of those we call), and our
+    ctypes declaration of each has the header's argument count."""
+    fam = FAMILIES[key]
+    lib = ct.CDLL(str(build_library(key)))
+    for name, n_args in HEADER_CALLS[key].items():
+        full = f"{fam.prefix}_{name}"
+        assert hasattr(lib, full) == (n_args is not None), full
+        if n_args is not None:
+            assert len(signature(fam, name)) == n_args, full
 
 
 def _real_timetagger():

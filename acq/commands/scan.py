@@ -9,7 +9,7 @@ from spdepth.acq.commands._args import (non_negative_float, positive_float, posi
                                         size_wxh, window_ps)
 from spdepth.acq.commands._session import (add_output_arguments, add_recon_arguments, exit_status,
                                            report, run_session)
-from spdepth.acq.requests import DEFAULT_SIZE, DEFAULT_TARGET
+from spdepth.acq.requests import DEFAULT_SIZE, DEFAULT_TARGET, TAGGER_FORMS
 
 HELP = "scan (simulated or real devices), record the tag stream, reconstruct live, write the maps"
 
@@ -24,8 +24,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                      help="galvo: nidaq:DEV[/aoN:M] (NI-DAQ analog outputs) or our controller's "
                           "serial PORT or URL")
     src.add_argument("--tagger", metavar="TAGGER",
-                     help="time tagger: picoquant:MODEL[:SERIAL] (mh150, mh160, hh400), "
-                          "swabian[:SERIAL] or usb:VID:PID (ours)")
+                     help=f"time tagger: {TAGGER_FORMS} (ours)")
     add_sim_arguments(parser)
     real = parser.add_argument_group("real devices")
     real.add_argument("--sync-rate-hz", type=positive_float,

@@ -16,8 +16,9 @@ import time
 import numpy as np
 
 from spdepth.drivers.errors import DeviceError, SettingError
-from spdepth.drivers.picoquant.protocol import (MAX_DEVICES, Family, Flag, LibError, MeasMode,
-                                                PicoQuantIdentity, PicoQuantSettings, family)
+from spdepth.drivers.picoquant.protocol import (CFD_ZEROCROSS_MV, TRGMODE_ETR, Family, Feature,
+                                                Flag, LibError, MeasMode, PicoQuantIdentity,
+                                                PicoQuantSettings, Trigger, family)
 from spdepth.drivers.picoquant.transport import LibTransport, PicoQuantError
 from spdepth.drivers.tagger.reader import TaggerReader
 from spdepth.drivers.tagger.t3 import decode_t3
@@ -38,7 +39,7 @@ def list_devices(transport: LibTransport) -> list[dict]:
     """Devices the library can open: ``[{"index", "serial"}]``. Devices held by another program
     are skipped (they cannot be opened to ask)."""
     found = []
-    for i in range(MAX_DEVICES):
+    for i in range(transport.family.max_devices):
         buf = ct.create_string_buffer(16)
         try:
             transport.call("OpenDevice", i, buf, quiet=True)
@@ -63,6 +64,8 @@ class PicoQuantTagger:
         self._settings: PicoQuantSettings | None = None
         self._resolution_s: float | None = None
         self._running = False
+        self.hw_model = ""
+        self.features = Feature(0)
         self.identity: dict = {}
         self.initialize()
 
@@ -79,7 +82,7 @@ class PicoQuantTagger:
     @staticmethod
     def _find(transport: LibTransport, serial: str | None) -> tuple[int, str]:
         seen = []
-        for i in range(MAX_DEVICES):
+        for i in range(transport.family.max_devices):
             buf = ct.create_string_buffer(16)
             try:
                 transport.call("OpenDevice", i, buf, quiet=True)
@@ -99,13 +102,24 @@ class PicoQuantTagger:
 
     def initialize(self) -> None:
         """``*_Initialize`` in T3 mode and read who the device is."""
-        ref = int(self._settings.ref_source) if self._settings else 0
-        self.transport.call("Initialize", self.index, int(MeasMode.T3), ref)
+        if self.family.init_refsource:
+            ref = int(self._settings.ref_source) if self._settings else 0
+            self.transport.call("Initialize", self.index, int(MeasMode.T3), ref)
+        else:       # TimeHarp 260: no reference input, Initialize(devidx, mode)
+            self.transport.call("Initialize", self.index, int(MeasMode.T3))
         model, part, ver = (ct.create_string_buffer(32) for _ in range(3))
         self.transport.call("GetHardwareInfo", self.index, model, part, ver)
+        self.hw_model = _text(model)
         sn = ct.create_string_buffer(16)
         self.transport.call("GetSerialNumber", self.index, sn)
         self.serial = _text(sn)
+        features = ct.c_int()
+        self.transport.call("GetFeatures", self.index, ct.byref(features))
+        self.features = Feature(features.value & int(Feature.TTTR | Feature.MARKERS))
+        if Feature.TTTR not in self.features:
+            # T3 mode is a licensed option: without it Initialize worked but nothing streams
+            raise DeviceError(f"{self.family.model} {self.serial} has no time-tagging (TTTR) "
+                              "option; spdepth records in T3 mode")
         self.identity = PicoQuantIdentity(self.family.key, _text(model), _text(part), _text(ver),
                                           self.serial, self.transport.library_version(),
                                           self.index).to_dict()
@@ -122,19 +136,40 @@ class PicoQuantTagger:
         if not isinstance(settings, PicoQuantSettings):
             raise SettingError(f"PicoQuant settings must be PicoQuantSettings, not "
                                f"{type(settings).__name__}")
-        t, i = self.transport, self.index
+        fam, t, i = self.family, self.transport, self.index
+        if settings.marker_enabled and Feature.MARKERS not in self.features:
+            # the pixel clock arrives on the marker inputs: without them no photon finds its pixel
+            raise DeviceError(f"{fam.model} {self.serial} has no marker inputs (a licensed "
+                              "option); the galvo's pixel, line and frame markers need them")
+        if settings.sync_divider > fam.sync_div_max:
+            raise SettingError(f"PicoQuant sync_divider={settings.sync_divider}: the {fam.model} "
+                               f"divides by 1..{fam.sync_div_max}")
+        cfd = fam.uses_cfd(self.hw_model)
+        if cfd and max(abs(settings.sync_level_mv), abs(settings.input_level_mv)) > \
+                fam.cfd_level_max_mv:
+            raise SettingError(f"PicoQuant trigger levels {settings.sync_level_mv}/"
+                               f"{settings.input_level_mv} mV: the {self.hw_model or fam.model} "
+                               f"CFD takes at most {fam.cfd_level_max_mv} mV")
         t.call("SetSyncDiv", i, settings.sync_divider)
-        # MultiHarp: edge triggers (level mV, edge); HydraHarp 400: CFDs (level mV, zero cross mV)
-        if t.has("SetSyncEdgeTrg"):
-            t.call("SetSyncEdgeTrg", i, settings.sync_level_mv, 0)
+        # Edge triggers take (level mV, edge); CFDs take (level mV, zero cross mV) with the sign
+        # the family's library wants (HydraHarp 400: magnitudes; TimeHarp 260 PICO: negative)
+        # for the same negative detector pulses.
+        if fam.trigger == Trigger.SELECTABLE:
+            t.call("SetSyncTrgMode", i, TRGMODE_ETR)
+        if cfd:
+            t.call("SetSyncCFD", i, fam.cfd_sign * abs(settings.sync_level_mv),
+                   fam.cfd_sign * CFD_ZEROCROSS_MV)
         else:
-            t.call("SetSyncCFD", i, settings.sync_level_mv, 10)
+            t.call("SetSyncEdgeTrg", i, settings.sync_level_mv, 0)
         t.call("SetSyncChannelOffset", i, settings.sync_offset_ps)
         for ch in range(self.n_inputs):
-            if t.has("SetInputEdgeTrg"):
-                t.call("SetInputEdgeTrg", i, ch, settings.input_level_mv, 0)
+            if fam.trigger == Trigger.SELECTABLE:
+                t.call("SetInputTrgMode", i, ch, TRGMODE_ETR)
+            if cfd:
+                t.call("SetInputCFD", i, ch, fam.cfd_sign * abs(settings.input_level_mv),
+                       fam.cfd_sign * CFD_ZEROCROSS_MV)
             else:
-                t.call("SetInputCFD", i, ch, settings.input_level_mv, 10)
+                t.call("SetInputEdgeTrg", i, ch, settings.input_level_mv, 0)
             t.call("SetInputChannelOffset", i, ch, settings.input_offset_ps)
         t.call("SetBinning", i, settings.binning)
         t.call("SetOffset", i, 0)
@@ -162,8 +197,8 @@ class PicoQuantTagger:
 
     @property
     def record_type(self) -> int:
-        """PTU record type of this device's T3 records."""
-        return self.family.record_type
+        """PTU record type of this device's T3 records (TimeHarp 260: PICO and NANO differ)."""
+        return self.family.record_type_of(self.hw_model)
 
     def sync_rate_hz(self) -> int:
         r = ct.c_int()

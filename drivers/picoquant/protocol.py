@@ -1,6 +1,7 @@
 """PicoQuant TCSPC libraries as data: the device families we drive, their function prefixes, the
-codes their C functions take and return (from the vendor headers ``mhdefin.h``/``hhdefin.h`` and
-``errorcodes.h`` of PicoQuant's public demo repositories), and the record type each device writes.
+codes their C functions take and return (from the vendor headers ``*defin.h``/``*lib.h`` and
+``errorcodes.h`` of PicoQuant's public demo repositories, see ``FAMILIES``), and the record type
+each device writes.
 No I/O here: ``transport`` calls the library, ``device`` holds state."""
 
 from __future__ import annotations
@@ -41,7 +42,9 @@ class Edge(IntEnum):
 
 
 class Flag(IntFlag):
-    """``*_GetFlags`` bits."""
+    """``*_GetFlags`` bits (MultiHarp, HydraHarp 400, PicoHarp 330). FIFOFULL and SYNC_LOST are the
+    same in every family; the TimeHarp 260 uses 0x0008 for dropped events and 0x0020 for a
+    software error (no ACTIVE bit). Only FIFOFULL steers the driver."""
 
     OVERFLOW = 0x0001
     """Histogram mode only: a histogram bin overflowed."""
@@ -57,6 +60,16 @@ class Flag(IntFlag):
     """A measurement is running."""
     CNTS_DROPPED = 0x0040
     """Counts were dropped (input rate beyond what the device transfers)."""
+
+
+class Feature(IntFlag):
+    """``*_GetFeatures`` bits we need (the same in mhdefin.h, hhdefin.h, th260defin.h and
+    ph330defin.h): options a device may lack (they are licensed per device)."""
+
+    TTTR = 0x0002
+    """Time-tagging modes (T2/T3)."""
+    MARKERS = 0x0004
+    """Marker inputs (the galvo's pixel, line and frame markers)."""
 
 
 class LibError(IntEnum):
@@ -88,11 +101,38 @@ class LibError(IntEnum):
 DEVICE_GONE_ERRORS = frozenset({LibError.DEVICE_NOT_OPEN, LibError.DEVICE_OPEN_FAIL})
 """Codes after which the device must be reopened."""
 
-# T3 record types written to PTU files (``TTResultFormat_TTTRRecType``; ptufile's PtuRecordType)
+# T3 record types written to PTU files (``TTResultFormat_TTTRRecType``; ptufile's PtuRecordType).
+# All of them have the Generic T3 bit layout (PicoQuant's file demos decode the TimeHarp 260 and
+# HydraHarp V2 types with the same routine as Generic T3; ptufile likewise).
 RECORD_TYPE_GENERIC_T3 = 0x00010307
-"""MultiHarp, PicoHarp 330, HydraHarp 500: Generic T3 records."""
+"""MultiHarp, PicoHarp 330: Generic T3 records."""
 RECORD_TYPE_HYDRAHARP2_T3 = 0x01010304
 """HydraHarp 400 with library v3 (HydraHarp V2 T3): the same bit layout as Generic T3."""
+RECORD_TYPE_TIMEHARP260N_T3 = 0x00010305
+"""TimeHarp 260 NANO T3."""
+RECORD_TYPE_TIMEHARP260P_T3 = 0x00010306
+"""TimeHarp 260 PICO T3."""
+
+
+class Trigger(IntEnum):
+    """How a family's sync and detector inputs are triggered (the calls differ)."""
+
+    EDGE = 0
+    """``SetSyncEdgeTrg(level, edge)``/``SetInputEdgeTrg``: MultiHarp."""
+    CFD = 1
+    """``SetSyncCFD(level, zerocross)``/``SetInputCFD``: HydraHarp 400."""
+    BY_MODEL = 2
+    """TimeHarp 260: CFD on the PICO, edge trigger on the NANO (``*_GetHardwareInfo`` tells);
+    the library exports both and the wrong one fails."""
+    SELECTABLE = 3
+    """PicoHarp 330: both, chosen per input with ``SetSyncTrgMode``/``SetInputTrgMode``
+    (ETR = 0, CFD = 1) before the levels are set. We use the edge trigger."""
+
+
+TRGMODE_ETR = 0
+"""PicoHarp 330 ``*_SetSyncTrgMode``/``*_SetInputTrgMode``: edge trigger (ph330defin.h)."""
+CFD_ZEROCROSS_MV = 10
+"""CFD zero-cross magnitude we use (the vendor demos' value)."""
 
 
 @dataclass(frozen=True)
@@ -102,12 +142,23 @@ class Family:
     key:            the name in device strings (``picoquant:KEY``).
     model:          the vendor's model name.
     prefix:         C function prefix (``MH`` -> ``MH_OpenDevice``).
-    libraries:      file names of the library, per platform.
-    readfifo_count: ``*_ReadFiFo`` takes a record count (HydraHarp 400) or not (MultiHarp).
+    libraries:      file names of the library: the Linux names the vendor's demos load and the
+                    installer writes, then Windows'.
+    readfifo_count: ``*_ReadFiFo`` takes a record count (HydraHarp 400, TimeHarp 260) or not.
     ttreadmax:      records one ``*_ReadFiFo`` may return (the buffer must hold them).
-    record_type:    PTU record type of its T3 records.
+    record_type:    PTU record type of its T3 records (``record_types`` overrides it per model).
     n_markers:      marker inputs.
     snapi_name:     the library's name inside the ``snapi`` package.
+    init_refsource: ``*_Initialize(devidx, mode, refsource)``; False: ``(devidx, mode)``
+                    (TimeHarp 260 has no reference input).
+    trigger:        how inputs are triggered (:class:`Trigger`).
+    cfd_sign:       the sign the library wants for CFD levels and zero cross: +1 (HydraHarp 400:
+                    0..1000 mV, 0..40 mV), -1 (TimeHarp 260 PICO: -1200..0, -40..0 mV).
+    cfd_level_max_mv: the largest CFD level magnitude (DISCRMAX/CFDLVLMIN).
+    max_devices:    device indices the library scans (MAXDEVNUM).
+    sync_div_max:   largest ``*_SetSyncDiv`` divider (SYNCDIVMAX).
+    record_types:   (model string of ``*_GetHardwareInfo``, record type) for families whose
+                    models write different types (TimeHarp 260 PICO and NANO).
     """
 
     key: str
@@ -119,27 +170,68 @@ class Family:
     record_type: int
     n_markers: int = 4
     snapi_name: str = ""
+    init_refsource: bool = True
+    trigger: Trigger = Trigger.EDGE
+    cfd_sign: int = 1
+    cfd_level_max_mv: int = 1000
+    max_devices: int = 8
+    sync_div_max: int = 16
+    record_types: tuple[tuple[str, int], ...] = ()
+
+    def record_type_of(self, hw_model: str) -> int:
+        """The record type a device of this family with ``hw_model`` writes."""
+        for name, rtype in self.record_types:
+            if hw_model.strip() == name:
+                return rtype
+        return self.record_type
+
+    def uses_cfd(self, hw_model: str) -> bool:
+        """True when a device of this family with ``hw_model`` is triggered by CFDs."""
+        if self.trigger == Trigger.BY_MODEL:
+            return hw_model.strip() == TH260_PICO
+        return self.trigger == Trigger.CFD
 
 
+TH260_PICO = "TimeHarp 260 P"
+TH260_NANO = "TimeHarp 260 N"
+"""``TH260_GetHardwareInfo`` model strings (HWIDENT_PICO/HWIDENT_NANO of th260defin.h)."""
+
+_MH_LIBS = ("libmh150.so", "mhlib.so", "libmhlib.so", "mhlib64.dll", "mhlib.dll")
 FAMILIES: dict[str, Family] = {
     f.key: f for f in (
-        Family("mh150", "MultiHarp 150", "MH", ("libmhlib.so", "mhlib64.dll", "mhlib.dll"), False,
-               1048576, RECORD_TYPE_GENERIC_T3, snapi_name="libmhlib.so"),
-        Family("mh160", "MultiHarp 160", "MH", ("libmhlib.so", "mhlib64.dll", "mhlib.dll"), False,
-               1048576, RECORD_TYPE_GENERIC_T3, snapi_name="libmhlib.so"),
-        Family("hh400", "HydraHarp 400", "HH", ("libhhlib.so", "hhlib64.dll", "hhlib.dll"), True,
-               131072, RECORD_TYPE_HYDRAHARP2_T3, snapi_name="libhhlib.so"),
+        Family("mh150", "MultiHarp 150", "MH", _MH_LIBS, False, 1048576, RECORD_TYPE_GENERIC_T3,
+               snapi_name="libmhlib.so"),
+        Family("mh160", "MultiHarp 160", "MH", _MH_LIBS, False, 1048576, RECORD_TYPE_GENERIC_T3,
+               snapi_name="libmhlib.so"),
+        Family("hh400", "HydraHarp 400", "HH",
+               ("libhh400.so", "hhlib.so", "libhhlib.so", "hhlib64.dll", "hhlib.dll"), True,
+               131072, RECORD_TYPE_HYDRAHARP2_T3, snapi_name="libhhlib.so", trigger=Trigger.CFD,
+               cfd_sign=1),
+        Family("th260", "TimeHarp 260", "TH260",
+               ("th260lib.so", "libth260.so", "th260lib64.dll", "th260lib.dll"), True, 131072,
+               RECORD_TYPE_TIMEHARP260P_T3, init_refsource=False, trigger=Trigger.BY_MODEL,
+               cfd_sign=-1, cfd_level_max_mv=1200, max_devices=4, sync_div_max=8,
+               record_types=((TH260_PICO, RECORD_TYPE_TIMEHARP260P_T3),
+                             (TH260_NANO, RECORD_TYPE_TIMEHARP260N_T3))),
+        Family("ph330", "PicoHarp 330", "PH330",
+               ("libph330.so", "PH330Lib.dll"), False, 1048576, RECORD_TYPE_GENERIC_T3,
+               trigger=Trigger.SELECTABLE, sync_div_max=8),
     )
 }
-"""The families whose headers we read (MH150-Demos, HH400-v3.x-Demos). HydraHarp 500, PicoHarp
-330 and TimeHarp 260 have libraries of the same shape but differ in calls we have not checked."""
+"""The families whose library headers we read: MultiHarp (MH150-Demos ``mhlib.h``/``mhdefin.h``
+v3.0), HydraHarp 400 (HH400-v3.x-Demos ``hhlib.h``/``hhdefin.h`` v3.0), TimeHarp 260
+(TH260-Demos and TimeHarp260-Linux ``th260lib.h``/``th260defin.h`` v3.2), PicoHarp 330
+(``ph330lib.h`` v2.0 and the ``ph330defin.h`` constants as quoted by a public driver). Library
+names from the demos' Python ``CDLL`` calls, makefiles and install scripts (PicoHarp 330: from
+public drivers that load it)."""
 
-KNOWN_UNSUPPORTED = {"hh500": "HydraHarp 500", "ph330": "PicoHarp 330", "th260": "TimeHarp 260"}
-"""PicoQuant devices named in device strings that this version cannot drive yet."""
+KNOWN_UNSUPPORTED = {"hh500": "HydraHarp 500"}
+"""PicoQuant devices named in device strings that this version cannot drive yet, and why: no
+public copy of ``hh500lib.h`` was available to check its calls against (PicoQuant's HH500 demo
+repository could not be read), and we do not guess a C signature."""
 
-MAX_DEVICES = 8
-"""Device indices the libraries scan (MAXDEVNUM)."""
 SYNC_DIV_RANGE = (1, 16)
+"""Widest divider range; a family's own limit is ``Family.sync_div_max``."""
 BINNING_RANGE = (0, 24)
 """Binning codes (dtime unit = base resolution * 2**code); the device's own limit is
 ``binsteps`` from ``*_GetBaseResolution``."""
@@ -153,7 +245,8 @@ def family(key: str) -> Family:
     if k in FAMILIES:
         return FAMILIES[k]
     if k in KNOWN_UNSUPPORTED:
-        raise SettingError(f"picoquant:{key}: the {KNOWN_UNSUPPORTED[k]} is not supported yet "
+        raise SettingError(f"picoquant:{key}: the {KNOWN_UNSUPPORTED[k]} is not supported yet: "
+                           f"its library's calls are not checked against a vendor header "
                            f"(supported: {', '.join(FAMILIES)})")
     raise SettingError(f"picoquant:{key}: unknown PicoQuant device (supported: "
                        f"{', '.join(FAMILIES)})")
@@ -165,8 +258,9 @@ class PicoQuantSettings:
 
     binning:         dtime unit = base resolution * 2**binning.
     sync_divider:    the device counts every n-th laser sync.
-    sync_level_mv:   sync trigger level (MultiHarp edge trigger / HydraHarp CFD level).
-    input_level_mv:  detector input trigger level.
+    sync_level_mv:   sync trigger level, mV (edge trigger level; for a CFD its magnitude, given
+                     to the library with the sign the family's header asks for).
+    input_level_mv:  detector input trigger level, mV (the same way).
     sync_offset_ps:  sync channel offset (cable delay) in ps.
     input_offset_ps: detector input offset in ps.
     marker_enabled:  marker inputs that produce records (bit n-1 = input n).
@@ -230,6 +324,9 @@ class PicoQuantIdentity:
         return dict(self.__dict__)
 
 
-__all__ = ["MeasMode", "RefSource", "Edge", "Flag", "LibError", "Family", "FAMILIES", "family",
+__all__ = ["MeasMode", "RefSource", "Edge", "Flag", "Feature", "LibError", "Family", "FAMILIES", "family",
            "PicoQuantSettings", "PicoQuantIdentity", "RECORD_TYPE_GENERIC_T3",
-           "RECORD_TYPE_HYDRAHARP2_T3", "MAX_DEVICES", "DEVICE_GONE_ERRORS", "KNOWN_UNSUPPORTED"]
+           "RECORD_TYPE_HYDRAHARP2_T3", "RECORD_TYPE_TIMEHARP260N_T3",
+           "RECORD_TYPE_TIMEHARP260P_T3", "DEVICE_GONE_ERRORS",
+           "KNOWN_UNSUPPORTED", "Trigger", "TRGMODE_ETR", "CFD_ZEROCROSS_MV", "TH260_PICO",
+           "TH260_NANO"]

@@ -42,9 +42,12 @@ SIGNATURES: dict[str, tuple] = {
     "Initialize": (_I, _I, _I),
     "GetHardwareInfo": (_I, _PC, _PC, _PC),
     "GetSerialNumber": (_I, _PC),
+    "GetFeatures": (_I, _PI),
     "GetBaseResolution": (_I, _PD, _PI),
     "GetNumOfInputChannels": (_I, _PI),
     "SetSyncDiv": (_I, _I),
+    "SetSyncTrgMode": (_I, _I),              # PicoHarp 330 only: ETR or CFD, per input
+    "SetInputTrgMode": (_I, _I, _I),
     "SetSyncEdgeTrg": (_I, _I, _I),          # MultiHarp (HydraHarp 400: SetSyncCFD)
     "SetSyncCFD": (_I, _I, _I),
     "SetSyncChannelOffset": (_I, _I),
@@ -65,6 +68,17 @@ SIGNATURES: dict[str, tuple] = {
     "ReadFiFo": (_I, _PU, _PI),              # MultiHarp; HydraHarp 400 adds a count (below)
 }
 READFIFO_WITH_COUNT = (_I, _PU, _I, _PI)
+INITIALIZE_NO_REFSOURCE = (_I, _I)
+"""``TH260_Initialize(devidx, mode)``: the TimeHarp 260 has no reference clock input."""
+
+
+def signature(fam: Family, name: str) -> tuple:
+    """Argument types of ``<prefix>_<name>`` in the library of ``fam``."""
+    if name == "ReadFiFo" and fam.readfifo_count:
+        return READFIFO_WITH_COUNT
+    if name == "Initialize" and not fam.init_refsource:
+        return INITIALIZE_NO_REFSOURCE
+    return SIGNATURES[name]
 
 
 class LibraryMissingError(DeviceError):
@@ -104,7 +118,8 @@ def candidate_paths(fam: Family, lib_path: str | os.PathLike | None = None) -> l
         spec = None
     if spec is not None and spec.submodule_search_locations:
         for d in spec.submodule_search_locations:
-            out += sorted(Path(d).rglob(fam.snapi_name or fam.libraries[0]))
+            for name in dict.fromkeys((fam.snapi_name or fam.libraries[0], *fam.libraries)):
+                out += sorted(Path(d).rglob(name))
     for d in INSTALL_DIRS:
         for name in fam.libraries:
             p = Path(d) / name
@@ -157,15 +172,10 @@ class LibTransport:
             except AttributeError:
                 raise LibraryMissingError(f"PicoQuant library {self.path or self.lib} has no "
                                           f"{full}: is it the {self.family.model} library?") from None
-            argtypes = READFIFO_WITH_COUNT if (name == "ReadFiFo" and self.family.readfifo_count) \
-                else SIGNATURES[name]
-            f.argtypes = list(argtypes)
+            f.argtypes = list(signature(self.family, name))
             f.restype = ct.c_int
             self._funcs[name] = f
         return f
-
-    def has(self, name: str) -> bool:
-        return hasattr(self.lib, f"{self.family.prefix}_{name}")
 
     def call(self, name: str, *args, quiet: bool = False) -> int:
         """Call ``<prefix>_<name>(*args)``; returns the (non-negative) code."""
@@ -199,4 +209,4 @@ class LibTransport:
 
 
 __all__ = ["LibTransport", "LibraryMissingError", "PicoQuantError", "load_library",
-           "candidate_paths", "install_hint", "LIB_ENV", "SIGNATURES"]
+           "candidate_paths", "install_hint", "LIB_ENV", "SIGNATURES", "signature"]

@@ -1,15 +1,27 @@
-/* A stand-in for PicoQuant's device libraries (mhlib, hhlib) with the same C functions, built at
- * test time with the system compiler so our ctypes driver crosses a real ABI: the argument types,
- * pointers and buffer sizes of every call are exercised as they are with the vendor's library.
+/* A stand-in for PicoQuant's device libraries (mhlib, hhlib, th260lib, ph330lib) with the same C
+ * functions, built at test time with the system compiler so our ctypes driver crosses a real ABI:
+ * the argument types, pointers and buffer sizes of every call are exercised as they are with the
+ * vendor's library.
  *
- * Compile with -DPFX=MH (MultiHarp 150/160, ReadFiFo(devidx, buffer, nactual)) or -DPFX=HH
- * -DREADFIFO_COUNT (HydraHarp 400, ReadFiFo(devidx, buffer, count, nactual)).
+ * One source, one family per build (drivers/sim/picoquant_standin.py has the flag sets):
+ *   -DPFX=MH -DTRG_EDGE                    MultiHarp 150/160: ReadFiFo(devidx, buffer, nactual)
+ *   -DPFX=HH -DREADFIFO_COUNT -DTRG_CFD    HydraHarp 400: ReadFiFo(devidx, buffer, count, nactual),
+ *                                          CFD levels 0..1000 mV, zero cross 0..40 mV
+ *   -DPFX=TH260 -DREADFIFO_COUNT -DTRG_BY_MODEL -DINIT_NO_REFSOURCE -DMAXDEVNUM=4 -DSYNCDIVMAX=8
+ *                                          TimeHarp 260: Initialize(devidx, mode); CFD on the PICO
+ *                                          (-1200..0, -40..0 mV), edge trigger on the NANO, the
+ *                                          other call fails; no ACTIVE flag bit
+ *   -DPFX=PH330 -DTRG_SELECTABLE -DSYNCDIVMAX=8
+ *                                          PicoHarp 330: Set{Sync,Input}TrgMode (ETR 0, CFD 1)
+ *                                          chooses which level call is valid; edge -1500..1500 mV
  *
  * The device side is fed from Python (drivers/sim/picoquant_standin.py) through SIM_* functions:
  * the photon world's events, encoded as T3 records, are pushed into a bounded FIFO; a push that
  * does not fit sets FLAG_FIFOFULL and halts the measurement, as the hardware does. StartMeas and
  * StopMeas call hooks so the simulated bench starts and stops the world's stream synchronously.
- * Signatures follow mhlib.h / hhlib.h of PicoQuant's public demo repositories (v3.0).
+ * Signatures follow mhlib.h / hhlib.h (v3.0), th260lib.h (v3.2) and ph330lib.h (v2.0) of
+ * PicoQuant's public demo repositories. Where a header leaves a behaviour open (the PicoHarp 330's
+ * trigger mode before the first SetXxxTrgMode) the stand-in is stricter: it refuses.
  */
 #include <stdio.h>
 #include <stdlib.h>
@@ -23,7 +35,13 @@
 #define CAT(a, b) CAT2(a, b)
 #define F(name) CAT(PFX, name)
 
+#ifndef MAXDEVNUM
 #define MAXDEVNUM 8
+#endif
+#ifndef SYNCDIVMAX
+#define SYNCDIVMAX 16
+#endif
+#define TTREADMIN 128
 #ifdef READFIFO_COUNT
 #define TTREADMAX 131072
 #else
@@ -37,8 +55,12 @@
 #define ERROR_INVALID_MODE -18
 #define ERROR_NOT_INITIALIZED -22
 #define ERROR_USB_BULKRD_FAIL -37
+#define ERROR_UNSUPPORTED_FUNCTION -80
 
 #define FLAG_FIFOFULL 0x0002
+#define FEATURE_DLL 0x0001
+#define FEATURE_TTTR 0x0002
+#define FEATURE_MARKERS 0x0004
 #define FLAG_ACTIVE 0x0020
 
 typedef void (*hook_t)(int devidx);
@@ -48,6 +70,8 @@ typedef struct {
     char serial[9], model[24];
     double base_res_ps;
     int n_inputs, binning, syncdiv, marker_enable, marker_edges, fail_reads;
+    int sync_trgmode, input_trgmode[8];      /* PicoHarp 330: -1 until set */
+    int features;                            /* FEATURE_* bits (licensed options) */
     unsigned int *fifo;
     long cap, head, fill;
     long long pushed, dropped;
@@ -83,6 +107,7 @@ int F(GetErrorString)(char *errstring, int errcode) {
     case ERROR_INVALID_MODE: s = "ERROR_INVALID_MODE"; break;
     case ERROR_NOT_INITIALIZED: s = "ERROR_NOT_INITIALIZED"; break;
     case ERROR_USB_BULKRD_FAIL: s = "ERROR_USB_BULKRD_FAIL"; break;
+    case ERROR_UNSUPPORTED_FUNCTION: s = "ERROR_UNSUPPORTED_FUNCTION"; break;
     default: s = "ERROR_UNKNOWN"; break;
     }
     strcpy(errstring, s);  /* the demos pass 40 bytes */
@@ -105,12 +130,19 @@ int F(CloseDevice)(int devidx) {
     return 0;
 }
 
+#ifdef INIT_NO_REFSOURCE
+int F(Initialize)(int devidx, int mode) {
+    int refsource = 0;
+#else
 int F(Initialize)(int devidx, int mode, int refsource) {
-    int rc = usable(devidx);
+#endif
+    int rc = usable(devidx), ch;
     if (rc) return rc;
     if (mode != 0 && mode != 2 && mode != 3) return ERROR_INVALID_MODE;
     if (refsource < 0 || refsource > 9) return ERROR_INVALID_ARGUMENT;
     devs[devidx].mode = mode;
+    devs[devidx].sync_trgmode = -1;
+    for (ch = 0; ch < 8; ch++) devs[devidx].input_trgmode[ch] = -1;
     devs[devidx].initialized = 1;
     devs[devidx].binning = 0;
     devs[devidx].marker_enable = 0;
@@ -135,6 +167,14 @@ int F(GetSerialNumber)(int devidx, char *serial) {
     return 0;
 }
 
+int F(GetFeatures)(int devidx, int *features) {
+    int rc = ready(devidx);
+    if (rc) return rc;
+    if (!features) return ERROR_INVALID_ARGUMENT;
+    *features = devs[devidx].features;
+    return 0;
+}
+
 int F(GetBaseResolution)(int devidx, double *resolution, int *binsteps) {
     int rc = ready(devidx);
     if (rc) return rc;
@@ -155,37 +195,87 @@ int F(GetNumOfInputChannels)(int devidx, int *nchannels) {
 int F(SetSyncDiv)(int devidx, int div) {
     int rc = ready(devidx);
     if (rc) return rc;
-    if (div < 1 || div > 16) return ERROR_INVALID_ARGUMENT;
+    if (div < 1 || div > SYNCDIVMAX) return ERROR_INVALID_ARGUMENT;
     devs[devidx].syncdiv = div;
     return 0;
 }
 
-static int level_ok(int level) { return level >= -1200 && level <= 1200; }
 static int offset_ok(int v) { return v >= -99999 && v <= 99999; }
+static int channel_ok(int i, int channel) { return channel >= 0 && channel < devs[i].n_inputs; }
 
-#ifdef READFIFO_COUNT
+/* Limits per family (the *defin.h headers): edge trigger levels, CFD level and zero cross. */
+#if defined(TRG_SELECTABLE)
+#define TRGLVL 1500
+#define CFD_OK(level, zc) ((level) >= -1500 && (level) <= 0 && (zc) >= -100 && (zc) <= 0)
+#elif defined(TRG_BY_MODEL)
+#define TRGLVL 1200
+#define CFD_OK(level, zc) ((level) >= -1200 && (level) <= 0 && (zc) >= -40 && (zc) <= 0)
+#else
+#define TRGLVL 1200
+#define CFD_OK(level, zc) ((level) >= 0 && (level) <= 1000 && (zc) >= 0 && (zc) <= 40)
+#endif
+
+/* May input `channel` (-1: the sync) be set with an edge trigger (want_cfd 0) or a CFD (1)? */
+static int trigger_kind_ok(int i, int channel, int want_cfd) {
+#if defined(TRG_BY_MODEL)
+    int pico = strcmp(devs[i].model, "TimeHarp 260 P") == 0;   /* HWIDENT_PICO; else NANO */
+    (void)channel;
+    return want_cfd == pico ? ERROR_NONE : ERROR_UNSUPPORTED_FUNCTION;
+#elif defined(TRG_SELECTABLE)
+    int mode = channel < 0 ? devs[i].sync_trgmode : devs[i].input_trgmode[channel];
+    return mode == want_cfd ? ERROR_NONE : ERROR_INVALID_MODE;
+#else
+    (void)i; (void)channel; (void)want_cfd;
+    return ERROR_NONE;
+#endif
+}
+
+#if defined(TRG_SELECTABLE)
+int F(SetSyncTrgMode)(int devidx, int mode) {
+    int rc = ready(devidx);
+    if (rc) return rc;
+    if (mode != 0 && mode != 1) return ERROR_INVALID_ARGUMENT;
+    devs[devidx].sync_trgmode = mode;
+    return 0;
+}
+int F(SetInputTrgMode)(int devidx, int channel, int mode) {
+    int rc = ready(devidx);
+    if (rc) return rc;
+    if (!channel_ok(devidx, channel) || (mode != 0 && mode != 1)) return ERROR_INVALID_ARGUMENT;
+    devs[devidx].input_trgmode[channel] = mode;
+    return 0;
+}
+#endif
+
+#if !defined(TRG_EDGE)
 int F(SetSyncCFD)(int devidx, int level, int zc) {
     int rc = ready(devidx);
     if (rc) return rc;
-    return (level_ok(level) && zc >= 0 && zc <= 40) ? 0 : ERROR_INVALID_ARGUMENT;
+    if ((rc = trigger_kind_ok(devidx, -1, 1))) return rc;
+    return CFD_OK(level, zc) ? 0 : ERROR_INVALID_ARGUMENT;
 }
 int F(SetInputCFD)(int devidx, int channel, int level, int zc) {
     int rc = ready(devidx);
     if (rc) return rc;
-    if (channel < 0 || channel >= devs[devidx].n_inputs) return ERROR_INVALID_ARGUMENT;
-    return (level_ok(level) && zc >= 0 && zc <= 40) ? 0 : ERROR_INVALID_ARGUMENT;
+    if (!channel_ok(devidx, channel)) return ERROR_INVALID_ARGUMENT;
+    if ((rc = trigger_kind_ok(devidx, channel, 1))) return rc;
+    return CFD_OK(level, zc) ? 0 : ERROR_INVALID_ARGUMENT;
 }
-#else
+#endif
+#if !defined(TRG_CFD)
+static int edge_ok(int level, int edge) { return level >= -TRGLVL && level <= TRGLVL && (edge == 0 || edge == 1); }
 int F(SetSyncEdgeTrg)(int devidx, int level, int edge) {
     int rc = ready(devidx);
     if (rc) return rc;
-    return (level_ok(level) && (edge == 0 || edge == 1)) ? 0 : ERROR_INVALID_ARGUMENT;
+    if ((rc = trigger_kind_ok(devidx, -1, 0))) return rc;
+    return edge_ok(level, edge) ? 0 : ERROR_INVALID_ARGUMENT;
 }
 int F(SetInputEdgeTrg)(int devidx, int channel, int level, int edge) {
     int rc = ready(devidx);
     if (rc) return rc;
-    if (channel < 0 || channel >= devs[devidx].n_inputs) return ERROR_INVALID_ARGUMENT;
-    return (level_ok(level) && (edge == 0 || edge == 1)) ? 0 : ERROR_INVALID_ARGUMENT;
+    if (!channel_ok(devidx, channel)) return ERROR_INVALID_ARGUMENT;
+    if ((rc = trigger_kind_ok(devidx, channel, 0))) return rc;
+    return edge_ok(level, edge) ? 0 : ERROR_INVALID_ARGUMENT;
 }
 #endif
 
@@ -198,7 +288,7 @@ int F(SetSyncChannelOffset)(int devidx, int value) {
 int F(SetInputChannelOffset)(int devidx, int channel, int value) {
     int rc = ready(devidx);
     if (rc) return rc;
-    if (channel < 0 || channel >= devs[devidx].n_inputs) return ERROR_INVALID_ARGUMENT;
+    if (!channel_ok(devidx, channel)) return ERROR_INVALID_ARGUMENT;
     return offset_ok(value) ? 0 : ERROR_INVALID_ARGUMENT;
 }
 
@@ -244,7 +334,12 @@ int F(GetFlags)(int devidx, int *flags) {
     int rc = ready(devidx);
     if (rc) return rc;
     if (!flags) return ERROR_INVALID_ARGUMENT;
+#ifdef TRG_BY_MODEL
+    /* TimeHarp 260: 0x0020 is FLAG_SOFTERROR, there is no ACTIVE bit */
+    *flags = devs[devidx].fifofull ? FLAG_FIFOFULL : 0;
+#else
     *flags = (devs[devidx].fifofull ? FLAG_FIFOFULL : 0) | (devs[devidx].measuring ? FLAG_ACTIVE : 0);
+#endif
     return 0;
 }
 
@@ -321,7 +416,8 @@ static int read_fifo(int devidx, unsigned int *buffer, int count, int *nactual) 
 
 #ifdef READFIFO_COUNT
 int F(ReadFiFo)(int devidx, unsigned int *buffer, int count, int *nactual) {
-    if (count < 0 || count > TTREADMAX) return ERROR_INVALID_ARGUMENT;
+    /* the headers: the buffer holds TTREADMIN..TTREADMAX records */
+    if (count < TTREADMIN || count > TTREADMAX) return ERROR_INVALID_ARGUMENT;
     return read_fifo(devidx, buffer, count, nactual);
 }
 #else
@@ -344,6 +440,7 @@ int SIM_AddDevice(const char *serial, const char *model, double base_res_ps, int
             devs[i].n_inputs = n_inputs;
             devs[i].cap = capacity;
             devs[i].syncdiv = 1;
+            devs[i].features = FEATURE_DLL | FEATURE_TTTR | FEATURE_MARKERS;
             devs[i].fifo = (unsigned int *)malloc(sizeof(unsigned int) * capacity);
             return devs[i].fifo ? i : -1;
         }
@@ -373,6 +470,7 @@ void SIM_Plug(int devidx, int plugged) {
     }
 }
 void SIM_FailReads(int devidx, int n) { devs[devidx].fail_reads = n; }
+void SIM_SetFeatures(int devidx, int features) { devs[devidx].features = features; }
 void SIM_FifoFull(int devidx) { pthread_mutex_lock(&mu); devs[devidx].fifofull = 1; pthread_mutex_unlock(&mu); }
 
 /* Records as the device produces them: markers not enabled are dropped (the inputs are off);

@@ -1,7 +1,8 @@
 """The stand-in PicoQuant library, built and driven by the simulated bench.
 
 ``build_library("mh150")`` compiles ``picoquant_standin.c`` with the system C compiler into a
-cache folder (once per source and flags) and returns the path of ``libmhlib.so``;
+cache folder (once per source and flags) and returns the path of the family's library file
+(``libmh150.so``, ``libhh400.so``, ``th260lib.so``, ``libph330.so``);
 ``PicoQuantStandIn(rig)`` loads it, adds a device and runs a pump thread that turns the photon
 world's events (``SimRig``: the galvo's markers and every dwell's photons) into T3 records and
 pushes them into the library's FIFO while a measurement runs. The driver
@@ -34,14 +35,26 @@ import numpy as np
 
 from spdepth.drivers.errors import DeviceError, SettingError
 from spdepth.drivers.events import EventKind
+from spdepth.drivers.picoquant.protocol import FAMILIES
 from spdepth.drivers.sim.faults import FaultKind, FaultSchedule, TAGGER_FAULTS, parse_faults
 from spdepth.drivers.tagger.t3 import T3EncoderState, encode_t3
 
 SOURCE = Path(__file__).with_name("picoquant_standin.c")
 CACHE_ENV = "SPDEPTH_STANDIN_CACHE"
 """Folder the compiled stand-ins are cached in (default: the system temp folder)."""
-_BUILD = {"mh150": ("libmhlib.so", ["-DPFX=MH"]), "mh160": ("libmhlib.so", ["-DPFX=MH"]),
-          "hh400": ("libhhlib.so", ["-DPFX=HH", "-DREADFIFO_COUNT"])}
+_BUILD = {
+    "mh150": ["-DPFX=MH", "-DTRG_EDGE"],
+    "mh160": ["-DPFX=MH", "-DTRG_EDGE"],
+    "hh400": ["-DPFX=HH", "-DREADFIFO_COUNT", "-DTRG_CFD"],
+    "th260": ["-DPFX=TH260", "-DREADFIFO_COUNT", "-DTRG_BY_MODEL", "-DINIT_NO_REFSOURCE",
+              "-DMAXDEVNUM=4", "-DSYNCDIVMAX=8"],
+    "ph330": ["-DPFX=PH330", "-DTRG_SELECTABLE", "-DSYNCDIVMAX=8"],
+}
+"""Compiler flags of each family's build (what each flag means: the C source's head)."""
+MODELS = {"mh150": "MultiHarp 150 4N", "mh160": "MultiHarp 160", "hh400": "HydraHarp 400",
+          "th260": "TimeHarp 260 P", "ph330": "PicoHarp 330"}
+"""``*_GetHardwareInfo`` model of the simulated device, per family (TimeHarp 260: the PICO unless
+``hw_model`` says ``TimeHarp 260 N``)."""
 _HOOK = ct.CFUNCTYPE(None, ct.c_int)
 _build_lock = threading.Lock()
 _active: "PicoQuantStandIn | None" = None
@@ -51,7 +64,7 @@ def build_library(family_key: str = "mh150", cache_dir: str | os.PathLike | None
     """Compile the stand-in for ``family_key`` (cached by the source's hash and the flags)."""
     if family_key not in _BUILD:
         raise SettingError(f"no PicoQuant stand-in for {family_key!r} (have: {', '.join(_BUILD)})")
-    name, flags = _BUILD[family_key]
+    name, flags = FAMILIES[family_key].libraries[0], _BUILD[family_key]
     src = SOURCE.read_bytes()
     key = hashlib.sha256(src + " ".join(flags).encode()).hexdigest()[:16]
     root = Path(cache_dir or os.environ.get(CACHE_ENV) or tempfile.gettempdir())
@@ -77,7 +90,8 @@ class PicoQuantStandIn:
     """A simulated PicoQuant device behind the stand-in library, fed by ``rig``.
 
     rig:          a ``drivers.sim.rig.SimRig`` (the galvo side pulses markers and dwells on it).
-    family_key:   ``mh150``, ``mh160`` or ``hh400``.
+    family_key:   ``mh150``, ``mh160``, ``hh400``, ``th260`` or ``ph330``.
+    hw_model:     the model the device reports (default ``MODELS[family_key]``).
     serial:       the device's serial number (8 characters at most).
     fifo_records: the device FIFO's depth.
     faults:       a ``KIND@WHEN`` spec or a list of ``Fault`` (tagger kinds, see the module).
@@ -86,6 +100,7 @@ class PicoQuantStandIn:
     """
 
     def __init__(self, rig, family_key: str = "mh150", *, serial: str = "1000042",
+                 hw_model: str | None = None,
                  fifo_records: int = 1 << 22, faults=None, scan_pixels: int | None = None,
                  overflow_records: int = 1000, vanish_s: float = 0.2, cache_dir=None):
         global _active
@@ -99,8 +114,7 @@ class PicoQuantStandIn:
         _active = self
         self.lib.SIM_RemoveAll()
         res_ps = rig.world.scene.settings.resolution_s * 1e12
-        model = {"mh150": "MultiHarp 150 4N", "mh160": "MultiHarp 160",
-                 "hh400": "HydraHarp 400"}[family_key]
+        model = hw_model or MODELS[family_key]
         self.dev = self.lib.SIM_AddDevice(serial.encode(), model.encode(), res_ps, 1, fifo_records)
         if self.dev < 0:
             raise DeviceError("the PicoQuant stand-in could not add a device")
@@ -144,7 +158,7 @@ class PicoQuantStandIn:
             getattr(L, name).restype = ct.c_int
         L.SIM_Dropped.argtypes = [ct.c_int]
         L.SIM_Dropped.restype = ct.c_longlong
-        for name in ("SIM_Plug", "SIM_FailReads"):
+        for name in ("SIM_Plug", "SIM_FailReads", "SIM_SetFeatures"):
             getattr(L, name).argtypes = [ct.c_int, ct.c_int]
             getattr(L, name).restype = None
         L.SIM_FifoFull.argtypes = [ct.c_int]
@@ -219,4 +233,4 @@ class PicoQuantStandIn:
             self.lib.SIM_SetHooks(_HOOK(), _HOOK())
 
 
-__all__ = ["PicoQuantStandIn", "build_library", "SOURCE", "CACHE_ENV"]
+__all__ = ["PicoQuantStandIn", "build_library", "SOURCE", "CACHE_ENV", "MODELS"]

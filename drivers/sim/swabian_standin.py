@@ -6,14 +6,18 @@ produce them: a sync tag on every ``divider``-th laser pulse (the event divider)
 ``dtime`` after its sync, a marker tag per marker line that rose. ``tests/test_vendor_standins.py``
 checks the names and parameters against the real package.
 
-Fault ``fifo-overflow`` (WHEN as ``drivers.sim.faults``): the rig drops records and the stream
+Faults (WHEN as ``drivers.sim.faults``): ``fifo-overflow``: the rig drops records and the stream
 reports ``OverflowBegin``/``OverflowEnd`` (and ``MissedEvents``) where they went missing, as the
-tagger does when USB falls behind. Other faults are refused.
+tagger does when USB falls behind; ``usb-timeout``: one ``getData`` raises (a failed USB transfer)
+and the stream is stopped, the tagger stays usable; ``device-vanish``: ``getData`` raises, the
+tagger object is dead (its calls raise) and ``createTimeTagger`` fails for ``vanish_s`` wall-clock
+seconds. Other faults are refused.
 """
 
 from __future__ import annotations
 
 import threading
+import time
 import types
 from enum import IntEnum
 
@@ -21,7 +25,7 @@ import numpy as np
 
 from spdepth.drivers.errors import SettingError
 from spdepth.drivers.events import EventKind
-from spdepth.drivers.sim.faults import FaultKind, TAGGER_FAULTS, parse_faults
+from spdepth.drivers.sim.faults import FaultKind, FaultSchedule, TAGGER_FAULTS, parse_faults
 
 
 class TagType(IntEnum):
@@ -60,9 +64,14 @@ class StandInTimeTagger:
 
     def __init__(self, card, serial):
         self._card, self._serial = card, serial
+        self._generation = card.generation      # a vanish makes this object dead
         self.levels: dict[int, float] = {}
         self.dividers: dict[int, int] = {}
         self.freed = False
+
+    def _alive(self):
+        if self._generation != self._card.generation:
+            raise RuntimeError(f"Time Tagger {self._serial} was disconnected")
 
     def getSerial(self):
         return self._serial
@@ -71,11 +80,13 @@ class StandInTimeTagger:
         return "Time Tagger Ultra"
 
     def setTriggerLevel(self, channel, voltage):
+        self._alive()
         if not 1 <= channel <= 18:
             raise RuntimeError(f"channel {channel} does not exist")
         self.levels[channel] = float(voltage)
 
     def setEventDivider(self, channel, divider):
+        self._alive()
         if not 1 <= divider <= 65535:
             raise RuntimeError("divider out of range")
         self.dividers[channel] = int(divider)
@@ -97,6 +108,7 @@ class StandInTimeTagStream:
 
     def start(self):
         card, rig = self._card, self._card.rig
+        self._tagger._alive()
         with self._lock:
             rig.clear_fifo()
             rig.start_tagger()
@@ -117,8 +129,23 @@ class StandInTimeTagStream:
     def clear(self):
         self._card.rig.clear_fifo()
 
+    def _faults(self):
+        """Inject the stream faults that are due (called by ``getData``)."""
+        card, rig = self._card, self._card.rig
+        frac = rig.pixels_pulsed / card.scan_pixels if card.scan_pixels else None
+        for f in card.schedule.take_due(rig.now_s, frac):
+            card.fired.append(f.kind.value)
+            self.stop()
+            if f.kind == FaultKind.DEVICE_VANISH:
+                card.generation += 1
+                card.back_at = time.monotonic() + card.vanish_s
+                raise RuntimeError(f"Time Tagger {self._tagger._serial} disconnected")
+            raise RuntimeError("Time Tagger: USB transfer failed")
+
     def getData(self):
         card, rig = self._card, self._card.rig
+        self._tagger._alive()
+        self._faults()
         sync_ch = self._channels[0]
         det_ch = card.detector_channel
         marker_ch = card.marker_channels
@@ -183,21 +210,27 @@ class StandInTimeTagStream:
 class SwabianStandIn(types.SimpleNamespace):
     """The stand-in module. rig: a ``SimRig``; serial: the tagger's serial; detector_channel and
     marker_channels: where the simulated cables go (match the driver's settings); faults:
-    ``fifo-overflow`` only; scan_pixels for faults given as a share of the scan."""
+    ``fifo-overflow``, ``usb-timeout``, ``device-vanish`` (see the module); scan_pixels for faults
+    given as a share of the scan; vanish_s: how long a vanished tagger stays away."""
+
+    _KINDS = (FaultKind.FIFO_OVERFLOW, FaultKind.USB_TIMEOUT, FaultKind.DEVICE_VANISH)
 
     def __init__(self, rig, serial: str = "2138000ABC", *, detector_channel: int = 2,
                  marker_channels=(3, 4, 5, 6), faults=None, scan_pixels: int | None = None,
-                 overflow_records: int = 1000):
+                 overflow_records: int = 1000, vanish_s: float = 0.2):
         faults = parse_faults(faults, TAGGER_FAULTS) if isinstance(faults, str) or faults is None \
             else list(faults)
-        bad = [f for f in faults if f.kind != FaultKind.FIFO_OVERFLOW]
+        bad = [f for f in faults if f.kind not in self._KINDS]
         if bad:
-            raise SettingError(f"the Swabian stand-in injects fifo-overflow only, not "
+            raise SettingError(f"the Swabian stand-in injects "
+                               f"{', '.join(k.value for k in self._KINDS)}, not "
                                f"{', '.join(f.kind.value for f in bad)}")
+        if any(f.at_fraction is not None for f in faults) and not scan_pixels:
+            raise SettingError("faults given as a share of the scan need scan_pixels")
         for f in faults:
+            if f.kind != FaultKind.FIFO_OVERFLOW:
+                continue
             if f.at_fraction is not None:
-                if not scan_pixels:
-                    raise SettingError("faults given as a share of the scan need scan_pixels")
                 rig.schedule_overflow(overflow_records,
                                       at_pixel=max(1, int(f.at_fraction * scan_pixels)))
             else:
@@ -206,12 +239,18 @@ class SwabianStandIn(types.SimpleNamespace):
         card = types.SimpleNamespace(rig=rig, detector_channel=detector_channel,
                                      marker_channels=tuple(marker_channels), stream=None,
                                      period_ps=int(round(s.sync_period_s * 1e12)),
-                                     res_ps=int(round(s.resolution_s * 1e12)), fired=[])
+                                     res_ps=int(round(s.resolution_s * 1e12)), fired=[],
+                                     schedule=FaultSchedule([f for f in faults
+                                                             if f.kind != FaultKind.FIFO_OVERFLOW]),
+                                     scan_pixels=scan_pixels, vanish_s=float(vanish_s),
+                                     generation=0, back_at=0.0)
         taggers = {serial}
 
         def createTimeTagger(serial_="", resolution=0):
             if serial_ and serial_ not in taggers:
                 raise RuntimeError(f"no Time Tagger with serial {serial_}")
+            if time.monotonic() < card.back_at:
+                raise RuntimeError("no Time Tagger found")
             return StandInTimeTagger(card, serial)
 
         def freeTimeTagger(tagger):

@@ -3,19 +3,27 @@ the transport (injected module, errors turned into ours), the tagger as a device
 trigger levels, event divider, a ``TimeTagStream``), and its reader thread, which turns the tags
 into our event stream (``protocol.tags_to_events``) and hands the recorder Generic T3 records of
 those events, so a Swabian session records the same PTU layout as ours (HydraHarp V2 T3) with the
-channel mapping in the header."""
+channel mapping in the header.
+
+A stream that fails (the package raises from ``getData``: a USB error, the tagger unplugged) does
+not end the session: the reader puts a LOST event (count unknown) into the stream at the last sync
+it placed, starts a new stream on the same tagger or, if that fails, frees it and opens the same
+serial again (``SwabianTagger.reconnect``), and the session re-acquires what the hole touched, as
+on the PicoQuant path. A tagger that does not come back within ``reconnect_timeout_s`` fails the
+session."""
 
 from __future__ import annotations
 
 import importlib
 import logging
+import time
 
 import numpy as np
 
 from spdepth.drivers.errors import DeviceError, SettingError
 from spdepth.drivers.events import EventKind
 from spdepth.drivers.swabian.protocol import ConverterState, SwabianSettings, tags_to_events
-from spdepth.drivers.tagger.reader import TaggerReader
+from spdepth.drivers.tagger.reader import TaggerReader, lost_event
 from spdepth.drivers.tagger.t3 import T3EncoderState, encode_t3
 
 log = logging.getLogger("spdepth.swabian")
@@ -103,6 +111,41 @@ class SwabianTagger:
             finally:
                 self.stream = None
 
+    def restart(self) -> None:
+        """A new stream on the same tagger after a failed one (whose stop may fail too)."""
+        try:
+            self.stop()
+        except Exception as exc:  # noqa: BLE001 - the failed stream's own error; start decides
+            log.debug("stopping the failed Swabian stream: %s", exc)
+        try:
+            self.start()
+        except Exception as exc:  # noqa: BLE001 - the package's errors: the tagger is not usable
+            raise DeviceError(f"Swabian Time Tagger {self.identity['serial']}: a new stream "
+                              f"did not start ({exc})") from None
+
+    def reconnect(self, timeout_s: float = 5.0) -> None:
+        """Free the tagger, open the same serial again, re-apply the settings and start a stream;
+        DeviceError if it is not back within ``timeout_s``."""
+        self.stream = None
+        try:
+            self.tt.freeTimeTagger(self.device)
+        except Exception as exc:  # noqa: BLE001 - it is gone: freeing can fail
+            log.debug("freeing the vanished Swabian tagger: %s", exc)
+        serial = self.identity["serial"]
+        deadline = time.monotonic() + timeout_s
+        while True:
+            try:
+                self.device = self.tt.createTimeTagger(serial)
+                self.configure(self._settings)
+                self.start()
+                return
+            except Exception as exc:  # noqa: BLE001 - not back yet
+                last = exc
+            if time.monotonic() > deadline:
+                raise DeviceError(f"Swabian Time Tagger {serial} did not come back within "
+                                  f"{timeout_s:g} s ({last})")
+            time.sleep(0.05)
+
     def read(self):
         """The tags since the last read: (timestamps ps, channels, types)."""
         buf = self.stream.getData()
@@ -122,25 +165,34 @@ class SwabianTagger:
 class SwabianReader(TaggerReader):
     """Reads a Swabian tagger's ``TimeTagStream`` in a thread (the ``TaggerReader`` contract: a
     bounded queue of event chunks, the tap sees records and holes in stream order, a thread error
-    reaches the owner). Overflows are LOST events where they begin; the stream goes on."""
+    reaches the owner). Overflows are LOST events where they begin; the stream goes on. A failed
+    stream is a LOST event at the last sync placed, then a new stream (or a reopened tagger): the
+    new stream's tags are placed from its first sync tag on, counted on after the last sync seen
+    (``_sync_offset``), so syncs keep increasing across the hole."""
 
     def __init__(self, tagger: SwabianTagger, **options):
         options.pop("buffer_bytes", None)
         super().__init__(tagger, buffer_bytes=512, **options)
         self.conv = ConverterState()
         self.enc = T3EncoderState()
-        self.stats.update({"overflows": 0, "unplaced": 0})
+        self.stats.update({"overflows": 0, "unplaced": 0, "stream_errors": 0})
+        self._sync_offset = 0      # our sync of the current stream's first sync tag
+        self._last_sync = -1       # the last sync placed (-1: none yet)
 
     def step(self) -> None:
         t = self.tagger
         try:
             ts, ch, ty = t.read()
         except Exception as exc:  # noqa: BLE001 - the package's own errors: a device problem
-            raise DeviceError(f"Swabian Time Tagger stream failed: {exc}") from None
+            self._stream_failed(exc)
+            return
         if ts.size == 0:
             self._stop.wait(POLL_S)
             return
         ev = tags_to_events(ts, ch, ty, t._settings, self.conv)
+        ev["sync"] += self._sync_offset
+        if ev.size:
+            self._last_sync = int(ev["sync"][-1])
         self.stats["overflows"] = self.conv.overflows
         self.stats["unplaced"] = self.conv.unplaced
         self.stats["records"] += int(ts.size)
@@ -157,6 +209,31 @@ class SwabianReader(TaggerReader):
                     self.tap.on_lost(int(ev["sync"][i]), 0, False)
             start = i + 1
         self._push(ev)
+
+    def _stream_failed(self, exc: Exception) -> None:
+        """LOST at the last sync placed, a new stream (or the tagger reopened), syncs counted on
+        after the hole; DeviceError (to the owner) if the tagger does not come back."""
+        t = self.tagger
+        sync = max(self._last_sync, self._sync_offset)
+        self.stats["stream_errors"] += 1
+        log.warning("Swabian Time Tagger stream failed (%s): tags lost from sync %d; restarting",
+                    exc, sync)
+        if self.tap is not None:
+            # our records carry our sync count, which goes on across the hole: no restart for
+            # the recorder
+            self.tap.on_lost(sync, 0, False)
+        self._push(lost_event(sync, 0))
+        try:
+            t.restart()
+            self.stats["restarts"] += 1
+        except DeviceError as why:
+            log.warning("%s: reopening the tagger", why)
+            t.reconnect(timeout_s=self.reconnect_timeout_s)
+            self.stats["reconnects"] += 1
+        # the new stream's first sync tag starts the count again (its time base may be new)
+        self.conv = ConverterState(unplaced=self.conv.unplaced, overflows=self.conv.overflows)
+        self._sync_offset = sync + 1
+        self._last_sync = sync
 
 
 __all__ = ["SwabianTagger", "SwabianReader", "SwabianLibraryMissingError", "import_timetagger"]

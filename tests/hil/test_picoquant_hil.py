@@ -1,4 +1,5 @@
-"""A real PicoQuant device: ``pytest tests/hil --picoquant mh150[:SERIAL] [--picoquant-lib PATH]``.
+"""A real PicoQuant device: ``pytest tests/hil --picoquant mh150[:SERIAL] [--picoquant-lib PATH]``
+(any supported family: mh150, mh160, hh400, th260, ph330).
 
 Marked ``hardware``: skipped unless ``--picoquant`` names a device. Needs the laser sync on the
 SYNC input (the checks hold with or without light on the detector). Untested so far: no lab has
@@ -9,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from spdepth.acq.ptu import GENERIC_T3_LAYOUT_TYPES
 from spdepth.drivers.events import EventKind
 from spdepth.drivers.picoquant import FAMILIES, Flag, PicoQuantSettings, PicoQuantTagger
 
@@ -33,7 +35,11 @@ def test_identity_and_settings(device):
     assert device.identity["serial"] and device.identity["model"]
     device.configure(PicoQuantSettings())
     assert 0 < device.resolution_s < 1e-9
-    assert device.record_type == FAMILIES[device.family.key].record_type
+    # the model the device reports picks the record type (TimeHarp 260 PICO/NANO), and it is one
+    # our recorder writes (the Generic T3 layout)
+    assert device.hw_model in device.identity["model"]
+    assert device.record_type == FAMILIES[device.family.key].record_type_of(device.hw_model)
+    assert device.record_type in GENERIC_T3_LAYOUT_TYPES
     assert device.sync_rate_hz() > 0, "no laser sync on the SYNC input"
 
 
