@@ -19,15 +19,18 @@ A pixel whose first surface fails the test has none (flag NO_SIGNAL), not a back
 **The response** (when the settings give none): a single-surface response measured from data with
 two surfaces per pixel would be blurred by the second one, and a response that misses the detector's
 diffusion tail or the afterpulse bump turns them into surfaces. So the model is measured from the
-data in two rounds: fit K surfaces with the pulse measured by :mod:`recon.irf`, then pool every
-detection on the surface before it (up to the next surface's leading edge, counting for each lag
-how many surfaces were observed there, so a second surface never enters the first one's tail),
-subtract the flat floor and refit with that shape; the shape keeps the tail and any later bump as
-part of every return.
+data in two rounds: fit the surfaces with the pulse measured by :mod:`recon.irf` (their number
+decided by the test, up to max_reflectors whatever K was asked, so the response does not depend on
+K), then pool every detection on the surface before it (up to the next surface's leading edge,
+counting for each lag how many surfaces were observed there, so a second surface never enters the
+first one's tail; see :func:`pooled_response` for the surfaces that may be the first fit's
+phantoms), subtract the flat floor and refit with that shape; the shape keeps the tail and any later
+bump as part of every return.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Callable
 
@@ -54,8 +57,12 @@ CAND_CORE = 1.0
 WEAK_FALSE_ALARM = 1e-6
 #: response pooling: lags before the leading edge used for the floor, in core RMS widths.
 FLOOR_CORE = (8.0, 25.0)
-#: response pooling: longest lag kept, in core RMS widths.
-MAX_LAG_CORE = 60.0
+#: response pooling: longest lag kept after a surface, in RMS widths of the first estimate of the
+#: response (tail included: a longer tail reaches farther); an afterpulse bump ~4 RMS later is kept.
+REACH_RMS = 10.0
+#: response pooling: a later surface within reach of an earlier one and below this share of its signal
+#: may be the earlier one's tail or bump, which the first fit's response lacks (pooled_response).
+ABSORB_SHARE = 0.25
 #: response pooling: it ends where its running mean (a window growing with the lag) falls below this
 #: many standard errors of the floor (as recon.irf does for one surface).
 CUT_SIGMAS = 2.0
@@ -135,12 +142,20 @@ def fit_surfaces(store: PhotonStore, settings: ReconSettings, b: Binning, kern: 
 
 
 def pooled_response(store: PhotonStore, b: Binning, tof_units: np.ndarray, signal: np.ndarray,
-                    core_u: float) -> Irf:
+                    core_u: float, reach_u: float) -> Irf:
     """The response pooled on each pixel's surfaces (module docstring). tof_units: (P, K) surface
-    times in raw units, sorted, NaN past the last; signal: (P, K) expected signal detections."""
+    times in raw units, sorted, NaN past the last; signal: (P, K) expected signal detections;
+    core_u: the sharp part's RMS (the lag step and the leading edge); reach_u: the longest lag
+    kept after a surface (raw units).
+
+    A later surface smaller than ABSORB_SHARE of an earlier one within reach_u may be that one's
+    tail or bump fitted as a surface (the first fit's response lacks them): it neither ends the
+    earlier one's span nor is pooled on. A surface is pooled on only when no other (not absorbed)
+    surface lies within reach_u before it, so its leading edge and the floor before it hold no
+    other return's tail; its span ends at the next such surface's leading edge."""
     step = max(1.0, round(core_u / 4.0)) if np.all(np.mod(store.times, 1) == 0) else core_u / 4.0
     left = FLOOR_CORE[1] * core_u
-    right = min(MAX_LAG_CORE * core_u, float(b.window_stop - b.window_start))
+    right = min(reach_u, float(b.window_stop - b.window_start))
     nl, nr_ = int(math.ceil(left / step)), int(math.ceil(right / step))
     edges = (np.arange(-nl, nr_ + 1) - 0.5) * step
     nb = edges.size - 1
@@ -151,17 +166,26 @@ def pooled_response(store: PhotonStore, b: Binning, tof_units: np.ndarray, signa
     t = store.times
     inwin = (t >= b.window_start) & (t < b.window_stop)
     kk = tof_units.shape[1]
-    ok = np.isfinite(tof_units) & (signal >= POOL_MIN_SIGNAL)
+    has = np.isfinite(tof_units)
+    sig = np.where(has, signal, 0.0)
+    # absorbed: within reach of an earlier, not absorbed surface and below ABSORB_SHARE of it
+    major = has.copy()
+    for r in range(1, kk):
+        for q in range(r):
+            near = major[:, q] & (tof_units[:, r] - tof_units[:, q] < right)
+            major[:, r] &= ~(near & (sig[:, r] < ABSORB_SHARE * sig[:, q]))
     for r in range(kk):
         tr = tof_units[:, r]
+        clean = major[:, r] & (sig[:, r] >= POOL_MIN_SIGNAL)
+        for q in range(r):
+            clean &= ~(major[:, q] & (tr - tof_units[:, q] < right))
         nxt = np.full(tr.shape, float(b.window_stop))
-        # the next surface's leading edge (any later surface, kept or not, ends the exposure)
         for s in range(kk - 1, r, -1):
             ts = tof_units[:, s]
-            nxt = np.where(np.isfinite(ts), ts - FLOOR_CORE[0] * core_u, nxt)
+            nxt = np.where(major[:, s], ts - FLOOR_CORE[0] * core_u, nxt)
         lo = np.maximum(tr - left, b.window_start)
         hi = np.minimum(np.minimum(nxt, tr + right), b.window_stop)
-        use = ok[:, r] & (hi > lo)
+        use = clean & (hi > lo)
         sel = inwin & use[pix] & (t >= lo[pix]) & (t < hi[pix])
         res = t[sel] - tr[pix[sel]]
         hist += np.histogram(res, bins=edges)[0]
@@ -205,11 +229,17 @@ def _measured_model(store: PhotonStore, settings: ReconSettings, b: Binning, ker
     """Re-measure the response on the surfaces of a first fit (module docstring): (kern, core_s)
     and the notes updated."""
     core_s = float(notes["pulse_core_rms_s"])
-    shift, amp, *_ = fit_surfaces(store, settings, b, kern, core_s)
+    # the first fit decides its surfaces by the test (up to max_reflectors, or K if more), whatever K
+    # was asked: the response is the instrument's, the same for every K, and a third surface a fixed
+    # K=2 leaves out would otherwise enter another's tail
+    first = dataclasses.replace(settings, reflectors="auto", max_reflectors=max(
+        settings.max_reflectors, settings.reflectors if settings.reflectors != "auto" else 1))
+    shift, amp, *_ = fit_surfaces(store, first, b, kern, core_s)
     has = np.isfinite(shift)
     tof_u = np.where(has, b.shift_to_time_s(np.nan_to_num(shift)), np.nan) / store.time_unit_s
     sig = np.where(has, amp * kern.colsum[np.clip(np.nan_to_num(shift).astype(np.int64), 0, b.n_bins - 1)], 0.0)
-    irf = pooled_response(store, b, tof_u, sig, core_s / store.time_unit_s)
+    irf = pooled_response(store, b, tof_u, sig, core_s / store.time_unit_s,
+                          REACH_RMS * kern.rms_bins * b.bin_width)
     kern = build_kernel(b, irf=irf)
     t, c = irf.arrays()
     core_s = max(edge_core_rms(c, float(t[1] - t[0])), 0.5 * float(t[1] - t[0]))
