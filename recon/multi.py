@@ -102,7 +102,8 @@ def kmax_and_gain(settings: ReconSettings, b: Binning, width_bins: float) -> tup
         return int(settings.max_reflectors), thr, (
             f"likelihood-ratio test, false-alarm rate {settings.false_alarm:g} per pixel and surface "
             f"(2 dlogL > {2 * thr:.2f})")
-    return int(settings.reflectors), LLR_MIN, f"fixed K={int(settings.reflectors)} (each surface > {LLR_MIN} nats)"
+    return int(settings.reflectors), LLR_MIN, (f"fixed K={int(settings.reflectors)} (each surface that raises the "
+                                               f"likelihood by more than {LLR_MIN:g} nats; weak ones flagged)")
 
 
 def _step0(core_bins: float) -> int:

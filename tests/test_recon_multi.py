@@ -255,3 +255,37 @@ def test_spatial_finds_the_weak_far_surface_where_pixelwise_cannot():
     print(f"weak far surface, both found: pixelwise {found['uos']:.1%}, spatial {found['spatial']:.1%}")
     assert found["spatial"] >= found["uos"] + 0.2
     assert found["spatial"] >= 0.8
+
+
+CHART = MD.DATA.parents[1] / "fpi" / "chart_depth.mat"
+
+
+@pytest.mark.skipif(not CHART.is_file(), reason=f"{CHART} absent")
+def test_auto_one_surface_on_the_simulated_bust_with_the_charts_measured_response():
+    # the check: the bust simulated with the response measured from the chart (pulse left
+    # to the program there and here), 15 detections per pixel: auto reports exactly one surface
+    from spdepth.acq.api import reconstruct_file
+    from spdepth.acq.requests import FileReconRequest
+    from spdepth.drivers.events import EventKind
+    from spdepth.drivers.sim import PhotonWorld, load_scene
+
+    irf = reconstruct_file(FileReconRequest(input=str(CHART), time_unit_s=UNIT_S)).maps.settings["irf"]
+    t = np.asarray(irf["times_s"])
+    h = w = 64
+    n = 15
+    scene = load_scene("bust", (h, w), ppp=n, irf=np.asarray(irf["counts"]), irf_bin_s=float(t[1] - t[0]))
+    world = PhotonWorld(scene, seed=3)
+    lists, sync = [], 0
+    for r in range(h):
+        for c in range(w):
+            ev, n_syncs = world.count_gated(r, c, n, 100 * scene.dwell_s, sync)
+            sync += n_syncs
+            lists.append(ev["dtime"][ev["kind"] == EventKind.PHOTON].astype(np.float64))
+    store = PhotonStore.from_lists(lists, (h, w), scene.resolution_s)
+    one = {}
+    for method in ("uos", "spatial"):
+        k = reconstruct(store, ReconSettings(method=method, reflectors="auto")).surfaces
+        one[method] = float(np.mean(k == 1))
+    print(f"simulated bust, chart's response: exactly one surface: pixelwise {one['uos']:.2%}, "
+          f"spatial {one['spatial']:.2%}")
+    assert one["uos"] >= 0.995 and one["spatial"] >= 0.98
