@@ -15,6 +15,7 @@ from spdepth.recon.photons import PhotonStore
 
 import multidepth as MD
 import reference as ref
+from sim_frames import count_gated_store
 
 UNIT_S = 8e-12
 RMS_U = 40.0
@@ -266,22 +267,12 @@ def test_auto_one_surface_on_the_simulated_bust_with_the_charts_measured_respons
     # to the program there and here), 15 detections per pixel: auto reports exactly one surface
     from spdepth.acq.api import reconstruct_file
     from spdepth.acq.requests import FileReconRequest
-    from spdepth.drivers.events import EventKind
-    from spdepth.drivers.sim import PhotonWorld, load_scene
+    from spdepth.drivers.sim import load_scene
 
     irf = reconstruct_file(FileReconRequest(input=str(CHART), time_unit_s=UNIT_S)).maps.settings["irf"]
     t = np.asarray(irf["times_s"])
-    h = w = 64
-    n = 15
-    scene = load_scene("bust", (h, w), ppp=n, irf=np.asarray(irf["counts"]), irf_bin_s=float(t[1] - t[0]))
-    world = PhotonWorld(scene, seed=3)
-    lists, sync = [], 0
-    for r in range(h):
-        for c in range(w):
-            ev, n_syncs = world.count_gated(r, c, n, 100 * scene.dwell_s, sync)
-            sync += n_syncs
-            lists.append(ev["dtime"][ev["kind"] == EventKind.PHOTON].astype(np.float64))
-    store = PhotonStore.from_lists(lists, (h, w), scene.resolution_s)
+    scene = load_scene("bust", (64, 64), ppp=15, irf=np.asarray(irf["counts"]), irf_bin_s=float(t[1] - t[0]))
+    store = count_gated_store(scene, 15, seed=3)
     one = {}
     for method in ("uos", "spatial"):
         k = reconstruct(store, ReconSettings(method=method, reflectors="auto")).surfaces
