@@ -471,7 +471,8 @@ class ReconSettings:
                     Gaussian.
     max_photons:    use only the first N in-window detections of each pixel (None: all).
     reflectors:     surfaces per pixel: 1, K > 1 (up to K, each kept when it raises the Poisson
-                    likelihood by more than recon.multi.LLR_MIN nats) or "auto" (decided per pixel
+                    likelihood by more than recon.multi.LLR_MIN = 2 nats, Akaike's criterion, and
+                    flagged weak when doubtful) or "auto" (decided per pixel
                     by a likelihood-ratio test at ``false_alarm``, up to ``max_reflectors``); K > 1
                     and auto fit every pixel by recon.multi's greedy Poisson pursuit (lmf, uos, ml)
                     or recon.multi's K-surface fit with the neighbours' help (spatial).

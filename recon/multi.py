@@ -4,9 +4,9 @@
 pursuit in the union of K shifted copies of the response plus a flat background
 (:mod:`recon.multi_kernels`): a surface is added where it raises the Poisson log-likelihood most,
 with its amplitude profiled out, then the amplitudes and background are refitted and the shifts
-re-refined. K fixed keeps up to K surfaces that each raise the likelihood by more than ``LLR_MIN``
-nats; "auto" keeps adding surfaces (up to ``max_reflectors``) while the likelihood-ratio test below
-rejects "no further surface" at the false-alarm rate asked for.
+re-refined. K fixed keeps up to K surfaces that each lower Akaike's criterion (``LLR_MIN``), the
+doubtful ones flagged weak; "auto" keeps adding surfaces (up to ``max_reflectors``) while the
+likelihood-ratio test below rejects "no further surface" at the false-alarm rate asked for.
 
 **The test** (auto): the statistic of a candidate surface is ``Lambda = 2 (log L1 - log L0)``, the
 log-likelihood ratio with its shift searched over the window and its amplitude (>= 0) profiled. At
@@ -19,15 +19,18 @@ A pixel whose first surface fails the test has none (flag NO_SIGNAL), not a back
 **The response** (when the settings give none): a single-surface response measured from data with
 two surfaces per pixel would be blurred by the second one, and a response that misses the detector's
 diffusion tail or the afterpulse bump turns them into surfaces. So the model is measured from the
-data in two rounds: fit K surfaces with the pulse measured by :mod:`recon.irf`, then pool every
-detection on the surface before it (up to the next surface's leading edge, counting for each lag
-how many surfaces were observed there, so a second surface never enters the first one's tail),
-subtract the flat floor and refit with that shape; the shape keeps the tail and any later bump as
-part of every return.
+data in two rounds: fit the surfaces with the pulse measured by :mod:`recon.irf` (their number
+decided by the test, up to max_reflectors whatever K was asked, so the response does not depend on
+K), then pool every detection on the surface before it (up to the next surface's leading edge,
+counting for each lag how many surfaces were observed there, so a second surface never enters the
+first one's tail; see :func:`pooled_response` for the surfaces that may be the first fit's
+phantoms), subtract the flat floor and refit with that shape; the shape keeps the tail and any later
+bump as part of every return.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Callable
 
@@ -42,8 +45,13 @@ from spdepth.recon.model import Binning, Irf, PulseKernel, ReconSettings, build_
 from spdepth.recon.photons import PhotonStore
 from spdepth.recon.pixelwise import binned_photons, honest_var, settings_record
 
-#: K fixed: a surface is kept when it raises the Poisson log-likelihood by more than this (nats).
-LLR_MIN = 3.0
+#: K fixed: a surface is kept when it raises the Poisson log-likelihood by more than this (nats):
+#: Akaike's criterion for its two parameters (shift, amplitude). The user gave the number, so the bar
+#: is the lowest standard one: a real surface of 2-3 detections gains 2-5 nats (with 3, the real
+#: two-surface file had one surface on 1.8% of its pixels, with 2 on 0.7%), while one cluster of 15
+#: detections without background is split in two on 1.7% of draws (31% with no bar at all); the weak
+#: flag (WEAK_FALSE_ALARM) says which surfaces background alone could have made.
+LLR_MIN = 2.0
 #: surfaces closer than this many FWHM of the response are one.
 SEP_FWHM = 1.0
 #: one candidate shift per this many core RMS widths of detections (the pattern search that refines
@@ -54,8 +62,12 @@ CAND_CORE = 1.0
 WEAK_FALSE_ALARM = 1e-6
 #: response pooling: lags before the leading edge used for the floor, in core RMS widths.
 FLOOR_CORE = (8.0, 25.0)
-#: response pooling: longest lag kept, in core RMS widths.
-MAX_LAG_CORE = 60.0
+#: response pooling: longest lag kept after a surface, in RMS widths of the first estimate of the
+#: response (tail included: a longer tail reaches farther); an afterpulse bump ~4 RMS later is kept.
+REACH_RMS = 10.0
+#: response pooling: a later surface within reach of an earlier one and below this share of its signal
+#: may be the earlier one's tail or bump, which the first fit's response lacks (pooled_response).
+ABSORB_SHARE = 0.25
 #: response pooling: it ends where its running mean (a window growing with the lag) falls below this
 #: many standard errors of the floor (as recon.irf does for one surface).
 CUT_SIGMAS = 2.0
@@ -91,7 +103,8 @@ def kmax_and_gain(settings: ReconSettings, b: Binning, width_bins: float) -> tup
         return int(settings.max_reflectors), thr, (
             f"likelihood-ratio test, false-alarm rate {settings.false_alarm:g} per pixel and surface "
             f"(2 dlogL > {2 * thr:.2f})")
-    return int(settings.reflectors), LLR_MIN, f"fixed K={int(settings.reflectors)} (each surface > {LLR_MIN} nats)"
+    return int(settings.reflectors), LLR_MIN, (f"fixed K={int(settings.reflectors)} (each surface that raises the "
+                                               f"likelihood by more than {LLR_MIN:g} nats; weak ones flagged)")
 
 
 def _step0(core_bins: float) -> int:
@@ -135,12 +148,22 @@ def fit_surfaces(store: PhotonStore, settings: ReconSettings, b: Binning, kern: 
 
 
 def pooled_response(store: PhotonStore, b: Binning, tof_units: np.ndarray, signal: np.ndarray,
-                    core_u: float) -> Irf:
+                    core_u: float, reach_u: float) -> Irf:
     """The response pooled on each pixel's surfaces (module docstring). tof_units: (P, K) surface
-    times in raw units, sorted, NaN past the last; signal: (P, K) expected signal detections."""
+    times in raw units, sorted, NaN past the last; signal: (P, K) expected signal detections;
+    core_u: the sharp part's RMS (the lag step and the leading edge); reach_u: how far after a
+    surface its response may still hold another (raw units, from the first estimate).
+
+    A later surface smaller than ABSORB_SHARE of an earlier one within reach_u may be that one's
+    tail or bump fitted as a surface (the first fit's response lacks them): it neither ends the
+    earlier one's span nor is pooled on. A surface's span starts after the previous surface's
+    leading part and ends before the next one's leading edge (FLOOR_CORE[0] core RMS from each)."""
     step = max(1.0, round(core_u / 4.0)) if np.all(np.mod(store.times, 1) == 0) else core_u / 4.0
     left = FLOOR_CORE[1] * core_u
-    right = min(MAX_LAG_CORE * core_u, float(b.window_stop - b.window_start))
+    # lags pooled: up to half the window (a later surface's floor region ends a span sooner); the
+    # response ends where the pooled rate stops being significant (below), not at a fixed lag that
+    # would cut an afterpulse bump of a short pulse (the mannequin's, ~15 core RMS later) in half
+    right = 0.5 * float(b.window_stop - b.window_start)
     nl, nr_ = int(math.ceil(left / step)), int(math.ceil(right / step))
     edges = (np.arange(-nl, nr_ + 1) - 0.5) * step
     nb = edges.size - 1
@@ -151,17 +174,25 @@ def pooled_response(store: PhotonStore, b: Binning, tof_units: np.ndarray, signa
     t = store.times
     inwin = (t >= b.window_start) & (t < b.window_stop)
     kk = tof_units.shape[1]
-    ok = np.isfinite(tof_units) & (signal >= POOL_MIN_SIGNAL)
+    has = np.isfinite(tof_units)
+    sig = np.where(has, signal, 0.0)
+    # absorbed: within reach of an earlier, not absorbed surface and below ABSORB_SHARE of it
+    major = has.copy()
+    for r in range(1, kk):
+        for q in range(r):
+            near = major[:, q] & (tof_units[:, r] - tof_units[:, q] < reach_u)
+            major[:, r] &= ~(near & (sig[:, r] < ABSORB_SHARE * sig[:, q]))
     for r in range(kk):
         tr = tof_units[:, r]
         nxt = np.full(tr.shape, float(b.window_stop))
-        # the next surface's leading edge (any later surface, kept or not, ends the exposure)
         for s in range(kk - 1, r, -1):
-            ts = tof_units[:, s]
-            nxt = np.where(np.isfinite(ts), ts - FLOOR_CORE[0] * core_u, nxt)
-        lo = np.maximum(tr - left, b.window_start)
+            nxt = np.where(major[:, s], tof_units[:, s] - FLOOR_CORE[0] * core_u, nxt)
+        prv = np.full(tr.shape, float(b.window_start))
+        for q in range(r):
+            prv = np.where(major[:, q], tof_units[:, q] + FLOOR_CORE[0] * core_u, prv)
+        lo = np.maximum(tr - left, prv)
         hi = np.minimum(np.minimum(nxt, tr + right), b.window_stop)
-        use = ok[:, r] & (hi > lo)
+        use = major[:, r] & (sig[:, r] >= POOL_MIN_SIGNAL) & (hi > lo)
         sel = inwin & use[pix] & (t >= lo[pix]) & (t < hi[pix])
         res = t[sel] - tr[pix[sel]]
         hist += np.histogram(res, bins=edges)[0]
@@ -205,11 +236,17 @@ def _measured_model(store: PhotonStore, settings: ReconSettings, b: Binning, ker
     """Re-measure the response on the surfaces of a first fit (module docstring): (kern, core_s)
     and the notes updated."""
     core_s = float(notes["pulse_core_rms_s"])
-    shift, amp, *_ = fit_surfaces(store, settings, b, kern, core_s)
+    # the first fit decides its surfaces by the test (up to max_reflectors, or K if more), whatever K
+    # was asked: the response is the instrument's, the same for every K, and a third surface a fixed
+    # K=2 leaves out would otherwise enter another's tail
+    first = dataclasses.replace(settings, reflectors="auto", max_reflectors=max(
+        settings.max_reflectors, settings.reflectors if settings.reflectors != "auto" else 1))
+    shift, amp, *_ = fit_surfaces(store, first, b, kern, core_s)
     has = np.isfinite(shift)
     tof_u = np.where(has, b.shift_to_time_s(np.nan_to_num(shift)), np.nan) / store.time_unit_s
     sig = np.where(has, amp * kern.colsum[np.clip(np.nan_to_num(shift).astype(np.int64), 0, b.n_bins - 1)], 0.0)
-    irf = pooled_response(store, b, tof_u, sig, core_s / store.time_unit_s)
+    irf = pooled_response(store, b, tof_u, sig, core_s / store.time_unit_s,
+                          REACH_RMS * kern.rms_bins * b.bin_width)
     kern = build_kernel(b, irf=irf)
     t, c = irf.arrays()
     core_s = max(edge_core_rms(c, float(t[1] - t[0])), 0.5 * float(t[1] - t[0]))

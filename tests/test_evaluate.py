@@ -10,13 +10,13 @@ import pytest
 
 from spdepth.acq.evaluate import (OUTLIER_PULSE_WIDTHS, DepthErrors, evaluate_depth, oracle_mae_m,
                           signal_detections)
-from spdepth.drivers.events import EventKind
-from spdepth.drivers.sim import PhotonWorld, load_scene
+from spdepth.drivers.sim import load_scene
 from spdepth.recon.errors import InputError
 from spdepth.recon.estimate import reconstruct
 from spdepth.recon.maps import C_M_PER_S
 from spdepth.recon.model import Binning, ReconSettings
-from spdepth.recon.photons import PhotonStore
+
+from sim_frames import count_gated_store
 
 SIGMA_S = 2 / C_M_PER_S      # a pulse whose RMS width is exactly 1 m of depth
 
@@ -97,14 +97,7 @@ def test_ml_lands_near_the_per_pixel_oracle_on_a_simulated_scene():
     h = w = 32
     n, bins, bin_s = 15, 801, 40e-12
     scene = load_scene("bust", (h, w), ppp=n, sbr=10, tagger_range_s=bins * bin_s)
-    world = PhotonWorld(scene, seed=11)
-    lists, sync = [], 0
-    for r in range(h):
-        for c in range(w):
-            ev, n_syncs = world.count_gated(r, c, n, 100 * scene.dwell_s, sync)
-            sync += n_syncs
-            lists.append(ev["dtime"][ev["kind"] == EventKind.PHOTON].astype(np.float64))
-    store = PhotonStore.from_lists(lists, (h, w), scene.resolution_s)
+    store = count_gated_store(scene, n, seed=11)
     unit = round(bin_s / scene.resolution_s)
     binning = Binning(scene.resolution_s, 0, bins * unit, unit)
     maps = reconstruct(store, ReconSettings(method="ml", binning=binning,

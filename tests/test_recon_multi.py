@@ -15,6 +15,7 @@ from spdepth.recon.photons import PhotonStore
 
 import multidepth as MD
 import reference as ref
+from sim_frames import count_gated_store
 
 UNIT_S = 8e-12
 RMS_U = 40.0
@@ -127,19 +128,35 @@ def test_real_two_surface_file_scored_beside_the_naive_baseline():
     cell, t1, t2 = MD.load()
     r1, r2, _ = MD.references(cell, t1, t2)
     naive = MD.score(MD.naive_baseline(cell), r1, r2)
-    scores = {}
-    for method, refl in (("uos", 2), ("spatial", 2), ("uos", "auto")):
+    # pixels where both surfaces hold at least 6 detections (within the tolerance of the re-centred
+    # maps): there the test of auto can see both; on the rest the first surface has 0-5
+    near = [np.array([[np.sum(np.abs(np.ravel(cell[i, j]) - r[i, j]) < MD.TOL_UNITS) for j in range(r.shape[1])]
+                      for i in range(r.shape[0])]) for r in (r1, r2)]
+    seen = (near[0] >= 6) & (near[1] >= 6)
+    scores, seen_scores = {}, {}
+    for method, refl in (("uos", 2), ("spatial", 2), ("uos", "auto"), ("spatial", "auto")):
         res = reconstruct_file(FileReconRequest(input=str(MD.DATA), method=method, time_unit_s=UNIT_S,
                                                 window_s=(24e-9, 56e-9), reflectors=refl))
         scores[method, refl] = MD.score(res.maps.tof_s / UNIT_S, r1, r2)
+        seen_scores[method, refl] = MD.score(res.maps.tof_s / UNIT_S, r1, r2, seen)
     print(f"\nnaive baseline: {naive}")
     for key, sc in scores.items():
         print(f"{key[0]} --reflectors {key[1]}: {sc}")
+        print(f"   on the {seen.sum()} pixels with >= 6 detections on both: both {seen_scores[key]['both']:.1%}")
     ours, spatial = scores["uos", 2], scores["spatial", 2]
+    auto, sp_auto = scores["uos", "auto"], scores["spatial", "auto"]
     assert naive["both"] > 0.85
-    assert ours["both"] >= naive["both"]
-    assert ours["first"] >= naive["first"] - 0.01 and ours["second"] >= naive["second"] - 0.01
-    assert spatial["both"] >= ours["both"] and spatial["first"] >= ours["first"]
+    # the achieved levels (the calibrated second map lies between two clusters on the object's
+    # outline, ~6% of the pixels, which bounds "second" near 94% for any estimate on a cluster)
+    assert ours["both"] >= 0.90 and ours["both"] > naive["both"]
+    assert ours["first"] >= naive["first"] and ours["second"] >= naive["second"] - 0.005
+    assert spatial["both"] >= 0.915 and spatial["first"] >= 0.98
+    assert sp_auto["both"] >= 0.93 and sp_auto["first"] >= 0.995
+    # auto at a 1e-3 false-alarm rate cannot take a first surface of 2-5 detections on its own
+    # (its statistic is 4-9 nats, the test asks 8.2), the neighbours can; where the pixel holds 6
+    # or more on both, auto is not worse than fixed K=2
+    assert auto["both"] >= 0.77 and auto["second"] >= ours["second"]
+    assert seen_scores["uos", "auto"]["both"] >= seen_scores["uos", 2]["both"]
 
 
 def test_auto_no_phantom_from_a_measured_tail():
@@ -239,3 +256,27 @@ def test_spatial_finds_the_weak_far_surface_where_pixelwise_cannot():
     print(f"weak far surface, both found: pixelwise {found['uos']:.1%}, spatial {found['spatial']:.1%}")
     assert found["spatial"] >= found["uos"] + 0.2
     assert found["spatial"] >= 0.8
+
+
+CHART = MD.DATA.parents[1] / "fpi" / "chart_depth.mat"
+
+
+@pytest.mark.skipif(not CHART.is_file(), reason=f"{CHART} absent")
+def test_auto_one_surface_on_the_simulated_bust_with_the_charts_measured_response():
+    # the check: the bust simulated with the response measured from the chart (pulse left
+    # to the program there and here), 15 detections per pixel: auto reports exactly one surface
+    from spdepth.acq.api import reconstruct_file
+    from spdepth.acq.requests import FileReconRequest
+    from spdepth.drivers.sim import load_scene
+
+    irf = reconstruct_file(FileReconRequest(input=str(CHART), time_unit_s=UNIT_S)).maps.settings["irf"]
+    t = np.asarray(irf["times_s"])
+    scene = load_scene("bust", (64, 64), ppp=15, irf=np.asarray(irf["counts"]), irf_bin_s=float(t[1] - t[0]))
+    store = count_gated_store(scene, 15, seed=3)
+    one = {}
+    for method in ("uos", "spatial"):
+        k = reconstruct(store, ReconSettings(method=method, reflectors="auto")).surfaces
+        one[method] = float(np.mean(k == 1))
+    print(f"simulated bust, chart's response: exactly one surface: pixelwise {one['uos']:.2%}, "
+          f"spatial {one['spatial']:.2%}")
+    assert one["uos"] >= 0.995 and one["spatial"] >= 0.98
