@@ -292,3 +292,222 @@ def pack_events(sync, t, origin, res_s, range_bins, channel, m_sync, m_bits,
         j += 1
     return n
 
+
+
+@njit(cache=True, nogil=True)
+def start_at_kernel(state_i, pend_sync, pend_t, pend_item, sync):
+    """The detector forgets what cannot affect detections from ``sync`` on: pending afterpulses
+    that would have fired before it (nobody was listening), and everything when time went
+    backwards. State arrays as in ``detector_kernel``."""
+    if state_i[0] != 0 and state_i[1] > sync:
+        state_i[0] = 0
+        state_i[1] = 0
+        state_i[2] = 0
+        return
+    m = 0
+    for q in range(state_i[2]):
+        if pend_sync[q] >= sync:
+            pend_sync[m] = pend_sync[q]
+            pend_t[m] = pend_t[q]
+            pend_item[m] = pend_item[q]
+            m += 1
+    state_i[2] = m
+
+
+@njit(cache=True, nogil=True)
+def _grow(a, need):
+    """``a`` itself when it holds ``need`` items, else a copy at least twice as long."""
+    if a.size >= need:
+        return a
+    b = np.empty(max(need, 2 * a.size), a.dtype)
+    b[:a.size] = a
+    return b
+
+
+@njit(cache=True, nogil=True)
+def dwell_run(rng, pix, n_target, limit, settle, off_syncs, start_sync, stop_s,
+              sig_pp, tof_s, bg_pp, lam, period_s,
+              pulse_kind, rms_s, irf_cdf, irf_t0_s, irf_bin_s,
+              jitter_rms_s, sequential, dead_s, ap_prob, ap_tau_s,
+              state_i, state_t, pend_sync, pend_t, pend_item,
+              res_s, range_bins, win_lo, win_hi, capacity,
+              starts, n_syncs, counts):
+    """Dwells on a list of pixels one after another, as a scanner holding the mirror on each: the
+    whole per-pixel pipeline (generation, jitter, detector, count gate) in one call, so a scan
+    line costs one call instead of one per pixel. Each pixel gets exactly the random draws a call
+    for that pixel alone would take, in the same order, so a run equals its pixels one by one.
+
+    pix (n,) int64 pixel indices into the rate tables, -1 for a pixel off the scene (nothing
+    returns; it takes ``off_syncs``). ``settle`` syncs pass before every pixel but the first
+    (which starts at ``start_sync``). Fixed dwell (``n_target`` 0): each pixel takes ``limit``
+    syncs. Count-gated: each pixel runs until the detection that brings its count (detections
+    recorded, dtime < range_bins, inside [win_lo, win_hi) tagger units) to ``n_target``, or
+    ``limit`` syncs; the next pixel starts at the sync after. Generation goes in chunks sized from
+    the rate seen so far (an exponential gap running past a chunk's end is dropped, and the
+    process resumes at the chunk's end: exact, since gaps are memoryless).
+
+    Effects: ``jitter_rms_s`` > 0 jitters every time; ``sequential`` runs ``detector_kernel``
+    (``dead_s``, ``ap_prob``, ``ap_tau_s``) on the detector state arrays, which carry over from
+    call to call. The run stops early after the first pixel that ends (plus the settle after it)
+    at or after virtual time ``stop_s``, so a fault due then fires at that pixel.
+
+    Writes per pixel ``starts`` (first sync), ``n_syncs`` and ``counts`` (detections the tagger
+    records); returns (pixels done, sync, t, origin) of the detections, sorted by (sync, t).
+    ``capacity`` is a first guess of the number of detections (the arrays grow as needed).
+    """
+    n_pix = pix.size
+    out_sync = np.empty(capacity, np.int64)
+    out_t = np.empty(capacity, np.float64)
+    out_origin = np.empty(capacity, np.uint8)
+    n_out = 0
+    # one pixel's chunk of ideal detections, and the detector's output
+    g_cap = 4096
+    g_sync = np.empty(g_cap, np.int64)
+    g_t = np.empty(g_cap, np.float64)
+    g_origin = np.empty(g_cap, np.uint8)
+    g_item = np.empty(g_cap, np.int32)
+    d_sync = np.empty(0, np.int64)
+    d_t = np.empty(0, np.float64)
+    d_origin = np.empty(0, np.uint8)
+    d_item = np.empty(0, np.int32)
+    saved_i = np.empty(3, np.int64)
+    saved_t = np.empty(1, np.float64)
+    saved_ps = np.empty(pend_sync.size, np.int64)
+    saved_pt = np.empty(pend_sync.size, np.float64)
+    saved_pi = np.empty(pend_sync.size, np.int32)
+    one_pix = np.zeros(1, np.int64)
+    one_start = np.zeros(1, np.int64)
+    one_n = np.zeros(1, np.int64)
+    s = start_sync
+    done_pixels = 0
+    for j in range(n_pix):
+        if j > 0:
+            s += settle
+        starts[j] = s
+        p = pix[j]
+        if p < 0:
+            n_syncs[j] = off_syncs
+            counts[j] = 0
+            s += off_syncs
+        else:
+            start_at_kernel(state_i, pend_sync, pend_t, pend_item, s)
+            one_pix[0] = p
+            gated = n_target > 0
+            done = 0          # syncs generated so far
+            counted = 0
+            reached = -1
+            rate = lam[p]     # counted detections per sync, refined as we go
+            recorded = 0
+            while done < limit and (not gated or counted < n_target):
+                need = n_target - counted
+                if not gated:
+                    chunk = limit
+                elif rate > 0.0:
+                    f = need / rate * 1.25 + 16
+                    chunk = limit - done if f >= limit - done else max(np.int64(f), 16)
+                else:
+                    chunk = limit
+                chunk = min(max(chunk, 16) if gated else chunk, limit - done)
+                s0 = s + done
+                # ideal detections of the chunk (generate_chain resumes where the buffer filled)
+                expected = lam[p] * chunk
+                g_need = np.int64(expected + 6.0 * np.sqrt(expected) + 64)
+                if g_cap < g_need:
+                    g_cap = max(g_need, 2 * g_cap)
+                    g_sync = np.empty(g_cap, np.int64)
+                    g_t = np.empty(g_cap, np.float64)
+                    g_origin = np.empty(g_cap, np.uint8)
+                    g_item = np.empty(g_cap, np.int32)
+                one_start[0] = s0
+                one_n[0] = chunk
+                n_g = 0
+                i_next = 0
+                u_next = 0.0
+                while True:
+                    n_new, i_next, u_next = generate_chain(
+                        rng, one_pix, one_start, one_n, i_next, u_next, sig_pp, tof_s, bg_pp,
+                        period_s, pulse_kind, rms_s, irf_cdf, irf_t0_s, irf_bin_s,
+                        g_sync[n_g:], g_t[n_g:], g_origin[n_g:], g_item[n_g:])
+                    n_g += n_new
+                    if i_next >= 1:
+                        break
+                    g_cap *= 2
+                    g_sync = _grow(g_sync, g_cap)
+                    g_t = _grow(g_t, g_cap)
+                    g_origin = _grow(g_origin, g_cap)
+                    g_item = _grow(g_item, g_cap)
+                b_sync = g_sync[:n_g]
+                b_t = g_t[:n_g]
+                b_origin = g_origin[:n_g]
+                b_item = g_item[:n_g]
+                sort_within_sync(b_sync, b_t, b_origin, b_item)
+                if jitter_rms_s > 0.0:
+                    jitter_kernel(rng, b_t, jitter_rms_s, period_s)
+                    sort_within_sync(b_sync, b_t, b_origin, b_item)
+                if sequential:
+                    # the capacity effects._Sequential starts with
+                    d_need = n_g + np.int64(n_g * 3 * ap_prob / (1.0 - ap_prob)) + pend_sync.size + 64
+                    saved_i[:] = state_i
+                    saved_t[:] = state_t
+                    saved_ps[:] = pend_sync
+                    saved_pt[:] = pend_t
+                    saved_pi[:] = pend_item
+                    while True:
+                        if d_sync.size < d_need:
+                            d_sync = np.empty(d_need, np.int64)
+                            d_t = np.empty(d_need, np.float64)
+                            d_origin = np.empty(d_need, np.uint8)
+                            d_item = np.empty(d_need, np.int32)
+                        n_d, got = detector_kernel(
+                            rng, b_sync, b_t, b_origin, b_item, period_s, dead_s, ap_prob,
+                            ap_tau_s, state_i, state_t, pend_sync, pend_t, pend_item, s0 + chunk,
+                            need if gated else 0, res_s, range_bins, win_lo, win_hi,
+                            d_sync, d_t, d_origin, d_item)
+                        if n_d >= 0:
+                            break
+                        # an afterpulse cascade overflowed the guess: again with room to spare
+                        state_i[:] = saved_i
+                        state_t[:] = saved_t
+                        pend_sync[:] = saved_ps
+                        pend_t[:] = saved_pt
+                        pend_item[:] = saved_pi
+                        d_need = 2 * d_sync.size
+                    b_sync = d_sync[:n_d]
+                    b_t = d_t[:n_d]
+                    b_origin = d_origin[:n_d]
+                    if gated and got >= need:
+                        reached = b_sync[n_d - 1]
+                    n_b = n_d
+                else:
+                    n_b = n_g
+                    got = 0
+                    if gated:
+                        for q in range(n_g):
+                            if _counted(b_t[q], res_s, range_bins, win_lo, win_hi):
+                                got += 1
+                                if got >= need:
+                                    n_b = q + 1
+                                    reached = b_sync[q]
+                                    break
+                if n_out + n_b > out_sync.size:
+                    out_sync = _grow(out_sync, n_out + n_b)
+                    out_t = _grow(out_t, n_out + n_b)
+                    out_origin = _grow(out_origin, n_out + n_b)
+                for q in range(n_b):
+                    out_sync[n_out] = b_sync[q]
+                    out_t[n_out] = b_t[q]
+                    out_origin[n_out] = b_origin[q]
+                    if np.int64(b_t[q] / res_s) < range_bins:
+                        recorded += 1
+                    n_out += 1
+                counted += got
+                done += chunk
+                if gated and counted < n_target:
+                    rate = max(counted / done, 0.5 * rate) if counted else rate / 4
+            n_syncs[j] = reached - s + 1 if reached >= 0 else limit
+            counts[j] = recorded
+            s += n_syncs[j]
+        done_pixels = j + 1
+        if (s + settle) * period_s >= stop_s:
+            break
+    return done_pixels, out_sync[:n_out], out_t[:n_out], out_origin[:n_out]
