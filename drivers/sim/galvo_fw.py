@@ -17,6 +17,7 @@ is due; a servo fault aborts the scan and latches FAULT.
 from __future__ import annotations
 
 import logging
+import math
 import re
 import threading
 import time
@@ -614,45 +615,50 @@ class GalvoFirmware:
     def _scan_main(self, cfg: _Settings, stop: threading.Event) -> None:
         rig = self.rig
         p, g = cfg.pattern, cfg.gate
+        gated = g.mode == GateMode.COUNT
+        settle_s = cfg.settle_ns * 1e-9
+        x_codes = [p.x_code(col) for col in range(p.nx)]
+        x_deg = np.array([self._deg(x, ZERO_CODE)[0] for x in x_codes])
         line_open = False
         try:
             frame = 0
             while (cfg.frames == 0 or frame < cfg.frames) and not stop.is_set():
                 for row in range(p.ny):
-                    cols = range(p.nx)
+                    cols = np.arange(p.nx)
                     if p.mode == ScanMode.SERPENTINE and row % 2 == 1:
-                        cols = range(p.nx - 1, -1, -1)
-                    for j, col in enumerate(cols):
-                        if stop.is_set():
-                            break
-                        x, y = p.x_code(col), p.y_code(row)
-                        with self._lock:
-                            self._pos = (x, y)
-                            self._cur = (frame, row, col)
-                        rig.set_mirror(*self._deg(x, y))
-                        if cfg.settle_ns:
-                            rig.wait(cfg.settle_ns * 1e-9)
-                        mask = int(Marker.PIXEL)
+                        cols = cols[::-1]
+                    y = p.y_code(row)
+                    y_deg = self._deg(ZERO_CODE, y)[1]
+                    # the line's pixels go to the rig in runs: as many as no fault, stop or pace
+                    # needs to see pixel by pixel (see _run_length)
+                    j = 0
+                    while j < cols.size and not stop.is_set():
+                        run = cols[j:j + self._run_length(cols.size - j)]
+                        bits = np.full(run.size, Marker.PIXEL, np.uint8)
                         if j == 0:
-                            mask |= Marker.LINE_START
-                            if row == 0:
-                                mask |= Marker.FRAME
-                        rig.pulse_markers(mask)
-                        line_open = True
-                        if g.mode == GateMode.COUNT:
-                            count, elapsed_s = rig.count_gated_dwell(g.n_target, g.dwell_ns * 1e-9)
-                            flag = "G" if count >= g.n_target else "L"
-                        else:
-                            count, elapsed_s = rig.fixed_dwell(g.dwell_ns * 1e-9)
-                            flag = "F"
+                            bits[0] |= Marker.LINE_START | (Marker.FRAME if row == 0 else 0)
                         with self._lock:
-                            self._log_append((frame, row, col, int(count),
-                                              int(round(elapsed_s * 1e9)), flag))
-                            self._completed += 1
+                            self._pos = (x_codes[run[0]], y)
+                            self._cur = (frame, row, int(run[0]))
+                        done, counts, elapsed = rig.scan_run(
+                            x_deg[run], np.full(run.size, y_deg), bits, dwell_s=g.dwell_ns * 1e-9,
+                            n_target=g.n_target if gated else None, settle_s=settle_s,
+                            stop_s=self._next_fault_s())
+                        line_open = True
+                        with self._lock:
+                            for col, count, el in zip(run[:done].tolist(), counts.tolist(),
+                                                      elapsed.tolist()):
+                                flag = ("G" if count >= g.n_target else "L") if gated else "F"
+                                self._log_append((frame, row, col, count, int(round(el * 1e9)),
+                                                  flag))
+                            self._completed += done
+                            self._pos = (x_codes[run[done - 1]], y)
+                            self._cur = (frame, row, int(run[done - 1]))
                             self._take_faults()
                             self._notify()
                         if self.pace > 0:
-                            stop.wait((elapsed_s + cfg.settle_ns * 1e-9) * self.pace)
+                            stop.wait((float(elapsed[-1]) + settle_s) * self.pace)
+                        j += done
                     if line_open:
                         rig.pulse_markers(Marker.LINE_STOP)
                         line_open = False
@@ -674,6 +680,30 @@ class GalvoFirmware:
                 rig.set_mirror(*self._deg(*cfg.park))
                 self._state = GalvoState.PARKED
             self._notify()
+
+    def _run_length(self, left: int) -> int:
+        """Pixels the next run may hold (at most ``left``): one when paced (each pixel takes its
+        own wall time), else up to the pixel at which a scan-fraction fault falls due, so it
+        fires after that pixel as it would pixel by pixel. (Time faults end a run through
+        ``_next_fault_s``.)"""
+        if self.pace > 0:
+            return 1
+        n = left
+        denom = self._total or self._per_frame
+        for f in self.faults.pending:
+            if f.at_fraction is None or not denom:
+                continue
+            c = max(self._completed + 1, math.ceil(f.at_fraction * denom))
+            while c > self._completed + 1 and (c - 1) / denom >= f.at_fraction:
+                c -= 1
+            while c / denom < f.at_fraction:
+                c += 1
+            n = min(n, c - self._completed)
+        return max(1, n)
+
+    def _next_fault_s(self) -> float:
+        """Virtual time of the earliest galvo fault still to fire at a time (inf: none)."""
+        return min((f.at_s for f in self.faults.pending if f.at_s is not None), default=math.inf)
 
     def _log_append(self, rec: tuple) -> None:
         if len(self._log) == self._log.maxlen:

@@ -9,6 +9,7 @@ drains the FIFO. Nothing here knows about bytes on wires.
 
 from __future__ import annotations
 
+import math
 import threading
 from collections import deque
 from dataclasses import dataclass
@@ -30,12 +31,17 @@ class FieldOfView:
 
     def pixel_of(self, x_deg: float, y_deg: float, shape: tuple[int, int]) -> tuple[int, int] | None:
         """The (row, col) the mirror points at, or None when it points outside the scene."""
+        p = int(self.pixels_of(np.array([x_deg], np.float64), np.array([y_deg], np.float64),
+                               shape)[0])
+        return None if p < 0 else divmod(p, shape[1])
+
+    def pixels_of(self, x_deg: np.ndarray, y_deg: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+        """Flat scene pixel (row * W + col) under each mirror position, -1 outside the scene."""
         h, w = shape
-        col = int(np.floor((x_deg - self.x_min_deg) / (self.x_max_deg - self.x_min_deg) * w))
-        row = int(np.floor((y_deg - self.y_min_deg) / (self.y_max_deg - self.y_min_deg) * h))
-        if 0 <= row < h and 0 <= col < w:
-            return row, col
-        return None
+        col = np.floor((x_deg - self.x_min_deg) / (self.x_max_deg - self.x_min_deg) * w)
+        row = np.floor((y_deg - self.y_min_deg) / (self.y_max_deg - self.y_min_deg) * h)
+        inside = (row >= 0) & (row < h) & (col >= 0) & (col < w)
+        return np.where(inside, row * w + col, -1).astype(np.int64)
 
     def centre_deg(self, row: int, col: int, shape: tuple[int, int]) -> tuple[float, float]:
         """Mirror angles (x_deg, y_deg) of the centre of pixel (row, col)."""
@@ -153,6 +159,87 @@ class SimRig:
                 return 0, dwell_s
             events, n_syncs = self.world.fixed_dwell(pix[0], pix[1], float(dwell_s), self._sync)
             return self._dwell_done(pix, events, n_syncs)
+
+    def scan_run(self, x_deg: np.ndarray, y_deg: np.ndarray, marker_bits: np.ndarray, *,
+                 dwell_s: float, n_target: int | None = None, settle_s: float = 0.0,
+                 stop_s: float = math.inf) -> tuple[int, np.ndarray, np.ndarray]:
+        """What the galvo controller does for a run of pixels, in one step: for each pixel it
+        moves the mirror to (x_deg, y_deg), waits ``settle_s``, pulses ``marker_bits`` and dwells
+        (``count_gated_dwell`` with ``n_target``, else ``fixed_dwell``), exactly as those calls
+        one by one would, but with one call into the world for the whole run.
+
+        The run ends early after the first pixel that ends (with the settle after it) at or after
+        virtual time ``stop_s`` (a fault due then), and before any pixel whose PIXEL pulse would
+        fire a scheduled FIFO loss, so every fault hits the pixel it would hit pixel by pixel.
+        Returns (pixels done, detector pulses counted per pixel, elapsed seconds per pixel)."""
+        period = self.world.sync_period_s
+        with self._lock:
+            self.set_mirror(x_deg[0], y_deg[0])
+            self.wait(settle_s)
+            self.pixels_pulsed += 1          # the first pixel's pulse; its photons follow
+            self._fire_scheduled_losses()
+            n = len(x_deg)
+            for kind, at, _ in self._scheduled_losses:
+                if kind == "pixel":          # pulse j of the run makes pixels_pulsed + j
+                    n = min(n, max(1, math.ceil(at) - self.pixels_pulsed))
+                else:
+                    stop_s = min(stop_s, at)
+            pix = self.fov.pixels_of(np.asarray(x_deg[:n], np.float64),
+                                     np.asarray(y_deg[:n], np.float64), self.world.shape)
+            run = self._world_run(pix, dwell_s, n_target,
+                                  max(0, int(round(settle_s / period))),
+                                  max(0, int(round(dwell_s / period))), stop_s,
+                                  np.asarray(marker_bits[:n], np.uint8))
+            done = run.n_done
+            self.pixels_pulsed += done - 1
+            self._mirror_deg = (float(x_deg[done - 1]), float(y_deg[done - 1]))
+            if self.truth is not None and self.tagger_running:
+                opens = np.flatnonzero(run.events["kind"] == EventKind.MARKER)
+                ends = np.append(opens[1:], run.events.size)
+                h, w = self.world.shape
+                for j in np.flatnonzero(pix[:done] >= 0):
+                    r, c = divmod(int(pix[j]), w)
+                    self.truth.append((r, c, run.events[opens[j] + 1:ends[j]].copy()))
+            self._push(run.events)
+            self._sync = int(run.starts[-1] + run.n_syncs[-1])
+            self._fire_scheduled_losses()
+            # an off-scene pixel waited the dwell (limit) itself, as count_gated_dwell reports it
+            elapsed = np.where(pix[:done] >= 0, run.n_syncs * period, float(dwell_s))
+            return done, run.counts, elapsed
+
+    def _world_run(self, pix, dwell_s, n_target, settle, off_syncs, stop_s, bits):
+        """The world's ``dwell_run`` over flat pixels ``pix``; a world that only answers pixel by
+        pixel (``count_gated`` / ``fixed_dwell``, e.g. a test double) is asked pixel by pixel."""
+        if hasattr(self.world, "dwell_run"):
+            return self.world.dwell_run(pix, self._sync, dwell_s, n_target=n_target,
+                                        settle_syncs=settle, off_syncs=off_syncs, stop_s=stop_s,
+                                        marker_bits=bits)
+        from spdepth.drivers.sim.world import DwellRun
+
+        w = self.world.shape[1]
+        s = self._sync
+        parts, starts, n_syncs, counts = [], [], [], []
+        for j, p in enumerate(pix):
+            s += settle if j else 0
+            mark = np.zeros(1, dtype=EVENT_DTYPE)
+            mark["sync"], mark["kind"], mark["marker"] = s, EventKind.MARKER, bits[j]
+            parts.append(mark)
+            if p < 0:
+                n, ev = off_syncs, mark[:0]
+            elif n_target is None:
+                ev, n = self.world.fixed_dwell(int(p) // w, int(p) % w, float(dwell_s), s)
+            else:
+                ev, n = self.world.count_gated(int(p) // w, int(p) % w, int(n_target),
+                                               float(dwell_s), s)
+            parts.append(ev)
+            starts.append(s)
+            n_syncs.append(int(n))
+            counts.append(int(ev.size))
+            s += int(n)
+            if (s + settle) * self.world.sync_period_s >= stop_s:
+                break
+        return DwellRun(np.concatenate(parts), None, np.array(starts, np.int64),
+                        np.array(n_syncs, np.int64), np.array(counts, np.int64))
 
     def _dwell_done(self, pix: tuple[int, int], events: np.ndarray, n_syncs: int) -> tuple[int, float]:
         if self.truth is not None and self.tagger_running:
