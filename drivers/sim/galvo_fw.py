@@ -3,8 +3,10 @@
 ``GalvoFirmware`` is the whole controller: it parses command lines byte for byte, keeps the
 controller's state (position, limits, pattern, gate, error queue, pixel log), and runs scans in
 its own thread against a ``drivers.sim.rig.SimRig`` in virtual time: for every pixel it moves the
-mirror, settles, pulses the marker lines and dwells (count-gated or fixed). ``pace`` slows the
-thread down to watchable speed (real seconds per virtual second; 0 = as fast as it goes).
+mirror, settles, pulses the marker lines and dwells (count-gated or fixed), handing the rig runs
+of a line's pixels at once (``SimRig.scan_run``) wherever nothing needs to see the pixels one by
+one. ``pace`` slows the thread down to watchable speed (real seconds per virtual second; 0 = as
+fast as the host takes the data: the scan waits for room in the tagger's FIFO).
 
 Its serial side (``host_write`` / ``host_read``) is what the two links attach to: the pyserial
 URL handler ``galvosim://`` (drivers/sim/protocol_galvosim.py) and a pty pair
@@ -46,6 +48,9 @@ ZERO_CODE = 32768
 UDEG_PER_CODE = 40e6 / 65536
 """Full DAC range spans +-20 optical degrees: 610.3515625 micro-degrees per code."""
 ERROR_QUEUE_DEPTH = 16
+FIFO_STALL_S = 1.0
+"""An unpaced scan waits for room in the tagger's FIFO while the tagger's reader keeps reading;
+a reader silent this long (real seconds) gets the overflow (``SimRig.wait_for_room``)."""
 
 
 class PortUnplugged(OSError):
@@ -619,6 +624,10 @@ class GalvoFirmware:
         settle_s = cfg.settle_ns * 1e-9
         x_codes = [p.x_code(col) for col in range(p.nx)]
         x_deg = np.array([self._deg(x, ZERO_CODE)[0] for x in x_codes])
+        # Unpaced, virtual time runs as fast as the host takes the data: a run holds at most a
+        # quarter of the tagger's FIFO and starts when that much room is free (pixel by pixel,
+        # the host drained the FIFO while the scan went on; a whole line at once must fit).
+        fifo_share = max(1, rig.fifo_capacity_records // 4)
         line_open = False
         try:
             frame = 0
@@ -634,6 +643,8 @@ class GalvoFirmware:
                     j = 0
                     while j < cols.size and not stop.is_set():
                         run = cols[j:j + self._run_length(cols.size - j)]
+                        if self.pace == 0:
+                            rig.wait_for_room(fifo_share, FIFO_STALL_S, stop)
                         bits = np.full(run.size, Marker.PIXEL, np.uint8)
                         if j == 0:
                             bits[0] |= Marker.LINE_START | (Marker.FRAME if row == 0 else 0)
@@ -643,7 +654,7 @@ class GalvoFirmware:
                         done, counts, elapsed = rig.scan_run(
                             x_deg[run], np.full(run.size, y_deg), bits, dwell_s=g.dwell_ns * 1e-9,
                             n_target=g.n_target if gated else None, settle_s=settle_s,
-                            stop_s=self._next_fault_s())
+                            stop_s=self._next_fault_s(), max_records=fifo_share)
                         line_open = True
                         with self._lock:
                             for col, count, el in zip(run[:done].tolist(), counts.tolist(),

@@ -315,17 +315,31 @@ def start_at_kernel(state_i, pend_sync, pend_t, pend_item, sync):
 
 
 @njit(cache=True, nogil=True)
-def _grow(a, need):
-    """``a`` itself when it holds ``need`` items, else a copy at least twice as long."""
-    if a.size >= need:
-        return a
-    b = np.empty(max(need, 2 * a.size), a.dtype)
-    b[:a.size] = a
-    return b
+def _copy(dst, src):
+    """dst[:src.size] = src as a loop: numba compiles a slice assignment for tens of seconds."""
+    for i in range(src.size):
+        dst[i] = src[i]
 
 
 @njit(cache=True, nogil=True)
-def dwell_run(rng, pix, n_target, limit, settle, off_syncs, start_sync, stop_s,
+def _grow(sync, t, origin, item, n_keep, need):
+    """Detection arrays (sync, t, origin, item) with room for ``need``: the same ones when they
+    have it, else new ones at least twice as long holding the first ``n_keep`` rows."""
+    if sync.size >= need:
+        return sync, t, origin, item
+    cap = max(need, 2 * sync.size)
+    s2, t2 = np.empty(cap, np.int64), np.empty(cap, np.float64)
+    o2, i2 = np.empty(cap, np.uint8), np.empty(cap, np.int32)
+    for q in range(n_keep):
+        s2[q] = sync[q]
+        t2[q] = t[q]
+        o2[q] = origin[q]
+        i2[q] = item[q]
+    return s2, t2, o2, i2
+
+
+@njit(cache=True, nogil=True)
+def dwell_run(rng, pix, n_target, limit, settle, off_syncs, start_sync, stop_s, max_records,
               sig_pp, tof_s, bg_pp, lam, period_s,
               pulse_kind, rms_s, irf_cdf, irf_t0_s, irf_bin_s,
               jitter_rms_s, sequential, dead_s, ap_prob, ap_tau_s,
@@ -349,27 +363,26 @@ def dwell_run(rng, pix, n_target, limit, settle, off_syncs, start_sync, stop_s,
     Effects: ``jitter_rms_s`` > 0 jitters every time; ``sequential`` runs ``detector_kernel``
     (``dead_s``, ``ap_prob``, ``ap_tau_s``) on the detector state arrays, which carry over from
     call to call. The run stops early after the first pixel that ends (plus the settle after it)
-    at or after virtual time ``stop_s``, so a fault due then fires at that pixel.
+    at or after virtual time ``stop_s``, so a fault due then fires at that pixel, and after the
+    pixel that brings its detections plus one marker per pixel to ``max_records``.
 
     Writes per pixel ``starts`` (first sync), ``n_syncs`` and ``counts`` (detections the tagger
     records); returns (pixels done, sync, t, origin) of the detections, sorted by (sync, t).
     ``capacity`` is a first guess of the number of detections (the arrays grow as needed).
     """
     n_pix = pix.size
-    out_sync = np.empty(capacity, np.int64)
-    out_t = np.empty(capacity, np.float64)
-    out_origin = np.empty(capacity, np.uint8)
+    # (np.int64(...) around constants: a literal argument would compile one more variant)
+    zero = np.int64(0)
+    out_sync, out_t, out_origin, out_item = _grow(np.empty(0, np.int64), np.empty(0, np.float64),
+                                                  np.empty(0, np.uint8), np.empty(0, np.int32),
+                                                  zero, np.int64(capacity))
     n_out = 0
     # one pixel's chunk of ideal detections, and the detector's output
-    g_cap = 4096
-    g_sync = np.empty(g_cap, np.int64)
-    g_t = np.empty(g_cap, np.float64)
-    g_origin = np.empty(g_cap, np.uint8)
-    g_item = np.empty(g_cap, np.int32)
-    d_sync = np.empty(0, np.int64)
-    d_t = np.empty(0, np.float64)
-    d_origin = np.empty(0, np.uint8)
-    d_item = np.empty(0, np.int32)
+    g_sync, g_t, g_origin, g_item = _grow(np.empty(0, np.int64), np.empty(0, np.float64),
+                                          np.empty(0, np.uint8), np.empty(0, np.int32), zero,
+                                          np.int64(4096))
+    d_sync, d_t, d_origin, d_item = _grow(np.empty(0, np.int64), np.empty(0, np.float64),
+                                          np.empty(0, np.uint8), np.empty(0, np.int32), zero, zero)
     saved_i = np.empty(3, np.int64)
     saved_t = np.empty(1, np.float64)
     saved_ps = np.empty(pend_sync.size, np.int64)
@@ -411,17 +424,13 @@ def dwell_run(rng, pix, n_target, limit, settle, off_syncs, start_sync, stop_s,
                 s0 = s + done
                 # ideal detections of the chunk (generate_chain resumes where the buffer filled)
                 expected = lam[p] * chunk
-                g_need = np.int64(expected + 6.0 * np.sqrt(expected) + 64)
-                if g_cap < g_need:
-                    g_cap = max(g_need, 2 * g_cap)
-                    g_sync = np.empty(g_cap, np.int64)
-                    g_t = np.empty(g_cap, np.float64)
-                    g_origin = np.empty(g_cap, np.uint8)
-                    g_item = np.empty(g_cap, np.int32)
+                g_sync, g_t, g_origin, g_item = _grow(
+                    g_sync, g_t, g_origin, g_item, zero,
+                    np.int64(expected + 6.0 * np.sqrt(expected) + 64))
                 one_start[0] = s0
                 one_n[0] = chunk
                 n_g = 0
-                i_next = 0
+                i_next = zero
                 u_next = 0.0
                 while True:
                     n_new, i_next, u_next = generate_chain(
@@ -431,11 +440,8 @@ def dwell_run(rng, pix, n_target, limit, settle, off_syncs, start_sync, stop_s,
                     n_g += n_new
                     if i_next >= 1:
                         break
-                    g_cap *= 2
-                    g_sync = _grow(g_sync, g_cap)
-                    g_t = _grow(g_t, g_cap)
-                    g_origin = _grow(g_origin, g_cap)
-                    g_item = _grow(g_item, g_cap)
+                    g_sync, g_t, g_origin, g_item = _grow(g_sync, g_t, g_origin, g_item, n_g,
+                                                          2 * g_sync.size)
                 b_sync = g_sync[:n_g]
                 b_t = g_t[:n_g]
                 b_origin = g_origin[:n_g]
@@ -447,17 +453,14 @@ def dwell_run(rng, pix, n_target, limit, settle, off_syncs, start_sync, stop_s,
                 if sequential:
                     # the capacity effects._Sequential starts with
                     d_need = n_g + np.int64(n_g * 3 * ap_prob / (1.0 - ap_prob)) + pend_sync.size + 64
-                    saved_i[:] = state_i
-                    saved_t[:] = state_t
-                    saved_ps[:] = pend_sync
-                    saved_pt[:] = pend_t
-                    saved_pi[:] = pend_item
+                    _copy(saved_i, state_i)
+                    _copy(saved_t, state_t)
+                    _copy(saved_ps, pend_sync)
+                    _copy(saved_pt, pend_t)
+                    _copy(saved_pi, pend_item)
                     while True:
-                        if d_sync.size < d_need:
-                            d_sync = np.empty(d_need, np.int64)
-                            d_t = np.empty(d_need, np.float64)
-                            d_origin = np.empty(d_need, np.uint8)
-                            d_item = np.empty(d_need, np.int32)
+                        d_sync, d_t, d_origin, d_item = _grow(d_sync, d_t, d_origin, d_item, zero,
+                                                              d_need)
                         n_d, got = detector_kernel(
                             rng, b_sync, b_t, b_origin, b_item, period_s, dead_s, ap_prob,
                             ap_tau_s, state_i, state_t, pend_sync, pend_t, pend_item, s0 + chunk,
@@ -466,11 +469,11 @@ def dwell_run(rng, pix, n_target, limit, settle, off_syncs, start_sync, stop_s,
                         if n_d >= 0:
                             break
                         # an afterpulse cascade overflowed the guess: again with room to spare
-                        state_i[:] = saved_i
-                        state_t[:] = saved_t
-                        pend_sync[:] = saved_ps
-                        pend_t[:] = saved_pt
-                        pend_item[:] = saved_pi
+                        _copy(state_i, saved_i)
+                        _copy(state_t, saved_t)
+                        _copy(pend_sync, saved_ps)
+                        _copy(pend_t, saved_pt)
+                        _copy(pend_item, saved_pi)
                         d_need = 2 * d_sync.size
                     b_sync = d_sync[:n_d]
                     b_t = d_t[:n_d]
@@ -489,10 +492,8 @@ def dwell_run(rng, pix, n_target, limit, settle, off_syncs, start_sync, stop_s,
                                     n_b = q + 1
                                     reached = b_sync[q]
                                     break
-                if n_out + n_b > out_sync.size:
-                    out_sync = _grow(out_sync, n_out + n_b)
-                    out_t = _grow(out_t, n_out + n_b)
-                    out_origin = _grow(out_origin, n_out + n_b)
+                out_sync, out_t, out_origin, out_item = _grow(out_sync, out_t, out_origin,
+                                                              out_item, n_out, n_out + n_b)
                 for q in range(n_b):
                     out_sync[n_out] = b_sync[q]
                     out_t[n_out] = b_t[q]
@@ -508,6 +509,6 @@ def dwell_run(rng, pix, n_target, limit, settle, off_syncs, start_sync, stop_s,
             counts[j] = recorded
             s += n_syncs[j]
         done_pixels = j + 1
-        if (s + settle) * period_s >= stop_s:
+        if (s + settle) * period_s >= stop_s or n_out + done_pixels >= max_records:
             break
     return done_pixels, out_sync[:n_out], out_t[:n_out], out_origin[:n_out]

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 from collections import deque
 from dataclasses import dataclass
 
@@ -82,6 +83,8 @@ class SimRig:
         self.fifo_capacity_records = int(fifo_capacity_records)
         self._lock = threading.RLock()
         self._has_events = threading.Condition(self._lock)   # the tagger waits on it, never polls
+        self._has_room = threading.Condition(self._lock)     # an unpaced scan waits on it
+        self._last_read = 0.0               # monotonic() of the tagger's last FIFO read
         self._sync = 0                      # laser syncs since power-on; the virtual clock
         self._mirror_deg = (0.0, 0.0)
         self._fifo: deque[np.ndarray] = deque()
@@ -162,7 +165,8 @@ class SimRig:
 
     def scan_run(self, x_deg: np.ndarray, y_deg: np.ndarray, marker_bits: np.ndarray, *,
                  dwell_s: float, n_target: int | None = None, settle_s: float = 0.0,
-                 stop_s: float = math.inf) -> tuple[int, np.ndarray, np.ndarray]:
+                 stop_s: float = math.inf, max_records: int = 2 ** 62
+                 ) -> tuple[int, np.ndarray, np.ndarray]:
         """What the galvo controller does for a run of pixels, in one step: for each pixel it
         moves the mirror to (x_deg, y_deg), waits ``settle_s``, pulses ``marker_bits`` and dwells
         (``count_gated_dwell`` with ``n_target``, else ``fixed_dwell``), exactly as those calls
@@ -170,7 +174,8 @@ class SimRig:
 
         The run ends early after the first pixel that ends (with the settle after it) at or after
         virtual time ``stop_s`` (a fault due then), and before any pixel whose PIXEL pulse would
-        fire a scheduled FIFO loss, so every fault hits the pixel it would hit pixel by pixel.
+        fire a scheduled FIFO loss, so every fault hits the pixel it would hit pixel by pixel; and
+        after the pixel that brings its records (markers included) to ``max_records``.
         Returns (pixels done, detector pulses counted per pixel, elapsed seconds per pixel)."""
         period = self.world.sync_period_s
         with self._lock:
@@ -188,7 +193,7 @@ class SimRig:
                                      np.asarray(y_deg[:n], np.float64), self.world.shape)
             run = self._world_run(pix, dwell_s, n_target,
                                   max(0, int(round(settle_s / period))),
-                                  max(0, int(round(dwell_s / period))), stop_s,
+                                  max(0, int(round(dwell_s / period))), stop_s, max_records,
                                   np.asarray(marker_bits[:n], np.uint8))
             done = run.n_done
             self.pixels_pulsed += done - 1
@@ -207,17 +212,18 @@ class SimRig:
             elapsed = np.where(pix[:done] >= 0, run.n_syncs * period, float(dwell_s))
             return done, run.counts, elapsed
 
-    def _world_run(self, pix, dwell_s, n_target, settle, off_syncs, stop_s, bits):
+    def _world_run(self, pix, dwell_s, n_target, settle, off_syncs, stop_s, max_records, bits):
         """The world's ``dwell_run`` over flat pixels ``pix``; a world that only answers pixel by
         pixel (``count_gated`` / ``fixed_dwell``, e.g. a test double) is asked pixel by pixel."""
         if hasattr(self.world, "dwell_run"):
             return self.world.dwell_run(pix, self._sync, dwell_s, n_target=n_target,
                                         settle_syncs=settle, off_syncs=off_syncs, stop_s=stop_s,
-                                        marker_bits=bits)
+                                        max_records=max_records, marker_bits=bits)
         from spdepth.drivers.sim.world import DwellRun
 
         w = self.world.shape[1]
         s = self._sync
+        records = 0
         parts, starts, n_syncs, counts = [], [], [], []
         for j, p in enumerate(pix):
             s += settle if j else 0
@@ -236,7 +242,8 @@ class SimRig:
             n_syncs.append(int(n))
             counts.append(int(ev.size))
             s += int(n)
-            if (s + settle) * self.world.sync_period_s >= stop_s:
+            records += 1 + ev.size
+            if (s + settle) * self.world.sync_period_s >= stop_s or records >= max_records:
                 break
         return DwellRun(np.concatenate(parts), None, np.array(starts, np.int64),
                         np.array(n_syncs, np.int64), np.array(counts, np.int64))
@@ -315,10 +322,23 @@ class SimRig:
             return self._has_events.wait_for(
                 lambda: bool(self._fifo) or self._lost_since_sync is not None, timeout_s)
 
+    def wait_for_room(self, records: int, stall_s: float, stop: threading.Event | None = None) -> None:
+        """Block (real time) while the tagger measures and its FIFO lacks room for ``records``,
+        as long as its reader keeps reading (it read within the last ``stall_s``) and ``stop``
+        is not set: a scan that runs faster than real time waits for the host instead of
+        overflowing a FIFO that real time would have drained. A reader that stopped reading
+        gets the overflow."""
+        with self._lock:
+            while (self.tagger_running and self.fifo_capacity_records - self._fifo_fill < records
+                   and time.monotonic() - self._last_read < stall_s
+                   and not (stop is not None and stop.is_set())):
+                self._has_room.wait(0.05)
+
     def read_events(self, max_events: int) -> np.ndarray:
         """Drain up to ``max_events`` events from the FIFO, oldest first. After a loss, the LOST
         event comes first once the FIFO holds room again, so readers see the hole in order."""
         with self._lock:
+            self._last_read = time.monotonic()
             out = []
             n = 0
             while self._fifo and n < max_events:
@@ -331,6 +351,8 @@ class SimRig:
                 else:
                     self._fifo[0] = chunk[take:]
             self._fifo_fill -= n
+            if n:
+                self._has_room.notify_all()
             if self._lost_since_sync is not None and n < max_events:
                 lost = np.zeros(1, dtype=EVENT_DTYPE)
                 lost["sync"] = self._lost_since_sync
@@ -346,6 +368,7 @@ class SimRig:
         with self._lock:
             self._fifo.clear()
             self._fifo_fill = 0
+            self._has_room.notify_all()
             self._lost_since_sync = None
             self._pending_lost = 0
 
@@ -362,7 +385,9 @@ class SimRig:
     def start_tagger(self) -> None:
         with self._lock:
             self.tagger_running = True
+            self._last_read = time.monotonic()   # its reader gets stall time to begin
 
     def stop_tagger(self) -> None:
         with self._lock:
             self.tagger_running = False
+            self._has_room.notify_all()

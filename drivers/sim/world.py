@@ -242,8 +242,8 @@ class PhotonWorld:
 
     def dwell_run(self, pixels: np.ndarray, start_sync: int, dwell_s: float, *,
                   n_target: int | None = None, window=None, settle_syncs: int = 0,
-                  off_syncs: int = 0, stop_s: float = math.inf, marker_bits=None,
-                  end_marker: int = 0, with_origin: bool = False) -> "DwellRun":
+                  off_syncs: int = 0, stop_s: float = math.inf, max_records: int = 2 ** 62,
+                  marker_bits=None, end_marker: int = 0, with_origin: bool = False) -> "DwellRun":
         """Dwells on several pixels one after another from sync ``start_sync``, as a scanner
         holding its mirror on each: ``fixed_dwell`` (``n_target`` None, ``dwell_s`` each) or
         ``count_gated`` (until ``n_target`` counted detections, ``window`` as there, or the limit
@@ -253,7 +253,8 @@ class PhotonWorld:
         pixels: flat scene pixel indices (row * W + col), -1 for a pixel off the scene (nothing
         returns; it takes ``off_syncs``). ``settle_syncs`` pass before every pixel but the first.
         The run stops early after the first pixel that ends (plus the settle after it) at or after
-        virtual time ``stop_s``. ``marker_bits`` (uint8 per pixel): a MARKER row with those bits
+        virtual time ``stop_s``, and after the pixel that brings its detections plus one marker per
+        pixel to ``max_records``. ``marker_bits`` (uint8 per pixel): a MARKER row with those bits
         opens each pixel (at its first sync, before its photons); ``end_marker`` bits: one more at
         the sync after the last pixel done.
         """
@@ -282,7 +283,7 @@ class PhotonWorld:
         with self._lock:
             done, sync, t, origin = K.dwell_run(
                 self._rng, pixels, n_target if gated else 0, limit, int(settle_syncs),
-                int(off_syncs), start_sync, float(stop_s), self._sig_pp, self._tof_s,
+                int(off_syncs), start_sync, float(stop_s), int(max_records), self._sig_pp, self._tof_s,
                 self._bg_pp, self._lam, self._period_s, *self._pulse,
                 jitter[0].rms_s if jitter else 0.0, seq is not None,
                 seq.dead_s if seq else 0.0, seq.ap_prob if seq else 0.0,
