@@ -469,9 +469,12 @@ def parse_status(payload: str) -> Status:
 
 
 _FLAG_BY_LETTER = {chr(f.value): f for f in PixelFlag}
-_PIX_RECORD_RE = re.compile(r"(-?[0-9]{1,20}),(-?[0-9]{1,20}),(-?[0-9]{1,20}),(-?[0-9]{1,20}),"
-                            r"(-?[0-9]{1,20}),([%s])\Z" % "".join(map(re.escape, _FLAG_BY_LETTER)))
-"""One PIX? record, checked in one match: five decimal integers (as _INT_RE) and a flag letter."""
+_PIX_RECORD = (r"-?[0-9]{1,20},-?[0-9]{1,20},-?[0-9]{1,20},-?[0-9]{1,20},-?[0-9]{1,20},[%s]"
+               % "".join(map(re.escape, _FLAG_BY_LETTER)))
+"""One PIX? record: five decimal integers (as _INT_RE) and a flag letter."""
+_PIX_RECORDS_RE = re.compile(rf"{_PIX_RECORD}(?: {_PIX_RECORD})*\Z")
+_PIX_RECORD_RE = re.compile(rf"{_PIX_RECORD}\Z")
+_NUMBER_RE = re.compile(r"-?[0-9]+")
 
 
 def parse_pixels(payload: str, from_seq: int) -> PixelPage:
@@ -483,20 +486,24 @@ def parse_pixels(payload: str, from_seq: int) -> PixelPage:
     if first < from_seq or not 0 <= n <= MAX_PIX_PAGE or len(toks) != 2 + n:
         raise ProtocolError(f"galvo PIX? reply {payload[:80]!r}: first_seq {first} / count {n} "
                             f"do not match the request from {from_seq} and {len(toks) - 2} records")
+    recs = toks[2:]
+    # a page holds up to 256 records: checked and split by one regex each, not per record
+    text = " ".join(recs)
+    if recs and _PIX_RECORDS_RE.match(text) is None:
+        bad = next(r for r in recs if _PIX_RECORD_RE.match(r) is None)
+        raise ProtocolError(f"galvo PIX? record {bad[:60]!r} is not "
+                            f"'frame,row,col,count,dwell_ns,G|L|F'")
+    values = iter(map(int, _NUMBER_RE.findall(text)))
     records = []
-    for i, rec in enumerate(toks[2:]):
-        m = _PIX_RECORD_RE.match(rec)
-        if m is None:
-            raise ProtocolError(f"galvo PIX? record {rec[:60]!r} is not "
-                                f"'frame,row,col,count,dwell_ns,G|L|F'")
-        frame, row, col, count, dwell = map(int, m.group(1, 2, 3, 4, 5))
+    for i, (rec, frame, row, col, count, dwell) in enumerate(
+            zip(recs, values, values, values, values, values)):
         if min(frame, row, col, count, dwell) < 0:
             raise ProtocolError(f"galvo PIX? record {rec[:60]!r} holds a negative value")
         if max(row, col) >= MAX_PIXELS_PER_AXIS:
             raise ProtocolError(f"galvo PIX? record {rec[:60]!r}: row or column beyond "
                                 f"{MAX_PIXELS_PER_AXIS - 1}")
         records.append(PixelRecord(first + i, frame, row, col, count, dwell,
-                                   _FLAG_BY_LETTER[m.group(6)]))
+                                   _FLAG_BY_LETTER[rec[-1]]))
     return PixelPage(from_seq, first, tuple(records))
 
 

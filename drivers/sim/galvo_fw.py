@@ -18,6 +18,7 @@ is due; a servo fault aborts the scan and latches FAULT.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 import re
@@ -156,7 +157,7 @@ class GalvoFirmware:
         self._completed = 0
         self._total = 0
         self._per_frame = 0
-        self._log: deque[tuple] = deque(maxlen=PIXEL_LOG_DEPTH)
+        self._log: deque[str] = deque(maxlen=PIXEL_LOG_DEPTH)   # records as PIX? sends them
         self._log_base = 0                  # seq of self._log[0]
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -602,9 +603,9 @@ class GalvoFirmware:
         first = max(start, self._log_base)
         if first >= end:
             return f"{start} 0"
-        recs = [self._log[i - self._log_base] for i in range(first, min(end, first + n_max))]
-        body = " ".join(",".join(map(str, r)) for r in recs)
-        return f"{first} {len(recs)} {body}"
+        a = first - self._log_base
+        recs = list(itertools.islice(self._log, a, a + min(end - first, n_max)))
+        return f"{first} {len(recs)} {' '.join(recs)}"
 
     _COMMANDS = {
         "*IDN?": _cmd_idn, "*RST": _cmd_rst, "*CLS": _cmd_cls, "ERR?": _cmd_err,
@@ -660,8 +661,8 @@ class GalvoFirmware:
                             for col, count, el in zip(run[:done].tolist(), counts.tolist(),
                                                       elapsed.tolist()):
                                 flag = ("G" if count >= g.n_target else "L") if gated else "F"
-                                self._log_append((frame, row, col, count, int(round(el * 1e9)),
-                                                  flag))
+                                self._log_append(frame, row, col, count, int(round(el * 1e9)),
+                                                 flag)
                             self._completed += done
                             self._pos = (x_codes[run[done - 1]], y)
                             self._cur = (frame, row, int(run[done - 1]))
@@ -716,10 +717,11 @@ class GalvoFirmware:
         """Virtual time of the earliest galvo fault still to fire at a time (inf: none)."""
         return min((f.at_s for f in self.faults.pending if f.at_s is not None), default=math.inf)
 
-    def _log_append(self, rec: tuple) -> None:
+    def _log_append(self, frame: int, row: int, col: int, count: int, dwell_ns: int,
+                    flag: str) -> None:
         if len(self._log) == self._log.maxlen:
             self._log_base += 1
-        self._log.append(rec)
+        self._log.append(f"{frame},{row},{col},{count},{dwell_ns},{flag}")
 
     # ---- owner API (tests, demos) ------------------------------------------------------------
     @property
