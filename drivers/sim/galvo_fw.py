@@ -50,8 +50,13 @@ UDEG_PER_CODE = 40e6 / 65536
 """Full DAC range spans +-20 optical degrees: 610.3515625 micro-degrees per code."""
 ERROR_QUEUE_DEPTH = 16
 FIFO_STALL_S = 1.0
-"""An unpaced scan waits for room in the tagger's FIFO while the tagger's reader keeps reading;
-a reader silent this long (real seconds) gets the overflow (``SimRig.wait_for_room``)."""
+"""An unpaced scan waits for the tagger's reader while it keeps reading; a reader silent this
+long (real seconds) gets the overflow (``SimRig.wait_for_room``)."""
+LEAD_SHARE = 64
+"""An unpaced scan runs at most 1/LEAD_SHARE of a frame (at least MIN_LEAD, at most MAX_LEAD
+pixels) ahead of what the tagger's reader has taken, in runs of that many pixels: faults the
+tagger injects at a share of the stream then find the scan where a real-time scan would be."""
+MIN_LEAD, MAX_LEAD = 4, 256
 
 
 class PortUnplugged(OSError):
@@ -625,10 +630,11 @@ class GalvoFirmware:
         settle_s = cfg.settle_ns * 1e-9
         x_codes = [p.x_code(col) for col in range(p.nx)]
         x_deg = np.array([self._deg(x, ZERO_CODE)[0] for x in x_codes])
-        # Unpaced, virtual time runs as fast as the host takes the data: a run holds at most a
-        # quarter of the tagger's FIFO and starts when that much room is free (pixel by pixel,
-        # the host drained the FIFO while the scan went on; a whole line at once must fit).
+        # Unpaced, virtual time runs as fast as the host takes the data: a run starts when the
+        # FIFO holds at most `lead` pixels and room for a quarter of it, and holds at most that
+        # (pixel by pixel, the host drained the FIFO while the scan went on; a run must fit).
         fifo_share = max(1, rig.fifo_capacity_records // 4)
+        lead = min(MAX_LEAD, max(MIN_LEAD, p.nx * p.ny // LEAD_SHARE))
         line_open = False
         try:
             frame = 0
@@ -643,9 +649,9 @@ class GalvoFirmware:
                     # needs to see pixel by pixel (see _run_length)
                     j = 0
                     while j < cols.size and not stop.is_set():
-                        run = cols[j:j + self._run_length(cols.size - j)]
+                        run = cols[j:j + self._run_length(min(cols.size - j, lead))]
                         if self.pace == 0:
-                            rig.wait_for_room(fifo_share, FIFO_STALL_S, stop)
+                            rig.wait_for_room(fifo_share, lead, FIFO_STALL_S, stop)
                         bits = np.full(run.size, Marker.PIXEL, np.uint8)
                         if j == 0:
                             bits[0] |= Marker.LINE_START | (Marker.FRAME if row == 0 else 0)

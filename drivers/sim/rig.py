@@ -62,6 +62,12 @@ class FifoStatus:
     lost_records: int
 
 
+def _pixel_markers(events: np.ndarray) -> int:
+    """PIXEL marker rows among ``events``."""
+    return int(np.count_nonzero((events["kind"] == EventKind.MARKER)
+                                & (events["marker"] & Marker.PIXEL != 0)))
+
+
 class SimRig:
     """Shared state of the simulated instruments. Thread-safe: the galvo emulator and the tagger
     backend run in different threads (serial reader, USB reader).
@@ -85,6 +91,7 @@ class SimRig:
         self._has_events = threading.Condition(self._lock)   # the tagger waits on it, never polls
         self._has_room = threading.Condition(self._lock)     # an unpaced scan waits on it
         self._last_read = 0.0               # monotonic() of the tagger's last FIFO read
+        self._fifo_pixels = 0               # PIXEL markers in the FIFO: how far the host lags
         self._sync = 0                      # laser syncs since power-on; the virtual clock
         self._mirror_deg = (0.0, 0.0)
         self._fifo: deque[np.ndarray] = deque()
@@ -269,10 +276,12 @@ class SimRig:
         if room >= events.size and self._lost_since_sync is None:
             self._fifo.append(events)
             self._fifo_fill += events.size
+            self._fifo_pixels += _pixel_markers(events)
             return
         if room > 0 and self._lost_since_sync is None:
             self._fifo.append(events[:room])
             self._fifo_fill += room
+            self._fifo_pixels += _pixel_markers(events[:room])
             events = events[room:]
         if self._lost_since_sync is None:
             self._lost_since_sync = int(events["sync"][0])
@@ -322,14 +331,18 @@ class SimRig:
             return self._has_events.wait_for(
                 lambda: bool(self._fifo) or self._lost_since_sync is not None, timeout_s)
 
-    def wait_for_room(self, records: int, stall_s: float, stop: threading.Event | None = None) -> None:
-        """Block (real time) while the tagger measures and its FIFO lacks room for ``records``,
-        as long as its reader keeps reading (it read within the last ``stall_s``) and ``stop``
-        is not set: a scan that runs faster than real time waits for the host instead of
-        overflowing a FIFO that real time would have drained. A reader that stopped reading
-        gets the overflow."""
+    def wait_for_room(self, records: int, pixels: int, stall_s: float,
+                      stop: threading.Event | None = None) -> None:
+        """Block (real time) while the tagger measures and its FIFO lacks room for ``records`` or
+        holds more than ``pixels`` pixels (PIXEL markers), as long as its reader keeps reading
+        (it read within the last ``stall_s``) and ``stop`` is not set. A scan running faster than
+        real time thus stays within a few pixels of what the host has taken, as a real-time scan
+        does, instead of overflowing a FIFO that real time would have drained; a reader that
+        stopped reading gets the overflow."""
         with self._lock:
-            while (self.tagger_running and self.fifo_capacity_records - self._fifo_fill < records
+            while (self.tagger_running
+                   and (self.fifo_capacity_records - self._fifo_fill < records
+                        or self._fifo_pixels > pixels)
                    and time.monotonic() - self._last_read < stall_s
                    and not (stop is not None and stop.is_set())):
                 self._has_room.wait(0.05)
@@ -345,6 +358,7 @@ class SimRig:
                 chunk = self._fifo[0]
                 take = min(chunk.size, max_events - n)
                 out.append(chunk[:take])
+                self._fifo_pixels -= _pixel_markers(chunk[:take])
                 n += take
                 if take == chunk.size:
                     self._fifo.popleft()
@@ -368,6 +382,7 @@ class SimRig:
         with self._lock:
             self._fifo.clear()
             self._fifo_fill = 0
+            self._fifo_pixels = 0
             self._has_room.notify_all()
             self._lost_since_sync = None
             self._pending_lost = 0
