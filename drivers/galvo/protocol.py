@@ -307,6 +307,7 @@ def encode_gate(g: GateSetting) -> tuple:
 _REPLY_RE = re.compile(r"^(?:(\d{1,5}):)?(OK|ERR)(?: (.*))?$", re.DOTALL)
 _ERR_RE = re.compile(r"^(\d{1,3}) (.+)$", re.DOTALL)
 _INT_RE = re.compile(r"^-?[0-9]{1,20}\Z")   # \Z, not $: "12\n" is not an integer
+_NON_PRINTABLE_RE = re.compile(rb"[^\x20-\x7e]")
 
 
 def decode_reply(line: bytes) -> Reply:
@@ -323,7 +324,7 @@ def decode_reply(line: bytes) -> Reply:
     body = line[:-1]
     if body.endswith(b"\r"):
         body = body[:-1]
-    if any(b < 0x20 or b > 0x7E for b in body):
+    if _NON_PRINTABLE_RE.search(body):
         raise ProtocolError(f"galvo reply {line[:60]!r} holds non-printable bytes")
     star = body.rfind(b"*")
     if star < 0 or len(body) - star != 5:
@@ -468,6 +469,12 @@ def parse_status(payload: str) -> Status:
 
 
 _FLAG_BY_LETTER = {chr(f.value): f for f in PixelFlag}
+_PIX_RECORD = (r"-?[0-9]{1,20},-?[0-9]{1,20},-?[0-9]{1,20},-?[0-9]{1,20},-?[0-9]{1,20},[%s]"
+               % "".join(map(re.escape, _FLAG_BY_LETTER)))
+"""One PIX? record: five decimal integers (as _INT_RE) and a flag letter."""
+_PIX_RECORDS_RE = re.compile(rf"{_PIX_RECORD}(?: {_PIX_RECORD})*\Z")
+_PIX_RECORD_RE = re.compile(rf"{_PIX_RECORD}\Z")
+_NUMBER_RE = re.compile(r"-?[0-9]+")
 
 
 def parse_pixels(payload: str, from_seq: int) -> PixelPage:
@@ -479,20 +486,24 @@ def parse_pixels(payload: str, from_seq: int) -> PixelPage:
     if first < from_seq or not 0 <= n <= MAX_PIX_PAGE or len(toks) != 2 + n:
         raise ProtocolError(f"galvo PIX? reply {payload[:80]!r}: first_seq {first} / count {n} "
                             f"do not match the request from {from_seq} and {len(toks) - 2} records")
+    recs = toks[2:]
+    # a page holds up to 256 records: checked and split by one regex each, not per record
+    text = " ".join(recs)
+    if recs and _PIX_RECORDS_RE.match(text) is None:
+        bad = next(r for r in recs if _PIX_RECORD_RE.match(r) is None)
+        raise ProtocolError(f"galvo PIX? record {bad[:60]!r} is not "
+                            f"'frame,row,col,count,dwell_ns,G|L|F'")
+    values = iter(map(int, _NUMBER_RE.findall(text)))
     records = []
-    for i, rec in enumerate(toks[2:]):
-        f = rec.split(",")
-        if (len(f) != 6 or not all(_INT_RE.match(x) for x in f[:5])
-                or f[5] not in _FLAG_BY_LETTER):
-            raise ProtocolError(f"galvo PIX? record {rec[:60]!r} is not "
-                                f"'frame,row,col,count,dwell_ns,G|L|F'")
-        frame, row, col, count, dwell = (int(x) for x in f[:5])
+    for i, (rec, frame, row, col, count, dwell) in enumerate(
+            zip(recs, values, values, values, values, values)):
         if min(frame, row, col, count, dwell) < 0:
             raise ProtocolError(f"galvo PIX? record {rec[:60]!r} holds a negative value")
         if max(row, col) >= MAX_PIXELS_PER_AXIS:
             raise ProtocolError(f"galvo PIX? record {rec[:60]!r}: row or column beyond "
                                 f"{MAX_PIXELS_PER_AXIS - 1}")
-        records.append(PixelRecord(first + i, frame, row, col, count, dwell, _FLAG_BY_LETTER[f[5]]))
+        records.append(PixelRecord(first + i, frame, row, col, count, dwell,
+                                   _FLAG_BY_LETTER[rec[-1]]))
     return PixelPage(from_seq, first, tuple(records))
 
 

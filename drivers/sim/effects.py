@@ -79,17 +79,7 @@ class DetectorState:
     def start_at(self, sync: int) -> None:
         """Forget what cannot affect detections from ``sync`` on: pending afterpulses that would
         have fired before it (nobody was listening), and everything when time went backwards."""
-        if self.state_i[0] and self.state_i[1] > sync:
-            self.state_i[:] = 0
-            return
-        n = int(self.state_i[2])
-        keep = self.pend_sync[:n] >= sync
-        if not keep.all():
-            m = int(keep.sum())
-            for name in ("pend_sync", "pend_t", "pend_item"):
-                arr = getattr(self, name)
-                arr[:m] = arr[:n][keep]
-            self.state_i[2] = m
+        K.start_at_kernel(self.state_i, self.pend_sync, self.pend_t, self.pend_item, int(sync))
 
 
 @dataclass(frozen=True)

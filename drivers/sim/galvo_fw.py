@@ -3,8 +3,10 @@
 ``GalvoFirmware`` is the whole controller: it parses command lines byte for byte, keeps the
 controller's state (position, limits, pattern, gate, error queue, pixel log), and runs scans in
 its own thread against a ``drivers.sim.rig.SimRig`` in virtual time: for every pixel it moves the
-mirror, settles, pulses the marker lines and dwells (count-gated or fixed). ``pace`` slows the
-thread down to watchable speed (real seconds per virtual second; 0 = as fast as it goes).
+mirror, settles, pulses the marker lines and dwells (count-gated or fixed), handing the rig runs
+of a line's pixels at once (``SimRig.scan_run``) wherever nothing needs to see the pixels one by
+one. ``pace`` slows the thread down to watchable speed (real seconds per virtual second; 0 = as
+fast as the host takes the data: the scan waits for room in the tagger's FIFO).
 
 Its serial side (``host_write`` / ``host_read``) is what the two links attach to: the pyserial
 URL handler ``galvosim://`` (drivers/sim/protocol_galvosim.py) and a pty pair
@@ -16,7 +18,9 @@ is due; a servo fault aborts the scan and latches FAULT.
 
 from __future__ import annotations
 
+import itertools
 import logging
+import math
 import re
 import threading
 import time
@@ -45,6 +49,14 @@ ZERO_CODE = 32768
 UDEG_PER_CODE = 40e6 / 65536
 """Full DAC range spans +-20 optical degrees: 610.3515625 micro-degrees per code."""
 ERROR_QUEUE_DEPTH = 16
+FIFO_STALL_S = 1.0
+"""An unpaced scan waits for the tagger's reader while it keeps reading; a reader silent this
+long (real seconds) gets the overflow (``SimRig.wait_for_room``)."""
+LEAD_SHARE = 64
+"""An unpaced scan runs at most 1/LEAD_SHARE of a frame (at least MIN_LEAD, at most MAX_LEAD
+pixels) ahead of what the tagger's reader has taken, in runs of that many pixels: faults the
+tagger injects at a share of the stream then find the scan where a real-time scan would be."""
+MIN_LEAD, MAX_LEAD = 4, 256
 
 
 class PortUnplugged(OSError):
@@ -150,7 +162,7 @@ class GalvoFirmware:
         self._completed = 0
         self._total = 0
         self._per_frame = 0
-        self._log: deque[tuple] = deque(maxlen=PIXEL_LOG_DEPTH)
+        self._log: deque[str] = deque(maxlen=PIXEL_LOG_DEPTH)   # records as PIX? sends them
         self._log_base = 0                  # seq of self._log[0]
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -596,9 +608,9 @@ class GalvoFirmware:
         first = max(start, self._log_base)
         if first >= end:
             return f"{start} 0"
-        recs = [self._log[i - self._log_base] for i in range(first, min(end, first + n_max))]
-        body = " ".join(",".join(map(str, r)) for r in recs)
-        return f"{first} {len(recs)} {body}"
+        a = first - self._log_base
+        recs = list(itertools.islice(self._log, a, a + min(end - first, n_max)))
+        return f"{first} {len(recs)} {' '.join(recs)}"
 
     _COMMANDS = {
         "*IDN?": _cmd_idn, "*RST": _cmd_rst, "*CLS": _cmd_cls, "ERR?": _cmd_err,
@@ -614,45 +626,57 @@ class GalvoFirmware:
     def _scan_main(self, cfg: _Settings, stop: threading.Event) -> None:
         rig = self.rig
         p, g = cfg.pattern, cfg.gate
+        gated = g.mode == GateMode.COUNT
+        settle_s = cfg.settle_ns * 1e-9
+        x_codes = [p.x_code(col) for col in range(p.nx)]
+        x_deg = np.array([self._deg(x, ZERO_CODE)[0] for x in x_codes])
+        # Unpaced, virtual time runs as fast as the host takes the data: a run starts when the
+        # FIFO holds at most `lead` pixels and room for a quarter of it, and holds at most that
+        # (pixel by pixel, the host drained the FIFO while the scan went on; a run must fit).
+        fifo_share = max(1, rig.fifo_capacity_records // 4)
+        lead = min(MAX_LEAD, max(MIN_LEAD, p.nx * p.ny // LEAD_SHARE))
         line_open = False
         try:
             frame = 0
             while (cfg.frames == 0 or frame < cfg.frames) and not stop.is_set():
                 for row in range(p.ny):
-                    cols = range(p.nx)
+                    cols = np.arange(p.nx)
                     if p.mode == ScanMode.SERPENTINE and row % 2 == 1:
-                        cols = range(p.nx - 1, -1, -1)
-                    for j, col in enumerate(cols):
-                        if stop.is_set():
-                            break
-                        x, y = p.x_code(col), p.y_code(row)
-                        with self._lock:
-                            self._pos = (x, y)
-                            self._cur = (frame, row, col)
-                        rig.set_mirror(*self._deg(x, y))
-                        if cfg.settle_ns:
-                            rig.wait(cfg.settle_ns * 1e-9)
-                        mask = int(Marker.PIXEL)
+                        cols = cols[::-1]
+                    y = p.y_code(row)
+                    y_deg = self._deg(ZERO_CODE, y)[1]
+                    # the line's pixels go to the rig in runs: as many as no fault, stop or pace
+                    # needs to see pixel by pixel (see _run_length)
+                    j = 0
+                    while j < cols.size and not stop.is_set():
+                        run = cols[j:j + self._run_length(min(cols.size - j, lead))]
+                        if self.pace == 0:
+                            rig.wait_for_room(fifo_share, lead, FIFO_STALL_S, stop)
+                        bits = np.full(run.size, Marker.PIXEL, np.uint8)
                         if j == 0:
-                            mask |= Marker.LINE_START
-                            if row == 0:
-                                mask |= Marker.FRAME
-                        rig.pulse_markers(mask)
-                        line_open = True
-                        if g.mode == GateMode.COUNT:
-                            count, elapsed_s = rig.count_gated_dwell(g.n_target, g.dwell_ns * 1e-9)
-                            flag = "G" if count >= g.n_target else "L"
-                        else:
-                            count, elapsed_s = rig.fixed_dwell(g.dwell_ns * 1e-9)
-                            flag = "F"
+                            bits[0] |= Marker.LINE_START | (Marker.FRAME if row == 0 else 0)
                         with self._lock:
-                            self._log_append((frame, row, col, int(count),
-                                              int(round(elapsed_s * 1e9)), flag))
-                            self._completed += 1
+                            self._pos = (x_codes[run[0]], y)
+                            self._cur = (frame, row, int(run[0]))
+                        done, counts, elapsed = rig.scan_run(
+                            x_deg[run], np.full(run.size, y_deg), bits, dwell_s=g.dwell_ns * 1e-9,
+                            n_target=g.n_target if gated else None, settle_s=settle_s,
+                            stop_s=self._next_fault_s(), max_records=fifo_share)
+                        line_open = True
+                        with self._lock:
+                            for col, count, el in zip(run[:done].tolist(), counts.tolist(),
+                                                      elapsed.tolist()):
+                                flag = ("G" if count >= g.n_target else "L") if gated else "F"
+                                self._log_append(frame, row, col, count, int(round(el * 1e9)),
+                                                 flag)
+                            self._completed += done
+                            self._pos = (x_codes[run[done - 1]], y)
+                            self._cur = (frame, row, int(run[done - 1]))
                             self._take_faults()
                             self._notify()
                         if self.pace > 0:
-                            stop.wait((elapsed_s + cfg.settle_ns * 1e-9) * self.pace)
+                            stop.wait((float(elapsed[-1]) + settle_s) * self.pace)
+                        j += done
                     if line_open:
                         rig.pulse_markers(Marker.LINE_STOP)
                         line_open = False
@@ -675,10 +699,35 @@ class GalvoFirmware:
                 self._state = GalvoState.PARKED
             self._notify()
 
-    def _log_append(self, rec: tuple) -> None:
+    def _run_length(self, left: int) -> int:
+        """Pixels the next run may hold (at most ``left``): one when paced (each pixel takes its
+        own wall time), else up to the pixel at which a scan-fraction fault falls due, so it
+        fires after that pixel as it would pixel by pixel. (Time faults end a run through
+        ``_next_fault_s``.)"""
+        if self.pace > 0:
+            return 1
+        n = left
+        denom = self._total or self._per_frame
+        for f in self.faults.pending:
+            if f.at_fraction is None or not denom:
+                continue
+            c = max(self._completed + 1, math.ceil(f.at_fraction * denom))
+            while c > self._completed + 1 and (c - 1) / denom >= f.at_fraction:
+                c -= 1
+            while c / denom < f.at_fraction:
+                c += 1
+            n = min(n, c - self._completed)
+        return max(1, n)
+
+    def _next_fault_s(self) -> float:
+        """Virtual time of the earliest galvo fault still to fire at a time (inf: none)."""
+        return min((f.at_s for f in self.faults.pending if f.at_s is not None), default=math.inf)
+
+    def _log_append(self, frame: int, row: int, col: int, count: int, dwell_ns: int,
+                    flag: str) -> None:
         if len(self._log) == self._log.maxlen:
             self._log_base += 1
-        self._log.append(rec)
+        self._log.append(f"{frame},{row},{col},{count},{dwell_ns},{flag}")
 
     # ---- owner API (tests, demos) ------------------------------------------------------------
     @property

@@ -292,3 +292,223 @@ def pack_events(sync, t, origin, res_s, range_bins, channel, m_sync, m_bits,
         j += 1
     return n
 
+
+
+@njit(cache=True, nogil=True)
+def start_at_kernel(state_i, pend_sync, pend_t, pend_item, sync):
+    """The detector forgets what cannot affect detections from ``sync`` on: pending afterpulses
+    that would have fired before it (nobody was listening), and everything when time went
+    backwards. State arrays as in ``detector_kernel``."""
+    if state_i[0] != 0 and state_i[1] > sync:
+        state_i[0] = 0
+        state_i[1] = 0
+        state_i[2] = 0
+        return
+    m = 0
+    for q in range(state_i[2]):
+        if pend_sync[q] >= sync:
+            pend_sync[m] = pend_sync[q]
+            pend_t[m] = pend_t[q]
+            pend_item[m] = pend_item[q]
+            m += 1
+    state_i[2] = m
+
+
+@njit(cache=True, nogil=True)
+def _copy(dst, src):
+    """dst[:src.size] = src as a loop: numba compiles a slice assignment for tens of seconds."""
+    for i in range(src.size):
+        dst[i] = src[i]
+
+
+@njit(cache=True, nogil=True)
+def _grow(sync, t, origin, item, n_keep, need):
+    """Detection arrays (sync, t, origin, item) with room for ``need``: the same ones when they
+    have it, else new ones at least twice as long holding the first ``n_keep`` rows."""
+    if sync.size >= need:
+        return sync, t, origin, item
+    cap = max(need, 2 * sync.size)
+    s2, t2 = np.empty(cap, np.int64), np.empty(cap, np.float64)
+    o2, i2 = np.empty(cap, np.uint8), np.empty(cap, np.int32)
+    for q in range(n_keep):
+        s2[q] = sync[q]
+        t2[q] = t[q]
+        o2[q] = origin[q]
+        i2[q] = item[q]
+    return s2, t2, o2, i2
+
+
+@njit(cache=True, nogil=True)
+def dwell_run(rng, pix, n_target, limit, settle, off_syncs, start_sync, stop_s, max_records,
+              sig_pp, tof_s, bg_pp, lam, period_s,
+              pulse_kind, rms_s, irf_cdf, irf_t0_s, irf_bin_s,
+              jitter_rms_s, sequential, dead_s, ap_prob, ap_tau_s,
+              state_i, state_t, pend_sync, pend_t, pend_item,
+              res_s, range_bins, win_lo, win_hi, capacity,
+              starts, n_syncs, counts):
+    """Dwells on a list of pixels one after another, as a scanner holding the mirror on each: the
+    whole per-pixel pipeline (generation, jitter, detector, count gate) in one call, so a scan
+    line costs one call instead of one per pixel. Each pixel gets exactly the random draws a call
+    for that pixel alone would take, in the same order, so a run equals its pixels one by one.
+
+    pix (n,) int64 pixel indices into the rate tables, -1 for a pixel off the scene (nothing
+    returns; it takes ``off_syncs``). ``settle`` syncs pass before every pixel but the first
+    (which starts at ``start_sync``). Fixed dwell (``n_target`` 0): each pixel takes ``limit``
+    syncs. Count-gated: each pixel runs until the detection that brings its count (detections
+    recorded, dtime < range_bins, inside [win_lo, win_hi) tagger units) to ``n_target``, or
+    ``limit`` syncs; the next pixel starts at the sync after. Generation goes in chunks sized from
+    the rate seen so far (an exponential gap running past a chunk's end is dropped, and the
+    process resumes at the chunk's end: exact, since gaps are memoryless).
+
+    Effects: ``jitter_rms_s`` > 0 jitters every time; ``sequential`` runs ``detector_kernel``
+    (``dead_s``, ``ap_prob``, ``ap_tau_s``) on the detector state arrays, which carry over from
+    call to call. The run stops early after the first pixel that ends (plus the settle after it)
+    at or after virtual time ``stop_s``, so a fault due then fires at that pixel, and after the
+    pixel that brings its detections plus one marker per pixel to ``max_records``.
+
+    Writes per pixel ``starts`` (first sync), ``n_syncs`` and ``counts`` (detections the tagger
+    records); returns (pixels done, sync, t, origin) of the detections, sorted by (sync, t).
+    ``capacity`` is a first guess of the number of detections (the arrays grow as needed).
+    """
+    n_pix = pix.size
+    # (np.int64(...) around constants: a literal argument would compile one more variant)
+    zero = np.int64(0)
+    out_sync, out_t, out_origin, out_item = _grow(np.empty(0, np.int64), np.empty(0, np.float64),
+                                                  np.empty(0, np.uint8), np.empty(0, np.int32),
+                                                  zero, np.int64(capacity))
+    n_out = 0
+    # one pixel's chunk of ideal detections, and the detector's output
+    g_sync, g_t, g_origin, g_item = _grow(np.empty(0, np.int64), np.empty(0, np.float64),
+                                          np.empty(0, np.uint8), np.empty(0, np.int32), zero,
+                                          np.int64(4096))
+    d_sync, d_t, d_origin, d_item = _grow(np.empty(0, np.int64), np.empty(0, np.float64),
+                                          np.empty(0, np.uint8), np.empty(0, np.int32), zero, zero)
+    saved_i = np.empty(3, np.int64)
+    saved_t = np.empty(1, np.float64)
+    saved_ps = np.empty(pend_sync.size, np.int64)
+    saved_pt = np.empty(pend_sync.size, np.float64)
+    saved_pi = np.empty(pend_sync.size, np.int32)
+    one_pix = np.zeros(1, np.int64)
+    one_start = np.zeros(1, np.int64)
+    one_n = np.zeros(1, np.int64)
+    s = start_sync
+    done_pixels = 0
+    for j in range(n_pix):
+        if j > 0:
+            s += settle
+        starts[j] = s
+        p = pix[j]
+        if p < 0:
+            n_syncs[j] = off_syncs
+            counts[j] = 0
+            s += off_syncs
+        else:
+            start_at_kernel(state_i, pend_sync, pend_t, pend_item, s)
+            one_pix[0] = p
+            gated = n_target > 0
+            done = 0          # syncs generated so far
+            counted = 0
+            reached = -1
+            rate = lam[p]     # counted detections per sync, refined as we go
+            recorded = 0
+            while done < limit and (not gated or counted < n_target):
+                need = n_target - counted
+                if not gated:
+                    chunk = limit
+                elif rate > 0.0:
+                    f = need / rate * 1.25 + 16
+                    chunk = limit - done if f >= limit - done else max(np.int64(f), 16)
+                else:
+                    chunk = limit
+                chunk = min(max(chunk, 16) if gated else chunk, limit - done)
+                s0 = s + done
+                # ideal detections of the chunk (generate_chain resumes where the buffer filled)
+                expected = lam[p] * chunk
+                g_sync, g_t, g_origin, g_item = _grow(
+                    g_sync, g_t, g_origin, g_item, zero,
+                    np.int64(expected + 6.0 * np.sqrt(expected) + 64))
+                one_start[0] = s0
+                one_n[0] = chunk
+                n_g = 0
+                i_next = zero
+                u_next = 0.0
+                while True:
+                    n_new, i_next, u_next = generate_chain(
+                        rng, one_pix, one_start, one_n, i_next, u_next, sig_pp, tof_s, bg_pp,
+                        period_s, pulse_kind, rms_s, irf_cdf, irf_t0_s, irf_bin_s,
+                        g_sync[n_g:], g_t[n_g:], g_origin[n_g:], g_item[n_g:])
+                    n_g += n_new
+                    if i_next >= 1:
+                        break
+                    g_sync, g_t, g_origin, g_item = _grow(g_sync, g_t, g_origin, g_item, n_g,
+                                                          2 * g_sync.size)
+                b_sync = g_sync[:n_g]
+                b_t = g_t[:n_g]
+                b_origin = g_origin[:n_g]
+                b_item = g_item[:n_g]
+                sort_within_sync(b_sync, b_t, b_origin, b_item)
+                if jitter_rms_s > 0.0:
+                    jitter_kernel(rng, b_t, jitter_rms_s, period_s)
+                    sort_within_sync(b_sync, b_t, b_origin, b_item)
+                if sequential:
+                    # the capacity effects._Sequential starts with
+                    d_need = n_g + np.int64(n_g * 3 * ap_prob / (1.0 - ap_prob)) + pend_sync.size + 64
+                    _copy(saved_i, state_i)
+                    _copy(saved_t, state_t)
+                    _copy(saved_ps, pend_sync)
+                    _copy(saved_pt, pend_t)
+                    _copy(saved_pi, pend_item)
+                    while True:
+                        d_sync, d_t, d_origin, d_item = _grow(d_sync, d_t, d_origin, d_item, zero,
+                                                              d_need)
+                        n_d, got = detector_kernel(
+                            rng, b_sync, b_t, b_origin, b_item, period_s, dead_s, ap_prob,
+                            ap_tau_s, state_i, state_t, pend_sync, pend_t, pend_item, s0 + chunk,
+                            need if gated else 0, res_s, range_bins, win_lo, win_hi,
+                            d_sync, d_t, d_origin, d_item)
+                        if n_d >= 0:
+                            break
+                        # an afterpulse cascade overflowed the guess: again with room to spare
+                        _copy(state_i, saved_i)
+                        _copy(state_t, saved_t)
+                        _copy(pend_sync, saved_ps)
+                        _copy(pend_t, saved_pt)
+                        _copy(pend_item, saved_pi)
+                        d_need = 2 * d_sync.size
+                    b_sync = d_sync[:n_d]
+                    b_t = d_t[:n_d]
+                    b_origin = d_origin[:n_d]
+                    if gated and got >= need:
+                        reached = b_sync[n_d - 1]
+                    n_b = n_d
+                else:
+                    n_b = n_g
+                    got = 0
+                    if gated:
+                        for q in range(n_g):
+                            if _counted(b_t[q], res_s, range_bins, win_lo, win_hi):
+                                got += 1
+                                if got >= need:
+                                    n_b = q + 1
+                                    reached = b_sync[q]
+                                    break
+                out_sync, out_t, out_origin, out_item = _grow(out_sync, out_t, out_origin,
+                                                              out_item, n_out, n_out + n_b)
+                for q in range(n_b):
+                    out_sync[n_out] = b_sync[q]
+                    out_t[n_out] = b_t[q]
+                    out_origin[n_out] = b_origin[q]
+                    if np.int64(b_t[q] / res_s) < range_bins:
+                        recorded += 1
+                    n_out += 1
+                counted += got
+                done += chunk
+                if gated and counted < n_target:
+                    rate = max(counted / done, 0.5 * rate) if counted else rate / 4
+            n_syncs[j] = reached - s + 1 if reached >= 0 else limit
+            counts[j] = recorded
+            s += n_syncs[j]
+        done_pixels = j + 1
+        if (s + settle) * period_s >= stop_s or n_out + done_pixels >= max_records:
+            break
+    return done_pixels, out_sync[:n_out], out_t[:n_out], out_origin[:n_out]

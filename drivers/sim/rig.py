@@ -9,7 +9,9 @@ drains the FIFO. Nothing here knows about bytes on wires.
 
 from __future__ import annotations
 
+import math
 import threading
+import time
 from collections import deque
 from dataclasses import dataclass
 
@@ -30,12 +32,17 @@ class FieldOfView:
 
     def pixel_of(self, x_deg: float, y_deg: float, shape: tuple[int, int]) -> tuple[int, int] | None:
         """The (row, col) the mirror points at, or None when it points outside the scene."""
+        p = int(self.pixels_of(np.array([x_deg], np.float64), np.array([y_deg], np.float64),
+                               shape)[0])
+        return None if p < 0 else divmod(p, shape[1])
+
+    def pixels_of(self, x_deg: np.ndarray, y_deg: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+        """Flat scene pixel (row * W + col) under each mirror position, -1 outside the scene."""
         h, w = shape
-        col = int(np.floor((x_deg - self.x_min_deg) / (self.x_max_deg - self.x_min_deg) * w))
-        row = int(np.floor((y_deg - self.y_min_deg) / (self.y_max_deg - self.y_min_deg) * h))
-        if 0 <= row < h and 0 <= col < w:
-            return row, col
-        return None
+        col = np.floor((x_deg - self.x_min_deg) / (self.x_max_deg - self.x_min_deg) * w)
+        row = np.floor((y_deg - self.y_min_deg) / (self.y_max_deg - self.y_min_deg) * h)
+        inside = (row >= 0) & (row < h) & (col >= 0) & (col < w)
+        return np.where(inside, row * w + col, -1).astype(np.int64)
 
     def centre_deg(self, row: int, col: int, shape: tuple[int, int]) -> tuple[float, float]:
         """Mirror angles (x_deg, y_deg) of the centre of pixel (row, col)."""
@@ -53,6 +60,12 @@ class FifoStatus:
     capacity_records: int
     overflowed: bool
     lost_records: int
+
+
+def _pixel_markers(events: np.ndarray) -> int:
+    """PIXEL marker rows among ``events``."""
+    return int(np.count_nonzero((events["kind"] == EventKind.MARKER)
+                                & (events["marker"] & Marker.PIXEL != 0)))
 
 
 class SimRig:
@@ -76,6 +89,9 @@ class SimRig:
         self.fifo_capacity_records = int(fifo_capacity_records)
         self._lock = threading.RLock()
         self._has_events = threading.Condition(self._lock)   # the tagger waits on it, never polls
+        self._has_room = threading.Condition(self._lock)     # an unpaced scan waits on it
+        self._last_read = 0.0               # monotonic() of the tagger's last FIFO read
+        self._fifo_pixels = 0               # PIXEL markers in the FIFO: how far the host lags
         self._sync = 0                      # laser syncs since power-on; the virtual clock
         self._mirror_deg = (0.0, 0.0)
         self._fifo: deque[np.ndarray] = deque()
@@ -154,6 +170,91 @@ class SimRig:
             events, n_syncs = self.world.fixed_dwell(pix[0], pix[1], float(dwell_s), self._sync)
             return self._dwell_done(pix, events, n_syncs)
 
+    def scan_run(self, x_deg: np.ndarray, y_deg: np.ndarray, marker_bits: np.ndarray, *,
+                 dwell_s: float, n_target: int | None = None, settle_s: float = 0.0,
+                 stop_s: float = math.inf, max_records: int = 2 ** 62
+                 ) -> tuple[int, np.ndarray, np.ndarray]:
+        """What the galvo controller does for a run of pixels, in one step: for each pixel it
+        moves the mirror to (x_deg, y_deg), waits ``settle_s``, pulses ``marker_bits`` and dwells
+        (``count_gated_dwell`` with ``n_target``, else ``fixed_dwell``), exactly as those calls
+        one by one would, but with one call into the world for the whole run.
+
+        The run ends early after the first pixel that ends (with the settle after it) at or after
+        virtual time ``stop_s`` (a fault due then), and before any pixel whose PIXEL pulse would
+        fire a scheduled FIFO loss, so every fault hits the pixel it would hit pixel by pixel; and
+        after the pixel that brings its records (markers included) to ``max_records``.
+        Returns (pixels done, detector pulses counted per pixel, elapsed seconds per pixel)."""
+        period = self.world.sync_period_s
+        with self._lock:
+            self.set_mirror(x_deg[0], y_deg[0])
+            self.wait(settle_s)
+            self.pixels_pulsed += 1          # the first pixel's pulse; its photons follow
+            self._fire_scheduled_losses()
+            n = len(x_deg)
+            for kind, at, _ in self._scheduled_losses:
+                if kind == "pixel":          # pulse j of the run makes pixels_pulsed + j
+                    n = min(n, max(1, math.ceil(at) - self.pixels_pulsed))
+                else:
+                    stop_s = min(stop_s, at)
+            pix = self.fov.pixels_of(np.asarray(x_deg[:n], np.float64),
+                                     np.asarray(y_deg[:n], np.float64), self.world.shape)
+            run = self._world_run(pix, dwell_s, n_target,
+                                  max(0, int(round(settle_s / period))),
+                                  max(0, int(round(dwell_s / period))), stop_s, max_records,
+                                  np.asarray(marker_bits[:n], np.uint8))
+            done = run.n_done
+            self.pixels_pulsed += done - 1
+            self._mirror_deg = (float(x_deg[done - 1]), float(y_deg[done - 1]))
+            if self.truth is not None and self.tagger_running:
+                opens = np.flatnonzero(run.events["kind"] == EventKind.MARKER)
+                ends = np.append(opens[1:], run.events.size)
+                h, w = self.world.shape
+                for j in np.flatnonzero(pix[:done] >= 0):
+                    r, c = divmod(int(pix[j]), w)
+                    self.truth.append((r, c, run.events[opens[j] + 1:ends[j]].copy()))
+            self._push(run.events)
+            self._sync = int(run.starts[-1] + run.n_syncs[-1])
+            self._fire_scheduled_losses()
+            # an off-scene pixel waited the dwell (limit) itself, as count_gated_dwell reports it
+            elapsed = np.where(pix[:done] >= 0, run.n_syncs * period, float(dwell_s))
+            return done, run.counts, elapsed
+
+    def _world_run(self, pix, dwell_s, n_target, settle, off_syncs, stop_s, max_records, bits):
+        """The world's ``dwell_run`` over flat pixels ``pix``; a world that only answers pixel by
+        pixel (``count_gated`` / ``fixed_dwell``, e.g. a test double) is asked pixel by pixel."""
+        if hasattr(self.world, "dwell_run"):
+            return self.world.dwell_run(pix, self._sync, dwell_s, n_target=n_target,
+                                        settle_syncs=settle, off_syncs=off_syncs, stop_s=stop_s,
+                                        max_records=max_records, marker_bits=bits)
+        from spdepth.drivers.sim.world import DwellRun
+
+        w = self.world.shape[1]
+        s = self._sync
+        records = 0
+        parts, starts, n_syncs, counts = [], [], [], []
+        for j, p in enumerate(pix):
+            s += settle if j else 0
+            mark = np.zeros(1, dtype=EVENT_DTYPE)
+            mark["sync"], mark["kind"], mark["marker"] = s, EventKind.MARKER, bits[j]
+            parts.append(mark)
+            if p < 0:
+                n, ev = off_syncs, mark[:0]
+            elif n_target is None:
+                ev, n = self.world.fixed_dwell(int(p) // w, int(p) % w, float(dwell_s), s)
+            else:
+                ev, n = self.world.count_gated(int(p) // w, int(p) % w, int(n_target),
+                                               float(dwell_s), s)
+            parts.append(ev)
+            starts.append(s)
+            n_syncs.append(int(n))
+            counts.append(int(ev.size))
+            s += int(n)
+            records += 1 + ev.size
+            if (s + settle) * self.world.sync_period_s >= stop_s or records >= max_records:
+                break
+        return DwellRun(np.concatenate(parts), None, np.array(starts, np.int64),
+                        np.array(n_syncs, np.int64), np.array(counts, np.int64))
+
     def _dwell_done(self, pix: tuple[int, int], events: np.ndarray, n_syncs: int) -> tuple[int, float]:
         if self.truth is not None and self.tagger_running:
             self.truth.append((pix[0], pix[1], events.copy()))
@@ -175,10 +276,12 @@ class SimRig:
         if room >= events.size and self._lost_since_sync is None:
             self._fifo.append(events)
             self._fifo_fill += events.size
+            self._fifo_pixels += _pixel_markers(events)
             return
         if room > 0 and self._lost_since_sync is None:
             self._fifo.append(events[:room])
             self._fifo_fill += room
+            self._fifo_pixels += _pixel_markers(events[:room])
             events = events[room:]
         if self._lost_since_sync is None:
             self._lost_since_sync = int(events["sync"][0])
@@ -228,22 +331,42 @@ class SimRig:
             return self._has_events.wait_for(
                 lambda: bool(self._fifo) or self._lost_since_sync is not None, timeout_s)
 
+    def wait_for_room(self, records: int, pixels: int, stall_s: float,
+                      stop: threading.Event | None = None) -> None:
+        """Block (real time) while the tagger measures and its FIFO lacks room for ``records`` or
+        holds more than ``pixels`` pixels (PIXEL markers), as long as its reader keeps reading
+        (it read within the last ``stall_s``) and ``stop`` is not set. A scan running faster than
+        real time thus stays within a few pixels of what the host has taken, as a real-time scan
+        does, instead of overflowing a FIFO that real time would have drained; a reader that
+        stopped reading gets the overflow."""
+        with self._lock:
+            while (self.tagger_running
+                   and (self.fifo_capacity_records - self._fifo_fill < records
+                        or self._fifo_pixels > pixels)
+                   and time.monotonic() - self._last_read < stall_s
+                   and not (stop is not None and stop.is_set())):
+                self._has_room.wait(0.05)
+
     def read_events(self, max_events: int) -> np.ndarray:
         """Drain up to ``max_events`` events from the FIFO, oldest first. After a loss, the LOST
         event comes first once the FIFO holds room again, so readers see the hole in order."""
         with self._lock:
+            self._last_read = time.monotonic()
             out = []
             n = 0
             while self._fifo and n < max_events:
                 chunk = self._fifo[0]
                 take = min(chunk.size, max_events - n)
                 out.append(chunk[:take])
+                self._fifo_pixels -= _pixel_markers(chunk[:take])
                 n += take
                 if take == chunk.size:
                     self._fifo.popleft()
                 else:
                     self._fifo[0] = chunk[take:]
             self._fifo_fill -= n
+            if n:
+                self._has_room.notify_all()
             if self._lost_since_sync is not None and n < max_events:
                 lost = np.zeros(1, dtype=EVENT_DTYPE)
                 lost["sync"] = self._lost_since_sync
@@ -259,6 +382,8 @@ class SimRig:
         with self._lock:
             self._fifo.clear()
             self._fifo_fill = 0
+            self._fifo_pixels = 0
+            self._has_room.notify_all()
             self._lost_since_sync = None
             self._pending_lost = 0
 
@@ -275,7 +400,9 @@ class SimRig:
     def start_tagger(self) -> None:
         with self._lock:
             self.tagger_running = True
+            self._last_read = time.monotonic()   # its reader gets stall time to begin
 
     def stop_tagger(self) -> None:
         with self._lock:
             self.tagger_running = False
+            self._has_room.notify_all()

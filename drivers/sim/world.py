@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
@@ -20,7 +21,7 @@ from spdepth.drivers.errors import SettingError
 from spdepth.drivers.events import EVENT_DTYPE, Marker
 
 from spdepth.drivers.sim import kernels as K
-from spdepth.drivers.sim.effects import Batch, Counting, DetectorState, build_effects
+from spdepth.drivers.sim.effects import Batch, Counting, DetectorState, Jitter, build_effects
 
 
 class VirtualClock:
@@ -64,6 +65,24 @@ def _syncs(duration_s: float, period_s: float, what: str) -> int:
     if not (duration_s > 0) or math.isinf(duration_s):
         raise SettingError(f"{what} must be positive and finite, got {duration_s}")
     return max(1, int(duration_s / period_s + 1e-9))
+
+
+@dataclass
+class DwellRun:
+    """What ``PhotonWorld.dwell_run`` gives back, per pixel done (the run may stop early):
+    ``starts`` first sync, ``n_syncs`` syncs taken, ``counts`` PHOTON rows recorded; ``events``
+    all rows in time order (markers included when asked for) and their ``origin`` (when asked
+    for, else None)."""
+
+    events: np.ndarray
+    origin: np.ndarray | None
+    starts: np.ndarray
+    n_syncs: np.ndarray
+    counts: np.ndarray
+
+    @property
+    def n_done(self) -> int:
+        return int(self.starts.size)
 
 
 class PhotonWorld:
@@ -200,18 +219,10 @@ class PhotonWorld:
         Returns (events, n_syncs): PHOTON rows with sync in [start_sync, start_sync + n_syncs),
         n_syncs = max(1, floor(dwell_s / sync_period_s)); plus origin when ``with_origin``.
         """
-        p = self._check_pixel(row, col)
-        n_sync = _syncs(dwell_s, self._period_s, "dwell_s")
-        start_sync = int(start_sync)
-        if start_sync < 0:
-            raise SettingError(f"start_sync must be >= 0, got {start_sync}")
-        with self._lock:
-            self._det.start_at(start_sync)
-            batch = self._base(np.array([p], np.int64), np.array([start_sync], np.int64),
-                               np.array([n_sync], np.int64))
-            batch, _ = self._effects(batch, start_sync + n_sync, Counting())
-            ev, origin = self._pack(batch)
-        return (ev, n_sync, origin) if with_origin else (ev, n_sync)
+        run = self.dwell_run(np.array([self._check_pixel(row, col)], np.int64), start_sync,
+                             dwell_s, with_origin=with_origin)
+        n_sync = int(run.n_syncs[0])
+        return (run.events, n_sync, run.origin) if with_origin else (run.events, n_sync)
 
     def count_gated(self, row: int, col: int, n_target: int, dwell_limit_s: float,
                     start_sync: int, window=None, *, with_origin: bool = False):
@@ -223,55 +234,72 @@ class PhotonWorld:
         between. Returns (events, n_syncs): n_syncs = syncs elapsed (up to and including the
         target detection's sync, or the whole limit); plus origin when ``with_origin``.
         """
-        p = self._check_pixel(row, col)
-        n_target = int(n_target)
-        if n_target < 1:
-            raise SettingError(f"n_target must be >= 1, got {n_target}")
-        limit = _syncs(dwell_limit_s, self._period_s, "dwell_limit_s")
+        run = self.dwell_run(np.array([self._check_pixel(row, col)], np.int64), start_sync,
+                             dwell_limit_s, n_target=n_target, window=window,
+                             with_origin=with_origin)
+        n_syncs = int(run.n_syncs[0])
+        return (run.events, n_syncs, run.origin) if with_origin else (run.events, n_syncs)
+
+    def dwell_run(self, pixels: np.ndarray, start_sync: int, dwell_s: float, *,
+                  n_target: int | None = None, window=None, settle_syncs: int = 0,
+                  off_syncs: int = 0, stop_s: float = math.inf, max_records: int = 2 ** 62,
+                  marker_bits=None, end_marker: int = 0, with_origin: bool = False) -> "DwellRun":
+        """Dwells on several pixels one after another from sync ``start_sync``, as a scanner
+        holding its mirror on each: ``fixed_dwell`` (``n_target`` None, ``dwell_s`` each) or
+        ``count_gated`` (until ``n_target`` counted detections, ``window`` as there, or the limit
+        ``dwell_s``), each pixel exactly as that call for it alone would give it, in one compiled
+        call instead of one per pixel.
+
+        pixels: flat scene pixel indices (row * W + col), -1 for a pixel off the scene (nothing
+        returns; it takes ``off_syncs``). ``settle_syncs`` pass before every pixel but the first.
+        The run stops early after the first pixel that ends (plus the settle after it) at or after
+        virtual time ``stop_s``, and after the pixel that brings its detections plus one marker per
+        pixel to ``max_records``. ``marker_bits`` (uint8 per pixel): a MARKER row with those bits
+        opens each pixel (at its first sync, before its photons); ``end_marker`` bits: one more at
+        the sync after the last pixel done.
+        """
+        pixels = np.ascontiguousarray(pixels, dtype=np.int64)
+        h, w = self.scene.shape
+        if pixels.ndim != 1 or np.any((pixels < -1) | (pixels >= h * w)):
+            raise SettingError(f"pixels must be flat indices into the {h} x {w} scene or -1")
+        gated = n_target is not None
+        if gated:
+            n_target = int(n_target)
+            if n_target < 1:
+                raise SettingError(f"n_target must be >= 1, got {n_target}")
+        limit = _syncs(dwell_s, self._period_s, "dwell_limit_s" if gated else "dwell_s")
         start_sync = int(start_sync)
         if start_sync < 0:
             raise SettingError(f"start_sync must be >= 0, got {start_sync}")
         lo, hi = self._window(window)
-        res = self.scene.resolution_s
-        rb = self._range_bins
+        n = pixels.size
+        starts, n_syncs, counts = (np.zeros(n, np.int64) for _ in range(3))
+        seq = self._sequential
+        jitter = [e for e in self._stateless if isinstance(e, Jitter)]
+        # first guess of the detections (the kernel grows its arrays when it is short)
+        guess = n * (n_target * 1.25 + 16.0) if gated else \
+            float(self._lam[pixels[pixels >= 0]].sum() * limit) + 16.0 * n
+        det = self._det
         with self._lock:
-            self._det.start_at(start_sync)
-            lam = float(self._lam[p])
-            pix = np.array([p], np.int64)
-            parts = []
-            done = 0        # syncs generated so far
-            counted = 0
-            reached_sync = -1
-            rate = lam      # counted detections per sync, refined as we go
-            while done < limit and counted < n_target:
-                need = n_target - counted
-                chunk = int(need / rate * 1.25 + 16) if rate > 0 else limit
-                chunk = min(max(chunk, 16), limit - done)
-                s0 = start_sync + done
-                batch = self._base(pix, np.array([s0], np.int64), np.array([chunk], np.int64))
-                batch, n_seq = self._effects(
-                    batch, s0 + chunk, Counting(need, res, rb, lo, hi) if self._sequential else Counting())
-                if n_seq >= 0:
-                    got = n_seq
-                    if got >= need:
-                        reached_sync = int(batch.sync[-1])
-                else:
-                    d = (batch.t / res).astype(np.int64)
-                    cs = np.cumsum((d < rb) & (d >= lo) & (d < hi))
-                    got = int(cs[-1]) if cs.size else 0
-                    if got >= need:
-                        cut = int(np.searchsorted(cs, need)) + 1
-                        batch = batch.take(cut)
-                        reached_sync = int(batch.sync[-1])
-                        got = need
-                parts.append(batch.copy())
-                counted += got
-                done += chunk
-                if counted < n_target:
-                    rate = max(counted / done, 0.5 * rate) if counted else rate / 4
-            n_syncs = reached_sync - start_sync + 1 if reached_sync >= 0 else limit
-            ev, origin = self._pack(Batch.concat(parts))
-        return (ev, n_syncs, origin) if with_origin else (ev, n_syncs)
+            done, sync, t, origin = K.dwell_run(
+                self._rng, pixels, n_target if gated else 0, limit, int(settle_syncs),
+                int(off_syncs), start_sync, float(stop_s), int(max_records), self._sig_pp, self._tof_s,
+                self._bg_pp, self._lam, self._period_s, *self._pulse,
+                jitter[0].rms_s if jitter else 0.0, seq is not None,
+                seq.dead_s if seq else 0.0, seq.ap_prob if seq else 0.0,
+                seq.ap_tau_s if seq else 0.0, det.state_i, det.state_t, det.pend_sync,
+                det.pend_t, det.pend_item, self.scene.resolution_s, self._range_bins, lo, hi,
+                int(min(guess, 1 << 20)) + 64, starts, n_syncs, counts)
+        m_sync, m_bits = np.zeros(0, np.int64), np.zeros(0, np.uint8)
+        if marker_bits is not None:
+            m_sync, m_bits = starts[:done], np.asarray(marker_bits, np.uint8)[:done]
+        if end_marker:
+            end = starts[done - 1] + n_syncs[done - 1] if done else start_sync
+            m_sync = np.append(m_sync, end)
+            m_bits = np.append(m_bits, np.uint8(end_marker))
+        ev, org = self._pack(Batch(sync, t, origin, np.zeros(0, np.int32)), m_sync, m_bits)
+        return DwellRun(ev, org if with_origin else None, starts[:done], n_syncs[:done],
+                        counts[:done])
 
     # ------------------------------------------------------------------ whole scans
     def raster(self, n_target: int | None = None, dwell_s: float | None = None, *,
@@ -309,18 +337,24 @@ class PhotonWorld:
             return ev, np.concatenate(origins) if len(origins) > 1 else origins[0]
         return ev
 
+    @staticmethod
+    def _line_marker_bits(w: int, frame: bool) -> np.ndarray:
+        """The marker pulses of one line of ``w`` pixels, as the galvo controller drives them
+        (docs/protocols.md): ``[FRAME|]LINE_START|PIXEL`` at the first pixel, ``PIXEL`` at each
+        later one, ``LINE_STOP`` after the last (w + 1 values)."""
+        m_bits = np.full(w + 1, Marker.PIXEL, np.uint8)
+        m_bits[0] |= Marker.LINE_START | (Marker.FRAME if frame else 0)
+        m_bits[w] = Marker.LINE_STOP
+        return m_bits
+
     def _line_markers(self, line_start: int, pixel_starts: np.ndarray, line_stop: int, frame: bool):
-        """The marker pulses of one line, as the galvo controller drives them (docs/protocols.md):
-        ``[FRAME|]LINE_START|PIXEL`` at the first pixel, ``PIXEL`` at each later one, ``LINE_STOP``
-        after the last."""
+        """(sync, bits) of the marker pulses of one line (``_line_marker_bits``)."""
         w = pixel_starts.size
         m_sync = np.empty(w + 1, np.int64)
-        m_bits = np.empty(w + 1, np.uint8)
         m_sync[0] = line_start
-        m_bits[0] = Marker.LINE_START | Marker.PIXEL | (Marker.FRAME if frame else 0)
-        m_sync[1:w], m_bits[1:w] = pixel_starts[1:], Marker.PIXEL
-        m_sync[w], m_bits[w] = line_stop, Marker.LINE_STOP
-        return m_sync, m_bits
+        m_sync[1:w] = pixel_starts[1:]
+        m_sync[w] = line_stop
+        return m_sync, self._line_marker_bits(w, frame)
 
     def _raster_fixed(self, n_dwell, gap, start_sync, progress):
         h, w = self.scene.shape
@@ -373,35 +407,14 @@ class PhotonWorld:
         h, w = self.scene.shape
         evs, origins = [], []
         s = start_sync
+        cols = np.arange(w, dtype=np.int64)
         for r in range(h):
-            starts = np.empty(w, np.int64)
-            line_ev, line_or = [], []
-            for c in range(w):
-                starts[c] = s
-                ev, n, origin = self.count_gated(r, c, n_target, limit_s, s, window, with_origin=True)
-                line_ev.append(ev)
-                line_or.append(origin)
-                s += n
-            m_sync, m_bits = self._line_markers(int(starts[0]), starts, s, frame=(r == 0))
-            # markers are interleaved where each pixel's events begin
-            pieces, opieces = [], []
-            mk = np.zeros(m_sync.size, EVENT_DTYPE)
-            mk["sync"], mk["kind"], mk["marker"] = m_sync, K.KIND_MARKER, m_bits
-            mo = np.full(m_sync.size, K.ORIGIN_MARKER, np.uint8)
-            j0 = 1     # [FRAME|]LINE_START|PIXEL opens the line's first pixel
-            pieces.append(mk[:j0])
-            opieces.append(mo[:j0])
-            for c in range(w):
-                if c > 0:
-                    pieces.append(mk[j0 + c - 1:j0 + c])
-                    opieces.append(mo[j0 + c - 1:j0 + c])
-                pieces.append(line_ev[c])
-                opieces.append(line_or[c])
-            pieces.append(mk[-1:])
-            opieces.append(mo[-1:])
-            evs.append(np.concatenate(pieces))
-            origins.append(np.concatenate(opieces))
-            s += gap
+            bits = self._line_marker_bits(w, frame=(r == 0))
+            run = self.dwell_run(r * w + cols, s, limit_s, n_target=n_target, window=window,
+                                 marker_bits=bits[:w], end_marker=int(bits[w]), with_origin=True)
+            evs.append(run.events)
+            origins.append(run.origin)
+            s = int(run.starts[-1] + run.n_syncs[-1]) + gap
             if progress is not None:
                 progress((r + 1) * w, h * w)
         return evs, origins

@@ -311,15 +311,18 @@ class TaggerReader:
         else:
             records = np.zeros(0, dtype=np.uint32)
         status = self.tagger.status()
+        end = self._position + records.size
         if self._timed_out:
             self._timed_out = False
-            if status.fifo_fill_records > 0:
-                # an idle stream times out all the time; one that times out while the device
-                # holds records is an anomaly (USB hiccup), survived by reading again
+            # An idle stream times out all the time; one that times out while the device holds
+            # records is an anomaly (USB hiccup), survived by reading again, unless the records
+            # wait behind a gap the host has read up to: the device sends none of them before
+            # ACK_GAP (docs/protocols.md, "FIFO overrun"), so that timeout is the protocol.
+            held_for_gap = status.overrun and status.gap_position <= end
+            if status.fifo_fill_records > 0 and not held_for_gap:
                 self.stats["timeouts_with_data"] += 1
                 self._notify(ReadAnomaly.USB_TIMEOUT, "a bulk read timed out while the tagger "
                              f"held {status.fifo_fill_records} records; read again")
-        end = self._position + records.size
         if status.overrun and status.gap_position <= end:
             split = status.gap_position - self._position
             if split < 0:

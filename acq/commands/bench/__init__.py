@@ -21,6 +21,8 @@ TARGETS = {
             "vs with the window open"),
     "read": ("spdepth.acq.commands.bench.read", "reading a PTU: spdepth recon's reader beside replay's "
              "stream on the same file (detections/s)"),
+    "sim": ("spdepth.acq.commands.bench.sim", "the simulated bench: the demo's session (96x96) and a gated "
+            "512x512 session at 30 per pixel through the real drivers, warm (wall s)"),
     "session": ("spdepth.acq.commands.bench.session", "acquisition session end to end: scan det/s, live-recon "
                 "backlog, replay det/s, peak memory"),
     "report": ("spdepth.acq.commands.bench.report", "accuracy vs detections per pixel, SBR and estimator, with scan and "
