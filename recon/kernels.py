@@ -57,11 +57,42 @@ def window_bins(times, offsets, start, stop, width, n_bins, max_photons, out_bin
 
 
 @njit(cache=True, nogil=True)
+def heap_sort(a, n):
+    """Sort a[:n] ascending in place: heapsort, O(n log n) with no recursion and no allocation.
+    Used instead of np.sort inside kernels: numba compiles numpy's sort (its quicksort and the
+    shape checks of the slice assignment) into every kernel that calls it, seconds on a cold cache
+    and more symbols to load from a warm one, for a path only big pixels take."""
+    for root in range(n // 2 - 1, -1, -1):
+        _sift_down(a, root, n)
+    for end in range(n - 1, 0, -1):
+        v = a[0]
+        a[0] = a[end]
+        a[end] = v
+        _sift_down(a, 0, end)
+
+
+@njit(cache=True, nogil=True)
+def _sift_down(a, root, n):
+    v = a[root]
+    while True:
+        c = 2 * root + 1
+        if c >= n:
+            break
+        if c + 1 < n and a[c + 1] > a[c]:
+            c += 1
+        if not a[c] > v:
+            break
+        a[root] = a[c]
+        root = c
+    a[root] = v
+
+
+@njit(cache=True, nogil=True)
 def unique_counts(bins, o0, o1, tmp, kb, kw):
     """Sorted distinct bins of one pixel and their counts into kb/kw; returns how many.
 
     tmp, kb, kw need at least o1 - o0 entries. Insertion sort for the usual handful of photons,
-    numpy's sort for big pixels (a million detections must not be quadratic)."""
+    heapsort for big pixels (a million detections must not be quadratic)."""
     n = o1 - o0
     if n == 0:
         return 0
@@ -74,7 +105,9 @@ def unique_counts(bins, o0, o1, tmp, kb, kw):
                 b -= 1
             tmp[b + 1] = v
     else:
-        tmp[:n] = np.sort(bins[o0:o1])
+        for a in range(n):
+            tmp[a] = bins[o0 + a]
+        heap_sort(tmp, n)
     nu = 0
     kb[0] = tmp[0]
     kw[0] = 1.0
@@ -1109,12 +1142,42 @@ def mix_bounds(kb, kw, nu, wtot, trev, base, step, qa, nq, inv_c, uni, s, r0s, w
         out[t] = _mix_bound(ll, f1 + z * qo, s, kh + z * qo * qo, kl + z)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _after(keys, x, y):
+    """x goes after y in :func:`_sort_desc`'s order: smaller key, or the same key and larger index."""
+    return keys[x] < keys[y] or (keys[x] == keys[y] and x > y)
+
+
+@njit(cache=True, nogil=True)
+def _sift_after(keys, idx, root, n):
+    v = idx[root]
+    while True:
+        c = 2 * root + 1
+        if c >= n:
+            break
+        if c + 1 < n and _after(keys, idx[c + 1], idx[c]):
+            c += 1
+        if not _after(keys, idx[c], v):
+            break
+        idx[root] = idx[c]
+        root = c
+    idx[root] = v
+
+
 @njit(cache=True, nogil=True)
 def _sort_desc(keys, idx, n):
-    """Reorder idx[:n] by keys[idx] descending (insertion sort for the usual dozen, numpy's for more)."""
+    """Reorder idx[:n] (ascending on entry) by keys[idx] descending, equal keys in index order
+    (a stable sort's result): insertion sort for the usual dozen, heapsort on that total order for
+    more (numpy's argsort would compile its mergesort into the kernel, see :func:`heap_sort`)."""
     if n > SMALL_SORT:
-        order = np.argsort(-keys[idx[:n]], kind="mergesort")
-        idx[:n] = idx[:n][order]
+        # a max-heap on "goes after": its root, the last in order, moves to the end each round
+        for root in range(n // 2 - 1, -1, -1):
+            _sift_after(keys, idx, root, n)
+        for end in range(n - 1, 0, -1):
+            v = idx[0]
+            idx[0] = idx[end]
+            idx[end] = v
+            _sift_after(keys, idx, 0, end)
         return
     for a in range(1, n):
         v = idx[a]

@@ -234,3 +234,19 @@ def test_window_bins_is_first_in_window_then_bin_index(rng, max_photons):
     np.testing.assert_array_equal(out_o, used.offsets)
     np.testing.assert_array_equal(out_b[:n], want)
     assert n == want.size and np.all(want >= 0) and want.max() == b.n_bins - 1
+
+
+def test_kernel_sorts_match_numpy(rng):
+    # heap_sort and _sort_desc stand in for np.sort / a stable argsort inside the kernels (big
+    # pixels only); ties are frequent here, and _sort_desc must keep equal keys in index order
+    for n in (0, 1, 2, 49, 50, 333):
+        a = rng.integers(0, 40, n).astype(np.int64)
+        b = a.copy()
+        K.heap_sort(b, n)
+        np.testing.assert_array_equal(b, np.sort(a))
+        keys = np.round(rng.normal(size=400), 1)
+        keys[::7] = -np.inf
+        idx = np.sort(rng.choice(400, n, replace=False)).astype(np.int64)
+        got = idx.copy()
+        K._sort_desc(keys, got, n)
+        np.testing.assert_array_equal(got, idx[np.argsort(-keys[idx], kind="mergesort")])
