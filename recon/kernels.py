@@ -88,26 +88,32 @@ def _sift_down(a, root, n):
 
 
 @njit(cache=True, nogil=True)
+def sort_run(a, lo, hi):
+    """Sort a[lo:hi] ascending in place: insertion sort for the usual handful of detections,
+    :func:`heap_sort` above SMALL_SORT (a million detections must not be quadratic)."""
+    if hi - lo > SMALL_SORT:
+        heap_sort(a[lo:hi], hi - lo)
+        return
+    for j in range(lo + 1, hi):
+        v = a[j]
+        b = j - 1
+        while b >= lo and a[b] > v:
+            a[b + 1] = a[b]
+            b -= 1
+        a[b + 1] = v
+
+
+@njit(cache=True, nogil=True)
 def unique_counts(bins, o0, o1, tmp, kb, kw):
     """Sorted distinct bins of one pixel and their counts into kb/kw; returns how many.
 
-    tmp, kb, kw need at least o1 - o0 entries. Insertion sort for the usual handful of photons,
-    heapsort for big pixels (a million detections must not be quadratic)."""
+    tmp, kb, kw need at least o1 - o0 entries."""
     n = o1 - o0
     if n == 0:
         return 0
-    if n <= SMALL_SORT:
-        for a in range(n):
-            v = bins[o0 + a]
-            b = a - 1
-            while b >= 0 and tmp[b] > v:
-                tmp[b + 1] = tmp[b]
-                b -= 1
-            tmp[b + 1] = v
-    else:
-        for a in range(n):
-            tmp[a] = bins[o0 + a]
-        heap_sort(tmp, n)
+    for a in range(n):
+        tmp[a] = bins[o0 + a]
+    sort_run(tmp, 0, n)
     nu = 0
     kb[0] = tmp[0]
     kw[0] = 1.0

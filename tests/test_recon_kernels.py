@@ -237,13 +237,17 @@ def test_window_bins_is_first_in_window_then_bin_index(rng, max_photons):
 
 
 def test_kernel_sorts_match_numpy(rng):
-    # heap_sort and _sort_desc stand in for np.sort / a stable argsort inside the kernels (big
-    # pixels only); ties are frequent here, and _sort_desc must keep equal keys in index order
-    for n in (0, 1, 2, 49, 50, 333):
+    # sort_run/heap_sort and _sort_desc stand in for np.sort / a stable argsort inside the
+    # kernels; ties are frequent here, and _sort_desc must keep equal keys in index order
+    for n in (0, 1, 2, 5, 49, 50, 333):
         a = rng.integers(0, 40, n).astype(np.int64)
         b = a.copy()
         K.heap_sort(b, n)
         np.testing.assert_array_equal(b, np.sort(a))
+        x = rng.normal(size=n + 6)
+        y = x.copy()
+        K.sort_run(y, 3, n + 3)     # only the run, in place
+        np.testing.assert_array_equal(y, np.concatenate([x[:3], np.sort(x[3:n + 3]), x[n + 3:]]))
         keys = np.round(rng.normal(size=400), 1)
         keys[::7] = -np.inf
         idx = np.sort(rng.choice(400, n, replace=False)).astype(np.int64)
