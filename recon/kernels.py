@@ -1032,11 +1032,25 @@ def mix_ml(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, s0, cut):
 
 
 @njit(cache=True, nogil=True)
+def first_above(a, n, v, strict):
+    """First index i of the sorted a[:n] with a[i] > v (strict) or a[i] >= v (not strict), n when
+    none: np.searchsorted's right and left sides, written out because numba compiles string
+    handling into every kernel for searchsorted's ``side`` argument (seconds on a cold cache)."""
+    lo = 0
+    hi = n
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if a[mid] > v or (not strict and a[mid] == v):
+            hi = mid
+        else:
+            lo = mid + 1
+    return lo
+
+
+@njit(cache=True, nogil=True)
 def _photon_range(kb, nu, lo, hi):
     """[ua, ub): the sorted distinct photon bins kb[:nu] lying in [lo, hi] (binary search)."""
-    ua = np.searchsorted(kb[:nu], lo, side="left")
-    ub = np.searchsorted(kb[:nu], hi, side="right")
-    return ua, ub
+    return first_above(kb, nu, lo, False), first_above(kb, nu, hi, True)
 
 
 @njit(cache=True, nogil=True)
@@ -1091,7 +1105,7 @@ def mix_bounds(kb, kw, nu, wtot, trev, base, step, qa, nq, inv_c, uni, s, r0s, w
     ua = 0
     if nu > ML_SCAN_ALL:
         # the first photon with (k + base) * step - qa >= 0 (a binary search on a big pixel)
-        ua = np.searchsorted(kb[:nu], -((-qa) // step) - base)
+        ua = first_above(kb, nu, -((-qa) // step) - base, False)
     n = 0
     for u in range(ua, nu):
         jj = (kb[u] + base) * step - qa

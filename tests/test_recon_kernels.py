@@ -254,3 +254,12 @@ def test_kernel_sorts_match_numpy(rng):
         got = idx.copy()
         K._sort_desc(keys, got, n)
         np.testing.assert_array_equal(got, idx[np.argsort(-keys[idx], kind="mergesort")])
+
+
+def test_first_above_matches_searchsorted(rng):
+    # the kernels' binary search stands in for np.searchsorted (left: not strict, right: strict)
+    a = np.sort(rng.integers(0, 30, 57)).astype(np.int64)
+    for v in range(-2, 33):
+        for n in (0, 1, 20, 57):
+            assert K.first_above(a, n, v, False) == np.searchsorted(a[:n], v, side="left")
+            assert K.first_above(a, n, v, True) == np.searchsorted(a[:n], v, side="right")
