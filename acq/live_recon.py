@@ -22,7 +22,7 @@ import time
 
 import numpy as np
 
-from spdepth.recon.estimate import reconstruct, resolve_model
+from spdepth.recon.estimate import reconstruct, resolve_model, warm_up
 from spdepth.recon.maps import DepthMaps, PixelFlag
 from spdepth.recon.model import ReconSettings
 
@@ -131,16 +131,7 @@ class LiveRecon:
         """Load (or compile) the estimator's kernels on one made-up pixel now, so the first real
         batch does not wait for them while the scan piles up pixels (the session calls this while
         armed)."""
-        from spdepth.recon.photons import PhotonStore
-
-        b = self.settings.binning
-        times = b.window_start + b.bin_width * (np.arange(4) + 0.5 * b.n_bins)
-        one = PhotonStore(times.astype(np.float64), np.array([0, times.size]), (1, 1),
-                          b.time_unit_s)
-        pulse = self.settings.pulse_rms_s
-        if pulse is None and self.settings.irf is None:
-            pulse = 3 * b.bin_width_s          # any width: only the kernels' loading matters
-        reconstruct(one, dataclasses.replace(self.settings, pulse_rms_s=pulse))
+        warm_up(self.settings)
 
     def submit(self, pixels: np.ndarray) -> None:
         """Queue flat pixel indices (frozen in the store) for reconstruction."""

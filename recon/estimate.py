@@ -9,12 +9,15 @@ import cycle: :mod:`recon.pixelwise` (lmf, uos, ml kernels on a resolved model) 
 
 from __future__ import annotations
 
+import dataclasses
 from types import MappingProxyType
 from typing import Callable, Mapping
 
+import numpy as np
+
 from spdepth.recon.errors import InputError
 from spdepth.recon.maps import DepthMaps
-from spdepth.recon.model import METHODS, PIXELWISE_METHODS, ReconSettings
+from spdepth.recon.model import METHODS, PIXELWISE_METHODS, Binning, ReconSettings
 from spdepth.recon.multi import reconstruct_multi
 from spdepth.recon.photons import PhotonStore
 from spdepth.recon.pixelwise import reconstruct_pixelwise
@@ -71,4 +74,21 @@ def reconstruct(store: PhotonStore, settings: ReconSettings,
     return ESTIMATORS[settings.method](store, settings, progress)
 
 
-__all__ = ["ESTIMATORS", "Estimator", "reconstruct", "reconstruct_each_pixel", "resolve_model"]
+def warm_up(settings: ReconSettings) -> None:
+    """Load (or, on a cold numba cache, compile) the kernels that ``settings``' estimator runs, on
+    one made-up pixel of four detections, so that a later call on real data does not wait for them
+    (a new process loads each kernel from the cache on its first call). Without a binning (a file's
+    comes from its data) a made-up one of 64 bins serves: the kernels' code does not depend on it.
+    Only the method and the number of surfaces choose kernels; results are discarded."""
+    b = settings.binning
+    if b is None:
+        b = Binning(1e-12, 0.0, 64.0, 1.0)
+    times = b.window_start + b.bin_width * (np.arange(4) + 0.5 * b.n_bins)
+    one = PhotonStore(times.astype(np.float64), np.array([0, times.size]), (1, 1), b.time_unit_s)
+    pulse = settings.pulse_rms_s
+    if pulse is None and settings.irf is None:
+        pulse = 3 * b.bin_width_s          # any width: only the kernels' loading matters
+    reconstruct(one, dataclasses.replace(settings, binning=b, pulse_rms_s=pulse))
+
+
+__all__ = ["ESTIMATORS", "Estimator", "reconstruct", "reconstruct_each_pixel", "resolve_model", "warm_up"]

@@ -57,24 +57,63 @@ def window_bins(times, offsets, start, stop, width, n_bins, max_photons, out_bin
 
 
 @njit(cache=True, nogil=True)
+def heap_sort(a, n):
+    """Sort a[:n] ascending in place: heapsort, O(n log n) with no recursion and no allocation.
+    Used instead of np.sort inside kernels: numba compiles numpy's sort (its quicksort and the
+    shape checks of the slice assignment) into every kernel that calls it, seconds on a cold cache
+    and more symbols to load from a warm one, for a path only big pixels take."""
+    for root in range(n // 2 - 1, -1, -1):
+        _sift_down(a, root, n)
+    for end in range(n - 1, 0, -1):
+        v = a[0]
+        a[0] = a[end]
+        a[end] = v
+        _sift_down(a, 0, end)
+
+
+@njit(cache=True, nogil=True)
+def _sift_down(a, root, n):
+    v = a[root]
+    while True:
+        c = 2 * root + 1
+        if c >= n:
+            break
+        if c + 1 < n and a[c + 1] > a[c]:
+            c += 1
+        if not a[c] > v:
+            break
+        a[root] = a[c]
+        root = c
+    a[root] = v
+
+
+@njit(cache=True, nogil=True)
+def sort_run(a, lo, hi):
+    """Sort a[lo:hi] ascending in place: insertion sort for the usual handful of detections,
+    :func:`heap_sort` above SMALL_SORT (a million detections must not be quadratic)."""
+    if hi - lo > SMALL_SORT:
+        heap_sort(a[lo:hi], hi - lo)
+        return
+    for j in range(lo + 1, hi):
+        v = a[j]
+        b = j - 1
+        while b >= lo and a[b] > v:
+            a[b + 1] = a[b]
+            b -= 1
+        a[b + 1] = v
+
+
+@njit(cache=True, nogil=True)
 def unique_counts(bins, o0, o1, tmp, kb, kw):
     """Sorted distinct bins of one pixel and their counts into kb/kw; returns how many.
 
-    tmp, kb, kw need at least o1 - o0 entries. Insertion sort for the usual handful of photons,
-    numpy's sort for big pixels (a million detections must not be quadratic)."""
+    tmp, kb, kw need at least o1 - o0 entries."""
     n = o1 - o0
     if n == 0:
         return 0
-    if n <= SMALL_SORT:
-        for a in range(n):
-            v = bins[o0 + a]
-            b = a - 1
-            while b >= 0 and tmp[b] > v:
-                tmp[b + 1] = tmp[b]
-                b -= 1
-            tmp[b + 1] = v
-    else:
-        tmp[:n] = np.sort(bins[o0:o1])
+    for a in range(n):
+        tmp[a] = bins[o0 + a]
+    sort_run(tmp, 0, n)
     nu = 0
     kb[0] = tmp[0]
     kw[0] = 1.0
@@ -854,6 +893,11 @@ ML_TIE = 1e-13
 #: for the ones under the pulse; bigger pixels search, so a pass costs O(pulse support).
 ML_SCAN_ALL = 64
 
+#: ml: the integer shifts within this many of the best bound's shift get their first-pass bounds in
+#: one sweep (:func:`mix_bounds`) when at least ML_SWEEP_MIN shifts survive U
+ML_WINDOW = 12
+ML_SWEEP_MIN = 3
+
 
 @njit(cache=True, nogil=True, inline="always")
 def _mix_pass(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, s):
@@ -988,11 +1032,25 @@ def mix_ml(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, s0, cut):
 
 
 @njit(cache=True, nogil=True)
+def first_above(a, n, v, strict):
+    """First index i of the sorted a[:n] with a[i] > v (strict) or a[i] >= v (not strict), n when
+    none: np.searchsorted's right and left sides, written out because numba compiles string
+    handling into every kernel for searchsorted's ``side`` argument (seconds on a cold cache)."""
+    lo = 0
+    hi = n
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if a[mid] > v or (not strict and a[mid] == v):
+            hi = mid
+        else:
+            lo = mid + 1
+    return lo
+
+
+@njit(cache=True, nogil=True)
 def _photon_range(kb, nu, lo, hi):
     """[ua, ub): the sorted distinct photon bins kb[:nu] lying in [lo, hi] (binary search)."""
-    ua = np.searchsorted(kb[:nu], lo, side="left")
-    ub = np.searchsorted(kb[:nu], hi, side="right")
-    return ua, ub
+    return first_above(kb, nu, lo, False), first_above(kb, nu, hi, True)
 
 
 @njit(cache=True, nogil=True)
@@ -1026,12 +1084,120 @@ def _ml_at_fine(kb, kw, nu, wtot, i, q, fine, off, fine_colsum, fsteps, uni, s0,
                   s0, cut)
 
 
+#: ml: the shares that :func:`mix_bounds` takes at least and at most: a solve can end at 0 or 1 exactly,
+#: where the tangent's terms diverge; any share inside (0, 1) gives a valid bound, one near the
+#: optimum a tight one
+ML_SHARE_CLAMP = 1e-3
+
+
+@njit(cache=True, nogil=True)
+def mix_bounds(kb, kw, nu, wtot, trev, base, step, qa, nq, inv_c, uni, s, r0s, ws, out):
+    """:func:`mix_ml`'s first-pass bound (:func:`_mix_bound` of :func:`_mix_pass` at share s, which
+    must lie in (0, 1)) for nq consecutive positions of a pulse table in one call: position t reads
+    photon u's rate tab[(kb[u] + base) * step - qa - t] * inv_c[t] (0 outside the table; trev is
+    the table reversed). The photons kb[:nu] (sorted; weights kw, whole numbers, total wtot) that
+    reach some position are listed once (r0s, ws: scratch of nu entries); the rest count as rate 0
+    without a visit. Per position the sums stay in registers: a call costs about what nq first
+    passes cost without nq solver calls. out[:nq] gets the bounds."""
+    nt = trev.size
+    m_uni = 1.0 / uni
+    s2 = s * s
+    ua = 0
+    if nu > ML_SCAN_ALL:
+        # the first photon with (k + base) * step - qa >= 0 (a binary search on a big pixel)
+        ua = first_above(kb, nu, -((-qa) // step) - base, False)
+    n = 0
+    for u in range(ua, nu):
+        jj = (kb[u] + base) * step - qa
+        if jj - (nq - 1) >= nt:
+            break
+        if jj < 0:
+            continue
+        r0s[n] = nt - 1 - jj        # trev[r0 + t] == tab[jj - t]
+        ws[n] = kw[u]
+        n += 1
+    qo = -1.0 / (1.0 - s)
+    lo0 = math.log(uni - s * uni)
+    # every rate is >= uni (1 - s) (e <= 0) or > uni, and <= 1: a product of `chunk` detections
+    # stays inside (1e-290, 1]
+    chunk = max(1.0, float(int(-667.0 / lo0)))
+    for t in range(nq):
+        ict = inv_c[t]
+        f1 = 0.0
+        kh = 0.0            # -f'' bound over [s, 1] (see _mix_pass)
+        kl = 0.0            # and over [0, s]
+        prod = 1.0
+        ll = 0.0
+        cnt = 0.0
+        zin = 0.0           # weight of the photons inside the table at t
+        for v in range(n):
+            r = r0s[v] + t
+            if r >= 0 and r < nt:
+                w = ws[v]
+                e = trev[r] * ict - uni
+                lam = uni + s * e
+                qq = e / lam
+                wq2 = w * qq * qq
+                em = e * m_uni
+                pos = e > 0.0
+                f1 += w * qq
+                kh += s2 * wq2 if pos else wq2
+                kl += wq2 if pos else w * em * em
+                zin += w
+                if cnt + w > chunk:
+                    ll += math.log(prod)
+                    prod = 1.0
+                    cnt = 0.0
+                if w <= chunk:
+                    cnt += w
+                    prod *= lam
+                    # a bin detected more than once: its rate once per detection (a loop, not
+                    # lam ** w: a select would compute the power for every photon)
+                    for _rep in range(1, int(w)):
+                        prod *= lam
+                else:
+                    ll += w * math.log(lam)     # so many in one bin that the product could underflow
+        z = wtot - zin
+        ll += math.log(prod) + (z * lo0 if z > 0.0 else 0.0)
+        out[t] = _mix_bound(ll, f1 + z * qo, s, kh + z * qo * qo, kl + z)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _after(keys, x, y):
+    """x goes after y in :func:`_sort_desc`'s order: smaller key, or the same key and larger index."""
+    return keys[x] < keys[y] or (keys[x] == keys[y] and x > y)
+
+
+@njit(cache=True, nogil=True)
+def _sift_after(keys, idx, root, n):
+    v = idx[root]
+    while True:
+        c = 2 * root + 1
+        if c >= n:
+            break
+        if c + 1 < n and _after(keys, idx[c + 1], idx[c]):
+            c += 1
+        if not _after(keys, idx[c], v):
+            break
+        idx[root] = idx[c]
+        root = c
+    idx[root] = v
+
+
 @njit(cache=True, nogil=True)
 def _sort_desc(keys, idx, n):
-    """Reorder idx[:n] by keys[idx] descending (insertion sort for the usual dozen, numpy's for more)."""
+    """Reorder idx[:n] (ascending on entry) by keys[idx] descending, equal keys in index order
+    (a stable sort's result): insertion sort for the usual dozen, heapsort on that total order for
+    more (numpy's argsort would compile its mergesort into the kernel, see :func:`heap_sort`)."""
     if n > SMALL_SORT:
-        order = np.argsort(-keys[idx[:n]], kind="mergesort")
-        idx[:n] = idx[:n][order]
+        # a max-heap on "goes after": its root, the last in order, moves to the end each round
+        for root in range(n // 2 - 1, -1, -1):
+            _sift_after(keys, idx, root, n)
+        for end in range(n - 1, 0, -1):
+            v = idx[0]
+            idx[0] = idx[end]
+            idx[end] = v
+            _sift_after(keys, idx, 0, end)
         return
     for a in range(1, n):
         v = idx[a]
@@ -1053,11 +1219,13 @@ def ml_kernel(bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_colsum, 
     bounds the profile likelihood from above (split the linear term a C + B M evenly over the
     photons and maximise each photon's term alone), and only offsets d with g[d] M > min C
     (dlo..dhi) contribute above the floor, so U is built over the photons' reach only (intervals of
-    shifts, not all M). Shifts are solved best bound first and the search stops at the first bound
-    that cannot beat the best likelihood found; each solve also stops after its first Newton pass
-    when the tangent there (a bound, by concavity in the signal share) cannot beat it. The fine
-    shifts are solved outwards from the integer optimum under the same tangent test, and the
-    parabola's neighbours exactly. Outputs: out_shift (bins, NaN none), out_amp (unit-area
+    shifts, not all M). After the best bound's shift is solved, the shifts near it whose U beats it
+    get the tangent bound of their first Newton pass at that solve's share (a bound, by concavity in
+    the signal share) in one sweep (:func:`mix_bounds`); shifts are then solved best bound first and
+    the search stops at the first bound that cannot beat the best likelihood found; each solve also
+    stops after its first Newton pass when its own tangent cannot beat it. The fine shifts get
+    their tangent bounds in one sweep too and are solved best bound first under the same test, and
+    the parabola's neighbours exactly. Outputs: out_shift (bins, NaN none), out_amp (unit-area
     amplitude), out_bg (per bin), out_var (bins^2), out_n (photons).
     """
     npix = offsets.size - 1
@@ -1079,6 +1247,12 @@ def ml_kernel(bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_colsum, 
     for t in range(upos.size):
         v = logg_int[dhi - t + off] - lc_int + logm
         upos[t] = v if v > 0.0 else 0.0
+    # the tables of mix_bounds: the pulse tables reversed and the reciprocal column sums
+    grev = g[::-1].copy()
+    fine_rev = fine[::-1].copy()
+    inv_colsum = 1.0 / colsum
+    inv_fine_colsum = 1.0 / fine_colsum
+    nwin = max(2 * ML_WINDOW + 1, nf)
     for blk in prange(nblk):
         tmp = np.empty(max(maxn, 1), np.int64)
         kb = np.empty(max(maxn, 1), np.int64)
@@ -1089,6 +1263,11 @@ def ml_kernel(bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_colsum, 
         cand = np.empty(m, np.int64)
         lls = np.empty(nf)
         exact = np.empty(nf, np.bool_)
+        r0s = np.empty(max(maxn, 1), np.int64)
+        ws = np.empty(max(maxn, 1))
+        bnd = np.empty(nwin)
+        key = np.empty(m)
+        fidx = np.empty(nf, np.int64)
         for p in range(blk * BLOCK, min(npix, (blk + 1) * BLOCK)):
             o0 = offsets[p]
             o1 = offsets[p + 1]
@@ -1143,16 +1322,40 @@ def ml_kernel(bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_colsum, 
                         best_s = s
                     # the shifts whose bound beats it, best bound first
                     nc = 0
+                    c_lo = m
+                    c_hi = -1
                     for t in range(ncand):
                         i = cand[t]
                         if i != i1 and floor_ll + acc[i] > best_ll + 1e-12 * abs(best_ll):
                             cand[nc] = i
                             nc += 1
-                    _sort_desc(acc, cand, nc)
+                            c_lo = min(c_lo, i)
+                            c_hi = max(c_hi, i)
+                            key[i] = floor_ll + acc[i]
+                    # near i1 (where the survivors crowd: U overshoots the likelihood by about the
+                    # same few nats at every shift of a return), the first-pass bound of each
+                    # shift's solve, all in one sweep at the best share so far, is much tighter
+                    # than U: most survivors are then dropped without a solver call
+                    wa = max(c_lo, i1 - ML_WINDOW)
+                    wb = min(c_hi, i1 + ML_WINDOW)
+                    if nc >= ML_SWEEP_MIN and wb >= wa:
+                        sb = min(max(best_s, ML_SHARE_CLAMP), 1.0 - ML_SHARE_CLAMP)
+                        mix_bounds(kb, kw, nu, ntot, grev, off - wa, 1, 0, wb - wa + 1, inv_colsum[wa:], uni, sb,
+                                   r0s, ws, bnd)
+                        n2 = 0
+                        for t in range(nc):
+                            i = cand[t]
+                            if i >= wa and i <= wb:
+                                key[i] = min(key[i], bnd[i - wa])
+                            if key[i] > best_ll + 1e-12 * abs(best_ll):
+                                cand[n2] = i
+                                n2 += 1
+                        nc = n2
+                    _sort_desc(key, cand, nc)
                     for t in range(nc):
                         i = cand[t]
                         tol = 1e-12 * abs(best_ll)
-                        if floor_ll + acc[i] <= best_ll + tol:
+                        if key[i] <= best_ll + tol:
                             break
                         # ties (few photons give exact ones: the pulse on either of two detections)
                         # go as a scan from i1 then upwards would take them: i1, else the smallest
@@ -1181,12 +1384,26 @@ def ml_kernel(bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_colsum, 
             bll = best_ll
             bs = best_s
             lls[fsteps] = best_ll
+            exact[:] = False
             exact[fsteps] = True
-            for a in range(1, 2 * fsteps + 1):
-                q = (a + 1) // 2 if a % 2 == 1 else -(a // 2)
-                if q < qlo or q > qhi:
-                    continue
+            # every fine shift's first-pass bound in one sweep; solved best bound first (the optimum
+            # usually comes first, and its likelihood then cuts the rest without a pass)
+            nq = qhi - qlo + 1
+            sb = min(max(best_s, ML_SHARE_CLAMP), 1.0 - ML_SHARE_CLAMP)
+            mix_bounds(kb, kw, nu, ntot, fine_rev, off - best_i, fsteps, qlo, nq,
+                       inv_fine_colsum[best_i * fsteps + qlo:], uni, sb, r0s, ws, bnd)
+            nfc = 0
+            for t in range(nq):
+                if qlo + t != 0:
+                    fidx[nfc] = t
+                    nfc += 1
+            _sort_desc(bnd, fidx, nfc)
+            for a in range(nfc):
+                t = fidx[a]
+                q = qlo + t
                 tie = ML_TIE * max(1.0, abs(bll))
+                if bnd[t] <= bll - tie:
+                    break
                 s, ll = _ml_at_fine(kb, kw, nu, ntot, best_i, q, fine, off, fine_colsum, fsteps, uni, bs,
                                     bll - tie)
                 lls[q + fsteps] = ll

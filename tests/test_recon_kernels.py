@@ -234,3 +234,32 @@ def test_window_bins_is_first_in_window_then_bin_index(rng, max_photons):
     np.testing.assert_array_equal(out_o, used.offsets)
     np.testing.assert_array_equal(out_b[:n], want)
     assert n == want.size and np.all(want >= 0) and want.max() == b.n_bins - 1
+
+
+def test_kernel_sorts_match_numpy(rng):
+    # sort_run/heap_sort and _sort_desc stand in for np.sort / a stable argsort inside the
+    # kernels; ties are frequent here, and _sort_desc must keep equal keys in index order
+    for n in (0, 1, 2, 5, 49, 50, 333):
+        a = rng.integers(0, 40, n).astype(np.int64)
+        b = a.copy()
+        K.heap_sort(b, n)
+        np.testing.assert_array_equal(b, np.sort(a))
+        x = rng.normal(size=n + 6)
+        y = x.copy()
+        K.sort_run(y, 3, n + 3)     # only the run, in place
+        np.testing.assert_array_equal(y, np.concatenate([x[:3], np.sort(x[3:n + 3]), x[n + 3:]]))
+        keys = np.round(rng.normal(size=400), 1)
+        keys[::7] = -np.inf
+        idx = np.sort(rng.choice(400, n, replace=False)).astype(np.int64)
+        got = idx.copy()
+        K._sort_desc(keys, got, n)
+        np.testing.assert_array_equal(got, idx[np.argsort(-keys[idx], kind="mergesort")])
+
+
+def test_first_above_matches_searchsorted(rng):
+    # the kernels' binary search stands in for np.searchsorted (left: not strict, right: strict)
+    a = np.sort(rng.integers(0, 30, 57)).astype(np.int64)
+    for v in range(-2, 33):
+        for n in (0, 1, 20, 57):
+            assert K.first_above(a, n, v, False) == np.searchsorted(a[:n], v, side="left")
+            assert K.first_above(a, n, v, True) == np.searchsorted(a[:n], v, side="right")
