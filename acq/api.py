@@ -16,6 +16,7 @@ The CLI, the window, Dask workers, the demo and the benchmarks only build reques
 from __future__ import annotations
 
 import fcntl
+import logging
 import math
 import os
 import time
@@ -29,6 +30,8 @@ from spdepth.acq.requests import (DEFAULT_DWELL_S, FileReconRequest, ReplayReque
                                   SimBench)
 from spdepth.recon.errors import InputError
 from spdepth.recon.model import Binning, ReconSettings
+
+log = logging.getLogger(__name__)
 
 SESSION_FILES = ("recording.ptu", "events.jsonl", "maps.npz", "maps.png", "points.ply", "run.json")
 """What a session writes into its folder (``--overwrite`` replaces exactly these)."""
@@ -378,8 +381,9 @@ def _warm_up_while_reading(request: FileReconRequest) -> None:
     def load():
         try:
             warm_up(settings)
-        except Exception:      # noqa: BLE001 - the reconstruction itself reports bad settings
-            pass
+        except Exception as exc:  # noqa: BLE001 - the reconstruction itself reports bad settings
+            log.debug("warming the %s kernels failed (the reconstruction will say why): %s",
+                      settings.method, exc)
 
     threading.Thread(target=load, name="spdepth-warm-up", daemon=True).start()
 
