@@ -69,10 +69,7 @@ _G_ROW0, _G_COL0, _G_NY, _G_NX, _G_WIDTH, _G_SERP = range(6)
 class PassGeometry:
     """Which pixels one galvo pass visits: lines ``row0 .. row0+ny-1`` of the image, columns
     ``col0 .. col0+nx-1``, in ``pattern`` order ("raster", or "serp": odd lines of the pass right
-    to left). ``width`` is the image width (flat index = row * width + col).
-    ``from_frame``: the pass's galvo marks its first pixel with FRAME, and nothing before that
-    marker belongs to the pass (the tail of a stopped pass that a tagger still delivers after
-    the next pass began has markers of its own; counted from -1, they would shift the rows)."""
+    to left). ``width`` is the image width (flat index = row * width + col)."""
 
     row0: int
     col0: int
@@ -80,7 +77,6 @@ class PassGeometry:
     nx: int
     width: int
     pattern: str = "raster"
-    from_frame: bool = False
 
     def __post_init__(self) -> None:
         if self.pattern not in ("raster", "serp"):
@@ -105,21 +101,17 @@ class PassGeometry:
         return (rows * self.width + cols).ravel()
 
     def to_dict(self) -> dict:
-        d = {"row0": self.row0, "col0": self.col0, "ny": self.ny, "nx": self.nx,
-             "width": self.width, "pattern": self.pattern}
-        if self.from_frame:
-            d["from_frame"] = True             # absent in recordings made before it existed
-        return d
+        return {"row0": self.row0, "col0": self.col0, "ny": self.ny, "nx": self.nx,
+                "width": self.width, "pattern": self.pattern}
 
 
-def new_state(from_frame: bool = False) -> np.ndarray:
+def new_state() -> np.ndarray:
     """Assignment state at the start of a stream or pass. Before the first FRAME marker the
     position counts as known, so a stream without FRAME markers (one-frame scans of some
-    controllers) still works: LINE_START counts lines from -1; ``from_frame``: unknown until the
-    first FRAME marker (a pass whose galvo marks its start, ``PassGeometry.from_frame``)."""
+    controllers) still works: LINE_START counts lines from -1."""
     s = np.zeros(STATE_SLOTS, dtype=np.int64)
     s[_FRAME] = s[_ROW] = s[_VISIT] = s[_DWELL_PIXEL] = -1
-    s[_KNOWN] = 0 if from_frame else 1
+    s[_KNOWN] = 1
     return s
 
 

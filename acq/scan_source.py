@@ -10,7 +10,6 @@ faults, in-band lost spans, re-acquisition, recording and replay are the same fo
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import threading
 import time
@@ -134,9 +133,6 @@ class ScanSource:
         from spdepth.drivers.galvo import GalvoState
 
         galvo, reader, store = self.galvo, self.reader, host.store
-        # both galvo drivers mark a pass's first pixel with FRAME (docs/protocols.md,
-        # drivers/daq/protocol.py): what a tagger delivers before it is another pass's tail
-        geom = dataclasses.replace(geom, from_frame=True)
         start = self.recorder.records if self.recorder else None
         host.begin_pass(geom, start)
         pattern, gate = self._galvo_pattern(host.plan, geom)

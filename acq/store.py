@@ -108,7 +108,7 @@ class PixelStore:
             raise InputError(f"pass {geometry} does not fit a {self.shape} scan")
         self.end_pass()
         self._geom = geometry.vector()
-        self._state = new_state(geometry.from_frame)
+        self._state = new_state()
 
     def end_pass(self) -> None:
         """The pass is over: a dwell still open was cut short and is dropped."""

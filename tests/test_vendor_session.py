@@ -107,32 +107,18 @@ def test_picoquant_recording_is_a_ptu_of_the_devices_record_type(tmp_path):
     assert run["devices"]["galvo"]["calibration"]["deg_per_volt_x"] == 1.0
 
 
-# Known intermittent defect, not found yet: on the NI-DAQ raster (the card steps on its own clock),
-# a FIFO overflow sometimes leaves the first pixel after the hole keeping the first few detections
-# of one dwell and then those of another ("kept times not from its dwells", about 1 run in 5 of
-# these cases on a loaded 2-core machine, never alone on a quiet one). The late START found
-# since (reader start() now waits for it) and the other pass's tail (passes now start at their
-# FRAME marker and end where the session stopped using the stream) were not it. Still run and
-# listed (-ra), not hidden: the marker comes off when the cause is found.
-FIFO_ON_NIDAQ_RASTER = pytest.mark.xfail(
-    strict=False, reason="known intermittent defect: after a FIFO overflow on the NI-DAQ raster a "
-                         "pixel sometimes keeps detections of two dwells (see the comment)")
-
-
 @pytest.mark.parametrize("backend,fault,kind", [
-    pytest.param("picoquant+nidaq", "fifo-overflow@40%", "tagger-reconnect",
-                 marks=FIFO_ON_NIDAQ_RASTER),
+    ("picoquant+nidaq", "fifo-overflow@40%", "tagger-reconnect"),
     ("picoquant+ours", "device-vanish@50%", "tagger-reconnect"),
     ("picoquant+nidaq", "usb-timeout@30%", "tagger-reconnect"),
     ("picoquant+nidaq", "daq-underflow@50%", "galvo-fault"),
     ("th260+ours", "fifo-overflow@40%", "tagger-reconnect"),
     ("th260N+ours", "usb-timeout@30%", "tagger-reconnect"),
     ("ph330+ours", "device-vanish@50%", "tagger-reconnect"),
-    pytest.param("ours+nidaq", "daq-underflow@30%,fifo-overflow@60%", "galvo-fault",
-                 marks=FIFO_ON_NIDAQ_RASTER),
+    ("ours+nidaq", "daq-underflow@30%,fifo-overflow@60%", "galvo-fault"),
     ("ours+nidaq (gated)", "daq-underflow@40%", "galvo-fault"),
     ("ours+nidaq (gated)", "fifo-overflow@40%", "lost-data"),
-    pytest.param("swabian+nidaq", "fifo-overflow@40%", "lost-data", marks=FIFO_ON_NIDAQ_RASTER),
+    ("swabian+nidaq", "fifo-overflow@40%", "lost-data"),
     ("swabian+ours", "fifo-overflow@50%,servo-fault@70%", "lost-data"),
     ("swabian+ours", "usb-timeout@40%", "tagger-reconnect"),
     ("swabian+ours", "device-vanish@50%", "tagger-reconnect"),
