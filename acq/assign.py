@@ -9,9 +9,7 @@ combined markers were split into one record per bit (in that order) assigns iden
 
 After a LOST event the markers inside the hole are gone too, so the position is unknown: photons
 are left unassigned until the next FRAME marker, and the hole is reported so acquisition can
-re-acquire or flag the pixels involved — never silently short. Likewise a live galvo pass's part of
-the stream starts at its own FRAME marker (``new_state(position_known=False)``): what comes before
-it is an earlier pass's tail.
+re-acquire or flag the pixels involved — never silently short.
 
 Two consumers share the marker state machine below (``_on_*`` helpers), so there is one assignment
 path: :class:`PixelAssigner` labels every event with its pixel (file readers, tests), and
