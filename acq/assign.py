@@ -49,10 +49,9 @@ _FRAME = 0          # frames started, minus one
 _ROW = 1            # line of the pass (-1 before the first LINE_START)
 _VISIT = 2          # pixel of the line in visiting order (-1 before the first PIXEL)
 _OPEN = 3           # a pixel is open (1) or not (0: after LINE_STOP)
-_KNOWN = 4          # position known: 1; 0 after a LOST event until the next FRAME; -1 before a
-                    # galvo pass's own FRAME (new_state(position_known=False))
-_LINES_CLOSED = 5   # LINE_STOP markers seen (not those before a pass's own FRAME)
-_PIXELS_OPENED = 6  # PIXEL markers seen (likewise)
+_KNOWN = 4          # position known (0 after a LOST event until the next FRAME)
+_LINES_CLOSED = 5   # LINE_STOP markers seen
+_PIXELS_OPENED = 6  # PIXEL markers seen
 # accumulate() only: the open dwell
 _DWELL_PIXEL = 7    # flat pixel of the open dwell, -1 when none
 _DWELL_SYNC = 8     # sync of its PIXEL marker
@@ -104,20 +103,13 @@ class PassGeometry:
                 "width": self.width, "pattern": self.pattern}
 
 
-def new_state(position_known: bool = True) -> np.ndarray:
+def new_state() -> np.ndarray:
     """Assignment state at the start of a stream or pass. Before the first FRAME marker the
     position counts as known, so a stream without FRAME markers (one-frame scans of some
-    controllers) still works: LINE_START counts lines from -1.
-
-    position_known=False: a galvo pass, whose part of the stream starts at its own FRAME marker
-    (every galvo we drive marks a pass's first pixel so). What comes before it is the tail of the
-    previous pass, stopped, whose drain ended on a quiet stream (a host too busy to read for
-    QUIET_S) before it was all in: its markers would open this pass's pixels with the previous
-    pass's photons. It belongs to no pixel and its markers are not counted (markers after a
-    loss still are: a file's ``lines_closed`` counts every LINE_STOP)."""
+    controllers) still works: LINE_START counts lines from -1."""
     s = np.zeros(STATE_SLOTS, dtype=np.int64)
     s[_FRAME] = s[_ROW] = s[_VISIT] = s[_DWELL_PIXEL] = -1
-    s[_KNOWN] = 1 if position_known else -1
+    s[_KNOWN] = 1
     return s
 
 
@@ -126,7 +118,7 @@ def new_state(position_known: bool = True) -> np.ndarray:
 @njit(cache=True, nogil=True, inline="always")
 def _open_pixel(state, geom):
     """Flat index of the pixel open in ``state``, or -1 (none open, position unknown, off grid)."""
-    if state[_OPEN] == 0 or state[_KNOWN] != 1:
+    if state[_OPEN] == 0 or state[_KNOWN] == 0:
         return -1
     row = state[_ROW]
     visit = state[_VISIT]
@@ -155,23 +147,18 @@ def _on_line_start(state):
 def _on_pixel(state):
     state[_VISIT] += 1
     state[_OPEN] = 1
-    # markers before a pass's own FRAME (an earlier pass's tail) open no pixel and are not
-    # counted: a pass is complete when its own lines are
-    if state[_KNOWN] >= 0:
-        state[_PIXELS_OPENED] += 1
+    state[_PIXELS_OPENED] += 1
 
 
 @njit(cache=True, nogil=True, inline="always")
 def _on_line_stop(state):
     state[_OPEN] = 0
-    if state[_KNOWN] >= 0:
-        state[_LINES_CLOSED] += 1
+    state[_LINES_CLOSED] += 1
 
 
 @njit(cache=True, nogil=True, inline="always")
 def _on_lost(state):
-    if state[_KNOWN] == 1:          # before a pass's own FRAME it stays so
-        state[_KNOWN] = 0
+    state[_KNOWN] = 0
 
 
 # ---- labelling every event ------------------------------------------------------------------------
@@ -254,7 +241,7 @@ class PixelAssigner:
 
     @property
     def position_known(self) -> bool:
-        return bool(self._state[_KNOWN] == 1)
+        return bool(self._state[_KNOWN])
 
     def assign(self, events: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """Flat pixel index (int64) for each event; -1 for markers, lost spans, photons outside a

@@ -88,12 +88,12 @@ class PixelStore:
 
     @property
     def lines_closed(self) -> int:
-        """LINE_STOP markers of the current pass (from its FRAME marker on)."""
+        """LINE_STOP markers seen in the current pass."""
         return int(self._state[5])
 
     @property
     def pixels_opened(self) -> int:
-        """PIXEL markers of the current pass (from its FRAME marker on)."""
+        """PIXEL markers seen in the current pass."""
         return int(self._state[6])
 
     @property
@@ -101,14 +101,13 @@ class PixelStore:
         return bool(self._state[7] >= 0)
 
     def begin_pass(self, geometry: PassGeometry) -> None:
-        """The next events belong to a galvo pass over ``geometry``, from its FRAME marker on:
-        fresh marker state (any dwell still open from before is dropped; events before the
-        pass's FRAME, the tail of an earlier pass, belong to no pixel)."""
+        """The next events belong to a galvo pass over ``geometry``: fresh marker state (any dwell
+        still open from before is dropped)."""
         if geometry.width != self.shape[1] or geometry.row0 + geometry.ny > self.shape[0]:
             raise InputError(f"pass {geometry} does not fit a {self.shape} scan")
         self.end_pass()
         self._geom = geometry.vector()
-        self._state = new_state(position_known=False)     # until the pass's own FRAME marker
+        self._state = new_state()
 
     def end_pass(self) -> None:
         """The pass is over: a dwell still open was cut short and is dropped."""

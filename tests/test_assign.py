@@ -105,30 +105,3 @@ def test_bad_arguments_are_refused():
         PixelAssigner((0, 2))
     with pytest.raises(InputError, match="EVENT_DTYPE"):
         PixelAssigner((2, 2)).assign(np.zeros(3, np.uint32))
-
-
-def test_a_store_pass_starts_at_its_own_frame_marker():
-    """The tail of a stopped pass can reach the store after the next pass began (its drain ended
-    on a quiet stream while the host was too busy to read): its markers must not open the new
-    pass's pixels, nor count towards its lines."""
-    from spdepth.acq.assign import PassGeometry
-    from spdepth.acq.store import PixelStore
-
-    P, LS, LE, F = Marker.PIXEL, Marker.LINE_START, Marker.LINE_STOP, Marker.FRAME
-    tail = [(P, [5]), (LE, []), (LS | P, [6]), (P, [7]), (LE, [])]
-    own = [(F | LS | P, [50]), (P, [51]), (P, [52]), (LE, []), (LS | P, [53]), (P, [54]),
-           (P, [55]), (LE, [])]
-    rows = []
-    for m, photons in tail + own:
-        rows.append((EventKind.MARKER, m, 0))
-        rows += [(EventKind.PHOTON, 0, t) for t in photons]
-    ev = np.zeros(len(rows), EVENT_DTYPE)
-    ev["kind"], ev["marker"], ev["dtime"] = zip(*rows)
-    ev["sync"] = np.arange(ev.size)
-    store = PixelStore((2, 3), 4, (0, 100), 1e-12)
-    store.begin_pass(PassGeometry.full((2, 3)))
-    store.feed(ev)
-    assert (store.lines_closed, store.pixels_opened) == (2, 6)
-    np.testing.assert_array_equal(store.count, np.ones(6))
-    np.testing.assert_array_equal(store.times[:, 0], [50, 51, 52, 53, 54, 55])
-    assert store.unassigned == 3                  # the tail's photons
