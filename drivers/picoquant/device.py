@@ -292,6 +292,12 @@ class PicoQuantReader(TaggerReader):
                 self._deliver(self._view[:n])
                 return
             if Flag.FIFOFULL in t.flags():
+                # the FIFO can have filled up after the empty read above (a host busy elsewhere
+                # between the two calls): what it holds is read before the restart clears it
+                n = t.read_into(self._cbuf)
+                if n:
+                    self._deliver(self._view[:n])
+                    return
                 self.stats["fifo_full"] += 1
                 log.warning("%s FIFO full: records lost; restarting the measurement", t.family.model)
                 self._restart("fifo")
