@@ -39,6 +39,21 @@ def win(qtbot, settings, tmp_path):
     w.shutdown(timeout_s=10)
 
 
+@pytest.fixture
+def real_time_sim(monkeypatch):
+    """The simulated galvo dwells in real time (``pace``), as a lab scan does: the simulator
+    otherwise scans a 64x64 image faster than the window repaints, and a test of what the window
+    shows *during* a scan would see only its start and end."""
+    from spdepth.acq import instruments
+
+    open_sim = instruments.open_sim
+
+    def paced(*args, galvo_options=None, **kw):
+        return open_sim(*args, galvo_options={"pace": 1.0, **(galvo_options or {})}, **kw)
+
+    monkeypatch.setattr(instruments, "open_sim", paced)
+
+
 def _spec(tmp_path, **kw) -> SourceSpec:
     return SourceSpec(**{**SMALL, "out_root": str(tmp_path / "runs"), **kw})
 
@@ -176,7 +191,7 @@ def test_replay_of_a_recording_matches_the_live_maps(qtbot, win, tmp_path):
     ("serial-unplug@3%", (64, 64), 10, "galvo", "galvo-reconnect"),
 ])
 def test_health_shows_a_lost_device_and_its_recovery(qtbot, win, tmp_path, faults, size, target,
-                                                     device, kind):
+                                                     device, kind, real_time_sim):
     seen = []
 
     def watch():
@@ -220,7 +235,8 @@ def test_the_health_indicator_shows_a_recovery_it_saw_late_for_as_long():
     assert after.level == "recovered" and dict(after.devices) == {"galvo": "ok", "tagger": "ok"}
 
 
-def test_close_during_a_scan_aborts_and_keeps_the_recording(qtbot, settings, tmp_path):
+def test_close_during_a_scan_aborts_and_keeps_the_recording(qtbot, settings, tmp_path,
+                                                           real_time_sim):
     w = MainWindow(settings=settings)
     qtbot.addWidget(w)
     w.show()
