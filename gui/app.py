@@ -159,7 +159,7 @@ def run_window(what=None, *, start: bool = True, screenshot: str | Path | None =
         win.controls.set_spec(SourceSpec.from_request(what, win.controls.spec()))
     win.show_view(view)
     win.show()
-    result = {"code": 0}
+    result = {"code": 0, "interrupted": False}
 
     def ended(state: str) -> None:
         result["code"] = 0 if state == "done" else 1
@@ -171,7 +171,7 @@ def run_window(what=None, *, start: bool = True, screenshot: str | Path | None =
             QtCore.QTimer.singleShot(0, win.close)
 
     win.scan_ended.connect(ended)
-    interrupted = _close_on_signals(win)
+    _close_on_signals(win, result)
     if what is not None and start:
         if not win.start_run(what, out_dir=out_dir) and exit_after_scan:
             print(f"spdepth gui: {win.banner_text.text()}", file=sys.stderr)
@@ -186,29 +186,18 @@ def run_window(what=None, *, start: bool = True, screenshot: str | Path | None =
     app.processEvents()
     # closed by Ctrl-C or SIGTERM: the shell's status for a command Ctrl-C ended (128 + SIGINT),
     # as the other commands give (the aborted scan's recording is kept all the same)
-    return 128 + int(signal.SIGINT) if interrupted else result["code"]
+    return 128 + int(signal.SIGINT) if result["interrupted"] else result["code"]
 
 
-class _Interrupted:
-    """Whether Ctrl-C or SIGTERM closed the window (true once a signal came)."""
-
-    def __init__(self) -> None:
-        self.came = False
-
-    def __bool__(self) -> bool:
-        return self.came
-
-
-def _close_on_signals(win) -> _Interrupted:
+def _close_on_signals(win, result: dict) -> None:
     """Ctrl-C (SIGINT) and SIGTERM in the terminal close the window as Ctrl+Q does (a running scan
     is aborted, its recording kept). Python runs signal handlers only between bytecodes, and Qt's
-    loop keeps it in C++: a timer hands control back to Python a few times a second."""
+    loop keeps it in C++: a timer hands control back to Python a few times a second. Sets
+    ``result["interrupted"]`` when a signal came."""
     from PySide6 import QtCore
 
-    interrupted = _Interrupted()
-
     def close(_signum, _frame) -> None:
-        interrupted.came = True
+        result["interrupted"] = True
         print("spdepth gui: interrupted; closing the window (the recording is kept)",
               file=sys.stderr)
         QtCore.QTimer.singleShot(0, win.close)
@@ -217,11 +206,10 @@ def _close_on_signals(win) -> _Interrupted:
         signal.signal(signal.SIGINT, close)
         signal.signal(signal.SIGTERM, close)
     except ValueError:                 # not the main thread (tests): leave the handlers alone
-        return interrupted
+        return
     win._signal_timer = QtCore.QTimer(win)
     win._signal_timer.timeout.connect(lambda: None)
     win._signal_timer.start(200)
-    return interrupted
 
 
 def run_demo_window(request, out_dir=None, *, exit_after_scan: bool = False,
