@@ -143,6 +143,10 @@ class ScanSource:
         galvo.configure_scan(pattern, gate, settle_s=host.plan.settle_s, frames=1)
         galvo.start()
         stop_sent = cut = False
+        # where this pass stopped using the recording: a pass that used no chunk (its data came
+        # after it stopped waiting, and the next pass drops them as stale) ends where it began,
+        # so that a replay leaves those records out as well
+        used_through = start
         completed = None
         t_stopped = None
         last_data = time.monotonic()
@@ -159,6 +163,8 @@ class ScanSource:
                 continue
             if chunk.size:
                 last_data = now
+                if start is not None:
+                    used_through = reader.recorded_through
                 if host.process(chunk):
                     self._lost_in_pass = True
                     cut = True     # position unknown until the next frame: rescan, don't go blind
@@ -190,7 +196,7 @@ class ScanSource:
                 log.warning("stream still busy %.0f s after the pass ended; going on",
                             DRAIN_TIMEOUT_S)
                 break
-        host.end_pass(reader.recorded_through if self.recorder else None)
+        host.end_pass(used_through)
         self._lost_in_pass = False
         self._read_pixel_log(host)
         return cut
