@@ -232,3 +232,26 @@ def test_bench_refuses_too_few_records_or_runs(argv, capsys):
     with pytest.raises(SystemExit) as exc:
         bench(argv)
     assert exc.value.code == 2 and "--records must be >= 1000" in capsys.readouterr().err
+
+
+def test_warm_up_loads_every_kernel_a_reader_runs_with_the_types_a_reader_passes():
+    # a reader hands decode_t3 uint32 views of its read buffer; warm_up must have loaded the
+    # kernels for exactly those types, or the first real chunk still compiles in the reader thread
+    from spdepth.drivers.tagger import t3
+
+    t3.warm_up()
+    kernels = (t3._decode_kernel, t3._count_split_extra, t3._split_kernel)
+    before = [len(k.signatures) for k in kernels]
+    assert all(before)
+    buf = bytearray(t3.encode_t3(_warm_events()).tobytes())
+    records = np.frombuffer(buf, np.uint8).view(np.uint32)
+    t3.decode_t3(t3.split_marker_records(records))
+    assert [len(k.signatures) for k in kernels] == before
+
+
+def _warm_events():
+    ev = np.zeros(2, dtype=EVENT_DTYPE)
+    ev["sync"] = (5, 9)
+    ev["kind"] = (EventKind.MARKER, EventKind.PHOTON)
+    ev["marker"][0] = 0b101
+    return ev

@@ -35,7 +35,7 @@ import numpy as np
 
 from spdepth.drivers.errors import DeviceError, DeviceTimeoutError, ProtocolError, SettingError
 from spdepth.drivers.events import EVENT_DTYPE, EventKind
-from spdepth.drivers.tagger.t3 import T3DecoderState, decode_t3
+from spdepth.drivers.tagger.t3 import T3DecoderState, decode_t3, warm_up as warm_up_decoding
 from spdepth.drivers.tagger.transport import DeviceGoneError, EndpointStallError
 
 log = logging.getLogger(__name__)
@@ -137,6 +137,7 @@ class TaggerReader:
         to end)."""
         if self._thread is not None:
             raise DeviceError("tagger reader already started")
+        warm_up_decoding()             # before START: the FIFO fills while a kernel compiles
         self._thread = threading.Thread(target=self._run, name="tagger-reader", daemon=True)
         self._thread.start()
         deadline = time.monotonic() + self.start_timeout_s
