@@ -9,7 +9,9 @@ start to exit, timed here) and CPU time (user + system, all its threads: the wor
 load on the machine moves less than the wall), ``read_s`` and ``recon_s`` as the command reports them (its
 ``--json`` summary), the reconstruction's pixels/s and their ratio to the plain port of
 Algorithm 1 (``spdepth bench recon``'s uos reference, timed in this process in the same run, one
-thread). ``--before PKGDIR``: a directory holding another checkout as ``spdepth`` (put first on
+thread; it is BLAS-bound and slows far more than the kernels when other work shares the cores,
+so the ratio is only comparable between quiet runs, while before/after in one run always is).
+``--before PKGDIR``: a directory holding another checkout as ``spdepth`` (put first on
 PYTHONPATH for its runs; e.g. a ``git worktree add`` of an older commit and a symlink to it).
 ``--cold``: also one run each with an empty numba cache (a fresh NUMBA_CACHE_DIR: every kernel
 compiled), the first run after an install.
@@ -29,7 +31,8 @@ import tempfile
 import time
 from pathlib import Path
 
-FACE = "/work/shared/data/fpi/mannequin_face_8ppp.mat"
+#: the seed paper's mannequin, where the tests find the shared data: beside the source checkout
+FACE = Path(__file__).resolve().parents[4] / "shared" / "data" / "fpi" / "mannequin_face_8ppp.mat"
 SEED_SETTINGS = ["--time-unit-ps", "8", "--window-ps", "16000:48000", "--bin-ps", "40",
                  "--pulse-rms-ps", "360", "--max-photons", "15", "--method", "uos"]
 
@@ -68,8 +71,10 @@ def bench(argv: list[str]) -> int:
     p.add_argument("recon", nargs=argparse.REMAINDER,
                    help="spdepth recon options after '--' (default: the seed paper's, --method uos)")
     a = p.parse_args(argv)
+    if not Path(a.file).is_file():
+        p.error(f"no file {a.file} (give one with --file)")
     settings = [v for v in a.recon if v != "--"] or SEED_SETTINGS
-    recon_argv = [a.file, *settings]
+    recon_argv = [str(a.file), *settings]
     from spdepth.acq.commands.bench.recon import uos_port_rate
 
     sides = {"this checkout": None}
