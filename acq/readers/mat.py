@@ -9,7 +9,6 @@ be empty (``0 x 0``), columns (``n x 1``, the fpi files) or rows (``1 x n``, the
 from __future__ import annotations
 
 import struct
-import sys
 import zlib
 from pathlib import Path
 
@@ -142,94 +141,15 @@ def _top_level(raw: bytes):
     return out
 
 
-#: byte size of each numeric element type (miINT8=1 ... miUINT64=13); 0: not numeric
-_MI_ITEMSIZE = np.array([0, 1, 1, 2, 2, 4, 4, 4, 0, 8, 0, 0, 8, 8], np.int64)
-#: mxClass codes of numeric arrays (mxDOUBLE_CLASS=6 ... mxUINT64_CLASS=15), mxSINGLE_CLASS
-_MX_NUMERIC_LO, _MX_NUMERIC_HI, _MX_SINGLE = 6, 15, 7
-
-
-def cell_index(d: bytes, start: int, n_cells: int) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """Walk the ``n_cells`` consecutive miMATRIX elements of ``d`` (the decompressed variable) from
-    byte ``start``: (byte offset of each cell's real data, its element count (0: empty), its data
-    element type), or None where a cell is not a real numeric vector this walk reads (the caller
-    then reads the file with scipy, which names the problem).
-
-    Level-5 layout (MATLAB's "MAT-File Format", little endian): a data element is an 8-byte tag
-    (``type: u32 | nbytes: u32``), its data, padding to 8 bytes; a "small" element packs
-    ``nbytes: u16 | type: u16`` into the first 4 bytes and up to 4 data bytes into the next 4. A
-    cell is a miMATRIX (14) element: array flags (miUINT32, class in the low byte, complex bit
-    0x800), dimensions (miINT32), a name (miINT8, empty) and the real part, whose element type may
-    be narrower than its class (MATLAB stores integer-valued doubles as miUINT16 and the like).
-
-    Only the chain of element sizes is walked in Python (one word per cell); every field is then
-    read for all cells at once with NumPy. No numba here on purpose: the read then needs no
-    compiled code, so in a new process it runs while another thread loads the estimator's kernels
-    (NumPy releases the GIL in its loops; numba's loading holds it)."""
-    if start % 8 or len(d) < start + 8 or sys.byteorder != "little":
-        return None
-    n_words = len(d) // 4
-    w = np.frombuffer(d, "<u4", count=n_words)            # every element starts 8-byte aligned
-    words = memoryview(d)[:4 * n_words].cast("I")         # the same words, fast one at a time
-    size = len(d)
-    starts = [0] * n_cells
-    o = start
-    for c in range(n_cells):
-        if o + 8 > size:
-            return None
-        starts[c] = o
-        o += 8 + words[(o >> 2) + 1]
-    if o > size:
-        return None
-    s = np.array(starts, np.int64) >> 2                   # word index of each cell's tag
-    end = (s << 2) + 8 + w[s + 1]                         # byte after each cell
-    last = w.size - 1
-
-    def u32(word_index):                                  # past the buffer (an empty last cell): 0
-        return np.where(word_index <= last, w[np.minimum(word_index, last)], 0).astype(np.int64)
-
-    if np.any(w[s] != 14):                                # miMATRIX
-        return None
-    full = w[s + 1] > 0                                   # an empty cell may be a bare tag
-    flags = u32(s + 4)
-    cls = flags & 0xFF
-    ndb = u32(s + 7)
-    dims = np.stack([u32(s + 8), u32(s + 9)]).astype(np.uint32).view(np.int32).astype(np.int64)
-    ok = ((u32(s + 2) == 6) & (u32(s + 3) == 8)       # array flags: miUINT32, 8 bytes
-          & (cls >= _MX_NUMERIC_LO) & (cls <= _MX_NUMERIC_HI) & ((flags & 0x800) == 0)
-          & (u32(s + 6) == 5) & (ndb == 8)            # dimensions: miINT32, two of them
-          & np.all(dims >= 0, axis=0) & (np.sum(dims > 1, axis=0) <= 1))     # a vector
-    numel = dims[0] * dims[1]
-    # the name: a small element (8 bytes) or a tagged one; then the real part, if any
-    p = (s << 2) + 40
-    name_tag = u32(p >> 2)
-    p = np.where(name_tag >> 16, p + 8, p + 8 + (u32((p >> 2) + 1) + 7) // 8 * 8)
-    no_data = full & (p == end)
-    if np.any(full & ~ok) or np.any(full & (p > end)) or np.any(no_data & (numel != 0)):
-        return None
-    has = full & (p < end)
-    t = u32(p >> 2)
-    small = (t >> 16) != 0
-    typ = np.where(small, t & 0xFFFF, t)
-    dnb = np.where(small, t >> 16, u32((p >> 2) + 1))
-    doff = np.where(small, p + 4, p + 8)
-    typ = np.where(has, typ, 0)
-    isz = _MI_ITEMSIZE[np.clip(typ, 0, _MI_ITEMSIZE.size - 1)] * (typ < _MI_ITEMSIZE.size)
-    bad = has & ((isz == 0)
-                 # single class from wide integers: scipy rounds to float32
-                 | ((cls == _MX_SINGLE) & ((typ == 5) | (typ == 6) | (typ >= 12)))
-                 | (dnb != numel * isz) | (doff + dnb > end) | (doff % np.maximum(isz, 1) != 0))
-    if np.any(bad):
-        return None
-    return np.where(has, doff, 0), np.where(has, numel, 0), typ
-
-
 def read_cells_fast(path: Path, var: str | None, time_unit_s: float) -> tuple[str, PhotonStore] | None:
-    """The cell-array variable of a level-5 .mat file as a PhotonStore, by one walk over its
-    elements (:func:`cell_index`) and one NumPy gather of the times; the same store
-    :func:`load_cells` + :func:`cells_to_store` make (row-major pixels, detection order kept).
-    None whenever the file holds anything this path does not read (big endian, v7.3, several or
-    no cell arrays without ``var``, a cell that is not a real numeric vector, NaN times ...): the
-    caller then reads it with scipy, which names the problem."""
+    """The cell-array variable of a level-5 .mat file as a PhotonStore, by one compiled walk over
+    its elements (:func:`acq.readers.mat_kernels.cell_index`) and one NumPy gather of the times;
+    the same store :func:`load_cells` + :func:`cells_to_store` make (row-major pixels, detection
+    order kept). None whenever the file holds anything this path does not read (big endian, v7.3,
+    several or no cell arrays without ``var``, a cell that is not a real numeric vector, NaN
+    times ...): the caller then reads it with scipy, which names the problem."""
+    from spdepth.acq.readers.mat_kernels import MI_ITEMSIZE, cell_index
+
     try:
         raw = path.read_bytes()
         top = _top_level(raw)
@@ -250,10 +170,12 @@ def read_cells_fast(path: Path, var: str | None, time_unit_s: float) -> tuple[st
     n_cells = h * w
     if n_cells == 0:
         return None
-    index = cell_index(d, start, n_cells)
-    if index is None:
+    buf = np.frombuffer(d, np.uint8)
+    off = np.empty(n_cells, np.int64)
+    cnt = np.empty(n_cells, np.int64)
+    typ = np.empty(n_cells, np.int64)
+    if cell_index(buf, start, n_cells, MI_ITEMSIZE, off, cnt, typ) < 0:
         return None
-    off, cnt, typ = index
     # MATLAB's cells run down the columns; pixels run along the rows
     c = np.arange(n_cells)
     pix = (c % h) * w + c // h
@@ -266,7 +188,7 @@ def read_cells_fast(path: Path, var: str | None, time_unit_s: float) -> tuple[st
     for t in np.unique(typ[cnt > 0]):
         sel = (typ == t) & (cnt > 0)
         n = cnt[sel]
-        isz = int(_MI_ITEMSIZE[t])
+        isz = int(MI_ITEMSIZE[t])
         view = np.frombuffer(d, dtype=_MI_DTYPE[int(t)], count=len(d) // isz)
         k = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
         times[np.repeat(dst[sel], n) + k] = view[np.repeat(off[sel] // isz, n) + k]
