@@ -67,13 +67,27 @@ def _version() -> str:
         return "unknown (not installed)"
 
 
+class _VersionAction(argparse.Action):
+    """``--version``: the installed version, looked up only when asked (importlib.metadata's
+    lookup costs tens of milliseconds, which every command paid at start as argparse's
+    ``version=`` string)."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS,
+                 help="show the version and exit"):
+        super().__init__(option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(f"spdepth {_version()}")
+        parser.exit()
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = OneLineParser(
         prog="spdepth",
         description="Single-photon depth imaging: drive the scan, record tags, reconstruct depth.",
         epilog="exit status: 0 done; 1 session failed or aborted; 2 bad input or usage; "
                "3 device missing or failed; 130 interrupted (Ctrl-C, SIGTERM)")
-    parser.add_argument("--version", action="version", version=f"spdepth {_version()}")
+    parser.add_argument("--version", action=_VersionAction)
     parser.add_argument("-v", "--verbose", action="count", default=0,
                         help="more logging on stderr (-vv for device traffic)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)

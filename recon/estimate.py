@@ -18,7 +18,6 @@ import numpy as np
 from spdepth.recon.errors import InputError
 from spdepth.recon.maps import DepthMaps
 from spdepth.recon.model import METHODS, PIXELWISE_METHODS, Binning, ReconSettings
-from spdepth.recon.multi import reconstruct_multi
 from spdepth.recon.photons import PhotonStore
 from spdepth.recon.pixelwise import reconstruct_pixelwise
 # resolve_model is also imported from here by acq.live_recon (it was defined here before the split)
@@ -34,7 +33,11 @@ def reconstruct_each_pixel(store: PhotonStore, settings: ReconSettings,
     then fit every pixel on its own (:func:`recon.pixelwise.reconstruct_pixelwise`)."""
     b, kern, notes = resolve_model(store, settings)
     if settings.several:
-        # a response estimated from the data is re-measured on the surfaces (recon.multi)
+        # recon.multi (scipy.stats, its own kernels) is imported on first use, as the spatial
+        # estimator is: one surface per pixel, the common case, should not wait for it.
+        # A response estimated from the data is re-measured on the surfaces there.
+        from spdepth.recon.multi import reconstruct_multi
+
         return reconstruct_multi(store, settings, b, kern, notes, progress,
                                  measure=notes.get("pulse_source") == "estimated")
     return reconstruct_pixelwise(store, settings, b, kern, notes, progress)

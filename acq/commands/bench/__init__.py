@@ -29,6 +29,8 @@ TARGETS = {
                "compute time: report.md, results.csv, PNGs (--out DIR [--quick])"),
     "surfaces": ("spdepth.acq.commands.bench.surfaces", "several surfaces per pixel: --reflectors 2 and auto beside "
                  "1 at 50 detections per pixel, warm, 1 thread (pixels/s)"),
+    "startup": ("spdepth.acq.commands.bench.startup", "spdepth recon in a new process, warm numba cache: "
+                "wall, read_s, recon_s, ratio to the plain port of Algorithm 1 (--before: another checkout)"),
     "spatial": ("spdepth.acq.commands.bench.spatial", "spatial estimator on a 256x256 frame beside ml, warm, 1 thread "
                 "(pixels/s per core)"),
 }

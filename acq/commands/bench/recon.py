@@ -149,6 +149,24 @@ def _time(fn, min_s: float = 0.3) -> float:
     return best
 
 
+def uos_port_rate(n_pix: int = 200) -> float:
+    """Pixels/s of the plain port of Algorithm 1 (tests/reference.py ``uos``: dense A, pinv each
+    iteration) on :func:`simulate`'s pixels at the paper's settings, warm, best-of, one pixel at a
+    time as ``spdepth bench recon``'s reference column; NaN without the source checkout's tests/."""
+    ref, _ = _load_reference()
+    if ref is None:
+        return np.nan
+    kern = build_kernel(SEED_PAPER.binning, pulse_rms_s=RMS_S)
+    a_mat = np.hstack([ref.dense_s(kern) / kern.gmax, np.ones((M, 1))])
+    bins, offsets = simulate(n_pix, seed=1)
+
+    def run():
+        for p in range(n_pix):
+            ref.uos(ref.histogram(bins[offsets[p]:offsets[p + 1]], M), a_mat)
+
+    return n_pix / _time(run, 0.2)
+
+
 def bench(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(prog="spdepth bench recon", description=__doc__.splitlines()[0])
     parser.add_argument("--pixels", type=int, default=100_000, help="pixels per kernel run")
