@@ -154,9 +154,6 @@ class ControlPanel(QtWidgets.QWidget):
         self.pulse_rms.setSpecialValueText("estimate")
         self.pulse_rms.setToolTip("Gaussian pulse RMS width (the seed paper: 360 ps); "
                                   "'estimate' measures the response from the data")
-        self.reflectors = QtWidgets.QSpinBox(minimum=1, maximum=8, value=1)
-        self.reflectors.setToolTip("surfaces per pixel to look for (e.g. 2 through a net or "
-                                   "glass); the maps then show one surface at a time")
         self._rows = {}
         for key, label, w in (("sim", "Scene", self.scene), ("sim", "SBR", self.sbr),
                               ("sim", "Seed", self.seed), ("sim", "Faults", self.faults),
@@ -165,8 +162,7 @@ class ControlPanel(QtWidgets.QWidget):
                               ("real", "Field of view", self.fov),
                               ("replay", "Recording", rec_row), ("file", "File", file_row),
                               ("file", "Time unit", self.time_unit),
-                              ("file", "Pulse RMS", self.pulse_rms),
-                              ("file", "Surfaces", self.reflectors)):
+                              ("file", "Pulse RMS", self.pulse_rms)):
             f.addRow(label, w)
             self._rows.setdefault(key, []).append(w)
         lay.addWidget(src)
@@ -199,6 +195,11 @@ class ControlPanel(QtWidgets.QWidget):
         self.method.setToolTip("uos: union-of-subspaces (the paper); ml: Poisson maximum "
                                "likelihood; lmf: log-matched filter (ignores background)")
         g.addRow("Estimator", self.method)
+        self.reflectors = QtWidgets.QSpinBox(minimum=0, maximum=8, value=1)
+        self.reflectors.setSpecialValueText("as recorded")
+        self.reflectors.setToolTip("surfaces per pixel to look for (e.g. 2 through a net or "
+                                   "glass); the maps then show one surface at a time")
+        g.addRow("Surfaces", self.reflectors)
         self.out_root = QtWidgets.QLineEdit(DEFAULT_OUT_ROOT)
         self.out_root.setToolTip("each run gets its own folder here (recording, maps, run.json)")
         out_row = _path_row(self.out_root, self._browse_out)
@@ -261,6 +262,8 @@ class ControlPanel(QtWidgets.QWidget):
             self.target.setValue(DEFAULT_TARGET)
         self.target.setMinimum(1 if scan else 0)
         self.target.setSpecialValueText("all" if kind == "file" else "as recorded")
+        # 0 surfaces: a replay's "as recorded"; the others look for at least one
+        self.reflectors.setMinimum(0 if kind == "replay" else 1)
 
     def _browse_recording(self) -> None:
         path, _ = QtWidgets.QFileDialog.getOpenFileName(self, "Recording to replay",
@@ -319,7 +322,8 @@ class ControlPanel(QtWidgets.QWidget):
         self.file.setText(s.file)
         self.time_unit.setValue(float(s.time_unit_ps))
         self.pulse_rms.setValue(float(s.pulse_rms_ps))
-        self.reflectors.setValue(int(s.reflectors or 1))
+        self.reflectors.setMinimum(0)          # 0 ("as recorded") stays 0 until _kind_changed
+        self.reflectors.setValue(int(s.reflectors or 0))
         if s.out_root:
             self.out_root.setText(s.out_root)
         self._kind_changed()
@@ -380,10 +384,14 @@ class Inspector(QtWidgets.QWidget):
         r, c = pixel
         b = info.binning
         tof, bg, sig = info.tof_s, info.background, info.signal
-        pulse_rms_s = info.pulse_rms_s
+        # the width of a measured response (live several surfaces freeze one) where none is given
+        pulse_rms_s = info.pulse_rms_s or (info.irf.rms_s if info.irf is not None else None)
         # display bins about half the pulse RMS wide (raw 40 ps bins hold 0 or 1 photon each)
         rms_bins = (pulse_rms_s or 0.0) / b.bin_width_s
-        ph = pixel_histogram(info.times, b, tof_s=tof, background=bg, signal=sig,
+        # the model: every fitted surface's return on the background
+        tofs = [x[0] for x in info.surfaces] if info.surfaces else tof
+        sigs = [x[2] for x in info.surfaces] if info.surfaces else sig
+        ph = pixel_histogram(info.times, b, tof_s=tofs, background=bg, signal=sigs,
                              pulse_rms_s=pulse_rms_s, irf=info.irf,
                              display_bins=int(b.n_bins / max(1.0, rms_bins / 2)))
         self.hist.setData(ph.edges_s, ph.counts)
@@ -792,8 +800,9 @@ class MainWindow(QtWidgets.QMainWindow):
         # the run's own folder name; the whole path is in the tooltip (and in run.json)
         where = f" — files in …/{run.out_dir.name}/" if run.out_dir else ""
         self._target = run.session.plan.target
-        self._surfaces = None
-        self.controls.set_surfaces(1)
+        self._surfaces = None             # a live run's come with its snapshots
+        tof = run.session.recon.tof_s
+        self.controls.set_surfaces(tof.shape[0] if tof.ndim == 3 else 1)
         self._new_run(f"{run.label}{where}", str(run.out_dir or ""), _plan_geometry(run.session.plan),
                       run.session.plan.shape)
         h, w = run.session.plan.shape
@@ -992,7 +1001,8 @@ class MainWindow(QtWidgets.QMainWindow):
             self._paint_3d()
             return False
         self._maps_stale = False
-        mi = snapshot_input(snap, self._n_bins, target, self._surfaces)
+        mi = snapshot_input(snap, self._n_bins, target,
+                            self._surfaces if self._surfaces is not None else snap.surfaces)
         surface = max(0, self.controls.surface.currentIndex())
         for p in self.panels:
             v = None if versions is None else versions["counts" if p.spec.key == "counts"

@@ -137,6 +137,30 @@ def test_inspector_shows_histogram_and_fitted_model(qtbot, win, tmp_path):
     assert win.inspector.pixel == (2, 1)
 
 
+def test_a_two_surface_scan_shows_each_surface_live_and_in_the_inspector(qtbot, win, tmp_path):
+    spec = _spec(tmp_path, scene="two-layer", size=(16, 16), target=20, reflectors=2)
+    assert spec.to_request().reflectors == 2
+    assert win.start_run(spec, out_dir=None)
+    c = win.controls
+    assert c.surface_row.isVisibleTo(win) and c.surface.count() == 2     # picker from the start
+    qtbot.waitUntil(lambda: _state(win) == "done", timeout=120_000)
+    win.refresh()
+    m = win.session.maps()
+    assert m.depth_m.shape == (2, 16, 16)
+    np.testing.assert_array_equal(win.panel("surfaces").data, m.surfaces.astype(np.float64))
+    np.testing.assert_array_equal(win.panel("depth").data, m.depth_m[0])
+    c.surface.setCurrentIndex(1)                              # the farther surface
+    win._paint_maps(win.snap, 20, refit=True)
+    np.testing.assert_array_equal(win.panel("depth").data, m.depth_m[1])
+    # a pane pixel: both surfaces drawn, the model holds both returns
+    win.inspect((8, 8), pin=True)
+    assert m.surfaces[8, 8] == 2 and len(win.inspector.surface_lines) == 2
+    assert [ln.value() for ln in win.inspector.surface_lines] == list(m.tof_s[:, 8, 8])
+    _, my = win.inspector.model.getData()
+    assert my.sum() == pytest.approx(m.signal[:, 8, 8].sum() + m.background[8, 8] * 801, rel=1e-6)
+    assert "surface 2: 3.4" in win.inspector.last_text or "surface 2: 3.5" in win.inspector.last_text
+
+
 def test_pause_resume_abort(qtbot, win, tmp_path):
     c = win.controls
     win.controls.set_spec(_spec(tmp_path, size=(48, 48)))
