@@ -131,3 +131,64 @@ def test_bad_surfaces_options_are_one_line_errors(tmp_path, capsys):
     assert main(["scan", "--sim", "--size", "4x4", "--reflectors", "two", "--out", str(out)]) == 2
     assert "whole number or auto" in capsys.readouterr().err
     assert not out.exists()
+
+
+class _Store:
+    """What ``LiveRecon`` reads of ``acq.store.PixelStore``, over a ``PhotonStore``."""
+
+    def __init__(self, store):
+        self.whole, self.shape, self.time_unit_s = store, store.shape, store.time_unit_s
+        self.count = np.diff(store.offsets)
+
+    def photons(self, pixels=None):
+        from spdepth.recon.photons import PhotonStore
+
+        if pixels is None:
+            return self.whole
+        idx = np.asarray(pixels, np.int64)
+        parts = [self.whole.times[self.whole.offsets[p]:self.whole.offsets[p + 1]] for p in idx]
+        offsets = np.concatenate(([0], np.cumsum([x.size for x in parts]))).astype(np.int64)
+        return PhotonStore(np.concatenate(parts) if parts else np.zeros(0), offsets, (1, idx.size),
+                           self.time_unit_s)
+
+
+@pytest.mark.parametrize("reflectors", [2, "auto"])
+def test_live_batches_with_empty_pixels_equal_one_reconstruction_with_the_frozen_response(reflectors):
+    """Pixels handed over in uneven batches, a tenth of them without a detection (a scan cut by
+    its time limit), no pulse given: the live maps equal one reconstruction of the whole store
+    with the response the live worker measured on its first pixels."""
+    import dataclasses
+
+    from spdepth.acq.live_recon import RESPONSE_SAMPLE_PIXELS, LiveRecon
+    from spdepth.recon.estimate import reconstruct
+    from spdepth.recon.model import Binning, ReconSettings
+    from spdepth.recon.photons import PhotonStore
+
+    rng = np.random.default_rng(4)
+    h, w, unit = 40, 40, 1e-12
+    n = rng.poisson(20, h * w)
+    n[rng.random(h * w) < 0.1] = 0
+    times, offsets = [], [0]
+    for k in n:                       # two returns 3 ns apart (360 ps RMS) on a flat background
+        which = rng.random(k)
+        t = np.where(which < 0.45, rng.normal(10e3, 360, k),
+                     np.where(which < 0.9, rng.normal(13e3, 360, k), rng.uniform(0, 30e3, k)))
+        times.append(np.round(np.clip(t, 0, 29999)))
+        offsets.append(offsets[-1] + k)
+    whole = PhotonStore(np.concatenate(times), np.array(offsets, np.int64), (h, w), unit)
+    settings = ReconSettings(method="ml", binning=Binning.from_window(unit, (0, 30e-9), 40e-12),
+                             max_photons=40, reflectors=reflectors)
+    live = LiveRecon(_Store(whole), settings)
+    live.start()
+    order = rng.permutation(h * w)
+    cuts = np.sort(rng.choice(np.arange(1, h * w), 6, replace=False))
+    for part in np.split(order, cuts):
+        live.submit(part)
+    live.finish(timeout_s=300)
+    maps = live.maps()
+    assert maps.settings["pulse_source"] == (f"measured on the surfaces of the first "
+                                             f"{RESPONSE_SAMPLE_PIXELS} final pixels, then frozen")
+    batch = reconstruct(whole, dataclasses.replace(settings, irf=live.settings.irf))
+    _assert_same(maps, batch)
+    assert np.all(maps.flags[n.reshape(h, w) == 0] == 1) and np.all(maps.surfaces[n.reshape(h, w) == 0] == 0)
+    assert np.mean(maps.surfaces[n.reshape(h, w) >= 15] == 2) > 0.9
