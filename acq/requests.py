@@ -476,7 +476,8 @@ class ScanRequest(_Request):
     def label(self) -> str:
         h, w = self.size
         what = self.instruments.scene if isinstance(self.instruments, SimBench) else "devices"
-        return f"scan {what} {w}x{h}, {self.target} per pixel, {self.method}"
+        surfaces = "" if self.reflectors == 1 else f", surfaces {self.reflectors}"
+        return f"scan {what} {w}x{h}, {self.target} per pixel, {self.method}{surfaces}"
 
 
 @dataclass(frozen=True)

@@ -57,7 +57,9 @@ def run(args: argparse.Namespace) -> int:
         session = build_session(request, out)
         interrupted = run_session(session, "replay")
         p = session.plan
+        asked = session.recon.requested
+        surfaces = "" if asked.reflectors == 1 else f", surfaces {asked.reflectors}"
         summary = finish_session(session, out.path, f"replay {p.nx}x{p.ny}, {p.target} per pixel, "
-                                                    f"{session.recon.requested.method}")
+                                                    f"{asked.method}{surfaces}")
     report(summary, args.json, "replay")
     return exit_status(session, interrupted)
