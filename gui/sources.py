@@ -352,6 +352,7 @@ class ResultView:
 
     def snapshot(self):
         """The maps as an ``acq.session.Snapshot`` (state done), for the map panels."""
+        from spdepth.acq.mapdefs import surfaces_of
         from spdepth.acq.session import Snapshot
 
         res, m = self.result, self.result.maps
@@ -361,7 +362,7 @@ class ResultView:
                         lost_spans=0, lost_records=0, eta_s=None, recon_lag=0, passes=0,
                         depth_m=m.depth_m, background=m.background, signal=m.signal,
                         uncertainty_s=m.uncertainty_s, counts=m.photons,
-                        acq_flags=np.zeros((h, w), np.uint8))
+                        acq_flags=np.zeros((h, w), np.uint8), surfaces=surfaces_of(m))
 
     def pixel(self, r: int, c: int) -> PixelInfo:
         res, m = self.result, self.result.maps

@@ -588,8 +588,6 @@ class MainWindow(QtWidgets.QMainWindow):
         self.maps_view.ci.setSpacing(4)
         self.panels = [MapPanel(self.maps_view.ci, spec, i // 2, i % 2)
                        for i, spec in enumerate(PANEL_DEFS)]
-        self._surfaces = None
-        """(H, W) surfaces found per pixel of K > 1 maps (a file read with several surfaces)."""
         link_panels(self.panels)
         for i in range(2):                 # equal cells: the same region shows at the same scale
             self.maps_view.ci.layout.setColumnStretchFactor(i, 1)
@@ -800,7 +798,6 @@ class MainWindow(QtWidgets.QMainWindow):
         # the run's own folder name; the whole path is in the tooltip (and in run.json)
         where = f" — files in …/{run.out_dir.name}/" if run.out_dir else ""
         self._target = run.session.plan.target
-        self._surfaces = None             # a live run's come with its snapshots
         tof = run.session.recon.tof_s
         self.controls.set_surfaces(tof.shape[0] if tof.ndim == 3 else 1)
         self._new_run(f"{run.label}{where}", str(run.out_dir or ""), _plan_geometry(run.session.plan),
@@ -888,9 +885,6 @@ class MainWindow(QtWidgets.QMainWindow):
         from spdepth.acq.points import geometry_of
 
         geometry = geometry_of(res.maps)
-        from spdepth.acq.mapdefs import surfaces_of
-
-        self._surfaces = surfaces_of(res.maps)
         k = int(np.asarray(res.maps.depth_m).shape[0]) if np.ndim(res.maps.depth_m) == 3 else 1
         self.controls.set_surfaces(k)
         self.view3d.reset(geometry)
@@ -1001,8 +995,7 @@ class MainWindow(QtWidgets.QMainWindow):
             self._paint_3d()
             return False
         self._maps_stale = False
-        mi = snapshot_input(snap, self._n_bins, target,
-                            self._surfaces if self._surfaces is not None else snap.surfaces)
+        mi = snapshot_input(snap, self._n_bins, target)
         surface = max(0, self.controls.surface.currentIndex())
         for p in self.panels:
             v = None if versions is None else versions["counts" if p.spec.key == "counts"
@@ -1172,7 +1165,8 @@ class MainWindow(QtWidgets.QMainWindow):
     # ---- files ---------------------------------------------------------------------------------
     def save_maps(self, path: str | Path) -> Path:
         """Write the current maps: .png (a sheet with colour bars), .tif/.tiff (float32 stack
-        depth_m, background, photons, depth_sd_m with the settings as JSON), .npz (``recon``'s)."""
+        depth_m, background, photons, depth_sd_m with the settings as JSON; with several surfaces a
+        depth_m_k and depth_sd_m_k per surface), .npz (``recon``'s)."""
         from spdepth.recon.errors import InputError
 
         if self.view is None:
@@ -1185,9 +1179,14 @@ class MainWindow(QtWidgets.QMainWindow):
         elif suffix in (".tif", ".tiff"):
             import tifffile
 
-            names = ["depth_m", "background", "photons", "depth_sd_m"]
-            stack = np.stack([maps.depth_m, maps.background, maps.photons.astype(np.float64),
-                              maps.uncertainty_s * C_M_PER_S / 2]).astype(np.float32)
+            # several surfaces: a depth and a depth_sd channel per surface (depth_m_1, ...)
+            depth = np.asarray(maps.depth_m).reshape((-1,) + maps.flags.shape)
+            sd = np.asarray(maps.uncertainty_s).reshape(depth.shape) * C_M_PER_S / 2
+            k = depth.shape[0]
+            each = lambda name: [name] if k == 1 else [f"{name}_{i + 1}" for i in range(k)]  # noqa: E731
+            names = each("depth_m") + ["background", "photons"] + each("depth_sd_m")
+            stack = np.concatenate([depth, [maps.background, maps.photons.astype(np.float64)],
+                                    sd]).astype(np.float32)
             tifffile.imwrite(path, stack, photometric="minisblack",
                              description=json.dumps({"channels": names,
                                                      "settings": maps.settings}, default=str),

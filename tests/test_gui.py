@@ -18,6 +18,7 @@ from PySide6 import QtCore  # noqa: E402
 
 from spdepth.acq.requests import DEFAULT_METHOD  # noqa: E402
 from spdepth.gui.sources import SourceSpec, open_run  # noqa: E402
+from spdepth.recon.maps import DepthMaps  # noqa: E402
 from spdepth.gui.window import MainWindow  # noqa: E402
 
 SMALL = dict(kind="sim", scene="bust", size=(16, 16), target=5)
@@ -159,6 +160,15 @@ def test_a_two_surface_scan_shows_each_surface_live_and_in_the_inspector(qtbot, 
     _, my = win.inspector.model.getData()
     assert my.sum() == pytest.approx(m.signal[:, 8, 8].sum() + m.background[8, 8] * 801, rel=1e-6)
     assert "surface 2: 3.4" in win.inspector.last_text or "surface 2: 3.5" in win.inspector.last_text
+    # saved: the npz as spdepth recon writes it, a TIFF channel per surface
+    import tifffile
+
+    assert win.save_maps(tmp_path / "k2.tif").stat().st_size > 0
+    stack = tifffile.imread(tmp_path / "k2.tif")
+    assert stack.shape == (6, 16, 16)
+    np.testing.assert_array_equal(stack[1], m.depth_m[1].astype(np.float32))
+    assert win.save_maps(tmp_path / "k2.npz").stat().st_size > 0
+    np.testing.assert_array_equal(DepthMaps.load_npz(tmp_path / "k2.npz").surfaces, m.surfaces)
 
 
 def test_pause_resume_abort(qtbot, win, tmp_path):
