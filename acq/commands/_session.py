@@ -30,7 +30,8 @@ def add_recon_arguments(parser: argparse.ArgumentParser, default_method: str | N
                              "spatial shows ml while the scan runs and replaces it at the end")
     parser.add_argument("--pulse-rms-ps", type=positive_float, metavar="PS",
                         help="pulse RMS width (default: the simulated scene's, or estimated from "
-                             "the first pixels to complete)")
+                             "the first pixels to complete; with several surfaces the response "
+                             "measured on their surfaces)")
     # a replay (no default method) keeps the recording's surfaces settings unless given
     add_reflector_arguments(parser, as_recorded=default_method is None)
 
