@@ -269,20 +269,23 @@ class PixelInfo:
     exposure_s: float = math.nan
     """Laser time the kept detections span, s (NaN: not known, e.g. a file of photon times)."""
     surfaces: tuple = ()
-    """K > 1 surfaces: (tof_s, depth_m, signal, uncertainty_s) of each surface fitted, nearest first."""
+    """K > 1 surfaces: (tof_s, depth_m, signal, uncertainty_s, weak) of each surface fitted, nearest
+    first (weak: background alone could have made it, ``recon.maps.DepthMaps.weak``)."""
 
 
 def estimate_at(maps, r: int, c: int) -> dict:
     """Pixel (r, c) of maps of one or several surfaces (``DepthMaps`` or the live
     reconstruction's arrays): the nearest surface's tof_s, depth_m, signal and uncertainty_s, and
-    with several surfaces ``surfaces``, each found one's (tof_s, depth_m, signal, uncertainty_s)."""
+    with several surfaces ``surfaces``, each found one's (tof_s, depth_m, signal, uncertainty_s,
+    weak)."""
     names = ("tof_s", "depth_m", "signal", "uncertainty_s")
     arrays = [np.asarray(getattr(maps, n)) for n in names]
     if arrays[0].ndim == 2:
         return {n: float(a[r, c]) for n, a in zip(names, arrays)}
     out = {n: float(a[0, r, c]) for n, a in zip(names, arrays)}
-    out["surfaces"] = tuple(tuple(float(a[k, r, c]) for a in arrays) for k in range(arrays[0].shape[0])
-                            if np.isfinite(arrays[0][k, r, c]))
+    weak = np.asarray(maps.weak)
+    out["surfaces"] = tuple((*(float(a[k, r, c]) for a in arrays), bool(weak[k, r, c]))
+                            for k in range(arrays[0].shape[0]) if np.isfinite(arrays[0][k, r, c]))
     return out
 
 

@@ -407,7 +407,7 @@ class Inspector(QtWidgets.QWidget):
         for line in self.surface_lines:
             self.plot.removeItem(line)
         self.surface_lines = []
-        for k, (s_tof, _d, _sig, _sd) in enumerate(info.surfaces):
+        for k, (s_tof, *_) in enumerate(info.surfaces):
             colour = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd")[k % 5]
             line = pg.InfiniteLine(s_tof, angle=90, pen=pg.mkPen(colour, width=2,
                                                                  style=QtCore.Qt.DashLine),
@@ -440,9 +440,10 @@ class Inspector(QtWidgets.QWidget):
             ("estimate", PixelFlag(info.flag).name.lower().replace("_", " ") if done else "not yet"),
             ("acquisition", info.acquisition),
         ]
-        for k, (_t, s_depth, s_sig, s_sd) in enumerate(info.surfaces):
+        for k, (_t, s_depth, s_sig, s_sd, s_weak) in enumerate(info.surfaces):
             rows.insert(1 + k, (f"surface {k + 1}", f"{s_depth:.4f} m ± "
-                                f"{s_sd * C_M_PER_S / 2 * 100:.2f} cm, {s_sig:.2f} signal detections"))
+                                f"{s_sd * C_M_PER_S / 2 * 100:.2f} cm, {s_sig:.2f} signal detections"
+                                + (" (weak: background could make it)" if s_weak else "")))
         if truth is not None:
             rows.insert(1, ("true depth (simulated)", f"{truth:.4f} m" + (
                 f", error {100 * (depth - truth):+.2f} cm" if math.isfinite(depth) else "")))

@@ -160,6 +160,10 @@ def test_a_two_surface_scan_shows_each_surface_live_and_in_the_inspector(qtbot, 
     _, my = win.inspector.model.getData()
     assert my.sum() == pytest.approx(m.signal[:, 8, 8].sum() + m.background[8, 8] * 801, rel=1e-6)
     assert "surface 2: 3.4" in win.inspector.last_text or "surface 2: 3.5" in win.inspector.last_text
+    # a surface background alone could have made says so (K=2 adds them off the pane)
+    r, c = np.argwhere(m.weak.any(axis=0))[0]
+    win.inspect((int(r), int(c)), pin=True)
+    assert "(weak: background could make it)" in win.inspector.last_text
     # saved: the npz as spdepth recon writes it, a TIFF channel per surface
     import tifffile
 
