@@ -148,11 +148,12 @@ def scan_plan(request: ScanRequest, instruments):
 
 def scan_settings(request: ScanRequest, resolution_s: float, scene=None) -> ReconSettings:
     """Estimator settings of a scan: the request's window and bins in the tagger's units, its
-    pulse width (else the simulated scene's, else measured from the first pixels)."""
+    pulse width (else the simulated scene's, else measured from the first pixels) and surfaces."""
     binning = Binning.from_window(resolution_s, request.window, request.bin_s)
     pulse = request.pulse_rms_s or (scene.pulse_rms_s if scene is not None else None)
     return ReconSettings(method=request.method, binning=binning, pulse_rms_s=pulse,
-                         max_photons=request.target)
+                         max_photons=request.target, reflectors=request.reflectors,
+                         max_reflectors=request.max_reflectors, false_alarm=request.false_alarm)
 
 
 def build_session(request: ScanRequest | ReplayRequest, out_dir: str | Path | OutputDir | None = None,
@@ -201,9 +202,12 @@ def _replay_session(request: ReplayRequest, out):
     gate_target = plan.target if plan.mode == "gated" else None
     if request.target is not None:
         plan = replace(plan, target=request.target)
+    surfaces = dict(reflectors=request.reflectors, max_reflectors=request.max_reflectors,
+                    false_alarm=request.false_alarm)
     if info.recon is not None:
         settings = recon_settings_from_dict(info.recon, method=request.method,
-                                            pulse_rms_s=request.pulse_rms_s, max_photons=plan.target)
+                                            pulse_rms_s=request.pulse_rms_s, max_photons=plan.target,
+                                            **surfaces)
     else:
         range_bins = int(src.layout.tags.get("SPDepth_RangeBins", 0) or 0) or \
             int(round(info.sync_period_s / info.resolution_s))
@@ -212,7 +216,8 @@ def _replay_session(request: ReplayRequest, out):
         settings = ReconSettings(method=request.method or "uos",
                                  binning=Binning.from_window(info.resolution_s, window_s,
                                                              units * info.resolution_s),
-                                 pulse_rms_s=request.pulse_rms_s, max_photons=plan.target)
+                                 pulse_rms_s=request.pulse_rms_s, max_photons=plan.target,
+                                 **{k: v for k, v in surfaces.items() if v is not None})
     return Session(plan, settings, src, out_dir=out, gate_target=gate_target,
                    info={"replay_of": str(src.path), **info.info, "request": request.to_dict()})
 
@@ -417,7 +422,12 @@ def reconstruct_file(request: FileReconRequest, progress=None) -> FileResult:
     pulse_rms_s, irf = request.pulse_rms_s, load_irf(request.irf) if request.irf else None
     max_photons = request.max_photons
     if recorded:
-        if pulse_rms_s is None and irf is None and recorded.get("pulse_rms_s"):
+        # the response the live maps used: a shape measured on several surfaces, else a width
+        if pulse_rms_s is None and irf is None and recorded.get("irf"):
+            from spdepth.recon.model import Irf
+
+            irf = Irf.from_dict(recorded["irf"])
+        elif pulse_rms_s is None and irf is None and recorded.get("pulse_rms_s"):
             pulse_rms_s = float(recorded["pulse_rms_s"])
         if max_photons is None and recorded.get("max_photons"):
             max_photons = int(recorded["max_photons"])

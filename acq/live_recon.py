@@ -7,6 +7,15 @@ each estimator works pixel by pixel. When no pulse width is given, it is estimat
 first ``PULSE_SAMPLE_PIXELS`` pixels to become final (in stream order, so a replay of the same
 stream estimates the same width) and then frozen.
 
+Several surfaces per pixel (``reflectors`` K > 1 or "auto", :mod:`recon.multi`): the maps of
+tof_s, depth_m, signal, uncertainty_s and weak are (K, H, W) (K the most surfaces looked for), with
+a ``surfaces`` count map, as ``spdepth recon`` writes them. A file's multi-surface reconstruction
+measures its response on the surfaces of all its pixels; live there are no "all pixels" yet, so
+when no pulse is given the same measurement (``recon.estimate.reconstruct`` on them) runs once on
+the first ``RESPONSE_SAMPLE_PIXELS`` final pixels and its measured shape is frozen as the IRF of
+every pixel (recorded in the settings, so a replay and ``spdepth recon`` of the recording use the
+same response). The simulated bench gives its pulse, so its scans measure nothing.
+
 ``method="spatial"`` needs each pixel's neighbours, so it cannot run pixel by pixel: the live maps
 come from the pixelwise ``SPATIAL_LIVE_STAND_IN`` and, once every pixel is final, one full-frame
 spatial reconstruction of the final store replaces them (a replay does the same, so it still
@@ -24,12 +33,15 @@ import numpy as np
 
 from spdepth.recon.estimate import reconstruct, resolve_model, warm_up
 from spdepth.recon.maps import DepthMaps, PixelFlag
-from spdepth.recon.model import ReconSettings
+from spdepth.recon.model import Irf, ReconSettings
 
 log = logging.getLogger(__name__)
 
 PULSE_SAMPLE_PIXELS = 256
 """Pixels pooled for the pulse-width estimate when none is given."""
+RESPONSE_SAMPLE_PIXELS = 1024
+"""Several surfaces: pixels whose surfaces the response is measured on when none is given (the
+pooled shape needs surfaces of several detections each, and a tail or bump a few hundred)."""
 MAX_BATCH_PIXELS = 16384
 """Largest batch one reconstruction call takes (keeps the maps fresh during a fast replay)."""
 SPATIAL_LIVE_STAND_IN = "ml"
@@ -53,22 +65,28 @@ class LiveRecon:
     def __init__(self, store, settings: ReconSettings):
         if settings.binning is None:
             raise ValueError("live reconstruction needs a fixed binning")
-        if settings.reflectors != 1:
-            raise ValueError("live reconstruction maps one return per pixel (reflectors=1)")
         self.store = store
         self.final_settings = settings if settings.method == "spatial" else None
         if self.final_settings is not None:
             settings = dataclasses.replace(settings, method=SPATIAL_LIVE_STAND_IN)
         self.settings = settings
         h, w = store.shape
-        self.tof_s = np.full((h, w), np.nan)
-        self.depth_m = np.full((h, w), np.nan)
+        # several surfaces: (K, H, W) per-surface maps, K the most looked for (recon.maps.DepthMaps)
+        k = () if not settings.several else (
+            settings.max_reflectors if settings.reflectors == "auto" else settings.reflectors,)
+        self.fields = _MAP_FIELDS + (_SURFACE_FIELDS if settings.several else ())
+        """The maps kept (the several-surface ones only with several surfaces)."""
+        self.tof_s = np.full(k + (h, w), np.nan)
+        self.depth_m = np.full(k + (h, w), np.nan)
         self.background = np.full((h, w), np.nan)
-        self.signal = np.zeros((h, w))
+        self.signal = np.zeros(k + (h, w))
         self.photons = np.zeros((h, w), np.int64)
         self.iterations = np.zeros((h, w), np.int32)
-        self.uncertainty_s = np.full((h, w), np.nan)
+        self.uncertainty_s = np.full(k + (h, w), np.nan)
         self.flags = np.full((h, w), PixelFlag.NO_PHOTONS, np.uint8)
+        if settings.several:
+            self.surfaces = np.zeros((h, w), np.int16)
+            self.weak = np.zeros(k + (h, w), np.bool_)
         self.done = np.zeros((h, w), bool)
         self.resolved: dict | None = None       # settings record of the first batch
         self._pulse_note: dict = {}             # how the pulse width was found, when estimated
@@ -169,7 +187,7 @@ class LiveRecon:
             while True:
                 need = MIN_BATCH_PIXELS
                 if self.resolved is None and self._needs_pulse():
-                    need = max(need, PULSE_SAMPLE_PIXELS)
+                    need = max(need, self._sample_pixels)
                 if self._n_pending and oldest is None:
                     oldest = time.monotonic()
                 waited = oldest is not None and time.monotonic() - oldest >= BATCH_WAIT_S
@@ -200,6 +218,11 @@ class LiveRecon:
     def _needs_pulse(self) -> bool:
         return self.settings.pulse_rms_s is None and self.settings.irf is None
 
+    @property
+    def _sample_pixels(self) -> int:
+        """Final pixels the pulse (one surface) or the response (several) is measured on."""
+        return RESPONSE_SAMPLE_PIXELS if self.settings.several else PULSE_SAMPLE_PIXELS
+
     def _run(self) -> None:
         try:
             while (batch := self._take()) is not None:
@@ -221,12 +244,19 @@ class LiveRecon:
 
     def _reconstruct(self, pixels: np.ndarray) -> None:
         if self._needs_pulse():
-            # freeze the width estimated from this first batch for every later pixel
-            sample = self.store.photons(pixels[:PULSE_SAMPLE_PIXELS])
-            _, _, notes = resolve_model(sample, self.settings)
-            self.settings = dataclasses.replace(self.settings, pulse_rms_s=notes["pulse_rms_s"])
-            self._pulse_note = {"pulse_source": "estimated from the first "
-                               f"{min(PULSE_SAMPLE_PIXELS, pixels.size)} final pixels"}
+            # freeze the model estimated from this first batch for every later pixel
+            n = min(self._sample_pixels, pixels.size)
+            sample = self.store.photons(pixels[:n])
+            if self.settings.several:
+                # recon.multi's own measurement of the response on the surfaces (module docstring)
+                measured = reconstruct(sample, self.settings).settings
+                self.settings = dataclasses.replace(self.settings, irf=Irf.from_dict(measured["irf"]))
+                self._pulse_note = {"pulse_source": f"measured on the surfaces of the first {n} "
+                                                    "final pixels, then frozen"}
+            else:
+                _, _, notes = resolve_model(sample, self.settings)
+                self.settings = dataclasses.replace(self.settings, pulse_rms_s=notes["pulse_rms_s"])
+                self._pulse_note = {"pulse_source": f"estimated from the first {n} final pixels"}
         # pixels without a detection all come out alike (each estimator works pixel by pixel):
         # reconstruct one such pixel once and copy it, so a huge scan cut short by its time
         # limit does not run the estimator over millions of empty pixels
@@ -239,13 +269,13 @@ class LiveRecon:
             self.resolved = dict(m.settings if m is not None else self._empty["settings"])
             self.resolved.update(self._pulse_note)
         with self.lock:        # one batch appears in the maps at once
-            if m is not None:
-                for name in _MAP_FIELDS:
-                    getattr(self, name).reshape(-1)[full] = getattr(m, name)[0]
-            if empty.any():
-                hollow = pixels[empty]
-                for name in _MAP_FIELDS:
-                    getattr(self, name).reshape(-1)[hollow] = self._empty[name]
+            for name in self.fields:
+                dst = getattr(self, name)
+                flat = dst.reshape(dst.shape[:-2] + (-1,))       # (K, H*W) for a surface's maps
+                if m is not None:
+                    flat[..., full] = getattr(m, name).reshape(flat.shape[:-1] + (-1,))
+                if empty.any():
+                    flat[..., pixels[empty]] = self._empty[name][..., None]
             self.done.reshape(-1)[pixels] = True
         self.processed += int(pixels.size)
 
@@ -255,7 +285,7 @@ class LiveRecon:
 
         one = PhotonStore(np.zeros(0), np.array([0, 0]), (1, 1), self.store.time_unit_s)
         m = reconstruct(one, self.settings)
-        out = {name: getattr(m, name)[0, 0] for name in _MAP_FIELDS}
+        out = {name: np.asarray(getattr(m, name))[..., 0, 0] for name in self.fields}
         out["settings"] = m.settings
         return out
 
@@ -263,7 +293,7 @@ class LiveRecon:
         """One reconstruction of the whole final store (the spatial method's last step)."""
         m = reconstruct(self.store.photons(), settings)
         with self.lock:
-            for name in _MAP_FIELDS:
+            for name in self.fields:
                 getattr(self, name)[...] = getattr(m, name)
         self.resolved = dict(m.settings)
         self.resolved["live_maps"] = f"{SPATIAL_LIVE_STAND_IN} pixel by pixel during the scan"
@@ -273,8 +303,8 @@ class LiveRecon:
         the arrays themselves: only once the worker has ended (``finish``), for writing them."""
         settings = dict(self.resolved) if self.resolved is not None else self.settings.to_dict()
         if copy:
-            return DepthMaps(settings=settings, **self.copy_maps(*_MAP_FIELDS))
-        return DepthMaps(settings=settings, **{name: getattr(self, name) for name in _MAP_FIELDS})
+            return DepthMaps(settings=settings, **self.copy_maps(*self.fields))
+        return DepthMaps(settings=settings, **{name: getattr(self, name) for name in self.fields})
 
     def copy_maps(self, *names: str) -> dict:
         """Copies of the named maps, all taken between two batches (never half a batch)."""
@@ -284,3 +314,5 @@ class LiveRecon:
 
 _MAP_FIELDS = ("tof_s", "depth_m", "background", "signal", "photons", "iterations",
                "uncertainty_s", "flags")
+_SURFACE_FIELDS = ("surfaces", "weak")
+"""Maps of several surfaces only (``DepthMaps`` derives them for one)."""

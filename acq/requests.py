@@ -59,19 +59,19 @@ def _positive(name: str, value, *, allow_none: bool = False, integer: bool = Fal
 
 def _reflectors(req) -> None:
     """--reflectors K|auto, --max-reflectors, --false-alarm of a request (recon.model.ReconSettings
-    holds the same limits)."""
-    if req.reflectors != "auto":
+    holds the same limits); None (a replay's "as recorded") passes."""
+    if req.reflectors is not None and req.reflectors != "auto":
         if isinstance(req.reflectors, str) and req.reflectors.isdigit():
             object.__setattr__(req, "reflectors", int(req.reflectors))
         _positive("--reflectors", req.reflectors, integer=True)
         if req.reflectors > 8:
             raise RequestError(f"--reflectors must be at most 8 or auto, got {req.reflectors!r}")
         object.__setattr__(req, "reflectors", int(req.reflectors))
-    _positive("--max-reflectors", req.max_reflectors, integer=True)
-    if req.max_reflectors > 8:
+    _positive("--max-reflectors", req.max_reflectors, allow_none=True, integer=True)
+    if req.max_reflectors is not None and req.max_reflectors > 8:
         raise RequestError(f"--max-reflectors must be at most 8, got {req.max_reflectors!r}")
-    ok = isinstance(req.false_alarm, (int, float)) and not isinstance(req.false_alarm, bool) \
-        and 0 < req.false_alarm < 1
+    ok = req.false_alarm is None or isinstance(req.false_alarm, (int, float)) \
+        and not isinstance(req.false_alarm, bool) and 0 < req.false_alarm < 1
     if not ok:
         raise RequestError(f"--false-alarm must be a probability between 0 and 1, got {req.false_alarm!r}")
 
@@ -392,7 +392,10 @@ class ScanRequest(_Request):
     window_s:      detection window after the sync (None: 801 bins of 40 ps from 0).
     bin_s:         histogram bin width.
     pulse_rms_s:   Gaussian pulse RMS (None: the simulated scene's, or estimated from the first
-                   pixels to complete).
+                   pixels to complete; with several surfaces the response is then measured on them,
+                   ``acq.live_recon``).
+    reflectors, max_reflectors, false_alarm: surfaces per pixel, as for a file
+                   (:class:`FileReconRequest`), mapped live.
     """
 
     KIND = "scan"
@@ -411,6 +414,9 @@ class ScanRequest(_Request):
     bin_s: float = DEFAULT_BIN_S
     method: str = DEFAULT_METHOD
     pulse_rms_s: float | None = None
+    reflectors: int | str = 1
+    max_reflectors: int = 3
+    false_alarm: float = 1e-3
 
     def __post_init__(self) -> None:
         if not isinstance(self.instruments, (SimBench, Devices)):
@@ -456,6 +462,7 @@ class ScanRequest(_Request):
         check_bin_fits(self.bin_s, self.window_s or DEFAULT_WINDOW_S)
         _choice("--method", self.method, METHODS)
         _positive("--pulse-rms-ps", self.pulse_rms_s, allow_none=True)
+        _reflectors(self)
         galvo = self.instruments.galvo
         if galvo and parse_galvo(galvo).kind == "nidaq":
             if self.settle_s:
@@ -469,7 +476,8 @@ class ScanRequest(_Request):
     def label(self) -> str:
         h, w = self.size
         what = self.instruments.scene if isinstance(self.instruments, SimBench) else "devices"
-        return f"scan {what} {w}x{h}, {self.target} per pixel, {self.method}"
+        surfaces = "" if self.reflectors == 1 else f", surfaces {self.reflectors}"
+        return f"scan {what} {w}x{h}, {self.target} per pixel, {self.method}{surfaces}"
 
 
 @dataclass(frozen=True)
@@ -479,7 +487,8 @@ class ReplayRequest(_Request):
     recording:   a session folder or its ``recording.ptu``, or a Generic T3 PTU with pixel markers.
     target:      detections per pixel to keep (None: the recorded target; fewer shows what a shorter
                  scan would have given).
-    method, pulse_rms_s: replace the recorded estimator settings (None: as recorded).
+    method, pulse_rms_s, reflectors, max_reflectors, false_alarm: replace the recorded estimator
+                 settings (None: as recorded).
     speed:       "max" (as fast as it decodes) or a factor of recorded time (1: real time).
     bin_s:       bin width for files that record no settings of ours.
     """
@@ -491,6 +500,9 @@ class ReplayRequest(_Request):
     pulse_rms_s: float | None = None
     speed: str | float = "max"
     bin_s: float = DEFAULT_BIN_S
+    reflectors: int | str | None = None
+    max_reflectors: int | None = None
+    false_alarm: float | None = None
 
     def __post_init__(self) -> None:
         if not self.recording:
@@ -505,6 +517,7 @@ class ReplayRequest(_Request):
         if self.method is not None:
             _choice("--method", self.method, METHODS)
         _positive("--pulse-rms-ps", self.pulse_rms_s, allow_none=True)
+        _reflectors(self)
         if self.speed != "max":
             _positive("--speed", self.speed)
         _positive("--bin-ps", self.bin_s)

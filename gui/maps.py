@@ -32,12 +32,12 @@ def measured_counts(snap) -> np.ndarray:
     return c
 
 
-def snapshot_input(snap, n_bins: int, target: int, surfaces=None) -> MapInput:
-    """A session snapshot (or a file result's) as the maps' input; ``surfaces``: the (H, W)
-    surfaces-found map of K > 1 maps."""
+def snapshot_input(snap, n_bins: int, target: int) -> MapInput:
+    """A session snapshot (or a file result's) as the maps' input (with its (H, W) surfaces-found
+    map when it holds K > 1 surfaces)."""
     return MapInput(depth_m=snap.depth_m, background=snap.background, signal=snap.signal,
                     uncertainty_s=snap.uncertainty_s, counts=measured_counts(snap),
-                    n_bins=n_bins, target=target, surfaces=surfaces,
+                    n_bins=n_bins, target=target, surfaces=snap.surfaces,
                     exposure_s=getattr(snap, "exposure_s", None))
 
 

@@ -41,11 +41,13 @@ def _kernel(binning: Binning, pulse_rms_s: float | None, irf):
     return _gaussian_kernel(binning, float(pulse_rms_s))
 
 
-def pixel_histogram(times: np.ndarray, binning: Binning, *, tof_s: float = np.nan,
-                    background: float = np.nan, signal: float = np.nan,
+def pixel_histogram(times: np.ndarray, binning: Binning, *, tof_s=np.nan,
+                    background: float = np.nan, signal=np.nan,
                     pulse_rms_s: float | None = None, irf=None,
                     display_bins: int = DISPLAY_BINS) -> PixelHistogram:
-    """times: one pixel's detection times in tagger units (``binning.time_unit_s``)."""
+    """times: one pixel's detection times in tagger units (``binning.time_unit_s``); tof_s and
+    signal: one return's, or sequences of several surfaces' (the model sums their returns)."""
+    tofs, signals = np.atleast_1d(np.asarray(tof_s, float)), np.atleast_1d(np.asarray(signal, float))
     m = binning.n_bins
     r = max(1, int(round(m / display_bins)))
     n_disp = -(-m // r)
@@ -57,17 +59,19 @@ def pixel_histogram(times: np.ndarray, binning: Binning, *, tof_s: float = np.na
     model = None
     have_pulse = pulse_rms_s is not None or irf is not None
     bg = background if np.isfinite(background) else 0.0
-    if np.isfinite(bg) and (np.isfinite(background) or np.isfinite(tof_s)) and have_pulse:
+    if np.isfinite(bg) and (np.isfinite(background) or np.isfinite(tofs).any()) and have_pulse:
         per_bin = np.full(m, bg)
-        if np.isfinite(tof_s) and np.isfinite(signal) and signal > 0:
+        for tof, sig in zip(tofs, signals):
+            if not (np.isfinite(tof) and np.isfinite(sig) and sig > 0):
+                continue
             kern = _kernel(binning, pulse_rms_s, irf)
-            shift = tof_s / binning.time_unit_s
+            shift = tof / binning.time_unit_s
             shift = (shift - binning.window_start) / binning.bin_width - 0.5   # shift_to_time_s^-1
             # g at offsets d = k - shift, from the fine table (FINE_STEPS samples per bin)
             steps = (kern.fine.size - 1) / max(1, kern.g.size - 1)
             x = np.arange(m) - shift
             xf = np.arange(kern.fine.size) / steps - kern.off
-            per_bin = per_bin + signal * np.interp(x, xf, kern.fine, left=0.0, right=0.0)
+            per_bin = per_bin + sig * np.interp(x, xf, kern.fine, left=0.0, right=0.0)
         model = np.add.reduceat(per_bin, np.arange(0, m, r))
     return PixelHistogram(edges_s, counts, model)
 

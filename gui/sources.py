@@ -67,7 +67,8 @@ class SourceSpec:
     file:           a PTU/HT3/PT3 or .mat file to reconstruct (kind "file").
     time_unit_ps:   file: size of one raw time unit (required for .mat, 0: the PTU header's).
     pulse_rms_ps:   file: Gaussian pulse RMS (0: as recorded, else estimated from the data).
-    reflectors:     file: surfaces per pixel to look for (K).
+    reflectors:     surfaces per pixel to look for (K); 0: one, and a replay keeps the recorded
+                    number.
     out_root:       a folder under which each run gets its own directory (recording, maps,
                     run.json).
     """
@@ -90,7 +91,7 @@ class SourceSpec:
     file: str = ""
     time_unit_ps: float = 0.0
     pulse_rms_ps: float = 0.0
-    reflectors: int = 1
+    reflectors: int = 0
     out_root: str = ""
 
     def to_dict(self) -> dict:
@@ -112,7 +113,7 @@ class SourceSpec:
             raise RequestError(f"source must be one of {', '.join(SOURCES)}, got {self.kind!r}")
         if self.kind == "replay":
             return ReplayRequest(recording=self.recording, target=self.target or None,
-                                 method=self.method)
+                                 method=self.method, reflectors=self.reflectors or None)
         if self.kind == "file":
             if Path(self.file).suffix.lower() == ".mat" and not self.time_unit_ps:
                 # the reader would say so only on its worker thread; refused before the start
@@ -132,7 +133,7 @@ class SourceSpec:
                                   sync_rate_hz=self.sync_rate_hz, fov_deg=self.fov_deg)
         gated = self.mode == "gated"
         return ScanRequest(instruments=instruments, size=tuple(self.size), target=self.target,
-                           mode=self.mode, method=self.method,
+                           mode=self.mode, method=self.method, reflectors=int(self.reflectors or 1),
                            dwell_limit_s=_ms(self.dwell_limit_ms) if gated else None,
                            dwell_s=None if gated else _ms(self.dwell_limit_ms))
 
@@ -143,7 +144,8 @@ class SourceSpec:
         itself; the controls show what they can."""
         d = (base or cls()).to_dict()
         if isinstance(request, ReplayRequest):
-            d.update(kind="replay", recording=request.recording, target=request.target or 0)
+            d.update(kind="replay", recording=request.recording, target=request.target or 0,
+                     reflectors=request.reflectors or 0)
             if request.method is not None:
                 d["method"] = request.method
         elif isinstance(request, FileReconRequest):
@@ -151,11 +153,11 @@ class SourceSpec:
                      target=request.max_photons or 0,
                      time_unit_ps=(request.time_unit_s or 0.0) * 1e12,
                      pulse_rms_ps=(request.pulse_rms_s or 0.0) * 1e12,
-                     reflectors=request.reflectors)
+                     reflectors=_surfaces_control(request.reflectors))
         elif isinstance(request, ScanRequest):
             src = request.instruments
             d.update(size=list(request.size), target=request.target, mode=request.mode,
-                     method=request.method,
+                     method=request.method, reflectors=_surfaces_control(request.reflectors),
                      dwell_limit_ms=(request.dwell_limit_s or request.dwell_s or 0.0) * 1e3)
             if isinstance(src, SimBench):
                 d.update(kind="sim", scene=src.scene, sbr=src.sbr, seed=src.seed, faults=src.faults)
@@ -166,6 +168,11 @@ class SourceSpec:
             raise RequestError(f"the window runs scan, replay and file requests, got "
                                f"{type(request).__name__}")
         return cls.from_dict(d)
+
+
+def _surfaces_control(reflectors) -> int:
+    """A request's surfaces as ``SourceSpec.reflectors``: 0 for the default of one."""
+    return 0 if reflectors == 1 else reflectors
 
 
 def run_kind(request) -> str:
@@ -262,7 +269,24 @@ class PixelInfo:
     exposure_s: float = math.nan
     """Laser time the kept detections span, s (NaN: not known, e.g. a file of photon times)."""
     surfaces: tuple = ()
-    """K > 1 surfaces: (tof_s, depth_m, signal, uncertainty_s) of each surface fitted, nearest first."""
+    """K > 1 surfaces: (tof_s, depth_m, signal, uncertainty_s, weak) of each surface fitted, nearest
+    first (weak: background alone could have made it, ``recon.maps.DepthMaps.weak``)."""
+
+
+def estimate_at(maps, r: int, c: int) -> dict:
+    """Pixel (r, c) of maps of one or several surfaces (``DepthMaps`` or the live
+    reconstruction's arrays): the nearest surface's tof_s, depth_m, signal and uncertainty_s, and
+    with several surfaces ``surfaces``, each found one's (tof_s, depth_m, signal, uncertainty_s,
+    weak)."""
+    names = ("tof_s", "depth_m", "signal", "uncertainty_s")
+    arrays = [np.asarray(getattr(maps, n)) for n in names]
+    if arrays[0].ndim == 2:
+        return {n: float(a[r, c]) for n, a in zip(names, arrays)}
+    out = {n: float(a[0, r, c]) for n, a in zip(names, arrays)}
+    weak = np.asarray(maps.weak)
+    out["surfaces"] = tuple((*(float(a[k, r, c]) for a in arrays), bool(weak[k, r, c]))
+                            for k in range(arrays[0].shape[0]) if np.isfinite(arrays[0][k, r, c]))
+    return out
 
 
 class SessionView:
@@ -297,12 +321,12 @@ class SessionView:
         rc = s.recon
         flat = r * self.shape[1] + c
         acq = int(s.acq_flags[flat])
+        with rc.lock:          # one batch's results, never half of one
+            est = estimate_at(rc, r, c)
         return PixelInfo(
             times=s.store.photons([flat]).times, binning=rc.settings.binning,
-            pulse_rms_s=rc.settings.pulse_rms_s, irf=rc.settings.irf,
-            tof_s=float(rc.tof_s[r, c]), depth_m=float(rc.depth_m[r, c]),
-            background=float(rc.background[r, c]), signal=float(rc.signal[r, c]),
-            uncertainty_s=float(rc.uncertainty_s[r, c]), estimated=bool(rc.done[r, c]),
+            pulse_rms_s=rc.settings.pulse_rms_s, irf=rc.settings.irf, **est,
+            background=float(rc.background[r, c]), estimated=bool(rc.done[r, c]),
             flag=int(rc.flags[r, c]), kept=f"{int(s.store.count[flat])} of {s.plan.target}",
             n_kept=int(s.store.count[flat]), exposure_s=s.exposure_s(flat),
             acquisition="acquiring" if acq == ACQUIRING
@@ -331,6 +355,7 @@ class ResultView:
 
     def snapshot(self):
         """The maps as an ``acq.session.Snapshot`` (state done), for the map panels."""
+        from spdepth.acq.mapdefs import surfaces_of
         from spdepth.acq.session import Snapshot
 
         res, m = self.result, self.result.maps
@@ -340,7 +365,7 @@ class ResultView:
                         lost_spans=0, lost_records=0, eta_s=None, recon_lag=0, passes=0,
                         depth_m=m.depth_m, background=m.background, signal=m.signal,
                         uncertainty_s=m.uncertainty_s, counts=m.photons,
-                        acq_flags=np.zeros((h, w), np.uint8))
+                        acq_flags=np.zeros((h, w), np.uint8), surfaces=surfaces_of(m))
 
     def pixel(self, r: int, c: int) -> PixelInfo:
         res, m = self.result, self.result.maps
@@ -350,19 +375,11 @@ class ResultView:
         if self.target:
             t = t[:self.target]
         n = int(m.photons[r, c])
-        first = lambda a: np.asarray(a)[0] if np.ndim(a) == 3 else np.asarray(a)   # noqa: E731
         return PixelInfo(
-            times=t, binning=b, pulse_rms_s=res.pulse_rms_s, irf=res.irf,
-            tof_s=float(first(m.tof_s)[r, c]), depth_m=float(first(m.depth_m)[r, c]),
-            background=float(m.background[r, c]), signal=float(first(m.signal)[r, c]),
-            uncertainty_s=float(first(m.uncertainty_s)[r, c]), estimated=n > 0, flag=int(m.flags[r, c]),
+            times=t, binning=b, pulse_rms_s=res.pulse_rms_s, irf=res.irf, **estimate_at(m, r, c),
+            background=float(m.background[r, c]), estimated=n > 0, flag=int(m.flags[r, c]),
             kept=f"{n} in the window" + (f" (first {self.target})" if self.target else ""),
-            n_kept=n,
-            surfaces=tuple((float(m.tof_s[k, r, c]), float(m.depth_m[k, r, c]),
-                            float(m.signal[k, r, c]), float(m.uncertainty_s[k, r, c]))
-                           for k in range(np.shape(m.depth_m)[0])
-                           if np.isfinite(m.depth_m[k, r, c])) if np.ndim(m.depth_m) == 3 else (),
-            acquisition=f"from {self.path.name}")
+            n_kept=n, acquisition=f"from {self.path.name}")
 
 
 class FileJob:

@@ -154,9 +154,6 @@ class ControlPanel(QtWidgets.QWidget):
         self.pulse_rms.setSpecialValueText("estimate")
         self.pulse_rms.setToolTip("Gaussian pulse RMS width (the seed paper: 360 ps); "
                                   "'estimate' measures the response from the data")
-        self.reflectors = QtWidgets.QSpinBox(minimum=1, maximum=8, value=1)
-        self.reflectors.setToolTip("surfaces per pixel to look for (e.g. 2 through a net or "
-                                   "glass); the maps then show one surface at a time")
         self._rows = {}
         for key, label, w in (("sim", "Scene", self.scene), ("sim", "SBR", self.sbr),
                               ("sim", "Seed", self.seed), ("sim", "Faults", self.faults),
@@ -165,8 +162,7 @@ class ControlPanel(QtWidgets.QWidget):
                               ("real", "Field of view", self.fov),
                               ("replay", "Recording", rec_row), ("file", "File", file_row),
                               ("file", "Time unit", self.time_unit),
-                              ("file", "Pulse RMS", self.pulse_rms),
-                              ("file", "Surfaces", self.reflectors)):
+                              ("file", "Pulse RMS", self.pulse_rms)):
             f.addRow(label, w)
             self._rows.setdefault(key, []).append(w)
         lay.addWidget(src)
@@ -199,6 +195,11 @@ class ControlPanel(QtWidgets.QWidget):
         self.method.setToolTip("uos: union-of-subspaces (the paper); ml: Poisson maximum "
                                "likelihood; lmf: log-matched filter (ignores background)")
         g.addRow("Estimator", self.method)
+        self.reflectors = QtWidgets.QSpinBox(minimum=0, maximum=8, value=1)
+        self.reflectors.setSpecialValueText("as recorded")
+        self.reflectors.setToolTip("surfaces per pixel to look for (e.g. 2 through a net or "
+                                   "glass); the maps then show one surface at a time")
+        g.addRow("Surfaces", self.reflectors)
         self.out_root = QtWidgets.QLineEdit(DEFAULT_OUT_ROOT)
         self.out_root.setToolTip("each run gets its own folder here (recording, maps, run.json)")
         out_row = _path_row(self.out_root, self._browse_out)
@@ -261,6 +262,8 @@ class ControlPanel(QtWidgets.QWidget):
             self.target.setValue(DEFAULT_TARGET)
         self.target.setMinimum(1 if scan else 0)
         self.target.setSpecialValueText("all" if kind == "file" else "as recorded")
+        # 0 surfaces: a replay's "as recorded"; the others look for at least one
+        self.reflectors.setMinimum(0 if kind == "replay" else 1)
 
     def _browse_recording(self) -> None:
         path, _ = QtWidgets.QFileDialog.getOpenFileName(self, "Recording to replay",
@@ -319,7 +322,8 @@ class ControlPanel(QtWidgets.QWidget):
         self.file.setText(s.file)
         self.time_unit.setValue(float(s.time_unit_ps))
         self.pulse_rms.setValue(float(s.pulse_rms_ps))
-        self.reflectors.setValue(int(s.reflectors or 1))
+        self.reflectors.setMinimum(0)          # 0 ("as recorded") stays 0 until _kind_changed
+        self.reflectors.setValue(int(s.reflectors or 0))
         if s.out_root:
             self.out_root.setText(s.out_root)
         self._kind_changed()
@@ -380,10 +384,14 @@ class Inspector(QtWidgets.QWidget):
         r, c = pixel
         b = info.binning
         tof, bg, sig = info.tof_s, info.background, info.signal
-        pulse_rms_s = info.pulse_rms_s
+        # the width of a measured response (live several surfaces freeze one) where none is given
+        pulse_rms_s = info.pulse_rms_s or (info.irf.rms_s if info.irf is not None else None)
         # display bins about half the pulse RMS wide (raw 40 ps bins hold 0 or 1 photon each)
         rms_bins = (pulse_rms_s or 0.0) / b.bin_width_s
-        ph = pixel_histogram(info.times, b, tof_s=tof, background=bg, signal=sig,
+        # the model: every fitted surface's return on the background
+        tofs = [x[0] for x in info.surfaces] if info.surfaces else tof
+        sigs = [x[2] for x in info.surfaces] if info.surfaces else sig
+        ph = pixel_histogram(info.times, b, tof_s=tofs, background=bg, signal=sigs,
                              pulse_rms_s=pulse_rms_s, irf=info.irf,
                              display_bins=int(b.n_bins / max(1.0, rms_bins / 2)))
         self.hist.setData(ph.edges_s, ph.counts)
@@ -399,7 +407,7 @@ class Inspector(QtWidgets.QWidget):
         for line in self.surface_lines:
             self.plot.removeItem(line)
         self.surface_lines = []
-        for k, (s_tof, _d, _sig, _sd) in enumerate(info.surfaces):
+        for k, (s_tof, *_) in enumerate(info.surfaces):
             colour = ("#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd")[k % 5]
             line = pg.InfiniteLine(s_tof, angle=90, pen=pg.mkPen(colour, width=2,
                                                                  style=QtCore.Qt.DashLine),
@@ -432,9 +440,10 @@ class Inspector(QtWidgets.QWidget):
             ("estimate", PixelFlag(info.flag).name.lower().replace("_", " ") if done else "not yet"),
             ("acquisition", info.acquisition),
         ]
-        for k, (_t, s_depth, s_sig, s_sd) in enumerate(info.surfaces):
+        for k, (_t, s_depth, s_sig, s_sd, s_weak) in enumerate(info.surfaces):
             rows.insert(1 + k, (f"surface {k + 1}", f"{s_depth:.4f} m ± "
-                                f"{s_sd * C_M_PER_S / 2 * 100:.2f} cm, {s_sig:.2f} signal detections"))
+                                f"{s_sd * C_M_PER_S / 2 * 100:.2f} cm, {s_sig:.2f} signal detections"
+                                + (" (weak: background could make it)" if s_weak else "")))
         if truth is not None:
             rows.insert(1, ("true depth (simulated)", f"{truth:.4f} m" + (
                 f", error {100 * (depth - truth):+.2f} cm" if math.isfinite(depth) else "")))
@@ -580,8 +589,6 @@ class MainWindow(QtWidgets.QMainWindow):
         self.maps_view.ci.setSpacing(4)
         self.panels = [MapPanel(self.maps_view.ci, spec, i // 2, i % 2)
                        for i, spec in enumerate(PANEL_DEFS)]
-        self._surfaces = None
-        """(H, W) surfaces found per pixel of K > 1 maps (a file read with several surfaces)."""
         link_panels(self.panels)
         for i in range(2):                 # equal cells: the same region shows at the same scale
             self.maps_view.ci.layout.setColumnStretchFactor(i, 1)
@@ -792,8 +799,8 @@ class MainWindow(QtWidgets.QMainWindow):
         # the run's own folder name; the whole path is in the tooltip (and in run.json)
         where = f" — files in …/{run.out_dir.name}/" if run.out_dir else ""
         self._target = run.session.plan.target
-        self._surfaces = None
-        self.controls.set_surfaces(1)
+        tof = run.session.recon.tof_s
+        self.controls.set_surfaces(tof.shape[0] if tof.ndim == 3 else 1)
         self._new_run(f"{run.label}{where}", str(run.out_dir or ""), _plan_geometry(run.session.plan),
                       run.session.plan.shape)
         h, w = run.session.plan.shape
@@ -879,9 +886,6 @@ class MainWindow(QtWidgets.QMainWindow):
         from spdepth.acq.points import geometry_of
 
         geometry = geometry_of(res.maps)
-        from spdepth.acq.mapdefs import surfaces_of
-
-        self._surfaces = surfaces_of(res.maps)
         k = int(np.asarray(res.maps.depth_m).shape[0]) if np.ndim(res.maps.depth_m) == 3 else 1
         self.controls.set_surfaces(k)
         self.view3d.reset(geometry)
@@ -992,7 +996,7 @@ class MainWindow(QtWidgets.QMainWindow):
             self._paint_3d()
             return False
         self._maps_stale = False
-        mi = snapshot_input(snap, self._n_bins, target, self._surfaces)
+        mi = snapshot_input(snap, self._n_bins, target)
         surface = max(0, self.controls.surface.currentIndex())
         for p in self.panels:
             v = None if versions is None else versions["counts" if p.spec.key == "counts"
@@ -1162,7 +1166,8 @@ class MainWindow(QtWidgets.QMainWindow):
     # ---- files ---------------------------------------------------------------------------------
     def save_maps(self, path: str | Path) -> Path:
         """Write the current maps: .png (a sheet with colour bars), .tif/.tiff (float32 stack
-        depth_m, background, photons, depth_sd_m with the settings as JSON), .npz (``recon``'s)."""
+        depth_m, background, photons, depth_sd_m with the settings as JSON; with several surfaces a
+        depth_m_k and depth_sd_m_k per surface), .npz (``recon``'s)."""
         from spdepth.recon.errors import InputError
 
         if self.view is None:
@@ -1175,9 +1180,14 @@ class MainWindow(QtWidgets.QMainWindow):
         elif suffix in (".tif", ".tiff"):
             import tifffile
 
-            names = ["depth_m", "background", "photons", "depth_sd_m"]
-            stack = np.stack([maps.depth_m, maps.background, maps.photons.astype(np.float64),
-                              maps.uncertainty_s * C_M_PER_S / 2]).astype(np.float32)
+            # several surfaces: a depth and a depth_sd channel per surface (depth_m_1, ...)
+            depth = np.asarray(maps.depth_m).reshape((-1,) + maps.flags.shape)
+            sd = np.asarray(maps.uncertainty_s).reshape(depth.shape) * C_M_PER_S / 2
+            k = depth.shape[0]
+            each = lambda name: [name] if k == 1 else [f"{name}_{i + 1}" for i in range(k)]  # noqa: E731
+            names = each("depth_m") + ["background", "photons"] + each("depth_sd_m")
+            stack = np.concatenate([depth, [maps.background, maps.photons.astype(np.float64)],
+                                    sd]).astype(np.float32)
             tifffile.imwrite(path, stack, photometric="minisblack",
                              description=json.dumps({"channels": names,
                                                      "settings": maps.settings}, default=str),

@@ -18,6 +18,7 @@ from PySide6 import QtCore  # noqa: E402
 
 from spdepth.acq.requests import DEFAULT_METHOD  # noqa: E402
 from spdepth.gui.sources import SourceSpec, open_run  # noqa: E402
+from spdepth.recon.maps import DepthMaps  # noqa: E402
 from spdepth.gui.window import MainWindow  # noqa: E402
 
 SMALL = dict(kind="sim", scene="bust", size=(16, 16), target=5)
@@ -135,6 +136,43 @@ def test_inspector_shows_histogram_and_fitted_model(qtbot, win, tmp_path):
     win._pinned = False
     win._mouse_moved(depth.plot.vb.mapViewToScene(depth.pixel_rect(2, 1).center()))
     assert win.inspector.pixel == (2, 1)
+
+
+def test_a_two_surface_scan_shows_each_surface_live_and_in_the_inspector(qtbot, win, tmp_path):
+    spec = _spec(tmp_path, scene="two-layer", size=(16, 16), target=20, reflectors=2)
+    assert spec.to_request().reflectors == 2
+    assert win.start_run(spec, out_dir=None)
+    c = win.controls
+    assert c.surface_row.isVisibleTo(win) and c.surface.count() == 2     # picker from the start
+    qtbot.waitUntil(lambda: _state(win) == "done", timeout=120_000)
+    win.refresh()
+    m = win.session.maps()
+    assert m.depth_m.shape == (2, 16, 16)
+    np.testing.assert_array_equal(win.panel("surfaces").data, m.surfaces.astype(np.float64))
+    np.testing.assert_array_equal(win.panel("depth").data, m.depth_m[0])
+    c.surface.setCurrentIndex(1)                              # the farther surface
+    win._paint_maps(win.snap, 20, refit=True)
+    np.testing.assert_array_equal(win.panel("depth").data, m.depth_m[1])
+    # a pane pixel: both surfaces drawn, the model holds both returns
+    win.inspect((8, 8), pin=True)
+    assert m.surfaces[8, 8] == 2 and len(win.inspector.surface_lines) == 2
+    assert [ln.value() for ln in win.inspector.surface_lines] == list(m.tof_s[:, 8, 8])
+    _, my = win.inspector.model.getData()
+    assert my.sum() == pytest.approx(m.signal[:, 8, 8].sum() + m.background[8, 8] * 801, rel=1e-6)
+    assert "surface 2: 3.4" in win.inspector.last_text or "surface 2: 3.5" in win.inspector.last_text
+    # a surface background alone could have made says so (K=2 adds them off the pane)
+    r, c = np.argwhere(m.weak.any(axis=0))[0]
+    win.inspect((int(r), int(c)), pin=True)
+    assert "(weak: background could make it)" in win.inspector.last_text
+    # saved: the npz as spdepth recon writes it, a TIFF channel per surface
+    import tifffile
+
+    assert win.save_maps(tmp_path / "k2.tif").stat().st_size > 0
+    stack = tifffile.imread(tmp_path / "k2.tif")
+    assert stack.shape == (6, 16, 16)
+    np.testing.assert_array_equal(stack[1], m.depth_m[1].astype(np.float32))
+    assert win.save_maps(tmp_path / "k2.npz").stat().st_size > 0
+    np.testing.assert_array_equal(DepthMaps.load_npz(tmp_path / "k2.npz").surfaces, m.surfaces)
 
 
 def test_pause_resume_abort(qtbot, win, tmp_path):

@@ -61,3 +61,28 @@ def window_ps(text: str) -> tuple[float, float]:
     if not (math.isfinite(start) and math.isfinite(stop) and stop > start >= 0):
         raise argparse.ArgumentTypeError(f"window needs 0 <= START < STOP, got {text!r}")
     return start, stop
+
+
+def k_or_auto(text: str):
+    """--reflectors: a whole number or 'auto' (the request checks the range)."""
+    if text == "auto":
+        return "auto"
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number or auto, got {text!r}") from None
+
+
+def add_reflector_arguments(parser: argparse.ArgumentParser, *, as_recorded: bool = False) -> None:
+    """--reflectors, --max-reflectors, --false-alarm (recon, scan, replay); ``as_recorded``: no
+    defaults (a replay keeps the recording's unless given)."""
+    k, kmax, fa = (None, None, None) if as_recorded else (1, 3, 1e-3)
+    said = ("as recorded",) * 3 if as_recorded else ("1", "3", "1e-3")
+    parser.add_argument("--reflectors", type=k_or_auto, default=k, metavar="K|auto",
+                        help=f"surfaces per pixel to look for (default {said[0]}): up to K, or auto "
+                             "(decided per pixel by a likelihood-ratio test, up to --max-reflectors)")
+    parser.add_argument("--max-reflectors", type=positive_int, default=kmax, metavar="K",
+                        help=f"--reflectors auto: most surfaces per pixel (default {said[1]})")
+    parser.add_argument("--false-alarm", type=positive_float, default=fa, metavar="P",
+                        help="--reflectors auto: chance per pixel and surface that background passes "
+                             f"for a surface (default {said[2]})")

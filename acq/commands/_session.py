@@ -9,7 +9,7 @@ import sys
 
 from spdepth.acq.commands import (EXIT_DEVICE, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK,
                                   Terminated)
-from spdepth.acq.commands._args import positive_float
+from spdepth.acq.commands._args import add_reflector_arguments, positive_float
 from spdepth.acq.requests import DEFAULT_METHOD
 from spdepth.recon.model import METHODS
 
@@ -30,7 +30,10 @@ def add_recon_arguments(parser: argparse.ArgumentParser, default_method: str | N
                              "spatial shows ml while the scan runs and replaces it at the end")
     parser.add_argument("--pulse-rms-ps", type=positive_float, metavar="PS",
                         help="pulse RMS width (default: the simulated scene's, or estimated from "
-                             "the first pixels to complete)")
+                             "the first pixels to complete; with several surfaces the response "
+                             "measured on their surfaces)")
+    # a replay (no default method) keeps the recording's surfaces settings unless given
+    add_reflector_arguments(parser, as_recorded=default_method is None)
 
 
 class SessionProgress:

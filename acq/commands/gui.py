@@ -38,8 +38,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                      help="--file: raw time unit (required for .mat: 8 for first-photon imaging)")
     src.add_argument("--pulse-rms-ps", type=positive_float, metavar="PS",
                      help="--file: Gaussian pulse RMS (default: estimated from the data)")
-    src.add_argument("--reflectors", type=positive_int, metavar="K",
-                     help="--file: surfaces per pixel to look for (default 1)")
     sim = parser.add_argument_group("simulated bench")
     sim.add_argument("--scene", help="built-in scene or file:DEPTH (default bust)")
     sim.add_argument("--sbr", type=positive_float, help="signal-to-background ratio (default 10)")
@@ -57,6 +55,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                       help="raster only: dwell per pixel and frame (0: default)")
     scan.add_argument("--method", choices=METHODS,
                       help="estimator for the maps (spatial: ml live, spatial at the end)")
+    scan.add_argument("--reflectors", type=positive_int, metavar="K",
+                      help="surfaces per pixel to look for (default 1; replay: as recorded)")
     out = parser.add_argument_group("output")
     out.add_argument("--out", metavar="DIR",
                      help="runs folder: each run writes its own subfolder here "
@@ -101,6 +101,8 @@ def spec_from_args(args: argparse.Namespace, base=None):
         changes["dwell_limit_ms"] = args.dwell_ms
     if kinds in (["replay"], ["file"]) and args.target is None:
         changes["target"] = 0            # as recorded / every detection
+    if kinds == ["replay"] and args.reflectors is None:
+        changes["reflectors"] = 0        # as recorded
     if kinds == ["file"]:
         changes.setdefault("time_unit_ps", 0.0)      # not a remembered one: the file's own
         changes.setdefault("pulse_rms_ps", 0.0)      # estimated

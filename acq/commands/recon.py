@@ -19,7 +19,7 @@ import argparse
 import json
 import sys
 
-from spdepth.acq.commands._args import positive_float, positive_int, window_ps
+from spdepth.acq.commands._args import add_reflector_arguments, positive_float, positive_int, window_ps
 from spdepth.acq.requests import DEFAULT_METHOD
 from spdepth.recon.model import METHODS
 
@@ -72,14 +72,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(CSV time_ps,counts; .npy for an (n, 2) array), so it is measured once")
     parser.add_argument("--max-photons", type=positive_int, metavar="N",
                         help="keep the first N in-window detections per pixel (the seed paper: 15)")
-    parser.add_argument("--reflectors", type=_k_or_auto, default=1, metavar="K|auto",
-                        help="surfaces per pixel to look for (default 1): up to K, or auto (decided per "
-                             "pixel by a likelihood-ratio test, up to --max-reflectors)")
-    parser.add_argument("--max-reflectors", type=positive_int, default=3, metavar="K",
-                        help="--reflectors auto: most surfaces per pixel (default 3)")
-    parser.add_argument("--false-alarm", type=positive_float, default=1e-3, metavar="P",
-                        help="--reflectors auto: chance per pixel and surface that background passes "
-                             "for a surface (default 1e-3)")
+    add_reflector_arguments(parser)
     parser.add_argument("--mat-var", metavar="NAME", help=".mat files: the cell-array variable to read "
                         "when the file holds several")
     parser.add_argument("--channel", type=int, metavar="N",
@@ -90,16 +83,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="reconstruct on a dask.distributed cluster: a scheduler address, or "
                              "local:N for N worker processes on 127.0.0.1 (docs/dask.md); same maps "
                              "(needs the dask extra: pip install 'spdepth[dask]')")
-
-
-def _k_or_auto(text: str):
-    """--reflectors: a whole number or 'auto' (the request checks the range)."""
-    if text == "auto":
-        return "auto"
-    try:
-        return int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number or auto, got {text!r}") from None
 
 
 def request_from_args(args: argparse.Namespace, path: str, out: str | None = None,

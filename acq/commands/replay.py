@@ -40,7 +40,8 @@ def request_from_args(args: argparse.Namespace):
 
     return ReplayRequest(recording=args.recording, target=args.target, method=args.method,
                          pulse_rms_s=None if args.pulse_rms_ps is None else args.pulse_rms_ps * 1e-12,
-                         speed=args.speed, bin_s=args.bin_ps * 1e-12)
+                         speed=args.speed, bin_s=args.bin_ps * 1e-12, reflectors=args.reflectors,
+                         max_reflectors=args.max_reflectors, false_alarm=args.false_alarm)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -56,7 +57,9 @@ def run(args: argparse.Namespace) -> int:
         session = build_session(request, out)
         interrupted = run_session(session, "replay")
         p = session.plan
+        asked = session.recon.requested
+        surfaces = "" if asked.reflectors == 1 else f", surfaces {asked.reflectors}"
         summary = finish_session(session, out.path, f"replay {p.nx}x{p.ny}, {p.target} per pixel, "
-                                                    f"{session.recon.requested.method}")
+                                                    f"{asked.method}{surfaces}")
     report(summary, args.json, "replay")
     return exit_status(session, interrupted)

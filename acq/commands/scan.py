@@ -118,6 +118,9 @@ def request_from_args(args: argparse.Namespace):
                               deg_per_volt=args.deg_per_volt, v_limit=args.v_limit,
                               park_deg=park, picoquant_lib=args.picoquant_lib,
                               event_divider=args.event_divider)
+    # the demo has no surfaces options: the request's defaults
+    surfaces = {k: getattr(args, k) for k in ("reflectors", "max_reflectors", "false_alarm")
+                if getattr(args, k, None) is not None}
     ms = lambda v: None if v is None else v * 1e-3          # noqa: E731
     ps = lambda v: None if v is None else v * 1e-12         # noqa: E731
     return ScanRequest(
@@ -125,7 +128,8 @@ def request_from_args(args: argparse.Namespace):
         dwell_limit_s=ms(args.dwell_limit_ms), dwell_s=ms(args.dwell_ms), pattern=args.pattern,
         settle_s=args.settle_us * 1e-6, max_passes=args.max_passes, time_limit_s=args.time_limit_s,
         window_s=None if args.window_ps is None else tuple(v * 1e-12 for v in args.window_ps),
-        bin_s=args.bin_ps * 1e-12, method=args.method, pulse_rms_s=ps(args.pulse_rms_ps))
+        bin_s=args.bin_ps * 1e-12, method=args.method, pulse_rms_s=ps(args.pulse_rms_ps),
+        **surfaces)
 
 
 def run(args: argparse.Namespace) -> int:
