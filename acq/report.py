@@ -81,10 +81,12 @@ def render_maps_png(path: str | Path, maps, *, title: str | None = None,
     from spdepth.acq.points import geometry_of
 
     path = Path(path)
-    drawn: list[tuple[MapDef, str, np.ndarray, int]] = []
+    # (map, title, values, target, weak surfaces of this panel or None)
+    drawn: list[tuple[MapDef, str, np.ndarray, int, np.ndarray | None]] = []
     if panels is None:
         mi = map_input_from_maps(maps, n_bins=n_bins, target=target, counts=counts,
                                  exposure_s=exposure_s)
+        weak = getattr(maps, "weak", None)
         for place in PANEL_DEFS:
             d, got = resolve(place, mi)
             if got is None:
@@ -92,14 +94,15 @@ def render_maps_png(path: str | Path, maps, *, title: str | None = None,
             a = np.asarray(got, dtype=np.float64)
             if a.ndim == 3 and a.shape[0] > 1:
                 for r in range(a.shape[0]):
-                    drawn.append((d, f"{d.title}, surface {r + 1}", a[r], mi.target))
+                    faded = weak[r] if weak is not None and np.shape(weak) == a.shape else None
+                    drawn.append((d, f"{d.title}, surface {r + 1}", a[r], mi.target, faded))
             else:
-                drawn.append((d, d.title, a[0] if a.ndim == 3 else a, mi.target))
+                drawn.append((d, d.title, a[0] if a.ndim == 3 else a, mi.target, None))
     else:
         for attr, name, unit, cmap_name, _rule in panels:
             a = np.asarray(getattr(maps, attr), dtype=np.float64)
             d = MapDef(attr, name, unit, cmap_name, "robust", lambda m: m)
-            drawn.append((d, name, a[0] if a.ndim == 3 else a, 0))
+            drawn.append((d, name, a[0] if a.ndim == 3 else a, 0, None))
     h, w = drawn[0][2].shape
     if geometry is None:
         geometry = geometry_of(maps)
@@ -124,7 +127,7 @@ def render_maps_png(path: str | Path, maps, *, title: str | None = None,
         ax.set_visible(False)
     if irf is not None:
         _draw_irf(axes[n_ax - 1], *irf)
-    for ax, (d, name, arr, tgt) in zip(axes, drawn):
+    for ax, (d, name, arr, tgt, weak_px) in zip(axes, drawn):
         cmap = matplotlib.colormaps[d.cmap].with_extremes(bad=NAN_COLOUR)
         const = constant_value(arr)
         lv = levels_for(d, arr, tgt) or (0.0, 1.0)
@@ -132,6 +135,15 @@ def render_maps_png(path: str | Path, maps, *, title: str | None = None,
         im = ax.imshow(np.ma.masked_invalid(display(arr, lv)), cmap=cmap, vmin=vmin, vmax=vmax,
                        interpolation="nearest", origin="upper", extent=extent,
                        aspect="equal")
+        n_weak = 0
+        if weak_px is not None:
+            weak_px = np.asarray(weak_px, bool) & np.isfinite(arr)
+            n_weak = int(weak_px.sum())
+        if n_weak:
+            # a surface background alone could have made is drawn, but faded: it is not a finding
+            fade = matplotlib.colors.ListedColormap([(1.0, 1.0, 1.0, 0.7)])
+            ax.imshow(np.where(weak_px, 1.0, np.nan), cmap=fade, vmin=0, vmax=1,
+                      interpolation="nearest", origin="upper", extent=extent, aspect="equal")
         ax.set_title(f"{name} ({d.unit})")
         if geometry is not None:
             ax.set_xlabel("scan angle x (deg)")
@@ -158,8 +170,10 @@ def render_maps_png(path: str | Path, maps, *, title: str | None = None,
         n_nan = int(np.sum(np.isnan(arr)))
         if n_nan:
             notes.append(f"grey: no value ({n_nan} px)")
+        if n_weak:
+            notes.append(f"faded: weak, may be background ({n_weak} px)")
         if notes:
-            ax.text(0.0, -0.18 if h >= 8 else -0.3, "; ".join(notes),
+            ax.text(0.0, -0.18 if h >= 8 else -0.3, "\n".join(notes),
                     transform=ax.transAxes, fontsize=8, color="#444444", va="top")
     if title:
         fig.suptitle(title)

@@ -107,3 +107,23 @@ def test_dense_limits_follow_the_scene_not_the_wall(rng):
     lo, hi = dense_limits(np.concatenate([face, wall, [np.nan] * 50]))
     assert 4.26 < lo < 4.31 and 4.38 < hi < 4.43
     assert robust_limits(np.concatenate([face, wall]))[1] > 4.9  # percentiles would take the wall
+
+
+def test_render_maps_png_fades_weak_surfaces_and_says_how_many(tmp_path, rng):
+    import dataclasses
+
+    from spdepth.recon.maps import DepthMaps
+
+    h, w = 30, 40
+    depth = np.stack([rng.uniform(1.0, 2.0, (h, w)), rng.uniform(3.0, 4.0, (h, w))])
+    maps = DepthMaps(tof_s=depth / 1.5e8, depth_m=depth, background=np.ones((h, w)),
+                     signal=np.full((2, h, w), 5.0), photons=np.full((h, w), 20),
+                     iterations=np.ones((h, w), np.int32), uncertainty_s=np.full((2, h, w), 1e-10),
+                     flags=np.zeros((h, w), np.uint8), settings={})
+    weak = np.zeros((2, h, w), bool)
+    weak[1, :, : w // 2] = True                 # half of the second surface may be background
+    plain = imread(render_maps_png(tmp_path / "plain.png", maps))
+    faded = imread(render_maps_png(tmp_path / "faded.png", dataclasses.replace(maps, weak=weak)))
+    # faded pixels are lighter: the second depth panel's left half, the second uncertainty panel's
+    light = lambda img: int(np.sum(img[..., :3].min(axis=-1) > 0.6))  # noqa: E731
+    assert light(faded) - light(plain) > 2000
