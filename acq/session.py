@@ -103,7 +103,8 @@ class Snapshot:
     depth_m, background, signal, uncertainty_s: the live reconstruction (NaN: not yet), copied
     between two reconstruction batches (a pixel's depth never comes without its background);
     with several surfaces per pixel depth_m, signal and uncertainty_s are (K, H, W), nearest first,
-    and ``surfaces`` (H, W) counts those found (None for one surface per pixel).
+    and ``surfaces`` (H, W) counts those found, ``weak`` (K, H, W) marks those background alone
+    could have made (both None for one surface per pixel).
     counts: in-window detections kept per pixel; acq_flags: :class:`AcqFlag` of final pixels
     (``ACQUIRING`` while a pixel is still being acquired); final: pixels complete or flagged.
     faults: ``FaultRecord.to_dict()`` of each fault so far.
@@ -132,6 +133,7 @@ class Snapshot:
     """Laser time each pixel's kept detections were collected over, s (NaN: none, or the laser
     period is not known): background detections over it are a rate."""
     surfaces: np.ndarray | None = None
+    weak: np.ndarray | None = None
     health: dict = field(default_factory=dict)
     """Per device ("galvo", "tagger"), from the source: "ok", "recovering" (a loss, reconnect or
     fault in the last HEALTH_RECENT_S, or since the caller's previous snapshot: ``snapshot``'s
@@ -309,7 +311,7 @@ class Session:
             eta = (n_total - n_final) * running_s / n_final
         r = self.recon
         maps = r.copy_maps("depth_m", "background", "signal", "uncertainty_s",
-                           *(("surfaces",) if "surfaces" in r.fields else ()))
+                           *(("surfaces", "weak") if "surfaces" in r.fields else ()))
         return Snapshot(
             state=self._state.value, elapsed_s=st["elapsed_s"], pixels_total=n_total,
             pixels_final=n_final, detections=self.detections,

@@ -41,6 +41,11 @@ def snapshot_input(snap, n_bins: int, target: int) -> MapInput:
                     exposure_s=getattr(snap, "exposure_s", None))
 
 
+FADE_RGBA = (255, 255, 255, 180)
+"""Drawn over a surface that background alone could have made (``DepthMaps.weak``), as the PNG
+sheet fades it."""
+
+
 class MapPanel:
     """One map in a GraphicsLayout cell: plot (title), image placed in scan degrees, colour bar
     with the unit, and a square marking the inspected pixel.
@@ -68,6 +73,10 @@ class MapPanel:
                                    label=f"{spec.title} ({spec.unit})", width=14,
                                    interactive=True, pen="#444", colorMapMenu=False)
         self.bar.setImageItem(self.image, insert_in=self.plot)
+        # several surfaces: a surface background alone could have made is faded, not a finding
+        self.faded = pg.ImageItem(axisOrder="row-major")
+        self.faded.setZValue(5)
+        self.plot.addItem(self.faded, ignoreBounds=True)     # the map alone sets the view
         self.bar.setToolTip(spec.about)
         # an image update repaints what overlaps it; the axes and the bar's axis are the dearest
         # items to paint (pyqtgraph draws them in Python) and rarely change: keep them as pixmaps
@@ -127,20 +136,27 @@ class MapPanel:
         self.version = None
         self._const = None
         self.image.clear()
+        self.faded.clear()
         self.marker.setData([], [])
         self.plot.setTitle(self.spec.title, size="10pt")
 
     def show(self, data: np.ndarray, target: int, version=None, *, refit: bool = False,
-             surface: int = 0) -> None:
+             surface: int = 0, weak: np.ndarray | None = None) -> None:
         """New data. Levels by the map's rule on the data, widened (never narrowed) during a run,
         or refitted with ``refit``. ``version``: equal to the last one shown, the data is unchanged
-        and the image is not set again (each setImage re-renders the whole image in Python)."""
+        and the image is not set again (each setImage re-renders the whole image in Python).
+        ``surface``, ``weak``: of (K, H, W) data, the surface shown and the (K, H, W) mask of weak
+        surfaces, drawn faded."""
         if version is not None and version == self.version and not refit:
             return
         self.version = version
         data = np.asarray(data, dtype=np.float64)
+        faded = None
         if data.ndim == 3:                       # K surfaces: the one picked
-            data = data[min(surface, data.shape[0] - 1)]
+            k = min(surface, data.shape[0] - 1)
+            if weak is not None and np.shape(weak) == data.shape:
+                faded = np.asarray(weak[k], bool) & np.isfinite(data[k])
+            data = data[k]
         self.data = data
         new = levels_for(self.spec, data, target)
         lv = new if (refit or self.levels is None) else widen(self.levels, new)
@@ -155,8 +171,15 @@ class MapPanel:
                                                   if const is not None else ""), size="10pt")
         # the bar holds the levels (the user may drag them); streaming never auto-levels
         self.image.setImage(display(data, self.levels), autoLevels=False, levels=self.bar.levels())
+        if faded is not None and faded.any():
+            rgba = np.zeros(faded.shape + (4,), np.uint8)
+            rgba[faded] = FADE_RGBA
+            self.faded.setImage(rgba, autoLevels=False)
+        else:
+            self.faded.clear()
         if self.rect is not None:
             self.image.setRect(self.rect)
+            self.faded.setRect(self.rect)
 
     rect = None
 

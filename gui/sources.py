@@ -365,7 +365,8 @@ class ResultView:
                         lost_spans=0, lost_records=0, eta_s=None, recon_lag=0, passes=0,
                         depth_m=m.depth_m, background=m.background, signal=m.signal,
                         uncertainty_s=m.uncertainty_s, counts=m.photons,
-                        acq_flags=np.zeros((h, w), np.uint8), surfaces=surfaces_of(m))
+                        acq_flags=np.zeros((h, w), np.uint8), surfaces=surfaces_of(m),
+                        weak=m.weak if surfaces_of(m) is not None else None)
 
     def pixel(self, r: int, c: int) -> PixelInfo:
         res, m = self.result, self.result.maps

@@ -1008,7 +1008,7 @@ class MainWindow(QtWidgets.QMainWindow):
                     p.plot.setVisible(False)
                     continue
                 p.plot.setVisible(True)
-                p.show(data, target, version=v, refit=refit, surface=surface)
+                p.show(data, target, version=v, refit=refit, surface=surface, weak=snap.weak)
                 painted = True
         if painted:
             self._paint_3d()

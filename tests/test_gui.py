@@ -153,6 +153,10 @@ def test_a_two_surface_scan_shows_each_surface_live_and_in_the_inspector(qtbot, 
     c.surface.setCurrentIndex(1)                              # the farther surface
     win._paint_maps(win.snap, 20, refit=True)
     np.testing.assert_array_equal(win.panel("depth").data, m.depth_m[1])
+    # its weak pixels are faded (the overlay covers exactly them), the others drawn plainly
+    faded = win.panel("depth").faded.image
+    assert m.weak[1].any() and faded is not None
+    np.testing.assert_array_equal(faded[..., 3] > 0, m.weak[1] & np.isfinite(m.depth_m[1]))
     # a pane pixel: both surfaces drawn, the model holds both returns
     win.inspect((8, 8), pin=True)
     assert m.surfaces[8, 8] == 2 and len(win.inspector.surface_lines) == 2

@@ -280,3 +280,22 @@ def test_auto_one_surface_on_the_simulated_bust_with_the_charts_measured_respons
     print(f"simulated bust, chart's response: exactly one surface: pixelwise {one['uos']:.2%}, "
           f"spatial {one['spatial']:.2%}")
     assert one["uos"] >= 0.995 and one["spatial"] >= 0.98
+
+
+def test_weak_flags_chance_clusters_not_clean_surfaces_of_a_few_detections():
+    # K fixed: two clean surfaces of 7 detections each (1 background detection) are findings; the
+    # second surface K=2 puts on a one-surface pixel (a chance pair of background) is weak
+    rng = np.random.default_rng(157)
+    b = Binning(UNIT_S, 0, 4005, 5)
+    two = [np.floor(np.concatenate([1000 + 45 * rng.standard_normal(7), 2000 + 45 * rng.standard_normal(7),
+                                    rng.uniform(0, 4005, 1)])) for _ in range(200)]
+    one = [np.floor(np.concatenate([1500 + 45 * rng.standard_normal(14), rng.uniform(0, 4005, 4)]))
+           for _ in range(200)]
+    settings = ReconSettings(binning=b, pulse_rms_s=45 * UNIT_S, reflectors=2)
+    m2 = reconstruct(PhotonStore.from_lists(two, (10, 20), UNIT_S), settings)
+    m1 = reconstruct(PhotonStore.from_lists(one, (10, 20), UNIT_S), settings)
+    assert np.mean(m2.surfaces == 2) > 0.95 and m2.weak.mean() < 0.05
+    near = np.abs(m1.tof_s / UNIT_S - 1500) < 3 * 45
+    extra = np.isfinite(m1.tof_s) & ~near
+    assert extra.sum() > 20 and m1.weak[extra].mean() > 0.9
+    assert np.all((near & ~m1.weak).any(axis=0))          # the real surface is never weak
