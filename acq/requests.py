@@ -479,7 +479,8 @@ class ReplayRequest(_Request):
     recording:   a session folder or its ``recording.ptu``, or a Generic T3 PTU with pixel markers.
     target:      detections per pixel to keep (None: the recorded target; fewer shows what a shorter
                  scan would have given).
-    method, pulse_rms_s: replace the recorded estimator settings (None: as recorded).
+    method, pulse_rms_s: replace the recorded estimator settings (None: as recorded; a file that
+    records none is reconstructed with DEFAULT_METHOD).
     speed:       "max" (as fast as it decodes) or a factor of recorded time (1: real time).
     bin_s:       bin width for files that record no settings of ours.
     """
