@@ -26,8 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from spdepth.acq.errors import OutputError, RecordingError, RequestError
-from spdepth.acq.requests import (DEFAULT_DWELL_S, FileReconRequest, ReplayRequest, ScanRequest,
-                                  SimBench)
+from spdepth.acq.requests import (DEFAULT_DWELL_S, DEFAULT_METHOD, FileReconRequest, ReplayRequest,
+                                  ScanRequest, SimBench)
 from spdepth.recon.errors import InputError
 from spdepth.recon.model import Binning, ReconSettings
 
@@ -213,7 +213,7 @@ def _replay_session(request: ReplayRequest, out):
             int(round(info.sync_period_s / info.resolution_s))
         units = max(1, int(round(request.bin_s / info.resolution_s)))
         window_s = (0.0, (range_bins // units) * units * info.resolution_s)
-        settings = ReconSettings(method=request.method or "uos",
+        settings = ReconSettings(method=request.method or DEFAULT_METHOD,
                                  binning=Binning.from_window(info.resolution_s, window_s,
                                                              units * info.resolution_s),
                                  pulse_rms_s=request.pulse_rms_s, max_photons=plan.target,

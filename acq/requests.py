@@ -488,7 +488,8 @@ class ReplayRequest(_Request):
     target:      detections per pixel to keep (None: the recorded target; fewer shows what a shorter
                  scan would have given).
     method, pulse_rms_s, reflectors, max_reflectors, false_alarm: replace the recorded estimator
-                 settings (None: as recorded).
+                 settings (None: as recorded; a file that records none is reconstructed with
+                 DEFAULT_METHOD).
     speed:       "max" (as fast as it decodes) or a factor of recorded time (1: real time).
     bin_s:       bin width for files that record no settings of ours.
     """

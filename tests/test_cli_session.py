@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from spdepth.acq.cli import main
+from spdepth.acq.requests import DEFAULT_METHOD
 from spdepth.recon.maps import DepthMaps
 
 FILES = ("recording.ptu", "events.jsonl", "maps.npz", "maps.png", "run.json")
@@ -86,6 +87,8 @@ def test_replay_takes_a_simulated_ptu(tmp_path, capsys):
     summary = _last_json(capsys.readouterr().out)
     assert summary["pixels"] == 128 and summary["detections"] > 128 * 10
     assert summary["flagged"] < 10          # a fixed-dwell frame of 20 per pixel: few below 5
+    # the file records no estimator of ours: the default method, as scan and recon use
+    assert json.loads((out / "run.json").read_text())["recon"]["method"] == DEFAULT_METHOD
 
 
 def test_replay_refuses_what_is_not_a_recording(tmp_path, capsys):

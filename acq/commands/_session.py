@@ -25,8 +25,9 @@ def add_output_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def add_recon_arguments(parser: argparse.ArgumentParser, default_method: str | None = DEFAULT_METHOD) -> None:
+    shown = default_method or f"as recorded, else {DEFAULT_METHOD}"
     parser.add_argument("--method", choices=METHODS, default=default_method,
-                        help=f"estimator for the maps (default {default_method or 'as recorded'}); "
+                        help=f"estimator for the maps (default {shown}); "
                              "spatial shows ml while the scan runs and replaces it at the end")
     parser.add_argument("--pulse-rms-ps", type=positive_float, metavar="PS",
                         help="pulse RMS width (default: the simulated scene's, or estimated from "
