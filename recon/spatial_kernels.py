@@ -76,34 +76,46 @@ def censor_fit(x, offsets, h, w, radius, tau, s_min, sigma, n_bins, em_iters,
         rhi = min(h - 1, r0 + radius)
         clo = max(0, c0 - radius)
         chi = min(w - 1, c0 + radius)
-        # each detection's support: the window's detections in [t - tau, t + tau], the detection
-        # itself excluded. Every list is sorted, so per neighbour two pointers walk both lists
-        # once (O(n + n_q)) where two binary searches per detection and neighbour cost
-        # O(n log n_q) and a slice each; the same counts (pointer a: first >= t - tau, b: first
-        # > t + tau, as searchsorted left/right)
-        sup = np.full(n, -1, np.int64)
+        # Each detection's support: the window's detections in [t - tau, t + tau], the detection
+        # itself excluded. Only "support >= s_min" matters, so a detection stops collecting once it
+        # has enough: the pixel's own list first (where a return's detections find most of theirs),
+        # then each neighbour for the detections still short. The undecided ones (background, a
+        # return's tails) are counted exactly against every neighbour, so the decision is the same as
+        # with full counts.
+        need = s_min[p]
+        sup = np.empty(n, np.int64)
+        todo = np.empty(n, np.int64)
+        a = o0
+        b = o0
+        nt = 0
+        for i in range(n):
+            t = x[o0 + i]
+            while x[a] < t - tau:
+                a += 1
+            while b < o1 and x[b] <= t + tau:
+                b += 1
+            sup[i] = b - a - 1
+            if sup[i] < need:
+                todo[nt] = i
+                nt += 1
         for r in range(rlo, rhi + 1):
             for c in range(clo, chi + 1):
                 q = r * w + c
-                q1 = offsets[q + 1]
-                a = offsets[q]
-                b = a
-                for i in range(n):
-                    t = x[o0 + i]
-                    lo_t = t - tau
-                    hi_t = t + tau
-                    while a < q1 and x[a] < lo_t:
-                        a += 1
-                    if b < a:
-                        b = a
-                    while b < q1 and x[b] <= hi_t:
-                        b += 1
-                    sup[i] += b - a
+                nq = offsets[q + 1] - offsets[q]
+                if q == p or nq == 0 or nt == 0:
+                    continue
+                _add_support(x, o0, offsets[q], offsets[q + 1], tau, todo, nt, sup)
+                keep = 0
+                for j in range(nt):
+                    if sup[todo[j]] < need:
+                        todo[keep] = todo[j]
+                        keep += 1
+                nt = keep
         # kept detections: their positions in x (the pixel's list is sorted, so kept ones are too)
         kept = np.empty(n, np.float64)
         nk = 0
         for i in range(n):
-            if sup[i] >= s_min[p]:
+            if sup[i] >= need:
                 kept[nk] = x[o0 + i]
                 nk += 1
         out_kept[p] = nk
@@ -151,6 +163,35 @@ def censor_fit(x, offsets, h, w, radius, tau, s_min, sigma, n_bins, em_iters,
         out_mu[p] = mu
         out_k[p] = ksum
         out_bg[p] = max(0.0, n - ksum) * inv_m
+
+
+@njit(cache=True, nogil=True)
+def _add_support(x, o0, q0, q1, tau, todo, nt, sup):
+    """Add to sup[i], for the pixel detections x[o0 + i] listed in todo[:nt] (ascending), the number
+    of detections in x[q0:q1] (sorted) within [t - tau, t + tau]. Few detections to serve against a
+    long list: two binary searches each (O(nt log nq)); else two pointers walk both lists once
+    (O(nt + nq))."""
+    nq = q1 - q0
+    depth = 1
+    while (1 << depth) <= nq:
+        depth += 1
+    if nt * 2 * depth < nt + 2 * nq:
+        for j in range(nt):
+            t = x[o0 + todo[j]]
+            sup[todo[j]] += (np.searchsorted(x[q0:q1], t + tau, "right")
+                             - np.searchsorted(x[q0:q1], t - tau, "left"))
+        return
+    a = q0
+    b = q0
+    for j in range(nt):
+        t = x[o0 + todo[j]]
+        while a < q1 and x[a] < t - tau:
+            a += 1
+        if b < a:
+            b = a
+        while b < q1 and x[b] <= t + tau:
+            b += 1
+        sup[todo[j]] += b - a
 
 
 @njit(parallel=True, cache=True, nogil=True)
