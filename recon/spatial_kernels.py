@@ -17,12 +17,27 @@ from numba import njit, prange
 from spdepth.recon.kernels import sort_run
 
 
+#: window_shifts: lists longer than this are bucket sorted (shorter ones by insertion).
+BUCKET_ABOVE = 24
+#: window_shifts: buckets per detection; a return's detections crowd a few pulse widths, so
+#: more buckets than detections keep each bucket's share of them small.
+BUCKETS_PER_DETECTION = 4
+
+
 @njit(cache=True, nogil=True)
 def window_shifts(times, offsets, start, stop, width, max_photons, out_x, out_offsets):
     """First ``max_photons`` (all when < 0) detections of each pixel with ``start <= t < stop``, as
     shifts ``(t - start) / width - 0.5``, each pixel's list then sorted ascending. out_x needs
     times.size entries, out_offsets offsets.size; returns the number kept."""
     npix = offsets.size - 1
+    longest = 0
+    for p in range(npix):
+        longest = max(longest, offsets[p + 1] - offsets[p])
+    if max_photons >= 0:
+        longest = min(longest, max_photons)
+    tmp = np.empty(longest, np.float64)
+    fill = np.empty(BUCKETS_PER_DETECTION * longest + 1, np.int64)
+    n_bins = (stop - start) / width
     n = 0
     out_offsets[0] = 0
     for p in range(npix):
@@ -36,9 +51,45 @@ def window_shifts(times, offsets, start, stop, width, max_photons, out_x, out_of
                 out_x[n] = (t - start) / width - 0.5
                 n += 1
                 kept += 1
-        sort_run(out_x, first, n)     # in place: np.sort allocated a new array per pixel
+        if kept > BUCKET_ABOVE:
+            # insertion sort is quadratic in the disorder and heap sort branchy: about one bucket
+            # per detection leaves only the order within each bucket to sort
+            _bucket_sort(out_x, first, n, n_bins, tmp, fill)
+        else:
+            sort_run(out_x, first, n)     # in place: np.sort allocated a new array per pixel
         out_offsets[p + 1] = n
     return n
+
+
+@njit(cache=True, nogil=True)
+def _bucket_sort(a, lo, hi, n_bins, tmp, fill):
+    """Sort a[lo:hi] (shifts in [-0.5, n_bins - 0.5)) ascending in place: a counting pass over
+    BUCKETS_PER_DETECTION buckets per detection, each detection inserted in order within its
+    bucket as it is placed. tmp and fill need hi - lo and BUCKETS_PER_DETECTION * (hi - lo) + 1
+    entries."""
+    k = hi - lo
+    nb = BUCKETS_PER_DETECTION * k
+    scale = nb / n_bins
+    for j in range(nb + 1):
+        fill[j] = 0
+    for i in range(lo, hi):
+        fill[min(nb - 1, max(0, int((a[i] + 0.5) * scale))) + 1] += 1
+    for j in range(nb):
+        fill[j + 1] += fill[j]
+    for j in range(k):
+        tmp[j] = -np.inf      # an unfilled slot stops the insertion at its bucket's start
+    for i in range(lo, hi):
+        v = a[i]
+        j = min(nb - 1, max(0, int((v + 0.5) * scale)))
+        pos = fill[j]
+        fill[j] += 1
+        # bucket index grows with the value, so earlier buckets hold smaller values or -inf
+        while pos > 0 and tmp[pos - 1] > v:
+            tmp[pos] = tmp[pos - 1]
+            pos -= 1
+        tmp[pos] = v
+    for i in range(k):
+        a[lo + i] = tmp[i]
 
 
 @njit(parallel=True, cache=True, nogil=True)
