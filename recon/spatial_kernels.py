@@ -155,12 +155,20 @@ def censor_fit(x, offsets, h, w, radius, tau, s_min, sigma, n_bins, em_iters,
                 nq = offsets[q + 1] - offsets[q]
                 if q == p or nq == 0 or nt == 0:
                     continue
-                _add_support(x, o0, offsets[q], offsets[q + 1], tau, todo, nt, sup)
+                # a comparison per pair without a branch (the inner loop vectorises): for the few
+                # detections still undecided cheaper than a walk over the neighbour's list or
+                # binary searches, whose branches the processor mispredicts
                 keep = 0
                 for j in range(nt):
-                    if sup[todo[j]] < need:
-                        todo[keep] = todo[j]
-                        keep += 1
+                    i = todo[j]
+                    lo_t = x[o0 + i] - tau
+                    hi_t = x[o0 + i] + tau
+                    cnt = 0
+                    for k in range(offsets[q], offsets[q + 1]):
+                        cnt += (x[k] >= lo_t) & (x[k] <= hi_t)
+                    sup[i] += cnt
+                    todo[keep] = i
+                    keep += sup[i] < need
                 nt = keep
         # kept detections: their positions in x (the pixel's list is sorted, so kept ones are too)
         kept = np.empty(n, np.float64)
@@ -214,35 +222,6 @@ def censor_fit(x, offsets, h, w, radius, tau, s_min, sigma, n_bins, em_iters,
         out_mu[p] = mu
         out_k[p] = ksum
         out_bg[p] = max(0.0, n - ksum) * inv_m
-
-
-@njit(cache=True, nogil=True)
-def _add_support(x, o0, q0, q1, tau, todo, nt, sup):
-    """Add to sup[i], for the pixel detections x[o0 + i] listed in todo[:nt] (ascending), the number
-    of detections in x[q0:q1] (sorted) within [t - tau, t + tau]. Few detections to serve against a
-    long list: two binary searches each (O(nt log nq)); else two pointers walk both lists once
-    (O(nt + nq))."""
-    nq = q1 - q0
-    depth = 1
-    while (1 << depth) <= nq:
-        depth += 1
-    if nt * 2 * depth < nt + 2 * nq:
-        for j in range(nt):
-            t = x[o0 + todo[j]]
-            sup[todo[j]] += (np.searchsorted(x[q0:q1], t + tau, "right")
-                             - np.searchsorted(x[q0:q1], t - tau, "left"))
-        return
-    a = q0
-    b = q0
-    for j in range(nt):
-        t = x[o0 + todo[j]]
-        while a < q1 and x[a] < t - tau:
-            a += 1
-        if b < a:
-            b = a
-        while b < q1 and x[b] <= t + tau:
-            b += 1
-        sup[todo[j]] += b - a
 
 
 @njit(parallel=True, cache=True, nogil=True)
