@@ -18,10 +18,16 @@ from spdepth.recon.kernels import sort_run
 
 
 #: window_shifts: lists longer than this are bucket sorted (shorter ones by insertion).
-BUCKET_ABOVE = 24
+BUCKET_ABOVE = 32
 #: window_shifts: buckets per detection; a return's detections crowd a few pulse widths, so
 #: more buckets than detections keep each bucket's share of them small.
 BUCKETS_PER_DETECTION = 4
+#: censor_fit: exp of an argument below this is exactly 0.0 in float64 (the smallest subnormal is
+#: exp(-744.44)), so the EM skips such a detection with the same result.
+EXP_IS_ZERO = -746.0
+#: censor_fit: a neighbour's list is walked with two pointers when (undecided detections) x (its
+#: detections) exceeds this many times their sum, else compared pair by pair (vectorised).
+WALK_ABOVE = 12
 
 
 @njit(cache=True, nogil=True)
@@ -155,20 +161,39 @@ def censor_fit(x, offsets, h, w, radius, tau, s_min, sigma, n_bins, em_iters,
                 nq = offsets[q + 1] - offsets[q]
                 if q == p or nq == 0 or nt == 0:
                     continue
-                # a comparison per pair without a branch (the inner loop vectorises): for the few
-                # detections still undecided cheaper than a walk over the neighbour's list or
-                # binary searches, whose branches the processor mispredicts
+                q0 = offsets[q]
+                q1 = offsets[q + 1]
+                if nt * nq <= WALK_ABOVE * (nt + nq):
+                    # a comparison per pair without a branch (the loop vectorises): for the few
+                    # detections still undecided cheaper than a walk over the neighbour's list,
+                    # whose branches the processor mispredicts
+                    for j in range(nt):
+                        i = todo[j]
+                        lo_t = x[o0 + i] - tau
+                        hi_t = x[o0 + i] + tau
+                        cnt = 0
+                        for k in range(q0, q1):
+                            cnt += (x[k] >= lo_t) & (x[k] <= hi_t)
+                        sup[i] += cnt
+                else:
+                    # many undecided (a background-dominated pixel): two pointers walk both sorted
+                    # lists once, O(nt + nq)
+                    a = q0
+                    b = q0
+                    for j in range(nt):
+                        i = todo[j]
+                        t = x[o0 + i]
+                        while a < q1 and x[a] < t - tau:
+                            a += 1
+                        if b < a:
+                            b = a
+                        while b < q1 and x[b] <= t + tau:
+                            b += 1
+                        sup[i] += b - a
                 keep = 0
                 for j in range(nt):
-                    i = todo[j]
-                    lo_t = x[o0 + i] - tau
-                    hi_t = x[o0 + i] + tau
-                    cnt = 0
-                    for k in range(offsets[q], offsets[q + 1]):
-                        cnt += (x[k] >= lo_t) & (x[k] <= hi_t)
-                    sup[i] += cnt
-                    todo[keep] = i
-                    keep += sup[i] < need
+                    todo[keep] = todo[j]
+                    keep += sup[todo[j]] < need
                 nt = keep
         # kept detections: their positions in x (the pixel's list is sorted, so kept ones are too)
         kept = np.empty(n, np.float64)
@@ -210,7 +235,10 @@ def censor_fit(x, offsets, h, w, radius, tau, s_min, sigma, n_bins, em_iters,
             srt = 0.0
             for i in range(o0, o1):
                 d = x[i] - mu
-                a = pi * norm * math.exp(-0.5 * d * d * inv_s2)
+                e = -0.5 * d * d * inv_s2
+                if e < EXP_IS_ZERO:
+                    continue          # no responsibility at all, and libm's exp is slowest there
+                a = pi * norm * math.exp(e)
                 rr = a / (a + (1.0 - pi) * inv_m)
                 sr += rr
                 srt += rr * x[i]
