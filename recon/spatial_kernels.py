@@ -28,6 +28,8 @@ EXP_IS_ZERO = -746.0
 #: censor_fit: a neighbour's list is walked with two pointers when (undecided detections) x (its
 #: detections) exceeds this many times their sum, else compared pair by pair (vectorised).
 WALK_ABOVE = 12
+#: censor_fit: pixels per parallel task (each allocates its scratch once).
+PIXEL_BLOCK = 256
 
 
 @njit(cache=True, nogil=True)
@@ -116,140 +118,146 @@ def censor_fit(x, offsets, h, w, radius, tau, s_min, sigma, n_bins, em_iters,
     inv_m = 1.0 / n_bins
     inv_s2 = 1.0 / (sigma * sigma)
     norm = 1.0 / (math.sqrt(2.0 * math.pi) * sigma)
-    for p in prange(npix):
-        o0 = offsets[p]
-        o1 = offsets[p + 1]
-        n = o1 - o0
-        out_n[p] = n
-        out_mu[p] = np.nan
-        out_k[p] = 0.0
-        out_bg[p] = n * inv_m
-        out_kept[p] = 0
-        if n == 0:
-            continue
-        r0 = p // w
-        c0 = p - r0 * w
-        rlo = max(0, r0 - radius)
-        rhi = min(h - 1, r0 + radius)
-        clo = max(0, c0 - radius)
-        chi = min(w - 1, c0 + radius)
-        # Each detection's support: the window's detections in [t - tau, t + tau], the detection
-        # itself excluded. Only "support >= s_min" matters, so a detection stops collecting once it
-        # has enough: the pixel's own list first (where a return's detections find most of theirs),
-        # then each neighbour for the detections still short. The undecided ones (background, a
-        # return's tails) are counted exactly against every neighbour, so the decision is the same as
-        # with full counts.
-        need = s_min[p]
-        sup = np.empty(n, np.int64)
-        todo = np.empty(n, np.int64)
-        a = o0
-        b = o0
-        nt = 0
-        for i in range(n):
-            t = x[o0 + i]
-            while x[a] < t - tau:
-                a += 1
-            while b < o1 and x[b] <= t + tau:
-                b += 1
-            sup[i] = b - a - 1
-            if sup[i] < need:
-                todo[nt] = i
-                nt += 1
-        for r in range(rlo, rhi + 1):
-            for c in range(clo, chi + 1):
-                q = r * w + c
-                nq = offsets[q + 1] - offsets[q]
-                if q == p or nq == 0 or nt == 0:
-                    continue
-                q0 = offsets[q]
-                q1 = offsets[q + 1]
-                if nt * nq <= WALK_ABOVE * (nt + nq):
-                    # a comparison per pair without a branch (the loop vectorises): for the few
-                    # detections still undecided cheaper than a walk over the neighbour's list,
-                    # whose branches the processor mispredicts
+    longest = 0
+    for p in range(npix):
+        longest = max(longest, offsets[p + 1] - offsets[p])
+    n_blocks = (npix + PIXEL_BLOCK - 1) // PIXEL_BLOCK
+    for blk in prange(n_blocks):
+        # scratch once per block of pixels (three allocations per pixel cost 10% at 2 detections)
+        sup = np.empty(longest, np.int64)
+        todo = np.empty(longest, np.int64)
+        kept = np.empty(longest, np.float64)
+        for p in range(blk * PIXEL_BLOCK, min(npix, (blk + 1) * PIXEL_BLOCK)):
+            o0 = offsets[p]
+            o1 = offsets[p + 1]
+            n = o1 - o0
+            out_n[p] = n
+            out_mu[p] = np.nan
+            out_k[p] = 0.0
+            out_bg[p] = n * inv_m
+            out_kept[p] = 0
+            if n == 0:
+                continue
+            r0 = p // w
+            c0 = p - r0 * w
+            rlo = max(0, r0 - radius)
+            rhi = min(h - 1, r0 + radius)
+            clo = max(0, c0 - radius)
+            chi = min(w - 1, c0 + radius)
+            # Each detection's support: the window's detections in [t - tau, t + tau], the detection
+            # itself excluded. Only "support >= s_min" matters, so a detection stops collecting once it
+            # has enough: the pixel's own list first (where a return's detections find most of theirs),
+            # then each neighbour for the detections still short. The undecided ones (background, a
+            # return's tails) are counted exactly against every neighbour, so the decision is the same as
+            # with full counts.
+            need = s_min[p]
+            a = o0
+            b = o0
+            nt = 0
+            for i in range(n):
+                t = x[o0 + i]
+                while x[a] < t - tau:
+                    a += 1
+                while b < o1 and x[b] <= t + tau:
+                    b += 1
+                sup[i] = b - a - 1
+                if sup[i] < need:
+                    todo[nt] = i
+                    nt += 1
+            for r in range(rlo, rhi + 1):
+                for c in range(clo, chi + 1):
+                    q = r * w + c
+                    nq = offsets[q + 1] - offsets[q]
+                    if q == p or nq == 0 or nt == 0:
+                        continue
+                    q0 = offsets[q]
+                    q1 = offsets[q + 1]
+                    if nt * nq <= WALK_ABOVE * (nt + nq):
+                        # a comparison per pair without a branch (the loop vectorises): for the few
+                        # detections still undecided cheaper than a walk over the neighbour's list,
+                        # whose branches the processor mispredicts
+                        for j in range(nt):
+                            i = todo[j]
+                            lo_t = x[o0 + i] - tau
+                            hi_t = x[o0 + i] + tau
+                            cnt = 0
+                            for k in range(q0, q1):
+                                cnt += (x[k] >= lo_t) & (x[k] <= hi_t)
+                            sup[i] += cnt
+                    else:
+                        # many undecided (a background-dominated pixel): two pointers walk both sorted
+                        # lists once, O(nt + nq)
+                        a = q0
+                        b = q0
+                        for j in range(nt):
+                            i = todo[j]
+                            t = x[o0 + i]
+                            while a < q1 and x[a] < t - tau:
+                                a += 1
+                            if b < a:
+                                b = a
+                            while b < q1 and x[b] <= t + tau:
+                                b += 1
+                            sup[i] += b - a
+                    keep = 0
                     for j in range(nt):
-                        i = todo[j]
-                        lo_t = x[o0 + i] - tau
-                        hi_t = x[o0 + i] + tau
-                        cnt = 0
-                        for k in range(q0, q1):
-                            cnt += (x[k] >= lo_t) & (x[k] <= hi_t)
-                        sup[i] += cnt
-                else:
-                    # many undecided (a background-dominated pixel): two pointers walk both sorted
-                    # lists once, O(nt + nq)
-                    a = q0
-                    b = q0
-                    for j in range(nt):
-                        i = todo[j]
-                        t = x[o0 + i]
-                        while a < q1 and x[a] < t - tau:
-                            a += 1
-                        if b < a:
-                            b = a
-                        while b < q1 and x[b] <= t + tau:
-                            b += 1
-                        sup[i] += b - a
-                keep = 0
-                for j in range(nt):
-                    todo[keep] = todo[j]
-                    keep += sup[todo[j]] < need
-                nt = keep
-        # kept detections: their positions in x (the pixel's list is sorted, so kept ones are too)
-        kept = np.empty(n, np.float64)
-        nk = 0
-        for i in range(n):
-            if sup[i] >= need:
-                kept[nk] = x[o0 + i]
-                nk += 1
-        out_kept[p] = nk
-        if nk == 0:
-            continue
-        # densest cluster of the kept detections (two pointers over the sorted list)
-        reach = 2.5 * sigma
-        best = 0
-        bi = 0
-        lo = 0
-        hi = 0
-        for i in range(nk):
-            while kept[lo] < kept[i] - reach:
-                lo += 1
-            while hi < nk and kept[hi] <= kept[i] + reach:
-                hi += 1
-            if hi - lo > best:
-                best = hi - lo
-                bi = i
-        acc = 0.0
-        cnt = 0
-        for i in range(nk):
-            if abs(kept[i] - kept[bi]) <= reach:
-                acc += kept[i]
-                cnt += 1
-        mu = acc / cnt
-        pi = min(0.999, max(cnt / n, 1e-3))
-        # EM over all the pixel's detections: a censored detection close to the return still
-        # counts as signal in proportion to its likelihood, a kept one far from it does not
-        ksum = float(cnt)
-        for _ in range(em_iters):
-            sr = 0.0
-            srt = 0.0
-            for i in range(o0, o1):
-                d = x[i] - mu
-                e = -0.5 * d * d * inv_s2
-                if e < EXP_IS_ZERO:
-                    continue          # no responsibility at all, and libm's exp is slowest there
-                a = pi * norm * math.exp(e)
-                rr = a / (a + (1.0 - pi) * inv_m)
-                sr += rr
-                srt += rr * x[i]
-            if sr <= 1e-9:
-                break
-            mu = srt / sr
-            pi = min(0.999, max(sr / n, 1e-3))
-            ksum = sr
-        out_mu[p] = mu
-        out_k[p] = ksum
-        out_bg[p] = max(0.0, n - ksum) * inv_m
+                        todo[keep] = todo[j]
+                        keep += sup[todo[j]] < need
+                    nt = keep
+            # kept detections: their positions in x (the pixel's list is sorted, so kept ones are too)
+            nk = 0
+            for i in range(n):
+                if sup[i] >= need:
+                    kept[nk] = x[o0 + i]
+                    nk += 1
+            out_kept[p] = nk
+            if nk == 0:
+                continue
+            # densest cluster of the kept detections (two pointers over the sorted list)
+            reach = 2.5 * sigma
+            best = 0
+            bi = 0
+            lo = 0
+            hi = 0
+            for i in range(nk):
+                while kept[lo] < kept[i] - reach:
+                    lo += 1
+                while hi < nk and kept[hi] <= kept[i] + reach:
+                    hi += 1
+                if hi - lo > best:
+                    best = hi - lo
+                    bi = i
+            acc = 0.0
+            cnt = 0
+            for i in range(nk):
+                if abs(kept[i] - kept[bi]) <= reach:
+                    acc += kept[i]
+                    cnt += 1
+            mu = acc / cnt
+            pi = min(0.999, max(cnt / n, 1e-3))
+            # EM over all the pixel's detections: a censored detection close to the return still
+            # counts as signal in proportion to its likelihood, a kept one far from it does not
+            ksum = float(cnt)
+            for _ in range(em_iters):
+                sr = 0.0
+                srt = 0.0
+                for i in range(o0, o1):
+                    d = x[i] - mu
+                    e = -0.5 * d * d * inv_s2
+                    if e < EXP_IS_ZERO:
+                        continue          # no responsibility at all, and libm's exp is slowest there
+                    a = pi * norm * math.exp(e)
+                    rr = a / (a + (1.0 - pi) * inv_m)
+                    sr += rr
+                    srt += rr * x[i]
+                if sr <= 1e-9:
+                    break
+                mu = srt / sr
+                pi = min(0.999, max(sr / n, 1e-3))
+                ksum = sr
+            out_mu[p] = mu
+            out_k[p] = ksum
+            out_bg[p] = max(0.0, n - ksum) * inv_m
 
 
 @njit(parallel=True, cache=True, nogil=True)
