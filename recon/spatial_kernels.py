@@ -17,12 +17,35 @@ from numba import njit, prange
 from spdepth.recon.kernels import sort_run
 
 
+#: window_shifts: lists longer than this are bucket sorted (shorter ones by insertion).
+BUCKET_ABOVE = 32
+#: window_shifts: buckets per detection; a return's detections crowd a few pulse widths, so
+#: more buckets than detections keep each bucket's share of them small.
+BUCKETS_PER_DETECTION = 4
+#: censor_fit: exp of an argument below this is exactly 0.0 in float64 (the smallest subnormal is
+#: exp(-744.44)), so the EM skips such a detection with the same result.
+EXP_IS_ZERO = -746.0
+#: censor_fit: a neighbour's list is walked with two pointers when (undecided detections) x (its
+#: detections) exceeds this many times their sum, else compared pair by pair (vectorised).
+WALK_ABOVE = 12
+#: censor_fit: pixels per parallel task (each allocates its scratch once).
+PIXEL_BLOCK = 256
+
+
 @njit(cache=True, nogil=True)
 def window_shifts(times, offsets, start, stop, width, max_photons, out_x, out_offsets):
     """First ``max_photons`` (all when < 0) detections of each pixel with ``start <= t < stop``, as
     shifts ``(t - start) / width - 0.5``, each pixel's list then sorted ascending. out_x needs
     times.size entries, out_offsets offsets.size; returns the number kept."""
     npix = offsets.size - 1
+    longest = 0
+    for p in range(npix):
+        longest = max(longest, offsets[p + 1] - offsets[p])
+    if max_photons >= 0:
+        longest = min(longest, max_photons)
+    tmp = np.empty(longest, np.float64)
+    fill = np.empty(BUCKETS_PER_DETECTION * longest + 1, np.int64)
+    n_bins = (stop - start) / width
     n = 0
     out_offsets[0] = 0
     for p in range(npix):
@@ -36,9 +59,45 @@ def window_shifts(times, offsets, start, stop, width, max_photons, out_x, out_of
                 out_x[n] = (t - start) / width - 0.5
                 n += 1
                 kept += 1
-        sort_run(out_x, first, n)     # in place: np.sort allocated a new array per pixel
+        if kept > BUCKET_ABOVE:
+            # insertion sort is quadratic in the disorder and heap sort branchy: about one bucket
+            # per detection leaves only the order within each bucket to sort
+            _bucket_sort(out_x, first, n, n_bins, tmp, fill)
+        else:
+            sort_run(out_x, first, n)     # in place: np.sort allocated a new array per pixel
         out_offsets[p + 1] = n
     return n
+
+
+@njit(cache=True, nogil=True)
+def _bucket_sort(a, lo, hi, n_bins, tmp, fill):
+    """Sort a[lo:hi] (shifts in [-0.5, n_bins - 0.5)) ascending in place: a counting pass over
+    BUCKETS_PER_DETECTION buckets per detection, each detection inserted in order within its
+    bucket as it is placed. tmp and fill need hi - lo and BUCKETS_PER_DETECTION * (hi - lo) + 1
+    entries."""
+    k = hi - lo
+    nb = BUCKETS_PER_DETECTION * k
+    scale = nb / n_bins
+    for j in range(nb + 1):
+        fill[j] = 0
+    for i in range(lo, hi):
+        fill[min(nb - 1, max(0, int((a[i] + 0.5) * scale))) + 1] += 1
+    for j in range(nb):
+        fill[j + 1] += fill[j]
+    for j in range(k):
+        tmp[j] = -np.inf      # an unfilled slot stops the insertion at its bucket's start
+    for i in range(lo, hi):
+        v = a[i]
+        j = min(nb - 1, max(0, int((v + 0.5) * scale)))
+        pos = fill[j]
+        fill[j] += 1
+        # bucket index grows with the value, so earlier buckets hold smaller values or -inf
+        while pos > 0 and tmp[pos - 1] > v:
+            tmp[pos] = tmp[pos - 1]
+            pos -= 1
+        tmp[pos] = v
+    for i in range(k):
+        a[lo + i] = tmp[i]
 
 
 @njit(parallel=True, cache=True, nogil=True)
@@ -59,98 +118,146 @@ def censor_fit(x, offsets, h, w, radius, tau, s_min, sigma, n_bins, em_iters,
     inv_m = 1.0 / n_bins
     inv_s2 = 1.0 / (sigma * sigma)
     norm = 1.0 / (math.sqrt(2.0 * math.pi) * sigma)
-    for p in prange(npix):
-        o0 = offsets[p]
-        o1 = offsets[p + 1]
-        n = o1 - o0
-        out_n[p] = n
-        out_mu[p] = np.nan
-        out_k[p] = 0.0
-        out_bg[p] = n * inv_m
-        out_kept[p] = 0
-        if n == 0:
-            continue
-        r0 = p // w
-        c0 = p - r0 * w
-        rlo = max(0, r0 - radius)
-        rhi = min(h - 1, r0 + radius)
-        clo = max(0, c0 - radius)
-        chi = min(w - 1, c0 + radius)
-        # each detection's support: the window's detections in [t - tau, t + tau], the detection
-        # itself excluded. Every list is sorted, so per neighbour two pointers walk both lists
-        # once (O(n + n_q)) where two binary searches per detection and neighbour cost
-        # O(n log n_q) and a slice each; the same counts (pointer a: first >= t - tau, b: first
-        # > t + tau, as searchsorted left/right)
-        sup = np.full(n, -1, np.int64)
-        for r in range(rlo, rhi + 1):
-            for c in range(clo, chi + 1):
-                q = r * w + c
-                q1 = offsets[q + 1]
-                a = offsets[q]
-                b = a
-                for i in range(n):
-                    t = x[o0 + i]
-                    lo_t = t - tau
-                    hi_t = t + tau
-                    while a < q1 and x[a] < lo_t:
-                        a += 1
-                    if b < a:
-                        b = a
-                    while b < q1 and x[b] <= hi_t:
-                        b += 1
-                    sup[i] += b - a
-        # kept detections: their positions in x (the pixel's list is sorted, so kept ones are too)
-        kept = np.empty(n, np.float64)
-        nk = 0
-        for i in range(n):
-            if sup[i] >= s_min[p]:
-                kept[nk] = x[o0 + i]
-                nk += 1
-        out_kept[p] = nk
-        if nk == 0:
-            continue
-        # densest cluster of the kept detections (two pointers over the sorted list)
-        reach = 2.5 * sigma
-        best = 0
-        bi = 0
-        lo = 0
-        hi = 0
-        for i in range(nk):
-            while kept[lo] < kept[i] - reach:
-                lo += 1
-            while hi < nk and kept[hi] <= kept[i] + reach:
-                hi += 1
-            if hi - lo > best:
-                best = hi - lo
-                bi = i
-        acc = 0.0
-        cnt = 0
-        for i in range(nk):
-            if abs(kept[i] - kept[bi]) <= reach:
-                acc += kept[i]
-                cnt += 1
-        mu = acc / cnt
-        pi = min(0.999, max(cnt / n, 1e-3))
-        # EM over all the pixel's detections: a censored detection close to the return still
-        # counts as signal in proportion to its likelihood, a kept one far from it does not
-        ksum = float(cnt)
-        for _ in range(em_iters):
-            sr = 0.0
-            srt = 0.0
-            for i in range(o0, o1):
-                d = x[i] - mu
-                a = pi * norm * math.exp(-0.5 * d * d * inv_s2)
-                rr = a / (a + (1.0 - pi) * inv_m)
-                sr += rr
-                srt += rr * x[i]
-            if sr <= 1e-9:
-                break
-            mu = srt / sr
-            pi = min(0.999, max(sr / n, 1e-3))
-            ksum = sr
-        out_mu[p] = mu
-        out_k[p] = ksum
-        out_bg[p] = max(0.0, n - ksum) * inv_m
+    longest = 0
+    for p in range(npix):
+        longest = max(longest, offsets[p + 1] - offsets[p])
+    n_blocks = (npix + PIXEL_BLOCK - 1) // PIXEL_BLOCK
+    for blk in prange(n_blocks):
+        # scratch once per block of pixels (three allocations per pixel cost 10% at 2 detections)
+        sup = np.empty(longest, np.int64)
+        todo = np.empty(longest, np.int64)
+        kept = np.empty(longest, np.float64)
+        for p in range(blk * PIXEL_BLOCK, min(npix, (blk + 1) * PIXEL_BLOCK)):
+            o0 = offsets[p]
+            o1 = offsets[p + 1]
+            n = o1 - o0
+            out_n[p] = n
+            out_mu[p] = np.nan
+            out_k[p] = 0.0
+            out_bg[p] = n * inv_m
+            out_kept[p] = 0
+            if n == 0:
+                continue
+            r0 = p // w
+            c0 = p - r0 * w
+            rlo = max(0, r0 - radius)
+            rhi = min(h - 1, r0 + radius)
+            clo = max(0, c0 - radius)
+            chi = min(w - 1, c0 + radius)
+            # Each detection's support: the window's detections in [t - tau, t + tau], the detection
+            # itself excluded. Only "support >= s_min" matters, so a detection stops collecting once it
+            # has enough: the pixel's own list first (where a return's detections find most of theirs),
+            # then each neighbour for the detections still short. The undecided ones (background, a
+            # return's tails) are counted exactly against every neighbour, so the decision is the same as
+            # with full counts.
+            need = s_min[p]
+            a = o0
+            b = o0
+            nt = 0
+            for i in range(n):
+                t = x[o0 + i]
+                while x[a] < t - tau:
+                    a += 1
+                while b < o1 and x[b] <= t + tau:
+                    b += 1
+                sup[i] = b - a - 1
+                if sup[i] < need:
+                    todo[nt] = i
+                    nt += 1
+            for r in range(rlo, rhi + 1):
+                for c in range(clo, chi + 1):
+                    q = r * w + c
+                    nq = offsets[q + 1] - offsets[q]
+                    if q == p or nq == 0 or nt == 0:
+                        continue
+                    q0 = offsets[q]
+                    q1 = offsets[q + 1]
+                    if nt * nq <= WALK_ABOVE * (nt + nq):
+                        # a comparison per pair without a branch (the loop vectorises): for the few
+                        # detections still undecided cheaper than a walk over the neighbour's list,
+                        # whose branches the processor mispredicts
+                        for j in range(nt):
+                            i = todo[j]
+                            lo_t = x[o0 + i] - tau
+                            hi_t = x[o0 + i] + tau
+                            cnt = 0
+                            for k in range(q0, q1):
+                                cnt += (x[k] >= lo_t) & (x[k] <= hi_t)
+                            sup[i] += cnt
+                    else:
+                        # many undecided (a background-dominated pixel): two pointers walk both sorted
+                        # lists once, O(nt + nq)
+                        a = q0
+                        b = q0
+                        for j in range(nt):
+                            i = todo[j]
+                            t = x[o0 + i]
+                            while a < q1 and x[a] < t - tau:
+                                a += 1
+                            if b < a:
+                                b = a
+                            while b < q1 and x[b] <= t + tau:
+                                b += 1
+                            sup[i] += b - a
+                    keep = 0
+                    for j in range(nt):
+                        todo[keep] = todo[j]
+                        keep += sup[todo[j]] < need
+                    nt = keep
+            # kept detections: their positions in x (the pixel's list is sorted, so kept ones are too)
+            nk = 0
+            for i in range(n):
+                if sup[i] >= need:
+                    kept[nk] = x[o0 + i]
+                    nk += 1
+            out_kept[p] = nk
+            if nk == 0:
+                continue
+            # densest cluster of the kept detections (two pointers over the sorted list)
+            reach = 2.5 * sigma
+            best = 0
+            bi = 0
+            lo = 0
+            hi = 0
+            for i in range(nk):
+                while kept[lo] < kept[i] - reach:
+                    lo += 1
+                while hi < nk and kept[hi] <= kept[i] + reach:
+                    hi += 1
+                if hi - lo > best:
+                    best = hi - lo
+                    bi = i
+            acc = 0.0
+            cnt = 0
+            for i in range(nk):
+                if abs(kept[i] - kept[bi]) <= reach:
+                    acc += kept[i]
+                    cnt += 1
+            mu = acc / cnt
+            pi = min(0.999, max(cnt / n, 1e-3))
+            # EM over all the pixel's detections: a censored detection close to the return still
+            # counts as signal in proportion to its likelihood, a kept one far from it does not
+            ksum = float(cnt)
+            for _ in range(em_iters):
+                sr = 0.0
+                srt = 0.0
+                for i in range(o0, o1):
+                    d = x[i] - mu
+                    e = -0.5 * d * d * inv_s2
+                    if e < EXP_IS_ZERO:
+                        continue          # no responsibility at all, and libm's exp is slowest there
+                    a = pi * norm * math.exp(e)
+                    rr = a / (a + (1.0 - pi) * inv_m)
+                    sr += rr
+                    srt += rr * x[i]
+                if sr <= 1e-9:
+                    break
+                mu = srt / sr
+                pi = min(0.999, max(sr / n, 1e-3))
+                ksum = sr
+            out_mu[p] = mu
+            out_k[p] = ksum
+            out_bg[p] = max(0.0, n - ksum) * inv_m
 
 
 @njit(parallel=True, cache=True, nogil=True)

@@ -61,10 +61,14 @@ def mae(maps, tof_units):
 # kernels against their references
 
 
-@pytest.fixture(scope="module")
-def small_store():
-    store, _ = simulate(smooth_scene(9, 11), 6, 1.0, seed=4)
-    return store
+@pytest.fixture(scope="module", params=[(6, 1.0, 3), (50, 0.3, 40)], ids=["6-per-pixel", "50-per-pixel"])
+def small_store(request):
+    """(store, largest s_min to draw): a few detections per pixel, and enough that the kernels take
+    their other paths (bucket sort above BUCKET_ABOVE detections; the censoring's two-pointer walk
+    when many detections of a pixel are still short of support)."""
+    n, sbr, s_max = request.param
+    store, _ = simulate(smooth_scene(9, 11), n, sbr, seed=4)
+    return store, s_max
 
 
 def _shifts(store, max_photons=-1):
@@ -75,6 +79,7 @@ def _shifts(store, max_photons=-1):
 
 
 def test_window_shifts_matches_reference(small_store):
+    small_store, _ = small_store
     for maxp in (-1, 3):
         x, off = _shifts(small_store, maxp)
         want = ref.window_shifts(small_store.times, small_store.offsets, 100.0, 3900.0, BIN_UNITS, maxp)
@@ -83,10 +88,11 @@ def test_window_shifts_matches_reference(small_store):
 
 
 def test_censor_fit_matches_reference(small_store):
+    small_store, s_max = small_store
     x, off = _shifts(small_store)
     h, w = small_store.shape
     rng = np.random.default_rng(0)
-    s_min = rng.integers(1, 4, h * w)
+    s_min = rng.integers(1, s_max + 1, h * w)
     sigma = RMS_UNITS / BIN_UNITS
     for radius in (1, 2):
         got = [np.empty(h * w), np.empty(h * w), np.empty(h * w), np.empty(h * w, np.int64),

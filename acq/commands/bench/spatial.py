@@ -45,7 +45,7 @@ def simulate(side: int, n: int, sbr: float, seed: int = 0):
 def bench(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(prog="spdepth bench spatial", description=__doc__.splitlines()[0])
     parser.add_argument("--side", type=int, default=256)
-    parser.add_argument("--detections", default="2,5,15", help="detections per pixel, comma separated")
+    parser.add_argument("--detections", default="2,5,10,15,30,60", help="detections per pixel, comma separated")
     parser.add_argument("--sbr", type=float, default=10.0)
     parser.add_argument("--methods", default="spatial,ml")
     parser.add_argument("--repeats", type=int, default=3)
