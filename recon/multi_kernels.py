@@ -30,6 +30,11 @@ EM_SWEEPS = 12
 EM_TOL = 1e-7
 #: candidates scored exactly per round: the best by the second-order screen (screen_score).
 SCREEN = 4
+#: shifts a pattern search remembers as scored (refine_shift); more are scored again (same result).
+MEMO = 32
+#: add_gain's running product of factors >= 1 is rescaled (exactly, by a power of 2) above this.
+PROD_RESCALE = 2.0 ** 512
+LN2 = math.log(2.0)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -46,10 +51,12 @@ def first_at_least(kb, nu, v):
 
 
 @njit(cache=True, nogil=True)
-def add_gain(j, kb, kw, nu, lam, g, off, colsum):
+def add_gain(j, kb, kw, nu, lam, g, off, colsum, a0, wk):
     """(gain, amplitude) of adding a return at shift j to the model whose rate at the photons' bins is
     lam: ``max_a sum_u kw_u log(1 + a g_u / lam_u) - a colsum[j]`` over a >= 0 (nats). Only the
-    detections under the pulse (kb sorted) enter."""
+    detections under the pulse (kb sorted) enter. a0 > 0: Newton starts there (a neighbouring
+    shift's amplitude: fewer steps to the same root), else at the detections under the pulse over
+    colsum[j]. wk: scratch (2, >= nu), the ratios g_u / lam_u and weights under the pulse."""
     nk = g.size
     lo = j - off
     hi = lo + nk
@@ -58,26 +65,29 @@ def add_gain(j, kb, kw, nu, lam, g, off, colsum):
         return 0.0, 0.0
     u0 = first_at_least(kb, nu, lo)
     u1 = first_at_least(kb, nu, hi)
-    # slope at a = 0 and a start: the detections under the pulse
+    # slope at a = 0 and a start: the detections under the pulse, gathered once for the Newton steps
     d0 = -c
     nin = 0.0
+    n = 0
     for u in range(u0, u1):
         gu = g[kb[u] - lo]
         if gu > 0.0:
-            d0 += kw[u] * gu / lam[u]
+            r = gu / lam[u]
+            wk[0, n] = r
+            wk[1, n] = kw[u]
+            n += 1
+            d0 += kw[u] * r
             nin += kw[u]
     if d0 <= 0.0:
         return 0.0, 0.0
-    a = max(nin / c, 1e-6)
+    a = a0 if a0 > 0.0 else max(nin / c, 1e-6)
     for _ in range(NEWTON_STEPS):
         f1 = -c
         f2 = 0.0
-        for u in range(u0, u1):
-            gu = g[kb[u] - lo]
-            if gu > 0.0:
-                q = gu / (lam[u] + a * gu)
-                f1 += kw[u] * q
-                f2 -= kw[u] * q * q
+        for i in range(n):
+            q = wk[0, i] / (1.0 + a * wk[0, i])
+            f1 += wk[1, i] * q
+            f2 -= wk[1, i] * q * q
         if f2 >= 0.0:
             break
         na = a - f1 / f2
@@ -87,12 +97,19 @@ def add_gain(j, kb, kw, nu, lam, g, off, colsum):
             a = na
             break
         a = na
-    gain = -a * c
-    for u in range(u0, u1):
-        gu = g[kb[u] - lo]
-        if gu > 0.0:
-            gain += kw[u] * math.log1p(a * gu / lam[u])
-    return gain, a
+    # sum_u kw_u log(1 + a r_u) as the log of one product (one log instead of one per detection; the
+    # counts kw are whole numbers), rescaled by exact powers of 2 so that it stays in range: every
+    # factor is >= 1, so the error is a few ulp per factor in absolute terms, far below any gain compared
+    prod = 1.0
+    e2 = 0
+    for i in range(n):
+        f = 1.0 + a * wk[0, i]
+        for _ in range(int(wk[1, i])):
+            prod *= f
+            if prod > PROD_RESCALE:
+                prod, e = math.frexp(prod)
+                e2 += e
+    return math.log(prod) + e2 * LN2 - a * c, a
 
 
 @njit(cache=True, nogil=True)
@@ -122,9 +139,18 @@ def screen_score(j, kb, kw, nu, ilam, g, off, colsum):
 
 
 @njit(cache=True, nogil=True)
-def refine_shift(j, best, amp, kb, kw, nu, lam, g, off, colsum, m, step0, shifts, nr, skip, sep_bins):
+def refine_shift(j, best, amp, kb, kw, nu, lam, g, off, colsum, m, step0, shifts, nr, skip, sep_bins, wk, seen,
+                 nseen):
     """Pattern search (steps step0, step0/2, ..., 1 bins) for the shift of most gain from j, never
-    within sep_bins of shifts[:nr] (but shifts[skip])."""
+    within sep_bins of shifts[:nr] (but shifts[skip]).
+
+    seen[:nseen]: shifts whose gain on this lam is known not to exceed ``best`` (scored before the
+    search). A shift scored once is never scored again: it was either below the best at the time or
+    the best that the search left for a higher one, and the best only grows, so it could not be taken
+    (the search moves on a strictly higher gain): skipping it leaves the path unchanged."""
+    if nseen < seen.size:
+        seen[nseen] = j
+        nseen += 1
     step = step0
     while step >= 1:
         moved = True
@@ -138,9 +164,15 @@ def refine_shift(j, best, amp, kb, kw, nu, lam, g, off, colsum, m, step0, shifts
                 for r in range(nr):
                     if r != skip and abs(jj - shifts[r]) < sep_bins:
                         near = True
+                for i in range(nseen):
+                    if seen[i] == jj:
+                        near = True
                 if near:
                     continue
-                gn, an = add_gain(jj, kb, kw, nu, lam, g, off, colsum)
+                gn, an = add_gain(jj, kb, kw, nu, lam, g, off, colsum, amp, wk)
+                if nseen < seen.size:
+                    seen[nseen] = jj
+                    nseen += 1
                 if gn > best:
                     best, amp, j = gn, an, jj
                     moved = True
@@ -163,22 +195,27 @@ def model_rate(kb, nu, shifts, amps, nr, bg, g, off, lam):
 
 
 @njit(cache=True, nogil=True)
-def em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, lam, sweeps):
+def em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, lam, sweeps, gt, newa):
     """EM for the amplitudes and background at fixed shifts (monotone in the likelihood); returns bg
-    and leaves lam at the final model."""
+    and leaves lam at the final model. gt (>= nu, >= nr), newa (>= nr): scratch; the shifts being
+    fixed, every detection's response values are looked up once into gt, not once per sweep."""
     nk = g.size
-    newa = np.empty(max(nr, 1))
+    for u in range(nu):
+        for r in range(nr):
+            d = kb[u] - shifts[r] + off
+            gt[u, r] = g[d] if d >= 0 and d < nk else 0.0
     for _ in range(sweeps):
-        model_rate(kb, nu, shifts, amps, nr, bg, g, off, lam)
         nb = 0.0
         for r in range(nr):
             newa[r] = 0.0
         for u in range(nu):
-            nb += kw[u] * bg / lam[u]
+            v = bg
             for r in range(nr):
-                d = kb[u] - shifts[r] + off
-                if d >= 0 and d < nk:
-                    newa[r] += kw[u] * amps[r] * g[d] / lam[u]
+                v += amps[r] * gt[u, r]
+            t = kw[u] / v
+            nb += t * bg
+            for r in range(nr):
+                newa[r] += t * amps[r] * gt[u, r]
         change = 0.0
         for r in range(nr):
             na = newa[r] / colsum[shifts[r]]
@@ -189,7 +226,11 @@ def em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, lam,
         bg = nbg
         if change < EM_TOL:
             break
-    model_rate(kb, nu, shifts, amps, nr, bg, g, off, lam)
+    for u in range(nu):
+        v = bg
+        for r in range(nr):
+            v += amps[r] * gt[u, r]
+        lam[u] = v
     return bg
 
 
@@ -215,10 +256,23 @@ def shift_fisher(r, shifts, amps, nr, bg, g, dg, off, m):
 
 
 @njit(cache=True, nogil=True)
-def fit_pixel(kb, kw, nu, m, g, off, colsum, dg, kmax, sep_bins, gain_min, cand_step, step0, dpk,
-              lam, cand, shifts, amps, gains, tmp_s, tmp_a, tmp_lam):
+def fit_work(n, kmax):
+    """Scratch of :func:`fit_pixel` for up to n distinct bins and kmax returns, allocated once per
+    block of pixels: (lam, tmp_lam, cand, shifts, amps, gains, tmp_s, tmp_a, wk, gt, newa, top_s,
+    top_j, seen)."""
+    n = max(n, 1)
+    k = max(kmax, 1)
+    return (np.empty(n), np.empty(n), np.empty(n, np.int64), np.empty(k, np.int64), np.empty(k), np.empty(k),
+            np.empty(k, np.int64), np.empty(k), np.empty((2, n)), np.empty((n, k)), np.empty(k),
+            np.empty(SCREEN), np.empty(SCREEN, np.int64), np.empty(MEMO, np.int64))
+
+
+@njit(cache=True, nogil=True)
+def fit_pixel(kb, kw, nu, m, g, off, colsum, dg, kmax, sep_bins, gain_min, cand_step, step0, dpk, work):
     """Greedy K-return fit of one pixel's unique bins (kb, kw); returns (nr, bg): shifts[:nr] (sorted),
-    amps[:nr], gains[:nr] (nats each return added when it was taken)."""
+    amps[:nr], gains[:nr] (nats each return added when it was taken), the arrays of ``work``
+    (:func:`fit_work`, its 4th to 6th)."""
+    lam, tmp_lam, cand, shifts, amps, gains, tmp_s, tmp_a, wk, gt, newa, top_s, top_j, seen = work
     ntot = 0.0
     for u in range(nu):
         ntot += kw[u]
@@ -238,8 +292,6 @@ def fit_pixel(kb, kw, nu, m, g, off, colsum, dg, kmax, sep_bins, gain_min, cand_
             cand[nc] = j
             nc += 1
     nr = 0
-    top_s = np.empty(SCREEN)
-    top_j = np.empty(SCREEN, np.int64)
     while nr < kmax:
         # the SCREEN best candidates by the second-order screen, then their exact gains
         for u in range(nu):
@@ -272,20 +324,21 @@ def fit_pixel(kb, kw, nu, m, g, off, colsum, dg, kmax, sep_bins, gain_min, cand_
         bj = -1
         ba = 0.0
         for t in range(ns):
-            gn, an = add_gain(top_j[t], kb, kw, nu, lam, g, off, colsum)
+            gn, an = add_gain(top_j[t], kb, kw, nu, lam, g, off, colsum, 0.0, wk)
+            seen[t] = top_j[t]
             if gn > best:
                 best, bj, ba = gn, top_j[t], an
         if bj < 0:
             break
         bj, best, ba = refine_shift(bj, best, ba, kb, kw, nu, lam, g, off, colsum, m, step0, shifts, nr, -1,
-                                    sep_bins)
+                                    sep_bins, wk, seen, ns)
         if not best > gain_min:
             break
         shifts[nr] = bj
         amps[nr] = ba
         gains[nr] = best
         nr += 1
-        bg = em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, lam, EM_SWEEPS)
+        bg = em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, lam, EM_SWEEPS, gt, newa)
         if nr > 1:
             # re-refine each shift with the others (and the background) fixed
             for r in range(nr):
@@ -295,12 +348,12 @@ def fit_pixel(kb, kw, nu, m, g, off, colsum, dg, kmax, sep_bins, gain_min, cand_
                 # the rate without return r
                 tmp_a[r] = 0.0
                 model_rate(kb, nu, tmp_s, tmp_a, nr, bg, g, off, tmp_lam)
-                g0, a0 = add_gain(shifts[r], kb, kw, nu, tmp_lam, g, off, colsum)
+                g0, a0 = add_gain(shifts[r], kb, kw, nu, tmp_lam, g, off, colsum, amps[r], wk)
                 jn, gn, an = refine_shift(shifts[r], g0, a0, kb, kw, nu, tmp_lam, g, off, colsum, m, 2,
-                                          shifts, nr, r, sep_bins)
+                                          shifts, nr, r, sep_bins, wk, seen, 0)
                 shifts[r] = jn
                 amps[r] = an
-            bg = em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, lam, EM_SWEEPS)
+            bg = em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, lam, EM_SWEEPS, gt, newa)
     # sort by shift
     for a in range(1, nr):
         vs, va, vg = shifts[a], amps[a], gains[a]
@@ -333,14 +386,8 @@ def multi_return_kernel(bins, offsets, m, g, off, colsum, dg, kmax, sep_bins, ga
         tmp = np.empty(n1, np.int64)
         kb = np.empty(n1, np.int64)
         kw = np.empty(n1, np.float64)
-        lam = np.empty(n1)
-        tmp_lam = np.empty(n1)
-        cand = np.empty(n1, np.int64)
-        shifts = np.empty(kmax, np.int64)
-        amps = np.empty(kmax)
-        gains = np.empty(kmax)
-        tmp_s = np.empty(kmax, np.int64)
-        tmp_a = np.empty(kmax)
+        work = fit_work(n1, kmax)
+        shifts, amps, gains = work[3], work[4], work[5]
         for p in range(blk * BLOCK, min(npix, (blk + 1) * BLOCK)):
             o0 = offsets[p]
             o1 = offsets[p + 1]
@@ -355,7 +402,7 @@ def multi_return_kernel(bins, offsets, m, g, off, colsum, dg, kmax, sep_bins, ga
                 out_bg[p] = 0.0
                 continue
             nr, bg = fit_pixel(kb, kw, nu, m, g, off, colsum, dg, kmax, sep_bins, gain_min, cand_step,
-                               step0, dpk, lam, cand, shifts, amps, gains, tmp_s, tmp_a, tmp_lam)
+                               step0, dpk, work)
             out_bg[p] = bg
             for r in range(nr):
                 out_shift[p, r] = shifts[r]
@@ -401,23 +448,16 @@ def neighbour_surfaces(bins, offsets, h, w, radius, shift_in, gain_in, strong_na
         ptmp = np.empty(npool, np.int64)
         pkb = np.empty(npool, np.int64)
         pkw = np.empty(npool, np.float64)
-        plam = np.empty(npool)
-        ptl = np.empty(npool)
-        pcand = np.empty(npool, np.int64)
+        pwork = fit_work(npool, kpool)
+        pshift, pamp = pwork[3], pwork[4]
         tmp = np.empty(n1, np.int64)
         kb = np.empty(n1, np.int64)
         kw = np.empty(n1, np.float64)
-        lam = np.empty(n1)
-        pshift = np.empty(kpool, np.int64)
-        pamp = np.empty(kpool)
-        pgain = np.empty(kpool)
-        ptsa = np.empty(kpool, np.int64)
-        ptaa = np.empty(kpool)
+        work = fit_work(n1, kmax)
+        lam, shifts, amps, gains, wk, gt, newa, seen = work[0], work[3], work[4], work[5], work[8], work[9], \
+            work[10], work[13]
         cand = np.empty(kk + kpool, np.int64)
         csrc = np.empty(kk + kpool, np.int64)
-        shifts = np.empty(kmax, np.int64)
-        amps = np.empty(kmax)
-        gains = np.empty(kmax)
         src = np.empty(kmax, np.int64)
         for p in range(blk * BLOCK, min(npix, (blk + 1) * BLOCK)):
             o0 = offsets[p]
@@ -447,7 +487,7 @@ def neighbour_surfaces(bins, offsets, h, w, radius, shift_in, gain_in, strong_na
                         n += 1
             pnu = unique_counts(pbins, 0, n, ptmp, pkb, pkw)
             npr, _ = fit_pixel(pkb, pkw, pnu, m, g, off, colsum, dg, kpool, sep_bins, pool_nats, cand_step,
-                               step0, dpk, plam, pcand, pshift, pamp, pgain, ptsa, ptaa, ptl)
+                               step0, dpk, pwork)
             # 2. candidates: own strong surfaces, then pooled ones by amplitude
             nc = 0
             for r in range(kk):
@@ -490,13 +530,13 @@ def neighbour_surfaces(bins, offsets, h, w, radius, shift_in, gain_in, strong_na
                                 near = True
                         if near:
                             continue
-                        gn, an = add_gain(j, kb, kw, nu, lam, g, off, colsum)
+                        gn, an = add_gain(j, kb, kw, nu, lam, g, off, colsum, 0.0, wk)
                         if gn > best:
                             best, bj, ba, bc = gn, j, an, c
                 if bc < 0:
                     break
                 bj, best, ba = refine_shift(bj, best, ba, kb, kw, nu, lam, g, off, colsum, m, step0, shifts, nr,
-                                            -1, sep_bins)
+                                            -1, sep_bins, wk, seen, 0)
                 c = bc
                 # every candidate within sep of the one taken is spent
                 for d in range(nc):
@@ -509,7 +549,7 @@ def neighbour_surfaces(bins, offsets, h, w, radius, shift_in, gain_in, strong_na
                 src[nr] = csrc[c]
                 csrc[c] = -1
                 nr += 1
-                bg = em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, lam, EM_SWEEPS)
+                bg = em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, lam, EM_SWEEPS, gt, newa)
             # sort by shift
             for a in range(1, nr):
                 vs, va, vg, vc = shifts[a], amps[a], gains[a], src[a]
