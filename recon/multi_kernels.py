@@ -35,6 +35,9 @@ MEMO = 32
 #: add_gain's running product of factors >= 1 is rescaled (exactly, by a power of 2) above this.
 PROD_RESCALE = 2.0 ** 512
 LN2 = math.log(2.0)
+#: add_gain's bound must be below the bar by this (relative) to skip the exact gain: far more than
+#: the rounding of either, so the skip never changes a comparison.
+BAR_MARGIN = 1e-9
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -50,13 +53,54 @@ def first_at_least(kb, nu, v):
     return a
 
 
+@njit(cache=True, nogil=True, inline="always")
+def slopes(a, wk, n):
+    """(sum w q, sum w q^2) with q = r / (1 + a r) over the gathered ratios r = wk[0, :n] and weights
+    w = wk[1, :n]: the gain's slope is the first minus colsum, its curvature minus the second."""
+    s1 = 0.0
+    s2 = 0.0
+    for i in range(n):
+        q = wk[0, i] / (1.0 + a * wk[0, i])
+        s1 += wk[1, i] * q
+        s2 += wk[1, i] * q * q
+    return s1, s2
+
+
+@njit(cache=True, nogil=True, inline="always")
+def log_sum(a, wk, n):
+    """sum_i w_i log(1 + a r_i) over wk as the log of one product (one log instead of one per
+    detection; the weights are counts, whole numbers), rescaled by exact powers of 2 so that it
+    stays in range: every factor is >= 1, so the error is a few ulp per factor in absolute terms,
+    far below any difference of gains compared."""
+    prod = 1.0
+    e2 = 0
+    for i in range(n):
+        f = 1.0 + a * wk[0, i]
+        for _ in range(int(wk[1, i])):
+            prod *= f
+            if prod > PROD_RESCALE:
+                prod, e = math.frexp(prod)
+                e2 += e
+    return math.log(prod) + e2 * LN2
+
+
 @njit(cache=True, nogil=True)
-def add_gain(j, kb, kw, nu, lam, g, off, colsum, a0, wk):
+def add_gain(j, kb, kw, nu, lam, g, off, colsum, a0, bar, wk):
     """(gain, amplitude) of adding a return at shift j to the model whose rate at the photons' bins is
-    lam: ``max_a sum_u kw_u log(1 + a g_u / lam_u) - a colsum[j]`` over a >= 0 (nats). Only the
-    detections under the pulse (kb sorted) enter. a0 > 0: Newton starts there (a neighbouring
-    shift's amplitude: fewer steps to the same root), else at the detections under the pulse over
-    colsum[j]. wk: scratch (2, >= nu), the ratios g_u / lam_u and weights under the pulse."""
+    lam: ``max_a f(a) = sum_u kw_u log(1 + a g_u / lam_u) - a colsum[j]`` over a >= 0 (nats). Only
+    the detections under the pulse (kb sorted) enter. wk: scratch (2, >= nu).
+
+    a0 > 0: Newton starts there (a neighbouring shift's amplitude: fewer steps to the same root),
+    else at the detections under the pulse over colsum[j]. bar: the caller only wants a gain above
+    it; when an upper bound on the gain is below it by more than rounding (:data:`BAR_MARGIN`),
+    that bound is returned instead (so a ``gain > bar`` test gives what the exact gain would).
+
+    The bound, from f at the start a0 (f concave, its curvature -sum w q^2 shrinking as a grows):
+    when f'(a0) <= 0 the optimum a* is below a0, where the curvature is at least f''(a0)'s, so
+    ``f(a*) <= f(a0) + f'(a0)^2 / (2 |f''(a0)|)``; when f'(a0) > 0, Jensen on the concave
+    q / (1 + d q) gives ``f'(a0 + d) <= S1 / (1 + d S1 / N) - c`` (S1 = f'(a0) + c, N the
+    detections under the pulse), so a* <= a0 + N f'(a0) / (c S1) and, f lying under its tangent,
+    ``f(a*) <= f(a0) + N f'(a0)^2 / (c S1)``."""
     nk = g.size
     lo = j - off
     hi = lo + nk
@@ -81,13 +125,21 @@ def add_gain(j, kb, kw, nu, lam, g, off, colsum, a0, wk):
     if d0 <= 0.0:
         return 0.0, 0.0
     a = a0 if a0 > 0.0 else max(nin / c, 1e-6)
-    for _ in range(NEWTON_STEPS):
-        f1 = -c
-        f2 = 0.0
-        for i in range(n):
-            q = wk[0, i] / (1.0 + a * wk[0, i])
-            f1 += wk[1, i] * q
-            f2 -= wk[1, i] * q * q
+    s1, s2 = slopes(a, wk, n)
+    if bar > 0.0:
+        fa = log_sum(a, wk, n) - a * c
+        f1 = s1 - c
+        if f1 <= 0.0:
+            ub = fa + f1 * f1 / (2.0 * s2) if s2 > 0.0 else np.inf
+        else:
+            ub = fa + nin * f1 * f1 / (c * s1)
+        if ub < bar - BAR_MARGIN * (1.0 + bar):
+            return ub, a
+    for it in range(NEWTON_STEPS):
+        if it > 0:
+            s1, s2 = slopes(a, wk, n)
+        f1 = s1 - c
+        f2 = -s2
         if f2 >= 0.0:
             break
         na = a - f1 / f2
@@ -97,19 +149,7 @@ def add_gain(j, kb, kw, nu, lam, g, off, colsum, a0, wk):
             a = na
             break
         a = na
-    # sum_u kw_u log(1 + a r_u) as the log of one product (one log instead of one per detection; the
-    # counts kw are whole numbers), rescaled by exact powers of 2 so that it stays in range: every
-    # factor is >= 1, so the error is a few ulp per factor in absolute terms, far below any gain compared
-    prod = 1.0
-    e2 = 0
-    for i in range(n):
-        f = 1.0 + a * wk[0, i]
-        for _ in range(int(wk[1, i])):
-            prod *= f
-            if prod > PROD_RESCALE:
-                prod, e = math.frexp(prod)
-                e2 += e
-    return math.log(prod) + e2 * LN2 - a * c, a
+    return log_sum(a, wk, n) - a * c, a
 
 
 @njit(cache=True, nogil=True)
@@ -169,7 +209,7 @@ def refine_shift(j, best, amp, kb, kw, nu, lam, g, off, colsum, m, step0, shifts
                         near = True
                 if near:
                     continue
-                gn, an = add_gain(jj, kb, kw, nu, lam, g, off, colsum, amp, wk)
+                gn, an = add_gain(jj, kb, kw, nu, lam, g, off, colsum, amp, best, wk)
                 if nseen < seen.size:
                     seen[nseen] = jj
                     nseen += 1
@@ -197,40 +237,54 @@ def model_rate(kb, nu, shifts, amps, nr, bg, g, off, lam):
 @njit(cache=True, nogil=True)
 def em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, lam, sweeps, gt, newa):
     """EM for the amplitudes and background at fixed shifts (monotone in the likelihood); returns bg
-    and leaves lam at the final model. gt (>= nu, >= nr), newa (>= nr): scratch; the shifts being
-    fixed, every detection's response values are looked up once into gt, not once per sweep."""
+    and leaves lam at the final model. gt (2 + nr, >= nu), newa (>= nr): scratch.
+
+    The shifts being fixed, the response values of the detections under some return are looked up
+    once (gt[2 + r]; gt[0] their weights, gt[1] their weight over the rate); a detection under
+    none has the rate bg, so its share of the background's update is its weight, summed once."""
     nk = g.size
+    n = 0
+    nout = 0.0
     for u in range(nu):
+        inside = False
         for r in range(nr):
             d = kb[u] - shifts[r] + off
-            gt[u, r] = g[d] if d >= 0 and d < nk else 0.0
+            if d >= 0 and d < nk and g[d] != 0.0:
+                inside = True
+        if not inside:
+            nout += kw[u]
+            continue
+        gt[0, n] = kw[u]
+        for r in range(nr):
+            d = kb[u] - shifts[r] + off
+            gt[2 + r, n] = g[d] if d >= 0 and d < nk else 0.0
+        n += 1
     for _ in range(sweeps):
         nb = 0.0
-        for r in range(nr):
-            newa[r] = 0.0
-        for u in range(nu):
+        for i in range(n):
             v = bg
             for r in range(nr):
-                v += amps[r] * gt[u, r]
-            t = kw[u] / v
-            nb += t * bg
-            for r in range(nr):
-                newa[r] += t * amps[r] * gt[u, r]
+                v += amps[r] * gt[2 + r, i]
+            t = gt[0, i] / v
+            gt[1, i] = t
+            nb += t
+        nb = nb * bg + nout
         change = 0.0
         for r in range(nr):
-            na = newa[r] / colsum[shifts[r]]
+            acc = 0.0
+            for i in range(n):
+                acc += gt[1, i] * gt[2 + r, i]
+            na = amps[r] * acc / colsum[shifts[r]]
             change = max(change, abs(na - amps[r]) / max(na, 1e-300))
-            amps[r] = na
+            newa[r] = na
+        for r in range(nr):
+            amps[r] = newa[r]
         nbg = max(nb / m, bg_floor)
         change = max(change, abs(nbg - bg) / nbg)
         bg = nbg
         if change < EM_TOL:
             break
-    for u in range(nu):
-        v = bg
-        for r in range(nr):
-            v += amps[r] * gt[u, r]
-        lam[u] = v
+    model_rate(kb, nu, shifts, amps, nr, bg, g, off, lam)
     return bg
 
 
@@ -263,7 +317,7 @@ def fit_work(n, kmax):
     n = max(n, 1)
     k = max(kmax, 1)
     return (np.empty(n), np.empty(n), np.empty(n, np.int64), np.empty(k, np.int64), np.empty(k), np.empty(k),
-            np.empty(k, np.int64), np.empty(k), np.empty((2, n)), np.empty((n, k)), np.empty(k),
+            np.empty(k, np.int64), np.empty(k), np.empty((2, n)), np.empty((2 + k, n)), np.empty(k),
             np.empty(SCREEN), np.empty(SCREEN, np.int64), np.empty(MEMO, np.int64))
 
 
@@ -324,7 +378,7 @@ def fit_pixel(kb, kw, nu, m, g, off, colsum, dg, kmax, sep_bins, gain_min, cand_
         bj = -1
         ba = 0.0
         for t in range(ns):
-            gn, an = add_gain(top_j[t], kb, kw, nu, lam, g, off, colsum, 0.0, wk)
+            gn, an = add_gain(top_j[t], kb, kw, nu, lam, g, off, colsum, 0.0, best, wk)
             seen[t] = top_j[t]
             if gn > best:
                 best, bj, ba = gn, top_j[t], an
@@ -348,7 +402,7 @@ def fit_pixel(kb, kw, nu, m, g, off, colsum, dg, kmax, sep_bins, gain_min, cand_
                 # the rate without return r
                 tmp_a[r] = 0.0
                 model_rate(kb, nu, tmp_s, tmp_a, nr, bg, g, off, tmp_lam)
-                g0, a0 = add_gain(shifts[r], kb, kw, nu, tmp_lam, g, off, colsum, amps[r], wk)
+                g0, a0 = add_gain(shifts[r], kb, kw, nu, tmp_lam, g, off, colsum, amps[r], 0.0, wk)
                 jn, gn, an = refine_shift(shifts[r], g0, a0, kb, kw, nu, tmp_lam, g, off, colsum, m, 2,
                                           shifts, nr, r, sep_bins, wk, seen, 0)
                 shifts[r] = jn
@@ -530,7 +584,7 @@ def neighbour_surfaces(bins, offsets, h, w, radius, shift_in, gain_in, strong_na
                                 near = True
                         if near:
                             continue
-                        gn, an = add_gain(j, kb, kw, nu, lam, g, off, colsum, 0.0, wk)
+                        gn, an = add_gain(j, kb, kw, nu, lam, g, off, colsum, 0.0, best, wk)
                         if gn > best:
                             best, bj, ba, bc = gn, j, an, c
                 if bc < 0:
