@@ -8,7 +8,14 @@ SCREEN best are scored exactly (amplitude profiled out by Newton on a concave fu
 one is refined by a pattern search over shifts, and kept
 when its gain exceeds ``gain_min`` nats; then every amplitude and the background are refitted by EM
 and every earlier return's shift is re-refined with the others fixed. Plain reference:
-``tests/reference.py::multi_return_ref``.
+``tests/reference.py::multi_return``.
+
+The kernel takes the reference's path step for step (same candidates, same comparisons, same EM
+sweeps); what makes it cheaper leaves every decision unchanged: a shift whose gain an upper bound
+puts below the one to beat is not scored exactly (:func:`add_gain`), a pattern search never scores
+a shift twice (:func:`refine_shift`), Newton starts from the neighbouring shift's amplitude (the
+same root), the log-likelihood is summed as the log of one product, EM looks the response up once
+per refit, and the scratch is allocated once per block of pixels.
 """
 
 from __future__ import annotations
@@ -237,11 +244,11 @@ def model_rate(kb, nu, shifts, amps, nr, bg, g, off, lam):
 @njit(cache=True, nogil=True)
 def em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, lam, sweeps, gt, newa):
     """EM for the amplitudes and background at fixed shifts (monotone in the likelihood); returns bg
-    and leaves lam at the final model. gt (2 + nr, >= nu), newa (>= nr): scratch.
+    and leaves lam at the final model. gt (1 + nr, >= nu), newa (>= nr): scratch.
 
     The shifts being fixed, the response values of the detections under some return are looked up
-    once (gt[2 + r]; gt[0] their weights, gt[1] their weight over the rate); a detection under
-    none has the rate bg, so its share of the background's update is its weight, summed once."""
+    once (gt[1 + r]; gt[0] their weights); a detection under none has the rate bg, so its share of
+    the background's update is its weight, summed once."""
     nk = g.size
     n = 0
     nout = 0.0
@@ -257,24 +264,24 @@ def em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, lam,
         gt[0, n] = kw[u]
         for r in range(nr):
             d = kb[u] - shifts[r] + off
-            gt[2 + r, n] = g[d] if d >= 0 and d < nk else 0.0
+            gt[1 + r, n] = g[d] if d >= 0 and d < nk else 0.0
         n += 1
     for _ in range(sweeps):
         nb = 0.0
+        for r in range(nr):
+            newa[r] = 0.0
         for i in range(n):
             v = bg
             for r in range(nr):
-                v += amps[r] * gt[2 + r, i]
+                v += amps[r] * gt[1 + r, i]
             t = gt[0, i] / v
-            gt[1, i] = t
             nb += t
+            for r in range(nr):
+                newa[r] += t * gt[1 + r, i]
         nb = nb * bg + nout
         change = 0.0
         for r in range(nr):
-            acc = 0.0
-            for i in range(n):
-                acc += gt[1, i] * gt[2 + r, i]
-            na = amps[r] * acc / colsum[shifts[r]]
+            na = amps[r] * newa[r] / colsum[shifts[r]]
             change = max(change, abs(na - amps[r]) / max(na, 1e-300))
             newa[r] = na
         for r in range(nr):
@@ -317,7 +324,7 @@ def fit_work(n, kmax):
     n = max(n, 1)
     k = max(kmax, 1)
     return (np.empty(n), np.empty(n), np.empty(n, np.int64), np.empty(k, np.int64), np.empty(k), np.empty(k),
-            np.empty(k, np.int64), np.empty(k), np.empty((2, n)), np.empty((2 + k, n)), np.empty(k),
+            np.empty(k, np.int64), np.empty(k), np.empty((2, n)), np.empty((1 + k, n)), np.empty(k),
             np.empty(SCREEN), np.empty(SCREEN, np.int64), np.empty(MEMO, np.int64))
 
 
