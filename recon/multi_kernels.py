@@ -10,12 +10,12 @@ when its gain exceeds ``gain_min`` nats; then every amplitude and the background
 and every earlier return's shift is re-refined with the others fixed. Plain reference:
 ``tests/reference.py::multi_return``.
 
-The kernel takes the reference's path step for step (same candidates, same comparisons, same EM
-sweeps); what makes it cheaper leaves every decision unchanged: a shift whose gain an upper bound
-puts below the one to beat is not scored exactly (:func:`add_gain`), a pattern search never scores
-a shift twice (:func:`refine_shift`), Newton starts from the neighbouring shift's amplitude (the
-same root), the log-likelihood is summed as the log of one product, EM looks the response up once
-per refit, and the scratch is allocated once per block of pixels.
+The kernel takes the reference's path step for step, with the same arithmetic for every value it
+keeps or compares (same candidates, Newton starts and steps, EM sweeps: on the real two-surface file
+its output is bit for bit the earlier kernel's); what makes it cheaper leaves every decision
+unchanged: a shift whose gain an upper bound puts below the one to beat is not scored exactly
+(:func:`add_gain`), a pattern search never scores a shift twice (:func:`refine_shift`), EM looks
+the response up once per refit, and the scratch is allocated once per block of pixels.
 """
 
 from __future__ import annotations
@@ -61,28 +61,28 @@ def first_at_least(kb, nu, v):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def slopes(a, wk, n):
-    """(sum w q, sum w q^2) with q = r / (1 + a r) over the gathered ratios r = wk[0, :n] and weights
-    w = wk[1, :n]: the gain's slope is the first minus colsum, its curvature minus the second."""
-    s1 = 0.0
-    s2 = 0.0
+def slopes(a, c, wk, n):
+    """(f'(a), f''(a)) of the gain f of a return of column sum c over the gathered detections
+    under it: wk[0, :n] the response values g_u, wk[1, :n] the counts, wk[2, :n] the rates."""
+    f1 = -c
+    f2 = 0.0
     for i in range(n):
-        q = wk[0, i] / (1.0 + a * wk[0, i])
-        s1 += wk[1, i] * q
-        s2 += wk[1, i] * q * q
-    return s1, s2
+        q = wk[0, i] / (wk[2, i] + a * wk[0, i])
+        f1 += wk[1, i] * q
+        f2 -= wk[1, i] * q * q
+    return f1, f2
 
 
 @njit(cache=True, nogil=True, inline="always")
-def log_sum(a, wk, n):
-    """sum_i w_i log(1 + a r_i) over wk as the log of one product (one log instead of one per
-    detection; the weights are counts, whole numbers), rescaled by exact powers of 2 so that it
-    stays in range: every factor is >= 1, so the error is a few ulp per factor in absolute terms,
-    far below any difference of gains compared."""
+def log_sum_bound(a, wk, n):
+    """sum_i w_i log(1 + a g_i / lam_i) over wk, fast, for add_gain's bound only: the log of one
+    product (one log instead of one per detection; the weights are counts, whole numbers), rescaled
+    by exact powers of 2 so that it stays in range. Every factor is >= 1, so it is off by a few ulp
+    per factor in absolute terms, far below BAR_MARGIN."""
     prod = 1.0
     e2 = 0
     for i in range(n):
-        f = 1.0 + a * wk[0, i]
+        f = 1.0 + a * wk[0, i] / wk[2, i]
         for _ in range(int(wk[1, i])):
             prod *= f
             if prod > PROD_RESCALE:
@@ -94,20 +94,19 @@ def log_sum(a, wk, n):
 @njit(cache=True, nogil=True)
 def add_gain(j, kb, kw, nu, lam, g, off, colsum, a0, bar, wk):
     """(gain, amplitude) of adding a return at shift j to the model whose rate at the photons' bins is
-    lam: ``max_a f(a) = sum_u kw_u log(1 + a g_u / lam_u) - a colsum[j]`` over a >= 0 (nats). Only
-    the detections under the pulse (kb sorted) enter. wk: scratch (2, >= nu).
+    lam: ``max_a f(a) = sum_u kw_u log(1 + a g_u / lam_u) - a colsum[j]`` over a >= 0 (nats), by
+    Newton from a = (detections under the pulse) / colsum[j]. Only the detections under the pulse
+    (kb sorted) enter. wk: scratch (3, >= nu).
 
-    a0 > 0: Newton starts there (a neighbouring shift's amplitude: fewer steps to the same root),
-    else at the detections under the pulse over colsum[j]. bar: the caller only wants a gain above
-    it; when an upper bound on the gain is below it by more than rounding (:data:`BAR_MARGIN`),
-    that bound is returned instead (so a ``gain > bar`` test gives what the exact gain would).
-
-    The bound, from f at the start a0 (f concave, its curvature -sum w q^2 shrinking as a grows):
-    when f'(a0) <= 0 the optimum a* is below a0, where the curvature is at least f''(a0)'s, so
-    ``f(a*) <= f(a0) + f'(a0)^2 / (2 |f''(a0)|)``; when f'(a0) > 0, Jensen on the concave
-    q / (1 + d q) gives ``f'(a0 + d) <= S1 / (1 + d S1 / N) - c`` (S1 = f'(a0) + c, N the
-    detections under the pulse), so a* <= a0 + N f'(a0) / (c S1) and, f lying under its tangent,
-    ``f(a*) <= f(a0) + N f'(a0)^2 / (c S1)``."""
+    bar: the caller only wants a gain above it (a ``gain > bar`` test); when an upper bound on the
+    gain is below it by more than rounding (:data:`BAR_MARGIN`), that bound is returned instead of
+    the exact gain, which the test would have rejected too. The bound, from f at a1 (a0, a
+    neighbouring shift's amplitude, when > 0; f concave, its curvature -sum w q^2 shrinking as a
+    grows): when f'(a1) <= 0 the optimum a* is below a1, where the curvature is at least f''(a1)'s,
+    so ``f(a*) <= f(a1) + f'(a1)^2 / (2 |f''(a1)|)``; when f'(a1) > 0, Jensen on the concave
+    q / (1 + d q) gives ``f'(a1 + d) <= S1 / (1 + d S1 / N) - c`` (S1 = f'(a1) + c, N the
+    detections under the pulse), so a* <= a1 + N f'(a1) / (c S1) and, f lying under its tangent,
+    ``f(a*) <= f(a1) + N f'(a1)^2 / (c S1)``."""
     nk = g.size
     lo = j - off
     hi = lo + nk
@@ -116,37 +115,34 @@ def add_gain(j, kb, kw, nu, lam, g, off, colsum, a0, bar, wk):
         return 0.0, 0.0
     u0 = first_at_least(kb, nu, lo)
     u1 = first_at_least(kb, nu, hi)
-    # slope at a = 0 and a start: the detections under the pulse, gathered once for the Newton steps
+    # slope at a = 0 and the start: the detections under the pulse, gathered once for the Newton steps
     d0 = -c
     nin = 0.0
     n = 0
     for u in range(u0, u1):
         gu = g[kb[u] - lo]
         if gu > 0.0:
-            r = gu / lam[u]
-            wk[0, n] = r
+            wk[0, n] = gu
             wk[1, n] = kw[u]
+            wk[2, n] = lam[u]
             n += 1
-            d0 += kw[u] * r
+            d0 += kw[u] * gu / lam[u]
             nin += kw[u]
     if d0 <= 0.0:
         return 0.0, 0.0
-    a = a0 if a0 > 0.0 else max(nin / c, 1e-6)
-    s1, s2 = slopes(a, wk, n)
+    a = max(nin / c, 1e-6)
     if bar > 0.0:
-        fa = log_sum(a, wk, n) - a * c
-        f1 = s1 - c
+        a1 = a0 if a0 > 0.0 else a
+        f1, f2 = slopes(a1, c, wk, n)
+        fa = log_sum_bound(a1, wk, n) - a1 * c
         if f1 <= 0.0:
-            ub = fa + f1 * f1 / (2.0 * s2) if s2 > 0.0 else np.inf
+            ub = fa + f1 * f1 / (-2.0 * f2) if f2 < 0.0 else np.inf
         else:
-            ub = fa + nin * f1 * f1 / (c * s1)
+            ub = fa + nin * f1 * f1 / (c * (f1 + c))
         if ub < bar - BAR_MARGIN * (1.0 + bar):
-            return ub, a
-    for it in range(NEWTON_STEPS):
-        if it > 0:
-            s1, s2 = slopes(a, wk, n)
-        f1 = s1 - c
-        f2 = -s2
+            return ub, a1
+    for _ in range(NEWTON_STEPS):
+        f1, f2 = slopes(a, c, wk, n)
         if f2 >= 0.0:
             break
         na = a - f1 / f2
@@ -156,7 +152,10 @@ def add_gain(j, kb, kw, nu, lam, g, off, colsum, a0, bar, wk):
             a = na
             break
         a = na
-    return log_sum(a, wk, n) - a * c, a
+    gain = -a * c
+    for i in range(n):
+        gain += wk[1, i] * math.log1p(a * wk[0, i] / wk[2, i])
+    return gain, a
 
 
 @njit(cache=True, nogil=True)
@@ -244,48 +243,30 @@ def model_rate(kb, nu, shifts, amps, nr, bg, g, off, lam):
 @njit(cache=True, nogil=True)
 def em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, lam, sweeps, gt, newa):
     """EM for the amplitudes and background at fixed shifts (monotone in the likelihood); returns bg
-    and leaves lam at the final model. gt (1 + nr, >= nu), newa (>= nr): scratch.
-
-    The shifts being fixed, the response values of the detections under some return are looked up
-    once (gt[1 + r]; gt[0] their weights); a detection under none has the rate bg, so its share of
-    the background's update is its weight, summed once."""
+    and leaves lam at the final model. gt (>= nr, >= nu), newa (>= nr): scratch; the shifts being
+    fixed, every detection's response values are looked up once into gt, not once per sweep (zero
+    outside a return's reach, which adds nothing)."""
     nk = g.size
-    n = 0
-    nout = 0.0
-    for u in range(nu):
-        inside = False
-        for r in range(nr):
+    for r in range(nr):
+        for u in range(nu):
             d = kb[u] - shifts[r] + off
-            if d >= 0 and d < nk and g[d] != 0.0:
-                inside = True
-        if not inside:
-            nout += kw[u]
-            continue
-        gt[0, n] = kw[u]
-        for r in range(nr):
-            d = kb[u] - shifts[r] + off
-            gt[1 + r, n] = g[d] if d >= 0 and d < nk else 0.0
-        n += 1
+            gt[r, u] = g[d] if d >= 0 and d < nk else 0.0
     for _ in range(sweeps):
         nb = 0.0
         for r in range(nr):
             newa[r] = 0.0
-        for i in range(n):
+        for u in range(nu):
             v = bg
             for r in range(nr):
-                v += amps[r] * gt[1 + r, i]
-            t = gt[0, i] / v
-            nb += t
+                v += amps[r] * gt[r, u]
+            nb += kw[u] * bg / v
             for r in range(nr):
-                newa[r] += t * gt[1 + r, i]
-        nb = nb * bg + nout
+                newa[r] += kw[u] * amps[r] * gt[r, u] / v
         change = 0.0
         for r in range(nr):
-            na = amps[r] * newa[r] / colsum[shifts[r]]
+            na = newa[r] / colsum[shifts[r]]
             change = max(change, abs(na - amps[r]) / max(na, 1e-300))
-            newa[r] = na
-        for r in range(nr):
-            amps[r] = newa[r]
+            amps[r] = na
         nbg = max(nb / m, bg_floor)
         change = max(change, abs(nbg - bg) / nbg)
         bg = nbg
@@ -324,7 +305,7 @@ def fit_work(n, kmax):
     n = max(n, 1)
     k = max(kmax, 1)
     return (np.empty(n), np.empty(n), np.empty(n, np.int64), np.empty(k, np.int64), np.empty(k), np.empty(k),
-            np.empty(k, np.int64), np.empty(k), np.empty((2, n)), np.empty((1 + k, n)), np.empty(k),
+            np.empty(k, np.int64), np.empty(k), np.empty((3, n)), np.empty((k, n)), np.empty(k),
             np.empty(SCREEN), np.empty(SCREEN, np.int64), np.empty(MEMO, np.int64))
 
 
