@@ -8,7 +8,14 @@ SCREEN best are scored exactly (amplitude profiled out by Newton on a concave fu
 one is refined by a pattern search over shifts, and kept
 when its gain exceeds ``gain_min`` nats; then every amplitude and the background are refitted by EM
 and every earlier return's shift is re-refined with the others fixed. Plain reference:
-``tests/reference.py::multi_return_ref``.
+``tests/reference.py::multi_return``.
+
+The kernel takes the reference's path step for step, with the same arithmetic for every value it
+keeps or compares (same candidates, Newton starts and steps, EM sweeps: on the real two-surface file
+its output is bit for bit the earlier kernel's); what makes it cheaper leaves every decision
+unchanged: a shift whose gain an upper bound puts below the one to beat is not scored exactly
+(:func:`add_gain`), a pattern search never scores a shift twice (:func:`refine_shift`), EM looks
+the response up once per refit, and the scratch is allocated once per block of pixels.
 """
 
 from __future__ import annotations
@@ -30,6 +37,14 @@ EM_SWEEPS = 12
 EM_TOL = 1e-7
 #: candidates scored exactly per round: the best by the second-order screen (screen_score).
 SCREEN = 4
+#: shifts a pattern search remembers as scored (refine_shift); more are scored again (same result).
+MEMO = 32
+#: add_gain's running product of factors >= 1 is rescaled (exactly, by a power of 2) above this.
+PROD_RESCALE = 2.0 ** 512
+LN2 = math.log(2.0)
+#: add_gain's bound must be below the bar by this (relative) to skip the exact gain: far more than
+#: the rounding of either, so the skip never changes a comparison.
+BAR_MARGIN = 1e-9
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -45,11 +60,53 @@ def first_at_least(kb, nu, v):
     return a
 
 
+@njit(cache=True, nogil=True, inline="always")
+def slopes(a, c, wk, n):
+    """(f'(a), f''(a)) of the gain f of a return of column sum c over the gathered detections
+    under it: wk[0, :n] the response values g_u, wk[1, :n] the counts, wk[2, :n] the rates."""
+    f1 = -c
+    f2 = 0.0
+    for i in range(n):
+        q = wk[0, i] / (wk[2, i] + a * wk[0, i])
+        f1 += wk[1, i] * q
+        f2 -= wk[1, i] * q * q
+    return f1, f2
+
+
+@njit(cache=True, nogil=True, inline="always")
+def log_sum_bound(a, wk, n):
+    """sum_i w_i log(1 + a g_i / lam_i) over wk, fast, for add_gain's bound only: the log of one
+    product (one log instead of one per detection; the weights are counts, whole numbers), rescaled
+    by exact powers of 2 so that it stays in range. Every factor is >= 1, so it is off by a few ulp
+    per factor in absolute terms, far below BAR_MARGIN."""
+    prod = 1.0
+    e2 = 0
+    for i in range(n):
+        f = 1.0 + a * wk[0, i] / wk[2, i]
+        for _ in range(int(wk[1, i])):
+            prod *= f
+            if prod > PROD_RESCALE:
+                prod, e = math.frexp(prod)
+                e2 += e
+    return math.log(prod) + e2 * LN2
+
+
 @njit(cache=True, nogil=True)
-def add_gain(j, kb, kw, nu, lam, g, off, colsum):
+def add_gain(j, kb, kw, nu, lam, g, off, colsum, a0, bar, wk):
     """(gain, amplitude) of adding a return at shift j to the model whose rate at the photons' bins is
-    lam: ``max_a sum_u kw_u log(1 + a g_u / lam_u) - a colsum[j]`` over a >= 0 (nats). Only the
-    detections under the pulse (kb sorted) enter."""
+    lam: ``max_a f(a) = sum_u kw_u log(1 + a g_u / lam_u) - a colsum[j]`` over a >= 0 (nats), by
+    Newton from a = (detections under the pulse) / colsum[j]. Only the detections under the pulse
+    (kb sorted) enter. wk: scratch (3, >= nu).
+
+    bar: the caller only wants a gain above it (a ``gain > bar`` test); when an upper bound on the
+    gain is below it by more than rounding (:data:`BAR_MARGIN`), that bound is returned instead of
+    the exact gain, which the test would have rejected too. The bound, from f at a1 (a0, a
+    neighbouring shift's amplitude, when > 0; f concave, its curvature -sum w q^2 shrinking as a
+    grows): when f'(a1) <= 0 the optimum a* is below a1, where the curvature is at least f''(a1)'s,
+    so ``f(a*) <= f(a1) + f'(a1)^2 / (2 |f''(a1)|)``; when f'(a1) > 0, Jensen on the concave
+    q / (1 + d q) gives ``f'(a1 + d) <= S1 / (1 + d S1 / N) - c`` (S1 = f'(a1) + c, N the
+    detections under the pulse), so a* <= a1 + N f'(a1) / (c S1) and, f lying under its tangent,
+    ``f(a*) <= f(a1) + N f'(a1)^2 / (c S1)``."""
     nk = g.size
     lo = j - off
     hi = lo + nk
@@ -58,26 +115,34 @@ def add_gain(j, kb, kw, nu, lam, g, off, colsum):
         return 0.0, 0.0
     u0 = first_at_least(kb, nu, lo)
     u1 = first_at_least(kb, nu, hi)
-    # slope at a = 0 and a start: the detections under the pulse
+    # slope at a = 0 and the start: the detections under the pulse, gathered once for the Newton steps
     d0 = -c
     nin = 0.0
+    n = 0
     for u in range(u0, u1):
         gu = g[kb[u] - lo]
         if gu > 0.0:
+            wk[0, n] = gu
+            wk[1, n] = kw[u]
+            wk[2, n] = lam[u]
+            n += 1
             d0 += kw[u] * gu / lam[u]
             nin += kw[u]
     if d0 <= 0.0:
         return 0.0, 0.0
     a = max(nin / c, 1e-6)
+    if bar > 0.0:
+        a1 = a0 if a0 > 0.0 else a
+        f1, f2 = slopes(a1, c, wk, n)
+        fa = log_sum_bound(a1, wk, n) - a1 * c
+        if f1 <= 0.0:
+            ub = fa + f1 * f1 / (-2.0 * f2) if f2 < 0.0 else np.inf
+        else:
+            ub = fa + nin * f1 * f1 / (c * (f1 + c))
+        if ub < bar - BAR_MARGIN * (1.0 + bar):
+            return ub, a1
     for _ in range(NEWTON_STEPS):
-        f1 = -c
-        f2 = 0.0
-        for u in range(u0, u1):
-            gu = g[kb[u] - lo]
-            if gu > 0.0:
-                q = gu / (lam[u] + a * gu)
-                f1 += kw[u] * q
-                f2 -= kw[u] * q * q
+        f1, f2 = slopes(a, c, wk, n)
         if f2 >= 0.0:
             break
         na = a - f1 / f2
@@ -88,10 +153,8 @@ def add_gain(j, kb, kw, nu, lam, g, off, colsum):
             break
         a = na
     gain = -a * c
-    for u in range(u0, u1):
-        gu = g[kb[u] - lo]
-        if gu > 0.0:
-            gain += kw[u] * math.log1p(a * gu / lam[u])
+    for i in range(n):
+        gain += wk[1, i] * math.log1p(a * wk[0, i] / wk[2, i])
     return gain, a
 
 
@@ -122,9 +185,18 @@ def screen_score(j, kb, kw, nu, ilam, g, off, colsum):
 
 
 @njit(cache=True, nogil=True)
-def refine_shift(j, best, amp, kb, kw, nu, lam, g, off, colsum, m, step0, shifts, nr, skip, sep_bins):
+def refine_shift(j, best, amp, kb, kw, nu, lam, g, off, colsum, m, step0, shifts, nr, skip, sep_bins, wk, seen,
+                 nseen):
     """Pattern search (steps step0, step0/2, ..., 1 bins) for the shift of most gain from j, never
-    within sep_bins of shifts[:nr] (but shifts[skip])."""
+    within sep_bins of shifts[:nr] (but shifts[skip]).
+
+    seen[:nseen]: shifts whose gain on this lam is known not to exceed ``best`` (scored before the
+    search). A shift scored once is never scored again: it was either below the best at the time or
+    the best that the search left for a higher one, and the best only grows, so it could not be taken
+    (the search moves on a strictly higher gain): skipping it leaves the path unchanged."""
+    if nseen < seen.size:
+        seen[nseen] = j
+        nseen += 1
     step = step0
     while step >= 1:
         moved = True
@@ -138,9 +210,15 @@ def refine_shift(j, best, amp, kb, kw, nu, lam, g, off, colsum, m, step0, shifts
                 for r in range(nr):
                     if r != skip and abs(jj - shifts[r]) < sep_bins:
                         near = True
+                for i in range(nseen):
+                    if seen[i] == jj:
+                        near = True
                 if near:
                     continue
-                gn, an = add_gain(jj, kb, kw, nu, lam, g, off, colsum)
+                gn, an = add_gain(jj, kb, kw, nu, lam, g, off, colsum, amp, best, wk)
+                if nseen < seen.size:
+                    seen[nseen] = jj
+                    nseen += 1
                 if gn > best:
                     best, amp, j = gn, an, jj
                     moved = True
@@ -163,22 +241,27 @@ def model_rate(kb, nu, shifts, amps, nr, bg, g, off, lam):
 
 
 @njit(cache=True, nogil=True)
-def em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, lam, sweeps):
+def em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, lam, sweeps, gt, newa):
     """EM for the amplitudes and background at fixed shifts (monotone in the likelihood); returns bg
-    and leaves lam at the final model."""
+    and leaves lam at the final model. gt (>= nr, >= nu), newa (>= nr): scratch; the shifts being
+    fixed, every detection's response values are looked up once into gt, not once per sweep (zero
+    outside a return's reach, which adds nothing)."""
     nk = g.size
-    newa = np.empty(max(nr, 1))
+    for r in range(nr):
+        for u in range(nu):
+            d = kb[u] - shifts[r] + off
+            gt[r, u] = g[d] if d >= 0 and d < nk else 0.0
     for _ in range(sweeps):
-        model_rate(kb, nu, shifts, amps, nr, bg, g, off, lam)
         nb = 0.0
         for r in range(nr):
             newa[r] = 0.0
         for u in range(nu):
-            nb += kw[u] * bg / lam[u]
+            v = bg
             for r in range(nr):
-                d = kb[u] - shifts[r] + off
-                if d >= 0 and d < nk:
-                    newa[r] += kw[u] * amps[r] * g[d] / lam[u]
+                v += amps[r] * gt[r, u]
+            nb += kw[u] * bg / v
+            for r in range(nr):
+                newa[r] += kw[u] * amps[r] * gt[r, u] / v
         change = 0.0
         for r in range(nr):
             na = newa[r] / colsum[shifts[r]]
@@ -215,10 +298,23 @@ def shift_fisher(r, shifts, amps, nr, bg, g, dg, off, m):
 
 
 @njit(cache=True, nogil=True)
-def fit_pixel(kb, kw, nu, m, g, off, colsum, dg, kmax, sep_bins, gain_min, cand_step, step0, dpk,
-              lam, cand, shifts, amps, gains, tmp_s, tmp_a, tmp_lam):
+def fit_work(n, kmax):
+    """Scratch of :func:`fit_pixel` for up to n distinct bins and kmax returns, allocated once per
+    block of pixels: (lam, tmp_lam, cand, shifts, amps, gains, tmp_s, tmp_a, wk, gt, newa, top_s,
+    top_j, seen)."""
+    n = max(n, 1)
+    k = max(kmax, 1)
+    return (np.empty(n), np.empty(n), np.empty(n, np.int64), np.empty(k, np.int64), np.empty(k), np.empty(k),
+            np.empty(k, np.int64), np.empty(k), np.empty((3, n)), np.empty((k, n)), np.empty(k),
+            np.empty(SCREEN), np.empty(SCREEN, np.int64), np.empty(MEMO, np.int64))
+
+
+@njit(cache=True, nogil=True)
+def fit_pixel(kb, kw, nu, m, g, off, colsum, dg, kmax, sep_bins, gain_min, cand_step, step0, dpk, work):
     """Greedy K-return fit of one pixel's unique bins (kb, kw); returns (nr, bg): shifts[:nr] (sorted),
-    amps[:nr], gains[:nr] (nats each return added when it was taken)."""
+    amps[:nr], gains[:nr] (nats each return added when it was taken), the arrays of ``work``
+    (:func:`fit_work`, its 4th to 6th)."""
+    lam, tmp_lam, cand, shifts, amps, gains, tmp_s, tmp_a, wk, gt, newa, top_s, top_j, seen = work
     ntot = 0.0
     for u in range(nu):
         ntot += kw[u]
@@ -238,8 +334,6 @@ def fit_pixel(kb, kw, nu, m, g, off, colsum, dg, kmax, sep_bins, gain_min, cand_
             cand[nc] = j
             nc += 1
     nr = 0
-    top_s = np.empty(SCREEN)
-    top_j = np.empty(SCREEN, np.int64)
     while nr < kmax:
         # the SCREEN best candidates by the second-order screen, then their exact gains
         for u in range(nu):
@@ -272,20 +366,21 @@ def fit_pixel(kb, kw, nu, m, g, off, colsum, dg, kmax, sep_bins, gain_min, cand_
         bj = -1
         ba = 0.0
         for t in range(ns):
-            gn, an = add_gain(top_j[t], kb, kw, nu, lam, g, off, colsum)
+            gn, an = add_gain(top_j[t], kb, kw, nu, lam, g, off, colsum, 0.0, best, wk)
+            seen[t] = top_j[t]
             if gn > best:
                 best, bj, ba = gn, top_j[t], an
         if bj < 0:
             break
         bj, best, ba = refine_shift(bj, best, ba, kb, kw, nu, lam, g, off, colsum, m, step0, shifts, nr, -1,
-                                    sep_bins)
+                                    sep_bins, wk, seen, ns)
         if not best > gain_min:
             break
         shifts[nr] = bj
         amps[nr] = ba
         gains[nr] = best
         nr += 1
-        bg = em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, lam, EM_SWEEPS)
+        bg = em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, lam, EM_SWEEPS, gt, newa)
         if nr > 1:
             # re-refine each shift with the others (and the background) fixed
             for r in range(nr):
@@ -295,12 +390,12 @@ def fit_pixel(kb, kw, nu, m, g, off, colsum, dg, kmax, sep_bins, gain_min, cand_
                 # the rate without return r
                 tmp_a[r] = 0.0
                 model_rate(kb, nu, tmp_s, tmp_a, nr, bg, g, off, tmp_lam)
-                g0, a0 = add_gain(shifts[r], kb, kw, nu, tmp_lam, g, off, colsum)
+                g0, a0 = add_gain(shifts[r], kb, kw, nu, tmp_lam, g, off, colsum, amps[r], 0.0, wk)
                 jn, gn, an = refine_shift(shifts[r], g0, a0, kb, kw, nu, tmp_lam, g, off, colsum, m, 2,
-                                          shifts, nr, r, sep_bins)
+                                          shifts, nr, r, sep_bins, wk, seen, 0)
                 shifts[r] = jn
                 amps[r] = an
-            bg = em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, lam, EM_SWEEPS)
+            bg = em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, lam, EM_SWEEPS, gt, newa)
     # sort by shift
     for a in range(1, nr):
         vs, va, vg = shifts[a], amps[a], gains[a]
@@ -333,14 +428,8 @@ def multi_return_kernel(bins, offsets, m, g, off, colsum, dg, kmax, sep_bins, ga
         tmp = np.empty(n1, np.int64)
         kb = np.empty(n1, np.int64)
         kw = np.empty(n1, np.float64)
-        lam = np.empty(n1)
-        tmp_lam = np.empty(n1)
-        cand = np.empty(n1, np.int64)
-        shifts = np.empty(kmax, np.int64)
-        amps = np.empty(kmax)
-        gains = np.empty(kmax)
-        tmp_s = np.empty(kmax, np.int64)
-        tmp_a = np.empty(kmax)
+        work = fit_work(n1, kmax)
+        shifts, amps, gains = work[3], work[4], work[5]
         for p in range(blk * BLOCK, min(npix, (blk + 1) * BLOCK)):
             o0 = offsets[p]
             o1 = offsets[p + 1]
@@ -355,7 +444,7 @@ def multi_return_kernel(bins, offsets, m, g, off, colsum, dg, kmax, sep_bins, ga
                 out_bg[p] = 0.0
                 continue
             nr, bg = fit_pixel(kb, kw, nu, m, g, off, colsum, dg, kmax, sep_bins, gain_min, cand_step,
-                               step0, dpk, lam, cand, shifts, amps, gains, tmp_s, tmp_a, tmp_lam)
+                               step0, dpk, work)
             out_bg[p] = bg
             for r in range(nr):
                 out_shift[p, r] = shifts[r]
@@ -401,23 +490,16 @@ def neighbour_surfaces(bins, offsets, h, w, radius, shift_in, gain_in, strong_na
         ptmp = np.empty(npool, np.int64)
         pkb = np.empty(npool, np.int64)
         pkw = np.empty(npool, np.float64)
-        plam = np.empty(npool)
-        ptl = np.empty(npool)
-        pcand = np.empty(npool, np.int64)
+        pwork = fit_work(npool, kpool)
+        pshift, pamp = pwork[3], pwork[4]
         tmp = np.empty(n1, np.int64)
         kb = np.empty(n1, np.int64)
         kw = np.empty(n1, np.float64)
-        lam = np.empty(n1)
-        pshift = np.empty(kpool, np.int64)
-        pamp = np.empty(kpool)
-        pgain = np.empty(kpool)
-        ptsa = np.empty(kpool, np.int64)
-        ptaa = np.empty(kpool)
+        work = fit_work(n1, kmax)
+        lam, shifts, amps, gains, wk, gt, newa, seen = work[0], work[3], work[4], work[5], work[8], work[9], \
+            work[10], work[13]
         cand = np.empty(kk + kpool, np.int64)
         csrc = np.empty(kk + kpool, np.int64)
-        shifts = np.empty(kmax, np.int64)
-        amps = np.empty(kmax)
-        gains = np.empty(kmax)
         src = np.empty(kmax, np.int64)
         for p in range(blk * BLOCK, min(npix, (blk + 1) * BLOCK)):
             o0 = offsets[p]
@@ -447,7 +529,7 @@ def neighbour_surfaces(bins, offsets, h, w, radius, shift_in, gain_in, strong_na
                         n += 1
             pnu = unique_counts(pbins, 0, n, ptmp, pkb, pkw)
             npr, _ = fit_pixel(pkb, pkw, pnu, m, g, off, colsum, dg, kpool, sep_bins, pool_nats, cand_step,
-                               step0, dpk, plam, pcand, pshift, pamp, pgain, ptsa, ptaa, ptl)
+                               step0, dpk, pwork)
             # 2. candidates: own strong surfaces, then pooled ones by amplitude
             nc = 0
             for r in range(kk):
@@ -490,13 +572,13 @@ def neighbour_surfaces(bins, offsets, h, w, radius, shift_in, gain_in, strong_na
                                 near = True
                         if near:
                             continue
-                        gn, an = add_gain(j, kb, kw, nu, lam, g, off, colsum)
+                        gn, an = add_gain(j, kb, kw, nu, lam, g, off, colsum, 0.0, best, wk)
                         if gn > best:
                             best, bj, ba, bc = gn, j, an, c
                 if bc < 0:
                     break
                 bj, best, ba = refine_shift(bj, best, ba, kb, kw, nu, lam, g, off, colsum, m, step0, shifts, nr,
-                                            -1, sep_bins)
+                                            -1, sep_bins, wk, seen, 0)
                 c = bc
                 # every candidate within sep of the one taken is spent
                 for d in range(nc):
@@ -509,7 +591,7 @@ def neighbour_surfaces(bins, offsets, h, w, radius, shift_in, gain_in, strong_na
                 src[nr] = csrc[c]
                 csrc[c] = -1
                 nr += 1
-                bg = em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, lam, EM_SWEEPS)
+                bg = em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, lam, EM_SWEEPS, gt, newa)
             # sort by shift
             for a in range(1, nr):
                 vs, va, vg, vc = shifts[a], amps[a], gains[a], src[a]
