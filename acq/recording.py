@@ -268,7 +268,7 @@ class ReplaySource:
 
     def _read_event_log(self):
         """(passes as [first record, geometry, record where the session stopped using its
-        stream or None], lost spans, whether the log ends with the session's end: None without
+        stream or None, lost spans the session had received by then or None], lost spans, whether the log ends with the session's end: None without
         a log)."""
         passes: list[list] = []
         lost: list[dict] = []
@@ -286,9 +286,10 @@ class ReplaySource:
                     raise RecordingError(f"{self.events_path}, line {n}: not JSON") from None
                 kind = e.get("event")
                 if kind == "pass" and e.get("record") is not None:
-                    passes.append([int(e["record"]), PassGeometry(**e["geometry"]), None])
+                    passes.append([int(e["record"]), PassGeometry(**e["geometry"]), None, None])
                 elif kind == "pass_end" and passes and passes[-1][2] is None:
                     passes[-1][2] = int(e["record"])
+                    passes[-1][3] = e.get("lost_end")
                 elif kind == "lost":
                     lost.append(e)
                 ended = kind == "state" and e.get("state") in _END_STATES
@@ -333,31 +334,37 @@ class ReplaySource:
         runs each pass up to the next one, the first from record 0."""
         n = self.info.n_records
         if self._passes:
-            starts = [max(0, min(r, n)) for r, _, _ in self._passes]
-            geoms = [g for _, g, _ in self._passes]
-            logged_ends = [e for _, _, e in self._passes]
+            starts = [max(0, min(r, n)) for r, _, _, _ in self._passes]
+            geoms = [g for _, g, _, _ in self._passes]
+            logged_ends = [e for _, _, e, _ in self._passes]
+            lost_ends = [k for _, _, _, k in self._passes]
             if all(e is None for e in logged_ends):
                 starts[0] = 0             # records before the first pass are idle stream
         else:
             starts, geoms, logged_ends = [0], [PassGeometry.full(self.info.shape)], [None]
+            lost_ends = [None]
         nexts = starts[1:] + [n]
         ends = [nx if e is None else max(a, min(e, nx))
                 for a, e, nx in zip(starts, logged_ends, nexts)]
         decoder = _Decoder(self._lut, self._lost)
-        for g, a, b in zip(geoms, starts, ends):
-            yield g, self._chunks(decoder, a, b)
+        for g, a, b, k in zip(geoms, starts, ends, lost_ends):
+            yield g, self._chunks(decoder, a, b, k)
 
     def _skip_to(self, decoder: "_Decoder", a: int) -> None:
         """Decode the records up to ``a`` and drop their events (the T3 sync count runs on
         through them, as it did in the live reader)."""
+        decoder.lost_limit = None
         for records in iter_records(self.layout, self.chunk_records, start=decoder.position):
             take = min(records.size, a - decoder.position)
             if take <= 0:
                 break
             decoder.decode(np.asarray(records[:take]))
 
-    def _chunks(self, decoder: "_Decoder", a: int, b: int):
+    def _chunks(self, decoder: "_Decoder", a: int, b: int, lost_end: int | None = None):
         self._skip_to(decoder, a)
+        # a lost span logged at the pass's last record that reached the live session only after
+        # the pass ended (``pass_end``'s lost_end) was left out there: here too
+        decoder.lost_limit = lost_end
         if b <= a:
             return
         pace = self.speed not in ("max", None)
@@ -404,8 +411,10 @@ class _Decoder:
         self._out = np.empty(0, dtype=EVENT_DTYPE)
         self.state = T3DecoderState()
         self.position = 0
-        self._lost = sorted(lost, key=lambda e: int(e["record"]))
+        self._lost = sorted(lost, key=lambda e: int(e["record"]))     # stable: log order
         self._next = 0
+        self.lost_limit: int | None = None
+        """Put back only the first this many lost spans of the log (None: all in reach)."""
 
     def decode(self, records: np.ndarray) -> np.ndarray:
         """Events of ``records`` (the next records of the file). The result is a view of a buffer
@@ -416,7 +425,8 @@ class _Decoder:
         parts = []
         start = used = 0
         end = self.position + records.size
-        while self._next < len(self._lost) and int(self._lost[self._next]["record"]) <= end:
+        while self._next < len(self._lost) and int(self._lost[self._next]["record"]) <= end \
+                and (self.lost_limit is None or self._next < self.lost_limit):
             e = self._lost[self._next]
             cut = int(e["record"]) - self.position
             if cut >= start:

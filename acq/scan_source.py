@@ -15,12 +15,15 @@ import threading
 import time
 from typing import Iterable
 
+import numpy as np
+
 from spdepth.acq.assign import PassGeometry
 from spdepth.acq.flags import AcqFlag
 from spdepth.acq.plan import pass_regions
 from spdepth.acq.recording import Recorder
 from spdepth.acq.sources import RETRIED, FaultRecord, SourceHost
 from spdepth.drivers.errors import DeviceError
+from spdepth.drivers.events import EventKind
 
 log = logging.getLogger(__name__)
 
@@ -62,6 +65,7 @@ class ScanSource:
         self.first_read_t = None
         self._host: SourceHost | None = None
         self._lost_in_pass = False              # a lost span arrived during the current pass
+        self._losts_received = 0                # LOST events in every chunk taken, used or not
         self._seen_reconnects = (0, 0, 0)       # galvo, tagger reconnects, tagger restarts
         self._galvo_faults = 0
         self._lock = threading.Lock()
@@ -156,6 +160,8 @@ class ScanSource:
             if chunk is None:
                 raise DeviceError("the time tagger's stream ended during the scan")
             now = time.monotonic()
+            if chunk.size:
+                self._losts_received += int(np.count_nonzero(chunk["kind"] == EventKind.LOST))
             if chunk.size and start is not None and reader.recorded_through is not None \
                     and reader.recorded_through <= start:
                 # recorded before this pass began: the tail of the last pass, which stopped
@@ -196,7 +202,7 @@ class ScanSource:
                 log.warning("stream still busy %.0f s after the pass ended; going on",
                             DRAIN_TIMEOUT_S)
                 break
-        host.end_pass(used_through)
+        host.end_pass(used_through, self._losts_received if start is not None else None)
         self._lost_in_pass = False
         self._read_pixel_log(host)
         return cut

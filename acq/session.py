@@ -494,10 +494,11 @@ class Session:
         self.passes += 1
         self._log({"event": "pass", "geometry": geom.to_dict(), "record": position})
 
-    def _end_pass(self, position: int | None) -> None:
+    def _end_pass(self, position: int | None, lost_end: int | None = None) -> None:
         self.store.end_pass()
         if position is not None:
-            self._log({"event": "pass_end", "record": position})
+            self._log({"event": "pass_end", "record": position,
+                       **({} if lost_end is None else {"lost_end": lost_end})})
 
     def _process(self, chunk: np.ndarray) -> bool:
         """Feed a chunk; hand pixels that became final to the reconstruction. Returns whether
@@ -666,8 +667,8 @@ class _Host:
     def begin_pass(self, geom: PassGeometry, position: int | None = None) -> None:
         self._s._begin_pass(geom, position)
 
-    def end_pass(self, position: int | None = None) -> None:
-        self._s._end_pass(position)
+    def end_pass(self, position: int | None = None, lost_end: int | None = None) -> None:
+        self._s._end_pass(position, lost_end)
 
     def process(self, chunk: np.ndarray) -> bool:
         return self._s._process(chunk)

@@ -82,9 +82,11 @@ class SourceHost(Protocol):
     def begin_pass(self, geom: PassGeometry, position: int | None = None) -> None:
         """A pass over ``geom`` starts; ``position``: its first record in the recording."""
 
-    def end_pass(self, position: int | None = None) -> None:
+    def end_pass(self, position: int | None = None, lost_end: int | None = None) -> None:
         """The pass is over; ``position``: the record of the recording where its consumed stream
-        ends (records after it, up to the next pass, were not used; None: unknown)."""
+        ends (records after it, up to the next pass, were not used; None: unknown);
+        ``lost_end``: lost spans the source had received from the stream by then, used or not
+        (a span logged at ``position`` that came later was not used; None: unknown)."""
 
     def process(self, chunk: np.ndarray) -> bool:
         """Feed a chunk of events; returns whether it held a lost span."""

@@ -107,6 +107,21 @@ def test_picoquant_recording_is_a_ptu_of_the_devices_record_type(tmp_path):
     assert run["devices"]["galvo"]["calibration"]["deg_per_volt_x"] == 1.0
 
 
+def _holes_outside_passes(run_dir) -> bool:
+    """Whether the run's log has lost spans and each lies outside the records its passes used
+    ([pass record, pass_end record))."""
+    events = [json.loads(line) for line in (run_dir / "events.jsonl").open()]
+    used, holes = [], []
+    for e in events:
+        if e.get("event") == "pass":
+            used.append([e["record"], None])
+        elif e.get("event") == "pass_end":
+            used[-1][1] = e["record"]
+        elif e.get("event") == "lost":
+            holes.append(e["record"])
+    return bool(holes) and all(not (a <= r < b) for r in holes for a, b in used)
+
+
 @pytest.mark.parametrize("backend,fault,kind", [
     ("picoquant+nidaq", "fifo-overflow@40%", "tagger-reconnect"),
     ("picoquant+ours", "device-vanish@50%", "tagger-reconnect"),
@@ -135,7 +150,10 @@ def test_faults_are_reacquired_and_nothing_is_counted_twice(tmp_path, backend, f
     assert kind in {f["kind"] for f in run["faults_seen"]}, run["faults_seen"]
     assert s.passes >= 2, "the pixels the fault touched are scanned again"
     if "galvo" not in fault.split("@")[0] and not fault.startswith("daq"):
-        assert s.lost, "the hole reached the session in-band"
+        # the hole reached the session in-band, unless the tagger reported it only after the
+        # pass it fell in had ended (a slow restart while the NI-DAQ raster ran on): then it lies
+        # outside every pass's used records, and live and replay both leave it out
+        assert s.lost or _holes_outside_passes(tmp_path / "live"), "the hole reached the session in-band"
     rep = _replay(tmp_path / "live")
     assert rep.run() == SessionState.DONE
     _assert_same_maps(s.maps(), rep.maps())
