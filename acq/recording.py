@@ -359,14 +359,13 @@ class ReplaySource:
             if take <= 0:
                 break
             decoder.decode(np.asarray(records[:take]))
+        decoder.decode(_NO_RECORDS)       # and lost spans logged at ``a``: the live pass dropped them
 
     def _chunks(self, decoder: "_Decoder", a: int, b: int, lost_end: int | None = None):
         self._skip_to(decoder, a)
         # a lost span logged at the pass's last record that reached the live session only after
         # the pass ended (``pass_end``'s lost_end) was left out there: here too
         decoder.lost_limit = lost_end
-        if b <= a:
-            return
         pace = self.speed not in ("max", None)
         t_wall0 = None
         for records in iter_records(self.layout, self.chunk_records, start=a):
@@ -395,7 +394,12 @@ class ReplaySource:
                 yield events
             if decoder.position >= b:
                 break
+        tail = decoder.decode(_NO_RECORDS)    # lost spans logged at the pass's last record
+        if tail.size:
+            yield tail
 
+
+_NO_RECORDS = np.zeros(0, np.uint32)
 
 PACE_SLICE_S = 0.05
 """A paced replay lets its events out in slices of this much replayed time."""

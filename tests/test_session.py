@@ -521,6 +521,51 @@ def test_a_pass_that_used_no_data_replays_empty(tmp_path):
     assert np.array_equal(s.store.times, rep.store.times)
 
 
+class _LateLossReader(_LateReader):
+    """A tagger reader that hands a chunk holding only a lost span to the session once the next
+    pass began (a device that reports a hole only after the raster of its pass had ended)."""
+
+    def __init__(self, reader, session):
+        super().__init__(reader, 0.0)
+        self._session = session
+        self._late: list = []
+
+    def get(self, timeout_s=None):
+        from spdepth.drivers.events import EventKind
+
+        if self._late and self._session.passes > self._late[0][0]:
+            _p, chunk, self.recorded_through = self._late.pop(0)
+            return chunk
+        chunk = self._r.get(timeout_s=timeout_s)
+        if chunk is not None and chunk.size and np.all(chunk["kind"] == EventKind.LOST):
+            self._late.append((self._session.passes, chunk.copy(), self._r.recorded_through))
+            return self._empty
+        self.recorded_through = self._r.recorded_through
+        return chunk
+
+
+def test_a_loss_reported_after_its_pass_ended_is_left_out_by_the_replay_too(tmp_path):
+    with open_sim("bust", (12, 12), ppp=10, seed=9, keep_truth=True, faults="device-vanish@40%") as inst:
+        s = _session(inst, (12, 12), tmp_path)
+        src = s.source
+        arm = src.arm
+
+        def late_arm(host):
+            arm(host)
+            src.reader = _LateLossReader(src.reader, s)
+        src.arm = late_arm
+        assert s.run() == SessionState.DONE, s.error
+        assert_from_complete_dwells(s, inst.rig)
+    events = [json.loads(line) for line in (tmp_path / "events.jsonl").open()]
+    assert any(e.get("event") == "lost" for e in events) and not s.lost    # the hole came late
+    rep = _replay(tmp_path)
+    assert rep.run() == SessionState.DONE
+    assert len(rep.lost) == len(s.lost)
+    _assert_same_maps(DepthMaps.load_npz(tmp_path / "maps.npz"), rep.maps())
+    assert np.array_equal(s.store.count, rep.store.count)
+    assert np.array_equal(s.store.times, rep.store.times)
+
+
 def test_a_host_that_falls_behind_ends_each_pass_where_its_replay_does(tmp_path):
     with open_sim("bust", (24, 24), ppp=10, seed=9, keep_truth=True,
                   galvo_options={"pace": 2.0}) as inst:
