@@ -451,6 +451,16 @@ def test_the_background_rate_is_a_flux_the_target_does_not_shape(tmp_path):
         np.testing.assert_allclose(rate[region], bg_window[region] / exposure[region] / 1e3)
 
 
+def _assert_replay_equals_live(s, run_dir):
+    """The replay of a session's recording gives its maps, counts, kept times and lost spans."""
+    rep = _replay(run_dir)
+    assert rep.run() == SessionState.DONE
+    assert len(rep.lost) == len(s.lost)
+    _assert_same_maps(DepthMaps.load_npz(run_dir / "maps.npz"), rep.maps())
+    assert np.array_equal(s.store.count, rep.store.count)
+    assert np.array_equal(s.store.times, rep.store.times)
+
+
 class _LateReader:
     """A tagger reader whose chunks reach the session ``delay_s`` after the reader queued them
     (a host that falls behind the stream): a pass's tail can then come after the session has
@@ -514,11 +524,7 @@ def test_a_pass_that_used_no_data_replays_empty(tmp_path):
     # the first pass took nothing: it ends where it began, and every pass says where it ended
     assert len(passes) == len(ends) == s.passes >= 2
     assert ends[0]["record"] == passes[0]["record"] < passes[1]["record"]
-    rep = _replay(tmp_path)
-    assert rep.run() == SessionState.DONE
-    _assert_same_maps(DepthMaps.load_npz(tmp_path / "maps.npz"), rep.maps())
-    assert np.array_equal(s.store.count, rep.store.count)
-    assert np.array_equal(s.store.times, rep.store.times)
+    _assert_replay_equals_live(s, tmp_path)
 
 
 class _LateLossReader(_LateReader):
@@ -558,12 +564,7 @@ def test_a_loss_reported_after_its_pass_ended_is_left_out_by_the_replay_too(tmp_
         assert_from_complete_dwells(s, inst.rig)
     events = [json.loads(line) for line in (tmp_path / "events.jsonl").open()]
     assert any(e.get("event") == "lost" for e in events) and not s.lost    # the hole came late
-    rep = _replay(tmp_path)
-    assert rep.run() == SessionState.DONE
-    assert len(rep.lost) == len(s.lost)
-    _assert_same_maps(DepthMaps.load_npz(tmp_path / "maps.npz"), rep.maps())
-    assert np.array_equal(s.store.count, rep.store.count)
-    assert np.array_equal(s.store.times, rep.store.times)
+    _assert_replay_equals_live(s, tmp_path)
 
 
 def test_a_host_that_falls_behind_ends_each_pass_where_its_replay_does(tmp_path):
@@ -590,8 +591,4 @@ def test_a_host_that_falls_behind_ends_each_pass_where_its_replay_does(tmp_path)
         assert_from_complete_dwells(s, inst.rig)
     ends = [json.loads(line) for line in (tmp_path / "events.jsonl").open()]
     assert sum(e.get("event") == "pass_end" for e in ends) == s.passes >= 2
-    rep = _replay(tmp_path)
-    assert rep.run() == SessionState.DONE
-    _assert_same_maps(DepthMaps.load_npz(tmp_path / "maps.npz"), rep.maps())
-    assert np.array_equal(s.store.count, rep.store.count)
-    assert np.array_equal(s.store.times, rep.store.times)
+    _assert_replay_equals_live(s, tmp_path)
