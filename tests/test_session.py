@@ -451,6 +451,17 @@ def test_the_background_rate_is_a_flux_the_target_does_not_shape(tmp_path):
         np.testing.assert_allclose(rate[region], bg_window[region] / exposure[region] / 1e3)
 
 
+def _wrap_reader(s, wrap):
+    """Once ``s``'s source has armed, its session reads through ``wrap(reader)``."""
+    src = s.source
+    arm = src.arm
+
+    def wrapped_arm(host):
+        arm(host)
+        src.reader = wrap(src.reader)
+    src.arm = wrapped_arm
+
+
 def _assert_replay_equals_live(s, run_dir):
     """The replay of a session's recording gives its maps, counts, kept times and lost spans."""
     rep = _replay(run_dir)
@@ -509,13 +520,7 @@ def test_a_pass_that_used_no_data_replays_empty(tmp_path):
     # seen once on a cold numba cache: live maps and replay differed on 1,019 of 1,024 pixels
     with open_sim("bust", (12, 12), ppp=10, seed=9, keep_truth=True) as inst:
         s = _session(inst, (12, 12), tmp_path)
-        src = s.source
-        arm = src.arm
-
-        def stalled_arm(host):
-            arm(host)
-            src.reader = _FirstPassStalledReader(src.reader, s)
-        src.arm = stalled_arm
+        _wrap_reader(s, lambda r: _FirstPassStalledReader(r, s))
         s.start()
         assert s.wait(120) == SessionState.DONE, s.error
     events = [json.loads(line) for line in (tmp_path / "events.jsonl").open()]
@@ -553,13 +558,7 @@ class _LateLossReader(_LateReader):
 def test_a_loss_reported_after_its_pass_ended_is_left_out_by_the_replay_too(tmp_path):
     with open_sim("bust", (12, 12), ppp=10, seed=9, keep_truth=True, faults="device-vanish@40%") as inst:
         s = _session(inst, (12, 12), tmp_path)
-        src = s.source
-        arm = src.arm
-
-        def late_arm(host):
-            arm(host)
-            src.reader = _LateLossReader(src.reader, s)
-        src.arm = late_arm
+        _wrap_reader(s, lambda r: _LateLossReader(r, s))
         assert s.run() == SessionState.DONE, s.error
         assert_from_complete_dwells(s, inst.rig)
     events = [json.loads(line) for line in (tmp_path / "events.jsonl").open()]
@@ -571,13 +570,7 @@ def test_a_host_that_falls_behind_ends_each_pass_where_its_replay_does(tmp_path)
     with open_sim("bust", (24, 24), ppp=10, seed=9, keep_truth=True,
                   galvo_options={"pace": 2.0}) as inst:
         s = _session(inst, (24, 24), tmp_path)
-        src = s.source
-        arm = src.arm
-
-        def late_arm(host):
-            arm(host)
-            src.reader = _LateReader(src.reader, 0.6)      # twice the quiet time a drain waits
-        src.arm = late_arm
+        _wrap_reader(s, lambda r: _LateReader(r, 0.6))     # twice the quiet time a drain waits
 
         def complete() -> int:
             return int(np.count_nonzero(s.store.count >= 10))
