@@ -27,6 +27,9 @@ from spdepth.recon.maps import C_M_PER_S
 
 ROBUST_PERCENTILES = (1.0, 99.0)
 """Percentiles of the finite pixels that the robust levels span."""
+FADE_RGBA = (255, 255, 255, 180)
+"""Laid over a surface that background alone could have made (``DepthMaps.weak``): drawn, but
+faded, in the PNG sheet and the window alike."""
 NAN_COLOUR = "#9a9a9a"
 """Pixels without a value (not measured, incomplete without an estimate, no return): one grey,
 on every path, distinct from the ends of every colour map used here."""
@@ -247,6 +250,6 @@ def surfaces_of(maps) -> np.ndarray | None:
     return np.asarray(got) if got is not None else np.isfinite(depth).sum(axis=0)
 
 
-__all__ = ["MapDef", "MapInput", "MAP_DEFS", "MAPS_BY_KEY", "PANEL_DEFS", "resolve", "NAN_COLOUR", "ROBUST_PERCENTILES",
+__all__ = ["MapDef", "MapInput", "MAP_DEFS", "MAPS_BY_KEY", "PANEL_DEFS", "resolve", "NAN_COLOUR", "FADE_RGBA", "ROBUST_PERCENTILES",
            "constant_value", "display", "levels_for", "widen", "map_input_from_maps", "first_surface",
            "surfaces_of"]

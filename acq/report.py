@@ -15,7 +15,7 @@ import numpy as np
 
 from spdepth.recon.maps import C_M_PER_S
 
-from spdepth.acq.mapdefs import NAN_COLOUR  # noqa: E402 - the one grey of unmeasured pixels
+from spdepth.acq.mapdefs import FADE_RGBA, NAN_COLOUR  # noqa: E402 - the one grey of unmeasured pixels
 
 def robust_limits(values: np.ndarray, lower_pct: float = 2.0, upper_pct: float = 98.0) -> tuple[float, float]:
     """Colour limits from percentiles of the finite values, so a few outliers (a stray detection
@@ -141,7 +141,7 @@ def render_maps_png(path: str | Path, maps, *, title: str | None = None,
             n_weak = int(weak_px.sum())
         if n_weak:
             # a surface background alone could have made is drawn, but faded: it is not a finding
-            fade = matplotlib.colors.ListedColormap([(1.0, 1.0, 1.0, 0.7)])
+            fade = matplotlib.colors.ListedColormap([np.array(FADE_RGBA) / 255.0])
             ax.imshow(np.where(weak_px, 1.0, np.nan), cmap=fade, vmin=0, vmax=1,
                       interpolation="nearest", origin="upper", extent=extent, aspect="equal")
         ax.set_title(f"{name} ({d.unit})")

@@ -13,7 +13,7 @@ import pyqtgraph as pg
 from PySide6 import QtCore, QtWidgets
 
 from spdepth.acq.flags import AcqFlag
-from spdepth.acq.mapdefs import (MAP_DEFS, NAN_COLOUR, PANEL_DEFS, MapDef, MapInput, constant_value, display,
+from spdepth.acq.mapdefs import (FADE_RGBA, MAP_DEFS, NAN_COLOUR, PANEL_DEFS, MapDef, MapInput, constant_value, display,
                                  levels_for, widen)
 from spdepth.recon.maps import C_M_PER_S
 
@@ -39,11 +39,6 @@ def snapshot_input(snap, n_bins: int, target: int) -> MapInput:
                     uncertainty_s=snap.uncertainty_s, counts=measured_counts(snap),
                     n_bins=n_bins, target=target, surfaces=snap.surfaces,
                     exposure_s=getattr(snap, "exposure_s", None))
-
-
-FADE_RGBA = (255, 255, 255, 180)
-"""Drawn over a surface that background alone could have made (``DepthMaps.weak``), as the PNG
-sheet fades it."""
 
 
 class MapPanel:

@@ -360,13 +360,14 @@ class ResultView:
 
         res, m = self.result, self.result.maps
         h, w = self.shape
+        surfaces = surfaces_of(m)
         return Snapshot(state="done", elapsed_s=res.read_s + res.recon_s, pixels_total=h * w,
                         pixels_final=h * w, detections=int(m.photons.sum()), detections_per_s=0.0,
                         lost_spans=0, lost_records=0, eta_s=None, recon_lag=0, passes=0,
                         depth_m=m.depth_m, background=m.background, signal=m.signal,
                         uncertainty_s=m.uncertainty_s, counts=m.photons,
-                        acq_flags=np.zeros((h, w), np.uint8), surfaces=surfaces_of(m),
-                        weak=m.weak if surfaces_of(m) is not None else None)
+                        acq_flags=np.zeros((h, w), np.uint8), surfaces=surfaces,
+                        weak=None if surfaces is None else m.weak)
 
     def pixel(self, r: int, c: int) -> PixelInfo:
         res, m = self.result, self.result.maps
