@@ -268,8 +268,8 @@ class ReplaySource:
 
     def _read_event_log(self):
         """(passes as [first record, geometry, record where the session stopped using its
-        stream or None, lost spans the session had received by then or None], lost spans, whether the log ends with the session's end: None without
-        a log)."""
+        stream or None, lost spans the session had received by then or None], lost spans,
+        whether the log ends with the session's end: None without a log)."""
         passes: list[list] = []
         lost: list[dict] = []
         if not self.events_path.is_file():
