@@ -168,6 +168,22 @@ def test_continuous_scan_runs_until_stop(make_bench):
     assert g.status().state == GalvoState.PARKED
 
 
+def test_an_unpaced_scan_nobody_reads_keeps_to_real_time(make_bench):
+    # With the tagger idle nothing takes the data, so nothing paces an unpaced scan: it must
+    # not spin through virtual time (that starved the threads answering the host: replies to
+    # STAT? took up to 0.35 s, past the driver's timeout, and a CI run failed on it).
+    g = make_bench().open()
+    g.configure_scan(PatternCodes(ScanMode.RASTER, 2, 2, 30000, 31000, 30000, 31000),
+                     Gate.fixed(2e-3), frames=0)
+    t0 = time.monotonic()
+    g.start()
+    time.sleep(0.3)
+    done = g.status().completed
+    wall = time.monotonic() - t0
+    g.stop()
+    assert 0 < done <= wall / 2e-3 + 4
+
+
 def test_pixel_log_overrun_is_reported(make_bench):
     g = make_bench().open()
     g.configure_scan(PatternCodes(ScanMode.RASTER, 100, 50, 30000, 31000, 30000, 31000),

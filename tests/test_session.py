@@ -534,22 +534,28 @@ def test_a_pass_that_used_no_data_replays_empty(tmp_path):
 
 class _LateLossReader(_LateReader):
     """A tagger reader that hands a chunk holding only a lost span to the session once the next
-    pass began (a device that reports a hole only after the raster of its pass had ended)."""
+    pass began (a device that reports a hole only after the raster of its pass had ended). What
+    the device sent after the hole comes later still, in order: a stream never shows the records
+    after a hole before the hole itself."""
 
     def __init__(self, reader, session):
         super().__init__(reader, 0.0)
         self._session = session
-        self._late: list = []
+        self._held_in: int | None = None      # the pass whose hole is held back
+        self._late: list = []                 # (chunk, recorded_through), in stream order
 
     def get(self, timeout_s=None):
         from spdepth.drivers.events import EventKind
 
-        if self._late and self._session.passes > self._late[0][0]:
-            _p, chunk, self.recorded_through = self._late.pop(0)
+        if self._late and self._session.passes > self._held_in:
+            chunk, self.recorded_through = self._late.pop(0)
             return chunk
         chunk = self._r.get(timeout_s=timeout_s)
-        if chunk is not None and chunk.size and np.all(chunk["kind"] == EventKind.LOST):
-            self._late.append((self._session.passes, chunk.copy(), self._r.recorded_through))
+        if chunk is not None and chunk.size and (
+                self._late or np.all(chunk["kind"] == EventKind.LOST)):
+            if not self._late:
+                self._held_in = self._session.passes
+            self._late.append((chunk.copy(), self._r.recorded_through))
             return self._empty
         self.recorded_through = self._r.recorded_through
         return chunk

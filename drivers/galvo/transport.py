@@ -20,6 +20,11 @@ from .protocol import MAX_REPLY_BYTES, TERMINATOR
 
 log = logging.getLogger("spdepth.galvo.transport")
 
+WRITE_TIMEOUT_S = 2.0
+"""A command line is a few bytes: a write blocked this long means the port is dead. Not the
+reply timeout: pyserial reports a write timeout whenever its deadline passed by the end of the
+write, so a host stalled for a moment (a loaded machine) would look like a lost port."""
+
 try:
     import termios
     # pyserial lets termios.error (not an OSError) through from flush() on a hung-up tty.
@@ -56,7 +61,7 @@ class SerialTransport:
             # Short port timeout: read_line loops to its own deadline, so a slow trickle of bytes
             # cannot stretch one read past timeout_s.
             self._port = serial.serial_for_url(self.url, baudrate=self.baudrate, timeout=0.02,
-                                               write_timeout=self.timeout_s)
+                                               write_timeout=max(self.timeout_s, WRITE_TIMEOUT_S))
         except _PORT_ERRORS as e:
             raise ConnectionLostError(f"galvo port {self.url}: cannot open: {e}") from e
         except ValueError as e:

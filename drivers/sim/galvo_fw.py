@@ -6,7 +6,8 @@ its own thread against a ``drivers.sim.rig.SimRig`` in virtual time: for every p
 mirror, settles, pulses the marker lines and dwells (count-gated or fixed), handing the rig runs
 of a line's pixels at once (``SimRig.scan_run``) wherever nothing needs to see the pixels one by
 one. ``pace`` slows the thread down to watchable speed (real seconds per virtual second; 0 = as
-fast as the host takes the data: the scan waits for room in the tagger's FIFO).
+fast as the host takes the data: the scan waits for room in the tagger's FIFO, and keeps to
+real time while the tagger is not measuring).
 
 Its serial side (``host_write`` / ``host_read``) is what the two links attach to: the pyserial
 URL handler ``galvosim://`` (drivers/sim/protocol_galvosim.py) and a pty pair
@@ -676,6 +677,11 @@ class GalvoFirmware:
                             self._notify()
                         if self.pace > 0:
                             stop.wait((float(elapsed[-1]) + settle_s) * self.pace)
+                        elif not rig.tagger_running:
+                            # Nobody takes the data, so nothing sets the pace: keep to real time
+                            # (as the device would) rather than spin, which would starve the
+                            # threads that answer the host's commands.
+                            stop.wait(float(elapsed[:done].sum()) + done * settle_s)
                         j += done
                     if line_open:
                         rig.pulse_markers(Marker.LINE_STOP)
