@@ -70,6 +70,19 @@ class Instruments:
         return ScanPlan(w, h, x0, x1, y0, y1, **kwargs)
 
 
+def _sim_rig(scene_name: str, shape: tuple[int, int], *, ppp: float, sbr: float | None, seed: int,
+             window_s: tuple[float, float], keep_truth: bool, **scene_settings):
+    """The scene and the rig of a simulated bench, its world's kernels loaded (compiled on a fresh
+    install) before any scan can start."""
+    from spdepth.drivers.sim import PhotonWorld, load_scene, warm_up
+    from spdepth.drivers.sim.rig import SimRig
+
+    scene = load_scene(scene_name, shape, ppp=float(ppp), sbr=sbr, tagger_range_s=window_s[1],
+                       **scene_settings)
+    warm_up()
+    return scene, SimRig(PhotonWorld(scene, seed=seed), keep_truth=keep_truth)
+
+
 def open_sim(scene_name: str = "bust", shape: tuple[int, int] = (64, 64), *, ppp: float = 15.0,
              sbr: float | None = 10.0, seed: int = 0, faults: str = "",
              window_s: tuple[float, float] = DEFAULT_WINDOW_S, keep_truth: bool = False,
@@ -95,9 +108,8 @@ def open_sim(scene_name: str = "bust", shape: tuple[int, int] = (64, 64), *, ppp
                                 galvo=galvo, galvo_link=galvo_link, tagger_options=tagger_options,
                                 galvo_options=galvo_options, **scene_settings)
     from spdepth.drivers.galvo import Galvo
-    from spdepth.drivers.sim import PhotonWorld, galvo_fw, load_scene
+    from spdepth.drivers.sim import galvo_fw
     from spdepth.drivers.sim.faults import GALVO_FAULTS, TAGGER_FAULTS, parse_faults
-    from spdepth.drivers.sim.rig import SimRig
     from spdepth.drivers.sim.tagger_usb import SimTaggerBackend
     from spdepth.drivers.tagger import Tagger, TaggerSettings
 
@@ -107,9 +119,8 @@ def open_sim(scene_name: str = "bust", shape: tuple[int, int] = (64, 64), *, ppp
         from spdepth.drivers.errors import SettingError
 
         raise SettingError("daq-underflow needs --galvo nidaq:DEV")
-    scene = load_scene(scene_name, (h, w), ppp=float(ppp), sbr=sbr, tagger_range_s=window_s[1],
-                       **scene_settings)
-    rig = SimRig(PhotonWorld(scene, seed=seed), keep_truth=keep_truth)
+    scene, rig = _sim_rig(scene_name, shape, ppp=ppp, sbr=sbr, seed=seed, window_s=window_s,
+                          keep_truth=keep_truth, **scene_settings)
     name = f"spdepth-sim-{next(_names)}"
     fw = galvo_fw.GalvoFirmware(rig, faults=[f for f in parsed if f.kind in GALVO_FAULTS],
                                 **(galvo_options or {}))
@@ -147,14 +158,12 @@ def _open_sim_vendor(scene_name, shape, *, ppp, sbr, seed, faults, window_s, kee
     ``daq-underflow`` to the NI-DAQ galvo, the other galvo kinds to our galvo emulator."""
     from spdepth.acq.requests import parse_galvo, parse_tagger
     from spdepth.drivers.errors import SettingError
-    from spdepth.drivers.sim import PhotonWorld, galvo_fw, load_scene
+    from spdepth.drivers.sim import galvo_fw
     from spdepth.drivers.sim.faults import GALVO_FAULTS, TAGGER_FAULTS, FaultKind, parse_faults
-    from spdepth.drivers.sim.rig import SimRig
 
     h, w = shape
-    scene = load_scene(scene_name, (h, w), ppp=float(ppp), sbr=sbr, tagger_range_s=window_s[1],
-                       **scene_settings)
-    rig = SimRig(PhotonWorld(scene, seed=seed), keep_truth=keep_truth)
+    scene, rig = _sim_rig(scene_name, shape, ppp=ppp, sbr=sbr, seed=seed, window_s=window_s,
+                          keep_truth=keep_truth, **scene_settings)
     parsed = parse_faults(faults)
     t_faults = [f for f in parsed if f.kind in TAGGER_FAULTS]
     daq_faults = [f for f in parsed if f.kind == FaultKind.DAQ_UNDERFLOW]

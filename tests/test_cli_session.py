@@ -236,3 +236,26 @@ def test_ctrl_c_closes_the_window_aborts_its_scan_and_exits_130(tmp_path):
     (run,) = runs.glob("*/run.json")
     assert json.loads(run.read_text())["state"] == "aborted"
     assert (run.parent / "maps.npz").is_file()
+
+
+@pytest.mark.parametrize("state, said", [(None, True), ("armed", True), ("running", False)])
+def test_a_command_still_preparing_says_why(capsys, state, said):
+    # a fresh install compiles every kernel on first use: a minute of silence without this line
+    from types import SimpleNamespace
+
+    from spdepth.acq.commands._session import PreparingNotice
+
+    with PreparingNotice("scan", after_s=0.05) as notice:
+        if state is not None:
+            notice.session = SimpleNamespace(state=SimpleNamespace(value=state))
+        time.sleep(0.3)
+    assert ("spdepth scan: preparing" in capsys.readouterr().err) == said
+
+
+def test_a_quick_command_says_nothing_about_preparing(capsys):
+    from spdepth.acq.commands._session import PreparingNotice
+
+    with PreparingNotice("scan", after_s=0.2):
+        pass
+    time.sleep(0.4)
+    assert capsys.readouterr().err == ""

@@ -301,3 +301,15 @@ def test_virtual_clock():
         clock.advance(-1.0)
     with pytest.raises(SettingError):
         VirtualClock(speed=0)
+
+
+def test_warm_up_loads_the_dwell_kernel_and_leaves_worlds_as_seeded():
+    from spdepth.drivers.sim import kernels as K
+    from spdepth.drivers.sim import warm_up
+
+    scene = load_scene("bust", (4, 4), ppp=5.0, sbr=1.0)
+    before = PhotonWorld(scene, seed=3).dwell_run(np.arange(16), 0, 1e-3, n_target=5).events
+    warm_up()
+    assert K.dwell_run.signatures                    # what a scan's first dwell would compile
+    after = PhotonWorld(scene, seed=3).dwell_run(np.arange(16), 0, 1e-3, n_target=5).events
+    assert np.array_equal(before, after)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import threading
 
 from spdepth.acq.commands import (EXIT_DEVICE, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK,
                                   Terminated)
@@ -35,6 +36,33 @@ def add_recon_arguments(parser: argparse.ArgumentParser, default_method: str | N
                              "measured on their surfaces)")
     # a replay (no default method) keeps the recording's surfaces settings unless given
     add_reflector_arguments(parser, as_recorded=default_method is None)
+
+
+class PreparingNotice:
+    """One line on stderr when a command has not started scanning (or replaying) ``after_s``
+    after it began: on a fresh install numba compiles every kernel on its first use, a minute or
+    more in which nothing else is printed. Use as a context manager around opening the
+    instruments and running the session; set ``session`` once it exists."""
+
+    def __init__(self, label: str, after_s: float = 3.0):
+        self.label = label
+        self.session = None
+        self._timer = threading.Timer(after_s, self._say)
+        self._timer.daemon = True
+
+    def __enter__(self) -> "PreparingNotice":
+        self._timer.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._timer.cancel()
+
+    def _say(self) -> None:
+        if self.session is not None and self.session.state.value not in ("idle", "armed"):
+            return
+        print(f"spdepth {self.label}: preparing; the first run after an install compiles the "
+              f"numerical kernels (a minute or two), later runs load them from numba's cache",
+              file=sys.stderr, flush=True)
 
 
 class SessionProgress:

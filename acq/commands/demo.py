@@ -83,16 +83,16 @@ def _demo(args, request, methods, out_dir) -> int:
     import numpy as np
 
     from spdepth.acq.api import build_session, open_instruments
-    from spdepth.acq.commands._session import exit_status, run_session
+    from spdepth.acq.commands._session import PreparingNotice, exit_status, run_session
     from spdepth.acq.evaluate import evaluate_depth, signal_detections
     from spdepth.acq.report import render_maps_png
     from spdepth.recon.estimate import reconstruct
 
     h, w = request.size
     scene_name = request.instruments.scene
-    with open_instruments(request) as inst:
+    with PreparingNotice("demo") as notice, open_instruments(request) as inst:
         scene = inst.scene
-        session = build_session(request, out_dir, inst)
+        session = notice.session = build_session(request, out_dir, inst)
         interrupted = run_session(session, "demo")
         galvo_reconnects = inst.galvo.reconnects
         scan_s = inst.rig.now_s

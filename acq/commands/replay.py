@@ -5,8 +5,8 @@ from __future__ import annotations
 import argparse
 
 from spdepth.acq.commands._args import positive_float, positive_int
-from spdepth.acq.commands._session import (add_output_arguments, add_recon_arguments, exit_status,
-                                           report, run_session)
+from spdepth.acq.commands._session import (PreparingNotice, add_output_arguments,
+                                           add_recon_arguments, exit_status, report, run_session)
 
 HELP = "replay a recording (or a PTU with pixel markers) through the session pipeline"
 
@@ -54,8 +54,9 @@ def run(args: argparse.Namespace) -> int:
     if Path(args.out).resolve() == request.folder.resolve():
         raise OutputError(f"--out {args.out} is the recording's own folder: pick another")
     with OutputDir(args.out, overwrite=args.overwrite) as out:
-        session = build_session(request, out)
-        interrupted = run_session(session, "replay")
+        with PreparingNotice("replay") as notice:
+            session = notice.session = build_session(request, out)
+            interrupted = run_session(session, "replay")
         p = session.plan
         asked = session.recon.requested
         surfaces = "" if asked.reflectors == 1 else f", surfaces {asked.reflectors}"

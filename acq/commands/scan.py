@@ -7,8 +7,8 @@ import argparse
 
 from spdepth.acq.commands._args import (non_negative_float, positive_float, positive_int,
                                         size_wxh, window_ps)
-from spdepth.acq.commands._session import (add_output_arguments, add_recon_arguments, exit_status,
-                                           report, run_session)
+from spdepth.acq.commands._session import (PreparingNotice, add_output_arguments,
+                                           add_recon_arguments, exit_status, report, run_session)
 from spdepth.acq.requests import DEFAULT_SIZE, DEFAULT_TARGET, TAGGER_FORMS
 
 HELP = "scan (simulated or real devices), record the tag stream, reconstruct live, write the maps"
@@ -137,8 +137,8 @@ def run(args: argparse.Namespace) -> int:
 
     request = request_from_args(args)
     with OutputDir(args.out, overwrite=args.overwrite) as out:
-        with open_instruments(request) as inst:
-            session = build_session(request, out, inst)
+        with PreparingNotice("scan") as notice, open_instruments(request) as inst:
+            session = notice.session = build_session(request, out, inst)
             interrupted = run_session(session, "scan")
         summary = finish_session(session, out.path, request.label())
     report(summary, args.json, "scan")

@@ -11,10 +11,10 @@ drivers never import the simulator, so a process that only drives hardware keeps
 import serial
 
 from spdepth.drivers.sim.scene import EFFECTS, Scene, SceneSettings, load_scene, scene_names
-from spdepth.drivers.sim.world import PhotonWorld, VirtualClock
+from spdepth.drivers.sim.world import PhotonWorld, VirtualClock, warm_up
 
 __all__ = ["EFFECTS", "PhotonWorld", "Scene", "SceneSettings", "VirtualClock", "load_scene",
-           "register_url_handlers", "scene_names"]
+           "register_url_handlers", "scene_names", "warm_up"]
 
 
 def register_url_handlers() -> None:

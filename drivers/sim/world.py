@@ -418,3 +418,16 @@ class PhotonWorld:
             if progress is not None:
                 progress((r + 1) * w, h * w)
         return evs, origins
+
+
+def warm_up() -> None:
+    """Load (on a cold numba cache: compile) the kernels a scan's dwells run, on a throwaway
+    two-pixel world. Opening a simulated bench calls it: otherwise the first dwell compiles them in
+    the galvo emulator's thread, stalling a fresh install's first scan for tens of seconds after it
+    started. The worlds of a session are untouched (their random streams stay as seeded)."""
+    from spdepth.drivers.sim.scene import load_scene
+
+    world = PhotonWorld(load_scene("bust", (1, 2), ppp=2.0, sbr=1.0), seed=0)
+    bits = np.ones(2, np.uint8)
+    world.dwell_run(np.array([0, -1]), 0, 1e-6, n_target=1, marker_bits=bits, end_marker=1)
+    world.dwell_run(np.array([0, 1]), 10 ** 6, 1e-7, marker_bits=bits)
