@@ -44,7 +44,7 @@ class PreparingNotice:
     more in which nothing else is printed. Use as a context manager around opening the
     instruments and running the session; set ``session`` once it exists."""
 
-    def __init__(self, label: str, after_s: float = 3.0):
+    def __init__(self, label: str, after_s: float = 10.0):
         self.label = label
         self.session = None
         self._timer = threading.Timer(after_s, self._say)
