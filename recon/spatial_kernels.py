@@ -12,7 +12,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from llvmlite import ir
+from numba import njit, prange, types
+from numba.extending import intrinsic
 
 from spdepth.recon.kernels import sort_run
 
@@ -22,9 +24,9 @@ BUCKET_ABOVE = 32
 #: window_shifts: buckets per detection; a return's detections crowd a few pulse widths, so
 #: more buckets than detections keep each bucket's share of them small.
 BUCKETS_PER_DETECTION = 4
-#: censor_fit: exp of an argument below this is exactly 0.0 in float64 (the smallest subnormal is
-#: exp(-744.44)), so the EM skips such a detection with the same result.
-EXP_IS_ZERO = -746.0
+#: _exp_neg: below this argument exp() is taken as 0 (the exact value is under 3.3e-308: no
+#: responsibility worth a bit of the sums, and 2^n below it would need subnormal scaling).
+EXP_IS_ZERO = -708.0
 #: censor_fit: a neighbour's list is walked with two pointers when (undecided detections) x (its
 #: detections) exceeds this many times their sum, else compared pair by pair (vectorised).
 WALK_ABOVE = 12
@@ -127,6 +129,7 @@ def censor_fit(x, offsets, h, w, radius, tau, s_min, sigma, n_bins, em_iters,
         sup = np.empty(longest, np.int64)
         todo = np.empty(longest, np.int64)
         kept = np.empty(longest, np.float64)
+        resp = np.empty(longest, np.float64)
         for p in range(blk * PIXEL_BLOCK, min(npix, (blk + 1) * PIXEL_BLOCK)):
             o0 = offsets[p]
             o1 = offsets[p + 1]
@@ -237,27 +240,89 @@ def censor_fit(x, offsets, h, w, radius, tau, s_min, sigma, n_bins, em_iters,
             pi = min(0.999, max(cnt / n, 1e-3))
             # EM over all the pixel's detections: a censored detection close to the return still
             # counts as signal in proportion to its likelihood, a kept one far from it does not
-            ksum = float(cnt)
-            for _ in range(em_iters):
-                sr = 0.0
-                srt = 0.0
-                for i in range(o0, o1):
-                    d = x[i] - mu
-                    e = -0.5 * d * d * inv_s2
-                    if e < EXP_IS_ZERO:
-                        continue          # no responsibility at all, and libm's exp is slowest there
-                    a = pi * norm * math.exp(e)
-                    rr = a / (a + (1.0 - pi) * inv_m)
-                    sr += rr
-                    srt += rr * x[i]
-                if sr <= 1e-9:
-                    break
-                mu = srt / sr
-                pi = min(0.999, max(sr / n, 1e-3))
-                ksum = sr
+            mu, ksum = _em_fit(x, o0, o1, mu, pi, float(cnt), em_iters, inv_s2, norm, inv_m, resp)
             out_mu[p] = mu
             out_k[p] = ksum
             out_bg[p] = max(0.0, n - ksum) * inv_m
+
+
+@njit(cache=True, nogil=True, fastmath={"contract", "reassoc"})
+def _em_fit(x, o0, o1, mu, pi, ksum, em_iters, inv_s2, norm, inv_m, a):
+    """``em_iters`` EM steps of ``pi N(mu, sigma^2) + (1 - pi) inv_m`` on x[o0:o1] from (mu, pi);
+    returns (mu, sum of responsibilities), or (mu, ksum) as given when the first step finds none.
+    a is scratch of o1 - o0 entries.
+
+    Two passes per step: the Gaussian terms first, a loop the compiler vectorises (exp inlined as
+    a polynomial; libm's exp is a call per detection), then the responsibilities, whose division
+    keeps that loop scalar (vectorised with it, the whole step was slower). fastmath lets the
+    polynomial use fused multiply-adds and the sums be reassociated: a few ulp from plain order."""
+    n = o1 - o0
+    for _ in range(em_iters):
+        pn = pi * norm
+        c = (1.0 - pi) * inv_m
+        for i in range(n):
+            d = x[o0 + i] - mu
+            a[i] = pn * _exp_neg(-0.5 * d * d * inv_s2)
+        sr = 0.0
+        srt = 0.0
+        for i in range(n):
+            rr = a[i] / (a[i] + c)
+            sr += rr
+            srt += rr * x[o0 + i]
+        if sr <= 1e-9:
+            break
+        mu = srt / sr
+        pi = min(0.999, max(sr / n, 1e-3))
+        ksum = sr
+    return mu, ksum
+
+
+@intrinsic
+def _bits_as_float(typingctx, bits):
+    """The float64 whose IEEE 754 bits are the int64 ``bits`` (a reinterpretation, no instruction)."""
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], ir.DoubleType())
+    return types.float64(types.int64), codegen
+
+
+@intrinsic
+def _float_as_bits(typingctx, v):
+    """The IEEE 754 bits of the float64 ``v`` as an int64."""
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], ir.IntType(64))
+    return types.int64(types.float64), codegen
+
+
+_LOG2E = 1.4426950408889634
+#: ln 2 split so that n * _LN2_HI is exact for |n| < 2^11 (Cody and Waite's reduction)
+_LN2_HI = 6.93147180369123816490e-01
+_LN2_LO = 1.90821492927058770002e-10
+#: added to an integer-valued float in [-1022, 0], leaves that integer + 1023 in the low mantissa bits
+_EXPONENT_SHIFT = 4503599627370496.0 + 1023.0
+
+
+@njit(inline="always", cache=True, nogil=True)
+def _exp_neg(e):
+    """exp(e) for e <= 0 within a few ulp of libm (0 below EXP_IS_ZERO), in instructions a loop can
+    vectorise: e = n ln2 + r with |r| <= ln2 / 2, exp(r) by its Taylor series to r^12 (the next
+    term is below 2e-16 relative), 2^n written straight into the exponent bits."""
+    n = math.floor(e * _LOG2E + 0.5)
+    r = (e - n * _LN2_HI) - n * _LN2_LO
+    p = 1.0 / 479001600.0
+    p = p * r + 1.0 / 39916800.0
+    p = p * r + 1.0 / 3628800.0
+    p = p * r + 1.0 / 362880.0
+    p = p * r + 1.0 / 40320.0
+    p = p * r + 1.0 / 5040.0
+    p = p * r + 1.0 / 720.0
+    p = p * r + 1.0 / 120.0
+    p = p * r + 1.0 / 24.0
+    p = p * r + 1.0 / 6.0
+    p = p * r + 0.5
+    p = p * r + 1.0
+    p = p * r + 1.0
+    scale = _bits_as_float(_float_as_bits(max(n, -1022.0) + _EXPONENT_SHIFT) << 52)
+    return p * scale if e >= EXP_IS_ZERO else 0.0
 
 
 @njit(parallel=True, cache=True, nogil=True)
