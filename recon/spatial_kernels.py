@@ -16,10 +16,9 @@ from llvmlite import ir
 from numba import njit, prange, types
 from numba.extending import intrinsic
 
-from spdepth.recon.kernels import sort_run
-
-
-#: window_shifts: lists longer than this are bucket sorted (shorter ones by insertion).
+#: window_shifts: lists longer than this are bucket sorted (shorter ones by rank counting, whose
+#: k^2 comparisons vectorise: at 30 detections 1.3x faster than insertion sort; at 60 no faster
+#: than the bucket sort).
 BUCKET_ABOVE = 32
 #: window_shifts: buckets per detection; a return's detections crowd a few pulse widths, so
 #: more buckets than detections keep each bucket's share of them small.
@@ -62,13 +61,32 @@ def window_shifts(times, offsets, start, stop, width, max_photons, out_x, out_of
                 n += 1
                 kept += 1
         if kept > BUCKET_ABOVE:
-            # insertion sort is quadratic in the disorder and heap sort branchy: about one bucket
-            # per detection leaves only the order within each bucket to sort
+            # rank counting is quadratic and heap sort branchy: a few buckets per detection leave
+            # only the order within each bucket to sort
             _bucket_sort(out_x, first, n, n_bins, tmp, fill)
-        else:
-            sort_run(out_x, first, n)     # in place: np.sort allocated a new array per pixel
+        elif kept > 1:
+            _rank_sort(out_x, first, n, tmp)     # in place: np.sort allocated a new array per pixel
         out_offsets[p + 1] = n
     return n
+
+
+@njit(cache=True, nogil=True)
+def _rank_sort(a, lo, hi, tmp):
+    """Sort a[lo:hi] ascending in place by counting each value's rank: the values before it that
+    are <= it and those after it that are < it (so equal values keep their order). Branch-free
+    comparisons the compiler vectorises; insertion sort mispredicts a branch per move. tmp needs
+    hi - lo entries."""
+    k = hi - lo
+    for i in range(k):
+        v = a[lo + i]
+        rank = 0
+        for j in range(i):
+            rank += a[lo + j] <= v
+        for j in range(i + 1, k):
+            rank += a[lo + j] < v
+        tmp[rank] = v
+    for i in range(k):
+        a[lo + i] = tmp[i]
 
 
 @njit(cache=True, nogil=True)
@@ -360,33 +378,52 @@ def tv_pdhg(f, wt, lam, z, iters, px, py, zbar):
             px[r, c] = 0.0
             py[r, c] = 0.0
             zbar[r, c] = z[r, c]
+    # No branch per pixel, so the row loops vectorise: the last column's px and the last row's
+    # py stay exactly 0 (their gradient component is 0), so the divergence may add them; the
+    # last row takes its own row as the next one (a difference of exactly 0); row 0 subtracts
+    # a row of zeros.
+    zero = np.zeros(w)
     for _ in range(iters):
         # dual ascent on the forward-difference gradient, projected on |p| <= lam
         for r in range(h):
-            for c in range(w):
-                gx = zbar[r, c + 1] - zbar[r, c] if c + 1 < w else 0.0
-                gy = zbar[r + 1, c] - zbar[r, c] if r + 1 < h else 0.0
-                ax = px[r, c] + step * gx
-                ay = py[r, c] + step * gy
-                nrm = math.sqrt(ax * ax + ay * ay)
-                sc = 1.0 if nrm <= lam else lam / nrm
-                px[r, c] = ax * sc
-                py[r, c] = ay * sc
+            zb = zbar[r]
+            zn = zbar[r + 1] if r + 1 < h else zb
+            pxr = px[r]
+            pyr = py[r]
+            for c in range(w - 1):
+                _dual(pxr, pyr, c, zb[c + 1] - zb[c], zn[c] - zb[c], step, lam)
+            _dual(pxr, pyr, w - 1, 0.0, zn[w - 1] - zb[w - 1], step, lam)
         # primal descent: divergence (minus the adjoint of the gradient), then the data prox
         for r in range(h):
-            for c in range(w):
-                div = 0.0
-                if c + 1 < w:
-                    div += px[r, c]
-                if c > 0:
-                    div -= px[r, c - 1]
-                if r + 1 < h:
-                    div += py[r, c]
-                if r > 0:
-                    div -= py[r - 1, c]
-                old = z[r, c]
-                v = old + step * div
-                a = step * wt[r, c]
-                new = (v + a * f[r, c]) / (1.0 + a)
-                z[r, c] = new
-                zbar[r, c] = 2.0 * new - old
+            pxr = px[r]
+            pyr = py[r]
+            pyu = py[r - 1] if r > 0 else zero
+            zr = z[r]
+            zbr = zbar[r]
+            fr = f[r]
+            wr = wt[r]
+            _primal(zr, zbr, fr, wr, 0, pxr[0] + pyr[0] - pyu[0], step)
+            for c in range(1, w):
+                _primal(zr, zbr, fr, wr, c, pxr[c] - pxr[c - 1] + pyr[c] - pyu[c], step)
+
+
+@njit(inline="always", cache=True, nogil=True)
+def _dual(pxr, pyr, c, gx, gy, step, lam):
+    """tv_pdhg's dual step at one pixel of a row."""
+    ax = pxr[c] + step * gx
+    ay = pyr[c] + step * gy
+    nrm = math.sqrt(ax * ax + ay * ay)
+    sc = 1.0 if nrm <= lam else lam / nrm
+    pxr[c] = ax * sc
+    pyr[c] = ay * sc
+
+
+@njit(inline="always", cache=True, nogil=True)
+def _primal(zr, zbr, fr, wr, c, div, step):
+    """tv_pdhg's primal step at one pixel of a row, given its divergence."""
+    old = zr[c]
+    v = old + step * div
+    a = step * wr[c]
+    new = (v + a * fr[c]) / (1.0 + a)
+    zr[c] = new
+    zbr[c] = 2.0 * new - old
