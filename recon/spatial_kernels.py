@@ -77,16 +77,16 @@ def _rank_sort(a, lo, hi, tmp):
     comparisons the compiler vectorises; insertion sort mispredicts a branch per move. tmp needs
     hi - lo entries."""
     k = hi - lo
+    v = a[lo:hi]      # indices from 0 on a view: numba checks no negative index, so loops vectorise
     for i in range(k):
-        v = a[lo + i]
         rank = 0
         for j in range(i):
-            rank += a[lo + j] <= v
+            rank += v[j] <= v[i]
         for j in range(i + 1, k):
-            rank += a[lo + j] < v
-        tmp[rank] = v
+            rank += v[j] < v[i]
+        tmp[rank] = v[i]
     for i in range(k):
-        a[lo + i] = tmp[i]
+        v[i] = tmp[i]
 
 
 @njit(cache=True, nogil=True)
@@ -147,7 +147,6 @@ def censor_fit(x, offsets, h, w, radius, tau, s_min, sigma, n_bins, em_iters,
         sup = np.empty(longest, np.int64)
         todo = np.empty(longest, np.int64)
         kept = np.empty(longest, np.float64)
-        resp = np.empty(longest, np.float64)
         for p in range(blk * PIXEL_BLOCK, min(npix, (blk + 1) * PIXEL_BLOCK)):
             o0 = offsets[p]
             o1 = offsets[p + 1]
@@ -172,14 +171,17 @@ def censor_fit(x, offsets, h, w, radius, tau, s_min, sigma, n_bins, em_iters,
             # return's tails) are counted exactly against every neighbour, so the decision is the same as
             # with full counts.
             need = s_min[p]
-            a = o0
-            b = o0
+            # views indexed from 0: numba then omits its negative-index fix-up, which kept the
+            # comparison loops from vectorising (2x in the pair counts)
+            xp = x[o0:o1]
+            a = 0
+            b = 0
             nt = 0
             for i in range(n):
-                t = x[o0 + i]
-                while x[a] < t - tau:
+                t = xp[i]
+                while xp[a] < t - tau:
                     a += 1
-                while b < o1 and x[b] <= t + tau:
+                while b < n and xp[b] <= t + tau:
                     b += 1
                 sup[i] = b - a - 1
                 if sup[i] < need:
@@ -191,33 +193,32 @@ def censor_fit(x, offsets, h, w, radius, tau, s_min, sigma, n_bins, em_iters,
                     nq = offsets[q + 1] - offsets[q]
                     if q == p or nq == 0 or nt == 0:
                         continue
-                    q0 = offsets[q]
-                    q1 = offsets[q + 1]
+                    xq = x[offsets[q]:offsets[q + 1]]
                     if nt * nq <= WALK_ABOVE * (nt + nq):
                         # a comparison per pair without a branch (the loop vectorises): for the few
                         # detections still undecided cheaper than a walk over the neighbour's list,
                         # whose branches the processor mispredicts
                         for j in range(nt):
                             i = todo[j]
-                            lo_t = x[o0 + i] - tau
-                            hi_t = x[o0 + i] + tau
+                            lo_t = xp[i] - tau
+                            hi_t = xp[i] + tau
                             cnt = 0
-                            for k in range(q0, q1):
-                                cnt += (x[k] >= lo_t) & (x[k] <= hi_t)
+                            for k in range(nq):
+                                cnt += (xq[k] >= lo_t) & (xq[k] <= hi_t)
                             sup[i] += cnt
                     else:
                         # many undecided (a background-dominated pixel): two pointers walk both sorted
                         # lists once, O(nt + nq)
-                        a = q0
-                        b = q0
+                        a = 0
+                        b = 0
                         for j in range(nt):
                             i = todo[j]
-                            t = x[o0 + i]
-                            while a < q1 and x[a] < t - tau:
+                            t = xp[i]
+                            while a < nq and xq[a] < t - tau:
                                 a += 1
                             if b < a:
                                 b = a
-                            while b < q1 and x[b] <= t + tau:
+                            while b < nq and xq[b] <= t + tau:
                                 b += 1
                             sup[i] += b - a
                     keep = 0
@@ -229,7 +230,7 @@ def censor_fit(x, offsets, h, w, radius, tau, s_min, sigma, n_bins, em_iters,
             nk = 0
             for i in range(n):
                 if sup[i] >= need:
-                    kept[nk] = x[o0 + i]
+                    kept[nk] = xp[i]
                     nk += 1
             out_kept[p] = nk
             if nk == 0:
@@ -258,35 +259,34 @@ def censor_fit(x, offsets, h, w, radius, tau, s_min, sigma, n_bins, em_iters,
             pi = min(0.999, max(cnt / n, 1e-3))
             # EM over all the pixel's detections: a censored detection close to the return still
             # counts as signal in proportion to its likelihood, a kept one far from it does not
-            mu, ksum = _em_fit(x, o0, o1, mu, pi, float(cnt), em_iters, inv_s2, norm, inv_m, resp)
+            mu, ksum = _em_fit(xp, mu, pi, float(cnt), em_iters, inv_s2, norm, inv_m)
             out_mu[p] = mu
             out_k[p] = ksum
             out_bg[p] = max(0.0, n - ksum) * inv_m
 
 
-@njit(cache=True, nogil=True, fastmath={"contract", "reassoc"})
-def _em_fit(x, o0, o1, mu, pi, ksum, em_iters, inv_s2, norm, inv_m, a):
-    """``em_iters`` EM steps of ``pi N(mu, sigma^2) + (1 - pi) inv_m`` on x[o0:o1] from (mu, pi);
-    returns (mu, sum of responsibilities), or (mu, ksum) as given when the first step finds none.
-    a is scratch of o1 - o0 entries.
+@njit(cache=True, nogil=True, fastmath={"contract", "reassoc"}, error_model="numpy")
+def _em_fit(xp, mu, pi, ksum, em_iters, inv_s2, norm, inv_m):
+    """``em_iters`` EM steps of ``pi N(mu, sigma^2) + (1 - pi) inv_m`` on the detections xp from
+    (mu, pi); returns (mu, sum of responsibilities), or (mu, ksum) as given when the first step finds
+    none.
 
-    Two passes per step: the Gaussian terms first, a loop the compiler vectorises (exp inlined as
-    a polynomial; libm's exp is a call per detection), then the responsibilities, whose division
-    keeps that loop scalar (vectorised with it, the whole step was slower). fastmath lets the
-    polynomial use fused multiply-adds and the sums be reassociated: a few ulp from plain order."""
-    n = o1 - o0
+    Written for the compiler to vectorise the loop over detections: exp inlined as a polynomial
+    (libm's is a call per detection), divisions without numba's zero check (error_model; no
+    divisor here is 0), fused multiply-adds and reassociated sums (fastmath): a few ulp from the
+    plain loop."""
+    n = xp.size
     for _ in range(em_iters):
         pn = pi * norm
         c = (1.0 - pi) * inv_m
-        for i in range(n):
-            d = x[o0 + i] - mu
-            a[i] = pn * _exp_neg(-0.5 * d * d * inv_s2)
         sr = 0.0
         srt = 0.0
         for i in range(n):
-            rr = a[i] / (a[i] + c)
+            d = xp[i] - mu
+            a = pn * _exp_neg(-0.5 * d * d * inv_s2)
+            rr = a / (a + c)
             sr += rr
-            srt += rr * x[o0 + i]
+            srt += rr * xp[i]
         if sr <= 1e-9:
             break
         mu = srt / sr
@@ -361,7 +361,7 @@ def local_mean(f, wt, radius, out):
             out[r, c] = a / s if s > 0.0 else np.nan
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def tv_pdhg(f, wt, lam, z, iters, px, py, zbar):
     """Weighted isotropic-TV denoising by the primal-dual algorithm of Chambolle and Pock (2011):
     minimise ``sum wt (z - f)^2 / 2 + lam * TV(z)`` over z (H x W). Pixels with wt = 0 carry no
