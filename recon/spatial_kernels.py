@@ -146,6 +146,7 @@ def censor_fit(x, offsets, h, w, radius, tau, s_min, sigma, n_bins, em_iters,
         # scratch once per block of pixels (three allocations per pixel cost 10% at 2 detections)
         sup = np.empty(longest, np.int64)
         todo = np.empty(longest, np.int64)
+        sure = np.empty(longest, np.bool_)
         kept = np.empty(longest, np.float64)
         for p in range(blk * PIXEL_BLOCK, min(npix, (blk + 1) * PIXEL_BLOCK)):
             o0 = offsets[p]
@@ -174,13 +175,27 @@ def censor_fit(x, offsets, h, w, radius, tau, s_min, sigma, n_bins, em_iters,
             # views indexed from 0: numba then omits its negative-index fix-up, which kept the
             # comparison loops from vectorising (2x in the pair counts)
             xp = x[o0:o1]
+            # A detection whose `half` predecessors and `half` successors in the sorted list all
+            # lie within tau has >= need supporters: the core of a return is decided by this test
+            # (it vectorises) and the walk below, whose loops mispredict, skips it.
+            half = (need + 1) // 2
+            for i in range(n):
+                lo_i = max(i - half, 0)
+                hi_i = min(i + half, n - 1)
+                sure[i] = ((i >= half) & (i + half < n) & (xp[lo_i] >= xp[i] - tau)
+                           & (xp[hi_i] <= xp[i] + tau))
             a = 0
             b = 0
             nt = 0
             for i in range(n):
+                if sure[i]:
+                    sup[i] = need
+                    continue
                 t = xp[i]
                 while xp[a] < t - tau:
                     a += 1
+                if b < i:
+                    b = i
                 while b < n and xp[b] <= t + tau:
                     b += 1
                 sup[i] = b - a - 1
@@ -229,9 +244,8 @@ def censor_fit(x, offsets, h, w, radius, tau, s_min, sigma, n_bins, em_iters,
             # kept detections: their positions in x (the pixel's list is sorted, so kept ones are too)
             nk = 0
             for i in range(n):
-                if sup[i] >= need:
-                    kept[nk] = xp[i]
-                    nk += 1
+                kept[nk] = xp[i]
+                nk += sup[i] >= need
             out_kept[p] = nk
             if nk == 0:
                 continue
@@ -252,9 +266,9 @@ def censor_fit(x, offsets, h, w, radius, tau, s_min, sigma, n_bins, em_iters,
             acc = 0.0
             cnt = 0
             for i in range(nk):
-                if abs(kept[i] - kept[bi]) <= reach:
-                    acc += kept[i]
-                    cnt += 1
+                near = abs(kept[i] - kept[bi]) <= reach
+                acc += kept[i] if near else 0.0
+                cnt += near
             mu = acc / cnt
             pi = min(0.999, max(cnt / n, 1e-3))
             # EM over all the pixel's detections: a censored detection close to the return still
