@@ -96,18 +96,19 @@ def _bucket_sort(a, lo, hi, n_bins, tmp, fill):
     bucket as it is placed. tmp and fill need hi - lo and BUCKETS_PER_DETECTION * (hi - lo) + 1
     entries."""
     k = hi - lo
+    src = a[lo:hi]        # indices from 0 (no negative-index fix-up)
     nb = BUCKETS_PER_DETECTION * k
     scale = nb / n_bins
     for j in range(nb + 1):
         fill[j] = 0
-    for i in range(lo, hi):
-        fill[min(nb - 1, max(0, int((a[i] + 0.5) * scale))) + 1] += 1
+    for i in range(k):
+        fill[min(nb - 1, max(0, int((src[i] + 0.5) * scale))) + 1] += 1
     for j in range(nb):
         fill[j + 1] += fill[j]
     for j in range(k):
         tmp[j] = -np.inf      # an unfilled slot stops the insertion at its bucket's start
-    for i in range(lo, hi):
-        v = a[i]
+    for i in range(k):
+        v = src[i]
         j = min(nb - 1, max(0, int((v + 0.5) * scale)))
         pos = fill[j]
         fill[j] += 1
@@ -117,7 +118,7 @@ def _bucket_sort(a, lo, hi, n_bins, tmp, fill):
             pos -= 1
         tmp[pos] = v
     for i in range(k):
-        a[lo + i] = tmp[i]
+        src[i] = tmp[i]
 
 
 @njit(parallel=True, cache=True, nogil=True)
