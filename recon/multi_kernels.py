@@ -15,7 +15,8 @@ keeps or compares (same candidates, Newton starts and steps, EM sweeps: on the r
 its output is bit for bit the earlier kernel's); what makes it cheaper leaves every decision
 unchanged: a shift whose gain an upper bound puts below the one to beat is not scored exactly
 (:func:`add_gain`), a pattern search never scores a shift twice (:func:`refine_shift`), EM looks
-the response up once per refit, and the scratch is allocated once per block of pixels.
+the response up once per refit, a pixel's detections are counted on the window's bins rather than
+sorted (:func:`unique_bins`), and the scratch is allocated once per block of pixels.
 """
 
 from __future__ import annotations
