@@ -74,23 +74,30 @@ def _rank_sort(a, lo, hi, tmp, rank):
     """Sort a[lo:hi] (no NaN) ascending in place by counting each value's rank, the values below
     it: one branch-free pass over the whole list per value, which the compiler vectorises (two
     passes split at the value's own position, to order equal values, ran at half the speed).
-    Equal values share a rank and take the free slots after it in their input order. tmp and rank
-    need hi - lo entries."""
+    Equal values share a rank (the ranks then sum to less than k (k - 1) / 2) and take the free
+    slots after it in their input order. tmp and rank need hi - lo entries."""
     k = hi - lo
     v = a[lo:hi]      # indices from 0 on a view: numba checks no negative index, so loops vectorise
+    total = 0
     for i in range(k):
         vi = v[i]
         r = 0
         for j in range(k):
             r += v[j] < vi
         rank[i] = r
-    for i in range(k):
-        tmp[i] = np.nan       # free slot
-    for i in range(k):
-        pos = rank[i]
-        while tmp[pos] == tmp[pos]:      # taken by an equal value (NaN marks a free slot)
-            pos += 1
-        tmp[pos] = v[i]
+        total += r
+    if total == k * (k - 1) // 2:
+        # each rank is at most the value's place and the places sum to this: all values differ
+        for i in range(k):
+            tmp[rank[i]] = v[i]
+    else:
+        for i in range(k):
+            tmp[i] = np.nan       # free slot
+        for i in range(k):
+            pos = rank[i]
+            while tmp[pos] == tmp[pos]:      # taken by an equal value (NaN marks a free slot)
+                pos += 1
+            tmp[pos] = v[i]
     for i in range(k):
         v[i] = tmp[i]
 
