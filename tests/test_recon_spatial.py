@@ -61,11 +61,12 @@ def mae(maps, tof_units):
 # kernels against their references
 
 
-@pytest.fixture(scope="module", params=[(6, 1.0, 3), (50, 0.3, 40)], ids=["6-per-pixel", "50-per-pixel"])
+@pytest.fixture(scope="module", params=[(6, 1.0, 3), (50, 0.3, 40), (200, 0.3, 150)],
+                ids=["6-per-pixel", "50-per-pixel", "200-per-pixel"])
 def small_store(request):
     """(store, largest s_min to draw): a few detections per pixel, and enough that the kernels take
-    their other paths (bucket sort above BUCKET_ABOVE detections; the censoring's two-pointer walk
-    when many detections of a pixel are still short of support)."""
+    their other paths (the censoring's two-pointer walk when many detections of a pixel are still
+    short of support; the bucket sort above BUCKET_ABOVE detections)."""
     n, sbr, s_max = request.param
     store, _ = simulate(smooth_scene(9, 11), n, sbr, seed=4)
     return store, s_max
@@ -85,6 +86,21 @@ def test_window_shifts_matches_reference(small_store):
         want = ref.window_shifts(small_store.times, small_store.offsets, 100.0, 3900.0, BIN_UNITS, maxp)
         assert_array_equal(np.diff(off), [v.size for v in want])
         assert_allclose(x, np.concatenate(want))
+
+
+@pytest.mark.parametrize("n", [20, 60, 200])
+def test_window_shifts_sorts_equal_times_like_the_reference(n):
+    # times on a coarse grid repeat within a pixel: the rank sort's equal-value branch (up to
+    # BUCKET_ABOVE) and the bucket sort above it must still give each pixel's sorted list
+    store, _ = simulate(smooth_scene(5, 6), n, 0.3, seed=2)
+    times = np.round(store.times / 50.0) * 50.0
+    assert np.unique(times[store.offsets[0]:store.offsets[1]]).size < n
+    x = np.empty(times.size)
+    off = np.empty(store.offsets.size, np.int64)
+    k = SK.window_shifts(times, store.offsets, 100.0, 3900.0, BIN_UNITS, -1, x, off)
+    want = ref.window_shifts(times, store.offsets, 100.0, 3900.0, BIN_UNITS, -1)
+    assert_array_equal(np.diff(off), [v.size for v in want])
+    assert_array_equal(x[:k], np.concatenate(want))
 
 
 def test_censor_fit_matches_reference(small_store):
