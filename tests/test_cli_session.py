@@ -256,6 +256,6 @@ def test_a_quick_command_says_nothing_about_preparing(capsys):
     from spdepth.acq.commands._session import PreparingNotice
 
     with PreparingNotice("scan", after_s=0.2):
-        pass
+        time.sleep(0.01)             # a command done before the notice is due: it is cancelled
     time.sleep(0.4)
     assert capsys.readouterr().err == ""
