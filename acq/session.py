@@ -134,6 +134,9 @@ class Snapshot:
     period is not known): background detections over it are a rate."""
     surfaces: np.ndarray | None = None
     weak: np.ndarray | None = None
+    running_s: float = 0.0
+    """Time since scanning (or replaying) began, s: ``detections_per_s`` counts over it, and
+    ``elapsed_s`` minus it went on preparing (on a fresh install numba compiles the kernels)."""
     health: dict = field(default_factory=dict)
     """Per device ("galvo", "tagger"), from the source: "ok", "recovering" (a loss, reconnect or
     fault in the last HEALTH_RECENT_S, or since the caller's previous snapshot: ``snapshot``'s
@@ -313,7 +316,8 @@ class Session:
         maps = r.copy_maps("depth_m", "background", "signal", "uncertainty_s",
                            *(("surfaces", "weak") if "surfaces" in r.fields else ()))
         return Snapshot(
-            state=self._state.value, elapsed_s=st["elapsed_s"], pixels_total=n_total,
+            state=self._state.value, elapsed_s=st["elapsed_s"], running_s=running_s,
+            pixels_total=n_total,
             pixels_final=n_final, detections=self.detections,
             detections_per_s=st["detections_per_s"], lost_spans=len(self.lost),
             lost_records=st["lost_records"], eta_s=eta, recon_lag=r.lag, passes=self.passes,

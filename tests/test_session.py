@@ -83,6 +83,9 @@ def test_gated_session_completes_every_pixel_from_its_own_dwells(tmp_path, galvo
     assert run["state"] == "done" and run["flag_reasons"] == {} and run["faults_seen"] == []
     assert "flagged_pixels" not in run and run["warnings"] == []
     assert run["statistics"]["detections"] == s.detections > 12 * 16 * 10 - 1
+    snap = s.snapshot()        # the rate counts over the running time, arming came before it
+    assert 0 < snap.running_s < snap.elapsed_s
+    assert snap.detections_per_s == pytest.approx(s.detections / snap.running_s)
     maps = DepthMaps.load_npz(tmp_path / "maps.npz")
     assert np.isfinite(maps.depth_m).mean() > 0.9
 

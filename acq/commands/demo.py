@@ -100,11 +100,9 @@ def _demo(args, request, methods, out_dir) -> int:
     store = session.store
     if session.error is not None:
         print(f"session {session.state.value}: {session.error}", file=sys.stderr)
-    # the rate counts from the scan's start; before it the kernels load (a fresh install compiles)
-    running_s = snap.detections / snap.detections_per_s if snap.detections_per_s else 0.0
     print(f"scanned {scene_name} {w}x{h} through the drivers: {snap.detections} detections in "
           f"{snap.passes} pass{'es' if snap.passes != 1 else ''}, {scan_s:.2f} s of scan time in "
-          f"{running_s:.2f} s after {snap.elapsed_s - running_s:.2f} s preparing "
+          f"{snap.running_s:.2f} s after {snap.elapsed_s - snap.running_s:.2f} s preparing "
           f"({snap.detections_per_s / 1e3:,.0f} k detections/s, live "
           f"{request.method} lagged at most {session.recon.max_lag} pixels)")
     if request.instruments.faults:
