@@ -190,8 +190,8 @@ def photons_by_pixel(pixel, times, n_pix):
 
 def mat_cells(path, var: str):
     """A level-5 .mat cell array of detection-time vectors as (times, offsets), pixels row-major
-    and detection order kept, by scipy's loadmat: the reference of the compiled cell walk
-    (acq.readers.mat_kernels.cell_index, through acq.readers.mat.read_cells_fast)."""
+    and detection order kept, by scipy's loadmat: the reference of the NumPy cell walk
+    (acq.readers.mat.read_cells_fast)."""
     import scipy.io
 
     cells = scipy.io.loadmat(path)[var]

@@ -53,7 +53,7 @@ def test_mat_orientation_rows_columns_and_empty_cells(tmp_path):
 
 @pytest.mark.parametrize("compress", [False, True])
 def test_mat_fast_path_equals_scipy_for_every_element_type(tmp_path, compress):
-    # the compiled walk (read_cells_fast) against scipy's loadmat + cells_to_store: every numeric
+    # the NumPy cell walk (read_cells_fast) against scipy's loadmat + cells_to_store: every numeric
     # element type, empty cells, rows and columns, on a 3 x 4 array (MATLAB's column-major cell
     # order against row-major pixels), compressed or not
     from spdepth.acq.readers.mat import cells_to_store, load_cells, read_cells_fast
@@ -100,6 +100,27 @@ def test_mat_fast_path_declines_what_it_does_not_read(tmp_path):
     scipy.io.savemat(path, {"A": _cell([[np.ones(2)]]), "B": _cell([[np.ones(3)]])})
     assert read_cells_fast(path, None, 8e-12) is None
     assert read_cells_fast(path, "B", 8e-12)[1].n_photons == 3
+
+
+@pytest.mark.parametrize("nbytes", [0x7FFFFFF8, 8, 12])
+def test_mat_fast_path_declines_a_broken_cell_chain(tmp_path, nbytes):
+    # a cell whose length runs past the variable, is too short for its own header, or is not padded
+    # to 8 bytes: the walk says no instead of reading beside the cells, and the file is read by scipy
+    # (which walks each cell's sub-elements by their own tags)
+    from spdepth.acq.readers.mat import _top_level, cells_to_store, load_cells, read_cells_fast
+
+    path = tmp_path / "chain.mat"
+    scipy.io.savemat(path, {"Ts": _cell([[np.arange(3.0), np.arange(2.0)], [np.arange(4.0), np.ones(1)]])},
+                     do_compression=False)
+    raw = bytearray(path.read_bytes())
+    (_name, _cls, _dims, _d, start), = _top_level(bytes(raw))
+    first_cell = 128 + start                # uncompressed: the variable's element starts at byte 128
+    assert raw[first_cell:first_cell + 4] == (14).to_bytes(4, "little")
+    raw[first_cell + 4:first_cell + 8] = nbytes.to_bytes(4, "little")
+    path.write_bytes(bytes(raw))
+    assert read_cells_fast(path, None, 8e-12) is None
+    store = read_photons(path, time_unit_s=8e-12).store
+    assert_array_equal(store.times, cells_to_store(load_cells(path)[1], 8e-12).times)
 
 
 def test_mannequin_matches_loadmat_cell_by_cell(shared_data):

@@ -7,9 +7,8 @@ recon: ``acq.readers.read_photons`` (decode, pixel assignment by markers, every 
 by pixel), as ``acq.api.reconstruct_file`` calls it; replay: a replay session at ``--speed max``
 with the cheapest estimator (lmf) live, from the first record read to the last photon assigned.
 Both in detections/s. ``--mat``: a first-photon-imaging .mat file instead, read by ``spdepth recon``'s
-reader (the compiled cell walk, :func:`acq.readers.mat.read_cells_fast`) beside scipy's ``loadmat``
-(the reader before issue 18, still the fallback), alternated, best of N each, in a process that has
-already loaded the walk's kernel.
+reader (the NumPy cell walk, :func:`acq.readers.mat.read_cells_fast`) beside scipy's ``loadmat``
+(the reader before issue 18, still the fallback), alternated, best of N each, after one untimed read.
 """
 
 from __future__ import annotations
@@ -77,7 +76,7 @@ def _bench_mat(path: Path, unit_s: float, repeats: int) -> int:
 
     from spdepth.acq.readers.mat import cells_to_store, load_cells, read_cells_fast
 
-    fast_store = read_cells_fast(path, None, unit_s)      # loads the kernel outside the timing
+    fast_store = read_cells_fast(path, None, unit_s)      # one untimed read (the file in the page cache)
     if fast_store is None:
         print(f"{path}: the fast path declines this file (scipy reads it)")
         return 1
@@ -93,7 +92,7 @@ def _bench_mat(path: Path, unit_s: float, repeats: int) -> int:
     same = np.array_equal(store.times, ref.times) and np.array_equal(store.offsets, ref.offsets)
     print(f"spdepth bench read --mat {path.name}: {store.shape[0]}x{store.shape[1]} cells, "
           f"{store.n_photons:,} detections")
-    print(f"compiled cell walk: {min(fast_s):.3f} s; scipy loadmat + cells_to_store: {min(scipy_s):.3f} s "
+    print(f"NumPy cell walk: {min(fast_s):.3f} s; scipy loadmat + cells_to_store: {min(scipy_s):.3f} s "
           f"({min(scipy_s) / min(fast_s):.1f}x; best of {repeats}, alternated); same store: {same}")
     return 0
 
