@@ -46,6 +46,16 @@ def dense_limits(values: np.ndarray, coverage: float = 0.75) -> tuple[float, flo
     return (lo, hi) if hi > lo else robust_limits(values)
 
 
+#: a map of whole numbers spanning at most this many is drawn in one colour per value
+DISCRETE_MAX = 10
+
+
+def _whole_numbers(a: np.ndarray) -> bool:
+    """The map's finite values are all whole numbers (counts), and it has some."""
+    v = a[np.isfinite(a)]
+    return v.size > 0 and bool(np.all(v == np.round(v)))
+
+
 def render_maps_png(path: str | Path, maps, *, title: str | None = None,
                     panels: Sequence[tuple[str, str, str, str, str]] | None = None,
                     dpi: int = 110, irf: tuple[np.ndarray, np.ndarray, str] | None = None,
@@ -75,6 +85,7 @@ def render_maps_png(path: str | Path, maps, *, title: str | None = None,
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
     import matplotlib
+    import matplotlib.ticker
 
     from spdepth.acq.mapdefs import (PANEL_DEFS, MapDef, constant_value, display, levels_for,
                                      map_input_from_maps, resolve)
@@ -95,14 +106,14 @@ def render_maps_png(path: str | Path, maps, *, title: str | None = None,
             if a.ndim == 3 and a.shape[0] > 1:
                 for r in range(a.shape[0]):
                     faded = weak[r] if weak is not None and np.shape(weak) == a.shape else None
-                    drawn.append((d, f"{d.title}, surface {r + 1}", a[r], mi.target, faded))
+                    drawn.append((d, f"{d.title} ({d.unit}), surface {r + 1}", a[r], mi.target, faded))
             else:
-                drawn.append((d, d.title, a[0] if a.ndim == 3 else a, mi.target, None))
+                drawn.append((d, f"{d.title} ({d.unit})", a[0] if a.ndim == 3 else a, mi.target, None))
     else:
         for attr, name, unit, cmap_name, _rule in panels:
             a = np.asarray(getattr(maps, attr), dtype=np.float64)
             d = MapDef(attr, name, unit, cmap_name, "robust", lambda m: m)
-            drawn.append((d, name, a[0] if a.ndim == 3 else a, 0, None))
+            drawn.append((d, f"{name} ({unit})", a[0] if a.ndim == 3 else a, 0, None))
     h, w = drawn[0][2].shape
     if geometry is None:
         geometry = geometry_of(maps)
@@ -132,6 +143,12 @@ def render_maps_png(path: str | Path, maps, *, title: str | None = None,
         const = constant_value(arr)
         lv = levels_for(d, arr, tgt) or (0.0, 1.0)
         vmin, vmax = lv
+        counts_map = _whole_numbers(arr)
+        if counts_map and 0 <= vmin and vmax <= DISCRETE_MAX:
+            # a few counts (surfaces per pixel): one colour per value, centred on its tick
+            vmin, vmax = -0.5, max(vmax, float(np.nanmax(arr))) + 0.5
+            cmap = cmap.resampled(int(vmax - vmin))
+            lv = (vmin, vmax)
         im = ax.imshow(np.ma.masked_invalid(display(arr, lv)), cmap=cmap, vmin=vmin, vmax=vmax,
                        interpolation="nearest", origin="upper", extent=extent,
                        aspect="equal")
@@ -144,13 +161,9 @@ def render_maps_png(path: str | Path, maps, *, title: str | None = None,
             fade = matplotlib.colors.ListedColormap([np.array(FADE_RGBA) / 255.0])
             ax.imshow(np.where(weak_px, 1.0, np.nan), cmap=fade, vmin=0, vmax=1,
                       interpolation="nearest", origin="upper", extent=extent, aspect="equal")
-        ax.set_title(f"{name} ({d.unit})")
-        if geometry is not None:
-            ax.set_xlabel("scan angle x (deg)")
-            ax.set_ylabel("scan angle y (deg)")
-        else:
-            ax.set_xlabel("column")
-            ax.set_ylabel("row")
+        # a panel is 4.4 inches wide: a long title goes on two lines, not under the colour bar
+        ax.set_title(name.replace(", surface", "\nsurface") if len(name) > 32 else name)
+        ax.set_ylabel("scan angle y (deg)" if geometry is not None else "row")
         finite = arr[np.isfinite(arr)]
         notes = []
         if finite.size == 0:
@@ -164,6 +177,9 @@ def render_maps_png(path: str | Path, maps, *, title: str | None = None,
                                              bool(np.any(finite > vmax)))]
             bar = fig.colorbar(im, ax=ax, shrink=0.85, extend=extend)
             bar.set_label(d.unit)
+            if counts_map:
+                bar.locator = matplotlib.ticker.MaxNLocator(integer=True)
+                bar.update_ticks()
         n_inf = int(np.sum(np.isposinf(arr)))
         if n_inf:
             notes.append(f"{n_inf} px above the scale (no background found)")
@@ -172,9 +188,8 @@ def render_maps_png(path: str | Path, maps, *, title: str | None = None,
             notes.append(f"grey: no value ({n_nan} px)")
         if n_weak:
             notes.append(f"faded: weak, may be background ({n_weak} px)")
-        if notes:
-            ax.text(0.0, -0.18 if h >= 8 else -0.3, "\n".join(notes),
-                    transform=ax.transAxes, fontsize=8, color="#444444", va="top")
+        # the notes under the axis label, where the layout keeps room for them
+        ax.set_xlabel("\n".join(["scan angle x (deg)" if geometry is not None else "column"] + notes))
     if title:
         fig.suptitle(title)
     fig.savefig(path, dpi=dpi)
@@ -240,10 +255,10 @@ def _draw_irf(ax, times_s, counts, label: str) -> None:
     t_ps = (t - t[np.argmax(c)]) * 1e12
     ax.semilogy(t_ps, np.where(c > 0, c, np.nan), color="#3b6ea5")
     ax.set_ylim(max(1e-4, float(np.nanmin(np.where(c > 0, c, np.nan)))), 1.5)
-    ax.set_xlabel("ps from the peak")
+    # where the shape came from under the axis (inside, it ran over the tick labels)
+    ax.set_xlabel(f"ps from the peak\n{label}")
     ax.set_ylabel("response (peak 1)")
     ax.set_title("pulse shape used")
-    ax.text(0.98, 0.97, label, transform=ax.transAxes, fontsize=8, ha="right", va="top")
 
 
 def render_point_png(path: str | Path, times_s: np.ndarray, *, tof_s: float | None = None,
