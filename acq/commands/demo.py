@@ -149,7 +149,7 @@ def _demo(args, request, methods, out_dir) -> int:
     panels = [("truth_m", "true depth", "m", "turbo", "percentile")]
     for method, (maps, mae_cm) in results.items():
         setattr(sheet, f"{method}_m", maps.depth_m)
-        panels.append((f"{method}_m", f"{method}, MAE {mae_cm:.1f} cm", "m", "turbo", "percentile"))
+        panels.append((f"{method}_m", f"{method}: MAE {mae_cm:.1f} cm, depth", "m", "turbo", "percentile"))
     best = results.get("ml") or next(iter(results.values()))
     sheet.background = best[0].background
     panels.append(("background", "background", "detections per bin", "magma", "percentile"))
