@@ -180,6 +180,18 @@ def display(data: np.ndarray, levels: tuple[float, float] | None) -> np.ndarray:
     return a
 
 
+#: a map of whole numbers spanning at most this many is drawn with a tick per value (the PNG: one
+#: colour per value too)
+DISCRETE_MAX = 10
+
+
+def whole_numbers(data: np.ndarray) -> bool:
+    """The map's finite values are all whole numbers (counts), and it has some."""
+    v = np.asarray(data, dtype=np.float64)
+    v = v[np.isfinite(v)]
+    return v.size > 0 and bool(np.all(v == np.round(v)))
+
+
 def constant_value(data: np.ndarray) -> float | None:
     """The one value of a map whose finite pixels all hold it (None: not constant, or empty)."""
     v = np.asarray(data, dtype=np.float64)
@@ -252,4 +264,4 @@ def surfaces_of(maps) -> np.ndarray | None:
 
 __all__ = ["MapDef", "MapInput", "MAP_DEFS", "MAPS_BY_KEY", "PANEL_DEFS", "resolve", "NAN_COLOUR", "FADE_RGBA", "ROBUST_PERCENTILES",
            "constant_value", "display", "levels_for", "widen", "map_input_from_maps", "first_surface",
-           "surfaces_of"]
+           "surfaces_of", "DISCRETE_MAX", "whole_numbers"]

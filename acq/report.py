@@ -46,16 +46,6 @@ def dense_limits(values: np.ndarray, coverage: float = 0.75) -> tuple[float, flo
     return (lo, hi) if hi > lo else robust_limits(values)
 
 
-#: a map of whole numbers spanning at most this many is drawn in one colour per value
-DISCRETE_MAX = 10
-
-
-def _whole_numbers(a: np.ndarray) -> bool:
-    """The map's finite values are all whole numbers (counts), and it has some."""
-    v = a[np.isfinite(a)]
-    return v.size > 0 and bool(np.all(v == np.round(v)))
-
-
 def render_maps_png(path: str | Path, maps, *, title: str | None = None,
                     panels: Sequence[tuple[str, str, str, str, str]] | None = None,
                     dpi: int = 110, irf: tuple[np.ndarray, np.ndarray, str] | None = None,
@@ -87,8 +77,8 @@ def render_maps_png(path: str | Path, maps, *, title: str | None = None,
     import matplotlib
     import matplotlib.ticker
 
-    from spdepth.acq.mapdefs import (PANEL_DEFS, MapDef, constant_value, display, levels_for,
-                                     map_input_from_maps, resolve)
+    from spdepth.acq.mapdefs import (DISCRETE_MAX, PANEL_DEFS, MapDef, constant_value, display,
+                                     levels_for, map_input_from_maps, resolve, whole_numbers)
     from spdepth.acq.points import geometry_of
 
     path = Path(path)
@@ -143,7 +133,7 @@ def render_maps_png(path: str | Path, maps, *, title: str | None = None,
         const = constant_value(arr)
         lv = levels_for(d, arr, tgt) or (0.0, 1.0)
         vmin, vmax = lv
-        counts_map = _whole_numbers(arr)
+        counts_map = whole_numbers(arr)
         if counts_map and 0 <= vmin and vmax <= DISCRETE_MAX:
             # a few counts (surfaces per pixel): one colour per value, centred on its tick
             vmin, vmax = -0.5, max(vmax, float(np.nanmax(arr))) + 0.5

@@ -13,8 +13,8 @@ import pyqtgraph as pg
 from PySide6 import QtCore, QtWidgets
 
 from spdepth.acq.flags import AcqFlag
-from spdepth.acq.mapdefs import (FADE_RGBA, MAP_DEFS, NAN_COLOUR, PANEL_DEFS, MapDef, MapInput, constant_value, display,
-                                 levels_for, widen)
+from spdepth.acq.mapdefs import (DISCRETE_MAX, FADE_RGBA, MAP_DEFS, NAN_COLOUR, PANEL_DEFS, MapDef, MapInput,
+                                 constant_value, display, levels_for, whole_numbers, widen)
 from spdepth.recon.maps import C_M_PER_S
 
 VIEW_BACKGROUND = NAN_COLOUR
@@ -158,6 +158,9 @@ class MapPanel:
         if lv is not None and lv != self.levels:
             self.levels = lv
             self.bar.setLevels(lv)
+            # a map of a few counts (surfaces per pixel): a tick per count, not 0.5 steps
+            few = whole_numbers(data) and lv[1] - lv[0] <= DISCRETE_MAX
+            self.bar.axis.setTickSpacing(*((1, 1) if few else (None, None)))
         const = constant_value(data)
         if const != self._const:
             # one value everywhere: say it in the title (the bar's ends would be rounding noise)
