@@ -135,7 +135,7 @@ def _bucket_sort(a, lo, hi, n_bins, tmp, fill):
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def censor_fit(x, offsets, h, w, radius, tau, s_min, sigma, n_bins, em_iters,
+def censor_fit(x, offsets, h, w, radius, tau, s_min, sigma, n_bins, em_iters, win_counts, count_width,
                out_mu, out_k, out_bg, out_n, out_kept):
     """Per pixel: censor, then fit a pulse-plus-flat mixture to the detections kept.
 
@@ -144,6 +144,9 @@ def censor_fit(x, offsets, h, w, radius, tau, s_min, sigma, n_bins, em_iters,
     a background detection finds such support only by chance. Of the kept detections, the
     densest cluster (most kept within 2.5 sigma) seeds the fit. Fit: ``em_iters`` EM steps on all
     of the pixel's detections for ``pi N(mu, sigma^2) + (1 - pi) / n_bins``, mu and pi free.
+
+    win_counts (window_counts' output, or (h w) x 0 for none) and its bin width count_width bound each
+    detection's support before the neighbours are counted: the outputs are the same with or without.
 
     Outputs per pixel: out_mu (shift, bins; NaN when nothing kept), out_k (signal detections, the
     sum of responsibilities; 0 when nothing kept), out_bg (background detections per bin),
@@ -216,6 +219,22 @@ def censor_fit(x, offsets, h, w, radius, tau, s_min, sigma, n_bins, em_iters,
                 if sup[i] < need:
                     todo[nt] = i
                     nt += 1
+            if win_counts.shape[1] > 0 and nt > 0:
+                # the window's detections in the coarse bins that [t - tau, t + tau] touches bound
+                # the support from above (the detection itself among them): a detection whose bound
+                # falls short is censored without counting any neighbour
+                nc = win_counts.shape[1]
+                inv_width = 1.0 / count_width
+                wc = win_counts[p]
+                keep = 0
+                for j in range(nt):
+                    i = todo[j]
+                    k0 = _count_bin(xp[i] - tau, inv_width, nc)
+                    k1 = _count_bin(xp[i] + tau, inv_width, nc)
+                    bound = wc[k1] - (wc[k0 - 1] if k0 > 0 else 0)
+                    todo[keep] = i
+                    keep += bound > need
+                nt = keep
             for r in range(rlo, rhi + 1):
                 for c in range(clo, chi + 1):
                     q = r * w + c
@@ -293,6 +312,62 @@ def censor_fit(x, offsets, h, w, radius, tau, s_min, sigma, n_bins, em_iters,
             out_bg[p] = max(0.0, n - ksum) * inv_m
 
 
+@njit(parallel=True, cache=True, nogil=True)
+def window_counts(x, offsets, h, w, radius, width, out):
+    """out[p, k]: the detections of pixel p's (2 radius + 1)^2 window (clipped at the border) whose
+    coarse bin (_count_bin with this width) is at most k, cumulative so that any range of bins
+    costs two look-ups: censor_fit's upper bounds on a detection's support. Each pixel's list
+    sorted; out is (h w) x n_coarse, any content."""
+    nc = out.shape[1]
+    npix = h * w
+    inv_width = 1.0 / width
+    longest = 0
+    for p in range(npix):
+        longest = max(longest, offsets[p + 1] - offsets[p])
+    own = np.empty((npix, nc), out.dtype)
+    n_blocks = (npix + PIXEL_BLOCK - 1) // PIXEL_BLOCK
+    for blk in prange(n_blocks):
+        bins = np.empty(longest, np.int64)
+        for p in range(blk * PIXEL_BLOCK, min(npix, (blk + 1) * PIXEL_BLOCK)):
+            # cumulative counts from the sorted list: the last detection of each bin writes its
+            # rank, then a running maximum fills the empty bins. The bins first, in a loop of
+            # their own: stores at computed places amid the loads of x ran 3x slower.
+            xp = x[offsets[p]:offsets[p + 1]]
+            for i in range(xp.size):
+                bins[i] = _count_bin(xp[i], inv_width, nc)
+            row = own[p]
+            for k in range(nc):
+                row[k] = 0
+            for i in range(xp.size):
+                row[bins[i]] = i + 1
+            run = 0
+            for k in range(nc):
+                run = max(run, row[k])
+                row[k] = run
+    for r in prange(h):
+        # sums over the window's rows, then along the row
+        col = np.zeros((w, nc), out.dtype)
+        for rr in range(max(0, r - radius), min(h, r + radius + 1)):
+            src = own[rr * w:(rr + 1) * w]
+            for c in range(w):
+                for k in range(nc):
+                    col[c, k] += src[c, k]
+        dst = out[r * w:(r + 1) * w]
+        for c in range(w):
+            for k in range(nc):
+                dst[c, k] = 0
+            for cc in range(max(0, c - radius), min(w, c + radius + 1)):
+                for k in range(nc):
+                    dst[c, k] += col[cc, k]
+
+
+@njit(inline="always", cache=True, nogil=True)
+def _count_bin(v, inv_width, nc):
+    """window_counts' coarse bin of shift v, clamped to [0, nc): non-decreasing in v, so the
+    detections in [lo, hi] lie in the bins from _count_bin(lo) to _count_bin(hi)."""
+    return min(nc - 1, max(0, int((v + 0.5) * inv_width)))
+
+
 @njit(cache=True, nogil=True, fastmath={"contract", "reassoc"}, error_model="numpy")
 def _em_fit(xp, mu, pi, ksum, em_iters, inv_s2, norm, inv_m):
     """``em_iters`` EM steps of ``pi N(mu, sigma^2) + (1 - pi) inv_m`` on the detections xp from
@@ -352,7 +427,7 @@ def _exp_neg(e):
     """exp(e) for e <= 0 within a few ulp of libm (0 below EXP_IS_ZERO), in instructions a loop can
     vectorise: e = n ln2 + r with |r| <= ln2 / 2, exp(r) by its Taylor series to r^12 (the next
     term is below 2e-16 relative), 2^n written straight into the exponent bits."""
-    n = math.floor(e * _LOG2E + 0.5)
+    n = np.floor(e * _LOG2E + 0.5)     # a float: math.floor's int cost two scalar conversions per lane
     r = (e - n * _LN2_HI) - n * _LN2_LO
     p = 1.0 / 479001600.0
     p = p * r + 1.0 / 39916800.0
