@@ -208,10 +208,15 @@ def _censor_fit_block(first, last, longest, x, offsets, h, w, radius, tau, s_min
         # (it vectorises) and the walk below, whose loops mispredict, skips it.
         half = (need + 1) // 2
         for i in range(n):
-            lo_i = max(i - half, 0)
-            hi_i = min(i + half, n - 1)
-            sure[i] = ((i >= half) & (i + half < n) & (xp[lo_i] >= xp[i] - tau)
-                       & (xp[hi_i] <= xp[i] + tau))
+            sure[i] = False
+        if n > 2 * half:
+            # as shifted views from 0, so the loop loads without gathers
+            before = xp[:n - 2 * half]
+            at = xp[half:n - half]
+            after = xp[2 * half:]
+            mid = sure[half:n - half]
+            for j in range(n - 2 * half):
+                mid[j] = (before[j] >= at[j] - tau) & (after[j] <= at[j] + tau)
         a = 0
         b = 0
         nt = 0
