@@ -158,6 +158,21 @@ def test_censor_fit_matches_reference(small_store):
                 assert_array_equal(g, u)
 
 
+@pytest.mark.parametrize("sbr", [0.3, 10.0])
+def test_bounded_censoring_changes_no_output(monkeypatch, sbr):
+    # frames with many detections per pixel bound the support by coarse window counts first
+    # (spatial.BOUND_FROM): the maps are the same bits as with exact counts alone
+    from spdepth.recon import spatial
+
+    store, _ = simulate(smooth_scene(24, 24), 2 * spatial.BOUND_FROM, sbr, seed=7)
+    bounded = reconstruct(store, settings("spatial"))
+    monkeypatch.setattr(spatial, "BOUND_FROM", 10 ** 9)
+    exact = reconstruct(store, settings("spatial"))
+    for name in ("tof_s", "background", "signal", "uncertainty_s", "flags", "photons"):
+        assert_array_equal(getattr(bounded, name), getattr(exact, name))
+    assert bounded.settings == exact.settings
+
+
 def test_local_mean_and_tv_match_reference():
     rng = np.random.default_rng(1)
     f = rng.normal(size=(13, 17))
