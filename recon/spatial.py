@@ -59,8 +59,8 @@ ALPHA = 0.02
 #: Censoring: pixels with a median below this many detections pool a 5 x 5 window, else 3 x 3.
 WIDE_BELOW = 8
 #: Censoring: frames with a median of at least this many detections per pixel bound each detection's
-#: support by coarse counts of its window first (measured at SBR 10: even at 22-25, 6% slower at 20,
-#: 12% faster at 60).
+#: support by coarse counts of its window first (measured at SBR 10: break-even at 22-25, 6% slower
+#: at 20, 12% faster at 60).
 BOUND_FROM = 25
 #: Censoring: width of those coarse bins, in censoring widths tau.
 COUNT_BIN_TAU = 2.0
