@@ -58,6 +58,12 @@ TAU_RMS = 1.5
 ALPHA = 0.02
 #: Censoring: pixels with a median below this many detections pool a 5 x 5 window, else 3 x 3.
 WIDE_BELOW = 8
+#: Censoring: frames with a median of at least this many detections per pixel bound each detection's
+#: support by coarse counts of its window first (measured at SBR 10: break-even at 22-25, 6% slower
+#: at 20, 12% faster at 60).
+BOUND_FROM = 25
+#: Censoring: width of those coarse bins, in censoring widths tau.
+COUNT_BIN_TAU = 2.0
 #: EM steps of the pixelwise fit.
 EM_ITERS = 4
 #: TV weight, in pulse RMS widths per unit of signal count.
@@ -102,7 +108,8 @@ def reconstruct_spatial(store: PhotonStore, settings: ReconSettings,
     x = x[:n_kept]
     counts = np.diff(offsets)
     nonzero = counts[counts > 0]
-    radius = 2 if (nonzero.size == 0 or np.median(nonzero) < WIDE_BELOW) else 1
+    typical = float(np.median(nonzero)) if nonzero.size else 0.0
+    radius = 2 if typical < WIDE_BELOW else 1
 
     # censoring threshold per pixel: what background alone would bring, at false-alarm ALPHA
     tau = TAU_RMS * sigma
@@ -123,7 +130,15 @@ def reconstruct_spatial(store: PhotonStore, settings: ReconSettings,
     bg = np.empty(npix)
     n_used = np.empty(npix, np.int64)
     n_cens = np.empty(npix, np.int64)
-    SK.censor_fit(x, offsets, h, w, radius, tau, s_min, sigma, float(m), EM_ITERS,
+    # identical results either way; the coarse counts cost a pass over the detections and save the
+    # neighbour counts of most background detections, which pays with many detections per pixel
+    count_width = COUNT_BIN_TAU * tau
+    if typical >= BOUND_FROM:
+        win_counts = np.empty((npix, int(math.ceil(m / count_width))), np.int32)
+        SK.window_counts(x, offsets, h, w, radius, count_width, win_counts)
+    else:
+        win_counts = np.empty((npix, 0), np.int32)
+    SK.censor_fit(x, offsets, h, w, radius, tau, s_min, sigma, float(m), EM_ITERS, win_counts, count_width,
                   mu, k, bg, n_used, n_cens)
     if progress is not None:
         progress(npix // 2, npix)

@@ -135,7 +135,7 @@ def _bucket_sort(a, lo, hi, n_bins, tmp, fill):
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def censor_fit(x, offsets, h, w, radius, tau, s_min, sigma, n_bins, em_iters,
+def censor_fit(x, offsets, h, w, radius, tau, s_min, sigma, n_bins, em_iters, win_counts, count_width,
                out_mu, out_k, out_bg, out_n, out_kept):
     """Per pixel: censor, then fit a pulse-plus-flat mixture to the detections kept.
 
@@ -145,152 +145,243 @@ def censor_fit(x, offsets, h, w, radius, tau, s_min, sigma, n_bins, em_iters,
     densest cluster (most kept within 2.5 sigma) seeds the fit. Fit: ``em_iters`` EM steps on all
     of the pixel's detections for ``pi N(mu, sigma^2) + (1 - pi) / n_bins``, mu and pi free.
 
+    win_counts (window_counts' output, or (h w) x 0 for none) and its bin width count_width bound each
+    detection's support before the neighbours are counted: the outputs are the same with or without.
+
     Outputs per pixel: out_mu (shift, bins; NaN when nothing kept), out_k (signal detections, the
     sum of responsibilities; 0 when nothing kept), out_bg (background detections per bin),
     out_n (detections used), out_kept (detections that passed censoring)."""
     npix = h * w
-    inv_m = 1.0 / n_bins
-    inv_s2 = 1.0 / (sigma * sigma)
-    norm = 1.0 / (math.sqrt(2.0 * math.pi) * sigma)
-    longest = 0
+    longest = np.int64(0)     # not the literal 0: numba compiled the callee for that type too
     for p in range(npix):
         longest = max(longest, offsets[p + 1] - offsets[p])
     n_blocks = (npix + PIXEL_BLOCK - 1) // PIXEL_BLOCK
+    # a block's pixels in a plain function: with the loop over them inside the parallel loop,
+    # numba's parallel lowering took 8 s of cold compile, as a plain function it takes about 4
     for blk in prange(n_blocks):
-        # scratch once per block of pixels (three allocations per pixel cost 10% at 2 detections)
-        sup = np.empty(longest, np.int64)
-        todo = np.empty(longest, np.int64)
-        sure = np.empty(longest, np.bool_)
-        kept = np.empty(longest, np.float64)
-        for p in range(blk * PIXEL_BLOCK, min(npix, (blk + 1) * PIXEL_BLOCK)):
-            o0 = offsets[p]
-            o1 = offsets[p + 1]
-            n = o1 - o0
-            out_n[p] = n
-            out_mu[p] = np.nan
-            out_k[p] = 0.0
-            out_bg[p] = n * inv_m
-            out_kept[p] = 0
-            if n == 0:
+        _censor_fit_block(blk * PIXEL_BLOCK, min(npix, (blk + 1) * PIXEL_BLOCK), longest, x, offsets, h,
+                          w, radius, tau, s_min, sigma, n_bins, em_iters, win_counts, count_width,
+                          out_mu, out_k, out_bg, out_n, out_kept)
+
+
+@njit(cache=True, nogil=True)
+def _censor_fit_block(first, last, longest, x, offsets, h, w, radius, tau, s_min, sigma, n_bins, em_iters,
+                      win_counts, count_width, out_mu, out_k, out_bg, out_n, out_kept):
+    """censor_fit of pixels first..last - 1 (longest: the longest list)."""
+    inv_m = 1.0 / n_bins
+    inv_s2 = 1.0 / (sigma * sigma)
+    norm = 1.0 / (math.sqrt(2.0 * math.pi) * sigma)
+    # scratch once per block of pixels (three allocations per pixel cost 10% at 2 detections)
+    sup = np.empty(longest, np.int64)
+    todo = np.empty(longest, np.int64)
+    sure = np.empty(longest, np.bool_)
+    kept = np.empty(longest, np.float64)
+    for p in range(first, last):
+        o0 = offsets[p]
+        o1 = offsets[p + 1]
+        n = o1 - o0
+        out_n[p] = n
+        out_mu[p] = np.nan
+        out_k[p] = 0.0
+        out_bg[p] = n * inv_m
+        out_kept[p] = 0
+        if n == 0:
+            continue
+        r0 = p // w
+        c0 = p - r0 * w
+        rlo = max(0, r0 - radius)
+        rhi = min(h - 1, r0 + radius)
+        clo = max(0, c0 - radius)
+        chi = min(w - 1, c0 + radius)
+        # Each detection's support: the window's detections in [t - tau, t + tau], the detection
+        # itself excluded. Only "support >= s_min" matters, so a detection stops collecting once it
+        # has enough: the pixel's own list first (where a return's detections find most of theirs),
+        # then each neighbour for the detections still short. The undecided ones (background, a
+        # return's tails) are counted exactly against every neighbour unless an upper bound rules them
+        # out, so the decision is the same as with full counts.
+        need = s_min[p]
+        # views indexed from 0: numba then omits its negative-index fix-up, which kept the
+        # comparison loops from vectorising (2x in the pair counts)
+        xp = x[o0:o1]
+        # A detection whose `half` predecessors and `half` successors in the sorted list all
+        # lie within tau has >= need supporters: the core of a return is decided by this test
+        # (it vectorises) and the walk below, whose loops mispredict, skips it.
+        half = (need + 1) // 2
+        for i in range(n):
+            sure[i] = False
+        if n > 2 * half:
+            # as shifted views from 0, so the loop loads without gathers
+            before = xp[:n - 2 * half]
+            at = xp[half:n - half]
+            after = xp[2 * half:]
+            mid = sure[half:n - half]
+            for j in range(n - 2 * half):
+                mid[j] = (before[j] >= at[j] - tau) & (after[j] <= at[j] + tau)
+        a = 0
+        b = 0
+        nt = 0
+        for i in range(n):
+            if sure[i]:
+                sup[i] = need
                 continue
-            r0 = p // w
-            c0 = p - r0 * w
-            rlo = max(0, r0 - radius)
-            rhi = min(h - 1, r0 + radius)
-            clo = max(0, c0 - radius)
-            chi = min(w - 1, c0 + radius)
-            # Each detection's support: the window's detections in [t - tau, t + tau], the detection
-            # itself excluded. Only "support >= s_min" matters, so a detection stops collecting once it
-            # has enough: the pixel's own list first (where a return's detections find most of theirs),
-            # then each neighbour for the detections still short. The undecided ones (background, a
-            # return's tails) are counted exactly against every neighbour, so the decision is the same as
-            # with full counts.
-            need = s_min[p]
-            # views indexed from 0: numba then omits its negative-index fix-up, which kept the
-            # comparison loops from vectorising (2x in the pair counts)
-            xp = x[o0:o1]
-            # A detection whose `half` predecessors and `half` successors in the sorted list all
-            # lie within tau has >= need supporters: the core of a return is decided by this test
-            # (it vectorises) and the walk below, whose loops mispredict, skips it.
-            half = (need + 1) // 2
-            for i in range(n):
-                lo_i = max(i - half, 0)
-                hi_i = min(i + half, n - 1)
-                sure[i] = ((i >= half) & (i + half < n) & (xp[lo_i] >= xp[i] - tau)
-                           & (xp[hi_i] <= xp[i] + tau))
-            a = 0
-            b = 0
-            nt = 0
-            for i in range(n):
-                if sure[i]:
-                    sup[i] = need
+            t = xp[i]
+            while xp[a] < t - tau:
+                a += 1
+            if b < i:
+                b = i
+            while b < n and xp[b] <= t + tau:
+                b += 1
+            sup[i] = b - a - 1
+            if sup[i] < need:
+                todo[nt] = i
+                nt += 1
+        if win_counts.shape[1] > 0 and nt > 0:
+            # the window's detections in the coarse bins that [t - tau, t + tau] touches bound
+            # the support from above (the detection itself among them): a detection whose bound
+            # falls short is censored without counting any neighbour
+            nc = win_counts.shape[1]
+            inv_width = 1.0 / count_width
+            wc = win_counts[p]
+            keep = 0
+            for j in range(nt):
+                i = todo[j]
+                k0 = _count_bin(xp[i] - tau, inv_width, nc)
+                k1 = _count_bin(xp[i] + tau, inv_width, nc)
+                bound = wc[k1] - (wc[k0 - 1] if k0 > 0 else 0)
+                todo[keep] = i
+                keep += bound > need
+            nt = keep
+        for r in range(rlo, rhi + 1):
+            for c in range(clo, chi + 1):
+                q = r * w + c
+                nq = offsets[q + 1] - offsets[q]
+                if q == p or nq == 0 or nt == 0:
                     continue
-                t = xp[i]
-                while xp[a] < t - tau:
-                    a += 1
-                if b < i:
-                    b = i
-                while b < n and xp[b] <= t + tau:
-                    b += 1
-                sup[i] = b - a - 1
-                if sup[i] < need:
-                    todo[nt] = i
-                    nt += 1
-            for r in range(rlo, rhi + 1):
-                for c in range(clo, chi + 1):
-                    q = r * w + c
-                    nq = offsets[q + 1] - offsets[q]
-                    if q == p or nq == 0 or nt == 0:
-                        continue
-                    xq = x[offsets[q]:offsets[q + 1]]
-                    if nt * nq <= WALK_ABOVE * (nt + nq):
-                        # a comparison per pair without a branch (the loop vectorises): for the few
-                        # detections still undecided cheaper than a walk over the neighbour's list,
-                        # whose branches the processor mispredicts
-                        for j in range(nt):
-                            i = todo[j]
-                            lo_t = xp[i] - tau
-                            hi_t = xp[i] + tau
-                            cnt = 0
-                            for k in range(nq):
-                                cnt += (xq[k] >= lo_t) & (xq[k] <= hi_t)
-                            sup[i] += cnt
-                    else:
-                        # many undecided (a background-dominated pixel): two pointers walk both sorted
-                        # lists once, O(nt + nq)
-                        a = 0
-                        b = 0
-                        for j in range(nt):
-                            i = todo[j]
-                            t = xp[i]
-                            while a < nq and xq[a] < t - tau:
-                                a += 1
-                            if b < a:
-                                b = a
-                            while b < nq and xq[b] <= t + tau:
-                                b += 1
-                            sup[i] += b - a
-                    keep = 0
+                xq = x[offsets[q]:offsets[q + 1]]
+                if nt * nq <= WALK_ABOVE * (nt + nq):
+                    # a comparison per pair without a branch (the loop vectorises): for the few
+                    # detections still undecided cheaper than a walk over the neighbour's list,
+                    # whose branches the processor mispredicts
                     for j in range(nt):
-                        todo[keep] = todo[j]
-                        keep += sup[todo[j]] < need
-                    nt = keep
-            # kept detections: their positions in x (the pixel's list is sorted, so kept ones are too)
-            nk = 0
-            for i in range(n):
-                kept[nk] = xp[i]
-                nk += sup[i] >= need
-            out_kept[p] = nk
-            if nk == 0:
-                continue
-            # densest cluster of the kept detections (two pointers over the sorted list)
-            reach = 2.5 * sigma
-            best = 0
-            bi = 0
-            lo = 0
-            hi = 0
-            for i in range(nk):
-                while kept[lo] < kept[i] - reach:
-                    lo += 1
-                while hi < nk and kept[hi] <= kept[i] + reach:
-                    hi += 1
-                if hi - lo > best:
-                    best = hi - lo
-                    bi = i
-            acc = 0.0
-            cnt = 0
-            for i in range(nk):
-                near = abs(kept[i] - kept[bi]) <= reach
-                acc += kept[i] if near else 0.0
-                cnt += near
-            mu = acc / cnt
-            pi = min(0.999, max(cnt / n, 1e-3))
-            # EM over all the pixel's detections: a censored detection close to the return still
-            # counts as signal in proportion to its likelihood, a kept one far from it does not
-            mu, ksum = _em_fit(xp, mu, pi, float(cnt), em_iters, inv_s2, norm, inv_m)
-            out_mu[p] = mu
-            out_k[p] = ksum
-            out_bg[p] = max(0.0, n - ksum) * inv_m
+                        i = todo[j]
+                        lo_t = xp[i] - tau
+                        hi_t = xp[i] + tau
+                        cnt = 0
+                        for k in range(nq):
+                            cnt += (xq[k] >= lo_t) & (xq[k] <= hi_t)
+                        sup[i] += cnt
+                else:
+                    # many undecided (a background-dominated pixel): two pointers walk both sorted
+                    # lists once, O(nt + nq)
+                    a = 0
+                    b = 0
+                    for j in range(nt):
+                        i = todo[j]
+                        t = xp[i]
+                        while a < nq and xq[a] < t - tau:
+                            a += 1
+                        if b < a:
+                            b = a
+                        while b < nq and xq[b] <= t + tau:
+                            b += 1
+                        sup[i] += b - a
+                keep = 0
+                for j in range(nt):
+                    todo[keep] = todo[j]
+                    keep += sup[todo[j]] < need
+                nt = keep
+        # kept detections: their positions in x (the pixel's list is sorted, so kept ones are too)
+        nk = 0
+        for i in range(n):
+            kept[nk] = xp[i]
+            nk += sup[i] >= need
+        out_kept[p] = nk
+        if nk == 0:
+            continue
+        # densest cluster of the kept detections (two pointers over the sorted list)
+        reach = 2.5 * sigma
+        best = 0
+        bi = 0
+        lo = 0
+        hi = 0
+        for i in range(nk):
+            while kept[lo] < kept[i] - reach:
+                lo += 1
+            while hi < nk and kept[hi] <= kept[i] + reach:
+                hi += 1
+            if hi - lo > best:
+                best = hi - lo
+                bi = i
+        acc = 0.0
+        cnt = 0
+        for i in range(nk):
+            near = abs(kept[i] - kept[bi]) <= reach
+            acc += kept[i] if near else 0.0
+            cnt += near
+        mu = acc / cnt
+        pi = min(0.999, max(cnt / n, 1e-3))
+        # EM over all the pixel's detections: a censored detection close to the return still
+        # counts as signal in proportion to its likelihood, a kept one far from it does not
+        mu, ksum = _em_fit(xp, mu, pi, float(cnt), em_iters, inv_s2, norm, inv_m)
+        out_mu[p] = mu
+        out_k[p] = ksum
+        out_bg[p] = max(0.0, n - ksum) * inv_m
+
+
+@njit(cache=True, nogil=True)
+def window_counts(x, offsets, h, w, radius, width, out):
+    """out[p, k]: the detections of pixel p's (2 radius + 1)^2 window (clipped at the border) whose
+    coarse bin (_count_bin with this width) is at most k, cumulative so that any range of bins
+    costs two look-ups: censor_fit's upper bounds on a detection's support. Each pixel's list
+    sorted; out is (h w) x n_coarse, any content. Serial: a few percent of censor_fit's time, and
+    the parallel version took 2.5 s more to compile."""
+    nc = out.shape[1]
+    npix = h * w
+    inv_width = 1.0 / width
+    longest = 0
+    for p in range(npix):
+        longest = max(longest, offsets[p + 1] - offsets[p])
+    bins = np.empty(longest, np.int64)
+    own = np.empty((npix, nc), out.dtype)
+    for p in range(npix):
+        # cumulative counts from the sorted list: the last detection of each bin writes its rank,
+        # then a running maximum fills the empty bins. The bins first, in a loop of their own:
+        # stores at computed places amid the loads of x ran 3x slower.
+        xp = x[offsets[p]:offsets[p + 1]]
+        for i in range(xp.size):
+            bins[i] = _count_bin(xp[i], inv_width, nc)
+        row = own[p]
+        for k in range(nc):
+            row[k] = 0
+        for i in range(xp.size):
+            row[bins[i]] = i + 1
+        run = 0
+        for k in range(nc):
+            run = max(run, row[k])
+            row[k] = run
+    col = np.empty((w, nc), out.dtype)
+    for r in range(h):
+        # sums over the window's rows, then along the row
+        col[:] = 0
+        for rr in range(max(0, r - radius), min(h, r + radius + 1)):
+            src = own[rr * w:(rr + 1) * w]
+            for c in range(w):
+                for k in range(nc):
+                    col[c, k] += src[c, k]
+        dst = out[r * w:(r + 1) * w]
+        for c in range(w):
+            for k in range(nc):
+                dst[c, k] = 0
+            for cc in range(max(0, c - radius), min(w, c + radius + 1)):
+                for k in range(nc):
+                    dst[c, k] += col[cc, k]
+
+
+@njit(cache=True, nogil=True)
+def _count_bin(v, inv_width, nc):
+    """window_counts' coarse bin of shift v, clamped to [0, nc): non-decreasing in v, so the
+    detections in [lo, hi] lie in the bins from _count_bin(lo) to _count_bin(hi)."""
+    return min(nc - 1, max(0, int((v + 0.5) * inv_width)))
 
 
 @njit(cache=True, nogil=True, fastmath={"contract", "reassoc"}, error_model="numpy")
@@ -352,7 +443,7 @@ def _exp_neg(e):
     """exp(e) for e <= 0 within a few ulp of libm (0 below EXP_IS_ZERO), in instructions a loop can
     vectorise: e = n ln2 + r with |r| <= ln2 / 2, exp(r) by its Taylor series to r^12 (the next
     term is below 2e-16 relative), 2^n written straight into the exponent bits."""
-    n = math.floor(e * _LOG2E + 0.5)
+    n = np.floor(e * _LOG2E + 0.5)     # a float: math.floor's int cost two scalar conversions per lane
     r = (e - n * _LN2_HI) - n * _LN2_LO
     p = 1.0 / 479001600.0
     p = p * r + 1.0 / 39916800.0

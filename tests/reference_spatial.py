@@ -20,6 +20,18 @@ def window_shifts(times, offsets, start, stop, width, max_photons):
     return out
 
 
+def window_counts(lists, h, w, radius, width, n_coarse):
+    """(h w) x n_coarse: the window's detections in coarse bins 0..k, as recon.spatial_kernels.window_counts."""
+    out = np.zeros((h * w, n_coarse), np.int64)
+    for p in range(h * w):
+        r0, c0 = divmod(p, w)
+        for r in range(max(0, r0 - radius), min(h, r0 + radius + 1)):
+            for c in range(max(0, c0 - radius), min(w, c0 + radius + 1)):
+                k = np.clip(((lists[r * w + c] + 0.5) * (1.0 / width)).astype(np.int64), 0, n_coarse - 1)
+                out[p] += np.cumsum(np.bincount(k, minlength=n_coarse))
+    return out
+
+
 def censor_fit(lists, h, w, radius, tau, s_min, sigma, n_bins, em_iters):
     """(mu, k, bg, n, kept) per pixel, as recon.spatial_kernels.censor_fit."""
     npix = h * w

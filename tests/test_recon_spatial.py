@@ -103,22 +103,74 @@ def test_window_shifts_sorts_equal_times_like_the_reference(n):
     assert_array_equal(x[:k], np.concatenate(want))
 
 
+@pytest.mark.parametrize("width", [3.0, 27.0, 400.0])
+def test_window_counts_matches_reference(small_store, width):
+    small_store, _ = small_store
+    x, off = _shifts(small_store)
+    h, w = small_store.shape
+    lists = [x[off[p]:off[p + 1]] for p in range(h * w)]
+    nc = int(np.ceil(M / width))
+    for radius in (1, 2):
+        got = np.empty((h * w, nc), np.int32)
+        SK.window_counts(x, off, h, w, radius, width, got)
+        assert_array_equal(got, ref.window_counts(lists, h, w, radius, width, nc))
+
+
+def _support_bound(counts, x, tau, width):
+    """The window's detections in the coarse bins that [x - tau, x + tau] touches (counts cumulative)."""
+    last = counts.size - 1
+    k0 = np.clip(((x - tau + 0.5) / width).astype(np.int64), 0, last)
+    k1 = np.clip(((x + tau + 0.5) / width).astype(np.int64), 0, last)
+    return counts[k1] - np.where(k0 > 0, counts[k0 - 1], 0)
+
+
 def test_censor_fit_matches_reference(small_store):
+    # with and without the coarse window counts: the bounds only skip counting detections that
+    # cannot reach their threshold, so every output is the same
     small_store, s_max = small_store
     x, off = _shifts(small_store)
     h, w = small_store.shape
     rng = np.random.default_rng(0)
     s_min = rng.integers(1, s_max + 1, h * w)
     sigma = RMS_UNITS / BIN_UNITS
+    tau = 1.5 * sigma
+    lists = [x[off[p]:off[p + 1]] for p in range(h * w)]
     for radius in (1, 2):
-        got = [np.empty(h * w), np.empty(h * w), np.empty(h * w), np.empty(h * w, np.int64),
-               np.empty(h * w, np.int64)]
-        SK.censor_fit(x, off, h, w, radius, 1.5 * sigma, s_min, sigma, float(M), 4, *got)
-        lists = [x[off[p]:off[p + 1]] for p in range(h * w)]
-        want = ref.censor_fit(lists, h, w, radius, 1.5 * sigma, s_min, sigma, float(M), 4)
-        for g, wv in zip(got, want):
-            assert_allclose(g, wv, rtol=1e-10, atol=1e-12)
-        assert (got[4] > 0).any() and (got[4] < got[3]).any()      # some kept, some censored
+        want = ref.censor_fit(lists, h, w, radius, tau, s_min, sigma, float(M), 4)
+        unbounded = None
+        for width in (None, 2 * tau, 7.0):
+            nc = 0 if width is None else int(np.ceil(M / width))
+            counts = np.empty((h * w, nc), np.int32)
+            if width is not None:
+                SK.window_counts(x, off, h, w, radius, width, counts)
+                # some detection's bound does fall short of its threshold (the path is taken)
+                assert any((_support_bound(counts[p], lists[p], tau, width) <= s_min[p]).any()
+                           for p in range(h * w))
+            got = [np.empty(h * w), np.empty(h * w), np.empty(h * w), np.empty(h * w, np.int64),
+                   np.empty(h * w, np.int64)]
+            SK.censor_fit(x, off, h, w, radius, tau, s_min, sigma, float(M), 4, counts, width or 1.0, *got)
+            for g, wv in zip(got, want):
+                assert_allclose(g, wv, rtol=1e-10, atol=1e-12)
+            assert (got[4] > 0).any() and (got[4] < got[3]).any()      # some kept, some censored
+            if unbounded is None:
+                unbounded = got
+            for g, u in zip(got, unbounded):
+                assert_array_equal(g, u)
+
+
+@pytest.mark.parametrize("sbr", [0.3, 10.0])
+def test_bounded_censoring_changes_no_output(monkeypatch, sbr):
+    # frames with many detections per pixel bound the support by coarse window counts first
+    # (spatial.BOUND_FROM): the maps are the same bits as with exact counts alone
+    from spdepth.recon import spatial
+
+    store, _ = simulate(smooth_scene(24, 24), 2 * spatial.BOUND_FROM, sbr, seed=7)
+    bounded = reconstruct(store, settings("spatial"))
+    monkeypatch.setattr(spatial, "BOUND_FROM", 10 ** 9)
+    exact = reconstruct(store, settings("spatial"))
+    for name in ("tof_s", "background", "signal", "uncertainty_s", "flags", "photons"):
+        assert_array_equal(getattr(bounded, name), getattr(exact, name))
+    assert bounded.settings == exact.settings
 
 
 def test_local_mean_and_tv_match_reference():
