@@ -369,30 +369,6 @@ def file_binning(request: FileReconRequest, store, recorded: dict | None) -> Bin
                              pulse_rms_s=request.pulse_rms_s)
 
 
-def _warm_up_while_reading(request: FileReconRequest) -> None:
-    """Start loading the estimator's kernels from numba's cache (compiling them on a cold one) on
-    a thread, so that a new process does it while the file is read rather than after: the first
-    call of each kernel in a process costs a few tenths of a second even when cached. The
-    reconstruction then finds them loaded, or waits for the load in numba's compiler lock (and
-    recon_s shows that wait)."""
-    import threading
-
-    from spdepth.recon.estimate import warm_up
-
-    settings = ReconSettings(method=request.method, binning=None, pulse_rms_s=request.pulse_rms_s,
-                             reflectors=request.reflectors, max_reflectors=request.max_reflectors,
-                             false_alarm=request.false_alarm)
-
-    def load():
-        try:
-            warm_up(settings)
-        except Exception as exc:  # noqa: BLE001 - the reconstruction itself reports bad settings
-            log.debug("warming the %s kernels failed (the reconstruction will say why): %s",
-                      settings.method, exc)
-
-    threading.Thread(target=load, name="spdepth-warm-up", daemon=True).start()
-
-
 def reconstruct_file(request: FileReconRequest, progress=None) -> FileResult:
     """Read ``request.input``, reconstruct it, write the outputs it names (``out`` .npz, ``png``,
     ``save_irf``), and return the maps with their summary. A session's own recording is read with
@@ -403,7 +379,6 @@ def reconstruct_file(request: FileReconRequest, progress=None) -> FileResult:
     from spdepth.recon.model import load_irf
 
     t0 = time.perf_counter()
-    _warm_up_while_reading(request)
     result = read_photons(request.input, time_unit_s=request.time_unit_s, mat_var=request.mat_var,
                           channel=request.channel)
     store = result.store

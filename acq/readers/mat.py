@@ -164,9 +164,9 @@ def _cell_elements(d: bytes, start: int, n_cells: int):
 
     Only the chain of cells is walked in Python (each cell's start is the previous one's end: 0.03 s
     for the 115,600 cells of a 340 x 340 file); every field is then read and checked for all cells
-    at once. Plain NumPy, no compiled kernel: a new process reading a file does not wait for
-    numba's set-up (its first compiled call costs over half a second), which the estimator's
-    kernels then do while the file is read (:func:`acq.api.reconstruct_file`)."""
+    at once. Plain NumPy, no compiled kernel: reading a file in a new process does not pay numba's
+    once-per-process set-up (its first compiled call costs over half a second); the estimator's
+    first kernel does."""
     if start % 8 or sys.byteorder != "little":
         return None
     # the chain, in 4-byte words (elements are padded to 8 bytes; checked below)
