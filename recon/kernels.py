@@ -1212,6 +1212,202 @@ def _sort_desc(keys, idx, n):
         idx[b + 1] = v
 
 
+@njit(cache=True, nogil=True)
+def _ml_block(blk, bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_colsum, fine, fine_colsum,
+              fsteps, dg, maxn, out_shift, out_amp, out_bg, out_var, out_n, nf, nwin, npix, logm, fine_rev,
+              uni, inv_fine_colsum, ia, ib, grev, inv_colsum, upos):
+    """The pixels of block blk of :func:`ml_kernel` (its arguments and tables). Compiled on its
+    own and called from the kernel's parallel loop: numba compiles a parallel loop's body a
+    second time, 7 s of ml's cold compile when the body was this code (the same speed either
+    way, unlike uos, whose loops lose the noalias numba gives a parallel body)."""
+    tmp = np.empty(max(maxn, 1), np.int64)
+    kb = np.empty(max(maxn, 1), np.int64)
+    kw = np.empty(max(maxn, 1), np.float64)
+    ivlo = np.empty(max(maxn, 1), np.int64)
+    ivhi = np.empty(max(maxn, 1), np.int64)
+    acc = np.zeros(m)           # zero between pixels: only the photons' intervals are touched
+    cand = np.empty(m, np.int64)
+    lls = np.empty(nf)
+    exact = np.empty(nf, np.bool_)
+    r0s = np.empty(max(maxn, 1), np.int64)
+    ws = np.empty(max(maxn, 1))
+    bnd = np.empty(nwin)
+    key = np.empty(m)
+    fidx = np.empty(nf, np.int64)
+    for p in range(blk * BLOCK, min(npix, (blk + 1) * BLOCK)):
+        o0 = offsets[p]
+        o1 = offsets[p + 1]
+        out_n[p] = o1 - o0
+        out_shift[p] = np.nan
+        out_amp[p] = 0.0
+        out_var[p] = np.nan
+        nu = unique_counts(bins, o0, o1, tmp, kb, kw)
+        if nu == 0:
+            out_bg[p] = 0.0
+            continue
+        ntot = 0.0
+        for u in range(nu):
+            ntot += kw[u]
+        floor_ll = -ntot * logm          # s = 0: all background
+        best_ll = floor_ll
+        best_i = -1
+        best_s = 0.0
+        if dhi >= dlo:
+            # U(i) - floor over the shifts i = k - d, d in [dlo, dhi], of the photons
+            niv = photon_intervals(kb, nu, dhi, -dlo, m, ivlo, ivhi)
+            for u in range(nu):
+                k = kb[u]
+                wu = kw[u]
+                if k - dhi >= ia and k - dlo <= ib:
+                    # all of this photon's shifts have the interior column sum: one contiguous
+                    # add of the precomputed terms (the same floating-point values; adding 0.0
+                    # where a term is not positive leaves acc as the test below would)
+                    seg = acc[k - dhi:k - dlo + 1]
+                    for t in range(seg.size):
+                        seg[t] += wu * upos[t]
+                else:
+                    for d in range(max(dlo, k - m + 1), min(dhi, k) + 1):
+                        i = k - d
+                        v = logg_int[d + off] - log_colsum[i] + logm
+                        if v > 0.0:
+                            acc[i] += wu * v
+            ncand = 0
+            i1 = -1
+            for t in range(niv):
+                for i in range(ivlo[t], ivhi[t] + 1):
+                    if acc[i] > 0.0:
+                        cand[ncand] = i
+                        ncand += 1
+                        if i1 < 0 or acc[i] > acc[i1]:
+                            i1 = i
+            if i1 >= 0:
+                s, ll = _ml_at_int(kb, kw, nu, ntot, i1, g, off, colsum, uni, 0.5, -np.inf)
+                if ll > best_ll:
+                    best_ll = ll
+                    best_i = i1
+                    best_s = s
+                # the shifts whose bound beats it, best bound first
+                nc = 0
+                c_lo = m
+                c_hi = -1
+                for t in range(ncand):
+                    i = cand[t]
+                    if i != i1 and floor_ll + acc[i] > best_ll + 1e-12 * abs(best_ll):
+                        cand[nc] = i
+                        nc += 1
+                        c_lo = min(c_lo, i)
+                        c_hi = max(c_hi, i)
+                        key[i] = floor_ll + acc[i]
+                # near i1 (where the survivors crowd: U overshoots the likelihood by about the
+                # same few nats at every shift of a return), the first-pass bound of each
+                # shift's solve, all in one sweep at the best share so far, is much tighter
+                # than U: most survivors are then dropped without a solver call
+                wa = max(c_lo, i1 - ML_WINDOW)
+                wb = min(c_hi, i1 + ML_WINDOW)
+                if nc >= ML_SWEEP_MIN and wb >= wa:
+                    sb = min(max(best_s, ML_SHARE_CLAMP), 1.0 - ML_SHARE_CLAMP)
+                    mix_bounds(kb, kw, nu, ntot, grev, off - wa, 1, 0, wb - wa + 1, inv_colsum[wa:], uni, sb,
+                               r0s, ws, bnd)
+                    n2 = 0
+                    for t in range(nc):
+                        i = cand[t]
+                        if i >= wa and i <= wb:
+                            key[i] = min(key[i], bnd[i - wa])
+                        if key[i] > best_ll + 1e-12 * abs(best_ll):
+                            cand[n2] = i
+                            n2 += 1
+                    nc = n2
+                _sort_desc(key, cand, nc)
+                for t in range(nc):
+                    i = cand[t]
+                    tol = 1e-12 * abs(best_ll)
+                    if key[i] <= best_ll + tol:
+                        break
+                    # ties (few photons give exact ones: the pulse on either of two detections)
+                    # go as a scan from i1 then upwards would take them: i1, else the smallest
+                    # shift; so a shift that can only tie is solved, not pruned
+                    tie = ML_TIE * max(1.0, abs(best_ll))
+                    s, ll = _ml_at_int(kb, kw, nu, ntot, i, g, off, colsum, uni, best_s, best_ll - tie)
+                    if ll > best_ll + tie or (best_i < 0 and ll > best_ll):
+                        best_ll = ll
+                        best_i = i
+                        best_s = s
+                    elif ll >= best_ll - tie and best_i >= 0 and i > best_i:
+                        best_ll = max(best_ll, ll)
+                        best_i = i
+                        best_s = s
+            for t in range(niv):
+                acc[ivlo[t]:ivhi[t] + 1] = 0.0
+        if best_i < 0 or best_s <= 0.0:
+            out_bg[p] = ntot * uni
+            continue
+        # sub-bin: best of the fine shifts strictly between the integer neighbours (outwards from
+        # the integer optimum, where the best usually is, so the bound test prunes the rest),
+        # then a parabola through its exact neighbours
+        qlo = -fsteps if best_i > 0 else 0
+        qhi = fsteps if best_i < m - 1 else 0
+        bq = 0
+        bll = best_ll
+        bs = best_s
+        lls[fsteps] = best_ll
+        exact[:] = False
+        exact[fsteps] = True
+        # every fine shift's first-pass bound in one sweep; solved best bound first (the optimum
+        # usually comes first, and its likelihood then cuts the rest without a pass)
+        nq = qhi - qlo + 1
+        sb = min(max(best_s, ML_SHARE_CLAMP), 1.0 - ML_SHARE_CLAMP)
+        mix_bounds(kb, kw, nu, ntot, fine_rev, off - best_i, fsteps, qlo, nq,
+                   inv_fine_colsum[best_i * fsteps + qlo:], uni, sb, r0s, ws, bnd)
+        nfc = 0
+        for t in range(nq):
+            if qlo + t != 0:
+                fidx[nfc] = t
+                nfc += 1
+        _sort_desc(bnd, fidx, nfc)
+        for a in range(nfc):
+            t = fidx[a]
+            q = qlo + t
+            tie = ML_TIE * max(1.0, abs(bll))
+            if bnd[t] <= bll - tie:
+                break
+            s, ll = _ml_at_fine(kb, kw, nu, ntot, best_i, q, fine, off, fine_colsum, fsteps, uni, bs,
+                                bll - tie)
+            lls[q + fsteps] = ll
+            exact[q + fsteps] = ll > -np.inf
+            # ties as a scan upwards from qlo would take them: 0, else the smallest q
+            if ll > bll + tie:
+                bll = ll
+                bq = q
+                bs = s
+            elif ll >= bll - tie and q > bq:
+                bll = max(bll, ll)
+                bq = q
+                bs = s
+        frac = 0.0
+        if bq - 1 >= qlo and bq + 1 <= qhi:
+            for q in (bq - 1, bq + 1):
+                if not exact[q + fsteps]:
+                    s, ll = _ml_at_fine(kb, kw, nu, ntot, best_i, q, fine, off, fine_colsum, fsteps,
+                                        uni, bs, -np.inf)
+                    lls[q + fsteps] = ll
+            lm = lls[bq - 1 + fsteps]
+            l0 = lls[bq + fsteps]
+            lp = lls[bq + 1 + fsteps]
+            den = lm - 2.0 * l0 + lp
+            if den < 0.0:
+                frac = 0.5 * (lm - lp) / den
+                frac = min(max(frac, -0.5), 0.5)
+        tau = best_i + (bq + frac) / fsteps
+        tau = min(max(tau, 0.0), m - 1.0)
+        c = fine_colsum[best_i * fsteps + bq]
+        a = bs * ntot / c
+        bg = (1.0 - bs) * ntot * uni
+        out_shift[p] = tau
+        out_amp[p] = a
+        out_bg[p] = bg
+        out_var[p] = fisher_var(int(tau + 0.5), a, bg, m, g, dg, off)
+
+
 @njit(parallel=True, cache=True, nogil=True)
 def ml_kernel(bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_colsum, fine, fine_colsum,
               fsteps, dg, maxn, out_shift, out_amp, out_bg, out_var, out_n):
@@ -1257,189 +1453,6 @@ def ml_kernel(bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_colsum, 
     inv_fine_colsum = 1.0 / fine_colsum
     nwin = max(2 * ML_WINDOW + 1, nf)
     for blk in prange(nblk):
-        tmp = np.empty(max(maxn, 1), np.int64)
-        kb = np.empty(max(maxn, 1), np.int64)
-        kw = np.empty(max(maxn, 1), np.float64)
-        ivlo = np.empty(max(maxn, 1), np.int64)
-        ivhi = np.empty(max(maxn, 1), np.int64)
-        acc = np.zeros(m)           # zero between pixels: only the photons' intervals are touched
-        cand = np.empty(m, np.int64)
-        lls = np.empty(nf)
-        exact = np.empty(nf, np.bool_)
-        r0s = np.empty(max(maxn, 1), np.int64)
-        ws = np.empty(max(maxn, 1))
-        bnd = np.empty(nwin)
-        key = np.empty(m)
-        fidx = np.empty(nf, np.int64)
-        for p in range(blk * BLOCK, min(npix, (blk + 1) * BLOCK)):
-            o0 = offsets[p]
-            o1 = offsets[p + 1]
-            out_n[p] = o1 - o0
-            out_shift[p] = np.nan
-            out_amp[p] = 0.0
-            out_var[p] = np.nan
-            nu = unique_counts(bins, o0, o1, tmp, kb, kw)
-            if nu == 0:
-                out_bg[p] = 0.0
-                continue
-            ntot = 0.0
-            for u in range(nu):
-                ntot += kw[u]
-            floor_ll = -ntot * logm          # s = 0: all background
-            best_ll = floor_ll
-            best_i = -1
-            best_s = 0.0
-            if dhi >= dlo:
-                # U(i) - floor over the shifts i = k - d, d in [dlo, dhi], of the photons
-                niv = photon_intervals(kb, nu, dhi, -dlo, m, ivlo, ivhi)
-                for u in range(nu):
-                    k = kb[u]
-                    wu = kw[u]
-                    if k - dhi >= ia and k - dlo <= ib:
-                        # all of this photon's shifts have the interior column sum: one contiguous
-                        # add of the precomputed terms (the same floating-point values; adding 0.0
-                        # where a term is not positive leaves acc as the test below would)
-                        seg = acc[k - dhi:k - dlo + 1]
-                        for t in range(seg.size):
-                            seg[t] += wu * upos[t]
-                    else:
-                        for d in range(max(dlo, k - m + 1), min(dhi, k) + 1):
-                            i = k - d
-                            v = logg_int[d + off] - log_colsum[i] + logm
-                            if v > 0.0:
-                                acc[i] += wu * v
-                ncand = 0
-                i1 = -1
-                for t in range(niv):
-                    for i in range(ivlo[t], ivhi[t] + 1):
-                        if acc[i] > 0.0:
-                            cand[ncand] = i
-                            ncand += 1
-                            if i1 < 0 or acc[i] > acc[i1]:
-                                i1 = i
-                if i1 >= 0:
-                    s, ll = _ml_at_int(kb, kw, nu, ntot, i1, g, off, colsum, uni, 0.5, -np.inf)
-                    if ll > best_ll:
-                        best_ll = ll
-                        best_i = i1
-                        best_s = s
-                    # the shifts whose bound beats it, best bound first
-                    nc = 0
-                    c_lo = m
-                    c_hi = -1
-                    for t in range(ncand):
-                        i = cand[t]
-                        if i != i1 and floor_ll + acc[i] > best_ll + 1e-12 * abs(best_ll):
-                            cand[nc] = i
-                            nc += 1
-                            c_lo = min(c_lo, i)
-                            c_hi = max(c_hi, i)
-                            key[i] = floor_ll + acc[i]
-                    # near i1 (where the survivors crowd: U overshoots the likelihood by about the
-                    # same few nats at every shift of a return), the first-pass bound of each
-                    # shift's solve, all in one sweep at the best share so far, is much tighter
-                    # than U: most survivors are then dropped without a solver call
-                    wa = max(c_lo, i1 - ML_WINDOW)
-                    wb = min(c_hi, i1 + ML_WINDOW)
-                    if nc >= ML_SWEEP_MIN and wb >= wa:
-                        sb = min(max(best_s, ML_SHARE_CLAMP), 1.0 - ML_SHARE_CLAMP)
-                        mix_bounds(kb, kw, nu, ntot, grev, off - wa, 1, 0, wb - wa + 1, inv_colsum[wa:], uni, sb,
-                                   r0s, ws, bnd)
-                        n2 = 0
-                        for t in range(nc):
-                            i = cand[t]
-                            if i >= wa and i <= wb:
-                                key[i] = min(key[i], bnd[i - wa])
-                            if key[i] > best_ll + 1e-12 * abs(best_ll):
-                                cand[n2] = i
-                                n2 += 1
-                        nc = n2
-                    _sort_desc(key, cand, nc)
-                    for t in range(nc):
-                        i = cand[t]
-                        tol = 1e-12 * abs(best_ll)
-                        if key[i] <= best_ll + tol:
-                            break
-                        # ties (few photons give exact ones: the pulse on either of two detections)
-                        # go as a scan from i1 then upwards would take them: i1, else the smallest
-                        # shift; so a shift that can only tie is solved, not pruned
-                        tie = ML_TIE * max(1.0, abs(best_ll))
-                        s, ll = _ml_at_int(kb, kw, nu, ntot, i, g, off, colsum, uni, best_s, best_ll - tie)
-                        if ll > best_ll + tie or (best_i < 0 and ll > best_ll):
-                            best_ll = ll
-                            best_i = i
-                            best_s = s
-                        elif ll >= best_ll - tie and best_i >= 0 and i > best_i:
-                            best_ll = max(best_ll, ll)
-                            best_i = i
-                            best_s = s
-                for t in range(niv):
-                    acc[ivlo[t]:ivhi[t] + 1] = 0.0
-            if best_i < 0 or best_s <= 0.0:
-                out_bg[p] = ntot * uni
-                continue
-            # sub-bin: best of the fine shifts strictly between the integer neighbours (outwards from
-            # the integer optimum, where the best usually is, so the bound test prunes the rest),
-            # then a parabola through its exact neighbours
-            qlo = -fsteps if best_i > 0 else 0
-            qhi = fsteps if best_i < m - 1 else 0
-            bq = 0
-            bll = best_ll
-            bs = best_s
-            lls[fsteps] = best_ll
-            exact[:] = False
-            exact[fsteps] = True
-            # every fine shift's first-pass bound in one sweep; solved best bound first (the optimum
-            # usually comes first, and its likelihood then cuts the rest without a pass)
-            nq = qhi - qlo + 1
-            sb = min(max(best_s, ML_SHARE_CLAMP), 1.0 - ML_SHARE_CLAMP)
-            mix_bounds(kb, kw, nu, ntot, fine_rev, off - best_i, fsteps, qlo, nq,
-                       inv_fine_colsum[best_i * fsteps + qlo:], uni, sb, r0s, ws, bnd)
-            nfc = 0
-            for t in range(nq):
-                if qlo + t != 0:
-                    fidx[nfc] = t
-                    nfc += 1
-            _sort_desc(bnd, fidx, nfc)
-            for a in range(nfc):
-                t = fidx[a]
-                q = qlo + t
-                tie = ML_TIE * max(1.0, abs(bll))
-                if bnd[t] <= bll - tie:
-                    break
-                s, ll = _ml_at_fine(kb, kw, nu, ntot, best_i, q, fine, off, fine_colsum, fsteps, uni, bs,
-                                    bll - tie)
-                lls[q + fsteps] = ll
-                exact[q + fsteps] = ll > -np.inf
-                # ties as a scan upwards from qlo would take them: 0, else the smallest q
-                if ll > bll + tie:
-                    bll = ll
-                    bq = q
-                    bs = s
-                elif ll >= bll - tie and q > bq:
-                    bll = max(bll, ll)
-                    bq = q
-                    bs = s
-            frac = 0.0
-            if bq - 1 >= qlo and bq + 1 <= qhi:
-                for q in (bq - 1, bq + 1):
-                    if not exact[q + fsteps]:
-                        s, ll = _ml_at_fine(kb, kw, nu, ntot, best_i, q, fine, off, fine_colsum, fsteps,
-                                            uni, bs, -np.inf)
-                        lls[q + fsteps] = ll
-                lm = lls[bq - 1 + fsteps]
-                l0 = lls[bq + fsteps]
-                lp = lls[bq + 1 + fsteps]
-                den = lm - 2.0 * l0 + lp
-                if den < 0.0:
-                    frac = 0.5 * (lm - lp) / den
-                    frac = min(max(frac, -0.5), 0.5)
-            tau = best_i + (bq + frac) / fsteps
-            tau = min(max(tau, 0.0), m - 1.0)
-            c = fine_colsum[best_i * fsteps + bq]
-            a = bs * ntot / c
-            bg = (1.0 - bs) * ntot * uni
-            out_shift[p] = tau
-            out_amp[p] = a
-            out_bg[p] = bg
-            out_var[p] = fisher_var(int(tau + 0.5), a, bg, m, g, dg, off)
+        _ml_block(np.int64(blk), bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_colsum, fine,
+                  fine_colsum, fsteps, dg, maxn, out_shift, out_amp, out_bg, out_var, out_n, nf, nwin, npix,
+                  logm, fine_rev, uni, inv_fine_colsum, ia, ib, grev, inv_colsum, upos)
