@@ -317,6 +317,84 @@ def _lmf_score(kb, kw, nu, i, logg, m):
     return s
 
 
+@njit(cache=True, nogil=True)
+def _lmf_block(blk, bins, offsets, m, logg, log_concave, maxn, out_shift, out_var, out_n, npix, nt):
+    """The pixels of block blk of :func:`lmf_kernel`, compiled on its own and called from the
+    kernel's parallel loop (see :func:`_ml_block`)."""
+    tmp = np.empty(max(maxn, 1), np.int64)
+    kb = np.empty(max(maxn, 1), np.int64)
+    kw = np.empty(max(maxn, 1), np.float64)
+    for p in range(blk * BLOCK, min(npix, (blk + 1) * BLOCK)):
+        o0 = offsets[p]
+        o1 = offsets[p + 1]
+        out_n[p] = o1 - o0
+        nu = unique_counts(bins, o0, o1, tmp, kb, kw)
+        if nu == 0:
+            out_shift[p] = -1
+            out_var[p] = np.nan
+            continue
+        if log_concave and nu > CLIMB_MAX_PHOTONS:
+            # a sum of concave sequences is concave: its first argmax is the first shift where
+            # the score stops rising, found by bisection in O(photons log bins) (a climb from
+            # the photons' mean could walk O(bins) steps of O(photons) each on a huge pixel)
+            lo = 0
+            hi = m - 1
+            while lo < hi:
+                mid = (lo + hi) // 2
+                if _lmf_score(kb, kw, nu, mid + 1, logg, m) > _lmf_score(kb, kw, nu, mid, logg, m):
+                    lo = mid + 1
+                else:
+                    hi = mid
+            i = lo
+        elif log_concave:
+            # few photons: climb from their mean bin (a handful of steps, cheaper than bisection)
+            mean = 0.0
+            tot = 0.0
+            for u in range(nu):
+                mean += kw[u] * kb[u]
+                tot += kw[u]
+            i = int(mean / tot + 0.5)
+            i = min(max(i, 0), m - 1)
+            best = _lmf_score(kb, kw, nu, i, logg, m)
+            moved = False
+            while i + 1 < m:
+                s = _lmf_score(kb, kw, nu, i + 1, logg, m)
+                if s > best:
+                    best = s
+                    i += 1
+                    moved = True
+                else:
+                    break
+            if not moved:
+                while i > 0:
+                    s = _lmf_score(kb, kw, nu, i - 1, logg, m)
+                    if s >= best:   # >= : first index among ties, like argmax
+                        best = s
+                        i -= 1
+                    else:
+                        break
+            else:
+                while i > 0 and _lmf_score(kb, kw, nu, i - 1, logg, m) >= best:
+                    i -= 1
+        else:
+            i = 0
+            best = _lmf_score(kb, kw, nu, 0, logg, m)
+            for j in range(1, m):
+                s = _lmf_score(kb, kw, nu, j, logg, m)
+                if s > best:
+                    best = s
+                    i = j
+        out_shift[p] = i
+        curv = 0.0
+        for u in range(nu):
+            t = kb[u] - i + m - 1
+            tl = max(t - 1, 0)
+            th = min(t + 1, nt - 1)
+            if th - tl == 2:
+                curv += kw[u] * (logg[th] - 2.0 * logg[t] + logg[tl])
+        out_var[p] = -1.0 / curv if curv < 0.0 else np.nan
+
+
 @njit(parallel=True, cache=True, nogil=True)
 def lmf_kernel(bins, offsets, m, logg, log_concave, maxn, out_shift, out_var, out_n):
     """Log-matched filter per pixel. out_shift: argmax shift (int64, -1 without photons), out_var:
@@ -325,78 +403,8 @@ def lmf_kernel(bins, offsets, m, logg, log_concave, maxn, out_shift, out_var, ou
     nblk = (npix + BLOCK - 1) // BLOCK
     nt = logg.size
     for blk in prange(nblk):
-        tmp = np.empty(max(maxn, 1), np.int64)
-        kb = np.empty(max(maxn, 1), np.int64)
-        kw = np.empty(max(maxn, 1), np.float64)
-        for p in range(blk * BLOCK, min(npix, (blk + 1) * BLOCK)):
-            o0 = offsets[p]
-            o1 = offsets[p + 1]
-            out_n[p] = o1 - o0
-            nu = unique_counts(bins, o0, o1, tmp, kb, kw)
-            if nu == 0:
-                out_shift[p] = -1
-                out_var[p] = np.nan
-                continue
-            if log_concave and nu > CLIMB_MAX_PHOTONS:
-                # a sum of concave sequences is concave: its first argmax is the first shift where
-                # the score stops rising, found by bisection in O(photons log bins) (a climb from
-                # the photons' mean could walk O(bins) steps of O(photons) each on a huge pixel)
-                lo = 0
-                hi = m - 1
-                while lo < hi:
-                    mid = (lo + hi) // 2
-                    if _lmf_score(kb, kw, nu, mid + 1, logg, m) > _lmf_score(kb, kw, nu, mid, logg, m):
-                        lo = mid + 1
-                    else:
-                        hi = mid
-                i = lo
-            elif log_concave:
-                # few photons: climb from their mean bin (a handful of steps, cheaper than bisection)
-                mean = 0.0
-                tot = 0.0
-                for u in range(nu):
-                    mean += kw[u] * kb[u]
-                    tot += kw[u]
-                i = int(mean / tot + 0.5)
-                i = min(max(i, 0), m - 1)
-                best = _lmf_score(kb, kw, nu, i, logg, m)
-                moved = False
-                while i + 1 < m:
-                    s = _lmf_score(kb, kw, nu, i + 1, logg, m)
-                    if s > best:
-                        best = s
-                        i += 1
-                        moved = True
-                    else:
-                        break
-                if not moved:
-                    while i > 0:
-                        s = _lmf_score(kb, kw, nu, i - 1, logg, m)
-                        if s >= best:   # >= : first index among ties, like argmax
-                            best = s
-                            i -= 1
-                        else:
-                            break
-                else:
-                    while i > 0 and _lmf_score(kb, kw, nu, i - 1, logg, m) >= best:
-                        i -= 1
-            else:
-                i = 0
-                best = _lmf_score(kb, kw, nu, 0, logg, m)
-                for j in range(1, m):
-                    s = _lmf_score(kb, kw, nu, j, logg, m)
-                    if s > best:
-                        best = s
-                        i = j
-            out_shift[p] = i
-            curv = 0.0
-            for u in range(nu):
-                t = kb[u] - i + m - 1
-                tl = max(t - 1, 0)
-                th = min(t + 1, nt - 1)
-                if th - tl == 2:
-                    curv += kw[u] * (logg[th] - 2.0 * logg[t] + logg[tl])
-            out_var[p] = -1.0 / curv if curv < 0.0 else np.nan
+        _lmf_block(np.int64(blk), bins, offsets, m, logg, log_concave, maxn, out_shift, out_var, out_n,
+                   npix, nt)
 
 
 # ------------------------------------------------------------------------------------------------
