@@ -249,6 +249,20 @@ def test_warm_up_loads_every_kernel_a_reader_runs_with_the_types_a_reader_passes
     assert [len(k.signatures) for k in kernels] == before
 
 
+def test_warm_up_loads_the_encoder_for_chunks_of_any_length():
+    # a simulated tagger encodes in the reader's thread; a chunk of one event gives contiguous field
+    # views, another specialisation than longer chunks: compiled there, it stalled a first scan
+    from spdepth.drivers.tagger import t3
+
+    t3.warm_up()
+    kernels = (t3._count_encoded, t3._encode_kernel)
+    before = [len(k.signatures) for k in kernels]
+    for n in (1, 2):
+        ev = _warm_events()[:n]
+        t3.encode_t3(ev, t3.T3EncoderState())
+    assert [len(k.signatures) for k in kernels] == before
+
+
 def _warm_events():
     ev = np.zeros(2, dtype=EVENT_DTYPE)
     ev["sync"] = (5, 9)

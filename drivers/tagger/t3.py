@@ -372,9 +372,9 @@ def split_marker_records(records: np.ndarray) -> np.ndarray:
 
 
 def warm_up() -> None:
-    """Load (on a cold cache: compile) the decoding kernels a reader thread runs, on three made-up
-    events. A reader calls it before START: compiling them on the first real chunk, in the reader
-    thread, takes seconds on a fresh install while the device's FIFO fills."""
+    """Load (on a cold cache: compile) the decoding and encoding kernels a reader thread runs, on
+    three made-up events. A reader calls it before START: compiling them on the first real chunk,
+    in the reader thread, takes seconds on a fresh install while the device's FIFO fills."""
     ev = np.zeros(3, dtype=EVENT_DTYPE)
     ev["sync"] = (1, 2, 1 << 20)                  # the last needs overflow records
     ev["kind"] = (EventKind.PHOTON, EventKind.MARKER, EventKind.PHOTON)
@@ -382,3 +382,6 @@ def warm_up() -> None:
     records = encode_t3(ev)
     decode_t3(records)
     decode_t3(split_marker_records(records))
+    # a chunk of one event: its field views are contiguous, another specialisation of the encoder
+    # (a simulated tagger encodes in the reader's thread, and compiled it there during a first scan)
+    encode_t3(ev[:1])
