@@ -1226,7 +1226,7 @@ def _ml_block(blk, bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_col
               uni, inv_fine_colsum, ia, ib, grev, inv_colsum, upos):
     """The pixels of block blk of :func:`ml_kernel` (its arguments and tables). Compiled on its
     own and called from the kernel's parallel loop: numba compiles a parallel loop's body a
-    second time, 7 s of ml's cold compile when the body was this code (the same speed either
+    second time, 5-7 s of ml's cold compile when the body was this code (the same speed either
     way, unlike uos, whose loops lose the noalias numba gives a parallel body)."""
     tmp = np.empty(max(maxn, 1), np.int64)
     kb = np.empty(max(maxn, 1), np.int64)
