@@ -16,7 +16,6 @@ The CLI, the window, Dask workers, the demo and the benchmarks only build reques
 from __future__ import annotations
 
 import fcntl
-import logging
 import math
 import os
 import time
@@ -30,8 +29,6 @@ from spdepth.acq.requests import (DEFAULT_DWELL_S, DEFAULT_METHOD, FileReconRequ
                                   ScanRequest, SimBench)
 from spdepth.recon.errors import InputError
 from spdepth.recon.model import Binning, ReconSettings
-
-log = logging.getLogger(__name__)
 
 SESSION_FILES = ("recording.ptu", "events.jsonl", "maps.npz", "maps.png", "points.ply", "run.json")
 """What a session writes into its folder (``--overwrite`` replaces exactly these)."""
