@@ -30,6 +30,24 @@ MERGE_RMS = 2.0
 LLR_MIN = 3.0
 
 
+def ml_tables(kern: PulseKernel, m: int) -> tuple:
+    """The arguments of :func:`recon.kernels.ml_kernel` from ``g`` to ``fine_climb``, for the pulse
+    kernel ``kern`` over a window of m bins."""
+    logg_int = np.full(kern.g.size, -np.inf)
+    pos = kern.g > 0
+    logg_int[pos] = np.log(kern.g[pos])
+    above = np.flatnonzero(kern.g * m > float(kern.colsum.min()))
+    if above.size:
+        dlo, dhi = int(above[0] - kern.off), int(above[-1] - kern.off)
+    else:
+        # no offset beats the floor (a one-bin window: a return and the background are the
+        # same column): every shift's bound is the floor, the all-background fit wins
+        dlo, dhi = 0, -1
+    fine_climb = bool(kern.log_concave and kern.rms_bins >= K.ML_CLIMB_RMS_BINS)
+    return (kern.g, kern.off, logg_int, dlo, dhi, kern.colsum, np.log(kern.colsum), kern.fine,
+            kern.fine_colsum, FINE_STEPS, fine_climb)
+
+
 def check_time_unit(store: PhotonStore, binning: Binning | None) -> None:
     """InputError when ``binning`` counts in another raw unit than ``store``."""
     if binning is not None and not math.isclose(binning.time_unit_s, store.time_unit_s, rel_tol=1e-9):
@@ -169,18 +187,7 @@ def reconstruct_pixelwise(store: PhotonStore, settings: ReconSettings, b: Binnin
     conv = np.ones(npix, np.bool_)
 
     if settings.method == "ml":
-        logg_int = np.full(kern.g.size, -np.inf)
-        pos = kern.g > 0
-        logg_int[pos] = np.log(kern.g[pos])
-        cmin = float(kern.colsum.min())
-        above = np.flatnonzero(kern.g * m > cmin)
-        if above.size:
-            dlo, dhi = int(above[0] - kern.off), int(above[-1] - kern.off)
-        else:
-            # no offset beats the floor (a one-bin window: a return and the background are the
-            # same column): every shift's bound is the floor, the all-background fit wins
-            dlo, dhi = 0, -1
-        log_colsum = np.log(kern.colsum)
+        ml_tabs = ml_tables(kern, m)
 
     for p0 in range(0, npix, CHUNK_PIXELS):
         p1 = min(npix, p0 + CHUNK_PIXELS)
@@ -200,8 +207,7 @@ def reconstruct_pixelwise(store: PhotonStore, settings: ReconSettings, b: Binnin
                          shift[p0:p1], amp[p0:p1], bg[p0:p1], iters[p0:p1], conv[p0:p1],
                          var[p0:p1], n_used[p0:p1])
         else:
-            K.ml_kernel(cb, co, m, kern.g, kern.off, logg_int, dlo, dhi, kern.colsum, log_colsum,
-                        kern.fine, kern.fine_colsum, FINE_STEPS, kern.dg, maxn,
+            K.ml_kernel(cb, co, m, *ml_tabs, kern.dg, maxn,
                         shift[p0:p1, 0], amp[p0:p1, 0], bg[p0:p1], var[p0:p1, 0], n_used[p0:p1])
         if progress is not None:
             progress(p1, npix)

@@ -129,6 +129,37 @@ def test_ml_kernel_global_integer_optimum_matches_reference(kern, rng, k):
         assert r.signal[0, 0] + r.background[0, 0] * M == pytest.approx(y_sum, rel=1e-6)
 
 
+
+@pytest.mark.parametrize("rms_bins", [K.ML_CLIMB_RMS_BINS, 4.0])
+def test_ml_fine_climb_finds_the_full_searchs_shift(rng, rms_bins):
+    # the climb over the fine shifts (a smooth pulse) against the search of all of them, on the
+    # narrowest pulse it is used for: few detections (where twin peaks would show), sub-bin returns
+    from spdepth.recon.pixelwise import ml_tables
+    kern_w = build_kernel(BIN, pulse_rms_s=rms_bins * 40e-12)
+    tabs = ml_tables(kern_w, M)
+    assert tabs[-1] is True         # what reconstruct passes for this pulse
+    for k in (2, 3, 5, 15, 60):
+        for sbr in (0.3, 3.0, 30.0):
+            n = 400
+            lists = []
+            for _ in range(n):
+                ns = rng.binomial(k, sbr / (1 + sbr))
+                t = np.concatenate([rng.uniform(5, M - 5) + rms_bins * rng.standard_normal(ns),
+                                    rng.uniform(0, M, k - ns)])
+                lists.append(np.clip(np.floor(t), 0, M - 1).astype(np.int64))
+            bins, off = csr(lists)
+            shifts = []
+            for climb in (True, False):
+                sh = np.full(n, np.nan)
+                K.ml_kernel(bins, off, M, *tabs[:-1], climb, kern_w.dg, k, sh, np.empty(n), np.empty(n),
+                            np.empty(n), np.empty(n, np.int64))
+                shifts.append(sh)
+            np.testing.assert_allclose(shifts[0], shifts[1], rtol=0, atol=1e-9,
+                                       err_msg=f"{k} detections, SBR {sbr}")
+    # a sub-bin pulse searches every fine shift (its likelihood has flat or twin peaks between them)
+    assert ml_tables(build_kernel(BIN, pulse_rms_s=0.05 * 40e-12), M)[-1] is False
+
+
 def test_irf_kernel_brute_force_lmf_matches_reference(rng, tmp_path):
     # an asymmetric, not log-concave response (two lobes): the exhaustive LMF path
     t_ps = np.arange(0, 2000, 8.0)

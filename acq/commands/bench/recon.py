@@ -29,6 +29,7 @@ import numpy as np
 from spdepth.acq.commands.bench import ml_before
 from spdepth.recon import kernels as K
 from spdepth.recon.estimate import reconstruct
+from spdepth.recon.pixelwise import ml_tables
 from spdepth.recon.model import FINE_STEPS, SEED_PAPER, Binning, ReconSettings, build_kernel
 from spdepth.recon.photons import PhotonStore
 
@@ -186,11 +187,7 @@ def bench(argv: list[str]) -> int:
     n = args.pixels
     ref, ref_path = _load_reference()
 
-    logg_int = np.full(kern.g.size, -np.inf)
-    logg_int[kern.g > 0] = np.log(kern.g[kern.g > 0])
-    above = np.flatnonzero(kern.g * M > kern.colsum.min())
-    dlo, dhi = int(above[0] - kern.off), int(above[-1] - kern.off)
-    log_colsum = np.log(kern.colsum)
+    ml_tabs = ml_tables(kern, M)
 
     def run_kernel(method, b, o):
         """The kernel's shift per pixel (bins, NaN: none)."""
@@ -207,10 +204,12 @@ def bench(argv: list[str]) -> int:
                          shift, np.empty((p, 1)), np.empty(p), np.empty(p, np.int32), np.empty(p, np.bool_),
                          np.empty((p, 1)), np.empty(p, np.int64))
         else:
-            mod = ml_before if method == "ml-before" else K
-            mod.ml_kernel(b, o, M, kern.g, kern.off, logg_int, dlo, dhi, kern.colsum, log_colsum, kern.fine,
-                          kern.fine_colsum, FINE_STEPS, kern.dg, DETECTIONS, shift[:, 0], np.empty(p), np.empty(p),
-                          np.empty(p), np.empty(p, np.int64))
+            outs = (kern.dg, DETECTIONS, shift[:, 0], np.empty(p), np.empty(p), np.empty(p), np.empty(p, np.int64))
+            if method == "ml-before":
+                # its tables: today's without the fine search's switch (it searched every fine shift)
+                ml_before.ml_kernel(b, o, M, *ml_tabs[:-1], *outs)
+            else:
+                K.ml_kernel(b, o, M, *ml_tabs, *outs)
         return shift[:, 0]
 
     # the references' dense matrices, built once, outside every timed region
