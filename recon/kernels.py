@@ -904,10 +904,13 @@ ML_TIE = 1e-13
 #: for the ones under the pulse; bigger pixels search, so a pass costs O(pulse support).
 ML_SCAN_ALL = 64
 
-#: ml: the integer shifts within this many of the best bound's shift get their first-pass bounds in
-#: one sweep (:func:`mix_bounds`) when at least ML_SWEEP_MIN shifts survive U
-ML_WINDOW = 12
+#: ml: the integer shifts that survive U get their first-pass bounds in sweeps (:func:`mix_bounds`)
+#: when at least this many survive (fewer are solved directly)
 ML_SWEEP_MIN = 3
+#: ml: one sweep covers a run of surviving shifts at most ML_RUN long whose neighbours are at most
+#: ML_RUN_GAP apart (the shifts between them are swept for nothing)
+ML_RUN = 32
+ML_RUN_GAP = 4
 
 #: ml: on a log-concave pulse at least this wide (RMS, bins) the best fine shift is found by a climb
 #: from the integer optimum (:func:`ml_kernel`'s ``fine_climb``): the likelihood over the fine
@@ -1305,34 +1308,37 @@ def _ml_block(blk, bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_col
                     best_s = s
                 # the shifts whose bound beats it, best bound first
                 nc = 0
-                c_lo = m
-                c_hi = -1
                 for t in range(ncand):
                     i = cand[t]
                     if i != i1 and floor_ll + acc[i] > best_ll + 1e-12 * abs(best_ll):
                         cand[nc] = i
                         nc += 1
-                        c_lo = min(c_lo, i)
-                        c_hi = max(c_hi, i)
                         key[i] = floor_ll + acc[i]
-                # near i1 (where the survivors crowd: U overshoots the likelihood by about the
-                # same few nats at every shift of a return), the first-pass bound of each
-                # shift's solve, all in one sweep at the best share so far, is much tighter
-                # than U: most survivors are then dropped without a solver call
-                wa = max(c_lo, i1 - ML_WINDOW)
-                wb = min(c_hi, i1 + ML_WINDOW)
-                if nc >= ML_SWEEP_MIN and wb >= wa:
+                # every survivor gets the first-pass bound of its solve, in sweeps at the best
+                # share so far over runs of nearby survivors (cand is ascending): much tighter than
+                # U, which overshoots the likelihood by a few nats at every shift of a return and
+                # at every shift of a background detection's reach, so most survivors are dropped
+                # without a solver call
+                if nc >= ML_SWEEP_MIN:
                     sb = min(max(best_s, ML_SHARE_CLAMP), 1.0 - ML_SHARE_CLAMP)
-                    mix_bounds(kb, kw, nu, ntot, grev, off - wa, 1, 0, wb - wa + 1, inv_colsum[wa:], uni, sb,
-                               r0s, ws, bnd)
+                    tol = 1e-12 * abs(best_ll)
                     n2 = 0
-                    for t in range(nc):
-                        i = cand[t]
-                        if i >= wa and i <= wb:
+                    t = 0
+                    while t < nc:
+                        wa = cand[t]
+                        t2 = t + 1
+                        while (t2 < nc and cand[t2] - cand[t2 - 1] <= ML_RUN_GAP
+                               and cand[t2] - wa < ML_RUN):
+                            t2 += 1
+                        mix_bounds(kb, kw, nu, ntot, grev, off - wa, 1, 0, cand[t2 - 1] - wa + 1, inv_colsum[wa:],
+                                   uni, sb, r0s, ws, bnd)
+                        for tt in range(t, t2):
+                            i = cand[tt]
                             key[i] = min(key[i], bnd[i - wa])
-                        if key[i] > best_ll + 1e-12 * abs(best_ll):
-                            cand[n2] = i
-                            n2 += 1
+                            if key[i] > best_ll + tol:
+                                cand[n2] = i     # n2 <= tt: compacts in place behind the reads
+                                n2 += 1
+                        t = t2
                     nc = n2
                 _sort_desc(key, cand, nc)
                 for t in range(nc):
@@ -1462,9 +1468,9 @@ def ml_kernel(bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_colsum, 
     bounds the profile likelihood from above (split the linear term a C + B M evenly over the
     photons and maximise each photon's term alone), and only offsets d with g[d] M > min C
     (dlo..dhi) contribute above the floor, so U is built over the photons' reach only (intervals of
-    shifts, not all M). After the best bound's shift is solved, the shifts near it whose U beats it
-    get the tangent bound of their first Newton pass at that solve's share (a bound, by concavity in
-    the signal share) in one sweep (:func:`mix_bounds`); shifts are then solved best bound first and
+    shifts, not all M). After the best bound's shift is solved, the shifts whose U beats it get the
+    tangent bound of their first Newton pass at that solve's share (a bound, by concavity in the
+    signal share), in sweeps over runs of nearby shifts (:func:`mix_bounds`); shifts are then solved best bound first and
     the search stops at the first bound that cannot beat the best likelihood found; each solve also
     stops after its first Newton pass when its own tangent cannot beat it. The best 1/fsteps shift
     within a bin of the integer optimum: for any pulse, every fine shift gets its tangent bound in
@@ -1498,7 +1504,7 @@ def ml_kernel(bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_colsum, 
     fine_rev = fine[::-1].copy()
     inv_colsum = 1.0 / colsum
     inv_fine_colsum = 1.0 / fine_colsum
-    nwin = max(2 * ML_WINDOW + 1, nf)
+    nwin = max(ML_RUN, nf)
     for blk in prange(nblk):
         _ml_block(np.int64(blk), bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_colsum, fine,
                   fine_colsum, fsteps, fine_climb, dg, maxn, out_shift, out_amp, out_bg, out_var, out_n, nf, nwin, npix,
