@@ -896,7 +896,8 @@ def uos_kernel(bins, offsets, m, g, off, gmax, colsum, pp, dg, n_refl, delta, ma
 
 #: ml: logliks within this share of each other are a tie (the pulse on either of two lone
 #: detections gives an exact one, which solves from different starts leave ~1e-16 apart), settled
-#: for the later shift, as the exhaustive scan upwards settled them
+#: for the smallest of the tied integer shifts, as the dense reference's argmax settles them: a
+#: shift whose bound could tie the best is solved, not pruned
 ML_TIE = 1e-13
 
 #: ml: pixels with at most this many distinct photon bins run every pass over all their photons
@@ -1306,11 +1307,12 @@ def _ml_block(blk, bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_col
                     best_ll = ll
                     best_i = i1
                     best_s = s
-                # the shifts whose bound beats it, best bound first
+                # the shifts whose bound beats it or could tie it (see ML_TIE), best bound first
+                tie = ML_TIE * max(1.0, abs(best_ll))
                 nc = 0
                 for t in range(ncand):
                     i = cand[t]
-                    if i != i1 and floor_ll + acc[i] > best_ll + 1e-12 * abs(best_ll):
+                    if i != i1 and floor_ll + acc[i] > best_ll - tie:
                         cand[nc] = i
                         nc += 1
                         key[i] = floor_ll + acc[i]
@@ -1321,7 +1323,6 @@ def _ml_block(blk, bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_col
                 # without a solver call
                 if nc >= ML_SWEEP_MIN:
                     sb = min(max(best_s, ML_SHARE_CLAMP), 1.0 - ML_SHARE_CLAMP)
-                    tol = 1e-12 * abs(best_ll)
                     n2 = 0
                     t = 0
                     while t < nc:
@@ -1335,7 +1336,7 @@ def _ml_block(blk, bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_col
                         for tt in range(t, t2):
                             i = cand[tt]
                             key[i] = min(key[i], bnd[i - wa])
-                            if key[i] > best_ll + tol:
+                            if key[i] > best_ll - tie:
                                 cand[n2] = i     # n2 <= tt: compacts in place behind the reads
                                 n2 += 1
                         t = t2
@@ -1343,19 +1344,15 @@ def _ml_block(blk, bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_col
                 _sort_desc(key, cand, nc)
                 for t in range(nc):
                     i = cand[t]
-                    tol = 1e-12 * abs(best_ll)
-                    if key[i] <= best_ll + tol:
-                        break
-                    # ties (few photons give exact ones: the pulse on either of two detections)
-                    # go as a scan from i1 then upwards would take them: i1, else the smallest
-                    # shift; so a shift that can only tie is solved, not pruned
                     tie = ML_TIE * max(1.0, abs(best_ll))
+                    if key[i] <= best_ll - tie:
+                        break
                     s, ll = _ml_at_int(kb, kw, nu, ntot, i, g, off, colsum, uni, best_s, best_ll - tie)
                     if ll > best_ll + tie or (best_i < 0 and ll > best_ll):
                         best_ll = ll
                         best_i = i
                         best_s = s
-                    elif ll >= best_ll - tie and best_i >= 0 and i > best_i:
+                    elif ll >= best_ll - tie and best_i >= 0 and i < best_i:
                         best_ll = max(best_ll, ll)
                         best_i = i
                         best_s = s
