@@ -296,12 +296,12 @@ def test_first_above_matches_searchsorted(rng):
             assert K.first_above(a, n, v, True) == np.searchsorted(a[:n], v, side="right")
 
 
-def test_ml_ties_settle_for_the_smallest_shift():
+def test_ml_ties_settle_for_the_latest_shift():
     # lone detections far apart: the pulse on any of them is an exact tie (logliks equal to ~1e-16
-    # from different solver starts); the earliest one is reported, as the dense reference's argmax
-    # would, whichever bound the search met first
+    # from different solver starts); the latest one is reported (ML_TIE), whichever bound the
+    # search met first
     lists = [[40, 160], [160, 40, 100], [50, 90, 130, 170]]
     st = PhotonStore.from_lists([np.asarray(b) * 5.0 + 2.0 for b in lists], (1, len(lists)), 8e-12)
     r = reconstruct(st, ReconSettings(method="ml", binning=BIN, pulse_rms_s=RMS_S))
     got = r.tof_s[0] / 8e-12 / 5.0 - 0.5
-    np.testing.assert_allclose(got, [min(b) for b in lists], atol=1.0 / 8)
+    np.testing.assert_allclose(got, [max(b) for b in lists], atol=1.0 / 8)
