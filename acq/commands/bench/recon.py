@@ -1,6 +1,6 @@
 """Speed of the recon estimators, printed side by side with the plain NumPy references
 (tests/reference.py) in one run, at the paper's settings (``recon.model.SEED_PAPER``: 801 bins of
-40 ps, Gaussian pulse RMS 360 ps, 15 detections per pixel), SBR 10.
+40 ps, Gaussian pulse RMS 360 ps, 15 detections per pixel), SBR 10 (``--sbr``).
 
 Run as ``spdepth bench recon`` or ``python -m spdepth.acq.commands.bench.recon``. The references live in the source
 checkout's tests/ folder (not installed); without it only the kernels are timed, and it says so.
@@ -178,12 +178,17 @@ def bench(argv: list[str]) -> int:
                         help="ml-before: the ml kernel as it was before issue 18 (bench/ml_before.py), "
                              "timed in the same run as today's")
     parser.add_argument("--rounds", type=int, default=3, help="alternating 1/2-thread rounds (best kept)")
+    parser.add_argument("--sbr", type=float, default=10.0,
+                        help="signal-to-background ratio of the simulated pixels (ml's search prunes less "
+                             "at low SBR)")
     args = parser.parse_args(argv)
 
     binning = SEED_PAPER.binning
     start_u = binning.window_start
     kern = build_kernel(binning, pulse_rms_s=RMS_S)
-    bins, offsets = simulate(args.pixels, seed=1)
+    if not args.sbr > 0:
+        parser.error(f"--sbr must be positive, got {args.sbr}")
+    bins, offsets = simulate(args.pixels, seed=1, sbr=args.sbr)
     n = args.pixels
     ref, ref_path = _load_reference()
 
@@ -238,7 +243,7 @@ def bench(argv: list[str]) -> int:
     store = PhotonStore(times_raw, offsets, (1, n), UNIT_S)
 
     print(f"recon estimators, {M} bins of {BIN_UNITS * UNIT_S * 1e12:.0f} ps, pulse RMS {RMS_S * 1e12:.0f} ps, "
-          f"{DETECTIONS} detections/pixel, SBR 10; pixels per second")
+          f"{DETECTIONS} detections/pixel, SBR {args.sbr:g}; pixels per second")
     if ref is None:
         print(f"(plain NumPy references not found at {ref_path}: run from a source checkout to compare)")
     else:
