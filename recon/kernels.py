@@ -1238,8 +1238,8 @@ def _sort_desc(keys, idx, n):
 
 @njit(cache=True, nogil=True)
 def _ml_block(blk, bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_colsum, fine, fine_colsum,
-              fsteps, fine_climb, dg, maxn, out_shift, out_amp, out_bg, out_var, out_n, nf, nwin, npix, logm, fine_rev,
-              uni, inv_fine_colsum, ia, ib, grev, inv_colsum, upos):
+              fsteps, fine_climb, dg, maxn, out_shift, out_amp, out_bg, out_var, out_n, nf, nwin, npix, logm,
+              fine_rev, uni, inv_fine_colsum, ia, ib, grev, inv_colsum, upos):
     """The pixels of block blk of :func:`ml_kernel` (its arguments and tables). Compiled on its
     own and called from the kernel's parallel loop: numba compiles a parallel loop's body a
     second time, 5-7 s of ml's cold compile when the body was this code (the same speed either
@@ -1334,8 +1334,8 @@ def _ml_block(blk, bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_col
                         while (t2 < nc and cand[t2] - cand[t2 - 1] <= ML_RUN_GAP
                                and cand[t2] - wa < ML_RUN):
                             t2 += 1
-                        mix_bounds(kb, kw, nu, ntot, grev, off - wa, 1, 0, cand[t2 - 1] - wa + 1, inv_colsum[wa:],
-                                   uni, sb, r0s, ws, bnd)
+                        mix_bounds(kb, kw, nu, ntot, grev, off - wa, 1, 0, cand[t2 - 1] - wa + 1,
+                                   inv_colsum[wa:], uni, sb, r0s, ws, bnd)
                         for tt in range(t, t2):
                             i = cand[tt]
                             key[i] = min(key[i], bnd[i - wa])
@@ -1470,15 +1470,15 @@ def ml_kernel(bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_colsum, 
     (dlo..dhi) contribute above the floor, so U is built over the photons' reach only (intervals of
     shifts, not all M). After the best bound's shift is solved, the shifts whose U beats it get the
     tangent bound of their first Newton pass at that solve's share (a bound, by concavity in the
-    signal share), in sweeps over runs of nearby shifts (:func:`mix_bounds`); shifts are then solved best bound first and
-    the search stops at the first bound that cannot beat the best likelihood found; each solve also
-    stops after its first Newton pass when its own tangent cannot beat it. The best 1/fsteps shift
-    within a bin of the integer optimum: for any pulse, every fine shift gets its tangent bound in
-    one sweep too and they are solved best bound first under the same test; with ``fine_climb``
-    (set by the caller for a smooth pulse, see ML_CLIMB_RMS_BINS) a climb from the integer optimum
-    while the exact likelihood rises finds it with fewer solves. Then a parabola through its exact
-    neighbours. Outputs: out_shift (bins, NaN none), out_amp (unit-area
-    amplitude), out_bg (per bin), out_var (bins^2), out_n (photons).
+    signal share), in sweeps over runs of nearby shifts (:func:`mix_bounds`); shifts are then
+    solved best bound first and the search stops at the first bound that cannot beat the best
+    likelihood found; each solve also stops after its first Newton pass when its own tangent cannot
+    beat it. The best 1/fsteps shift within a bin of the integer optimum: for any pulse, every fine
+    shift gets its tangent bound in one sweep too and they are solved best bound first under the
+    same test; with ``fine_climb`` (set by the caller for a smooth pulse, see ML_CLIMB_RMS_BINS) a
+    climb from the integer optimum while the exact likelihood rises finds it with fewer solves.
+    Then a parabola through its exact neighbours. Outputs: out_shift (bins, NaN none), out_amp
+    (unit-area amplitude), out_bg (per bin), out_var (bins^2), out_n (photons).
     """
     npix = offsets.size - 1
     nblk = (npix + BLOCK - 1) // BLOCK
@@ -1507,5 +1507,5 @@ def ml_kernel(bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_colsum, 
     nwin = max(ML_RUN, nf)
     for blk in prange(nblk):
         _ml_block(np.int64(blk), bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_colsum, fine,
-                  fine_colsum, fsteps, fine_climb, dg, maxn, out_shift, out_amp, out_bg, out_var, out_n, nf, nwin, npix,
-                  logm, fine_rev, uni, inv_fine_colsum, ia, ib, grev, inv_colsum, upos)
+                  fine_colsum, fsteps, fine_climb, dg, maxn, out_shift, out_amp, out_bg, out_var, out_n, nf,
+                  nwin, npix, logm, fine_rev, uni, inv_fine_colsum, ia, ib, grev, inv_colsum, upos)

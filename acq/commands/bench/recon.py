@@ -209,7 +209,8 @@ def bench(argv: list[str]) -> int:
                          shift, np.empty((p, 1)), np.empty(p), np.empty(p, np.int32), np.empty(p, np.bool_),
                          np.empty((p, 1)), np.empty(p, np.int64))
         else:
-            outs = (kern.dg, DETECTIONS, shift[:, 0], np.empty(p), np.empty(p), np.empty(p), np.empty(p, np.int64))
+            outs = (kern.dg, DETECTIONS, shift[:, 0], np.empty(p), np.empty(p), np.empty(p),
+                    np.empty(p, np.int64))
             if method == "ml-before":
                 # its tables: today's without the fine search's switch (it searched every fine shift)
                 ml_before.ml_kernel(b, o, M, *ml_tabs[:-1], *outs)
