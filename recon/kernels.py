@@ -1375,32 +1375,24 @@ def _ml_block(blk, bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_col
         exact[:] = False
         exact[fsteps] = True
         if fine_climb:
-            # a smooth pulse: climb from the integer optimum while the likelihood rises, every
-            # step solved exactly (each is a neighbour of the next, as the parabola needs)
-            up = 0
-            for q in (1, -1):
-                if q >= qlo and q <= qhi:
+            # a smooth pulse: climb from the integer optimum while the likelihood rises, upwards,
+            # then downwards when the first step up did not rise; every step solved exactly (each
+            # is a neighbour of the next, as the parabola needs)
+            for d in (1, -1):
+                q = d
+                while q >= qlo and q <= qhi:
                     s, ll = _ml_at_fine(kb, kw, nu, ntot, best_i, q, fine, off, fine_colsum, fsteps, uni,
-                                        best_s, -np.inf)
+                                        bs, -np.inf)
                     lls[q + fsteps] = ll
                     exact[q + fsteps] = True
-                    if ll > bll + ML_TIE * max(1.0, abs(bll)):
-                        bll = ll
-                        bq = q
-                        bs = s
-                        up = q
-            q = 2 * up
-            while up != 0 and q >= qlo and q <= qhi:
-                s, ll = _ml_at_fine(kb, kw, nu, ntot, best_i, q, fine, off, fine_colsum, fsteps, uni, bs,
-                                    -np.inf)
-                lls[q + fsteps] = ll
-                exact[q + fsteps] = True
-                if not ll > bll + ML_TIE * max(1.0, abs(bll)):
+                    if not ll > bll + ML_TIE * max(1.0, abs(bll)):
+                        break
+                    bll = ll
+                    bq = q
+                    bs = s
+                    q += d
+                if bq != 0:
                     break
-                bll = ll
-                bq = q
-                bs = s
-                q += up
         else:
             # any pulse: every fine shift's first-pass bound in one sweep, solved best bound first
             # (the optimum usually comes first, and its likelihood then cuts the rest)

@@ -129,7 +129,6 @@ def test_ml_kernel_global_integer_optimum_matches_reference(kern, rng, k):
         assert r.signal[0, 0] + r.background[0, 0] * M == pytest.approx(y_sum, rel=1e-6)
 
 
-
 @pytest.mark.parametrize("rms_bins", [K.ML_CLIMB_RMS_BINS, 4.0])
 def test_ml_fine_climb_finds_the_full_searchs_shift(rng, rms_bins):
     # the climb over the fine shifts (a smooth pulse) against the search of all of them, on the
