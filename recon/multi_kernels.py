@@ -10,17 +10,22 @@ when its gain exceeds ``gain_min`` nats; then every amplitude and the background
 and every earlier return's shift is re-refined with the others fixed. Plain reference:
 ``tests/reference.py::multi_return``.
 
-The kernel takes the reference's path step for step, with the same arithmetic for every value it
-keeps or compares (same candidates, Newton starts and steps, EM sweeps: on the real two-surface file
-its output is bit for bit the earlier kernel's); what makes it cheaper leaves every decision
-unchanged: a shift whose gain an upper bound puts below the one to beat is not scored exactly
-(:func:`add_gain`), a pattern search never scores a shift twice (:func:`refine_shift`), EM looks
-the response up once per refit, a pixel's detections are counted on the window's bins rather than
-sorted (:func:`unique_bins`), and the scratch is allocated once per block of pixels.
+The kernel takes the reference's path step for step (same candidates, Newton starts and steps, EM
+sweeps and stopping rule); what makes it cheaper leaves every decision unchanged: a shift whose gain
+an upper bound puts below the one to beat is not scored exactly (:func:`add_gain`), a pattern search
+never scores a shift twice (:func:`refine_shift`), EM looks the response up once per refit, a
+pixel's detections are counted on the window's bins rather than sorted (:func:`unique_bins`), and
+the scratch is allocated once per block of pixels. Its arithmetic differs from the reference's in
+the last bits only, where it is cheaper: the rate's inverse is kept per detection
+(:func:`model_irate`), a gain's logs are summed as the log of one product (:func:`log_sum`), and
+EM's sums are vectorised (:func:`em_refit`). On fixed input that moved a shift on few pixels: on
+the real two-surface file with its measured response, 23 of 5,000, by 1-2 bins of 8 ps, all in the
+re-refinement of the first surface (the pulse is ~100 bins wide there, its profile flat).
 
 The functions the parallel loops call are compiled with ``error_model="numpy"``, as numba compiles
 those loops' bodies: a division by zero gives inf or NaN instead of raising, so numba adds no
-zero-divisor check to each division (4-6% of the K-surface fit at 50 detections per pixel, same outputs bit for bit).
+zero-divisor check to each division (4-6% of the K-surface fit at 50 detections per pixel, same
+outputs bit for bit).
 """
 
 from __future__ import annotations
@@ -106,40 +111,49 @@ def first_at_least(kb, nu, v):
 @njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def slopes(a, c, wk, n):
     """(f'(a), f''(a)) of the gain f of a return of column sum c over the gathered detections
-    under it: wk[0, :n] the response values g_u, wk[1, :n] the counts, wk[2, :n] the rates."""
+    under it: wk[0, :n] the response values over the model's rate, x_u = g_u / lam_u, wk[1, :n]
+    the counts."""
     f1 = -c
     f2 = 0.0
     for i in range(n):
-        q = wk[0, i] / (wk[2, i] + a * wk[0, i])
+        q = wk[0, i] / (1.0 + a * wk[0, i])
         f1 += wk[1, i] * q
         f2 -= wk[1, i] * q * q
     return f1, f2
 
 
 @njit(cache=True, nogil=True, inline="always", error_model="numpy")
-def log_sum_bound(a, wk, n):
-    """sum_i w_i log(1 + a g_i / lam_i) over wk, fast, for add_gain's bound only: the log of one
-    product (one log instead of one per detection; the weights are counts, whole numbers), rescaled
-    by exact powers of 2 so that it stays in range. Every factor is >= 1, so it is off by a few ulp
-    per factor in absolute terms, far below BAR_MARGIN."""
+def log_sum(a, wk, n):
+    """sum_i w_i log(1 + a x_i) over wk (:func:`slopes`), as the log of one product: one log
+    instead of one log1p per detection (a third of an exact gain's time), the weights being counts,
+    whole numbers; rescaled by exact powers of 2 so that it stays in range. Every factor is >= 1
+    and rounded once, so the sum is off by about an ulp per factor in absolute terms (~1e-15 nats
+    for tens of detections), as a sum of log1p is: far below BAR_MARGIN and any gain compared."""
     prod = 1.0
     e2 = 0
     for i in range(n):
-        f = 1.0 + a * wk[0, i] / wk[2, i]
-        for _ in range(int(wk[1, i])):
+        f = 1.0 + a * wk[0, i]
+        w = wk[1, i]
+        if w == 1.0:
             prod *= f
-            if prod > PROD_RESCALE:
-                prod, e = math.frexp(prod)
-                e2 += e
+        else:
+            for _ in range(int(w)):
+                prod *= f
+                if prod > PROD_RESCALE:
+                    prod, e = math.frexp(prod)
+                    e2 += e
+        if prod > PROD_RESCALE:
+            prod, e = math.frexp(prod)
+            e2 += e
     return math.log(prod) + e2 * LN2
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def add_gain(j, kb, kw, nu, lam, g, off, colsum, a0, bar, wk):
+def add_gain(j, kb, kw, nu, ilam, g, off, colsum, a0, bar, wk):
     """(gain, amplitude) of adding a return at shift j to the model whose rate at the photons' bins is
-    lam: ``max_a f(a) = sum_u kw_u log(1 + a g_u / lam_u) - a colsum[j]`` over a >= 0 (nats), by
-    Newton from a = (detections under the pulse) / colsum[j]. Only the detections under the pulse
-    (kb sorted) enter. wk: scratch (3, >= nu).
+    lam (ilam = 1 / lam): ``max_a f(a) = sum_u kw_u log(1 + a g_u / lam_u) - a colsum[j]`` over
+    a >= 0 (nats), by Newton from a = (detections under the pulse) / colsum[j]. Only the detections
+    under the pulse (kb sorted) enter. wk: scratch (2, >= nu).
 
     bar: the caller only wants a gain above it (a ``gain > bar`` test); when an upper bound on the
     gain is below it by more than rounding (:data:`BAR_MARGIN`), that bound is returned instead of
@@ -165,11 +179,11 @@ def add_gain(j, kb, kw, nu, lam, g, off, colsum, a0, bar, wk):
     for u in range(u0, u1):
         gu = g[kb[u] - lo]
         if gu > 0.0:
-            wk[0, n] = gu
+            x = gu * ilam[u]
+            wk[0, n] = x
             wk[1, n] = kw[u]
-            wk[2, n] = lam[u]
             n += 1
-            d0 += kw[u] * gu / lam[u]
+            d0 += kw[u] * x
             nin += kw[u]
     if d0 <= 0.0:
         return 0.0, 0.0
@@ -177,7 +191,7 @@ def add_gain(j, kb, kw, nu, lam, g, off, colsum, a0, bar, wk):
     if bar > 0.0:
         a1 = a0 if a0 > 0.0 else a
         f1, f2 = slopes(a1, c, wk, n)
-        fa = log_sum_bound(a1, wk, n) - a1 * c
+        fa = log_sum(a1, wk, n) - a1 * c
         if f1 <= 0.0:
             ub = fa + f1 * f1 / (-2.0 * f2) if f2 < 0.0 else np.inf
         else:
@@ -195,25 +209,19 @@ def add_gain(j, kb, kw, nu, lam, g, off, colsum, a0, bar, wk):
             a = na
             break
         a = na
-    gain = -a * c
-    for i in range(n):
-        gain += wk[1, i] * math.log1p(a * wk[0, i] / wk[2, i])
-    return gain, a
+    return log_sum(a, wk, n) - a * c, a
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def screen_score(j, kb, kw, nu, ilam, g, off, colsum):
+def screen_score(j, kb, kw, u0, u1, ilam, g, off, colsum):
     """The gain of adding a return at shift j to second order in its amplitude at 0,
     ``d0^2 / (2 c2)`` (slope d0 and curvature c2 there; 0 when the slope is not positive): one pass,
-    to pick the candidates worth the exact :func:`add_gain`. ilam: 1 / the model's rate at the
-    photons."""
-    nk = g.size
+    to pick the candidates worth the exact :func:`add_gain`. kb[u0:u1]: the detections under the
+    pulse at j; ilam: 1 / the model's rate at the photons."""
     lo = j - off
     c = colsum[j]
     if c <= 0.0:
         return 0.0
-    u0 = first_at_least(kb, nu, lo)
-    u1 = first_at_least(kb, nu, lo + nk)
     d0 = -c
     c2 = 0.0
     for u in range(u0, u1):
@@ -228,12 +236,12 @@ def screen_score(j, kb, kw, nu, ilam, g, off, colsum):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def refine_shift(j, best, amp, kb, kw, nu, lam, g, off, colsum, m, step0, shifts, nr, skip, sep_bins, wk, seen,
+def refine_shift(j, best, amp, kb, kw, nu, ilam, g, off, colsum, m, step0, shifts, nr, skip, sep_bins, wk, seen,
                  nseen):
     """Pattern search (steps step0, step0/2, ..., 1 bins) for the shift of most gain from j, never
     within sep_bins of shifts[:nr] (but shifts[skip]).
 
-    seen[:nseen]: shifts whose gain on this lam is known not to exceed ``best`` (scored before the
+    seen[:nseen]: shifts whose gain on this model (ilam: 1 / its rate) is known not to exceed ``best`` (scored before the
     search). A shift scored once is never scored again: it was either below the best at the time or
     the best that the search left for a higher one, and the best only grows, so it could not be taken
     (the search moves on a strictly higher gain): skipping it leaves the path unchanged."""
@@ -258,7 +266,7 @@ def refine_shift(j, best, amp, kb, kw, nu, lam, g, off, colsum, m, step0, shifts
                         near = True
                 if near:
                     continue
-                gn, an = add_gain(jj, kb, kw, nu, lam, g, off, colsum, amp, best, wk)
+                gn, an = add_gain(jj, kb, kw, nu, ilam, g, off, colsum, amp, best, wk)
                 if nseen < seen.size:
                     seen[nseen] = jj
                     nseen += 1
@@ -271,8 +279,9 @@ def refine_shift(j, best, amp, kb, kw, nu, lam, g, off, colsum, m, step0, shifts
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def model_rate(kb, nu, shifts, amps, nr, bg, g, off, lam):
-    """lam[u] = bg + sum_r amps[r] g[kb_u - shifts[r] + off]."""
+def model_irate(kb, nu, shifts, amps, nr, bg, g, off, ilam):
+    """ilam[u] = 1 / lam_u, lam_u = bg + sum_r amps[r] g[kb_u - shifts[r] + off]: the gains and the
+    screen divide by the rate, once per detection and model rather than once per shift tried."""
     nk = g.size
     for u in range(nu):
         v = bg
@@ -280,31 +289,42 @@ def model_rate(kb, nu, shifts, amps, nr, bg, g, off, lam):
             d = kb[u] - shifts[r] + off
             if d >= 0 and d < nk:
                 v += amps[r] * g[d]
-        lam[u] = v
+        ilam[u] = 1.0 / v
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, lam, sweeps, gt, newa):
+@njit(cache=True, nogil=True, error_model="numpy", fastmath={"reassoc"})
+def em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, ilam, sweeps, gt, newa):
     """EM for the amplitudes and background at fixed shifts (monotone in the likelihood); returns bg
-    and leaves lam at the final model. gt (>= nr, >= nu), newa (>= nr): scratch; the shifts being
-    fixed, every detection's response values are looked up once into gt, not once per sweep (zero
-    outside a return's reach, which adds nothing)."""
+    and leaves ilam at the final model (:func:`model_irate`). gt (>= nr, >= nu), newa (>= nr):
+    scratch; the shifts being fixed, every detection's response values are looked up once into gt,
+    not once per sweep (zero outside a return's reach, which adds nothing).
+
+    A sweep is loops over the detections, one per quantity (rate, its inverse, each sum), which
+    vectorise; ``reassoc`` lets the sums do so too (a fourth of the K-surface fit's time was EM in
+    scalar loops). It reorders additions only: the sums differ in the last bits, far below EM_TOL.
+    ilam holds each detection's count over its rate during the sweeps."""
     nk = g.size
     for r in range(nr):
         for u in range(nu):
             d = kb[u] - shifts[r] + off
             gt[r, u] = g[d] if d >= 0 and d < nk else 0.0
     for _ in range(sweeps):
-        nb = 0.0
-        for r in range(nr):
-            newa[r] = 0.0
         for u in range(nu):
-            v = bg
-            for r in range(nr):
-                v += amps[r] * gt[r, u]
-            nb += kw[u] * bg / v
-            for r in range(nr):
-                newa[r] += kw[u] * amps[r] * gt[r, u] / v
+            ilam[u] = bg
+        for r in range(nr):
+            ar = amps[r]
+            for u in range(nu):
+                ilam[u] += ar * gt[r, u]
+        nb = 0.0
+        for u in range(nu):
+            ilam[u] = kw[u] / ilam[u]
+            nb += ilam[u]
+        nb *= bg
+        for r in range(nr):
+            sr = 0.0
+            for u in range(nu):
+                sr += gt[r, u] * ilam[u]
+            newa[r] = amps[r] * sr
         change = 0.0
         for r in range(nr):
             na = newa[r] / colsum[shifts[r]]
@@ -315,7 +335,7 @@ def em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, lam,
         bg = nbg
         if change < EM_TOL:
             break
-    model_rate(kb, nu, shifts, amps, nr, bg, g, off, lam)
+    model_irate(kb, nu, shifts, amps, nr, bg, g, off, ilam)
     return bg
 
 
@@ -343,12 +363,12 @@ def shift_fisher(r, shifts, amps, nr, bg, g, dg, off, m):
 @njit(cache=True, nogil=True, error_model="numpy")
 def fit_work(n, kmax):
     """Scratch of :func:`fit_pixel` for up to n distinct bins and kmax returns, allocated once per
-    block of pixels: (lam, tmp_lam, cand, shifts, amps, gains, tmp_s, tmp_a, wk, gt, newa, top_s,
+    block of pixels: (ilam, tmp_ilam, cand, shifts, amps, gains, tmp_s, tmp_a, wk, gt, newa, top_s,
     top_j, seen)."""
     n = max(n, 1)
     k = max(kmax, 1)
     return (np.empty(n), np.empty(n), np.empty(n, np.int64), np.empty(k, np.int64), np.empty(k), np.empty(k),
-            np.empty(k, np.int64), np.empty(k), np.empty((3, n)), np.empty((k, n)), np.empty(k),
+            np.empty(k, np.int64), np.empty(k), np.empty((2, n)), np.empty((k, n)), np.empty(k),
             np.empty(SCREEN), np.empty(SCREEN, np.int64), np.empty(MEMO, np.int64))
 
 
@@ -357,14 +377,14 @@ def fit_pixel(kb, kw, nu, m, g, off, colsum, dg, kmax, sep_bins, gain_min, cand_
     """Greedy K-return fit of one pixel's unique bins (kb, kw); returns (nr, bg): shifts[:nr] (sorted),
     amps[:nr], gains[:nr] (nats each return added when it was taken), the arrays of ``work``
     (:func:`fit_work`, its 4th to 6th)."""
-    lam, tmp_lam, cand, shifts, amps, gains, tmp_s, tmp_a, wk, gt, newa, top_s, top_j, seen = work
+    ilam, tmp_ilam, cand, shifts, amps, gains, tmp_s, tmp_a, wk, gt, newa, top_s, top_j, seen = work
     ntot = 0.0
     for u in range(nu):
         ntot += kw[u]
     bg_floor = 1e-9 * ntot / m
     bg = ntot / m
     for u in range(nu):
-        lam[u] = bg
+        ilam[u] = 1.0 / bg
     # candidate shifts: the response's peak on a detection, one per cand_step bins
     nc = 0
     for u in range(nu):
@@ -379,18 +399,24 @@ def fit_pixel(kb, kw, nu, m, g, off, colsum, dg, kmax, sep_bins, gain_min, cand_
     nr = 0
     while nr < kmax:
         # the SCREEN best candidates by the second-order screen, then their exact gains
-        for u in range(nu):
-            tmp_lam[u] = 1.0 / lam[u]
         ns = 0
+        u0 = 0
+        u1 = 0
+        nk = g.size
         for c in range(nc):
             j = cand[c]
+            # the detections under the pulse: candidates ascend, so do both ends
+            while u0 < nu and kb[u0] < j - off:
+                u0 += 1
+            while u1 < nu and kb[u1] < j - off + nk:
+                u1 += 1
             near = False
             for r in range(nr):
                 if abs(j - shifts[r]) < sep_bins:
                     near = True
             if near:
                 continue
-            sc = screen_score(j, kb, kw, nu, tmp_lam, g, off, colsum)
+            sc = screen_score(j, kb, kw, u0, u1, ilam, g, off, colsum)
             if sc <= 0.0:
                 continue
             # insertion into the top list (ties keep the earlier candidate first)
@@ -409,13 +435,13 @@ def fit_pixel(kb, kw, nu, m, g, off, colsum, dg, kmax, sep_bins, gain_min, cand_
         bj = -1
         ba = 0.0
         for t in range(ns):
-            gn, an = add_gain(top_j[t], kb, kw, nu, lam, g, off, colsum, 0.0, best, wk)
+            gn, an = add_gain(top_j[t], kb, kw, nu, ilam, g, off, colsum, 0.0, best, wk)
             seen[t] = top_j[t]
             if gn > best:
                 best, bj, ba = gn, top_j[t], an
         if bj < 0:
             break
-        bj, best, ba = refine_shift(bj, best, ba, kb, kw, nu, lam, g, off, colsum, m, step0, shifts, nr, -1,
+        bj, best, ba = refine_shift(bj, best, ba, kb, kw, nu, ilam, g, off, colsum, m, step0, shifts, nr, -1,
                                     sep_bins, wk, seen, ns)
         if not best > gain_min:
             break
@@ -423,7 +449,7 @@ def fit_pixel(kb, kw, nu, m, g, off, colsum, dg, kmax, sep_bins, gain_min, cand_
         amps[nr] = ba
         gains[nr] = best
         nr += 1
-        bg = em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, lam, EM_SWEEPS, gt, newa)
+        bg = em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, ilam, EM_SWEEPS, gt, newa)
         if nr > 1:
             # re-refine each shift with the others (and the background) fixed
             for r in range(nr):
@@ -432,13 +458,13 @@ def fit_pixel(kb, kw, nu, m, g, off, colsum, dg, kmax, sep_bins, gain_min, cand_
                     tmp_a[s] = amps[s]
                 # the rate without return r
                 tmp_a[r] = 0.0
-                model_rate(kb, nu, tmp_s, tmp_a, nr, bg, g, off, tmp_lam)
-                g0, a0 = add_gain(shifts[r], kb, kw, nu, tmp_lam, g, off, colsum, amps[r], 0.0, wk)
-                jn, gn, an = refine_shift(shifts[r], g0, a0, kb, kw, nu, tmp_lam, g, off, colsum, m, 2,
+                model_irate(kb, nu, tmp_s, tmp_a, nr, bg, g, off, tmp_ilam)
+                g0, a0 = add_gain(shifts[r], kb, kw, nu, tmp_ilam, g, off, colsum, amps[r], 0.0, wk)
+                jn, gn, an = refine_shift(shifts[r], g0, a0, kb, kw, nu, tmp_ilam, g, off, colsum, m, 2,
                                           shifts, nr, r, sep_bins, wk, seen, 0)
                 shifts[r] = jn
                 amps[r] = an
-            bg = em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, lam, EM_SWEEPS, gt, newa)
+            bg = em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, ilam, EM_SWEEPS, gt, newa)
     # sort by shift
     for a in range(1, nr):
         vs, va, vg = shifts[a], amps[a], gains[a]
@@ -541,7 +567,7 @@ def neighbour_surfaces(bins, offsets, h, w, radius, shift_in, gain_in, strong_na
         kw = np.empty(n1, np.float64)
         work = fit_work(n1, kmax)
         tally = np.zeros(m, np.int64)
-        lam, shifts, amps, gains, wk, gt, newa, seen = work[0], work[3], work[4], work[5], work[8], work[9], \
+        ilam, shifts, amps, gains, wk, gt, newa, seen = work[0], work[3], work[4], work[5], work[8], work[9], \
             work[10], work[13]
         cand = np.empty(kk + kpool, np.int64)
         csrc = np.empty(kk + kpool, np.int64)
@@ -595,7 +621,7 @@ def neighbour_surfaces(bins, offsets, h, w, radius, shift_in, gain_in, strong_na
             nr = 0
             bg = ntot / m
             for u in range(nu):
-                lam[u] = bg
+                ilam[u] = 1.0 / bg
             while nr < kmax:
                 # the candidate the pixel's own detections support most (gain at the best
                 # detection-aligned shift within tau_bins of it)
@@ -617,12 +643,12 @@ def neighbour_surfaces(bins, offsets, h, w, radius, shift_in, gain_in, strong_na
                                 near = True
                         if near:
                             continue
-                        gn, an = add_gain(j, kb, kw, nu, lam, g, off, colsum, 0.0, best, wk)
+                        gn, an = add_gain(j, kb, kw, nu, ilam, g, off, colsum, 0.0, best, wk)
                         if gn > best:
                             best, bj, ba, bc = gn, j, an, c
                 if bc < 0:
                     break
-                bj, best, ba = refine_shift(bj, best, ba, kb, kw, nu, lam, g, off, colsum, m, step0, shifts, nr,
+                bj, best, ba = refine_shift(bj, best, ba, kb, kw, nu, ilam, g, off, colsum, m, step0, shifts, nr,
                                             -1, sep_bins, wk, seen, 0)
                 c = bc
                 # every candidate within sep of the one taken is spent
@@ -636,7 +662,7 @@ def neighbour_surfaces(bins, offsets, h, w, radius, shift_in, gain_in, strong_na
                 src[nr] = csrc[c]
                 csrc[c] = -1
                 nr += 1
-                bg = em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, lam, EM_SWEEPS, gt, newa)
+                bg = em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, ilam, EM_SWEEPS, gt, newa)
             # sort by shift
             for a in range(1, nr):
                 vs, va, vg, vc = shifts[a], amps[a], gains[a], src[a]
