@@ -33,7 +33,7 @@ def reconstruct_each_pixel(store: PhotonStore, settings: ReconSettings,
     then fit every pixel on its own (:func:`recon.pixelwise.reconstruct_pixelwise`)."""
     b, kern, notes = resolve_model(store, settings)
     if settings.several:
-        # recon.multi (scipy.stats, its own kernels) is imported on first use, as the spatial
+        # recon.multi (its own kernels) is imported on first use, as the spatial
         # estimator is: one surface per pixel, the common case, should not wait for it.
         # A response estimated from the data is re-measured on the surfaces there.
         from spdepth.recon.multi import reconstruct_multi
@@ -46,8 +46,8 @@ def reconstruct_each_pixel(store: PhotonStore, settings: ReconSettings,
 def reconstruct_spatial(store: PhotonStore, settings: ReconSettings,
                         progress: Callable[[int, int], None] | None = None) -> DepthMaps:
     """:func:`recon.spatial.reconstruct_spatial`, imported on first use: the spatial estimator
-    brings scipy.stats and its own kernels, which a pixelwise reconstruction (``spdepth recon``'s
-    default) has no use for and should not wait for in a new process."""
+    brings its own kernels, which a pixelwise reconstruction (``spdepth recon``'s default) has no
+    use for and should not wait for in a new process."""
     from spdepth.recon.spatial import reconstruct_spatial as spatial
 
     return spatial(store, settings, progress)
