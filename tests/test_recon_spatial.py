@@ -165,7 +165,14 @@ def test_bounded_censoring_changes_no_output(monkeypatch, sbr):
     from spdepth.recon import spatial
 
     store, _ = simulate(smooth_scene(24, 24), 2 * spatial.BOUND_FROM, sbr, seed=7)
+    widths = []
+    real = spatial.SK.window_counts
+    monkeypatch.setattr(spatial.SK, "window_counts", lambda *a: widths.append(a[5]) or real(*a))
     bounded = reconstruct(store, settings("spatial"))
+    # background-dominated (SBR 0.3) takes the narrow coarse bins, SBR 10 the wide ones
+    sigma = RMS_UNITS / BIN_UNITS
+    narrow = spatial.NARROW_COUNT_BIN_TAU if sbr < 1 else spatial.COUNT_BIN_TAU
+    assert widths == [pytest.approx(narrow * spatial.TAU_RMS * sigma)]
     monkeypatch.setattr(spatial, "BOUND_FROM", 10 ** 9)
     exact = reconstruct(store, settings("spatial"))
     for name in ("tof_s", "background", "signal", "uncertainty_s", "flags", "photons"):
@@ -343,3 +350,17 @@ def test_cli_recon_spatial_on_simulated_ptu_and_mat(tmp_path, capsys, shared_dat
                  "--json"]) == 0
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert summary["pixels_with_estimate"] == 40 * 40 and 4.2 < summary["depth_m_median"] < 4.5
+
+
+@pytest.mark.parametrize("sbr", [0.1, 1.0, 10.0])
+def test_background_share_measures_the_frame_without_a_model(sbr):
+    # what picks the censoring bounds' coarse bins: about the true background share
+    from spdepth.recon.spatial import background_share
+
+    store, _ = simulate(smooth_scene(40, 40), 40, sbr, seed=3)
+    x, off = _shifts(store)
+    share = background_share(x, off, RMS_UNITS / BIN_UNITS)
+    true = 1.0 / (1.0 + sbr)
+    # the densest 5-RMS span of a pixel holds its signal and the background that falls there
+    assert true - 0.12 <= share <= true + 0.02, (share, true)
+    assert background_share(x, off, RMS_UNITS / BIN_UNITS, sample=50) == pytest.approx(share, abs=0.08)
