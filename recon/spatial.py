@@ -73,7 +73,7 @@ NARROW_COUNT_BIN_TAU = 0.5
 #: Censoring: the narrow bins when at least this share of the detections is background
 #: (:func:`background_share`, measured on SHARE_SAMPLE pixels spread over the frame).
 NARROW_FROM_BACKGROUND = 0.5
-SHARE_SAMPLE = 2048
+SHARE_SAMPLE = 512
 #: EM steps of the pixelwise fit.
 EM_ITERS = 4
 #: TV weight, in pulse RMS widths per unit of signal count.
