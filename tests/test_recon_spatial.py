@@ -158,23 +158,27 @@ def test_censor_fit_matches_reference(small_store):
                 assert_array_equal(g, u)
 
 
-@pytest.mark.parametrize("sbr", [0.3, 10.0])
-def test_bounded_censoring_changes_no_output(monkeypatch, sbr):
-    # frames with many detections per pixel bound the support by coarse window counts first
-    # (spatial.BOUND_FROM): the maps are the same bits as with exact counts alone
+@pytest.mark.parametrize("n, sbr, bins", [(50, 0.3, "narrow"), (50, 10.0, "wide"), (20, 1.0, "wide"),
+                                           (20, 10.0, None)])
+def test_bounded_censoring_changes_no_output(monkeypatch, n, sbr, bins):
+    # frames with many detections per pixel (spatial.BOUND_FROM), or fewer but with much background
+    # (BOUND_FROM_BACKGROUND), bound the support by coarse window counts first, narrow ones where
+    # background dominates: the maps are the same bits as with exact counts alone
     from spdepth.recon import spatial
 
-    store, _ = simulate(smooth_scene(24, 24), 2 * spatial.BOUND_FROM, sbr, seed=7)
+    store, _ = simulate(smooth_scene(24, 24), n, sbr, seed=7)
     widths = []
     real = spatial.SK.window_counts
     monkeypatch.setattr(spatial.SK, "window_counts", lambda *a: widths.append(a[5]) or real(*a))
     bounded = reconstruct(store, settings("spatial"))
-    # background-dominated (SBR 0.3) takes the narrow coarse bins, SBR 10 the wide ones
-    sigma = RMS_UNITS / BIN_UNITS
-    narrow = spatial.NARROW_COUNT_BIN_TAU if sbr < 1 else spatial.COUNT_BIN_TAU
-    assert widths == [pytest.approx(narrow * spatial.TAU_RMS * sigma)]
+    tau = spatial.TAU_RMS * RMS_UNITS / BIN_UNITS
+    want = {"narrow": [pytest.approx(spatial.NARROW_COUNT_BIN_TAU * tau)],
+            "wide": [pytest.approx(spatial.COUNT_BIN_TAU * tau)], None: []}[bins]
+    assert widths == want
     monkeypatch.setattr(spatial, "BOUND_FROM", 10 ** 9)
+    monkeypatch.setattr(spatial, "BOUND_FROM_BACKGROUND", 10 ** 9)
     exact = reconstruct(store, settings("spatial"))
+    assert len(widths) == len(want)
     for name in ("tof_s", "background", "signal", "uncertainty_s", "flags", "photons"):
         assert_array_equal(getattr(bounded, name), getattr(exact, name))
     assert bounded.settings == exact.settings
