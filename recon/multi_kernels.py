@@ -135,6 +135,7 @@ def log_sum(a, wk, n):
         f = 1.0 + a * wk[0, i]
         w = wk[1, i]
         if w == 1.0:
+            # most bins hold one detection: no loop of unknown length (4% of the K-surface fit)
             prod *= f
         else:
             for _ in range(int(w)):
@@ -241,10 +242,11 @@ def refine_shift(j, best, amp, kb, kw, nu, ilam, g, off, colsum, m, step0, shift
     """Pattern search (steps step0, step0/2, ..., 1 bins) for the shift of most gain from j, never
     within sep_bins of shifts[:nr] (but shifts[skip]).
 
-    seen[:nseen]: shifts whose gain on this model (ilam: 1 / its rate) is known not to exceed ``best`` (scored before the
-    search). A shift scored once is never scored again: it was either below the best at the time or
-    the best that the search left for a higher one, and the best only grows, so it could not be taken
-    (the search moves on a strictly higher gain): skipping it leaves the path unchanged."""
+    seen[:nseen]: shifts whose gain on this model (ilam: 1 / its rate) is known not to exceed
+    ``best`` (scored before the search). A shift scored once is never scored again: it was either
+    below the best at the time or the best that the search left for a higher one, and the best only
+    grows, so it could not be taken (the search moves on a strictly higher gain): skipping it leaves
+    the path unchanged."""
     if nseen < seen.size:
         seen[nseen] = j
         nseen += 1
