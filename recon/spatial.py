@@ -66,8 +66,8 @@ BOUND_FROM = 25
 #: (:func:`background_share`): the bounds then rule out the background detections that would be
 #: counted against every neighbour. 256 x 256, 1 thread, at 15 / 20 detections, pixels/s without ->
 #: with these bounds: SBR 1 345k / 281k -> 391k / 344k, SBR 3 370k / 317k -> 387k / 346k, SBR 0.1
-#: 317k / 246k -> 338k / 316k; at SBR 10 (share 0.09) they would cost 2-3%, and at 10 detections
-#: they are even or slower (SBR 0.1: -4%).
+#: 317k / 246k -> 338k / 316k; at SBR 10 (share 0.09) they would cost about 2%, and at 10
+#: detections they won at SBR 1 (+7%) but lost at SBR 0.1 (-4%) and 3 (-1%).
 BOUND_FROM_BACKGROUND = 15
 BOUND_BACKGROUND_SHARE = 0.15
 #: Censoring: width of those coarse bins, in censoring widths tau; NARROW_COUNT_BIN_TAU in frames
@@ -92,7 +92,6 @@ TV_ITERS = 60
 FILL_RADIUS = 2
 #: Uncertainty: share of a like neighbour's signal count added to a pixel's.
 NEIGHBOUR_SHARE = 0.5
-
 
 
 def poisson_quantile(q: float, mu: np.ndarray) -> np.ndarray:
@@ -120,7 +119,9 @@ def background_share(x: np.ndarray, offsets: np.ndarray, sigma: float, sample: i
     # one sorted key per detection (pixel, then time): the detections of a span are a key range
     idx = np.repeat(offsets[pix], counts) + np.arange(total) - np.repeat(np.cumsum(counts) - counts, counts)
     span = 5.0 * sigma
-    key = np.repeat(np.arange(pix.size) * (2.0 * float(np.max(x[idx]) + span + 1.0)), counts) + x[idx]
+    xs = x[idx]
+    apart = float(xs.max() - xs.min()) + span + 1.0
+    key = np.repeat(np.arange(pix.size) * apart, counts) + xs
     in_span = np.searchsorted(key, key + span, side="right") - np.arange(total)
     densest = np.maximum.reduceat(in_span, np.cumsum(counts) - counts)
     return 1.0 - float(densest.sum()) / total
@@ -181,7 +182,8 @@ def reconstruct_spatial(store: PhotonStore, settings: ReconSettings,
     n_used = np.empty(npix, np.int64)
     n_cens = np.empty(npix, np.int64)
     # identical results either way; the coarse counts cost a pass over the detections and save the
-    # neighbour counts of most background detections, which pays with many detections per pixel
+    # neighbour counts of most background detections, which pays with many detections per pixel or
+    # much background
     count_width = COUNT_BIN_TAU * tau
     share = background_share(x, offsets, sigma) if typical >= BOUND_FROM_BACKGROUND else 0.0
     if typical >= BOUND_FROM or share >= BOUND_BACKGROUND_SHARE:
