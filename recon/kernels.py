@@ -908,11 +908,15 @@ ML_TIE = 1e-13
 #: for the ones under the pulse; bigger pixels search, so a pass costs O(pulse support).
 ML_SCAN_ALL = 64
 
-#: ml: the integer shifts that survive U get their first-pass bounds in sweeps (:func:`mix_bounds`)
-#: when at least this many survive (fewer are solved directly)
-ML_SWEEP_MIN = 3
-#: ml: one sweep covers a run of surviving shifts at most ML_RUN long whose neighbours are at most
-#: ML_RUN_GAP apart (the shifts between them are swept for nothing)
+#: ml: a surviving interior shift's tangent bound is read from tables at ML_SHARES signal shares,
+#: (j + 1/2) / ML_SHARES (:func:`share_tables`): any share gives a bound, the one nearest the best
+#: solve's share a tight one (1/128 off it adds ~1e-3 nats where U adds a few)
+ML_SHARES = 64
+#: ml: the first solve's Newton starts at a share in [ML_START_CLAMP, 1 - ML_START_CLAMP]
+ML_START_CLAMP = 0.02
+#: ml: surviving shifts at the window's edges get their bounds in sweeps (:func:`mix_bounds`); one
+#: sweep covers a run at most ML_RUN long whose neighbours are at most ML_RUN_GAP apart (the shifts
+#: between them are swept for nothing)
 ML_RUN = 32
 ML_RUN_GAP = 4
 
@@ -1189,6 +1193,58 @@ def mix_bounds(kb, kw, nu, wtot, trev, base, step, qa, nq, inv_c, uni, s, r0s, w
         out[t] = _mix_bound(ll, f1 + z * qo, s, kh + z * qo * qo, kl + z)
 
 
+@njit(cache=True, nogil=True)
+def share_tables(g, c, uni, nshares):
+    """Per signal share s_j = (j + 1/2) / nshares and pulse offset d (d = g.size: outside the
+    pulse, rate 0), the terms one photon adds to :func:`_mix_pass`'s sums at an interior shift
+    (column sum c): out[j, d] = (log lam, q, its -f'' term over [s, 1], over [0, s]), with
+    e = g[d] / c - uni, lam = uni + s e, q = e / lam (see :func:`_mix_pass`). A bound then costs
+    four lookups a photon, with no division and no log (:func:`share_bound`)."""
+    nk = g.size
+    out = np.empty((nshares, nk + 1, 4))
+    m_uni = 1.0 / uni
+    inv_c = 1.0 / c
+    for j in range(nshares):
+        s = (j + 0.5) / nshares
+        for d in range(nk + 1):
+            e = (g[d] * inv_c if d < nk else 0.0) - uni
+            lam = uni + s * e
+            q = e / lam
+            out[j, d, 0] = math.log(lam)
+            out[j, d, 1] = q
+            out[j, d, 2] = s * s * q * q if e > 0.0 else q * q
+            out[j, d, 3] = q * q if e > 0.0 else (e * m_uni) * (e * m_uni)
+    return out
+
+
+@njit(cache=True, nogil=True, inline="always")
+def share_bound(kb, kw, nu, wtot, i, off, stabs, j, s):
+    """:func:`mix_ml`'s first-pass bound (:func:`_mix_bound`) at interior shift i and the tabulated
+    share s = (j + 1/2) / stabs.shape[0], from :func:`share_tables`: the same sums, read instead
+    of computed (rounded differently, in the last bits)."""
+    nk = stabs.shape[1] - 1
+    if nu <= ML_SCAN_ALL:
+        ua, ub, w_out = 0, nu, 0.0
+    else:
+        ua, ub = _photon_range(kb, nu, i - off, i - off + nk - 1)
+        w_out = wtot
+        for u in range(ua, ub):
+            w_out -= kw[u]
+    ll = w_out * stabs[j, nk, 0]
+    f1 = w_out * stabs[j, nk, 1]
+    kh = w_out * stabs[j, nk, 2]
+    kl = w_out * stabs[j, nk, 3]
+    for u in range(ua, ub):
+        d = kb[u] - i + off
+        d = d if (d >= 0 and d < nk) else nk
+        w = kw[u]
+        ll += w * stabs[j, d, 0]
+        f1 += w * stabs[j, d, 1]
+        kh += w * stabs[j, d, 2]
+        kl += w * stabs[j, d, 3]
+    return _mix_bound(ll, f1, s, kh, kl)
+
+
 @njit(cache=True, nogil=True, inline="always")
 def _after(keys, x, y):
     """x goes after y in :func:`_sort_desc`'s order: smaller key, or the same key and larger index."""
@@ -1238,8 +1294,8 @@ def _sort_desc(keys, idx, n):
 
 @njit(cache=True, nogil=True)
 def _ml_block(blk, bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_colsum, fine, fine_colsum,
-              fsteps, fine_climb, dg, maxn, out_shift, out_amp, out_bg, out_var, out_n, nf, nwin, npix, logm,
-              fine_rev, uni, inv_fine_colsum, ia, ib, grev, inv_colsum, upos):
+              fsteps, fine_climb, stabs, dg, maxn, out_shift, out_amp, out_bg, out_var, out_n, nf, npix, logm,
+              fine_rev, uni, inv_fine_colsum, ia, ib, upos, grev, inv_colsum):
     """The pixels of block blk of :func:`ml_kernel` (its arguments and tables). Compiled on its
     own and called from the kernel's parallel loop: numba compiles a parallel loop's body a
     second time, 5-7 s of ml's cold compile when the body was this code (the same speed either
@@ -1255,7 +1311,9 @@ def _ml_block(blk, bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_col
     exact = np.empty(nf, np.bool_)
     r0s = np.empty(max(maxn, 1), np.int64)
     ws = np.empty(max(maxn, 1))
-    bnd = np.empty(nwin)
+    bnd = np.empty(max(ML_RUN, nf))
+    edge = np.empty(m, np.int64)
+    nshares = stabs.shape[0]
     key = np.empty(m)
     fidx = np.empty(nf, np.int64)
     for p in range(blk * BLOCK, min(npix, (blk + 1) * BLOCK)):
@@ -1295,55 +1353,71 @@ def _ml_block(blk, bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_col
                         v = logg_int[d + off] - log_colsum[i] + logm
                         if v > 0.0:
                             acc[i] += wu * v
-            ncand = 0
+            # the best bound first (the first of equal ones), without listing the shifts: most
+            # of the photons' reach has a positive bound, so a test per shift would be a coin flip
             i1 = -1
+            amax = 0.0
             for t in range(niv):
                 for i in range(ivlo[t], ivhi[t] + 1):
-                    if acc[i] > 0.0:
-                        cand[ncand] = i
-                        ncand += 1
-                        if i1 < 0 or acc[i] > acc[i1]:
-                            i1 = i
+                    if acc[i] > amax:
+                        amax = acc[i]
+                        i1 = i
             if i1 >= 0:
-                s, ll = _ml_at_int(kb, kw, nu, ntot, i1, g, off, colsum, uni, 0.5, -np.inf)
+                # Newton starts at the share of the photons whose bound term is positive there
+                # (the return's, and the background's under it), not at 1/2: two passes fewer
+                nsig = 0.0
+                for u in range(nu):
+                    d = kb[u] - i1
+                    if d >= dlo and d <= dhi and logg_int[d + off] - log_colsum[i1] + logm > 0.0:
+                        nsig += kw[u]
+                s0 = min(max(nsig / ntot, ML_START_CLAMP), 1.0 - ML_START_CLAMP)
+                s, ll = _ml_at_int(kb, kw, nu, ntot, i1, g, off, colsum, uni, s0, -np.inf)
                 if ll > best_ll:
                     best_ll = ll
                     best_i = i1
                     best_s = s
-                # the shifts whose bound beats it or could tie it (see ML_TIE), best bound first
+                # the shifts whose bound beats it or could tie it (see ML_TIE), best bound first.
+                # Each also gets the tangent bound of its first Newton pass at about the best
+                # share so far: much tighter than U, which overshoots the likelihood by a few nats
+                # at every shift of a return and at every shift of a background detection's reach,
+                # so most are dropped without a solver call. Interior shifts read it from tables
+                # at the tabulated share nearest the best (:func:`share_bound`); the others (their
+                # column sums differ) get it at the best share, in sweeps over runs of nearby ones
+                # (:func:`mix_bounds`)
                 tie = ML_TIE * max(1.0, abs(best_ll))
+                js = min(int(best_s * nshares), nshares - 1)
+                sj = (js + 0.5) / nshares
                 nc = 0
-                for t in range(ncand):
-                    i = cand[t]
-                    if i != i1 and floor_ll + acc[i] > best_ll - tie:
-                        cand[nc] = i
-                        nc += 1
+                ne = 0
+                for t in range(niv):
+                    for i in range(ivlo[t], ivhi[t] + 1):
+                        if i == i1 or not (acc[i] > 0.0 and floor_ll + acc[i] > best_ll - tie):
+                            continue
                         key[i] = floor_ll + acc[i]
-                # every survivor gets the first-pass bound of its solve, in sweeps at the best
-                # share so far over runs of nearby survivors (cand is ascending): much tighter than
-                # U, which overshoots the likelihood by a few nats at every shift of a return and
-                # at every shift of a background detection's reach, so most survivors are dropped
-                # without a solver call
-                if nc >= ML_SWEEP_MIN:
-                    sb = min(max(best_s, ML_SHARE_CLAMP), 1.0 - ML_SHARE_CLAMP)
-                    n2 = 0
-                    t = 0
-                    while t < nc:
-                        wa = cand[t]
-                        t2 = t + 1
-                        while (t2 < nc and cand[t2] - cand[t2 - 1] <= ML_RUN_GAP
-                               and cand[t2] - wa < ML_RUN):
-                            t2 += 1
-                        mix_bounds(kb, kw, nu, ntot, grev, off - wa, 1, 0, cand[t2 - 1] - wa + 1,
-                                   inv_colsum[wa:], uni, sb, r0s, ws, bnd)
-                        for tt in range(t, t2):
-                            i = cand[tt]
-                            key[i] = min(key[i], bnd[i - wa])
+                        if i >= ia and i <= ib:
+                            key[i] = min(key[i], share_bound(kb, kw, nu, ntot, i, off, stabs, js, sj))
                             if key[i] > best_ll - tie:
-                                cand[n2] = i     # n2 <= tt: compacts in place behind the reads
-                                n2 += 1
-                        t = t2
-                    nc = n2
+                                cand[nc] = i
+                                nc += 1
+                        else:
+                            edge[ne] = i
+                            ne += 1
+                sb = min(max(best_s, ML_SHARE_CLAMP), 1.0 - ML_SHARE_CLAMP)
+                t = 0
+                while t < ne:
+                    wa = edge[t]
+                    t2 = t + 1
+                    while t2 < ne and edge[t2] - edge[t2 - 1] <= ML_RUN_GAP and edge[t2] - wa < ML_RUN:
+                        t2 += 1
+                    mix_bounds(kb, kw, nu, ntot, grev, off - wa, 1, 0, edge[t2 - 1] - wa + 1, inv_colsum[wa:],
+                               uni, sb, r0s, ws, bnd)
+                    for tt in range(t, t2):
+                        i = edge[tt]
+                        key[i] = min(key[i], bnd[i - wa])
+                        if key[i] > best_ll - tie:
+                            cand[nc] = i
+                            nc += 1
+                    t = t2
                 _sort_desc(key, cand, nc)
                 for t in range(nc):
                     i = cand[t]
@@ -1461,8 +1535,9 @@ def ml_kernel(bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_colsum, 
     photons and maximise each photon's term alone), and only offsets d with g[d] M > min C
     (dlo..dhi) contribute above the floor, so U is built over the photons' reach only (intervals of
     shifts, not all M). After the best bound's shift is solved, the shifts whose U beats it get the
-    tangent bound of their first Newton pass at that solve's share (a bound, by concavity in the
-    signal share), in sweeps over runs of nearby shifts (:func:`mix_bounds`); shifts are then
+    tangent bound of a Newton pass at about that solve's share (a bound, by concavity in the signal
+    share): read from tables for interior shifts (:func:`share_bound`), in sweeps over runs of
+    nearby shifts at the window's edges (:func:`mix_bounds`); shifts are then
     solved best bound first and the search stops at the first bound that cannot beat the best
     likelihood found; each solve also stops after its first Newton pass when its own tangent cannot
     beat it. The best 1/fsteps shift within a bin of the integer optimum: for any pulse, every fine
@@ -1491,13 +1566,13 @@ def ml_kernel(bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_colsum, 
     for t in range(upos.size):
         v = logg_int[dhi - t + off] - lc_int + logm
         upos[t] = v if v > 0.0 else 0.0
+    stabs = share_tables(g, colsum[off] if 0 <= off < m else 1.0, uni, ML_SHARES)
     # the tables of mix_bounds: the pulse tables reversed and the reciprocal column sums
     grev = g[::-1].copy()
     fine_rev = fine[::-1].copy()
     inv_colsum = 1.0 / colsum
     inv_fine_colsum = 1.0 / fine_colsum
-    nwin = max(ML_RUN, nf)
     for blk in prange(nblk):
         _ml_block(np.int64(blk), bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_colsum, fine,
-                  fine_colsum, fsteps, fine_climb, dg, maxn, out_shift, out_amp, out_bg, out_var, out_n, nf,
-                  nwin, npix, logm, fine_rev, uni, inv_fine_colsum, ia, ib, grev, inv_colsum, upos)
+                  fine_colsum, fsteps, fine_climb, stabs, dg, maxn, out_shift, out_amp, out_bg, out_var, out_n,
+                  nf, npix, logm, fine_rev, uni, inv_fine_colsum, ia, ib, upos, grev, inv_colsum)
