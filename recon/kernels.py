@@ -8,6 +8,11 @@ matrix is ever formed. Pixels are processed in blocks of BLOCK under ``prange``;
 scratch arrays.
 
 Shift ``i`` means the pulse centroid is at the centre of bin ``i`` (0 <= i < M).
+
+The leaf helpers that ml calls per pixel and that allocate nothing are compiled with ``_nrt=False``
+(numba's switch for its reference counting, off): numba otherwise adds an atomic increment and
+decrement of every array argument at each call, which it cannot prune around the calls to ``log``;
+that was 10% of ml's time at 15 detections a pixel.
 """
 
 from __future__ import annotations
@@ -106,7 +111,7 @@ def sort_run(a, lo, hi):
         a[b + 1] = v
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, _nrt=False)
 def unique_counts(bins, o0, o1, tmp, kb, kw):
     """Sorted distinct bins of one pixel and their counts into kb/kw; returns how many.
 
@@ -258,7 +263,7 @@ def pinv_solve(gram, rhs, n, work, vecs, vals, out):
                 out[r] += proj * vecs[r, p]
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, _nrt=False)
 def fisher_var(shift, a, bg, m, g, dg, off):
     """Variance (bins^2) of the shift from the Poisson Fisher information of
     lambda_k = a g[k - shift] + bg over the window's m bins, with a (and bg when > 0) profiled out.
@@ -411,7 +416,7 @@ def lmf_kernel(bins, offsets, m, logg, log_concave, maxn, out_shift, out_var, ou
 # Algorithm 1 (uos) and its K-sparse generalization
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, _nrt=False)
 def photon_intervals(kb, nu, lo_reach, hi_reach, m, ivlo, ivhi):
     """Merge the shift ranges ``[k - lo_reach, k + hi_reach]`` (clipped to [0, m)) of the sorted
     distinct photon bins kb[:nu] into disjoint ascending intervals ivlo/ivhi; returns how many.
@@ -908,6 +913,15 @@ ML_TIE = 1e-13
 #: for the ones under the pulse; bigger pixels search, so a pass costs O(pulse support).
 ML_SCAN_ALL = 64
 
+#: ml: a solve stops when its quadratic model's value is within this share of |loglik| (at least 1
+#: nat) of the maximum: 1/100 of ML_TIE, so no tie is decided by it
+ML_MODEL_TOL = 1e-15
+
+#: ml: a photon bin detected at most this many times enters a likelihood's product of rates as that
+#: many factors, not through a log of its own: a rate is >= uni (1 - s) > 1e-25 (s < 1 - 1e-16,
+#: under 10^9 bins), so four of them take a product the pass kept >= 1e-200 no lower than 1e-300
+ML_POWER_MAX = 4
+
 #: ml: a surviving interior shift's tangent bound is read from tables at ML_SHARES signal shares,
 #: (j + 1/2) / ML_SHARES (:func:`share_tables`): any share gives a bound, the one nearest the best
 #: solve's share a tight one (1/128 off it adds ~1e-3 nats where U adds a few)
@@ -934,11 +948,12 @@ ML_CLIMB_RMS_BINS = 2.0
 def _mix_pass(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, s):
     """One pass at signal share s (0 < s < 1) over the photons kb[ua:ub] (weights kw) of
     f(s) = sum_u w_u log(uni + s e_u), e_u = r_u - uni, r_u = tab[(kb[u] + base) * step - q] * inv_c
-    (0 outside the table), plus w_out photons at r = 0. Returns (f, f', -f'', kap_hi, kap_lo):
+    (0 outside the table), plus w_out photons at r = 0. Returns (f, f', -f'', kap_hi, kap_lo, c3):
     kap_hi and kap_lo bound -f'' from below over [s, 1] and [0, s]. Each photon's -f'' term
     w (e / (uni + s e))^2 falls with s where e > 0 and rises where e < 0, so over [0, s] it is at
     least its value at s (e > 0) or at 0, (e M)^2 (e < 0); over [s, 1] at least its value at 1,
     w (e / r)^2 >= w (s e / (uni + s e))^2 (e > 0, as uni + s e >= s r), or at s (e < 0).
+    c3 = sum_u w_u |q_u|^3 (q = e / lam) is half of |f'''| at s (see :func:`mix_ml`'s stop).
     f is a product of the rates (one log per pass, not one per photon), renormalised long before
     it could underflow."""
     m_uni = 1.0 / uni
@@ -948,6 +963,7 @@ def _mix_pass(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, s):
     pos2 = 0.0                  # sum over e > 0 of w q^2
     neg2 = w_out * qo * qo      # sum over e <= 0 of w q^2
     neg0 = w_out                # sum over e < 0 of w (e M)^2 (r = 0: e M = -1)
+    c3 = -w_out * qo * qo * qo
     ll = w_out * math.log(uni - s * uni) if w_out > 0.0 else 0.0
     prod = 1.0
     for u in range(ua, ub):
@@ -963,19 +979,23 @@ def _mix_pass(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, s):
         wu = kw[u]
         f1 += wu * qq
         wq2 = wu * qq * qq
+        c3 += wq2 * abs(qq)
         em = e * m_uni
         pos = e > 0.0
         pos2 += wq2 if pos else 0.0
         neg2 += 0.0 if pos else wq2
         neg0 += 0.0 if pos else wu * em * em
-        if wu == 1.0:
+        if wu <= ML_POWER_MAX:
+            # a bin detected a few times (common under a return): its rate once per detection
             prod *= lam
-            if prod < 1e-200:       # rates are >= uni (1 - s) > 0
+            for _rep in range(1, int(wu)):
+                prod *= lam
+            if prod < 1e-200:       # see ML_POWER_MAX: no underflow before this
                 ll += math.log(prod)
                 prod = 1.0
         else:
             ll += wu * math.log(lam)
-    return ll + math.log(prod), f1, pos2 + neg2, s * s * pos2 + neg2, pos2 + neg0
+    return ll + math.log(prod), f1, pos2 + neg2, s * s * pos2 + neg2, pos2 + neg0, c3
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -993,7 +1013,53 @@ def _mix_bound(ll, f1, s, kap_hi, kap_lo):
     return ll - f1 * t - 0.5 * kap_lo * t * t
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, _nrt=False)
+def _mix_end(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, f1):
+    """Whether :func:`mix_ml`'s maximum lies at s = 0 (f1, the slope at some s, <= 0) or at s = 1
+    (f1 > 0), and there (s, loglik): (False, 0, 0) when it does not."""
+    nt = tab.size
+    wtot = w_out
+    for u in range(ua, ub):
+        wtot += kw[u]
+    if f1 <= 0.0:
+        # the maximum lies in [0, s]: at 0 when f'(0) = M (sum w r - n uni) <= 0
+        d0 = -wtot * uni
+        for u in range(ua, ub):
+            j = (kb[u] + base) * step - q
+            if j >= 0 and j < nt:
+                d0 += kw[u] * tab[j] * inv_c
+        if d0 <= 0.0:
+            return True, 0.0, wtot * math.log(uni)
+    elif w_out <= 0.0:
+        # the maximum lies in [s, 1]: at 1 when every photon is under the pulse and f'(1) >= 0
+        d1 = 0.0
+        at_one = True
+        for u in range(ua, ub):
+            j = (kb[u] + base) * step - q
+            rr = tab[j] * inv_c if (j >= 0 and j < nt) else 0.0
+            if rr <= 0.0:
+                at_one = False
+                break
+            d1 += kw[u] * (rr - uni) / rr
+        if at_one and d1 >= 0.0:
+            # the logs only where the maximum is at 1 (seldom)
+            l1 = 0.0
+            prod = 1.0
+            for u in range(ua, ub):
+                rr = tab[(kb[u] + base) * step - q] * inv_c
+                if kw[u] <= ML_POWER_MAX and rr > 1e-20:
+                    for _rep in range(int(kw[u])):
+                        prod *= rr
+                    if prod < 1e-200:
+                        l1 += math.log(prod)
+                        prod = 1.0
+                else:
+                    l1 += kw[u] * math.log(rr)
+            return True, 1.0, l1 + math.log(prod)
+    return False, 0.0, 0.0
+
+
+@njit(cache=True, nogil=True, _nrt=False)
 def mix_ml(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, s0, cut):
     """max over s in [0, 1] of sum_u w_u log((1 - s) uni + s r_u): the Poisson likelihood of eq. (9)
     with (a, B) profiled onto a C + B M = n (where its maximum lies), s = a C / n the signal share,
@@ -1009,39 +1075,12 @@ def mix_ml(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, s0, cut):
     s = s0
     if not (s > 0.0 and s < 1.0):
         s = 0.5
-    ll, f1, f2, kh, kl = _mix_pass(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, s)
+    ll, f1, f2, kh, kl, c3 = _mix_pass(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, s)
     if cut > -np.inf and _mix_bound(ll, f1, s, kh, kl) <= cut:
         return s, -np.inf
-    nt = tab.size
-    wtot = w_out
-    for u in range(ua, ub):
-        wtot += kw[u]
-    if f1 <= 0.0:
-        # the maximum lies in [0, s]: at 0 when f'(0) = M (sum w r - n uni) <= 0
-        d0 = -wtot * uni
-        for u in range(ua, ub):
-            j = (kb[u] + base) * step - q
-            if j >= 0 and j < nt:
-                d0 += kw[u] * tab[j] * inv_c
-        if d0 <= 0.0:
-            return 0.0, wtot * math.log(uni)
-    elif w_out <= 0.0:
-        # the maximum lies in [s, 1]: at 1 when every photon is under the pulse and f'(1) >= 0
-        d1 = 0.0
-        l1 = 0.0
-        at_one = True
-        for u in range(ua, ub):
-            j = (kb[u] + base) * step - q
-            rr = tab[j] * inv_c if (j >= 0 and j < nt) else 0.0
-            if rr <= 0.0:
-                at_one = False
-                break
-            d1 += kw[u] * (rr - uni) / rr
-            l1 += kw[u] * math.log(rr)
-        if at_one and d1 >= 0.0:
-            return 1.0, l1
     lo = 0.0
     hi = 1.0
+    ends_checked = False
     for _it in range(60):
         if f1 > 0.0:
             lo = s
@@ -1049,16 +1088,25 @@ def mix_ml(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, s0, cut):
             hi = s
         sn = s + f1 / f2 if f2 > 0.0 else 0.5 * (lo + hi)
         if not (sn > lo and sn < hi):
+            if not ends_checked and (sn <= 0.0 or sn >= 1.0):
+                # Newton heads out of (0, 1): the maximum may lie at that end (checked once, and
+                # only then: an interior maximum never sends a concave function's step out)
+                ends_checked = True
+                at, s_end, ll_end = _mix_end(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, f1)
+                if at:
+                    return s_end, ll_end
             sn = 0.5 * (lo + hi)
         if hi - lo < 1e-14:
             break
-        if abs(sn - s) < 1e-7:
-            # quadratic convergence: sn is within ~1e-13 of the maximum, and the quadratic model's
-            # value there is the loglik to third order in the step (|f'''| t^3 / 6, ~1e-19 nats)
-            t = sn - s
+        t = sn - s
+        if c3 * abs(t) ** 3 <= ML_MODEL_TOL * max(1.0, abs(ll)) and abs(t) < 1e-3 * min(sn, 1.0 - sn):
+            # the quadratic model's maximum: its value is the loglik's to |f'''| |t|^3 / 6 = c3 |t|^3
+            # / 3 (f''' barely moves over a step this small beside the distance to 0 and 1), and
+            # sn is within ~(c3 / f'') t^2 of the maximum; from a neighbour's share this usually
+            # holds after one pass (a fixed tolerance on the step, 1e-7, took two)
             return sn, ll + f1 * t - 0.5 * f2 * t * t
         s = sn
-        ll, f1, f2, kh, kl = _mix_pass(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, s)
+        ll, f1, f2, kh, kl, c3 = _mix_pass(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, s)
     return s, ll
 
 
@@ -1084,7 +1132,7 @@ def _photon_range(kb, nu, lo, hi):
     return first_above(kb, nu, lo, False), first_above(kb, nu, hi, True)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, _nrt=False)
 def _ml_at_int(kb, kw, nu, wtot, i, g, off, colsum, uni, s0, cut):
     """Profile at integer shift i (g[k - i + off] is photon k's share of column i)."""
     nk = g.size
@@ -1098,7 +1146,7 @@ def _ml_at_int(kb, kw, nu, wtot, i, g, off, colsum, uni, s0, cut):
     return mix_ml(kb, kw, ua, ub, w_out, g, off - i, 1, 0, 1.0 / colsum[i], uni, s0, cut)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, _nrt=False)
 def _ml_at_fine(kb, kw, nu, wtot, i, q, fine, off, fine_colsum, fsteps, uni, s0, cut):
     """Profile at shift i + q / fsteps (|q| <= fsteps), from the fine kernel table."""
     nf = fine.size
@@ -1121,7 +1169,7 @@ def _ml_at_fine(kb, kw, nu, wtot, i, q, fine, off, fine_colsum, fsteps, uni, s0,
 ML_SHARE_CLAMP = 1e-3
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, _nrt=False)
 def mix_bounds(kb, kw, nu, wtot, trev, base, step, qa, nq, inv_c, uni, s, r0s, ws, out):
     """:func:`mix_ml`'s first-pass bound (:func:`_mix_bound` of :func:`_mix_pass` at share s, which
     must lie in (0, 1)) for nq consecutive positions of a pulse table in one call: position t reads
@@ -1267,7 +1315,7 @@ def _sift_after(keys, idx, root, n):
     idx[root] = v
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, _nrt=False)
 def _sort_desc(keys, idx, n):
     """Reorder idx[:n] (ascending on entry) by keys[idx] descending, equal keys in index order
     (a stable sort's result): insertion sort for the usual dozen, heapsort on that total order for
