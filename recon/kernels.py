@@ -928,9 +928,8 @@ ML_POWER_MAX = 4
 ML_SHARES = 64
 #: ml: the first solve's Newton starts at a share in [ML_START_CLAMP, 1 - ML_START_CLAMP]
 ML_START_CLAMP = 0.02
-#: ml: surviving shifts at the window's edges get their bounds in sweeps (:func:`mix_bounds`); one
-#: sweep covers a run at most ML_RUN long whose neighbours are at most ML_RUN_GAP apart (the shifts
-#: between them are swept for nothing)
+#: ml: surviving shifts get their bounds in runs at most ML_RUN long whose neighbours are at most
+#: ML_RUN_GAP apart (at the window's edges :func:`mix_bounds` sweeps the shifts between them too)
 ML_RUN = 32
 ML_RUN_GAP = 4
 
@@ -1086,8 +1085,13 @@ def mix_ml(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, s0, cut):
             lo = s
         else:
             hi = s
-        sn = s + f1 / f2 if f2 > 0.0 else 0.5 * (lo + hi)
+        newton = f2 > 0.0
+        sn = s + f1 / f2 if newton else 0.5 * (lo + hi)
+        if newton and sn == s:
+            # a step below the share's resolution: s is the maximum to rounding
+            return s, ll
         if not (sn > lo and sn < hi):
+            newton = False
             if not ends_checked and (sn <= 0.0 or sn >= 1.0):
                 # Newton heads out of (0, 1): the maximum may lie at that end (checked once, and
                 # only then: an interior maximum never sends a concave function's step out)
@@ -1099,11 +1103,13 @@ def mix_ml(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, s0, cut):
         if hi - lo < 1e-14:
             break
         t = sn - s
-        if c3 * abs(t) ** 3 <= ML_MODEL_TOL * max(1.0, abs(ll)) and abs(t) < 1e-3 * min(sn, 1.0 - sn):
-            # the quadratic model's maximum: its value is the loglik's to |f'''| |t|^3 / 6 = c3 |t|^3
-            # / 3 (f''' barely moves over a step this small beside the distance to 0 and 1), and
-            # sn is within ~(c3 / f'') t^2 of the maximum; from a neighbour's share this usually
-            # holds after one pass (a fixed tolerance on the step, 1e-7, took two)
+        if (newton and c3 * abs(t) ** 3 <= ML_MODEL_TOL * max(1.0, abs(ll))
+                and abs(t) < 1e-3 * min(sn, 1.0 - sn)):
+            # a Newton step to the quadratic model's maximum: its value is the loglik's to
+            # |f'''| |t|^3 / 6 = c3 |t|^3 / 3 (f''' barely moves over a step this small beside the
+            # distance to 0 and 1), and sn is within ~(c3 / f'') t^2 of the maximum; from a
+            # neighbour's share this usually holds after one pass (a fixed tolerance on the step,
+            # 1e-7, took two). Never after a bisection: its step is not the model's maximum
             return sn, ll + f1 * t - 0.5 * f2 * t * t
         s = sn
         ll, f1, f2, kh, kl, c3 = _mix_pass(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, s)
@@ -1266,18 +1272,13 @@ def share_tables(g, c, uni, nshares):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def share_bound(kb, kw, nu, wtot, i, off, stabs, j, s):
+def share_bound(kb, kw, ua, ub, w_out, i, off, stabs, j, s):
     """:func:`mix_ml`'s first-pass bound (:func:`_mix_bound`) at interior shift i and the tabulated
     share s = (j + 1/2) / stabs.shape[0], from :func:`share_tables`: the same sums, read instead
-    of computed (rounded differently, in the last bits)."""
+    of computed (rounded differently, in the last bits). The photons kb[ua:ub] (weights kw) are
+    read (those outside the pulse's reach at i count as rate 0), the weight w_out of all others
+    counts as rate 0 without a visit."""
     nk = stabs.shape[1] - 1
-    if nu <= ML_SCAN_ALL:
-        ua, ub, w_out = 0, nu, 0.0
-    else:
-        ua, ub = _photon_range(kb, nu, i - off, i - off + nk - 1)
-        w_out = wtot
-        for u in range(ua, ub):
-            w_out -= kw[u]
     ll = w_out * stabs[j, nk, 0]
     f1 = w_out * stabs[j, nk, 1]
     kh = w_out * stabs[j, nk, 2]
@@ -1360,7 +1361,7 @@ def _ml_block(blk, bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_col
     r0s = np.empty(max(maxn, 1), np.int64)
     ws = np.empty(max(maxn, 1))
     bnd = np.empty(max(ML_RUN, nf))
-    edge = np.empty(m, np.int64)
+    surv = np.empty(m, np.int64)
     nshares = stabs.shape[0]
     key = np.empty(m)
     fidx = np.empty(nf, np.int64)
@@ -1428,40 +1429,47 @@ def _ml_block(blk, bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_col
                 # Each also gets the tangent bound of its first Newton pass at about the best
                 # share so far: much tighter than U, which overshoots the likelihood by a few nats
                 # at every shift of a return and at every shift of a background detection's reach,
-                # so most are dropped without a solver call. Interior shifts read it from tables
-                # at the tabulated share nearest the best (:func:`share_bound`); the others (their
-                # column sums differ) get it at the best share, in sweeps over runs of nearby ones
-                # (:func:`mix_bounds`)
+                # so most are dropped without a solver call. Runs of interior shifts read it from
+                # tables at the tabulated share nearest the best (:func:`share_bound`); a run that
+                # reaches the window's edges (column sums differ there) gets it at the best share
+                # in one sweep (:func:`mix_bounds`)
                 tie = ML_TIE * max(1.0, abs(best_ll))
                 js = min(int(best_s * nshares), nshares - 1)
                 sj = (js + 0.5) / nshares
-                nc = 0
-                ne = 0
+                sb = min(max(best_s, ML_SHARE_CLAMP), 1.0 - ML_SHARE_CLAMP)
+                ns = 0
                 for t in range(niv):
                     for i in range(ivlo[t], ivhi[t] + 1):
-                        if i == i1 or not (acc[i] > 0.0 and floor_ll + acc[i] > best_ll - tie):
-                            continue
-                        key[i] = floor_ll + acc[i]
-                        if i >= ia and i <= ib:
-                            key[i] = min(key[i], share_bound(kb, kw, nu, ntot, i, off, stabs, js, sj))
-                            if key[i] > best_ll - tie:
-                                cand[nc] = i
-                                nc += 1
-                        else:
-                            edge[ne] = i
-                            ne += 1
-                sb = min(max(best_s, ML_SHARE_CLAMP), 1.0 - ML_SHARE_CLAMP)
+                        if i != i1 and acc[i] > 0.0 and floor_ll + acc[i] > best_ll - tie:
+                            surv[ns] = i
+                            ns += 1
+                            key[i] = floor_ll + acc[i]
+                # in runs of nearby survivors (ascending), so the photons that reach a run are
+                # found once: at SBR 0.1 a shift's reach holds a sixth of a pixel's detections
+                nc = 0
                 t = 0
-                while t < ne:
-                    wa = edge[t]
+                while t < ns:
+                    wa = surv[t]
                     t2 = t + 1
-                    while t2 < ne and edge[t2] - edge[t2 - 1] <= ML_RUN_GAP and edge[t2] - wa < ML_RUN:
+                    while t2 < ns and surv[t2] - surv[t2 - 1] <= ML_RUN_GAP and surv[t2] - wa < ML_RUN:
                         t2 += 1
-                    mix_bounds(kb, kw, nu, ntot, grev, off - wa, 1, 0, edge[t2 - 1] - wa + 1, inv_colsum[wa:],
-                               uni, sb, r0s, ws, bnd)
+                    wb = surv[t2 - 1]
+                    if wa >= ia and wb <= ib:
+                        ua, ub = _photon_range(kb, nu, wa - off, wb - off + stabs.shape[1] - 2)
+                        w_out = ntot
+                        for u in range(ua, ub):
+                            w_out -= kw[u]
+                        for tt in range(t, t2):
+                            i = surv[tt]
+                            key[i] = min(key[i], share_bound(kb, kw, ua, ub, w_out, i, off, stabs, js, sj))
+                    else:
+                        mix_bounds(kb, kw, nu, ntot, grev, off - wa, 1, 0, wb - wa + 1, inv_colsum[wa:], uni,
+                                   sb, r0s, ws, bnd)
+                        for tt in range(t, t2):
+                            i = surv[tt]
+                            key[i] = min(key[i], bnd[i - wa])
                     for tt in range(t, t2):
-                        i = edge[tt]
-                        key[i] = min(key[i], bnd[i - wa])
+                        i = surv[tt]
                         if key[i] > best_ll - tie:
                             cand[nc] = i
                             nc += 1
