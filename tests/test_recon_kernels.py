@@ -106,12 +106,13 @@ def test_uos_k_kernel_matches_reference_on_two_surfaces(kern, rng):
         assert np.all(np.isfinite(var[p]))
 
 
-@pytest.mark.parametrize("k", [15, 120])
-def test_ml_kernel_global_integer_optimum_matches_reference(kern, rng, k):
+@pytest.mark.parametrize("k, sbr", [(15, 2.0), (120, 2.0), (10, 0.05)])
+def test_ml_kernel_global_integer_optimum_matches_reference(kern, rng, k, sbr):
     # k = 120: more distinct photon bins than ML_SCAN_ALL, so each solve searches the photons under
-    # the pulse (and counts the rest as one rate-0 term) instead of scanning them all
+    # the pulse (and counts the rest as one rate-0 term) instead of scanning them all; SBR 0.05:
+    # so many shifts survive U that their bounds come from share_sweep (on 9 of 10 such pixels)
     assert (k > K.ML_SCAN_ALL) == (k == 120)
-    lists = random_pixels(rng, 10, k=k, sbr=2.0)
+    lists = random_pixels(rng, 10, k=k, sbr=sbr)
     bins, off = csr(lists)
     s_mat = ref.dense_s(kern)
     for p, b in enumerate(lists):
@@ -354,3 +355,26 @@ def test_ml_share_tables_bound_every_interior_shift_from_above(kern, rng):
                 assert bnd >= ll - 1e-12 * abs(ll)
             tight.append(bnd - ll)
     assert np.median(tight) < 1e-3 and np.max(tight) < 0.5
+
+
+def test_ml_share_sweep_gives_share_bound_at_every_interior_shift(kern, rng):
+    # the sums built for all shifts at once (many survivors) against the per-shift reads
+    uni = 1.0 / M
+    stabs = K.share_tables(kern.g, kern.colsum[kern.off], uni, K.ML_SHARES)
+    nk = kern.g.size
+    sdiff = K.share_diffs(stabs)
+    ia, ib = kern.off, M - nk + kern.off
+    for b in random_pixels(rng, 20, k=12, sbr=0.1):
+        kb, kw = np.unique(b, return_counts=True)
+        kw = kw.astype(float)
+        j = int(rng.integers(K.ML_SHARES))
+        sj = (j + 0.5) / K.ML_SHARES
+        ssum = np.zeros((4, M))
+        lo, hi = K.share_sweep(kb, kw, kb.size, kern.off, ia, ib, sdiff, j, ssum)
+        assert np.all(ssum[:, :max(lo, 0)] == 0.0) and np.all(ssum[:, hi + 1:] == 0.0)
+        n = kw.sum()
+        for i in range(ia, ib + 1):
+            swept = K._mix_bound(*(ssum[c, i] + n * stabs[j, nk, c] for c in range(2)), sj,
+                                 *(ssum[c, i] + n * stabs[j, nk, c] for c in range(2, 4)))
+            read = K.share_bound(kb, kw, 0, kb.size, 0.0, i, kern.off, stabs, j, sj)
+            assert swept == pytest.approx(read, rel=1e-12, abs=1e-12)
