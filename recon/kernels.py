@@ -1048,7 +1048,7 @@ def _mix_end(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, f1):
                 break
             d1 += kw[u] * (rr - uni) / rr
         if at_one and d1 >= 0.0:
-            # the logs only where the maximum is at 1 (seldom)
+            # the logs only once the maximum is known to lie at 1
             l1 = 0.0
             prod = 1.0
             for u in range(ua, ub):
