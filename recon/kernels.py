@@ -1341,6 +1341,15 @@ def share_sweep(kb, kw, nu, off, ia, ib, sdiff, j, ssum):
 
 
 @njit(cache=True, nogil=True, inline="always")
+def swept_bound(ssum, i, wtot, stabs, j, s):
+    """:func:`share_bound` at interior shift i from :func:`share_sweep`'s sums: those plus all wtot
+    detections' rate-0 terms."""
+    nk = stabs.shape[1] - 1
+    return _mix_bound(ssum[0, i] + wtot * stabs[j, nk, 0], ssum[1, i] + wtot * stabs[j, nk, 1], s,
+                      ssum[2, i] + wtot * stabs[j, nk, 2], ssum[3, i] + wtot * stabs[j, nk, 3])
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _after(keys, x, y):
     """x goes after y in :func:`_sort_desc`'s order: smaller key, or the same key and larger index."""
     return keys[x] < keys[y] or (keys[x] == keys[y] and x > y)
@@ -1511,10 +1520,7 @@ def _ml_block(blk, bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_col
                     if wa >= ia and wb <= ib and sweep:
                         for tt in range(t, t2):
                             i = surv[tt]
-                            key[i] = min(key[i], _mix_bound(ssum[0, i] + ntot * stabs[js, nk, 0],
-                                                            ssum[1, i] + ntot * stabs[js, nk, 1], sj,
-                                                            ssum[2, i] + ntot * stabs[js, nk, 2],
-                                                            ssum[3, i] + ntot * stabs[js, nk, 3]))
+                            key[i] = min(key[i], swept_bound(ssum, i, ntot, stabs, js, sj))
                     elif wa >= ia and wb <= ib:
                         ua, ub = _photon_range(kb, nu, wa - off, wb - off + nk - 1)
                         w_out = ntot

@@ -374,7 +374,6 @@ def test_ml_share_sweep_gives_share_bound_at_every_interior_shift(kern, rng):
         assert np.all(ssum[:, :max(lo, 0)] == 0.0) and np.all(ssum[:, hi + 1:] == 0.0)
         n = kw.sum()
         for i in range(ia, ib + 1):
-            swept = K._mix_bound(*(ssum[c, i] + n * stabs[j, nk, c] for c in range(2)), sj,
-                                 *(ssum[c, i] + n * stabs[j, nk, c] for c in range(2, 4)))
+            swept = K.swept_bound(ssum, i, n, stabs, j, sj)
             read = K.share_bound(kb, kw, 0, kb.size, 0.0, i, kern.off, stabs, j, sj)
             assert swept == pytest.approx(read, rel=1e-12, abs=1e-12)
