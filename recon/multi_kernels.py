@@ -22,6 +22,8 @@ EM's sums are vectorised (:func:`em_refit`). On fixed input that moved a shift o
 the real two-surface file with its measured response, 23 of 5,000, by 1-2 bins of 8 ps, all in the
 re-refinement of the first surface (the pulse is ~100 bins wide there, its profile flat).
 
+The helpers a pixel's fit calls allocate nothing and are compiled with ``_nrt=False``, as in
+:mod:`recon.kernels` (no atomic reference counting of their array arguments at each call: 4% here).
 The functions the parallel loops call are compiled with ``error_model="numpy"``, as numba compiles
 those loops' bodies: a division by zero gives inf or NaN instead of raising, so numba adds no
 zero-divisor check to each division (4-6% of the K-surface fit at 50 detections per pixel, same
@@ -62,7 +64,7 @@ BAR_MARGIN = 1e-9
 DENSE_SPAN = 16
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
 def unique_bins(bins, o0, o1, tally, tmp, kb, kw):
     """:func:`recon.kernels.unique_counts` (the same kb, kw, count returned) for the K-surface
     kernels: counted into tally (one zero per window bin, left zero) and read back in bin order when
@@ -95,7 +97,7 @@ def unique_bins(bins, o0, o1, tally, tmp, kb, kw):
     return nu
 
 
-@njit(cache=True, nogil=True, inline="always", error_model="numpy")
+@njit(cache=True, nogil=True, _nrt=False, inline="always", error_model="numpy")
 def first_at_least(kb, nu, v):
     """Index of the first of the sorted kb[:nu] that is >= v (nu when none)."""
     a, z = 0, nu
@@ -108,7 +110,7 @@ def first_at_least(kb, nu, v):
     return a
 
 
-@njit(cache=True, nogil=True, inline="always", error_model="numpy")
+@njit(cache=True, nogil=True, _nrt=False, inline="always", error_model="numpy")
 def slopes(a, c, wk, n):
     """(f'(a), f''(a)) of the gain f of a return of column sum c over the gathered detections
     under it: wk[0, :n] the response values over the model's rate, x_u = g_u / lam_u, wk[1, :n]
@@ -122,7 +124,7 @@ def slopes(a, c, wk, n):
     return f1, f2
 
 
-@njit(cache=True, nogil=True, inline="always", error_model="numpy")
+@njit(cache=True, nogil=True, _nrt=False, inline="always", error_model="numpy")
 def log_sum(a, wk, n):
     """sum_i w_i log(1 + a x_i) over wk (:func:`slopes`), as the log of one product: one log
     instead of one log1p per detection (a third of an exact gain's time), the weights being counts,
@@ -149,17 +151,18 @@ def log_sum(a, wk, n):
     return math.log(prod) + e2 * LN2
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
 def add_gain(j, kb, kw, nu, ilam, g, off, colsum, a0, bar, wk):
     """(gain, amplitude) of adding a return at shift j to the model whose rate at the photons' bins is
     lam (ilam = 1 / lam): ``max_a f(a) = sum_u kw_u log(1 + a g_u / lam_u) - a colsum[j]`` over
-    a >= 0 (nats), by Newton from a = (detections under the pulse) / colsum[j]. Only the detections
-    under the pulse (kb sorted) enter. wk: scratch (2, >= nu).
+    a >= 0 (nats), by Newton from a0 when > 0, else from a = (detections under the pulse) /
+    colsum[j]. Only the detections under the pulse (kb sorted) enter. wk: scratch (2, >= nu).
 
     bar: the caller only wants a gain above it (a ``gain > bar`` test); when an upper bound on the
     gain is below it by more than rounding (:data:`BAR_MARGIN`), that bound is returned instead of
-    the exact gain, which the test would have rejected too. The bound, from f at a1 (a0, a
-    neighbouring shift's amplitude, when > 0; f concave, its curvature -sum w q^2 shrinking as a
+    the exact gain, which the test would have rejected too; otherwise Newton goes on from a1, its
+    slopes known. The bound, from f at a1 (Newton's start: a0, a neighbouring shift's amplitude,
+    when > 0; f concave, its curvature -sum w q^2 shrinking as a
     grows): when f'(a1) <= 0 the optimum a* is below a1, where the curvature is at least f''(a1)'s,
     so ``f(a*) <= f(a1) + f'(a1)^2 / (2 |f''(a1)|)``; when f'(a1) > 0, Jensen on the concave
     q / (1 + d q) gives ``f'(a1 + d) <= S1 / (1 + d S1 / N) - c`` (S1 = f'(a1) + c, N the
@@ -188,19 +191,19 @@ def add_gain(j, kb, kw, nu, ilam, g, off, colsum, a0, bar, wk):
             nin += kw[u]
     if d0 <= 0.0:
         return 0.0, 0.0
-    a = max(nin / c, 1e-6)
+    # Newton starts at a0 when given (a neighbouring shift's amplitude, or this shift's own from EM):
+    # 1-2 steps from there against ~5 from the detections' count
+    a = a0 if a0 > 0.0 else max(nin / c, 1e-6)
+    f1, f2 = slopes(a, c, wk, n)
     if bar > 0.0:
-        a1 = a0 if a0 > 0.0 else a
-        f1, f2 = slopes(a1, c, wk, n)
-        fa = log_sum(a1, wk, n) - a1 * c
+        fa = log_sum(a, wk, n) - a * c
         if f1 <= 0.0:
             ub = fa + f1 * f1 / (-2.0 * f2) if f2 < 0.0 else np.inf
         else:
             ub = fa + nin * f1 * f1 / (c * (f1 + c))
         if ub < bar - BAR_MARGIN * (1.0 + bar):
-            return ub, a1
+            return ub, a
     for _ in range(NEWTON_STEPS):
-        f1, f2 = slopes(a, c, wk, n)
         if f2 >= 0.0:
             break
         na = a - f1 / f2
@@ -210,10 +213,11 @@ def add_gain(j, kb, kw, nu, ilam, g, off, colsum, a0, bar, wk):
             a = na
             break
         a = na
+        f1, f2 = slopes(a, c, wk, n)
     return log_sum(a, wk, n) - a * c, a
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
 def screen_score(j, kb, kw, u0, u1, ilam, g, off, colsum):
     """The gain of adding a return at shift j to second order in its amplitude at 0,
     ``d0^2 / (2 c2)`` (slope d0 and curvature c2 there; 0 when the slope is not positive): one pass,
@@ -236,7 +240,7 @@ def screen_score(j, kb, kw, u0, u1, ilam, g, off, colsum):
     return d0 * d0 / (2.0 * c2)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
 def refine_shift(j, best, amp, kb, kw, nu, ilam, g, off, colsum, m, step0, shifts, nr, skip, sep_bins, wk, seen,
                  nseen):
     """Pattern search (steps step0, step0/2, ..., 1 bins) for the shift of most gain from j, never
@@ -280,7 +284,7 @@ def refine_shift(j, best, amp, kb, kw, nu, ilam, g, off, colsum, m, step0, shift
     return j, best, amp
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
 def model_irate(kb, nu, shifts, amps, nr, bg, g, off, ilam):
     """ilam[u] = 1 / lam_u, lam_u = bg + sum_r amps[r] g[kb_u - shifts[r] + off]: the gains and the
     screen divide by the rate, once per detection and model rather than once per shift tried."""
@@ -294,7 +298,7 @@ def model_irate(kb, nu, shifts, amps, nr, bg, g, off, ilam):
         ilam[u] = 1.0 / v
 
 
-@njit(cache=True, nogil=True, error_model="numpy", fastmath={"reassoc"})
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy", fastmath={"reassoc"})
 def em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, ilam, sweeps, gt, newa):
     """EM for the amplitudes and background at fixed shifts (monotone in the likelihood); returns bg
     and leaves ilam at the final model (:func:`model_irate`). gt (>= nr, >= nu), newa (>= nr):
@@ -341,7 +345,7 @@ def em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, ilam
     return bg
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
 def shift_fisher(r, shifts, amps, nr, bg, g, dg, off, m):
     """Expected Fisher information of return r's shift (1/bins^2) over the window's bins."""
     nk = g.size
@@ -374,7 +378,7 @@ def fit_work(n, kmax):
             np.empty(SCREEN), np.empty(SCREEN, np.int64), np.empty(MEMO, np.int64))
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
 def fit_pixel(kb, kw, nu, m, g, off, colsum, dg, kmax, sep_bins, gain_min, cand_step, step0, dpk, work):
     """Greedy K-return fit of one pixel's unique bins (kb, kw); returns (nr, bg): shifts[:nr] (sorted),
     amps[:nr], gains[:nr] (nats each return added when it was taken), the arrays of ``work``
