@@ -14,6 +14,7 @@ times are in raw units after the laser sync. SI seconds everywhere else.
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 from dataclasses import dataclass, field
@@ -29,6 +30,11 @@ from spdepth.recon.errors import InputError
 KERNEL_TAIL_REL = 1e-10
 #: Sub-bin steps per bin of the fine kernel table used for the ml estimator's sub-bin refinement.
 FINE_STEPS = 8
+#: Pulse kernels kept by :func:`build_kernel` (the most recently used): a live scan reconstructs
+#: batch after batch with one pulse, and the tables took half of a 1,024-pixel batch of ml. Few,
+#: since a kernel's pair table grows as the square of the pulse's length in bins (~1 MB for the
+#: paper's pulse, up to ~270 MB for a measured response spanning 4,096 bins).
+KERNEL_CACHE = 2
 #: The most bins a default binning makes (``default_bin_width``). 4096, not fewer: it keeps the
 #: pulse-RMS/9 bins (the paper's 40 ps for a 360 ps pulse) over windows up to 164 ns, a whole
 #: 10 MHz laser period or a 24 m range gate, where 1024 would coarsen the bins of any window past
@@ -634,8 +640,11 @@ def _irf_cdf(irf: Irf, bin_width_s: float):
         (float(e_bins[0]), float(e_bins[-1]))
 
 
+@functools.lru_cache(maxsize=KERNEL_CACHE)
 def build_kernel(binning: Binning, pulse_rms_s: float | None = None, irf: Irf | None = None) -> PulseKernel:
-    """Tables of the bin-integrated pulse for this binning (see :class:`PulseKernel`)."""
+    """Tables of the bin-integrated pulse for this binning (see :class:`PulseKernel`). The same
+    arguments give the same object, kept from an earlier call (:data:`KERNEL_CACHE`): its arrays are
+    shared and must be treated as read-only."""
     m = binning.n_bins
     w_s = binning.bin_width_s
     if (pulse_rms_s is None) == (irf is None):
@@ -730,7 +739,8 @@ def build_kernel(binning: Binning, pulse_rms_s: float | None = None, irf: Irf | 
         logg -= logg.max()
     else:
         gl = cdf(dl + 0.5) - cdf(dl - 0.5)
-        with np.errstate(divide="ignore"):
+        # zero far out, or a rounding below zero where the sampled CDF is flat: floored just below
+        with np.errstate(divide="ignore", invalid="ignore"):
             logg = np.log(gl / gl.max())
         finite = np.isfinite(logg)
         logg[~finite] = logg[finite].min()

@@ -39,6 +39,20 @@ def kern():
     return build_kernel(BIN, pulse_rms_s=RMS_S)
 
 
+def test_build_kernel_gives_the_kept_tables_for_the_same_pulse_only():
+    # a live scan rebuilds nothing batch after batch; another pulse, binning or IRF gets its own
+    irf = Irf(tuple(np.arange(40) * 40e-12), tuple(np.exp(-0.5 * ((np.arange(40) - 12) / 3.0) ** 2)))
+    a = build_kernel(BIN, pulse_rms_s=RMS_S)
+    assert build_kernel(Binning(8e-12, 0.0, M * 5.0, 5.0), pulse_rms_s=RMS_S) is a
+    other = build_kernel(BIN, pulse_rms_s=2 * RMS_S)
+    assert other is not a and other.rms_bins == pytest.approx(2 * a.rms_bins)
+    wider = build_kernel(Binning(8e-12, 0.0, M * 10.0, 5.0), pulse_rms_s=RMS_S)
+    assert wider.colsum.size == 2 * M
+    by_irf = build_kernel(BIN, irf=irf)
+    assert build_kernel(BIN, irf=Irf(irf.times_s, irf.counts)) is by_irf
+    assert by_irf.info["pulse"] == "irf" and a.info["pulse"] == "gaussian"
+
+
 def test_dense_s_matches_kernel_tables(kern):
     s = ref.dense_s(kern)
     np.testing.assert_allclose(s.sum(axis=0), kern.colsum, rtol=1e-12, atol=1e-15)

@@ -27,6 +27,7 @@ import numba
 import numpy as np
 
 from spdepth.acq.commands.bench import ml_before
+from spdepth.acq.live_recon import MIN_BATCH_PIXELS
 from spdepth.recon import kernels as K
 from spdepth.recon.estimate import reconstruct
 from spdepth.recon.model import FINE_STEPS, SEED_PAPER, Binning, ReconSettings, build_kernel
@@ -166,6 +167,31 @@ def uos_port_rate(n_pix: int = 200) -> float:
             ref.uos(ref.histogram(bins[offsets[p]:offsets[p + 1]], M), a_mat)
 
     return n_pix / _time(run, 0.2)
+
+
+def live_batch(bins: np.ndarray, offsets: np.ndarray, binning: Binning, methods: list[str]) -> None:
+    """A live scan's unit of work: ``reconstruct`` of a batch of MIN_BATCH_PIXELS (the live worker's
+    smallest, what it takes while it keeps up), one thread, with the pulse
+    kernel kept from the batch before (as ``recon.model.build_kernel`` keeps it) and, beside it, the
+    same call that first builds the kernel anew (what each batch cost before it was kept)."""
+    n = min(MIN_BATCH_PIXELS, offsets.size - 1)
+    times = BIN_UNITS * (bins[:offsets[n]] + 0.5) + binning.window_start
+    store = PhotonStore(times, offsets[:n + 1].copy(), (1, n), UNIT_S)
+    line = []
+    for method in methods:
+        if method not in ("lmf", "uos", "ml"):
+            continue
+        s = ReconSettings(method=method, binning=binning, pulse_rms_s=RMS_S)
+
+        def anew():
+            build_kernel.cache_clear()
+            reconstruct(store, s)
+
+        kept = _time(lambda: reconstruct(store, s), min_s=0.2)
+        line.append(f"{method} {kept * 1e3:.2f} ms ({n / kept:,.0f} px/s; kernel built anew "
+                    f"{_time(anew, min_s=0.2) * 1e3:.2f} ms)")
+    print(f"a live batch of {n:,} pixels (reconstruct, 1 thr, pulse kernel kept): " + ", ".join(line),
+          flush=True)
 
 
 def bench(argv: list[str]) -> int:
@@ -308,8 +334,9 @@ def bench(argv: list[str]) -> int:
                 continue
             s = ReconSettings(method=method, binning=big_b, pulse_rms_s=BIG_RMS_UNITS * UNIT_S)
             line.append(f"{method} {_time(lambda: reconstruct(big_store, s), min_s=0.1):.4f} s")
-        print(f"one pixel of {BIG_PHOTONS:,} detections over {BIG_BINS} bins (reconstruct, 1 thr): "
+        print(f"one pixel of {BIG_PHOTONS:,} detections over {BIG_BINS} bins (reconstruct, 1 thr, pulse kernel kept): "
               + ", ".join(line), flush=True)
+        live_batch(bins, offsets, binning, args.methods.split(","))
     finally:
         numba.set_num_threads(old_threads)
     return 0
