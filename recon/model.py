@@ -24,6 +24,7 @@ import numpy as np
 from scipy.special import log_ndtr, ndtr
 
 from spdepth.recon.errors import InputError
+from spdepth.recon.kernels import fisher_table
 
 #: Relative level below which the pulse is treated as zero (kernel truncation for uos/ml). The
 #: truncated tail carries less than ~1e-10 of the pulse energy for a Gaussian.
@@ -596,6 +597,8 @@ class PulseKernel:
     ddg:        float64 like g: d^2 g(x)/dx^2 at integer x (one-bin differences), per bin^2.
     fine:       float64: g at offsets ``x = j / FINE_STEPS - L0`` (fractional shifts).
     fine_colsum:float64 ((M-1)*FINE_STEPS + 1,): column sums at fractional shifts q / FINE_STEPS.
+    fisher:     float64 (rows, 6): the shift's Fisher sums tabulated over log(a / B), for ml's
+                uncertainty (kernels.fisher_table).
     logg:       float64 (2M-1,): log(g / gmax) at offsets d in [-(M-1), M-1] (index d + M - 1), for
                 the log-matched filter; exact tails for a Gaussian, floored at the smallest finite
                 value for a measured IRF (the published code's convention).
@@ -612,6 +615,7 @@ class PulseKernel:
     ddg: np.ndarray
     fine: np.ndarray
     fine_colsum: np.ndarray
+    fisher: np.ndarray
     logg: np.ndarray
     log_concave: bool
     rms_bins: float
@@ -749,7 +753,7 @@ def build_kernel(binning: Binning, pulse_rms_s: float | None = None, irf: Irf | 
 
     return PulseKernel(g=g, off=int(l0), gmax=gmax, colsum=np.ascontiguousarray(colsum), pp=pp,
                        dg=np.ascontiguousarray(dg), ddg=np.ascontiguousarray(ddg), fine=np.ascontiguousarray(fine),
-                       fine_colsum=fine_colsum, logg=np.ascontiguousarray(logg),
+                       fine_colsum=fine_colsum, fisher=fisher_table(g, dg), logg=np.ascontiguousarray(logg),
                        log_concave=log_concave, rms_bins=float(rms_bins), n_bins=m,
                        info={"pulse": "gaussian" if irf is None else "irf",
                              "pulse_rms_s": float(rms_bins * w_s)})

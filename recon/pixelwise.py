@@ -207,7 +207,7 @@ def reconstruct_pixelwise(store: PhotonStore, settings: ReconSettings, b: Binnin
                          shift[p0:p1], amp[p0:p1], bg[p0:p1], iters[p0:p1], conv[p0:p1],
                          var[p0:p1], n_used[p0:p1])
         else:
-            K.ml_kernel(cb, co, m, *ml_tabs, kern.dg, maxn,
+            K.ml_kernel(cb, co, m, *ml_tabs, kern.dg, kern.fisher, maxn,
                         shift[p0:p1, 0], amp[p0:p1, 0], bg[p0:p1], var[p0:p1, 0], n_used[p0:p1])
         if progress is not None:
             progress(p1, npix)

@@ -53,6 +53,29 @@ def test_build_kernel_gives_the_kept_tables_for_the_same_pulse_only():
     assert by_irf.info["pulse"] == "irf" and a.info["pulse"] == "gaussian"
 
 
+@pytest.mark.parametrize("pulse", ["gaussian", "irf"])
+def test_ml_variance_from_the_fisher_table_matches_the_loop(rng, pulse):
+    # ml reads its uncertainty's sums from a table over log(a / B) for shifts inside the window;
+    # at the edges, without background or off the table it takes the loop itself
+    if pulse == "irf":
+        t = np.arange(60)
+        kern = build_kernel(BIN, irf=Irf(tuple(t * 40e-12), tuple(np.exp(-t / 6.0) * (t >= 3) + 1e-3)))
+    else:
+        kern = build_kernel(BIN, pulse_rms_s=RMS_S)
+    g, dg, off = kern.g, kern.dg, kern.off
+    n_table = 0
+    for _ in range(3000):
+        a = 10 ** rng.uniform(-4, 6)
+        bg = 0.0 if rng.random() < 0.05 else 10 ** rng.uniform(-12, 2)
+        shift = int(rng.integers(0, M))
+        loop = K.fisher_var(shift, a, bg, M, g, dg, off)
+        n_table += bg > 0 and off <= shift <= M - g.size + off and abs(np.log(a / bg) + 20 - 37.5) < 37
+        np.testing.assert_allclose(K.fisher_tab(shift, a, bg, M, g, dg, off, kern.fisher), loop, rtol=2e-5,
+                                   err_msg=f"a {a}, bg {bg}, shift {shift}")
+    assert n_table > 1500       # the table, not the loop, gave most of them
+    assert np.isnan(K.fisher_tab(100, 0.0, 1.0, M, g, dg, off, kern.fisher))
+
+
 def test_dense_s_matches_kernel_tables(kern):
     s = ref.dense_s(kern)
     np.testing.assert_allclose(s.sum(axis=0), kern.colsum, rtol=1e-12, atol=1e-15)
@@ -165,7 +188,7 @@ def test_ml_fine_climb_finds_the_full_searchs_shift(rng, rms_bins):
             shifts = []
             for climb in (True, False):
                 sh = np.full(n, np.nan)
-                K.ml_kernel(bins, off, M, *tabs[:-1], climb, kern_w.dg, k, sh, np.empty(n), np.empty(n),
+                K.ml_kernel(bins, off, M, *tabs[:-1], climb, kern_w.dg, kern_w.fisher, k, sh, np.empty(n), np.empty(n),
                             np.empty(n), np.empty(n, np.int64))
                 shifts.append(sh)
             np.testing.assert_allclose(shifts[0], shifts[1], rtol=0, atol=1e-9,

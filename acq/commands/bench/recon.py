@@ -241,7 +241,7 @@ def bench(argv: list[str]) -> int:
                 # its tables: today's without the fine search's switch (it searched every fine shift)
                 ml_before.ml_kernel(b, o, M, *ml_tabs[:-1], *outs)
             else:
-                K.ml_kernel(b, o, M, *ml_tabs, *outs)
+                K.ml_kernel(b, o, M, *ml_tabs, outs[0], kern.fisher, *outs[1:])
         return shift[:, 0]
 
     # the references' dense matrices, built once, outside every timed region
