@@ -334,6 +334,12 @@ def fisher_table(g: np.ndarray, dg: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(inv @ h)
 
 
+@njit(cache=True, nogil=True, _nrt=False, inline="always")
+def _catmull_rom(tab, i, c, w0, w1, w2, w3):
+    """Column c of tab between rows i and i + 1, weights w0..w3 on rows i - 1..i + 2."""
+    return w0 * tab[i - 1, c] + w1 * tab[i, c] + w2 * tab[i + 1, c] + w3 * tab[i + 2, c]
+
+
 @njit(cache=True, nogil=True, _nrt=False)
 def fisher_tab(shift, a, bg, m, g, dg, off, ftab):
     """:func:`fisher_var`, its six sums read from ftab (:func:`fisher_table`) when the pulse at
@@ -353,12 +359,12 @@ def fisher_tab(shift, a, bg, m, g, dg, off, ftab):
             w1 = 1.5 * t3 - 2.5 * t2 + 1.0
             w2 = -1.5 * t3 + 2.0 * t2 + 0.5 * t
             w3 = 0.5 * t3 - 0.5 * t2
-            s0 = w0 * ftab[i - 1, 0] + w1 * ftab[i, 0] + w2 * ftab[i + 1, 0] + w3 * ftab[i + 2, 0]
-            s1 = w0 * ftab[i - 1, 1] + w1 * ftab[i, 1] + w2 * ftab[i + 1, 1] + w3 * ftab[i + 2, 1]
-            s2 = w0 * ftab[i - 1, 2] + w1 * ftab[i, 2] + w2 * ftab[i + 1, 2] + w3 * ftab[i + 2, 2]
-            s3 = w0 * ftab[i - 1, 3] + w1 * ftab[i, 3] + w2 * ftab[i + 1, 3] + w3 * ftab[i + 2, 3]
-            s4 = w0 * ftab[i - 1, 4] + w1 * ftab[i, 4] + w2 * ftab[i + 1, 4] + w3 * ftab[i + 2, 4]
-            s5 = w0 * ftab[i - 1, 5] + w1 * ftab[i, 5] + w2 * ftab[i + 1, 5] + w3 * ftab[i + 2, 5]
+            s0 = _catmull_rom(ftab, i, 0, w0, w1, w2, w3)
+            s1 = _catmull_rom(ftab, i, 1, w0, w1, w2, w3)
+            s2 = _catmull_rom(ftab, i, 2, w0, w1, w2, w3)
+            s3 = _catmull_rom(ftab, i, 3, w0, w1, w2, w3)
+            s4 = _catmull_rom(ftab, i, 4, w0, w1, w2, w3)
+            s5 = _catmull_rom(ftab, i, 5, w0, w1, w2, w3)
             ib = 1.0 / bg
             return shift_var(a * a * s0 * ib, -a * s1 * ib, -a * s2 * ib, s3 * ib, s4 * ib,
                              (s5 + (m - nk)) * ib, True)
@@ -1455,8 +1461,7 @@ def _sort_desc(keys, idx, n):
 @njit(cache=True, nogil=True)
 def _ml_block(blk, bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_colsum, fine, fine_colsum,
               fsteps, fine_climb, stabs, sdiff, dg, ftab, maxn, out_shift, out_amp, out_bg, out_var, out_n, nf,
-              npix,
-              logm, fine_rev, uni, inv_fine_colsum, ia, ib, upos, grev, inv_colsum):
+              npix, logm, fine_rev, uni, inv_fine_colsum, ia, ib, upos, grev, inv_colsum):
     """The pixels of block blk of :func:`ml_kernel` (its arguments and tables). Compiled on its
     own and called from the kernel's parallel loop: numba compiles a parallel loop's body a
     second time, 5-7 s of ml's cold compile when the body was this code (the same speed either

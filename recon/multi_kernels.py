@@ -162,9 +162,9 @@ def add_gain(j, kb, kw, nu, ilam, g, off, colsum, a0, bar, wk):
     gain is below it by more than rounding (:data:`BAR_MARGIN`), that bound is returned instead of
     the exact gain, which the test would have rejected too; otherwise Newton goes on from a1, its
     slopes known. The bound, from f at a1 (Newton's start: a0, a neighbouring shift's amplitude,
-    when > 0; f concave, its curvature -sum w q^2 shrinking as a
-    grows): when f'(a1) <= 0 the optimum a* is below a1, where the curvature is at least f''(a1)'s,
-    so ``f(a*) <= f(a1) + f'(a1)^2 / (2 |f''(a1)|)``; when f'(a1) > 0, Jensen on the concave
+    when > 0; f concave, its curvature -sum w q^2 shrinking as a grows): when f'(a1) <= 0 the
+    optimum a* is below a1, where the curvature is at least f''(a1)'s, so
+    ``f(a*) <= f(a1) + f'(a1)^2 / (2 |f''(a1)|)``; when f'(a1) > 0, Jensen on the concave
     q / (1 + d q) gives ``f'(a1 + d) <= S1 / (1 + d S1 / N) - c`` (S1 = f'(a1) + c, N the
     detections under the pulse), so a* <= a1 + N f'(a1) / (c S1) and, f lying under its tangent,
     ``f(a*) <= f(a1) + N f'(a1)^2 / (c S1)``."""

@@ -171,9 +171,9 @@ def uos_port_rate(n_pix: int = 200) -> float:
 
 def live_batch(bins: np.ndarray, offsets: np.ndarray, binning: Binning, methods: list[str]) -> None:
     """A live scan's unit of work: ``reconstruct`` of a batch of MIN_BATCH_PIXELS (the live worker's
-    smallest, what it takes while it keeps up), one thread, with the pulse
-    kernel kept from the batch before (as ``recon.model.build_kernel`` keeps it) and, beside it, the
-    same call that first builds the kernel anew (what each batch cost before it was kept)."""
+    smallest, what it takes while it keeps up), one thread, with the pulse kernel kept from the
+    batch before (as ``recon.model.build_kernel`` keeps it) and, beside it, the same call that
+    first builds the kernel anew (what each batch cost before it was kept)."""
     n = min(MIN_BATCH_PIXELS, offsets.size - 1)
     times = BIN_UNITS * (bins[:offsets[n]] + 0.5) + binning.window_start
     store = PhotonStore(times, offsets[:n + 1].copy(), (1, n), UNIT_S)
@@ -334,8 +334,8 @@ def bench(argv: list[str]) -> int:
                 continue
             s = ReconSettings(method=method, binning=big_b, pulse_rms_s=BIG_RMS_UNITS * UNIT_S)
             line.append(f"{method} {_time(lambda: reconstruct(big_store, s), min_s=0.1):.4f} s")
-        print(f"one pixel of {BIG_PHOTONS:,} detections over {BIG_BINS} bins (reconstruct, 1 thr, pulse kernel kept): "
-              + ", ".join(line), flush=True)
+        print(f"one pixel of {BIG_PHOTONS:,} detections over {BIG_BINS} bins (reconstruct, 1 thr, pulse kernel "
+              f"kept): " + ", ".join(line), flush=True)
         live_batch(bins, offsets, binning, args.methods.split(","))
     finally:
         numba.set_num_threads(old_threads)
