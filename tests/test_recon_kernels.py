@@ -69,7 +69,8 @@ def test_ml_variance_from_the_fisher_table_matches_the_loop(rng, pulse):
         bg = 0.0 if rng.random() < 0.05 else 10 ** rng.uniform(-12, 2)
         shift = int(rng.integers(0, M))
         loop = K.fisher_var(shift, a, bg, M, g, dg, off)
-        n_table += bg > 0 and off <= shift <= M - g.size + off and abs(np.log(a / bg) + 20 - 37.5) < 37
+        row = (np.log(a / bg) - K.FISHER_RHO0) * K.FISHER_STEPS if bg > 0 else -1.0
+        n_table += off <= shift <= M - g.size + off and 1 <= row < kern.fisher.shape[0] - 2
         np.testing.assert_allclose(K.fisher_tab(shift, a, bg, M, g, dg, off, kern.fisher), loop, rtol=2e-5,
                                    err_msg=f"a {a}, bg {bg}, shift {shift}")
     assert n_table > 1500       # the table, not the loop, gave most of them
@@ -188,8 +189,8 @@ def test_ml_fine_climb_finds_the_full_searchs_shift(rng, rms_bins):
             shifts = []
             for climb in (True, False):
                 sh = np.full(n, np.nan)
-                K.ml_kernel(bins, off, M, *tabs[:-1], climb, kern_w.dg, kern_w.fisher, k, sh, np.empty(n), np.empty(n),
-                            np.empty(n), np.empty(n, np.int64))
+                K.ml_kernel(bins, off, M, *tabs[:-1], climb, kern_w.dg, kern_w.fisher, k, sh, np.empty(n),
+                            np.empty(n), np.empty(n), np.empty(n, np.int64))
                 shifts.append(sh)
             np.testing.assert_allclose(shifts[0], shifts[1], rtol=0, atol=1e-9,
                                        err_msg=f"{k} detections, SBR {sbr}")
