@@ -327,11 +327,15 @@ def shift_var(i00, i01, i02, i11, i12, i22, with_bg):
 def fisher_table(g: np.ndarray, dg: np.ndarray) -> np.ndarray:
     """The sums of :func:`fisher_var` for a pulse inside the window, per unit of 1 / bg, tabulated
     for :func:`fisher_tab`: row i holds ``sum_t h_t / (1 + r g_t)`` at
-    ``r = a / bg = exp(FISHER_RHO0 + i / FISHER_STEPS)`` for h = (dg^2, dg g, dg, g^2, g, 1)."""
+    ``r = a / bg = exp(FISHER_RHO0 + i / FISHER_STEPS)`` for h = (dg^2, dg g, dg, g^2, g, 1). The
+    last row is for bg = 0, where the rate is a g_t alone: ``sum over g_t > 0 of h_t / g_t`` (the
+    loop's bins with g_t = 0 then have no rate and add nothing)."""
     rho = FISHER_RHO0 + np.arange(FISHER_SPAN * FISHER_STEPS) / FISHER_STEPS
     inv = 1.0 / (1.0 + np.exp(rho)[:, None] * g[None, :])
     h = np.stack([dg * dg, dg * g, dg, g * g, g, np.ones_like(g)], axis=1)
-    return np.ascontiguousarray(inv @ h)
+    pos = g > 0.0
+    limit = (h[pos] / g[pos, None]).sum(axis=0)
+    return np.ascontiguousarray(np.vstack([inv @ h, limit]))
 
 
 @njit(cache=True, nogil=True, _nrt=False, inline="always")
@@ -342,15 +346,20 @@ def _catmull_rom(tab, i, c, w0, w1, w2, w3):
 
 @njit(cache=True, nogil=True, _nrt=False)
 def fisher_tab(shift, a, bg, m, g, dg, off, ftab):
-    """:func:`fisher_var`, its six sums read from ftab (:func:`fisher_table`) when the pulse at
-    shift lies inside the window and bg > 0: Catmull-Rom between the rows around log(a / bg),
-    within ~4e-6 (relative) of the loop's variance, instead of a division per bin of the pulse (a
-    tenth of ml's time at 15 detections a pixel). Otherwise (the window's edges, no background,
-    a / bg off the table) the loop."""
+    """:func:`fisher_var`, its sums read from ftab (:func:`fisher_table`) when the pulse at shift
+    lies inside the window: for bg > 0, Catmull-Rom between the rows around log(a / bg), within
+    ~4e-6 (relative) of the loop's variance, instead of a division per bin of the pulse (a tenth of
+    ml's time at 15 detections a pixel); for bg = 0 (every detection under the pulse: a quarter of
+    the pixels at 15 detections and SBR 10) from the last row, the same sums as the loop's, in
+    another order. Otherwise (the window's edges, a / bg off the table) the loop."""
     nk = g.size
+    last = ftab.shape[0] - 1
+    if a > 0.0 and bg == 0.0 and shift >= off and shift - off + nk <= m:
+        # the rate is a g_t: i00 = a sum dg^2 / g, i01 = -sum dg, i11 = sum g / a (the limit row)
+        return shift_var(a * ftab[last, 0], -ftab[last, 1], 0.0, ftab[last, 3] / a, 0.0, 0.0, False)
     if a > 0.0 and bg > 0.0 and shift >= off and shift - off + nk <= m:
         x = (math.log(a / bg) - FISHER_RHO0) * FISHER_STEPS
-        if x >= 1.0 and x < ftab.shape[0] - 2:
+        if x >= 1.0 and x < last - 2:
             i = int(x)
             t = x - i
             t2 = t * t
