@@ -37,7 +37,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from spdepth.recon.kernels import BLOCK, unique_counts
+from spdepth.recon.kernels import BLOCK, unique_bins
 
 #: Newton steps on a return's amplitude.
 NEWTON_STEPS = 12
@@ -57,44 +57,6 @@ LN2 = math.log(2.0)
 #: add_gain's bound must be below the bar by this (relative) to skip the exact gain: far more than
 #: the rounding of either, so the skip never changes a comparison.
 BAR_MARGIN = 1e-9
-
-
-#: unique_bins counts a pixel's detections on the window's bins (a scan of the bins they span)
-#: when they span at most this many bins per detection; above, it sorts them (unique_counts).
-DENSE_SPAN = 16
-
-
-@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
-def unique_bins(bins, o0, o1, tally, tmp, kb, kw):
-    """:func:`recon.kernels.unique_counts` (the same kb, kw, count returned) for the K-surface
-    kernels: counted into tally (one zero per window bin, left zero) and read back in bin order when
-    the detections span at most DENSE_SPAN bins each, O(detections + span): the windows of these
-    kernels are a few thousand bins, and a pixel's tens to hundreds of detections would otherwise be
-    heap-sorted (the K-surface fit at 50 detections spent a tenth of its time there)."""
-    n = o1 - o0
-    if n == 0:
-        return 0
-    lo = bins[o0]
-    hi = lo
-    for i in range(o0 + 1, o1):
-        v = bins[i]
-        if v < lo:
-            lo = v
-        elif v > hi:
-            hi = v
-    if hi - lo > DENSE_SPAN * n:
-        return unique_counts(bins, o0, o1, tmp, kb, kw)
-    for i in range(o0, o1):
-        tally[bins[i]] += 1
-    nu = 0
-    for k in range(lo, hi + 1):
-        c = tally[k]
-        if c > 0:
-            kb[nu] = k
-            kw[nu] = c
-            nu += 1
-            tally[k] = 0
-    return nu
 
 
 @njit(cache=True, nogil=True, _nrt=False, inline="always", error_model="numpy")
@@ -505,6 +467,7 @@ def multi_return_kernel(bins, offsets, m, g, off, colsum, dg, kmax, sep_bins, ga
         kw = np.empty(n1, np.float64)
         work = fit_work(n1, kmax)
         tally = np.zeros(m, np.int64)
+        bits = np.zeros(m // 64 + 1, np.uint64)
         shifts, amps, gains = work[3], work[4], work[5]
         for p in range(blk * BLOCK, min(npix, (blk + 1) * BLOCK)):
             o0 = offsets[p]
@@ -515,7 +478,7 @@ def multi_return_kernel(bins, offsets, m, g, off, colsum, dg, kmax, sep_bins, ga
                 out_amp[p, r] = 0.0
                 out_var[p, r] = np.nan
                 out_gain[p, r] = 0.0
-            nu = unique_bins(bins, o0, o1, tally, tmp, kb, kw)
+            nu = unique_bins(bins, o0, o1, tally, bits, tmp, kb, kw)
             if nu == 0:
                 out_bg[p] = 0.0
                 continue
@@ -573,6 +536,7 @@ def neighbour_surfaces(bins, offsets, h, w, radius, shift_in, gain_in, strong_na
         kw = np.empty(n1, np.float64)
         work = fit_work(n1, kmax)
         tally = np.zeros(m, np.int64)
+        bits = np.zeros(m // 64 + 1, np.uint64)
         ilam, shifts, amps, gains, wk, gt, newa, seen = work[0], work[3], work[4], work[5], work[8], work[9], \
             work[10], work[13]
         cand = np.empty(kk + kpool, np.int64)
@@ -587,7 +551,7 @@ def neighbour_surfaces(bins, offsets, h, w, radius, shift_in, gain_in, strong_na
                 out_var[p, r] = np.nan
                 out_gain[p, r] = 0.0
                 out_src[p, r] = -1
-            nu = unique_bins(bins, o0, o1, tally, tmp, kb, kw)
+            nu = unique_bins(bins, o0, o1, tally, bits, tmp, kb, kw)
             if nu == 0:
                 out_bg[p] = 0.0
                 continue
@@ -604,7 +568,7 @@ def neighbour_surfaces(bins, offsets, h, w, radius, shift_in, gain_in, strong_na
                     for i in range(offsets[q], offsets[q + 1]):
                         pbins[n] = bins[i]
                         n += 1
-            pnu = unique_bins(pbins, 0, n, tally, ptmp, pkb, pkw)
+            pnu = unique_bins(pbins, 0, n, tally, bits, ptmp, pkb, pkw)
             npr, _ = fit_pixel(pkb, pkw, pnu, m, g, off, colsum, dg, kpool, sep_bins, pool_nats, cand_step,
                                step0, dpk, pwork)
             # 2. candidates: own strong surfaces, then pooled ones by amplitude

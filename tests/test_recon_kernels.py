@@ -53,6 +53,33 @@ def test_build_kernel_gives_the_kept_tables_for_the_same_pulse_only():
     assert by_irf.info["pulse"] == "irf" and a.info["pulse"] == "gaussian"
 
 
+def test_unique_bins_by_bitmap_equals_the_sort_and_leaves_its_scratch_zero(rng):
+    # every kernel reads a pixel's distinct bins and counts through unique_bins: a bitmap of the
+    # window when the detections lie close, the sort (unique_counts) when they spread
+    m = 3000
+    tally = np.zeros(m, np.int64)
+    bits = np.zeros(m // 64 + 1, np.uint64)
+    paths = set()
+    for trial in range(400):
+        n = int(rng.integers(1, 80))
+        if trial % 4 == 0:      # a cluster on the words' edges: bins 63, 64, 127, 128 ...
+            b = rng.choice(np.array([0, 63, 64, 127, 128, 191, m - 1]), n)
+        elif trial % 4 == 1:    # spread over the window: the sort
+            b = rng.integers(0, m, n)
+        else:                   # a return with repeats, some background
+            b = np.clip(np.round(rng.normal(rng.uniform(0, m), rng.uniform(0.5, 40), n)), 0, m - 1)
+        b = b.astype(np.int64)
+        out = [np.empty(n, np.int64), np.empty(n, np.int64), np.empty(n)]
+        nu = K.unique_bins(b, 0, n, tally, bits, *out)
+        kb, kw = out[1][:nu], out[2][:nu]
+        want_b, want_w = np.unique(b, return_counts=True)
+        np.testing.assert_array_equal(kb, want_b)
+        np.testing.assert_array_equal(kw, want_w)
+        assert not tally.any() and not bits.any()
+        paths.add(b.max() // 64 - b.min() // 64 < K.BITMAP_WORDS * n)
+    assert paths == {True, False}
+
+
 @pytest.mark.parametrize("pulse", ["gaussian", "irf"])
 def test_ml_variance_from_the_fisher_table_matches_the_loop(rng, pulse):
     # ml reads its uncertainty's sums from a table over log(a / B) for shifts inside the window;
