@@ -12,7 +12,9 @@ Shift ``i`` means the pulse centroid is at the centre of bin ``i`` (0 <= i < M).
 The leaf helpers that ml calls per pixel and that allocate nothing are compiled with ``_nrt=False``
 (numba's switch for its reference counting, off): numba otherwise adds an atomic increment and
 decrement of every array argument at each call, which it cannot prune around the calls to ``log``;
-that was 10% of ml's time at 15 detections a pixel.
+that was 10% of ml's time at 15 detections a pixel. ml's functions are also compiled with
+``error_model="numpy"``: a division by zero gives inf or NaN instead of raising, so numba adds no
+zero-divisor test to each division (3% of ml; its divisors are rates and column sums, never 0).
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ import math
 
 import numpy as np
 from numba import njit, prange
+from numba.core.extending import overload
 from numba.cpython.unsafe.numbers import trailing_zeros
 
 #: :func:`fisher_tab`'s table (:func:`fisher_table`): rows at log(a / bg) from FISHER_RHO0, FISHER_STEPS
@@ -148,6 +151,18 @@ def unique_counts(bins, o0, o1, tmp, kb, kw):
 _BIT = np.uint64(1)
 
 
+def lowest_set_bit(x):
+    """Index of the lowest set bit of x > 0: LLVM's count of trailing zeros where compiled (below),
+    plain Python under NUMBA_DISABLE_JIT (when debugging a kernel)."""
+    x = int(x)
+    return (x & -x).bit_length() - 1
+
+
+@overload(lowest_set_bit)
+def _lowest_set_bit_compiled(x):
+    return lambda x: trailing_zeros(x)
+
+
 @njit(cache=True, nogil=True, _nrt=False)
 def unique_bins(bins, o0, o1, tally, bits, tmp, kb, kw):
     """:func:`unique_counts`'s result (kb, kw, how many) without a sort when the detections lie close
@@ -180,7 +195,7 @@ def unique_bins(bins, o0, o1, tally, bits, tmp, kb, kw):
             continue
         bits[w] = 0
         while x != 0:
-            k = (w << 6) + trailing_zeros(x)     # the lowest set bit: the next bin in order
+            k = (w << 6) + lowest_set_bit(x)     # the next bin in order
             kb[nu] = k
             kw[nu] = tally[k]
             tally[k] = 0
@@ -317,7 +332,7 @@ def pinv_solve(gram, rhs, n, work, vecs, vals, out):
                 out[r] += proj * vecs[r, p]
 
 
-@njit(cache=True, nogil=True, _nrt=False)
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
 def fisher_var(shift, a, bg, m, g, dg, off):
     """Variance (bins^2) of the shift from the Poisson Fisher information of
     lambda_k = a g[k - shift] + bg over the window's m bins, with a (and bg when > 0) profiled out.
@@ -352,7 +367,7 @@ def fisher_var(shift, a, bg, m, g, dg, off):
     return shift_var(i00, i01, i02, i11, i12, i22, bg > 0.0)
 
 
-@njit(cache=True, nogil=True, _nrt=False)
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
 def shift_var(i00, i01, i02, i11, i12, i22, with_bg):
     """1 / the shift's information once the amplitude (and the background, with_bg) are profiled
     out of the Fisher matrix [[i00, i01, i02], [., i11, i12], [., ., i22]] (shift, a, bg); NaN when
@@ -386,13 +401,13 @@ def fisher_table(g: np.ndarray, dg: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(np.vstack([inv @ h, limit]))
 
 
-@njit(cache=True, nogil=True, _nrt=False, inline="always")
+@njit(cache=True, nogil=True, _nrt=False, inline="always", error_model="numpy")
 def _catmull_rom(tab, i, c, w0, w1, w2, w3):
     """Column c of tab between rows i and i + 1, weights w0..w3 on rows i - 1..i + 2."""
     return w0 * tab[i - 1, c] + w1 * tab[i, c] + w2 * tab[i + 1, c] + w3 * tab[i + 2, c]
 
 
-@njit(cache=True, nogil=True, _nrt=False)
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
 def fisher_tab(shift, a, bg, m, g, dg, off, ftab):
     """:func:`fisher_var`, its sums read from ftab (:func:`fisher_table`) when the pulse at shift
     lies inside the window: for bg > 0, Catmull-Rom between the rows around log(a / bg), within
@@ -537,7 +552,7 @@ def lmf_kernel(bins, offsets, m, logg, log_concave, maxn, out_shift, out_var, ou
 # Algorithm 1 (uos) and its K-sparse generalization
 
 
-@njit(cache=True, nogil=True, _nrt=False)
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
 def photon_intervals(kb, nu, lo_reach, hi_reach, m, ivlo, ivhi):
     """Merge the shift ranges ``[k - lo_reach, k + hi_reach]`` (clipped to [0, m)) of the sorted
     distinct photon bins kb[:nu] into disjoint ascending intervals ivlo/ivhi; returns how many.
@@ -1043,6 +1058,7 @@ ML_MODEL_TOL = 1e-15
 #: ml: a photon bin detected at most this many times enters a likelihood's product of rates as that
 #: many factors, not through a log of its own: a rate is >= uni (1 - s) > 1e-25 (s < 1 - 1e-16,
 #: under 10^9 bins), so four of them take a product the pass kept >= 1e-200 no lower than 1e-300
+#: (:func:`_mix_pass` picks the power among 1 to 4 by selects)
 ML_POWER_MAX = 4
 
 #: ml: a surviving interior shift's tangent bound is read from tables at ML_SHARES signal shares,
@@ -1073,7 +1089,7 @@ ML_RUN_GAP = 4
 ML_CLIMB_RMS_BINS = 2.0
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _mix_pass(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, s):
     """One pass at signal share s (0 < s < 1) over the photons kb[ua:ub] (weights kw) of
     f(s) = sum_u w_u log(uni + s e_u), e_u = r_u - uni, r_u = tab[(kb[u] + base) * step - q] * inv_c
@@ -1115,10 +1131,13 @@ def _mix_pass(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, s):
         neg2 += 0.0 if pos else wq2
         neg0 += 0.0 if pos else wu * em * em
         if wu <= ML_POWER_MAX:
-            # a bin detected a few times (common under a return): its rate once per detection
-            prod *= lam
-            for _rep in range(1, int(wu)):
-                prod *= lam
+            # a bin detected a few times (common under a return): its rate once per detection,
+            # chosen by selects (a loop of unknown length mispredicted its exit)
+            l2 = lam * lam
+            fac = lam if wu == 1.0 else l2
+            fac = fac * lam if wu == 3.0 else fac
+            fac = l2 * l2 if wu == 4.0 else fac
+            prod *= fac
             if prod < 1e-200:       # see ML_POWER_MAX: no underflow before this
                 ll += math.log(prod)
                 prod = 1.0
@@ -1127,7 +1146,7 @@ def _mix_pass(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, s):
     return ll + math.log(prod), f1, pos2 + neg2, s * s * pos2 + neg2, pos2 + neg0, c3
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def _mix_bound(ll, f1, s, kap_hi, kap_lo):
     """Upper bound of max over [0, 1] of a concave f with f(s) = ll, f'(s) = f1 and -f'' at least
     kap_hi on [s, 1], kap_lo on [0, s]: the best of the parabola f(s) + f1 t - kap t^2 / 2."""
@@ -1142,7 +1161,7 @@ def _mix_bound(ll, f1, s, kap_hi, kap_lo):
     return ll - f1 * t - 0.5 * kap_lo * t * t
 
 
-@njit(cache=True, nogil=True, _nrt=False)
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
 def _mix_end(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, f1):
     """Whether :func:`mix_ml`'s maximum lies at s = 0 (f1, the slope at some s, <= 0) or at s = 1
     (f1 > 0), and there (s, loglik): (False, 0, 0) when it does not."""
@@ -1188,7 +1207,7 @@ def _mix_end(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, f1):
     return False, 0.0, 0.0
 
 
-@njit(cache=True, nogil=True, _nrt=False)
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
 def mix_ml(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, s0, cut):
     """max over s in [0, 1] of sum_u w_u log((1 - s) uni + s r_u): the Poisson likelihood of eq. (9)
     with (a, B) profiled onto a C + B M = n (where its maximum lies), s = a C / n the signal share,
@@ -1246,7 +1265,7 @@ def mix_ml(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, s0, cut):
     return s, ll
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def first_above(a, n, v, strict):
     """First index i of the sorted a[:n] with a[i] > v (strict) or a[i] >= v (not strict), n when
     none: np.searchsorted's right and left sides, written out because numba compiles string
@@ -1262,13 +1281,13 @@ def first_above(a, n, v, strict):
     return lo
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _photon_range(kb, nu, lo, hi):
     """[ua, ub): the sorted distinct photon bins kb[:nu] lying in [lo, hi] (binary search)."""
     return first_above(kb, nu, lo, False), first_above(kb, nu, hi, True)
 
 
-@njit(cache=True, nogil=True, _nrt=False)
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
 def _ml_at_int(kb, kw, nu, wtot, i, g, off, colsum, uni, s0, cut):
     """Profile at integer shift i (g[k - i + off] is photon k's share of column i)."""
     nk = g.size
@@ -1282,7 +1301,7 @@ def _ml_at_int(kb, kw, nu, wtot, i, g, off, colsum, uni, s0, cut):
     return mix_ml(kb, kw, ua, ub, w_out, g, off - i, 1, 0, 1.0 / colsum[i], uni, s0, cut)
 
 
-@njit(cache=True, nogil=True, _nrt=False)
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
 def _ml_at_fine(kb, kw, nu, wtot, i, q, fine, off, fine_colsum, fsteps, uni, s0, cut):
     """Profile at shift i + q / fsteps (|q| <= fsteps), from the fine kernel table."""
     nf = fine.size
@@ -1305,7 +1324,7 @@ def _ml_at_fine(kb, kw, nu, wtot, i, q, fine, off, fine_colsum, fsteps, uni, s0,
 ML_SHARE_CLAMP = 1e-3
 
 
-@njit(cache=True, nogil=True, _nrt=False)
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
 def mix_bounds(kb, kw, nu, wtot, trev, base, step, qa, nq, inv_c, uni, s, r0s, ws, out):
     """:func:`mix_ml`'s first-pass bound (:func:`_mix_bound` of :func:`_mix_pass` at share s, which
     must lie in (0, 1)) for nq consecutive positions of a pulse table in one call: position t reads
@@ -1401,7 +1420,7 @@ def share_tables(g, c, uni, nshares):
     return out
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def share_bound(kb, kw, ua, ub, w_out, i, off, stabs, j, s):
     """:func:`mix_ml`'s first-pass bound (:func:`_mix_bound`) at interior shift i and the tabulated
     share s = (j + 1/2) / stabs.shape[0], from :func:`share_tables`: the same sums, read instead
@@ -1438,7 +1457,7 @@ def share_diffs(stabs):
     return out
 
 
-@njit(cache=True, nogil=True, _nrt=False)
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
 def share_sweep(kb, kw, nu, off, ia, ib, sdiff, j, ssum):
     """:func:`share_bound`'s sums beyond the all-rate-0 ones (wtot stabs[j, nk]) at every interior
     shift [ia, ib] the photons kb[:nu] (weights kw) reach, into ssum[c, i] (zero there on entry):
@@ -1463,7 +1482,7 @@ def share_sweep(kb, kw, nu, off, ia, ib, sdiff, j, ssum):
     return lo, hi
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True, inline="always", error_model="numpy")
 def swept_bound(ssum, i, wtot, stabs, j, s):
     """:func:`share_bound` at interior shift i from :func:`share_sweep`'s sums: those plus all wtot
     detections' rate-0 terms."""
@@ -1519,7 +1538,7 @@ def _sort_desc(keys, idx, n):
         idx[b + 1] = v
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _ml_block(blk, bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_colsum, fine, fine_colsum,
               fsteps, fine_climb, stabs, sdiff, dg, ftab, maxn, out_shift, out_amp, out_bg, out_var, out_n, nf,
               npix, logm, fine_rev, uni, inv_fine_colsum, ia, ib, upos, grev, inv_colsum):
