@@ -1219,7 +1219,13 @@ def mix_ml(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, s0, cut):
     costs O(pulse support), not O(photons), when ua:ub is the pulse's reach.
 
     ``cut``: when the first pass's bound (:func:`_mix_bound`) cannot beat cut, the call returns
-    (s0, -inf) after that one pass; pass -inf for an exact answer. Returns (s, loglik)."""
+    (s0, -inf) after that one pass; pass -inf for an exact answer. s0 = 1 (a neighbouring shift's
+    maximum lay at 1, as it does when every detection is under the pulse): whether this one's lies
+    there too is checked first, without a pass. Returns (s, loglik)."""
+    if s0 == 1.0:
+        at, s_end, ll_end = _mix_end(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, 1.0)
+        if at:
+            return s_end, ll_end
     s = s0
     if not (s > 0.0 and s < 1.0):
         s = 0.5
@@ -1735,7 +1741,7 @@ def _ml_block(blk, bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_col
                 while q >= qlo and q <= qhi:
                     # the share moves almost linearly with the shift: starting at the line through
                     # the last two steps' shares saves a Newton pass
-                    s0 = min(max(2.0 * bs - sprev, ML_SHARE_CLAMP), 1.0 - ML_SHARE_CLAMP)
+                    s0 = 1.0 if bs == 1.0 else min(max(2.0 * bs - sprev, ML_SHARE_CLAMP), 1.0 - ML_SHARE_CLAMP)
                     s, ll = _ml_at_fine(kb, kw, nu, ntot, best_i, q, fine, off, fine_colsum, fsteps, uni,
                                         s0, -np.inf)
                     lls[q + fsteps] = ll
