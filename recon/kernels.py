@@ -1090,7 +1090,7 @@ ML_CLIMB_RMS_BINS = 2.0
 
 
 @njit(cache=True, nogil=True, inline="always", error_model="numpy")
-def _mix_pass(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, s):
+def _mix_pass(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, s, bound):
     """One pass at signal share s (0 < s < 1) over the photons kb[ua:ub] (weights kw) of
     f(s) = sum_u w_u log(uni + s e_u), e_u = r_u - uni, r_u = tab[(kb[u] + base) * step - q] * inv_c
     (0 outside the table), plus w_out photons at r = 0. Returns (f, f', -f'', kap_hi, kap_lo, c3):
@@ -1099,8 +1099,10 @@ def _mix_pass(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, s):
     least its value at s (e > 0) or at 0, (e M)^2 (e < 0); over [s, 1] at least its value at 1,
     w (e / r)^2 >= w (s e / (uni + s e))^2 (e > 0, as uni + s e >= s r), or at s (e < 0).
     c3 = sum_u w_u |q_u|^3 (q = e / lam) is half of |f'''| at s (see :func:`mix_ml`'s stop).
-    f is a product of the rates (one log per pass, not one per photon), renormalised long before
-    it could underflow."""
+    The kaps are computed only when ``bound`` (the first pass of a solve with a cut, the only one
+    that reads them; 0 otherwise): a fifth of a pass's work per photon, and a branch on the sign
+    of e. f is a product of the rates (one log per pass, not one per photon), renormalised long
+    before it could underflow."""
     m_uni = 1.0 / uni
     nt = tab.size
     qo = -1.0 / (1.0 - s)
@@ -1125,11 +1127,14 @@ def _mix_pass(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, s):
         f1 += wu * qq
         wq2 = wu * qq * qq
         c3 += wq2 * abs(qq)
-        em = e * m_uni
-        pos = e > 0.0
-        pos2 += wq2 if pos else 0.0
-        neg2 += 0.0 if pos else wq2
-        neg0 += 0.0 if pos else wu * em * em
+        if bound:
+            em = e * m_uni
+            pos = e > 0.0
+            pos2 += wq2 if pos else 0.0
+            neg2 += 0.0 if pos else wq2
+            neg0 += 0.0 if pos else wu * em * em
+        else:
+            neg2 += wq2
         if wu <= ML_POWER_MAX:
             # a bin detected a few times (common under a return): its rate once per detection,
             # chosen by selects (a loop of unknown length mispredicted its exit)
@@ -1229,7 +1234,7 @@ def mix_ml(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, s0, cut):
     s = s0
     if not (s > 0.0 and s < 1.0):
         s = 0.5
-    ll, f1, f2, kh, kl, c3 = _mix_pass(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, s)
+    ll, f1, f2, kh, kl, c3 = _mix_pass(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, s, cut > -np.inf)
     if cut > -np.inf and _mix_bound(ll, f1, s, kh, kl) <= cut:
         return s, -np.inf
     lo = 0.0
@@ -1267,7 +1272,7 @@ def mix_ml(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, s0, cut):
             # 1e-7, took two). Never after a bisection: its step is not the model's maximum
             return sn, ll + f1 * t - 0.5 * f2 * t * t
         s = sn
-        ll, f1, f2, kh, kl, c3 = _mix_pass(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, s)
+        ll, f1, f2, kh, kl, c3 = _mix_pass(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, s, False)
     return s, ll
 
 
