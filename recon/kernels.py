@@ -1100,7 +1100,7 @@ def _mix_pass(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, s, bound):
     w (e / r)^2 >= w (s e / (uni + s e))^2 (e > 0, as uni + s e >= s r), or at s (e < 0).
     c3 = sum_u w_u |q_u|^3 (q = e / lam) is half of |f'''| at s (see :func:`mix_ml`'s stop).
     The kaps are computed only when ``bound`` (the first pass of a solve with a cut, the only one
-    that reads them; 0 otherwise): a fifth of a pass's work per photon, and a branch on the sign
+    that reads them; 0 otherwise): a third of a pass's work per photon, and a branch on the sign
     of e. f is a product of the rates (one log per pass, not one per photon), renormalised long
     before it could underflow."""
     m_uni = 1.0 / uni
@@ -1564,6 +1564,7 @@ def _ml_block(blk, bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_col
     kw = np.empty(max(maxn, 1), np.float64)
     ivlo = np.empty(max(maxn, 1), np.int64)
     ivhi = np.empty(max(maxn, 1), np.int64)
+    ivmax = np.empty(max(maxn, 1))
     acc = np.zeros(m)           # zero between pixels: only the photons' intervals are touched
     cand = np.empty(m, np.int64)
     lls = np.empty(nf)
@@ -1619,10 +1620,19 @@ def _ml_block(blk, bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_col
             i1 = -1
             amax = 0.0
             for t in range(niv):
+                # each interval's best too: the survivors below are sought only in intervals
+                # whose best can beat the likelihood found (a lone background detection's reach
+                # seldom can)
+                imax = 0.0
+                ii = -1
                 for i in range(ivlo[t], ivhi[t] + 1):
-                    if acc[i] > amax:
-                        amax = acc[i]
-                        i1 = i
+                    if acc[i] > imax:
+                        imax = acc[i]
+                        ii = i
+                ivmax[t] = imax
+                if imax > amax:
+                    amax = imax
+                    i1 = ii
             if i1 >= 0:
                 # Newton starts at the share of the photons whose bound term is positive there
                 # (the return's, and the background's under it), not at 1/2: two passes fewer
@@ -1651,6 +1661,8 @@ def _ml_block(blk, bins, offsets, m, g, off, logg_int, dlo, dhi, colsum, log_col
                 sb = min(max(best_s, ML_SHARE_CLAMP), 1.0 - ML_SHARE_CLAMP)
                 ns = 0
                 for t in range(niv):
+                    if not floor_ll + ivmax[t] > best_ll - tie:
+                        continue
                     for i in range(ivlo[t], ivhi[t] + 1):
                         if i != i1 and acc[i] > 0.0 and floor_ll + acc[i] > best_ll - tie:
                             surv[ns] = i
