@@ -78,6 +78,12 @@ def test_unique_bins_by_bitmap_equals_the_sort_and_leaves_its_scratch_zero(rng):
         assert not tally.any() and not bits.any()
         paths.add(b.max() // 64 - b.min() // 64 < K.BITMAP_WORDS * n)
     assert paths == {True, False}
+    # the lowest set bit, compiled (LLVM's cttz) and in plain Python (NUMBA_DISABLE_JIT) alike
+    from numba import njit
+
+    lowest = njit(lambda x: K.lowest_set_bit(x))
+    for v in (1, 6, 2 ** 40 + 2 ** 63, 2 ** 63, 96):
+        assert K.lowest_set_bit(np.uint64(v)) == lowest(np.uint64(v)) == (v & -v).bit_length() - 1
 
 
 @pytest.mark.parametrize("pulse", ["gaussian", "irf"])
