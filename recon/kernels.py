@@ -1100,7 +1100,7 @@ def _mix_pass(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, s, bound):
     w (e / r)^2 >= w (s e / (uni + s e))^2 (e > 0, as uni + s e >= s r), or at s (e < 0).
     c3 = sum_u w_u |q_u|^3 (q = e / lam) is half of |f'''| at s (see :func:`mix_ml`'s stop).
     The kaps are computed only when ``bound`` (the first pass of a solve with a cut, the only one
-    that reads them; 0 otherwise): a third of a pass's work per photon, and a branch on the sign
+    that reads them; 0 otherwise): a fifth of a pass's work per photon, and a branch on the sign
     of e. f is a product of the rates (one log per pass, not one per photon), renormalised long
     before it could underflow."""
     m_uni = 1.0 / uni

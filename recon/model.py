@@ -597,8 +597,8 @@ class PulseKernel:
     ddg:        float64 like g: d^2 g(x)/dx^2 at integer x (one-bin differences), per bin^2.
     fine:       float64: g at offsets ``x = j / FINE_STEPS - L0`` (fractional shifts).
     fine_colsum:float64 ((M-1)*FINE_STEPS + 1,): column sums at fractional shifts q / FINE_STEPS.
-    fisher:     float64 (rows, 6): the shift's Fisher sums tabulated over log(a / B), and their limit
-                at B = 0 in the last row, for ml's uncertainty (kernels.fisher_table).
+    fisher:     float64 (rows, 6): the shift's Fisher sums tabulated over log(a / B), and in the last
+                row their values for B = 0, for ml's uncertainty (kernels.fisher_table).
     logg:       float64 (2M-1,): log(g / gmax) at offsets d in [-(M-1), M-1] (index d + M - 1), for
                 the log-matched filter; exact tails for a Gaussian, floored at the smallest finite
                 value for a measured IRF (the published code's convention).
