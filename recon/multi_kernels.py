@@ -72,7 +72,7 @@ def first_at_least(kb, nu, v):
     return a
 
 
-@njit(cache=True, nogil=True, _nrt=False, inline="always", error_model="numpy")
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy", fastmath={"reassoc"})
 def slopes(a, c, wk, n):
     """(f'(a), f''(a)) of the gain f of a return of column sum c over the gathered detections
     under it: wk[0, :n] the response values over the model's rate, x_u = g_u / lam_u, wk[1, :n]
@@ -113,6 +113,23 @@ def log_sum(a, wk, n):
     return math.log(prod) + e2 * LN2
 
 
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy", fastmath={"reassoc"})
+def gather(kb, kw, u0, n, ilam, g, lo, wk):
+    """wk[0, i] = x = g[kb[u] - lo] / lam_u and wk[1, i] = kw[u] for u = u0 + i, i < n; returns
+    (sum w x, sum w)."""
+    s1 = 0.0
+    nin = 0.0
+    for i in range(n):
+        u = u0 + i
+        x = g[kb[u] - lo] * ilam[u]
+        w = kw[u]
+        wk[0, i] = x
+        wk[1, i] = w
+        s1 += w * x
+        nin += w
+    return s1, nin
+
+
 @njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
 def add_gain(j, kb, kw, nu, ilam, g, off, colsum, a0, bar, wk):
     """(gain, amplitude) of adding a return at shift j to the model whose rate at the photons' bins is
@@ -139,18 +156,9 @@ def add_gain(j, kb, kw, nu, ilam, g, off, colsum, a0, bar, wk):
     u0 = first_at_least(kb, nu, lo)
     u1 = first_at_least(kb, nu, hi)
     # slope at a = 0 and the start: the detections under the pulse, gathered once for the Newton steps
-    d0 = -c
-    nin = 0.0
-    n = 0
-    for u in range(u0, u1):
-        gu = g[kb[u] - lo]
-        if gu > 0.0:
-            x = gu * ilam[u]
-            wk[0, n] = x
-            wk[1, n] = kw[u]
-            n += 1
-            d0 += kw[u] * x
-            nin += kw[u]
+    n = u1 - u0
+    d0, nin = gather(kb, kw, u0, n, ilam, g, lo, wk)
+    d0 -= c
     if d0 <= 0.0:
         return 0.0, 0.0
     # Newton starts at a0 when given (a neighbouring shift's amplitude, or this shift's own from EM):
@@ -168,7 +176,7 @@ def add_gain(j, kb, kw, nu, ilam, g, off, colsum, a0, bar, wk):
     for _ in range(NEWTON_STEPS):
         if f2 >= 0.0:
             break
-        na = a - f1 / f2
+        na = a - f1 / f2 * (f1 + c) / c
         if na <= 0.0:
             na = 0.5 * a
         if abs(na - a) <= NEWTON_TOL * a:
@@ -188,18 +196,22 @@ def screen_score(j, kb, kw, u0, u1, ilam, g, off, colsum):
     lo = j - off
     c = colsum[j]
     if c <= 0.0:
-        return 0.0
+        return 0.0, 0.0, 0.0
     d0 = -c
     c2 = 0.0
+    nin = 0.0
     for u in range(u0, u1):
         gu = g[kb[u] - lo]
         if gu > 0.0:
             q = gu * ilam[u]
             d0 += kw[u] * q
             c2 += kw[u] * q * q
+            nin += kw[u]
     if d0 <= 0.0 or c2 <= 0.0:
-        return 0.0
-    return d0 * d0 / (2.0 * c2)
+        return 0.0, 0.0, 0.0
+    # Jensen: sum w log(1 + a x) <= N log(1 + a S1 / N), so the gain is at most N (log r - 1 + 1 / r),
+    # r = S1 / c (S1 = d0 + c): tight when the x are alike (detections of background)
+    return d0 * d0 / (2.0 * c2), nin, (d0 + c) / c
 
 
 @njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
@@ -323,8 +335,23 @@ def em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, ilam
         bg = nbg
         if change < EM_TOL:
             break
-    model_irate(kb, nu, shifts, amps, nr, bg, g, off, ilam)
+    irate_table(gt, nu, amps, nr, bg, ilam)
     return bg
+
+
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
+def irate_table(gt, nu, amps, nr, bg, ilam):
+    """:func:`model_irate` from :func:`em_refit`'s table gt of the response at the detections (valid
+    while the shifts are EM's): the same sums in the same order (gt is 0 where model_irate adds
+    nothing), so bit for bit the same, in loops without a test that vectorise."""
+    for u in range(nu):
+        ilam[u] = bg
+    for r in range(nr):
+        a = amps[r]
+        for u in range(nu):
+            ilam[u] += a * gt[r, u]
+    for u in range(nu):
+        ilam[u] = 1.0 / ilam[u]
 
 
 @njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
@@ -357,7 +384,7 @@ def fit_work(n, kmax):
     k = max(kmax, 1)
     return (np.empty(n), np.empty(n), np.empty(n, np.int64), np.empty(k, np.int64), np.empty(k), np.empty(k),
             np.empty(k, np.int64), np.empty(k), np.empty((2, n)), np.empty((k, n)), np.empty(k),
-            np.empty(SCREEN), np.empty(SCREEN, np.int64), np.empty(MEMO, np.int64))
+            np.empty((3, SCREEN)), np.empty(SCREEN, np.int64), np.empty(MEMO, np.int64))
 
 
 @njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
@@ -404,18 +431,22 @@ def fit_pixel(kb, kw, nu, m, g, off, colsum, dg, kmax, sep_bins, gain_min, cand_
                     near = True
             if near:
                 continue
-            sc = screen_score(j, kb, kw, u0, u1, ilam, g, off, colsum)
+            sc, nin, ratio = screen_score(j, kb, kw, u0, u1, ilam, g, off, colsum)
             if sc <= 0.0:
                 continue
             # insertion into the top list (ties keep the earlier candidate first)
             t = ns if ns < SCREEN else SCREEN - 1
-            if ns == SCREEN and not sc > top_s[t]:
+            if ns == SCREEN and not sc > top_s[0, t]:
                 continue
-            while t > 0 and sc > top_s[t - 1]:
-                top_s[t] = top_s[t - 1]
+            while t > 0 and sc > top_s[0, t - 1]:
+                top_s[0, t] = top_s[0, t - 1]
+                top_s[1, t] = top_s[1, t - 1]
+                top_s[2, t] = top_s[2, t - 1]
                 top_j[t] = top_j[t - 1]
                 t -= 1
-            top_s[t] = sc
+            top_s[0, t] = sc
+            top_s[1, t] = nin
+            top_s[2, t] = ratio
             top_j[t] = j
             if ns < SCREEN:
                 ns += 1
@@ -423,8 +454,14 @@ def fit_pixel(kb, kw, nu, m, g, off, colsum, dg, kmax, sep_bins, gain_min, cand_
         bj = -1
         ba = 0.0
         for t in range(ns):
-            gn, an = add_gain(top_j[t], kb, kw, nu, ilam, g, off, colsum, 0.0, best, wk)
             seen[t] = top_j[t]
+            if t > 0:
+                # skipped when the screen's Jensen bound says it cannot beat the best: the exact gain
+                # would lose the comparison too
+                ratio = top_s[2, t]
+                if top_s[1, t] * (math.log(ratio) - 1.0 + 1.0 / ratio) < best - BAR_MARGIN * (1.0 + best):
+                    continue
+            gn, an = add_gain(top_j[t], kb, kw, nu, ilam, g, off, colsum, 0.0, best, wk)
             if gn > best:
                 best, bj, ba = gn, top_j[t], an
         if bj < 0:
@@ -440,16 +477,23 @@ def fit_pixel(kb, kw, nu, m, g, off, colsum, dg, kmax, sep_bins, gain_min, cand_
         bg = em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, ilam, EM_SWEEPS, gt, newa)
         if nr > 1:
             # re-refine each shift with the others (and the background) fixed
+            fresh = True
             for r in range(nr):
                 for s in range(nr):
                     tmp_s[s] = shifts[s]
                     tmp_a[s] = amps[s]
-                # the rate without return r
+                # the rate without return r: from EM's table of the response at the detections while
+                # no shift has moved since
                 tmp_a[r] = 0.0
-                model_irate(kb, nu, tmp_s, tmp_a, nr, bg, g, off, tmp_ilam)
+                if fresh:
+                    irate_table(gt, nu, tmp_a, nr, bg, tmp_ilam)
+                else:
+                    model_irate(kb, nu, tmp_s, tmp_a, nr, bg, g, off, tmp_ilam)
                 g0, a0 = add_gain(shifts[r], kb, kw, nu, tmp_ilam, g, off, colsum, amps[r], 0.0, wk)
                 jn, gn, an = refine_shift(shifts[r], g0, a0, kb, kw, nu, tmp_ilam, g, off, colsum, m, 2,
                                           shifts, nr, r, sep_bins, wk, seen, 0)
+                if jn != shifts[r]:
+                    fresh = False
                 shifts[r] = jn
                 amps[r] = an
             bg = em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, ilam, EM_SWEEPS, gt, newa)

@@ -217,7 +217,8 @@ def _multi_gain(y, lam, col, csum, newton=12):
         f1, f2 = np.sum(yy * q) - csum, -np.sum(yy * q * q)
         if f2 >= 0:
             break
-        na = a - f1 / f2
+        # Newton on 1 / f'(a) + c's reciprocal form (see recon.multi_kernels.add_gain)
+        na = a - f1 / f2 * (f1 + csum) / csum
         na = 0.5 * a if na <= 0 else na
         done = abs(na - a) <= 1e-7 * a
         a = na
