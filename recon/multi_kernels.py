@@ -384,7 +384,8 @@ def fit_work(n, kmax):
     k = max(kmax, 1)
     return (np.empty(n), np.empty(n), np.empty(n, np.int64), np.empty(k, np.int64), np.empty(k), np.empty(k),
             np.empty(k, np.int64), np.empty(k), np.empty((2, n)), np.empty((k, n)), np.empty(k),
-            np.empty((3, SCREEN)), np.empty(SCREEN, np.int64), np.empty(MEMO, np.int64))
+            np.empty((3, SCREEN)), np.empty(SCREEN, np.int64), np.empty(MEMO, np.int64),
+            np.empty((2, n), np.int64))
 
 
 @njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
@@ -392,7 +393,7 @@ def fit_pixel(kb, kw, nu, m, g, off, colsum, dg, kmax, sep_bins, gain_min, cand_
     """Greedy K-return fit of one pixel's unique bins (kb, kw); returns (nr, bg): shifts[:nr] (sorted),
     amps[:nr], gains[:nr] (nats each return added when it was taken), the arrays of ``work``
     (:func:`fit_work`, its 4th to 6th)."""
-    ilam, tmp_ilam, cand, shifts, amps, gains, tmp_s, tmp_a, wk, gt, newa, top_s, top_j, seen = work
+    ilam, tmp_ilam, cand, shifts, amps, gains, tmp_s, tmp_a, wk, gt, newa, top_s, top_j, seen, cand_u = work
     ntot = 0.0
     for u in range(nu):
         ntot += kw[u]
@@ -411,20 +412,26 @@ def fit_pixel(kb, kw, nu, m, g, off, colsum, dg, kmax, sep_bins, gain_min, cand_
         if nc == 0 or j - cand[nc - 1] >= cand_step:
             cand[nc] = j
             nc += 1
+    # the detections under each candidate's pulse, for every round: candidates ascend, so do both ends
+    nk = g.size
+    u0 = 0
+    u1 = 0
+    for c in range(nc):
+        j = cand[c]
+        while u0 < nu and kb[u0] < j - off:
+            u0 += 1
+        while u1 < nu and kb[u1] < j - off + nk:
+            u1 += 1
+        cand_u[0, c] = u0
+        cand_u[1, c] = u1
     nr = 0
     while nr < kmax:
         # the SCREEN best candidates by the second-order screen, then their exact gains
         ns = 0
-        u0 = 0
-        u1 = 0
-        nk = g.size
         for c in range(nc):
             j = cand[c]
-            # the detections under the pulse: candidates ascend, so do both ends
-            while u0 < nu and kb[u0] < j - off:
-                u0 += 1
-            while u1 < nu and kb[u1] < j - off + nk:
-                u1 += 1
+            u0 = cand_u[0, c]
+            u1 = cand_u[1, c]
             near = False
             for r in range(nr):
                 if abs(j - shifts[r]) < sep_bins:
