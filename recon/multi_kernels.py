@@ -10,17 +10,22 @@ when its gain exceeds ``gain_min`` nats; then every amplitude and the background
 and every earlier return's shift is re-refined with the others fixed. Plain reference:
 ``tests/reference.py::multi_return``.
 
-The kernel takes the reference's path step for step (same candidates, Newton starts and steps, EM
-sweeps and stopping rule); what makes it cheaper leaves every decision unchanged: a shift whose gain
-an upper bound puts below the one to beat is not scored exactly (:func:`add_gain`), a pattern search
-never scores a shift twice (:func:`refine_shift`), EM looks the response up once per refit, a
-pixel's detections are counted on the window's bins rather than sorted (:func:`unique_bins`), and
-the scratch is allocated once per block of pixels. Its arithmetic differs from the reference's in
-the last bits only, where it is cheaper: the rate's inverse is kept per detection
-(:func:`model_irate`), a gain's logs are summed as the log of one product (:func:`log_sum`), and
-EM's sums are vectorised (:func:`em_refit`). On fixed input that moved a shift on few pixels: on
-the real two-surface file with its measured response, 23 of 5,000, by 1-2 bins of 8 ps, all in the
-re-refinement of the first surface (the pulse is ~100 bins wide there, its profile flat).
+The kernel takes the reference's path (same candidates, Newton's form of step, EM sweeps and
+stopping rule); what makes it cheaper leaves every decision unchanged: a shift whose gain an upper
+bound puts below the one to beat is not scored exactly (:func:`add_gain`; for a screened candidate
+the bound comes from the screen's own sums, :func:`screen_score`), a pattern search never scores a
+shift twice (:func:`refine_shift`), each candidate's detections under the pulse are found once per
+pixel, not once per round, EM looks the response up once per refit and the rate after it comes from
+that table (:func:`irate_table`), a pixel's detections are counted on the window's bins rather than
+sorted (:func:`unique_bins`), and the scratch is allocated once per block of pixels. Newton on an
+amplitude starts where the caller already is when it can (a neighbouring shift's amplitude, EM's),
+the reference from the detections' count: the amplitudes agree to Newton's tolerance. Its
+arithmetic differs from the reference's in the last bits only, where it is cheaper: the rate's
+inverse is kept per detection (:func:`model_irate`), a gain's logs are summed as the log of one
+product (:func:`log_sum`), and the sums over detections are reordered so that they vectorise
+(:func:`slopes`, :func:`gather`, :func:`em_refit`). On fixed input that moved a shift on few pixels:
+on the real two-surface file with its measured response, 23 of 5,000, by 1-2 bins of 8 ps, all in
+the re-refinement of the first surface (the pulse is ~100 bins wide there, its profile flat).
 
 The helpers a pixel's fit calls allocate nothing and are compiled with ``_nrt=False``, as in
 :mod:`recon.kernels` (no atomic reference counting of their array arguments at each call: 4% here).
@@ -76,7 +81,9 @@ def first_at_least(kb, nu, v):
 def slopes(a, c, wk, n):
     """(f'(a), f''(a)) of the gain f of a return of column sum c over the gathered detections
     under it: wk[0, :n] the response values over the model's rate, x_u = g_u / lam_u, wk[1, :n]
-    the counts."""
+    the counts. ``reassoc`` lets the sums vectorise (they are reordered: the last bits differ);
+    compiled on its own, not inlined by numba, which would compile it with the caller's flags
+    (3% of the K-surface fit)."""
     f1 = -c
     f2 = 0.0
     for i in range(n):
@@ -115,8 +122,10 @@ def log_sum(a, wk, n):
 
 @njit(cache=True, nogil=True, _nrt=False, error_model="numpy", fastmath={"reassoc"})
 def gather(kb, kw, u0, n, ilam, g, lo, wk):
-    """wk[0, i] = x = g[kb[u] - lo] / lam_u and wk[1, i] = kw[u] for u = u0 + i, i < n; returns
-    (sum w x, sum w)."""
+    """wk[0, i] = x = g[kb[u] - lo] / lam_u and wk[1, i] = kw[u] for u = u0 + i, i < n (the
+    detections under the pulse placed at bin lo); returns (sum w x, sum w). Every detection in the
+    pulse's reach is kept, a zero of the response included (it adds nothing to f and its slopes,
+    and only loosens add_gain's bound, which counts it): no test per detection, so it vectorises."""
     s1 = 0.0
     nin = 0.0
     for i in range(n):
@@ -176,6 +185,11 @@ def add_gain(j, kb, kw, nu, ilam, g, off, colsum, a0, bar, wk):
     for _ in range(NEWTON_STEPS):
         if f2 >= 0.0:
             break
+        # Newton on 1 / phi(a) = 1 / c, phi = f' + c = sum w x / (1 + a x): 1 / phi is nearly linear
+        # in a (exactly so for one detection), where phi itself is ~N / a, so plain Newton on f'
+        # crept up by doublings from below or overshot below zero from above (4-12 steps from the
+        # detections' count, 3-5 now). 1 / phi is concave (a harmonic mean of lines), so every step
+        # lands at or below the root and climbs to it: the same root, Newton's step times phi / c
         na = a - f1 / f2 * (f1 + c) / c
         if na <= 0.0:
             na = 0.5 * a
@@ -189,10 +203,13 @@ def add_gain(j, kb, kw, nu, ilam, g, off, colsum, a0, bar, wk):
 
 @njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
 def screen_score(j, kb, kw, u0, u1, ilam, g, off, colsum):
-    """The gain of adding a return at shift j to second order in its amplitude at 0,
-    ``d0^2 / (2 c2)`` (slope d0 and curvature c2 there; 0 when the slope is not positive): one pass,
-    to pick the candidates worth the exact :func:`add_gain`. kb[u0:u1]: the detections under the
-    pulse at j; ilam: 1 / the model's rate at the photons."""
+    """(score, N, r) of adding a return at shift j. score: its gain to second order in the
+    amplitude at 0, ``d0^2 / (2 c2)`` (slope d0 and curvature c2 there; 0 when the slope is not
+    positive), to pick the candidates worth the exact :func:`add_gain`; N (detections under the
+    pulse) and r = S1 / c (S1 = d0 + c = sum w x) give an upper bound on the exact gain,
+    ``N (log r - 1 + 1 / r)`` (Jensen), which spares a candidate's exact gain when it cannot beat
+    the best (about half of those after the first on ``spdepth bench surfaces``' scene). One pass. kb[u0:u1]: the detections under
+    the pulse at j; ilam: 1 / the model's rate at the photons."""
     lo = j - off
     c = colsum[j]
     if c <= 0.0:
@@ -379,7 +396,8 @@ def shift_fisher(r, shifts, amps, nr, bg, g, dg, off, m):
 def fit_work(n, kmax):
     """Scratch of :func:`fit_pixel` for up to n distinct bins and kmax returns, allocated once per
     block of pixels: (ilam, tmp_ilam, cand, shifts, amps, gains, tmp_s, tmp_a, wk, gt, newa, top_s,
-    top_j, seen)."""
+    top_j, seen, cand_u); top_s: the screen's (score, N, r) of the best candidates, cand_u: each
+    candidate's first and end index of the detections under its pulse."""
     n = max(n, 1)
     k = max(kmax, 1)
     return (np.empty(n), np.empty(n), np.empty(n, np.int64), np.empty(k, np.int64), np.empty(k), np.empty(k),
@@ -412,7 +430,8 @@ def fit_pixel(kb, kw, nu, m, g, off, colsum, dg, kmax, sep_bins, gain_min, cand_
         if nc == 0 or j - cand[nc - 1] >= cand_step:
             cand[nc] = j
             nc += 1
-    # the detections under each candidate's pulse, for every round: candidates ascend, so do both ends
+    # the detections under each candidate's pulse, once for every round (found again in each round,
+    # they cost 5% of the fit): candidates ascend, so do both ends
     nk = g.size
     u0 = 0
     u1 = 0
