@@ -326,12 +326,7 @@ def em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, ilam
             if nr == 2:
                 newa[1] = a1 * s1
         else:
-            for u in range(nu):
-                ilam[u] = bg
-            for r in range(nr):
-                ar = amps[r]
-                for u in range(nu):
-                    ilam[u] += ar * gt[r, u]
+            rate_table(gt, nu, amps, nr, bg, ilam)
             nb = 0.0
             for u in range(nu):
                 ilam[u] = kw[u] / ilam[u]
@@ -357,16 +352,23 @@ def em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, ilam
 
 
 @njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
-def irate_table(gt, nu, amps, nr, bg, ilam):
-    """:func:`model_irate` from :func:`em_refit`'s table gt of the response at the detections (valid
-    while the shifts are EM's): the same sums in the same order (gt is 0 where model_irate adds
-    nothing), so bit for bit the same, in loops without a test that vectorise."""
+def rate_table(gt, nu, amps, nr, bg, lam):
+    """lam[u] = bg + sum_r amps[r] gt[r, u]: the model's rate at the detections from
+    :func:`em_refit`'s table gt of the response there (valid while the shifts are EM's), in loops
+    without a test, which vectorise."""
     for u in range(nu):
-        ilam[u] = bg
+        lam[u] = bg
     for r in range(nr):
         a = amps[r]
         for u in range(nu):
-            ilam[u] += a * gt[r, u]
+            lam[u] += a * gt[r, u]
+
+
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
+def irate_table(gt, nu, amps, nr, bg, ilam):
+    """:func:`model_irate` from the table (:func:`rate_table`): the same sums in the same order (gt
+    is 0 where model_irate adds nothing), so bit for bit the same."""
+    rate_table(gt, nu, amps, nr, bg, ilam)
     for u in range(nu):
         ilam[u] = 1.0 / ilam[u]
 
