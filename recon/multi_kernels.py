@@ -23,9 +23,12 @@ the reference from the detections' count: the amplitudes agree to Newton's toler
 arithmetic differs from the reference's in the last bits only, where it is cheaper: the rate's
 inverse is kept per detection (:func:`model_irate`), a gain's logs are summed as the log of one
 product (:func:`log_sum`), and the sums over detections are reordered so that they vectorise
-(:func:`slopes`, :func:`gather`, :func:`em_refit`). On fixed input that moved a shift on few pixels:
-on the real two-surface file with its measured response, 23 of 5,000, by 1-2 bins of 8 ps, all in
-the re-refinement of the first surface (the pulse is ~100 bins wide there, its profile flat).
+(:func:`slopes`, :func:`gather`, :func:`em_refit`). On fixed input that moves a shift on few
+pixels, always a weak surface on a flat profile, where a pattern search's local maximum follows the
+last bits of the gains it compares: on the real two-surface file with its measured response (the
+pulse ~100 bins of 8 ps wide), the vectorised EM moved 23 of 5,000 by 1-2 bins, and the reciprocal
+Newton step with the reordered sums (against the kernel before them) 23 of 5,000, all on the first
+surface (2-20 nats), by 1-17 bins, the share of both surfaces found the same (90.2%).
 
 The helpers a pixel's fit calls allocate nothing and are compiled with ``_nrt=False``, as in
 :mod:`recon.kernels` (no atomic reference counting of their array arguments at each call: 4% here).
