@@ -27,9 +27,9 @@ product (:func:`log_sum`), and the sums over detections are reordered so that th
 pixels, always a weak surface on a flat profile, where a pattern search's local maximum follows the
 last bits of the gains it compares: on the real two-surface file with its measured response (the
 pulse ~100 bins of 8 ps wide), the rate's inverse, the one product and EM's vectorised sums moved
-23 of 5,000 by 1-2 bins, and the reciprocal
-Newton step with the reordered sums (against the kernel before them) 23 of 5,000, all on the first
-surface (2-20 nats), by 1-17 bins, the share of both surfaces found the same (90.2%).
+23 of 5,000 by 1-2 bins, and the reciprocal Newton step with the reordered sums (against the kernel
+before them) 23 of 5,000, all on the first surface (2-20 nats), by 1-17 bins, the share of both
+surfaces found the same (90.2%).
 
 The helpers a pixel's fit calls allocate nothing and are compiled with ``_nrt=False``, as in
 :mod:`recon.kernels` (no atomic reference counting of their array arguments at each call: 4% here).
