@@ -212,8 +212,8 @@ def screen_score(j, kb, kw, u0, u1, ilam, g, off, colsum):
     positive), to pick the candidates worth the exact :func:`add_gain`; N (detections under the
     pulse) and r = S1 / c (S1 = d0 + c = sum w x) give an upper bound on the exact gain,
     ``N (log r - 1 + 1 / r)`` (Jensen), which spares a candidate's exact gain when it cannot beat
-    the best (about half of those after the first on ``spdepth bench surfaces``' scene). One pass. kb[u0:u1]: the detections under
-    the pulse at j; ilam: 1 / the model's rate at the photons."""
+    the best (about half of those after the first on ``spdepth bench surfaces``' scene). One pass.
+    kb[u0:u1]: the detections under the pulse at j; ilam: 1 / the model's rate at the photons."""
     lo = j - off
     c = colsum[j]
     if c <= 0.0:
