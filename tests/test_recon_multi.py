@@ -345,3 +345,73 @@ def test_auto_one_surface_on_the_mannequin():
           f"pixelwise {share['uos']}, spatial {share['spatial']}")
     assert share["uos"][0] >= 0.995 and share["uos"][2] > 0.7
     assert share["spatial"][0] >= 0.97 and share["spatial"][1] >= 0.985 and share["spatial"][2] > 0.85
+
+
+def _random_pixel(rng, kern, m):
+    """A pixel's distinct bins, counts and a model rate's inverse at them, as the kernel holds them:
+    a surface and background, some bins with several detections."""
+    t = np.concatenate([rng.normal(rng.uniform(100, m - 100), 8.0, rng.integers(3, 40)),
+                        rng.uniform(0, m, rng.integers(1, 30))])
+    kb, kw = np.unique(np.clip(np.floor(t), 0, m - 1).astype(np.int64), return_counts=True)
+    lam = rng.uniform(0.01, 0.3) + rng.uniform(0, 2.0) * kern.g[np.clip(kb - kb[len(kb) // 2] + kern.off, 0,
+                                                                          kern.g.size - 1)]
+    return kb, kw.astype(float), 1.0 / lam
+
+
+def test_screen_bound_is_above_every_exact_gain_it_spares():
+    """fit_pixel skips a screened candidate's exact gain when the screen's Jensen bound,
+    N (log r - 1 + 1 / r), is below the best: the bound must never be below the exact gain (a wrong
+    bound would skip a candidate that wins)."""
+    from spdepth.recon import multi_kernels as MK
+
+    rng = np.random.default_rng(152)
+    b = Binning(UNIT_S, 0.0, 1600.0, 2.0)
+    kern = build_kernel(b, pulse_rms_s=8.0 * 2.0 * UNIT_S)
+    m = b.n_bins
+    wk = np.empty((2, 200))
+    checked = 0
+    for _ in range(300):
+        kb, kw, ilam = _random_pixel(rng, kern, m)
+        nu = kb.size
+        # the shifts the screen looks at: the response's peak on a detection, and some off them
+        dpk = int(np.argmax(kern.g))
+        for j in np.clip(rng.choice(kb, 20) + kern.off - dpk + rng.integers(-20, 21, 20), 0, m - 1):
+            u0 = int(np.searchsorted(kb, j - kern.off))
+            u1 = int(np.searchsorted(kb, j - kern.off + kern.g.size))
+            sc, nin, ratio = MK.screen_score(j, kb, kw, u0, u1, ilam, kern.g, kern.off, kern.colsum)
+            gain, amp = MK.add_gain(j, kb, kw, nu, ilam, kern.g, kern.off, kern.colsum, 0.0, 0.0, wk)
+            if sc <= 0.0:
+                assert gain == 0.0       # no positive slope at 0: nothing to gain
+                continue
+            bound = nin * (np.log(ratio) - 1.0 + 1.0 / ratio)
+            assert gain > 0.0 and bound >= gain - 1e-9 * (1.0 + gain), (j, gain, bound)
+            checked += 1
+    assert checked > 2000
+
+
+def test_rate_from_em_table_is_model_irate_bit_for_bit():
+    """After EM, the rate's inverse at the detections comes from EM's table of the response there
+    (irate_table) instead of looking the response up again (model_irate): the same sums in the
+    same order, so the same bits, with or without a return left out (the re-refinement's rate)."""
+    from spdepth.recon import multi_kernels as MK
+
+    rng = np.random.default_rng(153)
+    b = Binning(UNIT_S, 0.0, 1600.0, 2.0)
+    kern = build_kernel(b, pulse_rms_s=8.0 * 2.0 * UNIT_S)
+    m = b.n_bins
+    for nr in (1, 2, 3):
+        kb, kw, _ = _random_pixel(rng, kern, m)
+        nu = kb.size
+        shifts = np.sort(rng.choice(np.arange(50, m - 50), nr, replace=False)).astype(np.int64)
+        amps = rng.uniform(1.0, 20.0, nr)
+        ilam, via_table, direct = np.empty(nu), np.empty(nu), np.empty(nu)
+        gt, newa = np.empty((nr, nu)), np.empty(nr)
+        bg = MK.em_refit(kb, kw, nu, shifts, amps, nr, 0.05, 1e-9, kern.g, kern.off, kern.colsum, m, ilam,
+                         MK.EM_SWEEPS, gt, newa)
+        MK.model_irate(kb, nu, shifts, amps, nr, bg, kern.g, kern.off, direct)
+        assert np.array_equal(ilam, direct)
+        without = amps.copy()
+        without[0] = 0.0
+        MK.irate_table(gt, nu, without, nr, bg, via_table)
+        MK.model_irate(kb, nu, shifts, without, nr, bg, kern.g, kern.off, direct)
+        assert np.array_equal(via_table, direct)
