@@ -330,7 +330,8 @@ class ReplaySource:
         pass from its first record to where the session stopped using the stream (the event
         log's ``pass_end``); records outside every pass (before the first, or the tail of a
         pass the session had stopped waiting for) are decoded, for the sync count, and left
-        out, as the live session left them out. A recording from before ``pass_end`` was logged
+        out, as the live session left them out, but for their lost spans, which open the next
+        pass as they did live. A recording from before ``pass_end`` was logged
         runs each pass up to the next one, the first from record 0."""
         n = self.info.n_records
         if self._passes:
@@ -350,21 +351,30 @@ class ReplaySource:
         for g, a, b, k in zip(geoms, starts, ends, lost_ends):
             yield g, self._chunks(decoder, a, b, k)
 
-    def _skip_to(self, decoder: "_Decoder", a: int) -> None:
+    def _skip_to(self, decoder: "_Decoder", a: int) -> np.ndarray:
         """Decode the records up to ``a`` and drop their events (the T3 sync count runs on
-        through them, as it did in the live reader)."""
+        through them, as it did in the live reader), but for the lost spans among them and those
+        logged at ``a``, which are returned: the live pass kept them (a hole logged before its
+        first record may reach into it)."""
         decoder.lost_limit = None
+        lost = []
         for records in iter_records(self.layout, self.chunk_records, start=decoder.position):
             take = min(records.size, a - decoder.position)
             if take <= 0:
                 break
-            decoder.decode(np.asarray(records[:take]))
-        decoder.decode(_NO_RECORDS)       # and lost spans logged at ``a``: the live pass dropped them
+            ev = decoder.decode(np.asarray(records[:take]))
+            lost.append(ev[ev["kind"] == EventKind.LOST])
+        ev = decoder.decode(_NO_RECORDS)
+        lost.append(ev[ev["kind"] == EventKind.LOST])
+        return np.concatenate(lost)
 
     def _chunks(self, decoder: "_Decoder", a: int, b: int, lost_end: int | None = None):
-        self._skip_to(decoder, a)
+        lost_before = self._skip_to(decoder, a)
+        if lost_before.size:
+            yield lost_before
         # a lost span logged at the pass's last record that reached the live session only after
-        # the pass ended (``pass_end``'s lost_end) was left out there: here too
+        # the pass ended (``pass_end``'s lost_end) was left out there, and the next pass took it
+        # (``_skip_to``): here too
         decoder.lost_limit = lost_end
         pace = self.speed not in ("max", None)
         t_wall0 = None

@@ -162,14 +162,20 @@ class ScanSource:
             now = time.monotonic()
             if chunk.size:
                 self._losts_received += int(np.count_nonzero(chunk["kind"] == EventKind.LOST))
-            if chunk.size and start is not None and reader.recorded_through is not None \
-                    and reader.recorded_through <= start:
+            stale = chunk.size and start is not None and reader.recorded_through is not None \
+                and reader.recorded_through <= start
+            if stale:
                 # recorded before this pass began: the tail of the last pass, which stopped
-                # waiting for it (a replay leaves it out too: the pass ends where it was cut)
-                continue
+                # waiting for it (a replay leaves it out too: the pass ends where it was cut).
+                # Its lost spans are kept: a hole logged before this pass's first record may
+                # reach into the pass (a failed first read loses its frame marker and first lines,
+                # whose photons would then go to the wrong rows), so this pass rescans too
+                chunk = chunk[chunk["kind"] == EventKind.LOST]
+                if not chunk.size:
+                    continue
             if chunk.size:
                 last_data = now
-                if start is not None:
+                if start is not None and not stale:
                     used_through = reader.recorded_through
                 if host.process(chunk):
                     self._lost_in_pass = True

@@ -566,14 +566,19 @@ class _LateLossReader(_LateReader):
         return chunk
 
 
-def test_a_loss_reported_after_its_pass_ended_is_left_out_by_the_replay_too(tmp_path):
+def test_a_loss_reported_after_its_pass_ended_cuts_the_next_pass_and_the_replay_does_too(tmp_path):
+    """A hole that reaches the session only once the next pass began is logged before that pass's
+    first record, like a hole in that pass's own first read (which loses its frame marker): the
+    next pass takes it (reported, the pass cut and its pixels rescanned), never drops it, and the
+    replay puts it in the same pass."""
     with open_sim("bust", (12, 12), ppp=10, seed=9, keep_truth=True, faults="device-vanish@40%") as inst:
         s = _session(inst, (12, 12), tmp_path)
         _wrap_reader(s, lambda r: _LateLossReader(r, s))
         assert s.run() == SessionState.DONE, s.error
         assert_from_complete_dwells(s, inst.rig)
+        assert_complete_or_flagged(s)
     events = [json.loads(line) for line in (tmp_path / "events.jsonl").open()]
-    assert any(e.get("event") == "lost" for e in events) and not s.lost    # the hole came late
+    assert any(e.get("event") == "lost" for e in events) and len(s.lost) == 1     # the late hole, taken
     _assert_replay_equals_live(s, tmp_path)
 
 
