@@ -310,6 +310,8 @@ def reconstruct_multi(store: PhotonStore, settings: ReconSettings, b: Binning, k
 SPATIAL_RADIUS = 1
 #: spatial, several surfaces: "the same surface" in a neighbour: within this many response FWHM.
 SPATIAL_TAU_FWHM = 1.0
+#: spatial: pixels fitted per call of the neighbourhood kernel, between progress reports.
+SPATIAL_SLICE = 4096
 
 
 def reconstruct_multi_spatial(store: PhotonStore, settings: ReconSettings, b: Binning, kern: PulseKernel,
@@ -353,12 +355,15 @@ def reconstruct_multi_spatial(store: PhotonStore, settings: ReconSettings, b: Bi
     bg = np.zeros(npix)
     sep = max(1, int(round(SEP_FWHM * fw)))
     core_bins = core_s / b.bin_width_s
-    MK.neighbour_surfaces(bins, offsets, h, w, SPATIAL_RADIUS, shift0, gain0, float(strong), float(pool), float(tau),
-                          sep, kmax, kmax + 1, max(1, int(round(CAND_CORE * core_bins))), kern.g, kern.off,
-                          kern.colsum, kern.dg, b.n_bins, _step0(core_bins), int(counts.max()) if npix else 0,
-                          shift, amp, bg, var, gain, src)
-    if progress is not None:
-        progress(npix, npix)
+    # in slices of pixels, so that a long run shows its progress (the pooled fits are ~90% of it)
+    for p0 in range(0, npix, SPATIAL_SLICE):
+        p1 = min(npix, p0 + SPATIAL_SLICE)
+        MK.neighbour_surfaces(bins, offsets, h, w, SPATIAL_RADIUS, shift0, gain0, float(strong), float(pool),
+                              float(tau), sep, kmax, kmax + 1, max(1, int(round(CAND_CORE * core_bins))), kern.g,
+                              kern.off, kern.colsum, kern.dg, b.n_bins, _step0(core_bins), int(counts.max()),
+                              shift, amp, bg, var, gain, src, p0, p1)
+        if progress is not None:
+            progress(p1, npix)
     has = np.isfinite(shift)
     sig = np.where(has, amp * kern.colsum[np.clip(np.nan_to_num(shift).astype(np.int64), 0, b.n_bins - 1)], 0.0)
     sm_shift = np.empty_like(shift)

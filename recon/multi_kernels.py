@@ -596,7 +596,7 @@ def multi_return_kernel(bins, offsets, m, g, off, colsum, dg, kmax, sep_bins, ga
 @njit(parallel=True, cache=True, nogil=True)
 def neighbour_surfaces(bins, offsets, h, w, radius, shift_in, gain_in, strong_nats, pool_nats, tau_bins,
                        sep_bins, kmax, kpool, cand_step, g, off, colsum, dg, m, step0, maxn,
-                       out_shift, out_amp, out_bg, out_var, out_gain, out_src):
+                       out_shift, out_amp, out_bg, out_var, out_gain, out_src, p_start, p_stop):
     """Each pixel's surfaces with its neighbours' help.
 
     shift_in, gain_in: (P, kmax) the pixelwise fit (NaN / 0 past the surfaces found). Per pixel:
@@ -612,9 +612,10 @@ def neighbour_surfaces(bins, offsets, h, w, radius, shift_in, gain_in, strong_na
        neighbourhood supports in time is signal; a pixel that sees none of a surface does not get
        it).
     Outputs as multi_return_kernel; out_src[p, r]: 0 the pixel's own strong surface, 1 from the
-    neighbourhood's pooled fit."""
-    npix = offsets.size - 1
-    nblk = (npix + BLOCK - 1) // BLOCK
+    neighbourhood's pooled fit.
+    Only the pixels p_start <= p < p_stop are fitted (their neighbours' detections come from the
+    whole image): the caller goes through the image in slices and reports progress between them."""
+    nblk = (p_stop - p_start + BLOCK - 1) // BLOCK
     kk = shift_in.shape[1]
     nn = (2 * radius + 1) * (2 * radius + 1)
     dpk = int(np.argmax(g))
@@ -638,7 +639,7 @@ def neighbour_surfaces(bins, offsets, h, w, radius, shift_in, gain_in, strong_na
         cand = np.empty(kk + kpool, np.int64)
         csrc = np.empty(kk + kpool, np.int64)
         src = np.empty(kmax, np.int64)
-        for p in range(blk * BLOCK, min(npix, (blk + 1) * BLOCK)):
+        for p in range(p_start + blk * BLOCK, min(p_stop, p_start + (blk + 1) * BLOCK)):
             o0 = offsets[p]
             o1 = offsets[p + 1]
             for r in range(kmax):

@@ -241,9 +241,11 @@ def test_spatial_kernels_match_numpy_reference():
     npix = store.n_pixels
     out = [np.full((npix, 2), np.nan), np.zeros((npix, 2)), np.zeros(npix), np.full((npix, 2), np.nan),
            np.zeros((npix, 2)), np.full((npix, 2), -1, np.int64)]
-    MK.neighbour_surfaces(bins, offsets, 5, 6, 1, shift0, gain0, 14.0, 8.0, float(fw), fw, 2, 3,
-                          args["cand_step"], kern.g, kern.off, kern.colsum, kern.dg, b.n_bins, args["step0"],
-                          int(np.diff(offsets).max()), *out)
+    # in two slices of pixels, as recon.multi calls it (between progress reports)
+    for p0, p1 in ((0, 13), (13, npix)):
+        MK.neighbour_surfaces(bins, offsets, 5, 6, 1, shift0, gain0, 14.0, 8.0, float(fw), fw, 2, 3,
+                              args["cand_step"], kern.g, kern.off, kern.colsum, kern.dg, b.n_bins, args["step0"],
+                              int(np.diff(offsets).max()), *out, p0, p1)
     expect = ref.neighbour_surfaces(ys, 5, 6, kern, ref.dense_s(kern), shift_in=shift0, gain_in=gain0, **args)
     for p, (rs, ra, rc) in enumerate(expect):
         n = rs.size
@@ -415,3 +417,23 @@ def test_rate_from_em_table_is_model_irate_bit_for_bit():
         MK.irate_table(gt, nu, without, nr, bg, via_table)
         MK.model_irate(kb, nu, shifts, without, nr, bg, kern.g, kern.off, direct)
         assert np.array_equal(via_table, direct)
+
+
+def test_spatial_surfaces_report_progress_as_they_go():
+    """--method spatial --reflectors K fits every pixel's neighbourhood in slices and says how far
+    it got after each (a 512 x 512 frame takes tens of seconds on one core), ending at the total."""
+    from spdepth.recon import multi
+
+    rng = np.random.default_rng(156)
+    lists, _ = scene(rng, 40 * 50, [12, 8], 4.0)
+    store = PhotonStore.from_lists(lists, (40, 50), UNIT_S)
+    seen = []
+    slice_was = multi.SPATIAL_SLICE
+    multi.SPATIAL_SLICE = 512
+    try:
+        reconstruct(store, ReconSettings(method="spatial", binning=Binning(UNIT_S, 0, 4000, 5),
+                                         pulse_rms_s=RMS_U * UNIT_S, reflectors=2),
+                    progress=lambda done, total: seen.append((done, total)))
+    finally:
+        multi.SPATIAL_SLICE = slice_was
+    assert [d for d, _ in seen] == [512, 1024, 1536, 2000] and {t for _, t in seen} == {2000}
