@@ -355,7 +355,7 @@ def reconstruct_multi_spatial(store: PhotonStore, settings: ReconSettings, b: Bi
     bg = np.zeros(npix)
     sep = max(1, int(round(SEP_FWHM * fw)))
     core_bins = core_s / b.bin_width_s
-    # in slices of pixels, so that a long run shows its progress (the pooled fits are ~90% of it)
+    # in slices of pixels, so that a long run shows its progress (the pooled fits are ~85% of it)
     for p0 in range(0, npix, SPATIAL_SLICE):
         p1 = min(npix, p0 + SPATIAL_SLICE)
         MK.neighbour_surfaces(bins, offsets, h, w, SPATIAL_RADIUS, shift0, gain0, float(strong), float(pool),
