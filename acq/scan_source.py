@@ -162,7 +162,7 @@ class ScanSource:
             now = time.monotonic()
             if chunk.size:
                 self._losts_received += int(np.count_nonzero(chunk["kind"] == EventKind.LOST))
-            stale = chunk.size and start is not None and reader.recorded_through is not None \
+            stale = chunk.size > 0 and start is not None and reader.recorded_through is not None \
                 and reader.recorded_through <= start
             if stale:
                 # recorded before this pass began: the tail of the last pass, which stopped

@@ -217,7 +217,7 @@ def _multi_gain(y, lam, col, csum, newton=12):
         f1, f2 = np.sum(yy * q) - csum, -np.sum(yy * q * q)
         if f2 >= 0:
             break
-        # Newton on 1 / f'(a) + c's reciprocal form (see recon.multi_kernels.add_gain)
+        # Newton on 1 / phi(a) = 1 / csum, phi = f' + csum: the same root (see recon.multi_kernels.add_gain)
         na = a - f1 / f2 * (f1 + csum) / csum
         na = 0.5 * a if na <= 0 else na
         done = abs(na - a) <= 1e-7 * a

@@ -372,16 +372,16 @@ def test_screen_bound_is_above_every_exact_gain_it_spares():
     m = b.n_bins
     wk = np.empty((2, 200))
     checked = 0
+    dpk = int(np.argmax(kern.g))
     for _ in range(300):
         kb, kw, ilam = _random_pixel(rng, kern, m)
         nu = kb.size
         # the shifts the screen looks at: the response's peak on a detection, and some off them
-        dpk = int(np.argmax(kern.g))
         for j in np.clip(rng.choice(kb, 20) + kern.off - dpk + rng.integers(-20, 21, 20), 0, m - 1):
             u0 = int(np.searchsorted(kb, j - kern.off))
             u1 = int(np.searchsorted(kb, j - kern.off + kern.g.size))
             sc, nin, ratio = MK.screen_score(j, kb, kw, u0, u1, ilam, kern.g, kern.off, kern.colsum)
-            gain, amp = MK.add_gain(j, kb, kw, nu, ilam, kern.g, kern.off, kern.colsum, 0.0, 0.0, wk)
+            gain, _ = MK.add_gain(j, kb, kw, nu, ilam, kern.g, kern.off, kern.colsum, 0.0, 0.0, wk)
             if sc <= 0.0:
                 assert gain == 0.0       # no positive slope at 0: nothing to gain
                 continue
