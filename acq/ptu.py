@@ -53,7 +53,7 @@ from typing import IO, Iterator
 
 import numpy as np
 
-from spdepth.drivers.events import Marker
+from spdepth.drivers.events import GENERIC_T3_RECORD_TYPES, Marker, RecordType
 from spdepth.drivers.tagger.t3 import (T3_DTIME_MAX, T3_MARKER_MASK_MAX, T3EncoderState, encode_t3,
                                split_marker_records)
 from spdepth.recon.errors import InputError
@@ -70,18 +70,6 @@ RECON_TAG = "SPDepth_Recon"
 """The estimator settings the session used (JSON)."""
 INFO_TAG = "SPDepth_Info"
 """Facts about the source (scene, seed, devices) (JSON)."""
-
-RECORD_TYPE_HYDRAHARP2_T3 = 0x01010304
-GENERIC_T3_LAYOUT_TYPES = frozenset({
-    0x01010304,   # HydraHarp V2.x T3 (what our tagger writes)
-    0x00010307,   # Generic T3: MultiHarp, PicoHarp 330, HydraHarp 500
-    0x00010305,   # TimeHarp 260N T3
-    0x00010306,   # TimeHarp 260P T3
-})
-"""Record types whose 32-bit records are ``special:1 | channel:6 | dtime:15 | nsync:10`` with
-overflow counts in nsync (HydraHarp V1 T3, 0x00010304, differs: each overflow record counts one)."""
-"""``TTResultFormat_TTTRRecType`` of HydraHarp v2 / Generic T3 records (overflow records carry a
-count), what our tagger streams."""
 
 T3_MAX_BINS = T3_DTIME_MAX + 1
 """dtime bins a Generic T3 record can carry (15 bits)."""
@@ -116,7 +104,7 @@ def _tag_value(name: str, value):
 
 def ptu_header(shape: tuple[int, int], sync_period_s: float, resolution_s: float,
                pixel_time_s: float, range_bins: int, *, comment: str = "",
-               tags: dict | None = None, record_type: int = RECORD_TYPE_HYDRAHARP2_T3) -> bytes:
+               tags: dict | None = None, record_type: int = RecordType.HYDRAHARP2_T3) -> bytes:
     """A complete PTU header for a T3 image recording of HydraHarp v2 / Generic T3 records
     (``TTResultFormat_TTTRRecType = 0x01010304``) with ``TTResult_NumberOfRecords = 0``.
 
@@ -130,7 +118,7 @@ def ptu_header(shape: tuple[int, int], sync_period_s: float, resolution_s: float
     tags:          extra tags (names up to 31 ASCII characters, e.g. ``SPDepth_Plan``): numbers,
                    bools and strings are written as such, other JSON-able values as JSON strings.
                    They cannot replace the tags this function sets for the format.
-    record_type:   ``TTResultFormat_TTTRRecType``: one of :data:`GENERIC_T3_LAYOUT_TYPES` (a
+    record_type:   ``TTResultFormat_TTTRRecType``: one of ``drivers.events.GENERIC_T3_RECORD_TYPES`` (a
                    PicoQuant device's own type, e.g. MultiHarp Generic T3 0x00010307).
     The records follow the header directly. Raises InputError for settings a T3 image PTU cannot
     express.
@@ -149,7 +137,7 @@ def ptu_header(shape: tuple[int, int], sync_period_s: float, resolution_s: float
                          f"{T3_MAX_BINS}): use a coarser resolution or a shorter tagger range")
     if not pixel_time_s > 0:
         raise InputError(f"PTU pixel time must be > 0 s, got {pixel_time_s!r}")
-    if record_type not in GENERIC_T3_LAYOUT_TYPES:
+    if record_type not in GENERIC_T3_RECORD_TYPES:
         raise InputError(f"PTU record type 0x{record_type:08x} does not have the Generic T3 layout")
     fixed = {
         "File_GUID": f"{{{uuid.uuid4()}}}",
@@ -366,6 +354,6 @@ def read_layout(path: str | os.PathLike) -> PtuLayout:
 
 
 __all__ = ["MARKER_INPUT", "PIXEL_MARKER_TAG", "PLAN_TAG", "RECON_TAG", "INFO_TAG",
-           "RECORD_TYPE_HYDRAHARP2_T3", "GENERIC_T3_LAYOUT_TYPES", "PtuLayout",
+           "PtuLayout",
            "encode_events", "image_tags", "iter_records", "marker_map", "patch_record_count",
            "ptu_header", "read_layout", "split_marker_records", "write_ptu"]

@@ -44,12 +44,12 @@ from numba import njit
 from spdepth.acq.assign import PassGeometry
 from spdepth.acq.errors import RecordingError, RequestError
 from spdepth.acq.flags import AcqFlag
-from spdepth.acq.ptu import (GENERIC_T3_LAYOUT_TYPES, INFO_TAG, PIXEL_MARKER_TAG, PLAN_TAG,
-                             RECON_TAG, RECORD_TYPE_HYDRAHARP2_T3, iter_records, marker_map,
-                             patch_record_count, ptu_header, read_layout, split_marker_records)
+from spdepth.acq.ptu import (INFO_TAG, PIXEL_MARKER_TAG, PLAN_TAG, RECON_TAG, iter_records,
+                             marker_map, patch_record_count, ptu_header, read_layout,
+                             split_marker_records)
 from spdepth.acq.sources import feed_passes
 from spdepth.drivers.errors import ProtocolError
-from spdepth.drivers.events import EVENT_DTYPE, EventKind
+from spdepth.drivers.events import EVENT_DTYPE, GENERIC_T3_RECORD_TYPES, EventKind, RecordType
 from spdepth.drivers.tagger.t3 import T3DecoderState, decode_t3
 from spdepth.recon.errors import InputError
 from spdepth.recon.model import ReconSettings
@@ -82,7 +82,7 @@ class Recorder:
                             comment="spdepth session recording",
                             tags={PLAN_TAG: plan.to_dict(), RECON_TAG: recon_settings.to_dict(),
                                   INFO_TAG: info or {}},
-                            record_type=record_type or RECORD_TYPE_HYDRAHARP2_T3)
+                            record_type=record_type or RecordType.HYDRAHARP2_T3)
         self.path = out_dir / "recording.ptu"
         self._fh = open(self.path, "w+b")
         self._fh.write(header)
@@ -203,7 +203,7 @@ class ReplaySource:
         except Exception as exc:  # ptufile's own errors for a file that is not a PTU
             raise RecordingError(f"recording {p}: not a readable PTU file ({exc})") from None
         tags = self.layout.tags
-        if int(tags.get("TTResultFormat_TTTRRecType", 0)) not in GENERIC_T3_LAYOUT_TYPES:
+        if int(tags.get("TTResultFormat_TTTRRecType", 0)) not in GENERIC_T3_RECORD_TYPES:
             raise RecordingError(f"recording {p}: record type "
                              f"0x{int(tags.get('TTResultFormat_TTTRRecType', 0)):08x} is not "
                              "Generic T3 (HydraHarp v2 / TimeHarp 260 / MultiHarp); use "

@@ -14,7 +14,7 @@ from numpy.testing import assert_array_equal
 import spdepth.acq.readers.picoquant as pq
 from spdepth.acq.ptu import read_layout, write_ptu
 from spdepth.acq.readers import read_photons
-from spdepth.drivers.events import EventKind, Marker
+from spdepth.drivers.events import EventKind, Marker, RecordType
 from spdepth.drivers.sim import PhotonWorld, load_scene
 
 H, W, TARGET = 7, 9, 12
@@ -71,7 +71,7 @@ def test_interpolation_would_misplace_them(gated):
     tools do): many photons land in the wrong column."""
     path, _, ph, truth_pixel = gated
     records = np.fromfile(path, "<u4", offset=read_layout(path).record_offset)
-    decoded = pq._decode(records, pq._REC_HYDRAHARP2_T3)
+    decoded = pq._decode(records, int(RecordType.HYDRAHARP2_T3))
     row, col, lines, _, _ = pq.assign_pixels(decoded["time"], decoded["channel"], decoded["marker"],
                                              pix_x=W, line_start=2, line_stop=3, frame=4)
     is_photon = decoded["channel"] >= 0

@@ -31,18 +31,11 @@ from spdepth.acq.assign import PixelAssigner
 from spdepth.acq.ptu import PIXEL_MARKER_TAG, PLAN_TAG, PtuLayout, iter_records, marker_map
 from spdepth.acq.readers.common import ReadResult
 from spdepth.drivers.errors import DriverError
-from spdepth.drivers.events import EVENT_DTYPE, EventKind, Marker
+from spdepth.drivers.events import EVENT_DTYPE, GENERIC_T3_RECORD_TYPES, EventKind, Marker, RecordType
 from spdepth.drivers.tagger.t3 import T3DecoderState, decode_t3
 from spdepth.recon.errors import InputError
 from spdepth.recon.photons import PhotonStore
 
-# ptufile record type codes (TTResultFormat_TTTRRecType) for the legacy formats' records
-_REC_PICOHARP_T3 = 0x00010303    # PicoHarp 300: channel:4 | dtime:12 | nsync:16
-_REC_HYDRAHARP_T3 = 0x00010304   # HydraHarp v1: special:1 | channel:6 | dtime:15 | nsync:10, overflow count 1
-_REC_HYDRAHARP2_T3 = 0x01010304  # HydraHarp v2 / Generic T3: overflow record carries a count
-# record types in the Generic T3 layout (overflow count in nsync) that drivers.tagger.t3 decodes:
-# HydraHarp v2, TimeHarp 260 N and P, MultiHarp / Generic T3
-_GENERIC_T3 = (_REC_HYDRAHARP2_T3, 0x00010305, 0x00010306, 0x00010307)
 CHUNK_RECORDS = 1 << 22
 """Records decoded at a time on the pixel-marker path (64 MiB of events)."""
 _MARKER_KIND, _PHOTON_KIND, _PIXEL_BIT = int(EventKind.MARKER), int(EventKind.PHOTON), int(Marker.PIXEL)
@@ -157,7 +150,7 @@ def _decode(records: np.ndarray, rectype: int) -> np.ndarray:
     from ptufile._ptufile import decode_t3_records  # the decoder ptufile itself uses
 
     out = np.zeros(records.size, dtype=ptufile.T3_RECORD_DTYPE)
-    decode_t3_records(out, np.ascontiguousarray(records, dtype=np.uint32), rectype)
+    decode_t3_records(out, np.ascontiguousarray(records, dtype=np.uint32), int(rectype))
     return out
 
 
@@ -265,7 +258,7 @@ def read_ptu(path: str | Path, *, time_unit_s: float | None = None,
     meta = {"record_type": rectype, "resolution_s": resolution_s, "records": int(n_records),
             "sync_rate_hz": float(tags.get("TTResult_SyncRate", 0) or 0)}
     notes = ()
-    if tags.get(PLAN_TAG) and rectype in _GENERIC_T3:
+    if tags.get(PLAN_TAG) and rectype in GENERIC_T3_RECORD_TYPES:
         # a session's recording: its passes and lost spans are in events.jsonl beside it
         from spdepth.acq.recording import session_photons
 
@@ -297,7 +290,7 @@ def _read_by_pixel_markers(path: Path, layout: PtuLayout, rectype: int, image: d
     bits, and assign photons with ``PixelAssigner`` (a ``ImgHdr_PixY`` x ``ImgHdr_PixX`` scan,
     serpentine when ``ImgHdr_BiDirect``). Returns None when the records hold no pixel marker
     (the caller then interpolates between line markers)."""
-    if rectype not in _GENERIC_T3:
+    if rectype not in GENERIC_T3_RECORD_TYPES:
         raise InputError(f"{path}: pixel markers in record type 0x{rectype:08x} are not supported "
                          f"(Generic T3 record types only)")
     lut = marker_map(layout.tags)
@@ -433,7 +426,7 @@ def read_ht3(path: str | Path, *, time_unit_s: float | None = None,
     tt, off = _unpack(path, data, off, _HT3_TTMODE)
     head.update(tt)
     version = head["FormatVersion"]
-    rectype = {"1.0": _REC_HYDRAHARP_T3, "2.0": _REC_HYDRAHARP2_T3}.get(version)
+    rectype = {"1.0": RecordType.HYDRAHARP_T3, "2.0": RecordType.HYDRAHARP2_T3}.get(version)
     if rectype is None:
         raise InputError(f"{path}: HT3 format version {version!r} is not 1.0 or 2.0")
     return _legacy_result(path, "ht3", data, off, head, rectype, head["Resolution_ps"] * 1e-12,
@@ -450,7 +443,7 @@ def read_pt3(path: str | Path, *, time_unit_s: float | None = None,
         raise InputError(f"{path}: not a PT3 file (ident {head['Ident']!r})")
     if head["FormatVersion"] != "2.0":
         raise InputError(f"{path}: PT3 format version {head['FormatVersion']!r} is not 2.0")
-    return _legacy_result(path, "pt3", data, off, head, _REC_PICOHARP_T3,
+    return _legacy_result(path, "pt3", data, off, head, RecordType.PICOHARP_T3,
                           head["Resolution_ns"] * 1e-9, time_unit_s, channel)
 
 

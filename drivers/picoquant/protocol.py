@@ -10,6 +10,7 @@ from dataclasses import dataclass
 from enum import IntEnum, IntFlag
 
 from spdepth.drivers.errors import SettingError
+from spdepth.drivers.events import RecordType
 
 
 class MeasMode(IntEnum):
@@ -101,19 +102,6 @@ class LibError(IntEnum):
 DEVICE_GONE_ERRORS = frozenset({LibError.DEVICE_NOT_OPEN, LibError.DEVICE_OPEN_FAIL})
 """Codes after which the device must be reopened."""
 
-# T3 record types written to PTU files (``TTResultFormat_TTTRRecType``; ptufile's PtuRecordType).
-# All of them have the Generic T3 bit layout (PicoQuant's file demos decode the TimeHarp 260 and
-# HydraHarp V2 types with the same routine as Generic T3; ptufile likewise).
-RECORD_TYPE_GENERIC_T3 = 0x00010307
-"""MultiHarp, PicoHarp 330: Generic T3 records."""
-RECORD_TYPE_HYDRAHARP2_T3 = 0x01010304
-"""HydraHarp 400 with library v3 (HydraHarp V2 T3): the same bit layout as Generic T3."""
-RECORD_TYPE_TIMEHARP260N_T3 = 0x00010305
-"""TimeHarp 260 NANO T3."""
-RECORD_TYPE_TIMEHARP260P_T3 = 0x00010306
-"""TimeHarp 260 PICO T3."""
-
-
 class Trigger(IntEnum):
     """How a family's sync and detector inputs are triggered (the calls differ)."""
 
@@ -199,22 +187,22 @@ TH260_NANO = "TimeHarp 260 N"
 _MH_LIBS = ("libmh150.so", "mhlib.so", "libmhlib.so", "mhlib64.dll", "mhlib.dll")
 FAMILIES: dict[str, Family] = {
     f.key: f for f in (
-        Family("mh150", "MultiHarp 150", "MH", _MH_LIBS, False, 1048576, RECORD_TYPE_GENERIC_T3,
+        Family("mh150", "MultiHarp 150", "MH", _MH_LIBS, False, 1048576, RecordType.GENERIC_T3,
                snapi_name="libmhlib.so"),
-        Family("mh160", "MultiHarp 160", "MH", _MH_LIBS, False, 1048576, RECORD_TYPE_GENERIC_T3,
+        Family("mh160", "MultiHarp 160", "MH", _MH_LIBS, False, 1048576, RecordType.GENERIC_T3,
                snapi_name="libmhlib.so"),
         Family("hh400", "HydraHarp 400", "HH",
                ("libhh400.so", "hhlib.so", "libhhlib.so", "hhlib64.dll", "hhlib.dll"), True,
-               131072, RECORD_TYPE_HYDRAHARP2_T3, snapi_name="libhhlib.so", trigger=Trigger.CFD,
+               131072, RecordType.HYDRAHARP2_T3, snapi_name="libhhlib.so", trigger=Trigger.CFD,
                cfd_sign=1),
         Family("th260", "TimeHarp 260", "TH260",
                ("th260lib.so", "libth260.so", "th260lib64.dll", "th260lib.dll"), True, 131072,
-               RECORD_TYPE_TIMEHARP260P_T3, init_refsource=False, trigger=Trigger.BY_MODEL,
+               RecordType.TIMEHARP260P_T3, init_refsource=False, trigger=Trigger.BY_MODEL,
                cfd_sign=-1, cfd_level_max_mv=1200, max_devices=4, sync_div_max=8,
-               record_types=((TH260_PICO, RECORD_TYPE_TIMEHARP260P_T3),
-                             (TH260_NANO, RECORD_TYPE_TIMEHARP260N_T3))),
+               record_types=((TH260_PICO, RecordType.TIMEHARP260P_T3),
+                             (TH260_NANO, RecordType.TIMEHARP260N_T3))),
         Family("ph330", "PicoHarp 330", "PH330",
-               ("libph330.so", "PH330Lib.dll"), False, 1048576, RECORD_TYPE_GENERIC_T3,
+               ("libph330.so", "PH330Lib.dll"), False, 1048576, RecordType.GENERIC_T3,
                trigger=Trigger.SELECTABLE, sync_div_max=8),
     )
 }
@@ -325,8 +313,6 @@ class PicoQuantIdentity:
 
 
 __all__ = ["MeasMode", "RefSource", "Edge", "Flag", "Feature", "LibError", "Family", "FAMILIES", "family",
-           "PicoQuantSettings", "PicoQuantIdentity", "RECORD_TYPE_GENERIC_T3",
-           "RECORD_TYPE_HYDRAHARP2_T3", "RECORD_TYPE_TIMEHARP260N_T3",
-           "RECORD_TYPE_TIMEHARP260P_T3", "DEVICE_GONE_ERRORS",
+           "PicoQuantSettings", "PicoQuantIdentity", "DEVICE_GONE_ERRORS",
            "KNOWN_UNSUPPORTED", "Trigger", "TRGMODE_ETR", "CFD_ZEROCROSS_MV", "TH260_PICO",
            "TH260_NANO"]

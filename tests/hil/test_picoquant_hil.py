@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from spdepth.acq.ptu import GENERIC_T3_LAYOUT_TYPES
+from spdepth.drivers.events import GENERIC_T3_RECORD_TYPES
 from spdepth.drivers.events import EventKind
 from spdepth.drivers.picoquant import FAMILIES, Flag, PicoQuantSettings, PicoQuantTagger
 
@@ -39,7 +39,7 @@ def test_identity_and_settings(device):
     # our recorder writes (the Generic T3 layout)
     assert device.hw_model in device.identity["model"]
     assert device.record_type == FAMILIES[device.family.key].record_type_of(device.hw_model)
-    assert device.record_type in GENERIC_T3_LAYOUT_TYPES
+    assert device.record_type in GENERIC_T3_RECORD_TYPES
     assert device.sync_rate_hz() > 0, "no laser sync on the SYNC input"
 
 
