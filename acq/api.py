@@ -229,11 +229,9 @@ def session_maps(session):
 
     maps = session.maps()
     p = session.plan
-    # a foreign recording replayed has no angles (all 0): no geometry rather than a false one
-    if not ((p.nx > 1 and p.x_first_deg == p.x_last_deg) or (p.ny > 1 and p.y_first_deg == p.y_last_deg)):
-        settings = dict(maps.settings)
-        settings[GEOMETRY_KEY] = ScanGeometry.from_plan(p).to_dict()
-        maps = replace(maps, settings=settings)
+    geometry = ScanGeometry.from_plan(p)
+    if geometry is not None:
+        maps = replace(maps, settings={**maps.settings, GEOMETRY_KEY: geometry.to_dict()})
     h, w = session.plan.shape
     counts = session.store.count.reshape(h, w).astype(np.float64)
     counts[(counts == 0) & (session.acq_flags.reshape(h, w) != AcqFlag.COMPLETE)] = np.nan
@@ -454,7 +452,7 @@ def _with_geometry_and_offset(maps, request: FileReconRequest, shape):
                 from spdepth.acq.plan import ScanPlan
 
                 p = ScanPlan.from_dict(plan)
-                if p.shape == tuple(shape) and (p.x_first_deg != p.x_last_deg or p.nx == 1):
+                if p.shape == tuple(shape):
                     geometry = ScanGeometry.from_plan(p)
             except (ValueError, TypeError, KeyError, AttributeError, InputError):
                 geometry = None          # a run.json cut short: no geometry rather than a wrong one

@@ -41,7 +41,13 @@ class ScanGeometry:
     y_last_deg: float
 
     @classmethod
-    def from_plan(cls, plan) -> "ScanGeometry":
+    def from_plan(cls, plan) -> "ScanGeometry | None":
+        """The angles of an ``acq.plan.ScanPlan``; None for a plan without angles (a foreign
+        recording replayed gets a plan with every angle 0 along an axis of several pixels): no
+        geometry rather than a false one."""
+        if (plan.nx > 1 and plan.x_first_deg == plan.x_last_deg) or \
+                (plan.ny > 1 and plan.y_first_deg == plan.y_last_deg):
+            return None
         return cls(tuple(plan.shape), plan.x_first_deg, plan.x_last_deg, plan.y_first_deg,
                    plan.y_last_deg)
 

@@ -29,6 +29,7 @@ from spdepth.acq.requests import DEFAULT_TARGET, MAX_TARGET, FileReconRequest, R
 from spdepth.gui.health import HealthTracker
 from spdepth.acq.flags import AcqFlag
 from spdepth.acq.mapdefs import resolve
+from spdepth.acq.points import ScanGeometry
 from spdepth.gui.maps import C_M_PER_S, PANEL_DEFS, MapPanel, link_panels, snapshot_input
 from spdepth.gui.view3d import PointCloudView
 from spdepth.gui.pixel_model import pixel_histogram
@@ -801,8 +802,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self._target = run.session.plan.target
         tof = run.session.recon.tof_s
         self.controls.set_surfaces(tof.shape[0] if tof.ndim == 3 else 1)
-        self._new_run(f"{run.label}{where}", str(run.out_dir or ""), _plan_geometry(run.session.plan),
-                      run.session.plan.shape)
+        self._new_run(f"{run.label}{where}", str(run.out_dir or ""),
+                      ScanGeometry.from_plan(run.session.plan), run.session.plan.shape)
         h, w = run.session.plan.shape
         self.inspect((h // 2, w // 2), pin=False)     # something to look at until the user points
         # the first paint of a run (new ranges, axes, labels: the whole window) is the dearest:
@@ -1277,16 +1278,6 @@ class MainWindow(QtWidgets.QMainWindow):
         self.shutdown()
         self.view3d.release()
         super().closeEvent(event)
-
-
-def _plan_geometry(plan):
-    """The scan geometry of a plan, None for a foreign recording's plan without angles."""
-    from spdepth.acq.points import ScanGeometry
-
-    if (plan.nx > 1 and plan.x_first_deg == plan.x_last_deg) or \
-            (plan.ny > 1 and plan.y_first_deg == plan.y_last_deg):
-        return None
-    return ScanGeometry.from_plan(plan)
 
 
 __all__ = ["MainWindow", "ControlPanel", "Inspector", "AccuracyPlot", "REFRESH_HZ"]

@@ -148,3 +148,15 @@ def test_points_of_a_mat_file_need_its_field_of_view(tmp_path):
         FileReconRequest(input=path, time_unit_s=8e-12, ply=str(tmp_path / "p.ply"))
     with pytest.raises(RequestError, match="not both"):
         FileReconRequest(input=path, time_unit_s=8e-12, range_offset_m=1.0, gate_delay_s=1e-6)
+
+
+def test_a_plan_without_angles_has_no_geometry():
+    """One rule (``ScanGeometry.from_plan``) for the session's maps, a file's run.json and the
+    window: a foreign recording replayed has all angles 0, which is no geometry, not a point."""
+    from spdepth.acq.plan import ScanPlan
+
+    assert ScanGeometry.from_plan(ScanPlan(8, 6, 0.0, 0.0, 0.0, 0.0)) is None
+    assert ScanGeometry.from_plan(ScanPlan(8, 6, -2.0, 2.0, 0.0, 0.0)) is None   # rows without angles
+    assert ScanGeometry.from_plan(ScanPlan(1, 1, 0.0, 0.0, 0.0, 0.0)) is not None   # a point
+    g = ScanGeometry.from_plan(ScanPlan(8, 6, -2.0, 2.0, -1.5, 1.5))
+    assert g.shape == (6, 8) and (g.x_first_deg, g.y_last_deg) == (-2.0, 1.5)
