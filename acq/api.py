@@ -294,6 +294,31 @@ class FileResult:
     summary: dict = field(default_factory=dict)
 
 
+RUN_JSON = "run.json"
+"""A session's record (``Session.run_record``), written beside its files when it ends."""
+
+
+def read_run_record(path: str | Path) -> dict | None:
+    """The ``run.json`` of a session folder (or of the folder holding ``path``, a file in it):
+    None when there is none (a run cut before its end); a ``RecordingError`` naming it when it
+    cannot be read or is not a JSON object. The one reader of run.json."""
+    import json
+
+    p = Path(path)
+    run_json = (p if p.is_dir() else p.parent) / RUN_JSON
+    if not run_json.is_file():
+        return None
+    try:
+        record = json.loads(run_json.read_text(encoding="utf-8"))
+    except json.JSONDecodeError:
+        raise RecordingError(f"{run_json}: not JSON") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise RecordingError(f"{run_json}: cannot be read ({exc})") from None
+    if not isinstance(record, dict):
+        raise RecordingError(f"{run_json}: not a JSON object")
+    return record
+
+
 def recorded_recon_settings(path: str | Path) -> dict | None:
     """The estimator settings a session recording was reconstructed with: ``run.json``'s resolved
     ``recon`` beside it (the pulse width the live maps used, also when it was measured), else the
@@ -310,13 +335,12 @@ def recorded_recon_settings(path: str | Path) -> dict | None:
     if raw is None:
         return None
     where = f"{path}: header tag {RECON_TAG}"
-    run_json = Path(path).parent / "run.json"
-    if run_json.is_file():
-        try:
-            raw = json.loads(run_json.read_text(encoding="utf-8")).get("recon") or raw
-            where = f"{run_json}: field recon"
-        except (json.JSONDecodeError, AttributeError, OSError):
-            pass          # a run cut before its end has no (or a half) run.json: the header holds
+    try:
+        run = read_run_record(Path(path).parent)
+    except RecordingError:
+        run = None        # a run cut before its end has no (or a half) run.json: the header holds
+    if run is not None and run.get("recon"):
+        raw, where = run["recon"], f"{Path(path).parent / RUN_JSON}: field recon"
     try:
         d = json.loads(raw) if isinstance(raw, str) else raw
     except json.JSONDecodeError:
@@ -331,20 +355,12 @@ def recorded_request(path: str | Path):
     (``ScanRequest``/``ReplayRequest``): from ``run.json`` when the run ended, else from the
     recording's header, where it was written before the first record. None for a recording made
     before requests were saved; a damaged one is a ``RecordingError``/``RequestError``."""
-    import json
-
     from spdepth.acq.recording import ReplaySource
     from spdepth.acq.requests import request_from_dict
 
     p = Path(path)
-    folder = p if p.is_dir() else p.parent
-    run_json = folder / "run.json"
-    saved = None
-    if run_json.is_file():
-        try:
-            saved = (json.loads(run_json.read_text(encoding="utf-8")).get("info") or {}).get("request")
-        except json.JSONDecodeError:
-            raise RecordingError(f"{run_json}: not JSON") from None
+    run = read_run_record(p)
+    saved = ((run or {}).get("info") or {}).get("request")
     if saved is None:
         saved = ReplaySource(p).info.info.get("request")
     return None if saved is None else request_from_dict(saved)
@@ -435,8 +451,7 @@ def reconstruct_file(request: FileReconRequest, progress=None) -> FileResult:
 def _with_geometry_and_offset(maps, request: FileReconRequest, shape):
     """The maps with their scan geometry in the settings (``--fov-deg``, else a session
     recording's plan) and the range offset of gated data added to depth and time of flight."""
-    import json
-
+    from spdepth.acq.plan import ScanPlan
     from spdepth.acq.points import GEOMETRY_KEY, ScanGeometry, range_offset_m
     from spdepth.recon.maps import C_M_PER_S
 
@@ -444,18 +459,14 @@ def _with_geometry_and_offset(maps, request: FileReconRequest, shape):
     geometry = None
     if request.fov_deg is not None:
         geometry = ScanGeometry.from_fov(shape, request.fov_deg)
-    else:
-        run_json = Path(request.input).parent / "run.json"
-        if Path(request.input).suffix.lower() == ".ptu" and run_json.is_file():
-            try:
-                plan = json.loads(run_json.read_text(encoding="utf-8")).get("plan")
-                from spdepth.acq.plan import ScanPlan
-
-                p = ScanPlan.from_dict(plan)
-                if p.shape == tuple(shape):
-                    geometry = ScanGeometry.from_plan(p)
-            except (ValueError, TypeError, KeyError, AttributeError, InputError):
-                geometry = None          # a run.json cut short: no geometry rather than a wrong one
+    elif Path(request.input).suffix.lower() == ".ptu":
+        try:
+            run = read_run_record(Path(request.input).parent)
+            p = ScanPlan.from_dict(run["plan"]) if run is not None else None
+            if p is not None and p.shape == tuple(shape):
+                geometry = ScanGeometry.from_plan(p)
+        except (ValueError, TypeError, KeyError, AttributeError, InputError, RecordingError):
+            geometry = None          # a run.json cut short: no geometry rather than a wrong one
     if geometry is not None:
         settings[GEOMETRY_KEY] = geometry.to_dict()
     offset = range_offset_m(request.range_offset_m, request.gate_delay_s)
@@ -566,4 +577,4 @@ def _jsonable(value):
 
 __all__ = ["OutputDir", "new_run_dir", "open_instruments", "scan_plan", "scan_settings",
            "build_session", "finish_session", "FileResult", "reconstruct_file", "file_binning",
-           "recorded_recon_settings", "recorded_request", "SESSION_FILES"]
+           "recorded_recon_settings", "recorded_request", "read_run_record", "RUN_JSON", "SESSION_FILES"]

@@ -84,3 +84,20 @@ def test_a_session_saves_its_request_in_run_json_and_the_recording(tmp_path):
     r = build_session(replay, tmp_path / "again")
     r.run()
     assert recorded_request(tmp_path / "again" / "run.json") == replay
+
+
+def test_run_json_is_read_in_one_place(tmp_path):
+    """``read_run_record``: None without run.json, the record with one, and a damaged one named."""
+    from spdepth.acq.api import read_run_record
+    from spdepth.acq.errors import RecordingError
+
+    assert read_run_record(tmp_path) is None
+    (tmp_path / "run.json").write_text(json.dumps({"state": "done", "plan": {}}))
+    assert read_run_record(tmp_path)["state"] == "done"
+    assert read_run_record(tmp_path / "recording.ptu")["state"] == "done"   # a file in the folder
+    for damaged in ("{", "[1, 2]"):
+        (tmp_path / "run.json").write_text(damaged)
+        with pytest.raises(RecordingError, match="run.json"):
+            read_run_record(tmp_path)
+        with pytest.raises(RecordingError, match="run.json"):
+            recorded_request(tmp_path)
