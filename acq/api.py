@@ -16,7 +16,6 @@ The CLI, the window, Dask workers, the demo and the benchmarks only build reques
 from __future__ import annotations
 
 import fcntl
-import math
 import os
 import time
 from dataclasses import dataclass, field, replace
@@ -25,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from spdepth.acq.errors import OutputError, RecordingError, RequestError
+from spdepth.acq.jsonable import jsonable
 from spdepth.acq.requests import (DEFAULT_DWELL_S, DEFAULT_METHOD, FileReconRequest, ReplayRequest,
                                   ScanRequest, SimBench)
 from spdepth.recon.errors import InputError
@@ -553,26 +553,12 @@ def _file_summary(res: FileResult, read) -> dict:
         "bin_ps": b.bin_width * unit_ps, "n_bins": b.n_bins,
         "pulse_rms_ps": None if res.pulse_rms_s is None else res.pulse_rms_s * 1e12,
         "max_photons": maps.settings.get("max_photons"),
-        "settings": _jsonable(_small_settings(maps.settings)),
+        "settings": jsonable(_small_settings(maps.settings)),
         "depth_m_median": float(np.median(finite)) if finite.size else None,
         "out": req.out, "png": req.png, "save_irf": req.save_irf, "ply": req.ply, "las": req.las,
         "range_offset_m": maps.settings.get("range_offset_m", 0.0), "request": req.to_dict(),
-        "source": _jsonable(read.meta), "notes": list(res.notes),
+        "source": jsonable(read.meta), "notes": list(res.notes),
     }
-
-
-def _jsonable(value):
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    return value
 
 
 __all__ = ["OutputDir", "new_run_dir", "open_instruments", "scan_plan", "scan_settings",

@@ -36,7 +36,7 @@ import os
 import threading
 import time
 import zipfile
-from dataclasses import asdict, dataclass, field, is_dataclass, replace
+from dataclasses import dataclass, field, replace
 from enum import Enum
 from pathlib import Path
 from typing import Callable
@@ -46,6 +46,7 @@ import numpy as np
 from spdepth.acq.assign import PassGeometry
 from spdepth.acq.errors import OutputError, RequestError, SessionStateError
 from spdepth.acq.flags import ACQUIRING, AcqFlag
+from spdepth.acq.jsonable import jsonable, write_json_atomic
 from spdepth.acq.live_recon import LiveRecon
 from spdepth.acq.plan import ScanPlan
 from spdepth.acq.sources import HEALTH_RECENT_S, FaultRecord, Source
@@ -582,7 +583,7 @@ class Session:
                        exposure_s=self.exposure_s(),
                        row_deg=np.linspace(p.y_first_deg, p.y_last_deg, p.ny),
                        col_deg=np.linspace(p.x_first_deg, p.x_last_deg, p.nx))
-        _write_json_atomic(self.out_dir / "run.json", self.run_record(final))
+        write_json_atomic(self.out_dir / "run.json", self.run_record(final))
         return final
 
     def maps(self):
@@ -612,7 +613,7 @@ class Session:
             "source": self.source.name,
             "plan": self.plan.to_dict(),
             "recon": self.recon.resolved or self.recon.requested.to_dict(),
-            "devices": _jsonable(self.source.identities()),
+            "devices": jsonable(self.source.identities()),
             "info": self.info,
             "statistics": {
                 "detections": self.detections, "kept": self.store.kept,
@@ -738,20 +739,6 @@ class _Subscription:
             self._thread.join(timeout_s)
 
 
-def _jsonable(obj):
-    if is_dataclass(obj):
-        obj = asdict(obj)
-    if isinstance(obj, dict):
-        return {k: _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, Enum):
-        return obj.name
-    if isinstance(obj, (np.integer, np.floating)):
-        return obj.item()
-    return obj
-
-
 def _save_maps_npz(path: Path, maps, **extra: np.ndarray) -> None:
     """``maps`` as ``DepthMaps.save_npz`` writes them (same keys, ``DepthMaps.load_npz`` reads
     it) plus ``extra`` arrays, deflated at level 1: a 4096 x 4096 scan's maps are most of a GB and
@@ -767,15 +754,6 @@ def _save_maps_npz(path: Path, maps, **extra: np.ndarray) -> None:
         for name, arr in arrays.items():
             with zf.open(name + ".npy", "w", force_zip64=True) as fh:
                 np.lib.format.write_array(fh, np.asanyarray(arr), allow_pickle=False)
-    os.replace(tmp, path)
-
-
-def _write_json_atomic(path: Path, data: dict) -> None:
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    with open(tmp, "w", encoding="utf-8") as fh:
-        json.dump(_jsonable(data), fh, indent=1)
-        fh.flush()
-        os.fsync(fh.fileno())
     os.replace(tmp, path)
 
 

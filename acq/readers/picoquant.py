@@ -255,7 +255,7 @@ def read_ptu(path: str | Path, *, time_unit_s: float | None = None,
         if tags.get("ImgHdr_SinCorrection"):
             raise InputError(f"{path}: sinusoidal (resonant) scanning is not supported: pixels "
                              f"would be unevenly spaced in time")
-    meta = {"record_type": rectype, "resolution_s": resolution_s, "records": int(n_records),
+    meta = {"record_type": int(rectype), "resolution_s": resolution_s, "records": int(n_records),
             "sync_rate_hz": float(tags.get("TTResult_SyncRate", 0) or 0)}
     notes = ()
     if tags.get(PLAN_TAG) and rectype in GENERIC_T3_RECORD_TYPES:
@@ -452,7 +452,7 @@ def _legacy_result(path, kind, data, off, head, rectype, resolution_s, time_unit
     records = _legacy_records(path, data, off, head)
     if not resolution_s > 0:
         raise InputError(f"{path}: header field Resolution is {resolution_s * 1e12:g} ps, not positive")
-    meta = {"record_type": rectype, "resolution_s": resolution_s, "records": int(records.size),
+    meta = {"record_type": int(rectype), "resolution_s": resolution_s, "records": int(records.size),
             "sync_rate_hz": float(head["SyncRate"]), "format_version": head["FormatVersion"]}
     return _records_to_result(path, kind, _decode(records, rectype), time_unit_s or resolution_s,
                               None, channel, meta)
