@@ -139,6 +139,9 @@ class Snapshot:
     """Time since scanning (or replaying) began, s: ``detections_per_s`` counts over it, and
     ``elapsed_s`` minus it went on preparing (on a fresh install numba compiles the kernels)."""
     health: dict = field(default_factory=dict)
+    reconstructed: np.ndarray | None = None
+    """(H, W) pixels the live reconstruction has finished: their estimate (or its absence, a
+    miss) is final."""
     """Per device ("galvo", "tagger"), from the source: "ok", "recovering" (a loss, reconnect or
     fault in the last HEALTH_RECENT_S, or since the caller's previous snapshot: ``snapshot``'s
     ``faults_since_s``), "failed" (the session ended on that device's error) or "replay"."""
@@ -314,8 +317,9 @@ class Session:
         if running_s > 0 and 0 < n_final < n_total and self._state not in _TERMINAL:
             eta = (n_total - n_final) * running_s / n_final
         r = self.recon
-        maps = r.copy_maps("depth_m", "background", "signal", "uncertainty_s",
+        maps = r.copy_maps("depth_m", "background", "signal", "uncertainty_s", "done",
                            *(("surfaces", "weak") if "surfaces" in r.fields else ()))
+        maps["reconstructed"] = maps.pop("done")
         return Snapshot(
             state=self._state.value, elapsed_s=st["elapsed_s"], running_s=running_s,
             pixels_total=n_total,

@@ -25,6 +25,7 @@ from PySide6 import QtCore, QtGui, QtWidgets
 
 from spdepth.acq.api import new_run_dir
 from spdepth.acq.errors import RequestError
+from spdepth.acq.evaluate import evaluate_depth
 from spdepth.acq.requests import DEFAULT_TARGET, MAX_TARGET, FileReconRequest, ReplayRequest
 from spdepth.gui.health import HealthTracker
 from spdepth.acq.flags import AcqFlag
@@ -492,9 +493,15 @@ class AccuracyPlot(QtWidgets.QWidget):
         self._last_t = -1.0
         self.redraw()
 
-    def add(self, snap, truth: np.ndarray | None, force: bool = False, draw: bool = True) -> None:
+    def add(self, snap, truth: np.ndarray | None, pulse_rms_s: float | None = None,
+            force: bool = False, draw: bool = True) -> None:
         """Take a point from ``snap`` (at most every HISTORY_PERIOD_S unless ``force``); with
-        ``draw`` also redraw (points are cheap, drawing is not: the window draws with the maps)."""
+        ``draw`` also redraw (points are cheap, drawing is not: the window draws with the maps).
+
+        The error against ``truth`` is ``acq.evaluate.evaluate_depth``'s MAE over the pixels
+        reconstructed so far: a pixel without an estimate counts as a miss (its error is the
+        outlier threshold, 3 pulse widths of ``pulse_rms_s``), as in ``spdepth demo`` and the
+        bench, so leaving hard pixels out never lowers the curve."""
         if not force and snap.elapsed_s - self._last_t < HISTORY_PERIOD_S:
             if draw and self._stale:
                 self.redraw()
@@ -505,10 +512,13 @@ class AccuracyPlot(QtWidgets.QWidget):
         self._last_t = snap.elapsed_s
         med_cm = float(np.median(sd)) * C_M_PER_S / 2 * 100
         err_cm = math.nan
-        if truth is not None and truth.shape == snap.depth_m.shape:
-            ok = np.isfinite(snap.depth_m)
-            if ok.any():
-                err_cm = float(np.mean(np.abs(snap.depth_m[ok] - truth[ok]))) * 100
+        if truth is not None and truth.shape == snap.depth_m.shape and pulse_rms_s and \
+                snap.reconstructed is not None:
+            seen = snap.reconstructed & np.isfinite(truth)
+            if seen.any():
+                # k = 1 everywhere: every pixel with truth counts (the oracle is not drawn here)
+                err_cm = evaluate_depth(snap.depth_m[seen], truth[seen], 1.0,
+                                        pulse_rms_s).mae_m * 100
         dpp = snap.detections / max(1, snap.pixels_total)
         self.history.append((snap.elapsed_s, dpp, med_cm, err_cm))
         self._stale = True
@@ -976,8 +986,8 @@ class MainWindow(QtWidgets.QMainWindow):
             self._last_sig = versions
             painted = self._paint_maps(snap, target, versions)
         # a point per HISTORY_PERIOD_S whatever the repaint rate; drawn with the maps
-        self.accuracy.add(snap, run.truth_depth_m, force=snap.state in TERMINAL and painted,
-                          draw=painted)
+        self.accuracy.add(snap, run.truth_depth_m, run.session.recon.settings.pulse_rms_s,
+                          force=snap.state in TERMINAL and painted, draw=painted)
         self._status(snap)
         if maps:
             self._update_inspector()

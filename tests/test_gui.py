@@ -63,6 +63,31 @@ def _state(w) -> str | None:
     return w.snap.state if w.snap is not None else None
 
 
+def test_the_accuracy_plot_counts_a_miss_as_acq_evaluate_does(qtbot):
+    """A reconstructed pixel without an estimate costs the outlier threshold, as in
+    ``acq.evaluate.evaluate_depth`` (the plot averaged only the finite estimates before); pixels
+    not yet reconstructed are left out."""
+    from types import SimpleNamespace
+
+    from spdepth.acq.evaluate import evaluate_depth
+    from spdepth.gui.window import AccuracyPlot
+
+    plot = AccuracyPlot()
+    qtbot.addWidget(plot)
+    truth = np.full((4, 4), 3.0)
+    depth = truth + 0.01
+    depth[0, :2] = np.nan                         # two misses among the reconstructed pixels
+    depth[3] = np.nan                             # the last row: not reconstructed yet
+    done = np.ones((4, 4), bool)
+    done[3] = False
+    snap = SimpleNamespace(elapsed_s=1.0, uncertainty_s=np.full((4, 4), 1e-10), depth_m=depth,
+                           reconstructed=done, detections=100, pixels_total=16)
+    plot.add(snap, truth, 360e-12, force=True)
+    want = evaluate_depth(depth[:3], truth[:3], 1.0, 360e-12)
+    assert plot.history[-1][3] == pytest.approx(100 * want.mae_m)
+    assert plot.history[-1][3] == pytest.approx(100 * (10 * 0.01 + 2 * want.outlier_m) / 12)
+
+
 def test_sim_scan_from_the_controls_fills_the_maps(qtbot, win, tmp_path):
     win.controls.set_spec(_spec(tmp_path, size=(24, 24)))
     c = win.controls
