@@ -275,7 +275,8 @@ class FileResult:
     """A file reconstructed as a whole.
 
     maps:    ``recon.maps.DepthMaps`` (its ``settings`` hold everything used).
-    store:   the photons read (all of them; the window and ``max_photons`` apply in the estimator).
+    store:   the photons read (all of them; the window and ``max_photons`` apply in the estimator);
+             None when they were read in blocks on a cluster (``acq.distributed``).
     binning, irf, pulse_rms_s: the model used (irf None for a Gaussian pulse).
     summary: what ``spdepth recon --json`` prints (small: no arrays).
     """
@@ -291,6 +292,7 @@ class FileResult:
     notes: tuple = ()
     read_s: float = 0.0
     recon_s: float = 0.0
+    photons_in_file: int = 0
     summary: dict = field(default_factory=dict)
 
 
@@ -366,18 +368,42 @@ def recorded_request(path: str | Path):
     return None if saved is None else request_from_dict(saved)
 
 
-def file_binning(request: FileReconRequest, store, recorded: dict | None) -> Binning | None:
+def file_binning(request: FileReconRequest, time_unit_s: float, recorded: dict | None = None,
+                 store=None) -> Binning | None:
     """The binning of a file reconstruction: the request's window and bins (a missing one from the
-    data, or from the recorded session settings), or None to let the estimator derive both."""
-    unit_s = store.time_unit_s
+    data, ``store``, or from the recorded session settings), or None to let the estimator derive
+    both."""
     if request.window_s is None and request.bin_s is None:
         if recorded and recorded.get("binning"):
-            return Binning.from_dict({**recorded["binning"], "time_unit_s": unit_s})
+            return Binning.from_dict({**recorded["binning"], "time_unit_s": time_unit_s})
         return None
     if request.window_s is not None and request.bin_s is not None:
-        return Binning.from_window(unit_s, request.window_s, request.bin_s)
-    return Binning.from_data(store.times, unit_s, window_s=request.window_s, bin_s=request.bin_s,
-                             pulse_rms_s=request.pulse_rms_s)
+        return Binning.from_window(time_unit_s, request.window_s, request.bin_s)
+    return Binning.from_data(store.times, time_unit_s, window_s=request.window_s,
+                             bin_s=request.bin_s, pulse_rms_s=request.pulse_rms_s)
+
+
+def file_settings(request: FileReconRequest, time_unit_s: float, recorded: dict | None = None,
+                  store=None) -> ReconSettings:
+    """The estimator settings of a file reconstruction: the request's, with what it leaves open
+    taken from a session recording's ``recorded`` settings (binning, the response the live maps
+    used, the target) or the data (``store``: needed only when one of window and bins is given)."""
+    from spdepth.recon.model import Irf, load_irf
+
+    binning = file_binning(request, time_unit_s, recorded, store)
+    pulse_rms_s, irf = request.pulse_rms_s, load_irf(request.irf) if request.irf else None
+    max_photons = request.max_photons
+    if recorded:
+        # the response the live maps used: a shape measured on several surfaces, else a width
+        if pulse_rms_s is None and irf is None and recorded.get("irf"):
+            irf = Irf.from_dict(recorded["irf"])
+        elif pulse_rms_s is None and irf is None and recorded.get("pulse_rms_s"):
+            pulse_rms_s = float(recorded["pulse_rms_s"])
+        if max_photons is None and recorded.get("max_photons"):
+            max_photons = int(recorded["max_photons"])
+    return ReconSettings(method=request.method, binning=binning, pulse_rms_s=pulse_rms_s,
+                         irf=irf, max_photons=max_photons, reflectors=request.reflectors,
+                         max_reflectors=request.max_reflectors, false_alarm=request.false_alarm)
 
 
 def reconstruct_file(request: FileReconRequest, progress=None) -> FileResult:
@@ -387,7 +413,6 @@ def reconstruct_file(request: FileReconRequest, progress=None) -> FileResult:
     ``RecordingError`` naming the file for what cannot be read."""
     from spdepth.acq.readers import read_photons
     from spdepth.recon.estimate import reconstruct
-    from spdepth.recon.model import load_irf
 
     t0 = time.perf_counter()
     result = read_photons(request.input, time_unit_s=request.time_unit_s, mat_var=request.mat_var,
@@ -396,7 +421,8 @@ def reconstruct_file(request: FileReconRequest, progress=None) -> FileResult:
     if store.n_photons == 0:
         raise InputError(f"{request.input}: holds no photons")
     recorded = recorded_recon_settings(request.input) if result.kind == "ptu" else None
-    binning = file_binning(request, store, recorded)
+    settings = file_settings(request, store.time_unit_s, recorded, store)
+    binning = settings.binning
     if binning is not None and request.window_s is not None:
         lo, hi = binning.window_start, binning.window_stop
         inside = np.count_nonzero((store.times >= lo) & (store.times < hi))
@@ -405,22 +431,15 @@ def reconstruct_file(request: FileReconRequest, progress=None) -> FileResult:
             raise InputError(f"{request.input}: no detections in the window "
                              f"{lo * unit_ps:g}:{hi * unit_ps:g} ps (the file's detections span "
                              f"{store.times.min() * unit_ps:g} to {store.times.max() * unit_ps:g} ps)")
-    pulse_rms_s, irf = request.pulse_rms_s, load_irf(request.irf) if request.irf else None
-    max_photons = request.max_photons
-    if recorded:
-        # the response the live maps used: a shape measured on several surfaces, else a width
-        if pulse_rms_s is None and irf is None and recorded.get("irf"):
-            from spdepth.recon.model import Irf
-
-            irf = Irf.from_dict(recorded["irf"])
-        elif pulse_rms_s is None and irf is None and recorded.get("pulse_rms_s"):
-            pulse_rms_s = float(recorded["pulse_rms_s"])
-        if max_photons is None and recorded.get("max_photons"):
-            max_photons = int(recorded["max_photons"])
-    settings = ReconSettings(method=request.method, binning=binning, pulse_rms_s=pulse_rms_s,
-                             irf=irf, max_photons=max_photons, reflectors=request.reflectors,
-                             max_reflectors=request.max_reflectors, false_alarm=request.false_alarm)
     read_s = time.perf_counter() - t0
+    set_threads(request)
+    t1 = time.perf_counter()
+    maps = reconstruct(store, settings, progress=progress)
+    return file_result(request, maps, result, read_s=read_s, recon_s=time.perf_counter() - t1)
+
+
+def set_threads(request: FileReconRequest) -> None:
+    """Numba's threads for the reconstruction (``--threads``; None: leave them)."""
     if request.threads is not None:
         import numba
 
@@ -428,23 +447,31 @@ def reconstruct_file(request: FileReconRequest, progress=None) -> FileResult:
             raise RequestError(f"--threads {request.threads}: this machine allows at most "
                                f"{numba.config.NUMBA_NUM_THREADS}")
         numba.set_num_threads(request.threads)
-    t1 = time.perf_counter()
-    maps = reconstruct(store, settings, progress=progress)
-    recon_s = time.perf_counter() - t1
-    maps = _with_geometry_and_offset(maps, request, store.shape)
+
+
+def file_result(request: FileReconRequest, maps, read, *, read_s: float = 0.0,
+                recon_s: float = 0.0, photons_in_file: int | None = None) -> FileResult:
+    """A file's reconstructed maps finished as ``spdepth recon`` finishes them: the scan geometry
+    and range offset added, the outputs the request names written (npz, png, pulse shape, points)
+    and the summary made. ``read``: the reader's ``ReadResult`` (its ``store`` may be None when
+    the photons were read in blocks elsewhere; then give ``photons_in_file``)."""
+    store = read.store
+    maps = _with_geometry_and_offset(maps, request, maps.shape)
     used = maps.settings
     used_binning = Binning.from_dict(used["binning"])
     irf_used = _irf_used(used)
-    notes = tuple(result.notes)
-    per_pixel = float(np.sum(maps.photons)) / max(1, store.n_pixels)
-    if result.is_image and request.method != "spatial" and per_pixel < SPARSE_PER_PIXEL:
+    notes = tuple(read.notes)
+    h, w = maps.shape
+    per_pixel = float(np.sum(maps.photons)) / max(1, h * w)
+    if read.is_image and request.method != "spatial" and per_pixel < SPARSE_PER_PIXEL:
         notes += (f"about {per_pixel:.1f} detections per pixel: too few for a pixel on its own; "
                   f"--method spatial uses the neighbours",)
     res = FileResult(request, maps, store, used_binning, used.get("pulse_rms_s"),
-                     irf_used if used.get("irf") else None, result.is_image, result.kind,
-                     notes, read_s, recon_s)
-    _write_file_outputs(res, result)
-    res.summary = _file_summary(res, result)
+                     irf_used if used.get("irf") else None, read.is_image, read.kind,
+                     notes, read_s, recon_s,
+                     photons_in_file=store.n_photons if photons_in_file is None else photons_in_file)
+    _write_file_outputs(res, read)
+    res.summary = _file_summary(res, read)
     return res
 
 
@@ -537,17 +564,18 @@ def _small_settings(settings: dict) -> dict:
 
 
 def _file_summary(res: FileResult, read) -> dict:
-    maps, store, b = res.maps, res.store, res.binning
+    maps, b = res.maps, res.binning
     unit_ps = b.time_unit_s * 1e12
     depth = np.asarray(maps.depth_m, dtype=float)
     finite = depth[np.isfinite(depth)]
     req = res.request
+    h, w = maps.shape
     return {
         "input": req.input, "kind": res.kind, "is_image": res.is_image,
-        "shape": list(store.shape), "pixels": store.n_pixels,
+        "shape": [h, w], "pixels": h * w,
         "pixels_with_estimate": int(np.isfinite(depth).sum() if depth.ndim == 2
                                     else np.isfinite(depth).any(axis=0).sum()),
-        "photons": int(np.sum(maps.photons)), "photons_in_file": store.n_photons,
+        "photons": int(np.sum(maps.photons)), "photons_in_file": res.photons_in_file,
         "method": req.method, "read_s": round(res.read_s, 4), "recon_s": round(res.recon_s, 4),
         "time_unit_ps": unit_ps, "window_ps": [b.window_start * unit_ps, b.window_stop * unit_ps],
         "bin_ps": b.bin_width * unit_ps, "n_bins": b.n_bins,
@@ -563,4 +591,5 @@ def _file_summary(res: FileResult, read) -> dict:
 
 __all__ = ["OutputDir", "new_run_dir", "open_instruments", "scan_plan", "scan_settings",
            "build_session", "finish_session", "FileResult", "reconstruct_file", "file_binning",
+           "file_settings", "file_result", "set_threads",
            "recorded_recon_settings", "recorded_request", "read_run_record", "RUN_JSON", "SESSION_FILES"]

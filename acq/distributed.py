@@ -29,8 +29,7 @@ import copy
 import os
 import sys
 import time
-from dataclasses import dataclass
-from pathlib import Path
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -120,7 +119,9 @@ def _per_file(requests: list, client) -> list[dict]:
 @dataclass(frozen=True)
 class Plan:
     """How a recording splits: ``starts[i]`` is the first record of chunk i and ``states[i]`` the
-    (decoder, assigner) state before it; blocks are row ranges ``rows[b]:rows[b + 1]``."""
+    decoder (``acq.readers.picoquant.PixelMarkerDecoder``) before it; blocks are row ranges
+    ``rows[b]:rows[b + 1]``. ``meta``: what the reader reports of the whole file
+    (``ReadResult.meta``); ``photons``: the photons in a pixel (of the channel kept)."""
 
     path: str
     shape: tuple[int, int]
@@ -129,12 +130,17 @@ class Plan:
     starts: tuple[int, ...]
     states: tuple
     rows: tuple[int, ...]
+    meta: dict = field(default_factory=dict)
+    photons: int = 0
 
 
 def _image_and_unit(path: str, time_unit_s: float | None):
-    """(layout, shape, pattern, rectype, time unit) of a PTU with pixel markers, or None."""
+    """(layout, shape, pattern, rectype, time unit) of a PTU with pixel markers that the reader
+    (``acq.readers.picoquant``) would read by them, or None."""
     from spdepth.acq.ptu import PIXEL_MARKER_TAG, PLAN_TAG, read_layout
     from spdepth.acq.readers import sniff_kind
+    from spdepth.acq.readers.picoquant import ptu_image
+    from spdepth.drivers.events import GENERIC_T3_RECORD_TYPES
 
     if sniff_kind(path) != "ptu":
         return None
@@ -143,70 +149,59 @@ def _image_and_unit(path: str, time_unit_s: float | None):
     if not int(tags.get(PIXEL_MARKER_TAG, 0) or 0) or tags.get(PLAN_TAG):
         # a session's recording keeps complete dwells only (acq.recording): one task reads it so
         return None
-    h, w = int(tags.get("ImgHdr_PixY", 0) or 0), int(tags.get("ImgHdr_PixX", 0) or 0)
-    if h < 1 or w < 1:
-        return None
-    pattern = "serp" if tags.get("ImgHdr_BiDirect") else "raster"
+    image = ptu_image(path, tags)
+    rectype = int(tags.get("TTResultFormat_TTTRRecType", 0) or 0)
+    if image is None or image["pix_y"] < 1 or image["pix_x"] < 1 or \
+            rectype not in GENERIC_T3_RECORD_TYPES or "MeasDesc_Resolution" not in tags:
+        return None       # one task: the reader says what is wrong with it, or interpolates
+    pattern = "serp" if image["bidirectional"] else "raster"
     unit = time_unit_s or float(tags["MeasDesc_Resolution"])
-    return layout, (h, w), pattern, int(tags["TTResultFormat_TTTRRecType"]), unit
+    return layout, (image["pix_y"], image["pix_x"]), pattern, rectype, unit
 
 
-def _assigned(layout, chunk: np.ndarray, dec, assigner, lut, keep_channel):
-    """Decode one chunk of records and assign its photons: (flat pixel, dtime) of the photons that
-    land in a pixel (of ``keep_channel`` only, when given)."""
-    from spdepth.drivers.errors import DriverError
-    from spdepth.drivers.events import EventKind, Marker
-    from spdepth.drivers.tagger.t3 import decode_t3
-
-    try:
-        ev = decode_t3(chunk, dec)
-    except DriverError as exc:
-        raise InputError(f"{layout.path}: {exc}") from None
-    is_marker = ev["kind"] == EventKind.MARKER
-    ev["marker"][is_marker] = lut[ev["marker"][is_marker]]
-    pixel = assigner.assign(ev)
-    sel = (ev["kind"] == EventKind.PHOTON) & (pixel >= 0)
-    if keep_channel is not None:
-        sel &= ev["channel"] == keep_channel
-    n_pixel_markers = int(np.count_nonzero(ev["marker"][is_marker] & Marker.PIXEL))
-    return pixel[sel], ev["dtime"][sel].astype(np.float64), n_pixel_markers
+def _decoded(decoder, chunk: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(flat pixel, dtime) of one chunk's photons that land in a pixel (``decoder.decode``)."""
+    pixel, dtime = np.empty(chunk.size, np.int64), np.empty(chunk.size, np.uint32)
+    n = decoder.decode(chunk, pixel, dtime)
+    return pixel[:n], dtime[:n]
 
 
 def plan_blocks(path: str, time_unit_s: float | None = None, *, chunk_records: int = CHUNK_RECORDS,
-                block_pixels: int = BLOCK_PIXELS) -> Plan | None:
-    """Walk the recording once, in chunks, keeping the state at each chunk start. None when it is
-    not a PTU with pixel markers (then it goes whole to one task)."""
-    from spdepth.acq.assign import PixelAssigner
-    from spdepth.acq.ptu import iter_records, marker_map
-    from spdepth.drivers.tagger.t3 import T3DecoderState
+                block_pixels: int = BLOCK_PIXELS, keep_channel: int | None = None) -> Plan | None:
+    """Walk the recording once, in chunks, keeping the decoder at each chunk start and what the
+    reader would report of the whole file. None when it is not a PTU with pixel markers (then it
+    goes whole to one task)."""
+    from spdepth.acq.ptu import iter_records
+    from spdepth.acq.readers.picoquant import PixelMarkerDecoder, ptu_meta
 
     found = _image_and_unit(path, time_unit_s)
     if found is None:
         return None
-    layout, (h, w), pattern, rectype, _ = found
-    lut = marker_map(layout.tags)
-    dec, assigner = T3DecoderState(), PixelAssigner((h, w), pattern)
-    starts, states, markers = [], [], 0
+    layout, (h, w), pattern, rectype, unit_s = found
+    decoder = PixelMarkerDecoder(path, layout.tags, (h, w), pattern, keep_channel)
+    starts, states, photons = [], [], 0
     for i, chunk in enumerate(iter_records(layout, chunk_records)):
         starts.append(i * chunk_records)
-        states.append((copy.deepcopy(dec), copy.deepcopy(assigner)))
-        markers += _assigned(layout, chunk, dec, assigner, lut, None)[2]
-    if markers == 0:
+        states.append(copy.deepcopy(decoder))
+        photons += _decoded(decoder, chunk)[0].size
+    if decoder.pixel_markers == 0:
         return None
+    meta = decoder.meta(ptu_meta(layout.tags, layout.n_records), unit_s)
     per = max(1, block_pixels // w)
     rows = tuple(range(0, h, per)) + (h,)
-    return Plan(str(path), (h, w), rectype, chunk_records, tuple(starts), tuple(states), rows)
+    return Plan(str(path), (h, w), rectype, chunk_records, tuple(starts), tuple(states), rows,
+                meta, photons)
 
 
-def chunk_task(plan: Plan, i: int, keep_channel: int | None) -> list[tuple[np.ndarray, np.ndarray]]:
+def chunk_task(plan: Plan, i: int) -> list[tuple[np.ndarray, np.ndarray]]:
     """Chunk i's photons split by block: ``[(flat pixel, dtime) of block b, ...]``. Reads its own
     records from the file, so dask can recompute it anywhere."""
-    from spdepth.acq.ptu import iter_records, marker_map, read_layout
+    from spdepth.acq.ptu import iter_records, read_layout
 
     layout = read_layout(plan.path)
-    dec, assigner = copy.deepcopy(plan.states[i])
+    decoder = copy.deepcopy(plan.states[i])
     chunk = next(iter_records(layout, plan.chunk_records, start=plan.starts[i]))
-    pixel, dtime, _ = _assigned(layout, chunk, dec, assigner, marker_map(layout.tags), keep_channel)
+    pixel, dtime = _decoded(decoder, chunk)
     edges = np.asarray(plan.rows, np.int64) * plan.shape[1]
     block = np.searchsorted(edges, pixel, side="right") - 1
     # stable: detection order within a pixel survives, as in the single-process reader
@@ -246,12 +241,12 @@ def assemble(parts: list) -> object:
     return DepthMaps(settings=parts[0].settings, **arrays)
 
 
-def reconstruct_blocks(client, plan: Plan, settings, time_unit_s: float, keep_channel: int | None,
-                       on_submitted=None):
-    """Maps of the whole recording, computed as chunk and block tasks on ``client``.
-    ``on_submitted(futures)`` is called once everything is submitted (tests kill a worker there)."""
+def reconstruct_blocks(client, plan: Plan, settings, time_unit_s: float, on_submitted=None):
+    """Maps of the whole recording, computed as chunk and block tasks on ``client`` (the channel
+    kept is the plan's). ``on_submitted(futures)`` is called once everything is submitted (tests
+    kill a worker there)."""
     n_blocks = len(plan.rows) - 1
-    chunks = [client.submit(chunk_task, plan, i, keep_channel, pure=False)
+    chunks = [client.submit(chunk_task, plan, i, pure=False)
               for i in range(len(plan.starts))]
     shares = [[client.submit(_share, c, b, pure=False) for c in chunks] for b in range(n_blocks)]
     blocks = [client.submit(block_task, plan, b, settings, time_unit_s, *shares[b], pure=False)
@@ -263,23 +258,23 @@ def reconstruct_blocks(client, plan: Plan, settings, time_unit_s: float, keep_ch
 
 
 def block_settings(request, unit_s: float):
-    """ReconSettings of a fully given model (window, bins and pulse), exactly as
-    ``acq.api.reconstruct_file`` resolves them, or None when any is left to the data."""
-    from spdepth.recon.model import Binning, ReconSettings, load_irf
+    """ReconSettings of a fully given model (window, bins and pulse), as
+    ``acq.api.reconstruct_file`` resolves them (``acq.api.file_settings``), or None when any is
+    left to the data."""
+    from spdepth.acq.api import file_settings
 
     if request.window_s is None or request.bin_s is None or \
             (request.pulse_rms_s is None and request.irf is None):
         return None
-    return ReconSettings(method=request.method,
-                         binning=Binning.from_window(unit_s, request.window_s, request.bin_s),
-                         pulse_rms_s=request.pulse_rms_s,
-                         irf=load_irf(request.irf) if request.irf else None,
-                         max_photons=request.max_photons, reflectors=request.reflectors,
-                         max_reflectors=request.max_reflectors, false_alarm=request.false_alarm)
+    return file_settings(request, unit_s)
 
 
 def _by_blocks(request, client) -> dict | None:
-    """The single-recording block path; None when the input cannot be split (see module doc)."""
+    """The single-recording block path; None when the input cannot be split (see module doc).
+    The maps are finished and written by the library (``acq.api.file_result``), as in-process."""
+    from spdepth.acq.api import file_result
+    from spdepth.acq.readers.common import ReadResult
+
     path = request.input
     if request.method == "spatial":
         # its pixels are not independent: blocks would cut every neighbourhood at their seams
@@ -297,25 +292,17 @@ def _by_blocks(request, client) -> dict | None:
               f"--pulse-rms-ps to split it into blocks)", file=sys.stderr)
         return None
     t0 = time.perf_counter()
-    plan = plan_blocks(path, unit_s)
+    plan = plan_blocks(path, unit_s, keep_channel=request.channel)
     if plan is None:
         return None
-    maps = reconstruct_blocks(client, plan, settings, unit_s, request.channel)
-    seconds = time.perf_counter() - t0
-    if request.out:
-        maps.save_npz(request.out)
-    if request.png:
-        from spdepth.acq.report import render_maps_png
-
-        render_maps_png(request.png, maps, title=f"{Path(path).name}: {request.method} "
-                        f"({len(plan.rows) - 1} blocks on dask)")
-    depth = np.asarray(maps.depth_m, dtype=float)
-    return {"input": str(path), "shape": list(plan.shape), "pixels": int(np.prod(plan.shape)),
-            "pixels_with_estimate": int(np.isfinite(depth).sum() if depth.ndim == 2 else
-                                        np.isfinite(depth).any(axis=0).sum()),
-            "photons": int(maps.photons.sum()), "method": request.method,
-            "recon_s": round(seconds, 4), "chunks": len(plan.starts), "blocks": len(plan.rows) - 1,
-            "out": request.out, "png": request.png, "notes": []}
+    if plan.photons == 0:
+        raise InputError(f"{path}: holds no photons")
+    t1 = time.perf_counter()
+    maps = reconstruct_blocks(client, plan, settings, unit_s)
+    read = ReadResult(store=None, path=str(path), kind="ptu", is_image=True, meta=plan.meta)
+    res = file_result(request, maps, read, read_s=t1 - t0, recon_s=time.perf_counter() - t1,
+                      photons_in_file=plan.photons)
+    return {**res.summary, "chunks": len(plan.starts), "blocks": len(plan.rows) - 1}
 
 
 def reconstruct_files(requests: list, dask: str | None = None) -> list[dict]:

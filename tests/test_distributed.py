@@ -66,7 +66,7 @@ def _blocks(client, path, method="uos", on_submitted=None, reflectors=1):
     # small chunks and blocks, so that rows, chunks and blocks all cut across each other
     plan = D.plan_blocks(path, unit_s, chunk_records=3001, block_pixels=7 * 40 + 13)
     assert len(plan.starts) > 3 and len(plan.rows) > 3
-    return D.reconstruct_blocks(client, plan, settings, unit_s, None, on_submitted=on_submitted)
+    return D.reconstruct_blocks(client, plan, settings, unit_s, on_submitted=on_submitted)
 
 
 def test_local_cluster_listens_on_loopback_only(client):
@@ -140,3 +140,33 @@ def test_a_model_left_to_the_data_is_not_split(files):
         assert D.block_settings(_request(paths[0], **{left: None}), 8e-12) is None
     given = D.block_settings(_request(paths[0]), 8e-12)
     assert given.binning.n_bins == 2500 and given.max_photons == 12
+
+
+def test_a_dask_run_writes_what_the_in_process_run_writes(files, tmp_path, capsys):
+    """``--dask local:1`` on one recording takes the block path, and the library finishes its
+    maps: the same npz (keys, arrays, settings with the geometry of --fov-deg and the range
+    offset), the same pulse shape file, a picture, and the same summary but for timings, paths and
+    the block counts (the block path dropped --save-irf, the offset and the geometry before)."""
+    import json
+
+    _, paths = files
+    runs = {}
+    for name, dask in (("here", []), ("dask", ["--dask", "local:1"])):
+        d = tmp_path / name
+        d.mkdir()
+        assert main(["recon", paths[0], *MODEL, "--fov-deg", "20", "--range-offset-m", "1.5",
+                     "--out", str(d / "maps.npz"), "--png", str(d / "maps.png"),
+                     "--save-irf", str(d / "irf.csv"), "--json", *dask]) == 0
+        summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+        runs[name] = (d, summary)
+    (here, s_here), (there, s_dask) = runs["here"], runs["dask"]
+    assert s_dask["blocks"] >= 1 and "blocks" not in s_here       # the block path was taken
+    a, b = DepthMaps.load_npz(here / "maps.npz"), DepthMaps.load_npz(there / "maps.npz")
+    _same(a, b)
+    assert a.settings["range_offset_m"] == 1.5 and "geometry" in a.settings
+    assert (here / "irf.csv").read_text() == (there / "irf.csv").read_text()
+    assert (there / "maps.png").stat().st_size > 0
+    ignore = {"read_s", "recon_s", "out", "png", "save_irf", "request", "chunks", "blocks"}
+    assert {k: v for k, v in s_here.items() if k not in ignore} == \
+        {k: v for k, v in s_dask.items() if k not in ignore}
+    assert s_dask["save_irf"] == str(there / "irf.csv") and s_dask["range_offset_m"] == 1.5

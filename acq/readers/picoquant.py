@@ -246,17 +246,8 @@ def read_ptu(path: str | Path, *, time_unit_s: float | None = None,
     if not resolution_s > 0:
         raise InputError(f"{path}: header field MeasDesc_Resolution is {resolution_s}, not a positive time")
     rectype = int(tags["TTResultFormat_TTTRRecType"])
-    image = None
-    if all(k in tags for k in ("ImgHdr_LineStart", "ImgHdr_LineStop", "ImgHdr_PixX")):
-        image = {"pix_x": int(tags["ImgHdr_PixX"]), "line_start": int(tags["ImgHdr_LineStart"]),
-                 "line_stop": int(tags["ImgHdr_LineStop"]), "frame": int(tags.get("ImgHdr_Frame", 0) or 0),
-                 "pix_y": int(tags.get("ImgHdr_PixY", 0) or 0),
-                 "bidirectional": bool(tags.get("ImgHdr_BiDirect", False))}
-        if tags.get("ImgHdr_SinCorrection"):
-            raise InputError(f"{path}: sinusoidal (resonant) scanning is not supported: pixels "
-                             f"would be unevenly spaced in time")
-    meta = {"record_type": int(rectype), "resolution_s": resolution_s, "records": int(n_records),
-            "sync_rate_hz": float(tags.get("TTResult_SyncRate", 0) or 0)}
+    image = ptu_image(path, tags)
+    meta = ptu_meta(tags, n_records)
     notes = ()
     if tags.get(PLAN_TAG) and rectype in GENERIC_T3_RECORD_TYPES:
         # a session's recording: its passes and lost spans are in events.jsonl beside it
@@ -283,6 +274,79 @@ def read_ptu(path: str | Path, *, time_unit_s: float | None = None,
     return result
 
 
+def ptu_image(path, tags: dict) -> dict | None:
+    """The scan a PTU header describes (``ImgHdr_*``): pixels per line, marker numbers, lines
+    (``pix_y``, 0 when not given), serpentine or not; None without line markers (a point
+    measurement). Sinusoidal scanning is an ``InputError``."""
+    if not all(k in tags for k in ("ImgHdr_LineStart", "ImgHdr_LineStop", "ImgHdr_PixX")):
+        return None
+    if tags.get("ImgHdr_SinCorrection"):
+        raise InputError(f"{path}: sinusoidal (resonant) scanning is not supported: pixels "
+                         f"would be unevenly spaced in time")
+    return {"pix_x": int(tags["ImgHdr_PixX"]), "line_start": int(tags["ImgHdr_LineStart"]),
+            "line_stop": int(tags["ImgHdr_LineStop"]), "frame": int(tags.get("ImgHdr_Frame", 0) or 0),
+            "pix_y": int(tags.get("ImgHdr_PixY", 0) or 0),
+            "bidirectional": bool(tags.get("ImgHdr_BiDirect", False))}
+
+
+def ptu_meta(tags: dict, n_records: int) -> dict:
+    """What a PTU reader reports of the header (``ReadResult.meta``)."""
+    return {"record_type": int(tags["TTResultFormat_TTTRRecType"]),
+            "resolution_s": float(tags["MeasDesc_Resolution"]), "records": int(n_records),
+            "sync_rate_hz": float(tags.get("TTResult_SyncRate", 0) or 0)}
+
+
+class PixelMarkerDecoder:
+    """A PTU's records with pixel markers, decoded chunk by chunk in stream order: Generic T3
+    records into events (``decode_t3``; the state carries the overflow count), the file's marker
+    bits renumbered to ``Marker`` bits, photons assigned by ``acq.assign.PixelAssigner`` (the one
+    assignment path of live scans and replays), and those in a pixel (of ``keep_channel`` only,
+    when given) appended to the caller's arrays. ``read_ptu`` runs one over the whole file;
+    ``acq.distributed`` copies one at chunk boundaries and resumes the copies on its workers."""
+
+    def __init__(self, path, tags: dict, shape: tuple[int, int], pattern: str,
+                 keep_channel: int | None = None):
+        self.path = str(path)
+        self.lut = marker_map(tags)
+        self.state = T3DecoderState()
+        self.assigner = PixelAssigner(shape, pattern)
+        self.keep_channel = keep_channel
+        self.per_channel = np.zeros(64, np.int64)
+        self.pixel_markers = 0
+        self.outside = 0
+
+    def decode(self, chunk: np.ndarray, pixel_out: np.ndarray, time_out: np.ndarray, n: int = 0,
+               *, buf: np.ndarray | None = None, pixel_buf: np.ndarray | None = None) -> int:
+        """Decode one chunk of records (after the previous one) and append its photons' flat
+        pixels (int64) and dtimes (uint32) to ``pixel_out``/``time_out`` from index ``n``
+        (room for ``chunk.size`` more); returns the new ``n``."""
+        try:
+            ev = decode_t3(chunk, self.state, out=buf)
+        except DriverError as exc:
+            raise InputError(f"{self.path}: {exc}") from None
+        self.pixel_markers += _renumber_markers(ev["kind"], ev["marker"], self.lut)
+        pixel = self.assigner.assign(ev, out=pixel_buf)
+        channel = -1 if self.keep_channel is None else int(self.keep_channel)
+        n, outside = _collect_photons(ev["kind"], ev["channel"], ev["dtime"], pixel, channel,
+                                      pixel_out, time_out, n, self.per_channel)
+        self.outside += outside
+        return n
+
+    def meta(self, meta: dict, time_unit_s: float) -> dict:
+        """``meta`` with what decoding found (``ReadResult.meta``); an ``InputError`` when the
+        channel asked for has no photons."""
+        h, w = self.assigner.shape
+        meta = dict(meta, time_unit_s=time_unit_s,
+                    photons_per_channel={int(c): int(k) for c, k in enumerate(self.per_channel) if k})
+        if self.keep_channel is not None and self.keep_channel not in meta["photons_per_channel"]:
+            raise InputError(f"{self.path}: no photons on channel {self.keep_channel}; channels "
+                             f"with photons: {sorted(meta['photons_per_channel']) or 'none'}")
+        meta.update(assignment="pixel markers", lines=self.assigner.lines_closed,
+                    frames=max(self.assigner.frame + 1, 1), pix_x=w, height=h,
+                    pixel_markers=self.pixel_markers, photons_outside_pixels=self.outside)
+        return meta
+
+
 def _read_by_pixel_markers(path: Path, layout: PtuLayout, rectype: int, image: dict,
                            time_unit_s: float, keep_channel: int | None,
                            meta: dict) -> ReadResult | None:
@@ -293,43 +357,25 @@ def _read_by_pixel_markers(path: Path, layout: PtuLayout, rectype: int, image: d
     if rectype not in GENERIC_T3_RECORD_TYPES:
         raise InputError(f"{path}: pixel markers in record type 0x{rectype:08x} are not supported "
                          f"(Generic T3 record types only)")
-    lut = marker_map(layout.tags)
     h, w = image["pix_y"], image["pix_x"]
     if h < 1 or w < 1:
         raise InputError(f"{path}: header field ImgHdr_PixY/ImgHdr_PixX is {h}/{w}: a file with "
                          f"pixel markers needs the scan's size")
-    assigner = PixelAssigner((h, w), "serp" if image["bidirectional"] else "raster")
-    state = T3DecoderState()
+    decoder = PixelMarkerDecoder(path, layout.tags, (h, w),
+                                 "serp" if image["bidirectional"] else "raster", keep_channel)
     buf = np.empty(min(CHUNK_RECORDS, max(layout.n_records, 1)), EVENT_DTYPE)
     pixel_buf = np.empty(buf.size, np.int64)
-    per_channel = np.zeros(64, np.int64)
     # every photon of the file lands here in stream order, then one counting sort groups them
     cap = max(layout.n_records, layout.records_in_file)
     pixel_all, time_all = np.empty(cap, np.int64), np.empty(cap, np.uint32)
-    n_kept = n_pixel_markers = outside = 0
-    channel = -1 if keep_channel is None else int(keep_channel)
+    n_kept = 0
     for chunk in iter_records(layout, CHUNK_RECORDS):
-        try:
-            ev = decode_t3(chunk, state, out=buf)
-        except DriverError as exc:
-            raise InputError(f"{path}: {exc}") from None
-        n_pixel_markers += _renumber_markers(ev["kind"], ev["marker"], lut)
-        pixel = assigner.assign(ev, out=pixel_buf)
-        n_kept, out = _collect_photons(ev["kind"], ev["channel"], ev["dtime"], pixel, channel,
-                                       pixel_all, time_all, n_kept, per_channel)
-        outside += out
-    if n_pixel_markers == 0:
+        n_kept = decoder.decode(chunk, pixel_all, time_all, n_kept, buf=buf, pixel_buf=pixel_buf)
+    if decoder.pixel_markers == 0:
         return None
-    meta = dict(meta, time_unit_s=time_unit_s,
-                photons_per_channel={int(c): int(k) for c, k in enumerate(per_channel) if k})
-    if keep_channel is not None and keep_channel not in meta["photons_per_channel"]:
-        raise InputError(f"{path}: no photons on channel {keep_channel}; channels with photons: "
-                         f"{sorted(meta['photons_per_channel']) or 'none'}")
+    meta = decoder.meta(meta, time_unit_s)
     store = PhotonStore.from_pixel_indices(pixel_all[:n_kept], time_all[:n_kept], (h, w),
                                            time_unit_s)
-    meta.update(assignment="pixel markers", lines=assigner.lines_closed,
-                frames=max(assigner.frame + 1, 1), pix_x=w, height=h, pixel_markers=n_pixel_markers,
-                photons_outside_pixels=outside)
     return ReadResult(store=store, path=str(path), kind="ptu", is_image=True, meta=meta)
 
 
