@@ -1,7 +1,9 @@
-"""Shared pytest setup: hardware options, seeded randomness, the shared-data folder."""
+"""Shared pytest setup: hardware options, seeded randomness, the shared-data folder, and a
+settings folder of its own for every test (the user's ``~/.config`` is never written)."""
 
 from __future__ import annotations
 
+import hashlib
 import os
 from pathlib import Path
 
@@ -58,3 +60,41 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"shared data folder not found at {SHARED_DATA}")
     return SHARED_DATA
+
+
+USER_SETTINGS = Path.home() / ".config" / "spdepth"
+"""Where the window keeps a user's settings (QSettings "spdepth"/"spdepth" on Linux)."""
+
+
+def _fingerprint(folder: Path) -> dict:
+    """Each file under ``folder`` with a hash of its bytes ({} when there is no folder)."""
+    if not folder.is_dir():
+        return {}
+    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture(scope="session", autouse=True)
+def user_settings_untouched():
+    """The whole run leaves the user's ``~/.config/spdepth`` as it found it (a test that wrote
+    there once left a pytest folder as the window's runs folder, where pytest deletes the runs)."""
+    before = _fingerprint(USER_SETTINGS)
+    yield
+    after = _fingerprint(USER_SETTINGS)
+    assert after == before, f"the tests changed {USER_SETTINGS}: {sorted(set(after) | set(before))}"
+
+
+@pytest.fixture(autouse=True)
+def own_settings_folder(tmp_path_factory, monkeypatch) -> Path:
+    """Every test its own settings folder: ``XDG_CONFIG_HOME`` (children, e.g. ``spdepth gui``,
+    inherit it) and Qt's user-scope QSettings path (Qt reads the environment only once per
+    process), both set before the test makes any QSettings."""
+    folder = tmp_path_factory.mktemp("config", numbered=True)
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(folder))
+    try:
+        from PySide6 import QtCore
+    except ImportError:        # no Qt: nothing in this run can make a QSettings
+        return folder
+    for fmt in (QtCore.QSettings.NativeFormat, QtCore.QSettings.IniFormat):
+        QtCore.QSettings.setPath(fmt, QtCore.QSettings.UserScope, str(folder))
+    return folder
