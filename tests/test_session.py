@@ -12,62 +12,14 @@ import time
 import numpy as np
 import pytest
 
-from spdepth.acq.api import scan_settings
-from spdepth.acq.instruments import open_sim, sim_plan
+from spdepth.acq.instruments import open_sim
 from spdepth.acq.recording import ReplaySource, recon_settings_from_dict
-from spdepth.acq.requests import ScanRequest
-from spdepth.acq.scan_source import ScanSource
-from spdepth.acq.session import ACQUIRING, AcqFlag, Session, SessionState, SessionStateError
+from spdepth.acq.session import ACQUIRING, AcqFlag, SessionState, SessionStateError
 from spdepth.recon.maps import DepthMaps
-from waiting import wait_until
-
-
-def _session(inst, shape, out=None, *, target=10, method="lmf", reader_options=None,
-             **plan_kwargs):
-    plan = sim_plan(inst, shape, target=target, **plan_kwargs)
-    request = ScanRequest(target=target, method=method, pulse_rms_s=inst.scene.pulse_rms_s)
-    source = ScanSource(inst.galvo, inst.tagger, sync_period_s=inst.sync_period_s,
-                        reader_options=reader_options)
-    return Session(plan, scan_settings(request, inst.tagger.resolution_s), source, out_dir=out,
-                   info=inst.info)
-
-
-def _dwells_by_pixel(rig, width):
-    out: dict[int, list[np.ndarray]] = {}
-    for row, col, ev in rig.truth:
-        out.setdefault(row * width + col, []).append(ev["dtime"][ev["kind"] == 0])
-    return out
-
-
-def assert_from_complete_dwells(session, rig):
-    """Every pixel's kept times are the first in-window detections of a subsequence of the dwells
-    the world produced for that pixel, in order: right pixel, no detection twice, none invented."""
-    store = session.store
-    lo, hi = store.window
-    dwells = _dwells_by_pixel(rig, store.shape[1])
-    for p in range(store.n_pixels):
-        kept = store.times[p, :store.count[p]]
-        # every way through the dwells, not the first match only: a dwell lost in an overflow
-        # (the world made it, the stream never had it) can start with the same time as the next
-        # dwell kept, and taking it would leave the kept times misaligned
-        reach = {0}
-        for d in dwells.get(p, []):
-            w = d[(d >= lo) & (d < hi)]
-            for k in list(reach):
-                take = min(w.size, kept.size - k)
-                if take and np.array_equal(kept[k:k + take], w[:take]):
-                    reach.add(k + take)
-        assert kept.size in reach, f"pixel {divmod(p, store.shape[1])}: kept times not from its dwells"
-
-
-def assert_complete_or_flagged(session):
-    target = session.plan.target
-    counts = session.store.count
-    flags = session.acq_flags
-    assert np.all(flags != ACQUIRING), "every pixel ends final"
-    short = counts < target
-    assert np.all(flags[short] != AcqFlag.COMPLETE), "a short pixel passed as complete"
-    assert np.all(counts[flags == AcqFlag.COMPLETE] == target)
+from tests.sessions import assert_same_maps, assert_complete_or_flagged, assert_from_complete_dwells
+from tests.sessions import replay_session as _replay
+from tests.sessions import sim_session as _session
+from tests.waiting import wait_until
 
 
 @pytest.mark.parametrize("galvo_link", ["url", pytest.param("pty", marks=pytest.mark.skipif(
@@ -188,7 +140,12 @@ def test_pause_resume_and_abort_from_another_thread(tmp_path):
         threading.Thread(target=s.pause).start()
         assert s.wait_for_state(SessionState.PAUSED, 20)
         frozen = s.store.count.copy()
-        time.sleep(0.3)
+        # paused: the session stopped the galvo at a pixel boundary and holds its own thread, so
+        # once the mirror has stopped nothing more can be acquired until resume
+        from spdepth.drivers.galvo.protocol import GalvoState
+
+        wait_until(lambda: inst.galvo.status().state != GalvoState.SCANNING, timeout_s=20,
+                   what="the galvo to stop scanning")
         assert np.array_equal(frozen, s.store.count), "nothing is acquired while paused"
         assert s.snapshot().state == "paused"
         # paused at a pixel boundary: every pixel is either untouched or complete
@@ -215,30 +172,7 @@ def test_pause_resume_and_abort_from_another_thread(tmp_path):
     # what was recorded up to the abort replays to the same maps
     rep = _replay(tmp_path)
     assert rep.run() == SessionState.DONE
-    _assert_same_maps(DepthMaps.load_npz(tmp_path / "maps.npz"), rep.maps(), skip_flags=True)
-
-
-def _replay(rec_dir, *, target=None, out=None):
-    """A replay session of one of our recordings with its recorded plan and settings (what the
-    front ends build from a replay request)."""
-    import dataclasses
-
-    from spdepth.acq.plan import ScanPlan
-
-    src = ReplaySource(rec_dir)
-    plan = ScanPlan.from_dict(src.info.plan)
-    gate_target = plan.target if plan.mode == "gated" else None
-    if target is not None:
-        plan = dataclasses.replace(plan, target=target)
-    settings = recon_settings_from_dict(src.info.recon, max_photons=plan.target)
-    return Session(plan, settings, src, out_dir=out, gate_target=gate_target)
-
-
-def _assert_same_maps(a: DepthMaps, b: DepthMaps, skip_flags=False):
-    for k in ("tof_s", "depth_m", "background", "signal", "photons", "uncertainty_s", "flags"):
-        if skip_flags and k == "flags":
-            continue
-        np.testing.assert_array_equal(getattr(a, k), getattr(b, k), err_msg=k)
+    assert_same_maps(DepthMaps.load_npz(tmp_path / "maps.npz"), rep.maps(), skip_flags=True)
 
 
 @pytest.mark.parametrize("fault", ["", "fifo-overflow@40%,device-vanish@70%"])
@@ -248,7 +182,7 @@ def test_replay_equals_live(tmp_path, fault):
         assert live.run() == SessionState.DONE
     rep = _replay(tmp_path / "live")
     assert rep.run() == SessionState.DONE
-    _assert_same_maps(live.maps(), rep.maps())
+    assert_same_maps(live.maps(), rep.maps())
     assert np.array_equal(live.store.count, rep.store.count)
     assert np.array_equal(live.store.times, rep.store.times)
     assert np.array_equal(live.exposure_s(), rep.exposure_s())      # the background rate too
@@ -399,11 +333,11 @@ def test_spatial_session_shows_ml_live_then_the_spatial_frame_and_replays_equal(
         assert s.recon.settings.method == "ml"           # the live maps, pixel by pixel
         assert s.run() == SessionState.DONE
     batch = reconstruct(s.store.photons(), s.recon.requested)
-    _assert_same_maps(s.maps(), batch)
+    assert_same_maps(s.maps(), batch)
     assert s.maps().settings["method"] == "spatial"
     rep = _replay(tmp_path)
     assert rep.run() == SessionState.DONE
-    _assert_same_maps(s.maps(), rep.maps())
+    assert_same_maps(s.maps(), rep.maps())
 
 
 def test_a_galvo_left_in_fault_is_cleared_before_the_scan(tmp_path):
@@ -472,7 +406,7 @@ def _assert_replay_equals_live(s, run_dir):
     rep = _replay(run_dir)
     assert rep.run() == SessionState.DONE
     assert len(rep.lost) == len(s.lost)
-    _assert_same_maps(DepthMaps.load_npz(run_dir / "maps.npz"), rep.maps())
+    assert_same_maps(DepthMaps.load_npz(run_dir / "maps.npz"), rep.maps())
     assert np.array_equal(s.store.count, rep.store.count)
     assert np.array_equal(s.store.times, rep.store.times)
 

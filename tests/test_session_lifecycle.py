@@ -16,36 +16,15 @@ import pytest
 
 from spdepth.acq.errors import OutputError, RecordingError
 from spdepth.acq.flags import ACQUIRING, AcqFlag
-from spdepth.acq.api import scan_settings
-from spdepth.acq.instruments import open_sim, sim_plan
-from spdepth.acq.requests import ScanRequest
-from spdepth.acq.scan_source import ScanSource
+from spdepth.acq.instruments import open_sim
 from spdepth.acq.recording import ReplaySource, recon_settings_from_dict
-from spdepth.acq.session import Session, SessionState
 from spdepth.acq.scan_source import ScanSource
+from spdepth.acq.session import Session, SessionState
 from spdepth.acq.sources import RETRIED, FaultRecord, Source, feed_passes
 from spdepth.recon.maps import DepthMaps
-from waiting import wait_until
-
-
-def _session(inst, shape, out=None, *, target=10, method="lmf", pulse="scene", **plan_kwargs):
-    plan = sim_plan(inst, shape, target=target, **plan_kwargs)
-    request = ScanRequest(target=target, method=method,
-                          pulse_rms_s=inst.scene.pulse_rms_s if pulse == "scene" else pulse)
-    settings = scan_settings(request, inst.tagger.resolution_s)
-    return Session(plan, settings, ScanSource(inst.galvo, inst.tagger,
-                                              sync_period_s=inst.sync_period_s),
-                   out_dir=out, info=inst.info)
-
-
-def _replay(rec_dir, out=None, **override):
-    from spdepth.acq.plan import ScanPlan
-
-    src = ReplaySource(rec_dir)
-    plan = ScanPlan.from_dict(src.info.plan)
-    settings = recon_settings_from_dict(src.info.recon, max_photons=plan.target, **override)
-    return Session(plan, settings, src, out_dir=out,
-                   gate_target=plan.target if plan.mode == "gated" else None)
+from tests.sessions import replay_session as _replay
+from tests.sessions import sim_session as _session
+from tests.waiting import wait_until
 
 
 @pytest.fixture(scope="module")

@@ -17,8 +17,9 @@ import pytest
 
 from spdepth.acq.instruments import open_sim
 from spdepth.acq.session import SessionState
-from test_session import (_assert_same_maps, _replay, _session, assert_complete_or_flagged,
-                          assert_from_complete_dwells)
+from tests.sessions import assert_same_maps, assert_complete_or_flagged, assert_from_complete_dwells
+from tests.sessions import replay_session as _replay
+from tests.sessions import sim_session as _session
 
 BACKENDS = {
     "picoquant+nidaq": dict(tagger="picoquant:mh150", galvo="nidaq:Dev1"),
@@ -69,7 +70,7 @@ def test_clean_scan_keeps_each_pixels_own_dwells_and_replays_equal(tmp_path, bac
             assert int(np.count_nonzero(f.decode_records()["channel"] >= 0)) > 0
     rep = _replay(tmp_path / "live")
     assert rep.run() == SessionState.DONE
-    _assert_same_maps(s.maps(), rep.maps())
+    assert_same_maps(s.maps(), rep.maps())
     assert np.array_equal(s.store.times, rep.store.times)
 
 
@@ -159,7 +160,7 @@ def test_faults_are_reacquired_and_nothing_is_counted_twice(tmp_path, backend, f
         assert s.lost or _holes_outside_passes(tmp_path / "live"), "the hole reached the session in-band"
     rep = _replay(tmp_path / "live")
     assert rep.run() == SessionState.DONE
-    _assert_same_maps(s.maps(), rep.maps())
+    assert_same_maps(s.maps(), rep.maps())
     assert len(rep.lost) == len(s.lost)
 
 
