@@ -248,14 +248,16 @@ def test_a_command_still_preparing_says_why(capsys, state, said):
     with PreparingNotice("scan", after_s=0.05) as notice:
         if state is not None:
             notice.session = SimpleNamespace(state=SimpleNamespace(value=state))
-        time.sleep(0.3)
+        notice._timer.join(30)             # the notice is due and has been given, or not
+        assert not notice._timer.is_alive()
     assert ("spdepth scan: preparing" in capsys.readouterr().err) == said
 
 
 def test_a_quick_command_says_nothing_about_preparing(capsys):
     from spdepth.acq.commands._session import PreparingNotice
 
-    with PreparingNotice("scan", after_s=0.2):
-        time.sleep(0.01)             # a command done before the notice is due: it is cancelled
-    time.sleep(0.4)
+    with PreparingNotice("scan", after_s=30.0) as notice:
+        pass                         # a command done before the notice is due: it is cancelled
+    notice._timer.join(30)           # a cancelled timer ends at once, without a word
+    assert not notice._timer.is_alive()
     assert capsys.readouterr().err == ""

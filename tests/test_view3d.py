@@ -29,7 +29,9 @@ def _run(qtbot, win, tmp_path):
     assert win.start_run(spec, out_dir=None)
     qtbot.waitUntil(lambda: win.snap is not None and win.snap.state == "done", timeout=120_000)
     win.refresh()
-    qtbot.wait(200)
+    # the view is set from the last snapshot: one point per estimated pixel
+    qtbot.waitUntil(lambda: win.view3d.n_points == int(np.isfinite(win.snap.depth_m).sum()),
+                    timeout=30_000)
 
 
 def test_3d_view_draws_the_points(qtbot, win, tmp_path):
