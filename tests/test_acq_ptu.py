@@ -79,6 +79,7 @@ def test_split_matches_reference(rng):
     assert np.shares_memory(same, photons_only) and np.array_equal(same, photons_only)
 
 
+@pytest.mark.slow
 def test_encode_split_keeps_assignment():
     """The device's combined FRAME|LINE_START|PIXEL records and the split file records give every
     photon the same pixel (acq.assign applies combined bits in the split order)."""

@@ -20,6 +20,7 @@ def quick_report(tmp_path_factory):
     return out, rows
 
 
+@pytest.mark.slow
 def test_writes_report_csv_and_figures(quick_report):
     out, rows = quick_report
     for name in ("error_vs_detections.png", "error_vs_compute.png", "error_vs_sbr.png"):

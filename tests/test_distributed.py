@@ -142,6 +142,7 @@ def test_a_model_left_to_the_data_is_not_split(files):
     assert given.binning.n_bins == 2500 and given.max_photons == 12
 
 
+@pytest.mark.slow
 def test_a_dask_run_writes_what_the_in_process_run_writes(files, tmp_path, capsys):
     """``--dask local:1`` on one recording takes the block path, and the library finishes its
     maps: the same npz (keys, arrays, settings with the geometry of --fov-deg and the range

@@ -253,6 +253,7 @@ def test_replay_of_a_recording_matches_the_live_maps(qtbot, win, tmp_path):
 # that could not look for a while (paints stalled seconds on a loaded machine) still shows it: the
 # snapshot counts faults since the window's last look. On a loaded 2-core machine the 64x64 scan
 # (with its estimator's warm-up) can run over a minute, hence the longer wait.
+@pytest.mark.slow
 @pytest.mark.parametrize("faults, size, target, device, kind", [
     ("device-vanish@15%", (64, 64), 10, "tagger", "tagger-reconnect"),
     ("serial-unplug@3%", (64, 64), 10, "galvo", "galvo-reconnect"),
@@ -432,6 +433,7 @@ def test_settings_are_remembered(qtbot, settings, tmp_path):
     assert w3.controls.spec().out_root == str(Path("runs-here").resolve())
 
 
+@pytest.mark.slow
 def test_spdepth_gui_screenshot_offscreen(tmp_path):
     env = {**os.environ, "QT_QPA_PLATFORM": "offscreen", "XDG_CONFIG_HOME": str(tmp_path / "cfg"),
            "HOME": str(tmp_path)}

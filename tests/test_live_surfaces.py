@@ -66,6 +66,7 @@ def test_live_scan_finds_the_pane_and_the_wall_behind_it(two_layer_scan):
     assert np.all(live.weak[extra])
 
 
+@pytest.mark.slow
 def test_replay_auto_and_spatial_equal_their_batch_reconstructions(two_layer_scan, tmp_path):
     for name, method, surfaces in (
             ("auto", "ml", ["--reflectors", "auto", "--max-reflectors", "3", "--false-alarm", "1e-4"]),

@@ -92,6 +92,7 @@ REAL = [("fpi/chart_depth.mat", 8e-12), ("longrange/tower_9km.mat", 1e-12),
         ("ptu/hydraharp_v20_t3.ptu", None), ("ptu/hydraharp_v10_t3.ptu", None)]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name,unit_s", REAL)
 def test_real_files_reconstruct_with_no_pulse_given(shared_data, name, unit_s):
     store = read_photons(shared_data / name, time_unit_s=unit_s).store
@@ -108,6 +109,7 @@ def test_real_file_without_a_peak_names_the_options(shared_data):
         reconstruct(store, ReconSettings(method="uos"))
 
 
+@pytest.mark.slow
 def test_save_irf_round_trip_and_picture(shared_data, tmp_path, capsys):
     src = shared_data / "ptu/hydraharp_v10_t3.ptu"
     irf_csv, png = tmp_path / "irf.csv", tmp_path / "point.png"
@@ -165,6 +167,7 @@ def test_two_surfaces_found_with_the_measured_response(sep_m):
     assert both.mean() >= 0.8
 
 
+@pytest.mark.slow
 def test_png_draws_a_depth_map_per_surface(tmp_path, capsys):
     # a 20 x 20 two-layer .mat file: --reflectors 2 --png draws depth for surface 1 and surface 2
     import scipy.io

@@ -181,6 +181,7 @@ def test_uos_k_kernel_matches_reference_on_two_surfaces(kern, rng):
         assert np.all(np.isfinite(var[p]))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("k, sbr", [(15, 2.0), (120, 2.0), (10, 0.05)])
 def test_ml_kernel_global_integer_optimum_matches_reference(kern, rng, k, sbr):
     # k = 120: more distinct photon bins than ML_SCAN_ALL, so each solve searches the photons under
