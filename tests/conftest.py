@@ -98,3 +98,105 @@ def own_settings_folder(tmp_path_factory, monkeypatch) -> Path:
     for fmt in (QtCore.QSettings.NativeFormat, QtCore.QSettings.IniFormat):
         QtCore.QSettings.setPath(fmt, QtCore.QSettings.UserScope, str(folder))
     return folder
+
+
+# ---- fixtures the test modules share -----------------------------------------------------------
+
+@pytest.fixture
+def settings(tmp_path):
+    """The window's QSettings for one test, an ini file in its own folder."""
+    from PySide6 import QtCore
+
+    return QtCore.QSettings(str(tmp_path / "spdepth.ini"), QtCore.QSettings.IniFormat)
+
+
+@pytest.fixture
+def win(qtbot, settings, tmp_path):
+    """The window, shown (1200 x 800) with ``settings`` and its runs folder in ``tmp_path``; shut
+    down after the test (its session, if any, aborted)."""
+    from spdepth.gui.window import MainWindow
+
+    w = MainWindow(settings=settings)
+    w.controls.out_root.setText(str(tmp_path / "runs"))
+    qtbot.addWidget(w)
+    w.resize(1200, 800)
+    w.show()
+    yield w
+    w.shutdown(timeout_s=10)
+
+
+@pytest.fixture
+def real_time_sim(monkeypatch):
+    """The simulated galvo dwells in real time (``pace``), as a lab scan does: the simulator
+    otherwise scans a 64x64 image faster than the window repaints, and a test of what the window
+    shows *during* a scan would see only its start and end."""
+    from spdepth.acq import instruments
+
+    open_sim = instruments.open_sim
+
+    def paced(*args, galvo_options=None, **kw):
+        return open_sim(*args, galvo_options={"pace": 1.0, **(galvo_options or {})}, **kw)
+
+    monkeypatch.setattr(instruments, "open_sim", paced)
+
+
+def _simulate(out: Path, *args: str) -> Path:
+    """``spdepth simulate ARGS --out OUT`` (in this process)."""
+    from spdepth.acq.cli import main
+
+    assert main(["simulate", *args, "--out", str(out)]) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def small_ptu(tmp_path_factory) -> Path:
+    """A 16 x 12 simulated PTU of the "steps" scene (20 detections per pixel)."""
+    return _simulate(tmp_path_factory.mktemp("ptu") / "steps.ptu", "--scene", "steps",
+                     "--size", "16x12", "--ppp", "20")
+
+
+@pytest.fixture(scope="module")
+def simulated_ptus(tmp_path_factory) -> tuple[Path, list[str]]:
+    """(folder, paths) of three 40 x 30 simulated PTUs with pixel markers: bust, steps, two-layer."""
+    d = tmp_path_factory.mktemp("dask")
+    paths = [str(_simulate(d / f"{scene}.ptu", "--scene", scene, "--size", "40x30", "--ppp", "12",
+                           "--seed", str(i)))
+             for i, scene in enumerate(("bust", "steps", "two-layer"))]
+    return d, paths
+
+
+@pytest.fixture(scope="module")
+def client():
+    """A ``dask.distributed`` client of a local cluster of 2 worker processes (127.0.0.1 only)."""
+    from spdepth.acq import distributed
+
+    with distributed.connect("local:2") as c:
+        yield c
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory) -> Path:
+    """A finished 16 x 16 session's folder (kept read-only by the tests: they copy it)."""
+    from spdepth.acq.instruments import open_sim
+    from spdepth.acq.session import SessionState
+    from tests.sessions import sim_session
+
+    out = tmp_path_factory.mktemp("rec") / "live"
+    with open_sim("bust", (16, 16), ppp=10, seed=21) as inst:
+        s = sim_session(inst, (16, 16), out, method="uos")
+        assert s.run() == SessionState.DONE, s.error
+    return out
+
+
+@pytest.fixture(scope="module")
+def quick_report(tmp_path_factory):
+    """(folder, rows of results.csv) of ``spdepth bench report --quick`` (about a minute)."""
+    import csv
+
+    from spdepth.acq.cli import main
+
+    out = tmp_path_factory.mktemp("bench_report")
+    assert main(["bench", "report", "--quick", "--out", str(out)]) == 0
+    with open(out / "results.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    return out, rows

@@ -3,21 +3,9 @@ reconstruction tests (tests/test_recon_accuracy.py, tests/test_evaluate.py) at t
 
 from __future__ import annotations
 
-import csv
-
 import pytest
 
 from spdepth.acq.commands.bench.report import CSV_FIELDS, METHODS, QUICK_DETECTIONS, QUICK_SBRS
-from spdepth.acq.cli import main
-
-
-@pytest.fixture(scope="module")
-def quick_report(tmp_path_factory):
-    out = tmp_path_factory.mktemp("bench_report")
-    assert main(["bench", "report", "--quick", "--out", str(out)]) == 0
-    with open(out / "results.csv", newline="") as f:
-        rows = list(csv.DictReader(f))
-    return out, rows
 
 
 @pytest.mark.slow

@@ -20,24 +20,6 @@ from spdepth.recon.maps import NPZ_KEYS, DepthMaps  # noqa: E402
 MODEL = ["--window-ps", "0:100000", "--bin-ps", "40", "--pulse-rms-ps", "360", "--max-photons", "12"]
 
 
-@pytest.fixture(scope="module")
-def files(tmp_path_factory):
-    d = tmp_path_factory.mktemp("dask")
-    paths = []
-    for i, scene in enumerate(("bust", "steps", "two-layer")):
-        p = d / f"{scene}.ptu"
-        assert main(["simulate", "--scene", scene, "--size", "40x30", "--ppp", "12", "--seed", str(i),
-                     "--out", str(p)]) == 0
-        paths.append(str(p))
-    return d, paths
-
-
-@pytest.fixture(scope="module")
-def client():
-    with D.connect("local:2") as c:
-        yield c
-
-
 def _request(path, method="uos", **changes):
     """The request `spdepth recon PATH --method M MODEL` makes."""
     model = dict(window_s=(0.0, 100e-9), bin_s=40e-12, pulse_rms_s=360e-12, max_photons=12)
@@ -76,24 +58,24 @@ def test_local_cluster_listens_on_loopback_only(client):
     assert all(a.startswith("tcp://127.0.0.1:") for a in info["workers"])
 
 
-def test_blocks_of_one_recording_give_the_single_process_maps(client, files):
-    d, paths = files
+def test_blocks_of_one_recording_give_the_single_process_maps(client, simulated_ptus):
+    d, paths = simulated_ptus
     for method in ("uos", "ml"):
         _same(_blocks(client, paths[0], method), _single(paths[0], d, method))
 
 
-def test_blocks_with_several_surfaces_give_the_single_process_maps(client, files):
-    d, paths = files
+def test_blocks_with_several_surfaces_give_the_single_process_maps(client, simulated_ptus):
+    d, paths = simulated_ptus
     for reflectors in (2, "auto"):
         blocks = _blocks(client, paths[2], reflectors=reflectors)
         _same(blocks, _single(paths[2], d, reflectors=reflectors))
         assert blocks.surfaces.shape == blocks.shape and blocks.tof_s.ndim == 3
 
 
-def test_a_worker_killed_mid_run_is_retried_and_the_maps_are_the_same(client, files):
+def test_a_worker_killed_mid_run_is_retried_and_the_maps_are_the_same(client, simulated_ptus):
     from distributed import wait
 
-    d, paths = files
+    d, paths = simulated_ptus
     killed = []
 
     def kill_a_worker_holding_results(futures):
@@ -109,8 +91,8 @@ def test_a_worker_killed_mid_run_is_retried_and_the_maps_are_the_same(client, fi
     client.wait_for_workers(2, timeout=30)                 # the nanny restarted it
 
 
-def test_many_files_one_task_each_equal_the_single_runs(client, files, tmp_path):
-    d, paths = files
+def test_many_files_one_task_each_equal_the_single_runs(client, simulated_ptus, tmp_path):
+    d, paths = simulated_ptus
     (tmp_path / "dask").mkdir()
     requests = [_request(p, out=str(tmp_path / "dask" / os.path.basename(p).replace(".ptu", ".npz")))
                 for p in paths]
@@ -134,8 +116,8 @@ def test_addresses():
             D.parse_address(bad)
 
 
-def test_a_model_left_to_the_data_is_not_split(files):
-    _, paths = files
+def test_a_model_left_to_the_data_is_not_split(simulated_ptus):
+    _, paths = simulated_ptus
     for left in ("window_s", "bin_s", "pulse_rms_s"):
         assert D.block_settings(_request(paths[0], **{left: None}), 8e-12) is None
     given = D.block_settings(_request(paths[0]), 8e-12)
@@ -143,14 +125,14 @@ def test_a_model_left_to_the_data_is_not_split(files):
 
 
 @pytest.mark.slow
-def test_a_dask_run_writes_what_the_in_process_run_writes(files, tmp_path, capsys):
+def test_a_dask_run_writes_what_the_in_process_run_writes(simulated_ptus, tmp_path, capsys):
     """``--dask local:1`` on one recording takes the block path, and the library finishes its
     maps: the same npz (keys, arrays, settings with the geometry of --fov-deg and the range
     offset), the same pulse shape file, a picture, and the same summary but for timings, paths and
     the block counts (the block path dropped --save-irf, the offset and the geometry before)."""
     import json
 
-    _, paths = files
+    _, paths = simulated_ptus
     runs = {}
     for name, dask in (("here", []), ("dask", ["--dask", "local:1"])):
         d = tmp_path / name

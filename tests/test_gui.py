@@ -24,37 +24,6 @@ from spdepth.gui.window import MainWindow  # noqa: E402
 SMALL = dict(kind="sim", scene="bust", size=(16, 16), target=5)
 
 
-@pytest.fixture
-def settings(tmp_path):
-    return QtCore.QSettings(str(tmp_path / "spdepth.ini"), QtCore.QSettings.IniFormat)
-
-
-@pytest.fixture
-def win(qtbot, settings, tmp_path):
-    w = MainWindow(settings=settings)
-    w.controls.out_root.setText(str(tmp_path / "runs"))
-    qtbot.addWidget(w)
-    w.resize(1200, 800)
-    w.show()
-    yield w
-    w.shutdown(timeout_s=10)
-
-
-@pytest.fixture
-def real_time_sim(monkeypatch):
-    """The simulated galvo dwells in real time (``pace``), as a lab scan does: the simulator
-    otherwise scans a 64x64 image faster than the window repaints, and a test of what the window
-    shows *during* a scan would see only its start and end."""
-    from spdepth.acq import instruments
-
-    open_sim = instruments.open_sim
-
-    def paced(*args, galvo_options=None, **kw):
-        return open_sim(*args, galvo_options={"pace": 1.0, **(galvo_options or {})}, **kw)
-
-    monkeypatch.setattr(instruments, "open_sim", paced)
-
-
 def _spec(tmp_path, **kw) -> SourceSpec:
     return SourceSpec(**{**SMALL, "out_root": str(tmp_path / "runs"), **kw})
 
@@ -496,17 +465,6 @@ def test_demo_window_runs_the_demo_scan(tmp_path):
 
 
 FPI = Path("/work/shared/data/fpi/mannequin_face_8ppp.mat")
-
-
-@pytest.fixture(scope="module")
-def small_ptu(tmp_path_factory):
-    out = tmp_path_factory.mktemp("ptu") / "steps.ptu"
-    p = subprocess.run([sys.executable, "-m", "spdepth.acq.cli", "simulate", "--scene", "steps",
-                        "--size", "16x12", "--ppp", "20", "--out", str(out)],
-                       capture_output=True, text=True, timeout=120,
-                       cwd=Path(__file__).resolve().parents[1])
-    assert p.returncode == 0, p.stderr
-    return out
 
 
 def _reconstruct_in_window(qtbot, win, spec) -> str:

@@ -27,16 +27,6 @@ from tests.sessions import sim_session as _session
 from tests.waiting import wait_until
 
 
-@pytest.fixture(scope="module")
-def recording(tmp_path_factory):
-    """A finished 16 x 16 session's folder (kept read-only by the tests: they copy it)."""
-    out = tmp_path_factory.mktemp("rec") / "live"
-    with open_sim("bust", (16, 16), ppp=10, seed=21) as inst:
-        s = _session(inst, (16, 16), out, method="uos")
-        assert s.run() == SessionState.DONE, s.error
-    return out
-
-
 def _copy(recording, tmp_path):
     dst = tmp_path / "rec"
     shutil.copytree(recording, dst)

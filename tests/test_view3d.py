@@ -5,22 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from PySide6 import QtCore
 
 from spdepth.gui.sources import SourceSpec
 from spdepth.gui.view3d import opengl_unavailable
-from spdepth.gui.window import MainWindow
-
-
-@pytest.fixture
-def win(qtbot, tmp_path):
-    settings = QtCore.QSettings(str(tmp_path / "gui.ini"), QtCore.QSettings.IniFormat)
-    w = MainWindow(settings=settings)
-    qtbot.addWidget(w)
-    w.resize(1200, 800)
-    w.show()
-    yield w
-    w.shutdown()
 
 
 def _run(qtbot, win, tmp_path):
