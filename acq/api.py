@@ -372,6 +372,7 @@ def reconstruct_file(request: FileReconRequest, progress=None) -> FileResult:
     its recorded settings unless the request overrides them. Raises ``InputError``/
     ``RecordingError`` naming the file for what cannot be read."""
     from spdepth.acq.readers import read_photons
+    from spdepth.recon import estimators
     from spdepth.recon.estimate import reconstruct
     from spdepth.recon.model import load_irf
 
@@ -423,9 +424,10 @@ def reconstruct_file(request: FileReconRequest, progress=None) -> FileResult:
     irf_used = _irf_used(used)
     notes = tuple(result.notes)
     per_pixel = float(np.sum(maps.photons)) / max(1, store.n_pixels)
-    if result.is_image and request.method != "spatial" and per_pixel < SPARSE_PER_PIXEL:
+    neighbours = estimators.names(pixelwise=False)
+    if result.is_image and request.method not in neighbours and neighbours and per_pixel < SPARSE_PER_PIXEL:
         notes += (f"about {per_pixel:.1f} detections per pixel: too few for a pixel on its own; "
-                  f"--method spatial uses the neighbours",)
+                  f"--method {' or '.join(neighbours)} uses the neighbours",)
     res = FileResult(request, maps, store, used_binning, used.get("pulse_rms_s"),
                      irf_used if used.get("irf") else None, result.is_image, result.kind,
                      notes, read_s, recon_s)

@@ -281,9 +281,11 @@ def block_settings(request, unit_s: float):
 def _by_blocks(request, client) -> dict | None:
     """The single-recording block path; None when the input cannot be split (see module doc)."""
     path = request.input
-    if request.method == "spatial":
+    from spdepth.recon import estimators
+
+    if not estimators.get(request.method).pixelwise:
         # its pixels are not independent: blocks would cut every neighbourhood at their seams
-        print(f"spdepth recon: {path}: the spatial method needs each pixel's neighbours: "
+        print(f"spdepth recon: {path}: the {request.method} method needs each pixel's neighbours: "
               f"reconstructing it as one task", file=sys.stderr)
         return None
     found = _image_and_unit(path, request.time_unit_s)
