@@ -455,6 +455,8 @@ def file_result(request: FileReconRequest, maps, read, *, read_s: float = 0.0,
     and range offset added, the outputs the request names written (npz, png, pulse shape, points)
     and the summary made. ``read``: the reader's ``ReadResult`` (its ``store`` may be None when
     the photons were read in blocks elsewhere; then give ``photons_in_file``)."""
+    from spdepth.recon import estimators
+
     store = read.store
     maps = _with_geometry_and_offset(maps, request, maps.shape)
     used = maps.settings
@@ -463,9 +465,10 @@ def file_result(request: FileReconRequest, maps, read, *, read_s: float = 0.0,
     notes = tuple(read.notes)
     h, w = maps.shape
     per_pixel = float(np.sum(maps.photons)) / max(1, h * w)
-    if read.is_image and request.method != "spatial" and per_pixel < SPARSE_PER_PIXEL:
+    neighbours = estimators.names(pixelwise=False)
+    if read.is_image and request.method not in neighbours and neighbours and per_pixel < SPARSE_PER_PIXEL:
         notes += (f"about {per_pixel:.1f} detections per pixel: too few for a pixel on its own; "
-                  f"--method spatial uses the neighbours",)
+                  f"--method {' or '.join(neighbours)} uses the neighbours",)
     res = FileResult(request, maps, store, used_binning, used.get("pulse_rms_s"),
                      irf_used if used.get("irf") else None, read.is_image, read.kind,
                      notes, read_s, recon_s,

@@ -276,9 +276,11 @@ def _by_blocks(request, client) -> dict | None:
     from spdepth.acq.readers.common import ReadResult
 
     path = request.input
-    if request.method == "spatial":
+    from spdepth.recon import estimators
+
+    if not estimators.get(request.method).pixelwise:
         # its pixels are not independent: blocks would cut every neighbourhood at their seams
-        print(f"spdepth recon: {path}: the spatial method needs each pixel's neighbours: "
+        print(f"spdepth recon: {path}: the {request.method} method needs each pixel's neighbours: "
               f"reconstructing it as one task", file=sys.stderr)
         return None
     found = _image_and_unit(path, request.time_unit_s)

@@ -16,9 +16,10 @@ the first ``RESPONSE_SAMPLE_PIXELS`` final pixels and its measured shape is froz
 every pixel (recorded in the settings, so a replay and ``spdepth recon`` of the recording use the
 same response). The simulated bench gives its pulse, so its scans measure nothing.
 
-``method="spatial"`` needs each pixel's neighbours, so it cannot run pixel by pixel: the live maps
-come from the pixelwise ``SPATIAL_LIVE_STAND_IN`` and, once every pixel is final, one full-frame
-spatial reconstruction of the final store replaces them (a replay does the same, so it still
+An estimator that does not run live (``recon.estimators.get(method).live`` False: spatial, which
+needs each pixel's neighbours) cannot run pixel by pixel: the live maps come from its pixelwise
+``live_stand_in`` (spatial's: ml) and, once every pixel is final, one full-frame reconstruction of
+the final store by the estimator asked for replaces them (a replay does the same, so it still
 equals the live run).
 """
 
@@ -31,6 +32,7 @@ import time
 
 import numpy as np
 
+from spdepth.recon import estimators
 from spdepth.recon.estimate import reconstruct, resolve_model, warm_up
 from spdepth.recon.maps import DepthMaps, PixelFlag
 from spdepth.recon.model import Irf, ReconSettings
@@ -44,8 +46,6 @@ RESPONSE_SAMPLE_PIXELS = 1024
 pooled shape needs surfaces of several detections each, and a tail or bump a few hundred)."""
 MAX_BATCH_PIXELS = 16384
 """Largest batch one reconstruction call takes (keeps the maps fresh during a fast replay)."""
-SPATIAL_LIVE_STAND_IN = "ml"
-"""Pixelwise estimator for the live maps of a spatial session (the best one pixel by pixel)."""
 CLOSING_BATCH_FACTOR = 16
 """Batches are this many times larger once the session is finishing."""
 MIN_BATCH_PIXELS = 1024
@@ -66,9 +66,11 @@ class LiveRecon:
         if settings.binning is None:
             raise ValueError("live reconstruction needs a fixed binning")
         self.store = store
-        self.final_settings = settings if settings.method == "spatial" else None
+        est = estimators.get(settings.method)
+        # an estimator that does not run live runs once at the end; its stand-in draws the live maps
+        self.final_settings = None if est.live else settings
         if self.final_settings is not None:
-            settings = dataclasses.replace(settings, method=SPATIAL_LIVE_STAND_IN)
+            settings = dataclasses.replace(settings, method=est.live_stand_in)
         self.settings = settings
         h, w = store.shape
         # several surfaces: (K, H, W) per-surface maps, K the most looked for (recon.maps.DepthMaps)
@@ -290,13 +292,14 @@ class LiveRecon:
         return out
 
     def _reconstruct_frame(self, settings: ReconSettings) -> None:
-        """One reconstruction of the whole final store (the spatial method's last step)."""
+        """One reconstruction of the whole final store (the last step of an estimator that does not
+        run live)."""
         m = reconstruct(self.store.photons(), settings)
         with self.lock:
             for name in self.fields:
                 getattr(self, name)[...] = getattr(m, name)
         self.resolved = dict(m.settings)
-        self.resolved["live_maps"] = f"{SPATIAL_LIVE_STAND_IN} pixel by pixel during the scan"
+        self.resolved["live_maps"] = f"{self.settings.method} pixel by pixel during the scan"
 
     def maps(self, copy: bool = True) -> DepthMaps:
         """The maps as they stand (copies), in ``spdepth recon``'s format. ``copy=False`` gives

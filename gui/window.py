@@ -34,6 +34,7 @@ from spdepth.acq.points import ScanGeometry
 from spdepth.gui.maps import C_M_PER_S, PANEL_DEFS, MapPanel, link_panels, snapshot_input
 from spdepth.gui.view3d import PointCloudView
 from spdepth.gui.pixel_model import pixel_histogram
+from spdepth.recon import estimators
 from spdepth.gui.sources import (METHODS, MODES, FileJob, ResultView, SessionView, SourceSpec,
                                  in_window_words, open_run, run_kind)
 
@@ -194,8 +195,9 @@ class ControlPanel(QtWidgets.QWidget):
         g.addRow("Dwell limit", self.dwell)
         self.method = QtWidgets.QComboBox()
         self.method.addItems(METHODS)
-        self.method.setToolTip("uos: union-of-subspaces (the paper); ml: Poisson maximum "
-                               "likelihood; lmf: log-matched filter (ignores background)")
+        for i, name in enumerate(METHODS):
+            self.method.setItemData(i, estimators.get(name).summary, QtCore.Qt.ItemDataRole.ToolTipRole)
+        self.method.setToolTip(estimators.summaries().replace("; ", "\n"))
         g.addRow("Estimator", self.method)
         self.reflectors = QtWidgets.QSpinBox(minimum=0, maximum=8, value=1)
         self.reflectors.setSpecialValueText("as recorded")

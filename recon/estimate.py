@@ -1,63 +1,26 @@
-"""The estimator registry and THE entry point of a reconstruction, :func:`reconstruct`.
+"""THE entry point of a reconstruction, :func:`reconstruct`: resolve the model, then run the
+estimator the registry (:mod:`recon.estimators`) holds for the settings.
 
-Every estimator is a callable ``(store, settings, progress) -> DepthMaps`` registered here under its
-name in :data:`recon.model.METHODS`. The layers below know nothing of this module, so there is no
-import cycle: :mod:`recon.pixelwise` (lmf, uos, ml kernels on a resolved model) <- :mod:`recon.irf`
-(pulse measured from the data, whose pilot fits call pixelwise directly) <- :mod:`recon.resolve`
-(binning and pulse from settings or data) <- :mod:`recon.spatial` <- this module.
+Layers: :mod:`recon.pixelwise` (what the one-surface pixelwise estimators share) <- the estimator
+modules (:mod:`recon.estimators`, their kernels loaded on first use) <- :mod:`recon.resolve`
+(binning and pulse from settings or data; :mod:`recon.irf` for a pulse measured from the data,
+whose pilot fits run an estimator on a given model) <- this module.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from types import MappingProxyType
-from typing import Callable, Mapping
+from typing import Callable
 
 import numpy as np
 
+from spdepth.recon import estimators
 from spdepth.recon.errors import InputError
 from spdepth.recon.maps import DepthMaps
-from spdepth.recon.model import METHODS, PIXELWISE_METHODS, Binning, ReconSettings
+from spdepth.recon.model import Binning, ReconSettings
 from spdepth.recon.photons import PhotonStore
-from spdepth.recon.pixelwise import reconstruct_pixelwise
 # resolve_model is also imported from here by acq.live_recon (it was defined here before the split)
 from spdepth.recon.resolve import resolve_model
-
-#: ``estimator(store, settings, progress)``: the maps of ``store`` by ``settings.method``.
-Estimator = Callable[[PhotonStore, ReconSettings, Callable[[int, int], None] | None], DepthMaps]
-
-
-def reconstruct_each_pixel(store: PhotonStore, settings: ReconSettings,
-                           progress: Callable[[int, int], None] | None = None) -> DepthMaps:
-    """lmf, uos and ml: resolve the model (estimating the pulse when the settings give none),
-    then fit every pixel on its own (:func:`recon.pixelwise.reconstruct_pixelwise`)."""
-    b, kern, notes = resolve_model(store, settings)
-    if settings.several:
-        # recon.multi (its own kernels) is imported on first use, as the spatial
-        # estimator is: one surface per pixel, the common case, should not wait for it.
-        # A response estimated from the data is re-measured on the surfaces there.
-        from spdepth.recon.multi import reconstruct_multi
-
-        return reconstruct_multi(store, settings, b, kern, notes, progress,
-                                 measure=notes.get("pulse_source") == "estimated")
-    return reconstruct_pixelwise(store, settings, b, kern, notes, progress)
-
-
-def reconstruct_spatial(store: PhotonStore, settings: ReconSettings,
-                        progress: Callable[[int, int], None] | None = None) -> DepthMaps:
-    """:func:`recon.spatial.reconstruct_spatial`, imported on first use: the spatial estimator
-    brings its own kernels, which a pixelwise reconstruction (``spdepth recon``'s default) has no
-    use for and should not wait for in a new process."""
-    from spdepth.recon.spatial import reconstruct_spatial as spatial
-
-    return spatial(store, settings, progress)
-
-
-#: The estimators by name; its keys are exactly :data:`recon.model.METHODS`, in that order.
-ESTIMATORS: Mapping[str, Estimator] = MappingProxyType(
-    {**{m: reconstruct_each_pixel for m in PIXELWISE_METHODS}, "spatial": reconstruct_spatial})
-if tuple(ESTIMATORS) != METHODS:
-    raise ImportError(f"recon.estimate: registry {tuple(ESTIMATORS)} differs from METHODS {METHODS}")
 
 
 def reconstruct(store: PhotonStore, settings: ReconSettings,
@@ -65,16 +28,19 @@ def reconstruct(store: PhotonStore, settings: ReconSettings,
     """Estimate depth, background and signal at every pixel of ``store``.
 
     Steps: resolve the binning and pulse (estimating the pulse RMS from the data when neither a width
-    nor an IRF is given), keep the first ``max_photons`` in-window detections of each pixel, bin
-    them, and run the estimator ``ESTIMATORS[settings.method]``, which calls ``progress(done,
-    total)`` as it goes (per chunk of pixels for the pixelwise methods). Returns
-    :class:`DepthMaps`; ``settings`` in it holds everything used (binning, pulse RMS and its source).
+    nor an IRF is given), then run the estimator of ``settings`` (``recon.estimators.for_settings``:
+    the method, or the K-surface fit it hands several surfaces to), which keeps the first
+    ``max_photons`` in-window detections of each pixel, bins them, and calls ``progress(done,
+    total)`` as it goes (per chunk of pixels for the pixelwise methods). Returns :class:`DepthMaps`;
+    ``settings`` in it holds everything used (binning, pulse RMS and its source).
     """
     if not isinstance(settings, ReconSettings):
         raise InputError(f"settings must be ReconSettings, got {type(settings).__name__}")
     if not isinstance(store, PhotonStore):
         raise InputError(f"store must be a PhotonStore, got {type(store).__name__}")
-    return ESTIMATORS[settings.method](store, settings, progress)
+    est = estimators.for_settings(settings)
+    b, kern, notes = resolve_model(store, settings)
+    return est.run(store, settings, b, kern, notes, progress)
 
 
 def warm_up(settings: ReconSettings) -> None:
@@ -94,4 +60,4 @@ def warm_up(settings: ReconSettings) -> None:
     reconstruct(one, dataclasses.replace(settings, binning=b, pulse_rms_s=pulse))
 
 
-__all__ = ["ESTIMATORS", "Estimator", "reconstruct", "reconstruct_each_pixel", "resolve_model", "warm_up"]
+__all__ = ["reconstruct", "resolve_model", "warm_up"]

@@ -27,7 +27,7 @@ from spdepth.recon.errors import InputError
 from spdepth.recon.model import (Binning, Irf, ReconSettings, default_binning, edge_core_rms,
                                  estimate_pulse_rms_s, pair_difference_histogram)
 from spdepth.recon.photons import PhotonStore
-from spdepth.recon.pixelwise import reconstruct_given
+from spdepth.recon.given import reconstruct_given
 
 ROUNDS = 3
 MAX_PIXELS = 20_000

@@ -26,11 +26,8 @@ from numba import njit, prange
 from numba.core.extending import overload
 from numba.cpython.unsafe.numbers import trailing_zeros
 
-#: :func:`fisher_tab`'s table (:func:`fisher_table`): rows at log(a / bg) from FISHER_RHO0, FISHER_STEPS
-#: per unit, FISHER_SPAN units (a / bg from 2e-9 to 8e23; a pixel off it takes the loop)
-FISHER_RHO0 = -20.0
-FISHER_STEPS = 16
-FISHER_SPAN = 75
+from spdepth.recon.model import FISHER_RHO0, FISHER_STEPS
+
 
 BLOCK = 64
 #: Sorts of up to this many items are insertion sorts, longer ones heap sorts (a million detections
@@ -385,20 +382,6 @@ def shift_var(i00, i01, i02, i11, i12, i22, with_bg):
     if not schur > 0.0:
         return np.nan
     return 1.0 / schur
-
-
-def fisher_table(g: np.ndarray, dg: np.ndarray) -> np.ndarray:
-    """The sums of :func:`fisher_var` for a pulse inside the window, per unit of 1 / bg, tabulated
-    for :func:`fisher_tab`: row i holds ``sum_t h_t / (1 + r g_t)`` at
-    ``r = a / bg = exp(FISHER_RHO0 + i / FISHER_STEPS)`` for h = (dg^2, dg g, dg, g^2, g, 1). The
-    last row is for bg = 0, where the rate is a g_t alone: ``sum over g_t > 0 of h_t / g_t`` (the
-    loop's bins with g_t = 0 then have no rate and add nothing)."""
-    rho = FISHER_RHO0 + np.arange(FISHER_SPAN * FISHER_STEPS) / FISHER_STEPS
-    inv = 1.0 / (1.0 + np.exp(rho)[:, None] * g[None, :])
-    h = np.stack([dg * dg, dg * g, dg, g * g, g, np.ones_like(g)], axis=1)
-    pos = g > 0.0
-    limit = (h[pos] / g[pos, None]).sum(axis=0)
-    return np.ascontiguousarray(np.vstack([inv @ h, limit]))
 
 
 @njit(cache=True, nogil=True, _nrt=False, inline="always", error_model="numpy")

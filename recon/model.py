@@ -17,6 +17,7 @@ from __future__ import annotations
 import functools
 import json
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -24,7 +25,6 @@ import numpy as np
 from scipy.special import log_ndtr, ndtr
 
 from spdepth.recon.errors import InputError
-from spdepth.recon.kernels import fisher_table
 
 #: Relative level below which the pulse is treated as zero (kernel truncation for uos/ml). The
 #: truncated tail carries less than ~1e-10 of the pulse energy for a Gaussian.
@@ -43,6 +43,12 @@ KERNEL_CACHE = 2
 #: The estimators hold no pixels x bins arrays, so the price of more bins is time linear in bins per
 #: pixel; the cap only stops absurd counts (a ps-unit file with a 200 ns gate would get 200,000).
 DEFAULT_MAX_BINS = 4096
+#: The Fisher table (:func:`fisher_table`, read by ``recon.kernels.fisher_tab``): rows at log(a / bg)
+#: from FISHER_RHO0, FISHER_STEPS per unit, FISHER_SPAN units (a / bg from 2e-9 to 8e23; a pixel off
+#: it takes the loop)
+FISHER_RHO0 = -20.0
+FISHER_STEPS = 16
+FISHER_SPAN = 75
 #: Pulse-width estimate: pixel pairs histogrammed per block (bounds its memory to a few tens of MB).
 PAIR_BLOCK = 1 << 20
 
@@ -398,10 +404,43 @@ def edge_core_rms(shape: np.ndarray, step: float) -> float:
     return float(max((crossing(0.9 * peak) - crossing(0.1 * peak)) * step / 2.563, 0.5 * step))
 
 
-#: The estimators that fit each pixel on its own (recon.pixelwise); METHODS adds those that do not.
-PIXELWISE_METHODS = ("lmf", "uos", "ml")
-#: Every estimator's name, the keys of the registry ``recon.estimate.ESTIMATORS``, in this order.
-METHODS = PIXELWISE_METHODS + ("spatial",)
+class MethodNames(Sequence):
+    """The ``--method`` names the registry (:mod:`recon.estimators`) holds, read afresh at every use
+    (an estimator registered later is in it), like a tuple: ``in``, iteration, ``index``, ``==``.
+    The registry is imported on first use, not with this module."""
+
+    def __init__(self, pixelwise: bool | None = None):
+        self._pixelwise = pixelwise
+
+    def _names(self) -> tuple[str, ...]:
+        from spdepth.recon import estimators
+
+        return estimators.names(self._pixelwise)
+
+    def __getitem__(self, i):
+        return self._names()[i]
+
+    def __len__(self) -> int:
+        return len(self._names())
+
+    def __eq__(self, other) -> bool:
+        return tuple(self) == tuple(other) if isinstance(other, (tuple, list, Sequence)) else NotImplemented
+
+    def __hash__(self):
+        return hash(self._names())
+
+    def __add__(self, other):
+        return self._names() + tuple(other)
+
+    def __repr__(self) -> str:
+        return repr(self._names())
+
+
+#: Every estimator's name (``recon.estimators.names()``), in registration order: lmf, uos, ml,
+#: spatial, then any plugin's.
+METHODS = MethodNames()
+#: The estimators that fit each pixel on its own (``recon.estimators.get(name).pixelwise``).
+PIXELWISE_METHODS = MethodNames(pixelwise=True)
 
 
 @dataclass(frozen=True)
@@ -463,8 +502,9 @@ BINS_PER_PULSE_RMS = SEED_PAPER.pulse_rms_units / SEED_PAPER.bin_units
 class ReconSettings:
     """Everything a reconstruction depends on; saved with every result (``to_dict``).
 
-    method:         "lmf" (log-matched filter, eq. 11), "uos" (Algorithm 1), "ml" (exact pixelwise Poisson ML of eq. 9) or
-                    "spatial" (censoring, pixelwise fit and TV over neighbours: recon.spatial).
+    method:         a name the registry holds (:mod:`recon.estimators`): "lmf" (log-matched filter,
+                    eq. 11), "uos" (Algorithm 1), "ml" (exact pixelwise Poisson ML of eq. 9),
+                    "spatial" (censoring, pixelwise fit and TV over neighbours) or a plugin's.
     binning:        None derives it from the data: window = [min, max] of all detection times
                     (stop just past the max), bin width = pulse RMS / 9 rounded to whole raw units
                     (the paper's 360 ps / 40 ps ratio), widened if needed to keep at most
@@ -503,8 +543,9 @@ class ReconSettings:
     false_alarm: float = 1e-3
 
     def __post_init__(self) -> None:
-        if self.method not in METHODS:
-            raise InputError(f"method must be one of {', '.join(METHODS)}, got {self.method!r}")
+        from spdepth.recon import estimators
+
+        estimators.get(self.method)     # InputError naming the methods for another name
         if self.pulse_rms_s is not None:
             if not (isinstance(self.pulse_rms_s, (int, float, np.floating)) and math.isfinite(self.pulse_rms_s)
                     and self.pulse_rms_s > 0):
@@ -598,7 +639,7 @@ class PulseKernel:
     fine:       float64: g at offsets ``x = j / FINE_STEPS - L0`` (fractional shifts).
     fine_colsum:float64 ((M-1)*FINE_STEPS + 1,): column sums at fractional shifts q / FINE_STEPS.
     fisher:     float64 (rows, 6): the shift's Fisher sums tabulated over log(a / B), and in the last
-                row their values for B = 0, for ml's uncertainty (kernels.fisher_table).
+                row their values for B = 0, for ml's uncertainty (:func:`fisher_table`).
     logg:       float64 (2M-1,): log(g / gmax) at offsets d in [-(M-1), M-1] (index d + M - 1), for
                 the log-matched filter; exact tails for a Gaussian, floored at the smallest finite
                 value for a measured IRF (the published code's convention).
@@ -642,6 +683,20 @@ def _irf_cdf(irf: Irf, bin_width_s: float):
     cdf[-1] = 1.0
     return lambda x: np.interp(np.asarray(x, dtype=np.float64), e_bins, cdf, left=0.0, right=1.0), \
         (float(e_bins[0]), float(e_bins[-1]))
+
+
+def fisher_table(g: np.ndarray, dg: np.ndarray) -> np.ndarray:
+    """The sums of :func:`recon.kernels.fisher_var` for a pulse inside the window, per unit of 1 / bg, tabulated
+    for :func:`recon.kernels.fisher_tab`: row i holds ``sum_t h_t / (1 + r g_t)`` at
+    ``r = a / bg = exp(FISHER_RHO0 + i / FISHER_STEPS)`` for h = (dg^2, dg g, dg, g^2, g, 1). The
+    last row is for bg = 0, where the rate is a g_t alone: ``sum over g_t > 0 of h_t / g_t`` (the
+    loop's bins with g_t = 0 then have no rate and add nothing)."""
+    rho = FISHER_RHO0 + np.arange(FISHER_SPAN * FISHER_STEPS) / FISHER_STEPS
+    inv = 1.0 / (1.0 + np.exp(rho)[:, None] * g[None, :])
+    h = np.stack([dg * dg, dg * g, dg, g * g, g, np.ones_like(g)], axis=1)
+    pos = g > 0.0
+    limit = (h[pos] / g[pos, None]).sum(axis=0)
+    return np.ascontiguousarray(np.vstack([inv @ h, limit]))
 
 
 @functools.lru_cache(maxsize=KERNEL_CACHE)

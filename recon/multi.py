@@ -268,7 +268,7 @@ def _maps(store, settings, b, kern, notes, shift, amp, bg, var, gain, n_used, km
     j = np.clip(np.nan_to_num(shift).astype(np.int64), 0, b.n_bins - 1)
     signal = np.where(has, amp * kern.colsum[j], 0.0)
     tof_s = np.where(has, b.shift_to_time_s(np.nan_to_num(shift)), np.nan)
-    unc_s = np.sqrt(honest_var(var, has, kern.rms_bins, b.n_bins, "uos")) * b.bin_width_s
+    unc_s = np.sqrt(honest_var(var, has, kern.rms_bins, b.n_bins, 1.0)) * b.bin_width_s
     # weak: a surface the test of auto would not keep at the user's false-alarm rate
     weak_thr = auto_threshold_nats(settings.false_alarm, b.n_bins, fwhm_bins(kern.g))
     weak = has & (gain <= weak_thr)
@@ -290,14 +290,14 @@ def _maps(store, settings, b, kern, notes, shift, amp, bg, var, gain, n_used, km
 
 
 def reconstruct_multi(store: PhotonStore, settings: ReconSettings, b: Binning, kern: PulseKernel, notes: dict,
-                      progress: Callable[[int, int], None] | None = None,
-                      measure: bool = False) -> DepthMaps:
-    """K surfaces per pixel (``settings.reflectors`` > 1 or "auto"), on the resolved binning ``b`` and
-    pulse ``kern``; with ``measure`` (the pulse was estimated), the response is re-measured on the
-    surfaces first (module docstring). ``notes`` as for :func:`recon.pixelwise.reconstruct_pixelwise`."""
+                      progress: Callable[[int, int], None] | None = None) -> DepthMaps:
+    """:data:`recon.estimators.Fit` of the K-surface fit: K surfaces per pixel (``settings.reflectors``
+    > 1 or "auto"), on the resolved binning ``b`` and pulse ``kern``; when the pulse was estimated
+    (``notes["pulse_source"]``), the response is re-measured on the surfaces first (module
+    docstring)."""
     notes = dict(notes)
     core_s = float(notes["pulse_core_rms_s"])
-    if measure:
+    if notes.get("pulse_source") == "estimated":
         kern, core_s = _measured_model(store, settings, b, kern, notes)
     shift, amp, bg, var, gain, n_used, kmax, gain_min, rule = fit_surfaces(store, settings, b, kern, core_s, progress)
     notes["surfaces_rule"] = rule
@@ -315,12 +315,12 @@ SPATIAL_SLICE = 4096
 
 
 def reconstruct_multi_spatial(store: PhotonStore, settings: ReconSettings, b: Binning, kern: PulseKernel,
-                              notes: dict, progress: Callable[[int, int], None] | None = None,
-                              measure: bool = False) -> DepthMaps:
-    """``method="spatial"`` with several surfaces: every surface supported by its neighbours.
+                              notes: dict, progress: Callable[[int, int], None] | None = None) -> DepthMaps:
+    """:data:`recon.estimators.Fit` of ``method="spatial"`` with several surfaces: every surface
+    supported by its neighbours.
 
-    1. The pixelwise K-surface fit (:func:`reconstruct_multi`'s, response re-measured when
-       ``measure``); its strong surfaces (passing the test at a false-alarm rate of 1e-6 on their
+    1. The pixelwise K-surface fit (:func:`reconstruct_multi`'s, response re-measured when the pulse
+       was estimated); its strong surfaces (passing the test at a false-alarm rate of 1e-6 on their
        own) stand.
     2. Per pixel, the detections of its 3 x 3 neighbourhood are pooled and fitted the same way (up to
        K + 1 surfaces: an edge inside the neighbourhood shows both sides), each surface passing the
@@ -336,7 +336,7 @@ def reconstruct_multi_spatial(store: PhotonStore, settings: ReconSettings, b: Bi
     """
     notes = dict(notes)
     core_s = float(notes["pulse_core_rms_s"])
-    if measure:
+    if notes.get("pulse_source") == "estimated":
         kern, core_s = _measured_model(store, settings, b, kern, notes)
     shift0, _, _, _, gain0, _, kmax, gain_min, rule = fit_surfaces(store, settings, b, kern, core_s)
     fw = fwhm_bins(kern.g)

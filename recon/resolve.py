@@ -1,15 +1,15 @@
 """The model a reconstruction uses: the binning and the pulse kernel, from the settings where they
-give them, else from the data (the window from the detections' span, the pulse measured by
-:mod:`recon.irf`), and notes saying which. Every estimator resolves through :func:`resolve_model`,
-so a method never sees settings with a part left to guess.
+give them (:mod:`recon.given`), else from the data (the window from the detections' span, the pulse
+measured by :mod:`recon.irf`), and notes saying which. Every estimator runs on a model resolved
+here (:func:`resolve_model`), so a method never sees settings with a part left to guess.
 """
 
 from __future__ import annotations
 
+from spdepth.recon.given import check_time_unit, given_pulse, pulse_kernel
 from spdepth.recon.irf import estimate_irf
 from spdepth.recon.model import Binning, PulseKernel, ReconSettings, default_binning
 from spdepth.recon.photons import PhotonStore
-from spdepth.recon.pixelwise import check_time_unit, given_pulse, pulse_kernel
 
 
 def resolve_model(store: PhotonStore, settings: ReconSettings) -> tuple[Binning, PulseKernel, dict]:

@@ -45,12 +45,10 @@ import numpy as np
 from scipy import special
 
 from spdepth.recon import spatial_kernels as SK
-from spdepth.recon.errors import InputError
 from spdepth.recon.maps import C_M_PER_S, DepthMaps, PixelFlag
 from spdepth.recon.model import ReconSettings
 from spdepth.recon.photons import PhotonStore
 from spdepth.recon.pixelwise import settings_record
-from spdepth.recon.resolve import resolve_model
 
 #: Censoring: support within this many pulse RMS widths of a detection.
 TAU_RMS = 1.5
@@ -127,25 +125,16 @@ def background_share(x: np.ndarray, offsets: np.ndarray, sigma: float, sample: i
     return 1.0 - float(densest.sum()) / total
 
 
-def reconstruct_spatial(store: PhotonStore, settings: ReconSettings,
-                        progress: Callable[[int, int], None] | None = None) -> DepthMaps:
-    """Depth, background and signal at every pixel of ``store`` from the pixel and its neighbours.
+def fit(store: PhotonStore, settings: ReconSettings, b, kern, notes: dict,
+        progress: Callable[[int, int], None] | None = None) -> DepthMaps:
+    """:data:`recon.estimators.Fit` of the spatial estimator (one surface per pixel; several are
+    :mod:`recon.multi`'s): depth, background and signal at every pixel of ``store`` from the pixel
+    and its neighbours, on the resolved binning ``b`` and pulse ``kern``.
 
-    Same inputs, outputs and settings record as :func:`recon.estimate.reconstruct` (whose
-    registry holds it under "spatial"); ``settings['spatial']`` in the result
-    holds this module's constants. Pixels whose depth comes from their neighbours only are flagged
-    ``INTERPOLATED`` (their photons, signal and background are their own: 0 with no detections).
+    ``settings['spatial']`` in the result holds this module's constants. Pixels whose depth comes
+    from their neighbours only are flagged ``INTERPOLATED`` (their photons, signal and background
+    are their own: 0 with no detections).
     """
-    if not isinstance(settings, ReconSettings):
-        raise InputError(f"settings must be ReconSettings, got {type(settings).__name__}")
-    if not isinstance(store, PhotonStore):
-        raise InputError(f"store must be a PhotonStore, got {type(store).__name__}")
-    b, kern, notes = resolve_model(store, settings)
-    if settings.several:
-        # several surfaces per pixel, each supported by its neighbours (recon.multi)
-        from spdepth.recon.multi import reconstruct_multi_spatial
-        return reconstruct_multi_spatial(store, settings, b, kern, notes, progress,
-                                         measure=notes.get("pulse_source") == "estimated")
     h, w = store.shape
     npix = h * w
     m = b.n_bins

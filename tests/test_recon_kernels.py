@@ -8,7 +8,7 @@ import pytest
 import reference as ref
 from spdepth.recon import kernels as K
 from spdepth.recon.estimate import reconstruct
-from spdepth.recon.model import Binning, Irf, ReconSettings, build_kernel
+from spdepth.recon.model import FISHER_RHO0, FISHER_STEPS, Binning, Irf, ReconSettings, build_kernel
 from spdepth.recon.photons import PhotonStore
 
 M = 201
@@ -103,7 +103,7 @@ def test_ml_variance_from_the_fisher_table_matches_the_loop(rng, pulse):
         shift = int(rng.integers(0, M))
         loop = K.fisher_var(shift, a, bg, M, g, dg, off)
         inside = off <= shift <= M - g.size + off
-        row = (np.log(a / bg) - K.FISHER_RHO0) * K.FISHER_STEPS if bg > 0 else -1.0
+        row = (np.log(a / bg) - FISHER_RHO0) * FISHER_STEPS if bg > 0 else -1.0
         n_table += inside and 1 <= row < kern.fisher.shape[0] - 3     # its last row is for bg = 0
         # without background the table's last row holds the loop's own sums: equal to rounding
         n_no_bg += inside and bg == 0
@@ -210,7 +210,7 @@ def test_ml_kernel_global_integer_optimum_matches_reference(kern, rng, k, sbr):
 def test_ml_fine_climb_finds_the_full_searchs_shift(rng, rms_bins):
     # the climb over the fine shifts (a smooth pulse) against the search of all of them, on the
     # narrowest pulse it is used for: few detections (where twin peaks would show), sub-bin returns
-    from spdepth.recon.pixelwise import ml_tables
+    from spdepth.recon.estimators.ml import ml_tables
     kern_w = build_kernel(BIN, pulse_rms_s=rms_bins * 40e-12)
     tabs = ml_tables(kern_w, M)
     assert tabs[-1] is True         # what reconstruct passes for this pulse

@@ -12,6 +12,7 @@ from spdepth.acq.commands import (EXIT_DEVICE, EXIT_FAILED, EXIT_INTERRUPTED, EX
                                   Terminated)
 from spdepth.acq.commands._args import add_reflector_arguments, positive_float
 from spdepth.acq.requests import DEFAULT_METHOD
+from spdepth.recon import estimators
 from spdepth.recon.model import METHODS
 
 
@@ -28,8 +29,7 @@ def add_output_arguments(parser: argparse.ArgumentParser) -> None:
 def add_recon_arguments(parser: argparse.ArgumentParser, default_method: str | None = DEFAULT_METHOD) -> None:
     shown = default_method or f"as recorded, else {DEFAULT_METHOD}"
     parser.add_argument("--method", choices=METHODS, default=default_method,
-                        help=f"estimator for the maps (default {shown}); "
-                             "spatial shows ml while the scan runs and replaces it at the end")
+                        help=f"estimator for the maps (default {shown}). {estimators.live_note()}")
     parser.add_argument("--pulse-rms-ps", type=positive_float, metavar="PS",
                         help="pulse RMS width (default: the simulated scene's, or estimated from "
                              "the first pixels to complete; with several surfaces the response "

@@ -13,9 +13,8 @@ import time
 
 from spdepth.acq.commands.scan import add_scan_arguments, add_sim_arguments, request_from_args
 from spdepth.acq.requests import DEFAULT_METHOD
+from spdepth.recon import estimators
 from spdepth.recon.model import METHODS
-
-PIXELWISE = tuple(m for m in METHODS if m != "spatial")
 
 HELP = "simulate a recorded count-gated scan session of a built-in scene, reconstruct it, write a PNG"
 
@@ -25,9 +24,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_scan_arguments(parser)
     parser.add_argument("--method", choices=METHODS, default=DEFAULT_METHOD,
                         help=f"estimator of the live maps during the scan (default {DEFAULT_METHOD})")
-    parser.add_argument("--compare", default=",".join(PIXELWISE),
+    pixelwise = ",".join(estimators.names(pixelwise=True))
+    parser.add_argument("--compare", default=pixelwise,
                         help="estimators reconstructing the final photons against the truth, "
-                             f"comma-separated (default {','.join(PIXELWISE)})")
+                             f"comma-separated (default the pixelwise ones, {pixelwise})")
     parser.add_argument("--record", metavar="DIR",
                         help="keep the session's files (recording.ptu, events.jsonl, maps.npz, "
                              "run.json) in DIR (default: a temporary directory, removed)")
@@ -150,7 +150,9 @@ def _demo(args, request, methods, out_dir) -> int:
     for method, (maps, mae_cm) in results.items():
         setattr(sheet, f"{method}_m", maps.depth_m)
         panels.append((f"{method}_m", f"{method}: MAE {mae_cm:.1f} cm, depth", "m", "turbo", "percentile"))
-    best = results.get("ml") or next(iter(results.values()))
+    # the background panel: the default estimator's, else the first that estimates background
+    best = results.get(DEFAULT_METHOD) or next(
+        (r for m, r in results.items() if estimators.get(m).background), next(iter(results.values())))
     sheet.background = best[0].background
     panels.append(("background", "background", "detections per bin", "magma", "percentile"))
     render_maps_png(args.out, sheet, panels=panels,

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 
 from spdepth.acq.commands._args import non_negative_float, positive_float, positive_int, size_wxh
+from spdepth.recon import estimators
 from spdepth.recon.model import METHODS
 
 HELP = ("open the live window; with --sim, --galvo/--tagger or --replay start that scan at once, "
@@ -54,7 +55,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     scan.add_argument("--dwell-ms", type=non_negative_float, metavar="T",
                       help="raster only: dwell per pixel and frame (0: default)")
     scan.add_argument("--method", choices=METHODS,
-                      help="estimator for the maps (spatial: ml live, spatial at the end)")
+                      help=f"estimator for the maps. {estimators.live_note()}")
     scan.add_argument("--reflectors", type=positive_int, metavar="K",
                       help="surfaces per pixel to look for (default 1; replay: as recorded)")
     out = parser.add_argument_group("output")

@@ -21,6 +21,7 @@ import sys
 
 from spdepth.acq.commands._args import add_reflector_arguments, positive_float, positive_int, window_ps
 from spdepth.acq.requests import DEFAULT_METHOD
+from spdepth.recon import estimators
 from spdepth.recon.model import METHODS
 
 HELP = "reconstruct depth/background maps from a .mat or PicoQuant PTU/HT3/PT3 T3 file"
@@ -31,9 +32,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=".mat (first-photon imaging) or PTU/HT3/PT3 T3 file; with several, "
                              "--out and --png name folders (OUT/<name>.npz)")
     parser.add_argument("--method", choices=METHODS, default=None,
-                        help=f"estimator (default {DEFAULT_METHOD}): uos (the seed paper's union of "
-                             "subspaces), lmf (log-matched filter, ignores background), ml (Poisson "
-                             "maximum likelihood), spatial (uses the neighbours: censoring, fit, TV)")
+                        help=f"estimator (default {DEFAULT_METHOD}). {estimators.summaries()}")
     parser.add_argument("--out", metavar="MAPS.npz", help="write the maps and the settings used here")
     parser.add_argument("--png", metavar="MAPS.png", help="write a picture of the depth, background and "
                         "photon-count maps (a time histogram for a point measurement)")

@@ -32,7 +32,7 @@ from spdepth.recon import kernels as K
 from spdepth.recon.estimate import reconstruct
 from spdepth.recon.model import FINE_STEPS, SEED_PAPER, Binning, ReconSettings, build_kernel
 from spdepth.recon.photons import PhotonStore
-from spdepth.recon.pixelwise import ml_tables
+from spdepth.recon.estimators.ml import ml_tables
 
 M = SEED_PAPER.n_bins
 UNIT_S = SEED_PAPER.time_unit_s

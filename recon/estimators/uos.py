@@ -1,0 +1,58 @@
+"""uos: the seed paper's union-of-subspaces greedy pursuit (Algorithm 1) with one depth column and
+the background column, on its published scaling (columns peak 1, so ``delta`` means what it means
+there), over integer shifts. Its uncertainty is a matched filter's sandwich variance
+(:func:`matched_filter_var`), not the Fisher bound. Kernels: :mod:`recon.kernels` (``uos_kernel``),
+loaded on the first run."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from spdepth.recon.estimators import Estimator, register
+
+
+def matched_filter_var(shift: np.ndarray, amp: np.ndarray, bg: np.ndarray, kern, m: int) -> np.ndarray:
+    """Shift variance (bins^2) of uos's returns: the sandwich variance of a matched filter.
+
+    uos places a return at the peak of its proxy ``S_i^T y - B S_i^T 1``, i.e. it solves
+    ``psi(t) = sum_k y_k g'(k - t) = 0`` (S_i^T 1 is flat inside the window), not the likelihood
+    equation, so the Fisher bound understates its spread (for a Gaussian pulse and no background
+    by 1.54x in variance: uos reported ~59% of pixels within one sigma). For Poisson y_k with mean
+    ``lambda_k = a g_k + B``: ``var = sum lambda_k g'_k^2 / (a sum g_k g''_k)^2``, over the window's
+    bins. shift, amp, bg: (P,). NaN where there is no return."""
+    g, dg, ddg = kern.g, kern.dg, kern.ddg
+    nk = g.size
+    pref = np.zeros((3, nk + 1))
+    np.cumsum(g * dg * dg, out=pref[0, 1:])
+    np.cumsum(dg * dg, out=pref[1, 1:])
+    np.cumsum(g * ddg, out=pref[2, 1:])
+    has = np.isfinite(shift)
+    j = np.where(has, np.rint(np.nan_to_num(shift)), 0).astype(np.int64)
+    tlo = np.clip(kern.off - j, 0, nk)
+    thi = np.clip(m - j + kern.off, 0, nk)
+    sgd2, sd2, sgdd = (pref[r][thi] - pref[r][tlo] for r in range(3))
+    bgc = np.asarray(bg, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        v = (amp * sgd2 + bgc * sd2) / (amp * sgdd) ** 2
+    return np.where(has & (amp > 0), v, np.nan)
+
+
+def fit(store, settings, b, kern, notes, progress=None):
+    """:data:`recon.estimators.Fit` of uos on the resolved binning ``b`` and pulse ``kern``."""
+    from spdepth.recon import kernels as K
+    from spdepth.recon.pixelwise import fit_pixels, pixel_maps
+
+    def chunk(bins, offsets, maxn, out):
+        K.uos_kernel(bins, offsets, b.n_bins, kern.g, kern.off, kern.gmax, kern.colsum, kern.pp, kern.dg,
+                     1, float(settings.delta), int(settings.max_iterations), 0.0, 0.0, maxn,
+                     out.shift.reshape(-1, 1), out.amp.reshape(-1, 1), out.bg, out.iters, out.conv,
+                     out.var.reshape(-1, 1), out.n_used)
+
+    res = fit_pixels(store, settings, b, chunk, progress)
+    res.var[:] = matched_filter_var(res.shift, res.amp, res.bg, kern, b.n_bins)
+    return pixel_maps(store, settings, b, kern, notes, res, shift_step=1.0)
+
+
+ESTIMATOR = register(Estimator(
+    "uos", "union of subspaces (the seed paper's Algorithm 1): integer shifts, estimates background",
+    fit, pixelwise=True, several="surfaces"))
