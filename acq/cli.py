@@ -51,6 +51,25 @@ class OneLineParser(argparse.ArgumentParser):
     def error(self, message: str):
         self.exit(EXIT_USAGE, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
+    def format_help(self) -> str:
+        self._expand()
+        return super().format_help()
+
+    def format_usage(self) -> str:
+        self._expand()
+        return super().format_usage()
+
+    def _expand(self) -> None:
+        # lists owned elsewhere (estimators, scenes, fault kinds) fill the declared help texts and
+        # metavars only when a help or usage is shown (acq.params.expand)
+        from spdepth.acq.params import expand
+
+        for action in self._actions:
+            if action.help and "{" in action.help:
+                action.help = expand(action.help)
+            if isinstance(action.metavar, str) and "{" in action.metavar:
+                action.metavar = expand(action.metavar)
+
 
 def _command_modules():
     for info in sorted(pkgutil.iter_modules(_commands.__path__), key=lambda i: i.name):

@@ -8,9 +8,9 @@ from dataclasses import asdict, dataclass, fields
 import numpy as np
 
 from spdepth.acq.assign import PassGeometry
+from spdepth.acq.params import MODES
 from spdepth.recon.errors import InputError
 
-MODES = ("gated", "raster")
 DEFAULT_MAX_PASSES = {"gated": 10, "raster": 100}
 
 

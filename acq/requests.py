@@ -12,27 +12,20 @@ Units are SI inside (``bin_s``, ``dwell_s``, ``window_s``); the front ends conve
 
 from __future__ import annotations
 
-import math
 import os
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 from spdepth.acq.errors import RequestError
-from spdepth.drivers.galvo.protocol import MAX_DWELL_NS, MAX_N_TARGET, MAX_PIXELS_PER_AXIS, MIN_DWELL_NS
-from spdepth.drivers.picoquant.protocol import FAMILIES as PICOQUANT_FAMILIES
-from spdepth.recon.model import METHODS, SEED_PAPER
+from spdepth.acq.params import (DEFAULT_BIN_PS, DEFAULT_METHOD, DEFAULT_N_BINS,  # noqa: F401
+                                DEFAULT_SIZE, DEFAULT_TARGET, GALVO_FORMS, MODES, check_request,
+                                default, tagger_forms)
+from spdepth.drivers.galvo.protocol import MAX_N_TARGET
+from spdepth.recon.model import METHODS
 
-DEFAULT_METHOD = "ml"
-"""The estimator of every command and the window unless the user picks another: exact Poisson ML,
-the most accurate pixelwise estimator (within a few percent of the oracle bound), fast enough since
-issue 18 to keep up with a live scan (``spdepth bench session`` prints the live backlog)."""
-DEFAULT_SIZE = (64, 64)
-"""(H, W) of a scan unless the user picks another (scan, demo and the window alike)."""
-DEFAULT_TARGET = SEED_PAPER.max_photons
-"""In-window detections per pixel: the seed paper's first 15 detections."""
-DEFAULT_BIN_S = SEED_PAPER.binning.bin_width_s
+DEFAULT_BIN_S = DEFAULT_BIN_PS * 1e-12
 """Histogram bin of a scan: the seed paper's 40 ps."""
-DEFAULT_WINDOW_S = (0.0, SEED_PAPER.n_bins * DEFAULT_BIN_S)
+DEFAULT_WINDOW_S = (0.0, DEFAULT_N_BINS * DEFAULT_BIN_S)
 """Detection window of a scan after each sync: 801 bins of 40 ps, the seed paper's window length."""
 MAX_TARGET = MAX_N_TARGET
 """Largest count the galvo controller can gate a pixel on."""
@@ -40,57 +33,17 @@ MAX_STORE_DETECTIONS = 2_000_000_000
 """Pixels x target above this would not fit the per-pixel store (8 bytes a detection: 16 GB)."""
 DEFAULT_DWELL_S = {"gated": 10e-3, "raster": 1e-3}
 """Real devices: the gated dwell limit and the raster dwell unless given."""
-SPEEDS = ("max",)
-MODES = ("gated", "raster")
-PATTERNS = ("raster", "serp")
 
 
-def _positive(name: str, value, *, allow_none: bool = False, integer: bool = False) -> None:
-    if value is None and allow_none:
-        return
-    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) \
-        and value > 0
-    if ok and integer:
-        ok = int(value) == value
-    if not ok:
-        kind = "a whole number >= 1" if integer else "a positive number"
-        raise RequestError(f"{name} must be {kind}, got {value!r}")
+def _method(value) -> None:
+    """--method against the estimator registry itself (the declarations list its names for --help)."""
+    if value is not None and value not in METHODS:
+        raise RequestError(f"--method must be one of {', '.join(METHODS)}, got {value!r}")
 
 
-def _reflectors(req) -> None:
-    """--reflectors K|auto, --max-reflectors, --false-alarm of a request (recon.model.ReconSettings
-    holds the same limits); None (a replay's "as recorded") passes."""
-    if req.reflectors is not None and req.reflectors != "auto":
-        if isinstance(req.reflectors, str) and req.reflectors.isdigit():
-            object.__setattr__(req, "reflectors", int(req.reflectors))
-        _positive("--reflectors", req.reflectors, integer=True)
-        if req.reflectors > 8:
-            raise RequestError(f"--reflectors must be at most 8 or auto, got {req.reflectors!r}")
-        object.__setattr__(req, "reflectors", int(req.reflectors))
-    _positive("--max-reflectors", req.max_reflectors, allow_none=True, integer=True)
-    if req.max_reflectors is not None and req.max_reflectors > 8:
-        raise RequestError(f"--max-reflectors must be at most 8, got {req.max_reflectors!r}")
-    ok = req.false_alarm is None or isinstance(req.false_alarm, (int, float)) \
-        and not isinstance(req.false_alarm, bool) and 0 < req.false_alarm < 1
-    if not ok:
-        raise RequestError(f"--false-alarm must be a probability between 0 and 1, got {req.false_alarm!r}")
-
-
-def _choice(name: str, value, choices) -> None:
-    if value not in choices:
-        raise RequestError(f"{name} must be one of {', '.join(choices)}, got {value!r}")
-
-
-def _window(name: str, window) -> tuple[float, float] | None:
-    if window is None:
-        return None
-    try:
-        start, stop = (float(v) for v in window)
-    except (TypeError, ValueError):
-        raise RequestError(f"{name} must be (start, stop), got {window!r}") from None
-    if not (math.isfinite(start) and math.isfinite(stop) and 0 <= start < stop):
-        raise RequestError(f"{name} needs 0 <= START < STOP, got {start * 1e12:g}:{stop * 1e12:g} ps")
-    return start, stop
+def _window(window) -> tuple[float, float] | None:
+    """A checked window (``check_request`` ran) as a tuple of floats."""
+    return None if window is None else tuple(float(v) for v in window)
 
 
 def check_bin_fits(bin_s: float | None, window_s: tuple[float, float] | None, *,
@@ -145,9 +98,7 @@ class GalvoAddress:
     text: str = ""
 
 
-TAGGER_FORMS = (f"picoquant:MODEL[:SERIAL] ({', '.join(PICOQUANT_FAMILIES)}), swabian[:SERIAL] or "
-                "usb:VID:PID")
-GALVO_FORMS = "nidaq:DEV[/aoN:M] (e.g. nidaq:Dev1/ao0:1) or a serial PORT"
+TAGGER_FORMS = tagger_forms()
 
 
 def parse_tagger(text: str) -> TaggerAddress:
@@ -269,23 +220,18 @@ class SimBench(_Request):
     """
 
     KIND = "sim"
-    scene: str = "bust"
+    scene: str = default("--scene")
     ppp: float | None = None
-    sbr: float = 10.0
-    seed: int = 0
-    faults: str = ""
+    sbr: float = default("--sbr")
+    seed: int = default("--seed")
+    faults: str = default("--faults")
     tagger: str = ""
     galvo: str = ""
 
     def __post_init__(self) -> None:
         if not isinstance(self.scene, str) or not self.scene:
             raise RequestError(f"--scene must name a scene, got {self.scene!r}")
-        _positive("--ppp", self.ppp, allow_none=True)
-        _positive("--sbr", self.sbr)
-        if not isinstance(self.seed, int) or isinstance(self.seed, bool) or self.seed < 0:
-            raise RequestError(f"--seed must be a whole number >= 0, got {self.seed!r}")
-        if not isinstance(self.faults, str):
-            raise RequestError(f"--faults must be KIND@WHEN items, got {self.faults!r}")
+        check_request(self, "sim")
         if self.faults:
             from spdepth.drivers.errors import SettingError
             from spdepth.drivers.sim.faults import parse_faults
@@ -334,39 +280,26 @@ class Devices(_Request):
     galvo: str = ""
     tagger: str = ""
     sync_rate_hz: float = 0.0
-    fov_deg: float = 20.0
-    deg_per_volt: float = 1.0
-    v_limit: float = 10.0
-    park_deg: tuple[float, float] = (0.0, 0.0)
+    fov_deg: float = default("--fov-deg", "real")
+    deg_per_volt: float = default("--deg-per-volt", "real")
+    v_limit: float = default("--v-limit", "real")
+    park_deg: tuple[float, float] = default("--park-deg", "real")
     picoquant_lib: str = ""
-    event_divider: int = 1
+    event_divider: int = default("--event-divider", "real")
 
     def __post_init__(self) -> None:
         if not self.galvo or not self.tagger:
             raise RequestError(f"real devices need both --galvo ({GALVO_FORMS}) and --tagger "
                                f"({TAGGER_FORMS})")
         t, g = parse_tagger(self.tagger), parse_galvo(self.galvo)
-        _positive("--deg-per-volt", self.deg_per_volt)
-        _positive("--event-divider", self.event_divider, integer=True)
-        if self.event_divider > 65535:
-            raise RequestError(f"--event-divider {self.event_divider}: at most 65535")
-        if not (isinstance(self.v_limit, (int, float)) and 0 < self.v_limit <= 10):
-            raise RequestError(f"--v-limit must be 0..10 volts, got {self.v_limit!r}")
-        try:
-            px, py = (float(v) for v in self.park_deg)
-        except (TypeError, ValueError):
-            raise RequestError(f"--park-deg must be X,Y degrees, got {self.park_deg!r}") from None
-        object.__setattr__(self, "park_deg", (px, py))
+        if not self.sync_rate_hz:
+            raise RequestError("real devices need --sync-rate-hz (the laser repetition rate)")
+        check_request(self, "real")
+        object.__setattr__(self, "park_deg", tuple(float(v) for v in self.park_deg))
         if g.kind == "nidaq" and self.fov_deg / 2 / self.deg_per_volt > self.v_limit:
             raise RequestError(f"--fov-deg {self.fov_deg:g} needs +-{self.fov_deg / 2 / self.deg_per_volt:g} V "
                                f"at --deg-per-volt {self.deg_per_volt:g}, beyond --v-limit "
                                f"{self.v_limit:g}")
-        if not self.sync_rate_hz:
-            raise RequestError("real devices need --sync-rate-hz (the laser repetition rate)")
-        _positive("--sync-rate-hz", self.sync_rate_hz)
-        _positive("--fov-deg", self.fov_deg)
-        if self.fov_deg > 90:
-            raise RequestError(f"--fov-deg {self.fov_deg:g} is wider than a galvo mirror turns (90)")
 
     def label(self) -> str:
         return f"devices {self.galvo} + {self.tagger}"
@@ -401,36 +334,31 @@ class ScanRequest(_Request):
     KIND = "scan"
     _NESTED = {"instruments": SimBench}
     instruments: SimBench | Devices = field(default_factory=SimBench)
-    size: tuple[int, int] = DEFAULT_SIZE
-    target: int = DEFAULT_TARGET
-    mode: str = "gated"
+    size: tuple[int, int] = default("--size")
+    target: int = default("--target")
+    mode: str = default("--mode")
     dwell_limit_s: float | None = None
     dwell_s: float | None = None
-    pattern: str = "raster"
-    settle_s: float = 0.0
+    pattern: str = default("--pattern")
+    settle_s: float = default("--settle-us")
     max_passes: int | None = None
     time_limit_s: float | None = None
     window_s: tuple[float, float] | None = None
-    bin_s: float = DEFAULT_BIN_S
-    method: str = DEFAULT_METHOD
+    bin_s: float = default("--bin-ps")
+    method: str = default("--method")
     pulse_rms_s: float | None = None
-    reflectors: int | str = 1
-    max_reflectors: int = 3
-    false_alarm: float = 1e-3
+    reflectors: int | str = default("--reflectors")
+    max_reflectors: int = default("--max-reflectors")
+    false_alarm: float = default("--false-alarm")
 
     def __post_init__(self) -> None:
         if not isinstance(self.instruments, (SimBench, Devices)):
             raise RequestError(f"instruments must be SimBench or Devices, got {self.instruments!r}")
-        try:
-            h, w = (int(v) for v in self.size)
-        except (TypeError, ValueError):
-            raise RequestError(f"--size must be WxH, got {self.size!r}") from None
-        if not (1 <= h <= MAX_PIXELS_PER_AXIS and 1 <= w <= MAX_PIXELS_PER_AXIS):
-            raise RequestError(f"--size {w}x{h}: each side must be 1..{MAX_PIXELS_PER_AXIS} pixels "
-                               f"(the galvo controller's limit)")
+        object.__setattr__(self, "size", tuple(self.size) if isinstance(self.size, list) else self.size)
+        check_request(self, "sim")
+        h, w = (int(v) for v in self.size)
         object.__setattr__(self, "size", (h, w))
-        _positive("--target", self.target, integer=True)
-        _choice("--mode", self.mode, MODES)
+        _method(self.method)
         if self.mode == "gated" and self.target > MAX_TARGET:
             raise RequestError(f"--target {self.target}: the galvo controller gates on at most "
                                f"{MAX_TARGET} detections per pixel")
@@ -446,23 +374,8 @@ class ScanRequest(_Request):
         if self.mode == "gated" and self.dwell_s is not None:
             raise RequestError("--dwell-ms is the raster dwell; a gated scan takes --dwell-limit-ms "
                                "(the longest wait for the target)")
-        _positive("--dwell-limit-ms", self.dwell_limit_s, allow_none=True)
-        _positive("--dwell-ms", self.dwell_s, allow_none=True)
-        for name, v in (("--dwell-limit-ms", self.dwell_limit_s), ("--dwell-ms", self.dwell_s)):
-            if v is not None and not MIN_DWELL_NS * 1e-9 <= v <= MAX_DWELL_NS * 1e-9:
-                raise RequestError(f"{name} {v * 1e3:g}: the galvo controller holds a pixel "
-                                   f"{MIN_DWELL_NS * 1e-6:g}..{MAX_DWELL_NS * 1e-6:g} ms")
-        _choice("--pattern", self.pattern, PATTERNS)
-        if not (isinstance(self.settle_s, (int, float)) and 0 <= self.settle_s <= 1.0):
-            raise RequestError(f"--settle-us must be 0..1e6, got {self.settle_s * 1e6:g}")
-        _positive("--max-passes", self.max_passes, allow_none=True, integer=True)
-        _positive("--time-limit-s", self.time_limit_s, allow_none=True)
-        object.__setattr__(self, "window_s", _window("--window-ps", self.window_s))
-        _positive("--bin-ps", self.bin_s)
+        object.__setattr__(self, "window_s", _window(self.window_s))
         check_bin_fits(self.bin_s, self.window_s or DEFAULT_WINDOW_S)
-        _choice("--method", self.method, METHODS)
-        _positive("--pulse-rms-ps", self.pulse_rms_s, allow_none=True)
-        _reflectors(self)
         galvo = self.instruments.galvo
         if galvo and parse_galvo(galvo).kind == "nidaq":
             if self.settle_s:
@@ -499,8 +412,8 @@ class ReplayRequest(_Request):
     target: int | None = None
     method: str | None = None
     pulse_rms_s: float | None = None
-    speed: str | float = "max"
-    bin_s: float = DEFAULT_BIN_S
+    speed: str | float = default("--speed", "replay")
+    bin_s: float = default("--bin-ps", "replay")
     reflectors: int | str | None = None
     max_reflectors: int | None = None
     false_alarm: float | None = None
@@ -514,14 +427,8 @@ class ReplayRequest(_Request):
             raise RequestError(f"recording {p} does not exist")
         if p.is_dir() and not (p / "recording.ptu").is_file():
             raise RequestError(f"recording {p}: the folder holds no recording.ptu")
-        _positive("--target", self.target, allow_none=True, integer=True)
-        if self.method is not None:
-            _choice("--method", self.method, METHODS)
-        _positive("--pulse-rms-ps", self.pulse_rms_s, allow_none=True)
-        _reflectors(self)
-        if self.speed != "max":
-            _positive("--speed", self.speed)
-        _positive("--bin-ps", self.bin_s)
+        check_request(self, "replay")
+        _method(self.method)
 
     @property
     def folder(self) -> Path:
@@ -556,16 +463,16 @@ class FileReconRequest(_Request):
 
     KIND = "recon"
     input: str = ""
-    method: str = DEFAULT_METHOD
+    method: str = default("--method", "file")
     time_unit_s: float | None = None
     window_s: tuple[float, float] | None = None
     bin_s: float | None = None
     pulse_rms_s: float | None = None
     irf: str | None = None
     max_photons: int | None = None
-    reflectors: int | str = 1
-    max_reflectors: int = 3
-    false_alarm: float = 1e-3
+    reflectors: int | str = default("--reflectors", "file")
+    max_reflectors: int = default("--max-reflectors", "file")
+    false_alarm: float = default("--false-alarm", "file")
     mat_var: str | None = None
     channel: int | None = None
     threads: int | None = None
@@ -581,15 +488,10 @@ class FileReconRequest(_Request):
     def __post_init__(self) -> None:
         if not self.input:
             raise RequestError("choose a file to reconstruct")
-        _positive("--fov-deg", self.fov_deg, allow_none=True)
-        if self.fov_deg is not None and self.fov_deg >= 180:
-            raise RequestError(f"--fov-deg {self.fov_deg:g}: a field of view must be under 180")
+        check_request(self, "file")
+        _method(self.method)
         if self.range_offset_m is not None and self.gate_delay_s is not None:
             raise RequestError("give --range-offset-m or --gate-delay-ns, not both")
-        for name, v in (("--range-offset-m", self.range_offset_m),
-                        ("--gate-delay-ns", self.gate_delay_s)):
-            if v is not None and not (isinstance(v, (int, float)) and math.isfinite(v)):
-                raise RequestError(f"{name} must be a number, got {v!r}")
         if (self.ply or self.las) and self.fov_deg is None and \
                 Path(str(self.input)).suffix.lower() == ".mat":
             raise RequestError(f"{self.input}: a .mat file holds no scan geometry: give --fov-deg "
@@ -600,27 +502,48 @@ class FileReconRequest(_Request):
         if self.time_unit_s is None and Path(self.input).suffix.lower() == ".mat":
             raise RequestError(f"{self.input}: a .mat file does not record its time unit: give "
                                f"--time-unit-ps (8 for the first-photon-imaging files, 1 for ps)")
-        _choice("--method", self.method, METHODS)
-        _positive("--time-unit-ps", self.time_unit_s, allow_none=True)
-        object.__setattr__(self, "window_s", _window("--window-ps", self.window_s))
-        _positive("--bin-ps", self.bin_s, allow_none=True)
+        object.__setattr__(self, "window_s", _window(self.window_s))
         check_bin_fits(self.bin_s, self.window_s)
-        _positive("--pulse-rms-ps", self.pulse_rms_s, allow_none=True)
         if self.irf is not None and self.pulse_rms_s is not None:
             raise RequestError("give --pulse-rms-ps or --irf, not both")
         if self.irf is not None and not Path(self.irf).is_file():
             raise RequestError(f"--irf {self.irf}: no such file")
-        _positive("--max-photons", self.max_photons, allow_none=True, integer=True)
-        _reflectors(self)
-        if self.channel is not None and (not isinstance(self.channel, int) or self.channel < 0):
-            raise RequestError(f"--channel must be a detector channel >= 0, got {self.channel!r}")
-        _positive("--threads", self.threads, allow_none=True, integer=True)
-        for name, path in (("--out", self.out), ("--png", self.png), ("--save-irf", self.save_irf),
+        for name, path in (("--npz", self.out), ("--png", self.png), ("--save-irf", self.save_irf),
                            ("--ply", self.ply), ("--las", self.las)):
             check_writable(name, path)
 
     def label(self) -> str:
         return f"{Path(self.input).name}, {self.method}"
+
+
+def build_request(source: str, values: dict):
+    """The request of ``source`` ("sim", "real", "replay", "file") for option values in their
+    units (dest -> value; what is missing takes the request's default). A value for an option
+    of another source is refused, naming it; the request checks itself as a whole."""
+    from spdepth.acq.params import _DECLARED, SOURCES, WHERE, params_of
+
+    if source not in SOURCES:
+        raise RequestError(f"source must be one of {', '.join(SOURCES)}, got {source!r}")
+    inst_cls = {"sim": SimBench, "real": Devices}.get(source)
+    req_cls = {"sim": ScanRequest, "real": ScanRequest, "replay": ReplayRequest,
+               "file": FileReconRequest}[source]
+    inst_fields = {f.name for f in fields(inst_cls)} if inst_cls else set()
+    mine = {p.dest: p for p in params_of(source)}
+    inst_kw, req_kw = {}, {}
+    for dest, value in values.items():
+        if value is None:
+            continue
+        p = mine.get(dest)
+        if p is None:
+            other = next((q for q in _DECLARED if q.dest == dest), None)
+            if other is None or not other.field:
+                continue
+            where = " or ".join(WHERE[s] for s in other.sources)
+            raise RequestError(f"{other.option} is an option of {where}, not of {WHERE[source]}")
+        (inst_kw if p.field in inst_fields else req_kw)[p.field] = p.to_si(value)
+    if inst_cls is not None:
+        req_kw["instruments"] = inst_cls(**inst_kw)
+    return req_cls(**req_kw)
 
 
 REQUEST_KINDS = {cls.KIND: cls for cls in (ScanRequest, ReplayRequest, FileReconRequest)}
@@ -633,6 +556,6 @@ def request_from_dict(d: dict):
     return REQUEST_KINDS[d["kind"]].from_dict(d)
 
 
-__all__ = ["SimBench", "Devices", "TaggerAddress", "GalvoAddress", "parse_tagger", "parse_galvo", "ScanRequest", "ReplayRequest", "FileReconRequest",
+__all__ = ["build_request", "SimBench", "Devices", "TaggerAddress", "GalvoAddress", "parse_tagger", "parse_galvo", "ScanRequest", "ReplayRequest", "FileReconRequest",
            "request_from_dict", "DEFAULT_METHOD", "DEFAULT_SIZE", "DEFAULT_TARGET", "DEFAULT_BIN_S",
            "DEFAULT_WINDOW_S", "MAX_TARGET", "check_writable"]

@@ -108,28 +108,21 @@ def application():
     return app
 
 
-def remembered_spec(settings=None):
-    """The source settings the window stored last time (None when there are none)."""
-    import json
-
+def remembered(settings=None):
+    """The window's stored settings (``gui.sources.Remembered``: per source kind, each value
+    checked against the declarations)."""
     from PySide6 import QtCore
 
-    from spdepth.gui.sources import SourceSpec
+    from spdepth.gui.sources import SETTINGS_KEY, Remembered
 
     settings = settings if settings is not None else QtCore.QSettings("spdepth", "spdepth")
-    raw = settings.value("source")
-    if not raw:
-        return None
-    try:
-        return SourceSpec.from_dict(json.loads(raw))
-    except (ValueError, TypeError):
-        return None
+    return Remembered.load(settings.value(SETTINGS_KEY), settings.value("source"))
 
 
 def run_window(what=None, *, start: bool = True, screenshot: str | Path | None = None,
                exit_after_scan: bool = False, out_dir="auto",
                window_size: tuple[int, int] | None = None, settings=None, controls=None,
-               view: str = "maps") -> int:
+               view: str = "maps", notes: list[str] | None = None) -> int:
     """Show the window with ``what`` in its controls (a ``gui.sources.SourceSpec``, or an
     ``acq.requests`` scan/replay/file request, which is run as given), started at once when
     ``start``, and run the Qt loop. ``controls``: a ``SourceSpec`` shown in the controls first
@@ -137,7 +130,8 @@ def run_window(what=None, *, start: bool = True, screenshot: str | Path | None =
     ``out_dir`` as ``MainWindow.start_run`` takes it. With ``screenshot``, the whole window is
     grabbed into that PNG when the scan ends; with ``exit_after_scan`` the loop ends then.
     ``window_size`` (width, height) overrides the remembered geometry. ``view``: "maps" or "3d",
-    the tab shown. Returns 0 (scan done, or
+    the tab shown. ``notes``: lines for the status bar (stored settings that no longer
+    validated). Returns 0 (scan done, or
     window closed), 1 (scan aborted or failed), 2 (the source could not be started and the window
     is not kept)."""
     from PySide6 import QtCore
@@ -158,6 +152,8 @@ def run_window(what=None, *, start: bool = True, screenshot: str | Path | None =
     elif what is not None:
         win.controls.set_spec(SourceSpec.from_request(what, win.controls.spec()))
     win.show_view(view)
+    if notes:
+        win.show_notes(notes)
     win.show()
     result = {"code": 0, "interrupted": False}
 
@@ -223,4 +219,4 @@ def run_demo_window(request, out_dir=None, *, exit_after_scan: bool = False,
 
 
 __all__ = ["application", "run_window", "run_demo_window", "display_available",
-           "remembered_spec", "WINDOW_SIZE", "platform_problem", "missing_libraries"]
+           "remembered", "WINDOW_SIZE", "platform_problem", "missing_libraries"]

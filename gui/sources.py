@@ -20,24 +20,55 @@ import numpy as np
 
 from spdepth.acq.errors import RequestError
 from spdepth.acq.flags import ACQUIRING, AcqFlag
-from spdepth.acq.requests import (DEFAULT_METHOD, DEFAULT_SIZE, DEFAULT_TARGET, MODES, Devices,
-                                  FileReconRequest, ReplayRequest, ScanRequest, SimBench)
-from spdepth.recon.model import METHODS
+from spdepth.acq.params import (DEFAULT_METHOD, DEFAULT_SIZE, DEFAULT_TARGET, MODES, PARAMS,
+                                SOURCES)
+from spdepth.acq.requests import (FileReconRequest, ReplayRequest, ScanRequest, SimBench,
+                                  build_request)
 
-SOURCES = ("sim", "real", "replay", "file")
-"""Simulated bench, real devices, a recording replayed through the same pipeline, or a PTU/.mat
-file reconstructed as a whole (``spdepth recon``'s path, on a worker thread)."""
-
-CONTROL_NAMES = {
-    "--scene": "scene", "--sbr": "SBR", "--seed": "seed", "--faults": "faults",
-    "--galvo PORT": "galvo port", "--tagger usb:VID:PID": "tagger (usb:VID:PID)",
-    "--sync-rate-hz": "sync rate", "--fov-deg": "field of view", "--size": "size",
-    "--target": "target", "--mode": "mode",
-    "--dwell-limit-ms": "dwell limit (ms)", "--dwell-ms": "dwell (ms)", "--method": "estimator",
-    "--time-unit-ps": "time unit (ps)", "--pulse-rms-ps": "pulse RMS (ps)",
+SPEC_OPTIONS = {
+    "scene": "--scene", "sbr": "--sbr", "seed": "--seed", "faults": "--faults",
+    "galvo_port": "--galvo", "tagger_url": "--tagger", "sync_rate_hz": "--sync-rate-hz",
+    "fov_deg": "--fov-deg", "recording": "--replay", "file": "--file", "size": "--size",
+    "target": "--target", "mode": "--mode", "method": "--method", "time_unit_ps": "--time-unit-ps",
+    "pulse_rms_ps": "--pulse-rms-ps", "reflectors": "--reflectors",
 }
-"""The request's messages name fields in the CLI's words; the banner names the window's controls."""
-_OPTION = re.compile("|".join(re.escape(k) for k in sorted(CONTROL_NAMES, key=len, reverse=True)))
+"""Each control's declared option (``acq.params``): its unit, range, default, help (the tooltip)
+and source kinds. ``dwell_limit_ms`` holds ``--dwell-limit-ms`` (gated) or ``--dwell-ms`` (raster);
+``out_root`` is ``--runs-dir``."""
+DWELL_OPTIONS = {"gated": "--dwell-limit-ms", "raster": "--dwell-ms"}
+PATH_FIELDS = ("out_root", "recording", "file")
+"""The controls' paths: remembered absolute, and only those that worked."""
+
+
+def spec_fields(kind: str) -> tuple[str, ...]:
+    """The ``SourceSpec`` fields a source kind uses (the others are another kind's)."""
+    own = tuple(f for f, opt in SPEC_OPTIONS.items() if kind in PARAMS[opt].sources)
+    return own + (("dwell_limit_ms",) if kind in ("sim", "real") else ())
+
+
+def spec_param(field_name: str, kind: str, mode: str = "gated"):
+    """The declaration (as it applies to ``kind``) behind a ``SourceSpec`` field."""
+    opt = DWELL_OPTIONS.get(mode, "--dwell-limit-ms") if field_name == "dwell_limit_ms" \
+        else SPEC_OPTIONS[field_name]
+    return PARAMS[opt].for_source(kind)
+
+
+def _control_names() -> dict[str, str]:
+    names = {}
+    for p in PARAMS.values():
+        if p.label:
+            name = p.label if p.label[:2].isupper() else p.label[0].lower() + p.label[1:]
+            names[p.option] = name + (f" ({p.unit})" if p.unit in ("ps", "ms") else "")
+    names.update({"--dwell-limit-ms": "dwell limit (ms)", "--dwell-ms": "dwell (ms)",
+                  "--galvo": "galvo port"})
+    return names
+
+
+CONTROL_NAMES = _control_names()
+"""The request's messages name fields in the CLI's words; the banner names the window's controls
+(each declaration's ``label``)."""
+_OPTION = re.compile("|".join(re.escape(k) + r"(?![\w-])"
+                              for k in sorted(CONTROL_NAMES, key=len, reverse=True)))
 
 
 def in_window_words(message: str) -> str:
@@ -45,53 +76,42 @@ def in_window_words(message: str) -> str:
     return _OPTION.sub(lambda m: CONTROL_NAMES[m.group(0)], message)
 
 
-def _ms(v: float) -> float | None:
-    return v * 1e-3 if v else None      # 0 in a control: the request's default
-
-
-def _ps(v: float) -> float | None:
-    return v * 1e-12 if v else None
-
-
 @dataclass
 class SourceSpec:
-    """Everything the control panel holds (also what QSettings remembers), in the controls' units.
-    Zero in a numeric field means "the default" (the request's, or as recorded / from the file).
+    """Everything the control panel holds (also what QSettings remembers, per source kind), in
+    the controls' units (each field's declared option: ``SPEC_OPTIONS``). Zero (or "") in a field
+    whose option has no default for the kind means that kind's default: as recorded (replay),
+    from the file (file), the request's (dwell, sync rate: required).
 
     size:           (H, W) pixels, rows first.
     dwell_limit_ms: gated dwell limit / raster dwell.
-    sync_rate_hz:   real devices: the laser repetition rate.
-    fov_deg:        real devices: square field of view in optical degrees, centred.
     target:         detections per pixel; replay: 0 keeps the recorded target; file: detections
                     kept per pixel, 0 all.
-    file:           a PTU/HT3/PT3 or .mat file to reconstruct (kind "file").
-    time_unit_ps:   file: size of one raw time unit (required for .mat, 0: the PTU header's).
-    pulse_rms_ps:   file: Gaussian pulse RMS (0: as recorded, else estimated from the data).
-    reflectors:     surfaces per pixel to look for (K); 0: one, and a replay keeps the recorded
-                    number.
+    reflectors:     surfaces per pixel to look for (K or "auto"); 0: the kind's default (one; a
+                    replay keeps the recorded number).
     out_root:       a folder under which each run gets its own directory (recording, maps,
                     run.json).
     """
 
     kind: str = "sim"
-    scene: str = SimBench.scene
+    scene: str = PARAMS["--scene"].default
     size: tuple[int, int] = DEFAULT_SIZE
     target: int = DEFAULT_TARGET
-    mode: str = "gated"
+    mode: str = PARAMS["--mode"].default
     method: str = DEFAULT_METHOD
     dwell_limit_ms: float = 0.0
-    sbr: float = SimBench.sbr
-    seed: int = SimBench.seed
+    sbr: float = PARAMS["--sbr"].default
+    seed: int = PARAMS["--seed"].default
     faults: str = ""
     galvo_port: str = ""
     tagger_url: str = ""
     sync_rate_hz: float = 0.0
-    fov_deg: float = Devices.fov_deg
+    fov_deg: float = PARAMS["--fov-deg"].default
     recording: str = ""
     file: str = ""
     time_unit_ps: float = 0.0
     pulse_rms_ps: float = 0.0
-    reflectors: int = 0
+    reflectors: int | str = 0
     out_root: str = ""
 
     def to_dict(self) -> dict:
@@ -106,36 +126,30 @@ class SourceSpec:
             known["size"] = tuple(int(v) for v in known["size"])
         return cls(**known)
 
+    def values(self) -> dict:
+        """The option values (``acq.params`` dest -> value in the option's unit) of this kind's
+        fields; a field holding its "default" zero is left out (the request's default applies)."""
+        out = {}
+        for name in spec_fields(self.kind):
+            p = spec_param(name, self.kind, self.mode)
+            v = getattr(self, name)
+            if v is None or (v in (0, "") and (p.default is None or p.kind == "surfaces")):
+                continue
+            out[p.dest] = tuple(v) if name == "size" else v
+        return out
+
     def to_request(self) -> ScanRequest | ReplayRequest | FileReconRequest:
-        """The request these settings stand for, validated by the request itself: a
-        ``RequestError`` names the field and value (in the CLI's words; ``in_window_words``)."""
+        """The request these settings stand for (``acq.params.build_request``, as the CLI makes
+        it), validated by the request itself: a ``RequestError`` names the field and value (in
+        the CLI's words; ``in_window_words``)."""
         if self.kind not in SOURCES:
             raise RequestError(f"source must be one of {', '.join(SOURCES)}, got {self.kind!r}")
-        if self.kind == "replay":
-            return ReplayRequest(recording=self.recording, target=self.target or None,
-                                 method=self.method, reflectors=self.reflectors or None)
-        if self.kind == "file":
-            if Path(self.file).suffix.lower() == ".mat" and not self.time_unit_ps:
-                # the reader would say so only on its worker thread; refused before the start
-                raise RequestError(f"{Path(self.file).name}: a .mat file does not record its time "
-                                   f"unit; set the time unit (8 ps for first-photon-imaging "
-                                   f"files, 1 ps for times in ps)")
-            return FileReconRequest(input=self.file, method=self.method,
-                                    time_unit_s=_ps(self.time_unit_ps),
-                                    pulse_rms_s=_ps(self.pulse_rms_ps),
-                                    max_photons=self.target or None,
-                                    reflectors=int(self.reflectors or 1))
-        if self.kind == "sim":
-            instruments = SimBench(scene=self.scene, sbr=self.sbr, seed=self.seed,
-                                   faults=self.faults)
-        else:
-            instruments = Devices(galvo=self.galvo_port, tagger=self.tagger_url,
-                                  sync_rate_hz=self.sync_rate_hz, fov_deg=self.fov_deg)
-        gated = self.mode == "gated"
-        return ScanRequest(instruments=instruments, size=tuple(self.size), target=self.target,
-                           mode=self.mode, method=self.method, reflectors=int(self.reflectors or 1),
-                           dwell_limit_s=_ms(self.dwell_limit_ms) if gated else None,
-                           dwell_s=None if gated else _ms(self.dwell_limit_ms))
+        if self.kind == "file" and Path(self.file).suffix.lower() == ".mat" and not self.time_unit_ps:
+            # the reader would say so only on its worker thread; refused before the start
+            raise RequestError(f"{Path(self.file).name}: a .mat file does not record its time "
+                               f"unit; set the time unit (8 ps for first-photon-imaging "
+                               f"files, 1 ps for times in ps)")
+        return build_request(self.kind, self.values())
 
     @classmethod
     def from_request(cls, request, base: "SourceSpec | None" = None) -> "SourceSpec":
@@ -143,43 +157,129 @@ class SourceSpec:
         request can hold more than the controls (window, bins, pattern): the run uses the request
         itself; the controls show what they can."""
         d = (base or cls()).to_dict()
-        if isinstance(request, ReplayRequest):
-            d.update(kind="replay", recording=request.recording, target=request.target or 0,
-                     reflectors=request.reflectors or 0)
-            if request.method is not None:
-                d["method"] = request.method
-        elif isinstance(request, FileReconRequest):
-            d.update(kind="file", file=request.input, method=request.method,
-                     target=request.max_photons or 0,
-                     time_unit_ps=(request.time_unit_s or 0.0) * 1e12,
-                     pulse_rms_ps=(request.pulse_rms_s or 0.0) * 1e12,
-                     reflectors=_surfaces_control(request.reflectors))
-        elif isinstance(request, ScanRequest):
-            src = request.instruments
-            d.update(size=list(request.size), target=request.target, mode=request.mode,
-                     method=request.method, reflectors=_surfaces_control(request.reflectors),
-                     dwell_limit_ms=(request.dwell_limit_s or request.dwell_s or 0.0) * 1e3)
-            if isinstance(src, SimBench):
-                d.update(kind="sim", scene=src.scene, sbr=src.sbr, seed=src.seed, faults=src.faults)
-            else:
-                d.update(kind="real", galvo_port=src.galvo, tagger_url=src.tagger,
-                         sync_rate_hz=src.sync_rate_hz, fov_deg=src.fov_deg)
-        else:
-            raise RequestError(f"the window runs scan, replay and file requests, got "
-                               f"{type(request).__name__}")
+        kind = source_kind(request)
+        d["kind"] = kind
+        inst = getattr(request, "instruments", None)
+        for name in spec_fields(kind):
+            if name == "dwell_limit_ms":
+                v = request.dwell_limit_s or request.dwell_s
+                d[name] = (v or 0.0) * 1e3
+                continue
+            p = spec_param(name, kind)
+            holder = inst if inst is not None and hasattr(inst, p.field) else request
+            v = p.from_si(getattr(holder, p.field))
+            if v is None or (p.kind == "surfaces" and v == p.default):
+                v = "" if p.kind in ("str", "path") else 0
+            d[name] = list(v) if name == "size" else v
         return cls.from_dict(d)
 
 
-def _surfaces_control(reflectors) -> int:
-    """A request's surfaces as ``SourceSpec.reflectors``: 0 for the default of one."""
-    return 0 if reflectors == 1 else reflectors
+def source_kind(request) -> str:
+    """The source kind ("sim", "real", "replay", "file") of a request."""
+    if isinstance(request, ReplayRequest):
+        return "replay"
+    if isinstance(request, FileReconRequest):
+        return "file"
+    if isinstance(request, ScanRequest):
+        return "sim" if isinstance(request.instruments, SimBench) else "real"
+    raise RequestError(f"the window runs scan, replay and file requests, got "
+                       f"{type(request).__name__}")
+
+
+def clean_values(kind: str, stored: dict) -> tuple[dict, list[str]]:
+    """Stored control values of one source kind checked against the declarations: each that no
+    longer validates (a target of 0 for a scan, an estimator that is gone, a size past the
+    controller's limit) is dropped, so its default applies, with one line saying so. Unknown keys
+    (another kind's, a removed control's) are dropped silently."""
+    kept, notes = {}, []
+    mode = stored.get("mode", PARAMS["--mode"].default)
+    if mode not in MODES:
+        mode = PARAMS["--mode"].default
+    for name in spec_fields(kind):
+        if name not in stored:
+            continue
+        v = stored[name]
+        p = spec_param(name, kind, mode)
+        if name == "size" and isinstance(v, list):
+            v = tuple(v)
+        try:
+            if not (v in (0, "") and (p.default is None or p.kind == "surfaces")):
+                p.check(v)
+        except (RequestError, TypeError, ValueError) as exc:
+            notes.append(f"stored {kind} setting {in_window_words(p.option)} {v!r} ignored "
+                         f"({in_window_words(str(exc))}); using the default")
+            continue
+        kept[name] = v
+    return kept, notes
+
+
+@dataclass
+class Remembered:
+    """The window's stored settings: each source kind's control values (checked against the
+    declarations when loaded), the kind shown last, the runs folder, and one note per stored
+    value that no longer validated (the window's status bar shows them)."""
+
+    kind: str = "sim"
+    per_kind: dict = field(default_factory=dict)
+    out_root: str = ""
+    notes: dict = field(default_factory=dict)
+
+    def spec(self, kind: str | None = None) -> SourceSpec:
+        """The controls of ``kind`` (default: the last one shown): its stored values on the
+        declared defaults."""
+        kind = kind or self.kind
+        return SourceSpec(kind=kind, out_root=self.out_root, **self.per_kind.get(kind, {}))
+
+    @classmethod
+    def load(cls, raw: str | None, legacy: str | None = None) -> "Remembered":
+        """From the JSON the window stored (``SETTINGS_KEY``); ``legacy``: the single source dict
+        of earlier versions (key "source"), whose values count for its own kind only."""
+        import json
+
+        try:
+            d = json.loads(raw) if raw else None
+        except ValueError:
+            d = None
+        if not isinstance(d, dict):
+            d = {}
+            try:
+                old = json.loads(legacy) if legacy else None
+            except ValueError:
+                old = None
+            if isinstance(old, dict) and old.get("kind") in SOURCES:
+                d = {"kind": old["kind"], "out_root": old.get("out_root", ""), old["kind"]: old}
+        rem = cls(kind=d.get("kind") if d.get("kind") in SOURCES else "sim",
+                  out_root=d.get("out_root") if isinstance(d.get("out_root"), str) else "")
+        for kind in SOURCES:
+            if isinstance(d.get(kind), dict):
+                rem.per_kind[kind], rem.notes[kind] = clean_values(kind, d[kind])
+        return rem
+
+    def store(self, spec: SourceSpec) -> str:
+        """The JSON to keep after ``spec`` ran: its kind's remembered values replaced (a
+        declaration with ``remembered=False``, such as faults, is never kept)."""
+        import json
+
+        values = {}
+        for name in spec_fields(spec.kind):
+            p = spec_param(name, spec.kind, spec.mode)
+            if p.remembered:
+                v = getattr(spec, name)
+                values[name] = list(v) if name == "size" else v
+        self.per_kind[spec.kind] = values
+        self.kind = spec.kind
+        if spec.out_root:
+            self.out_root = spec.out_root
+        return json.dumps({"kind": self.kind, "out_root": self.out_root, **self.per_kind})
+
+
+SETTINGS_KEY = "sources"
+"""The QSettings key of the window's per-kind settings (``Remembered``)."""
 
 
 def run_kind(request) -> str:
     """The run folder's suffix for a request: sim, real or replay."""
-    if isinstance(request, ReplayRequest):
-        return "replay"
-    return "sim" if isinstance(request.instruments, SimBench) else "real"
+    return source_kind(request)
 
 
 @dataclass
@@ -422,5 +522,6 @@ class FileJob:
         return self._done.wait(timeout_s)
 
 
-__all__ = ["SourceSpec", "Run", "open_run", "run_kind", "in_window_words", "SOURCES", "MODES",
-           "METHODS", "PixelInfo", "SessionView", "ResultView", "FileJob"]
+__all__ = ["SourceSpec", "Remembered", "SETTINGS_KEY", "Run", "open_run", "run_kind", "source_kind", "clean_values", "spec_fields",
+           "in_window_words", "SOURCES", "MODES",
+           "PixelInfo", "SessionView", "ResultView", "FileJob"]

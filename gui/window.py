@@ -26,7 +26,8 @@ from PySide6 import QtCore, QtGui, QtWidgets
 from spdepth.acq.api import new_run_dir
 from spdepth.acq.errors import RequestError
 from spdepth.acq.evaluate import evaluate_depth
-from spdepth.acq.requests import DEFAULT_TARGET, MAX_TARGET, FileReconRequest, ReplayRequest
+from spdepth.acq.params import MAX_PIXELS_PER_AXIS, MAX_SURFACES, PARAMS, expand
+from spdepth.acq.requests import DEFAULT_METHOD, MAX_TARGET, FileReconRequest, ReplayRequest
 from spdepth.gui.health import HealthTracker
 from spdepth.acq.flags import AcqFlag
 from spdepth.acq.mapdefs import resolve
@@ -35,8 +36,9 @@ from spdepth.gui.maps import C_M_PER_S, PANEL_DEFS, MapPanel, link_panels, snaps
 from spdepth.gui.view3d import PointCloudView
 from spdepth.gui.pixel_model import pixel_histogram
 from spdepth.recon import estimators
-from spdepth.gui.sources import (METHODS, MODES, FileJob, ResultView, SessionView, SourceSpec,
-                                 in_window_words, open_run, run_kind)
+from spdepth.gui.sources import (SETTINGS_KEY, SPEC_OPTIONS, FileJob, Remembered, ResultView,
+                                 SessionView, SourceSpec, in_window_words, open_run, run_kind,
+                                 spec_fields, spec_param)
 
 log = logging.getLogger(__name__)
 
@@ -49,8 +51,6 @@ CPU_BUDGET = 0.05
 """Share of one core the map repaints may use during a scan."""
 FIRST_PAINT_COST_S = 0.03
 """Assumed cost of a map repaint until one is measured."""
-PATH_FIELDS = ("out_root", "recording", "file")
-"""The controls' paths: remembered absolute, and only those that worked."""
 VIEW3D_STATUS_PERIOD_S = 1.0
 """With the 3D tab shown during a scan, the status bar and plots update at most this often."""
 VIEW3D_PERIOD_S = 2.0
@@ -59,7 +59,6 @@ HISTORY_PERIOD_S = 0.25
 """Accuracy-plot points are taken at most this often."""
 CLOSE_WAIT_S = 15.0
 """Closing during a scan: longest wait for the aborted session to write its files."""
-SCENES = ("bust", "steps", "tilted-plane", "two-layer", "daylight")
 TERMINAL = ("done", "aborted", "failed")
 DEFAULT_OUT_ROOT = "~/spdepth-runs"
 """Shown as typed; ``acq.api.new_run_dir`` expands the ``~``."""
@@ -110,12 +109,31 @@ def _path_row(edit: QtWidgets.QLineEdit, browse_slot) -> QtWidgets.QHBoxLayout:
 
 
 class ControlPanel(QtWidgets.QWidget):
-    """Source, scan and estimator settings, and the run buttons."""
+    """Source, scan and estimator settings, and the run buttons. Each setting's control is built
+    from its declaration (``acq.params`` through ``gui.sources.SPEC_OPTIONS``): its kind of widget,
+    range, unit, "default" text and tooltip (the option's --help), and the source kinds it is
+    shown or enabled for. The values are kept per source kind: switching the source shows that
+    kind's own (what was last set for it), never another kind's."""
+
+    SOURCE_ROWS = ("scene", "sbr", "seed", "faults", "galvo_port", "tagger_url", "sync_rate_hz",
+                   "fov_deg", "recording", "file", "time_unit_ps", "pulse_rms_ps")
+    """The source box: each row shown only for the kinds its option belongs to."""
+    SCAN_ROWS = ("size", "mode", "target", "dwell_limit_ms", "method", "reflectors")
+    """The scan box: each enabled only for the kinds its option belongs to."""
+    ATTRS = {"galvo_port": "galvo", "tagger_url": "tagger", "sync_rate_hz": "sync_mhz",
+             "fov_deg": "fov", "time_unit_ps": "time_unit", "pulse_rms_ps": "pulse_rms",
+             "dwell_limit_ms": "dwell"}
+    """The control's attribute where it is not the spec field's name."""
+    SYNC_MHZ = 1e6
+    """The sync rate is shown in MHz (declared in Hz)."""
 
     def __init__(self, parent=None):
         super().__init__(parent)
         lay = QtWidgets.QVBoxLayout(self)
         lay.setContentsMargins(6, 6, 6, 6)
+        self.widgets: dict[str, QtWidgets.QWidget] = {}
+        self._kind = "sim"
+        self._per_kind: dict[str, dict] = {}
 
         src = QtWidgets.QGroupBox("Source")
         f = QtWidgets.QFormLayout(src)
@@ -125,89 +143,25 @@ class ControlPanel(QtWidgets.QWidget):
         self.kind.addItem("Replay a recording", "replay")
         self.kind.addItem("Reconstruct a PTU/.mat file", "file")
         f.addRow("Source", self.kind)
-        self.scene = QtWidgets.QComboBox()
-        self.scene.setEditable(True)
-        self.scene.addItems(SCENES)
-        self.scene.setToolTip("built-in scene, or file:DEPTH.npy|png|tiff")
-        self.sbr = QtWidgets.QDoubleSpinBox(decimals=2, minimum=0.01, maximum=1e4, value=10.0)
-        self.seed = QtWidgets.QSpinBox(minimum=0, maximum=2**31 - 1)
-        self.faults = QtWidgets.QLineEdit()
-        self.faults.setPlaceholderText("e.g. device-vanish@40%")
-        self.faults.setToolTip("inject simulated faults, KIND@WHEN items: serial-unplug, "
-                               "garbled-reply, missing-reply, slow-reply, servo-fault (galvo); "
-                               "usb-timeout, partial-read, fifo-overflow, device-vanish (tagger)")
-        self.galvo = QtWidgets.QLineEdit()
-        self.galvo.setPlaceholderText("/dev/ttyACM0")
-        self.tagger = QtWidgets.QLineEdit()
-        self.tagger.setPlaceholderText("usb:VID:PID")
-        self.sync_mhz = QtWidgets.QDoubleSpinBox(decimals=3, minimum=0.0, maximum=1e4, suffix=" MHz")
-        self.fov = QtWidgets.QDoubleSpinBox(decimals=2, minimum=0.01, maximum=90.0, suffix="°")
-        self.fov.setToolTip("square field of view in optical degrees, centred on the mirror's zero")
-        self.recording = QtWidgets.QLineEdit()
-        self.recording.setPlaceholderText("run folder or recording.ptu")
-        rec_row = _path_row(self.recording, self._browse_recording)
-        self.file = QtWidgets.QLineEdit()
-        self.file.setPlaceholderText("scan.ptu or data.mat")
-        file_row = _path_row(self.file, self._browse_file)
-        self.time_unit = QtWidgets.QDoubleSpinBox(decimals=3, minimum=0.0, maximum=1e6, suffix=" ps")
-        self.time_unit.setSpecialValueText("from the file")
-        self.time_unit.setToolTip("size of one raw time unit: PTU files carry theirs; .mat files "
-                                  "need it (8 ps for first-photon-imaging files, 1 ps for ps)")
-        self.pulse_rms = QtWidgets.QDoubleSpinBox(decimals=1, minimum=0.0, maximum=1e6, suffix=" ps")
-        self.pulse_rms.setSpecialValueText("estimate")
-        self.pulse_rms.setToolTip("Gaussian pulse RMS width (the seed paper: 360 ps); "
-                                  "'estimate' measures the response from the data")
         self._rows = {}
-        for key, label, w in (("sim", "Scene", self.scene), ("sim", "SBR", self.sbr),
-                              ("sim", "Seed", self.seed), ("sim", "Faults", self.faults),
-                              ("real", "Galvo port", self.galvo), ("real", "Tagger", self.tagger),
-                              ("real", "Sync rate", self.sync_mhz),
-                              ("real", "Field of view", self.fov),
-                              ("replay", "Recording", rec_row), ("file", "File", file_row),
-                              ("file", "Time unit", self.time_unit),
-                              ("file", "Pulse RMS", self.pulse_rms)):
-            f.addRow(label, w)
-            self._rows.setdefault(key, []).append(w)
+        for name in self.SOURCE_ROWS:
+            w, row = self._control(name)
+            f.addRow(PARAMS[SPEC_OPTIONS[name]].label, row)
+            self._rows[name] = row
         lay.addWidget(src)
         self._src_form = f
 
         scan = QtWidgets.QGroupBox("Scan")
         g = QtWidgets.QFormLayout(scan)
-        size_row = QtWidgets.QHBoxLayout()
-        self.width_px = QtWidgets.QSpinBox(minimum=1, maximum=4096)
-        self.height_px = QtWidgets.QSpinBox(minimum=1, maximum=4096)
-        size_row.addWidget(self.width_px)
-        size_row.addWidget(QtWidgets.QLabel("×"))
-        size_row.addWidget(self.height_px)
-        g.addRow("Size (W×H)", size_row)
-        self.mode = QtWidgets.QComboBox()
-        self.mode.addItems(MODES)
-        self.mode.setToolTip("gated: hold each pixel until the target or the dwell limit; "
-                             "raster: fixed dwell, frames repeated")
-        g.addRow("Mode", self.mode)
-        self.target = QtWidgets.QSpinBox(minimum=0, maximum=MAX_TARGET)
-        self.target.setSpecialValueText("as recorded")
-        self.target.setToolTip("in-window detections per pixel")
-        g.addRow("Target", self.target)
-        self.dwell = QtWidgets.QDoubleSpinBox(decimals=3, minimum=0.0, maximum=1e5, suffix=" ms")
-        self.dwell.setSpecialValueText("default")
-        self.dwell.setToolTip("gated: dwell limit per pixel; raster: dwell per pixel and frame")
-        g.addRow("Dwell limit", self.dwell)
-        self.method = QtWidgets.QComboBox()
-        self.method.addItems(METHODS)
-        for i, name in enumerate(METHODS):
-            self.method.setItemData(i, estimators.get(name).summary, QtCore.Qt.ItemDataRole.ToolTipRole)
-        self.method.setToolTip(estimators.summaries().replace("; ", "\n"))
-        g.addRow("Estimator", self.method)
-        self.reflectors = QtWidgets.QSpinBox(minimum=0, maximum=8, value=1)
-        self.reflectors.setSpecialValueText("as recorded")
-        self.reflectors.setToolTip("surfaces per pixel to look for (e.g. 2 through a net or "
-                                   "glass); the maps then show one surface at a time")
-        g.addRow("Surfaces", self.reflectors)
+        for name in self.SCAN_ROWS:
+            w, row = self._control(name)
+            label = {"size": "Size (W×H)", "dwell_limit_ms": "Dwell limit"}.get(name) or \
+                PARAMS[SPEC_OPTIONS[name]].label
+            g.addRow(label, row)
         self.out_root = QtWidgets.QLineEdit(DEFAULT_OUT_ROOT)
-        self.out_root.setToolTip("each run gets its own folder here (recording, maps, run.json)")
+        self.out_root.setToolTip(expand(PARAMS["--runs-dir"].help))
         out_row = _path_row(self.out_root, self._browse_out)
-        g.addRow("Runs folder", out_row)
+        g.addRow(PARAMS["--runs-dir"].label, out_row)
         lay.addWidget(scan)
         self._groups = (src, scan)
 
@@ -243,6 +197,110 @@ class ControlPanel(QtWidgets.QWidget):
         self.kind.currentIndexChanged.connect(self._kind_changed)
         self.set_spec(SourceSpec())          # the library's defaults until settings are restored
 
+    # ---- controls from the declarations -----------------------------------------------------
+    def _control(self, name: str):
+        """The widget of a spec field (and the row holding it, with a browse button for paths),
+        made from its declaration."""
+        if name == "size":
+            side = PARAMS["--size"]
+            self.width_px = QtWidgets.QSpinBox(minimum=1, maximum=MAX_PIXELS_PER_AXIS)
+            self.height_px = QtWidgets.QSpinBox(minimum=1, maximum=MAX_PIXELS_PER_AXIS)
+            row = QtWidgets.QHBoxLayout()
+            row.addWidget(self.width_px)
+            row.addWidget(QtWidgets.QLabel("×"))
+            row.addWidget(self.height_px)
+            for w in (self.width_px, self.height_px):
+                w.setToolTip(expand(side.help))
+            self.widgets[name] = self.width_px
+            return self.width_px, row
+        p = PARAMS[SPEC_OPTIONS.get(name, "--dwell-limit-ms")]
+        if p.kind == "surfaces":
+            w = QtWidgets.QComboBox()
+            self._fill_surfaces(w, as_recorded=True)
+        elif p.choices is not None:
+            w = QtWidgets.QComboBox()
+            w.setEditable(p.free)
+            w.addItems(list(p.choice_list()))
+            if name == "method":          # each estimator's own line from the registry
+                for i, method in enumerate(p.choice_list()):
+                    w.setItemData(i, estimators.get(method).summary, QtCore.Qt.ItemDataRole.ToolTipRole)
+        elif p.kind in ("float", "int"):
+            w = QtWidgets.QSpinBox() if p.kind == "int" else QtWidgets.QDoubleSpinBox()
+            scale = self.SYNC_MHZ if name == "sync_rate_hz" else 1.0
+            zero = p.default is None or bool(p.none_label) or name in ("target",)
+            low = 0 if zero or p.low is None else p.low / scale
+            high = (p.high if p.high is not None else (MAX_TARGET if name == "target" else 1e6 if
+                    p.kind == "float" else 2 ** 31 - 1)) / (scale if p.high is not None else 1)
+            if p.kind == "float":
+                w.setDecimals(3 if p.unit in ("ms", "ps", "Hz") else 2)
+                if p.low_open and not zero:
+                    low = 10 ** -w.decimals()
+            w.setRange(low, high)
+            if zero and p.none_label:
+                w.setSpecialValueText(p.none_label)
+            unit = "MHz" if name == "sync_rate_hz" else {"deg": "°"}.get(p.unit, p.unit)
+            if unit:
+                w.setSuffix(unit if unit == "°" else f" {unit}")
+        else:
+            w = QtWidgets.QLineEdit()
+            if p.example:
+                w.setPlaceholderText(p.example)
+        tip = expand(p.help) if name != "method" else estimators.summaries().replace("; ", "\n")
+        if name == "dwell_limit_ms":
+            tip = "gated: dwell limit per pixel; raster: dwell per pixel and frame"
+        w.setToolTip(tip)
+        setattr(self, self.ATTRS.get(name, name), w)
+        self.widgets[name] = w
+        if p.kind == "path":
+            browse = {"recording": self._browse_recording, "file": self._browse_file}[name]
+            return w, _path_row(w, browse)
+        return w, w
+
+    @staticmethod
+    def _fill_surfaces(w: QtWidgets.QComboBox, as_recorded: bool) -> None:
+        current = w.currentData()
+        w.blockSignals(True)
+        w.clear()
+        if as_recorded:
+            w.addItem("as recorded", 0)
+        for k in range(1, MAX_SURFACES + 1):
+            w.addItem(str(k), k)
+        w.addItem("auto", "auto")
+        i = w.findData(current)
+        w.setCurrentIndex(max(0, i if i >= 0 else w.findData(1)))
+        w.blockSignals(False)
+
+    def _value(self, name: str):
+        if name == "size":
+            return (self.height_px.value(), self.width_px.value())
+        w = self.widgets[name]
+        if isinstance(w, QtWidgets.QComboBox):
+            data = w.currentData()
+            return data if data is not None else w.currentText().strip()
+        if isinstance(w, QtWidgets.QLineEdit):
+            return w.text().strip()
+        v = w.value()
+        return v * self.SYNC_MHZ if name == "sync_rate_hz" else v
+
+    def _show_value(self, name: str, v) -> None:
+        if name == "size":
+            self.height_px.setValue(int(v[0]))
+            self.width_px.setValue(int(v[1]))
+            return
+        w = self.widgets[name]
+        if isinstance(w, QtWidgets.QComboBox):
+            i = w.findData(v) if w.findData(v) >= 0 else w.findText(str(v))
+            if i >= 0:
+                w.setCurrentIndex(i)
+            elif w.isEditable():
+                w.setCurrentText(str(v))
+        elif isinstance(w, QtWidgets.QLineEdit):
+            w.setText(str(v))
+        elif isinstance(w, QtWidgets.QSpinBox):
+            w.setValue(int(v))
+        else:
+            w.setValue(float(v) / (self.SYNC_MHZ if name == "sync_rate_hz" else 1.0))
+
     def set_surfaces(self, k: int) -> None:
         """Offer surfaces 1..k in the picker (hidden for one)."""
         self.surface.blockSignals(True)
@@ -251,23 +309,51 @@ class ControlPanel(QtWidgets.QWidget):
         self.surface.blockSignals(False)
         self.surface_row.setVisible(k > 1)
 
+    def _kind_default(self, name: str, kind: str):
+        """A control's value for ``kind`` before anything was set for it: the declared default,
+        0 (or "") where the kind's default is "as recorded", "from the file" or "estimate"."""
+        if name == "dwell_limit_ms":
+            return 0.0
+        p = spec_param(name, kind)
+        if name == "method" and p.default is None:
+            return DEFAULT_METHOD        # the estimator picker has no "as recorded"
+        if p.default is None:
+            return "" if p.kind in ("str", "path") else 0
+        return p.default
+
+    def set_remembered(self, per_kind: dict) -> None:
+        """Each source kind's stored values (``gui.sources.Remembered.per_kind``), shown when the
+        user switches to that kind."""
+        self._per_kind = {k: dict(v) for k, v in per_kind.items()}
+
     def _kind_changed(self) -> None:
         kind = self.kind.currentData()
-        for key, widgets in self._rows.items():
-            for w in widgets:
-                self._src_form.setRowVisible(w, key == kind)
-        for w in (self.width_px, self.height_px, self.mode, self.dwell):
-            w.setEnabled(kind not in ("replay", "file"))
+        old = self._kind
+        if kind != old and not getattr(self, "_setting", False):
+            # the values of the kind left are kept for it; the new kind shows its own
+            self._per_kind[old] = {n: self._value(n) for n in spec_fields(old)}
+            mine = self._per_kind.get(kind, {})
+            self.target.setMinimum(0)              # the new kind's limits are set below
+            self._fill_surfaces(self.reflectors, as_recorded=True)
+            for name in spec_fields(kind):
+                self._show_value(name, mine.get(name, self._kind_default(name, kind)))
+        self._kind = kind
+        for name, row in self._rows.items():
+            self._src_form.setRowVisible(row, kind in PARAMS[SPEC_OPTIONS[name]].sources)
+        for name in self.SCAN_ROWS:
+            opt = SPEC_OPTIONS.get(name, "--dwell-limit-ms")
+            on = kind in PARAMS[opt].sources
+            for w in ((self.width_px, self.height_px) if name == "size" else (self.widgets[name],)):
+                w.setEnabled(on)
         self.out_root.setEnabled(kind != "file")      # a file's reconstruction writes nothing
-        # 0 means "as recorded" (replay) or "all" (file); a scan needs a count: a 0 left by a
-        # replay or file run becomes the library's default rather than a refused start
+        # 0 means "as recorded" (replay) or "all" (file); a scan needs a count: a 0 becomes the
+        # declared default rather than a refused start
         scan = kind in ("sim", "real")
         if scan and self.target.value() == 0:
-            self.target.setValue(DEFAULT_TARGET)
+            self.target.setValue(PARAMS["--target"].default)
         self.target.setMinimum(1 if scan else 0)
-        self.target.setSpecialValueText("all" if kind == "file" else "as recorded")
-        # 0 surfaces: a replay's "as recorded"; the others look for at least one
-        self.reflectors.setMinimum(0 if kind == "replay" else 1)
+        self.target.setSpecialValueText(spec_param("target", kind).none_label or "")
+        self._fill_surfaces(self.reflectors, as_recorded=kind == "replay")
 
     def _browse_recording(self) -> None:
         path, _ = QtWidgets.QFileDialog.getOpenFileName(self, "Recording to replay",
@@ -289,47 +375,31 @@ class ControlPanel(QtWidgets.QWidget):
             self.out_root.setText(path)
 
     def spec(self) -> SourceSpec:
-        return SourceSpec(
-            kind=self.kind.currentData(), scene=self.scene.currentText().strip(),
-            size=(self.height_px.value(), self.width_px.value()), target=self.target.value(),
-            mode=self.mode.currentText(), method=self.method.currentText(),
-            dwell_limit_ms=self.dwell.value(), sbr=self.sbr.value(), seed=self.seed.value(),
-            faults=self.faults.text().strip(), galvo_port=self.galvo.text().strip(),
-            tagger_url=self.tagger.text().strip(), sync_rate_hz=self.sync_mhz.value() * 1e6,
-            fov_deg=self.fov.value(),
-            recording=self.recording.text().strip(), file=self.file.text().strip(),
-            time_unit_ps=self.time_unit.value(), pulse_rms_ps=self.pulse_rms.value(),
-            reflectors=self.reflectors.value(), out_root=self.out_root.text().strip())
+        names = [f for f in SourceSpec.__dataclass_fields__ if f not in ("kind", "out_root")]
+        return SourceSpec(kind=self.kind.currentData(), out_root=self.out_root.text().strip(),
+                          **{n: self._value(n) for n in names})
 
     def set_spec(self, s: SourceSpec) -> None:
-        i = self.kind.findData(s.kind)
-        self.kind.setCurrentIndex(max(0, i))
-        self.scene.setCurrentText(s.scene)
-        self.height_px.setValue(int(s.size[0]))
-        self.width_px.setValue(int(s.size[1]))
-        self.target.setMinimum(0)              # 0 stays 0 until _kind_changed decides
-        self.target.setValue(int(s.target))
-        self.mode.setCurrentText(s.mode)
-        # settings shown, not a choice made: the window reconstructs again only on a user's change
-        self.method.blockSignals(True)
-        self.method.setCurrentText(s.method)
-        self.method.blockSignals(False)
-        self.dwell.setValue(float(s.dwell_limit_ms))
-        self.sbr.setValue(float(s.sbr))
-        self.seed.setValue(int(s.seed))
-        self.faults.setText(s.faults)
-        self.galvo.setText(s.galvo_port)
-        self.tagger.setText(s.tagger_url)
-        self.sync_mhz.setValue(float(s.sync_rate_hz) / 1e6)
-        self.fov.setValue(float(s.fov_deg))
-        self.recording.setText(s.recording)
-        self.file.setText(s.file)
-        self.time_unit.setValue(float(s.time_unit_ps))
-        self.pulse_rms.setValue(float(s.pulse_rms_ps))
-        self.reflectors.setMinimum(0)          # 0 ("as recorded") stays 0 until _kind_changed
-        self.reflectors.setValue(int(s.reflectors or 0))
-        if s.out_root:
-            self.out_root.setText(s.out_root)
+        self._setting = True
+        try:
+            i = self.kind.findData(s.kind)
+            self.kind.setCurrentIndex(max(0, i))
+            self._kind = self.kind.currentData()
+            self.target.setMinimum(0)              # 0 stays 0 until _kind_changed decides
+            self._fill_surfaces(self.reflectors, as_recorded=True)
+            # settings shown, not a choice made: the window reconstructs again only on a user's
+            # change
+            self.method.blockSignals(True)
+            for name in SourceSpec.__dataclass_fields__:
+                if name in ("kind", "out_root"):
+                    continue
+                v = getattr(s, name)
+                self._show_value(name, 0 if name == "reflectors" and v in (None, "") else v)
+            self.method.blockSignals(False)
+            if s.out_root:
+                self.out_root.setText(s.out_root)
+        finally:
+            self._setting = False
         self._kind_changed()
 
     def set_running(self, state: str | None) -> None:
@@ -695,21 +765,28 @@ class MainWindow(QtWidgets.QMainWindow):
 
     # ---- settings ------------------------------------------------------------------------------
     def _restore_settings(self) -> None:
-        raw = self.settings.value("source")
-        self._good_paths = {}
-        if raw:
-            try:
-                spec = SourceSpec.from_dict(json.loads(raw))
-                self.controls.set_spec(spec)
-                self._good_paths = {k: getattr(spec, k) for k in PATH_FIELDS if getattr(spec, k)}
-            except (ValueError, TypeError) as exc:
-                log.warning("ignoring stored settings: %s", exc)
+        """The controls as last run, per source kind (``gui.sources.Remembered``): each stored
+        value checked against its declaration; one that no longer validates gives way to its
+        default, with one line in the status bar."""
+        self.remembered = Remembered.load(self.settings.value(SETTINGS_KEY),
+                                          self.settings.value("source"))
+        self.controls.set_remembered(self.remembered.per_kind)
+        self.controls.set_spec(self.remembered.spec())
+        self.show_notes(self.remembered.notes.get(self.remembered.kind, []))
         geom = self.settings.value("geometry")
         if geom is not None:
             self.restore_fitting_geometry(geom)
         state = self.settings.value("splitter")
         if state is not None:
             self.splitter.restoreState(state)
+
+    def show_notes(self, notes: list[str]) -> None:
+        """Notes about the settings (stored values that no longer validated): one status-bar
+        line, and the log."""
+        for note in notes:
+            log.warning("%s", note)
+        if notes:
+            self.statusBar().showMessage("; ".join(notes), 15000)
 
     def restore_fitting_geometry(self, geom) -> bool:
         """Use a remembered window geometry only if it fits a screen here and holds the window's
@@ -727,19 +804,19 @@ class MainWindow(QtWidgets.QMainWindow):
         return False
 
     def save_settings(self, worked: bool = False) -> None:
-        """Remember the controls. Paths (runs folder, recording, file) are remembered absolute,
-        and only once they worked (``worked``: a run just started, or a file was read, with
-        them); otherwise the last ones that did are kept."""
-        d = self.controls.spec().to_dict()
-        for k in PATH_FIELDS:
-            if d[k]:
-                d[k] = str(Path(d[k]).expanduser().resolve())
-            if worked:
-                if d[k]:
-                    self._good_paths[k] = d[k]
-            else:
-                d[k] = self._good_paths.get(k, "")
-        self.settings.setValue("source", json.dumps(d))
+        """Remember the window (geometry, splitter) and, when ``worked`` (a run just started, or
+        a file was read, with the controls), the controls of that source kind: paths absolute.
+        Values typed but never run are not kept, so they cannot change a later run (a command
+        line that names a source starts from that kind's remembered values)."""
+        if worked:
+            spec = self.controls.spec()
+            paths = {k: str(Path(getattr(spec, k)).expanduser().resolve())
+                     for k in ("out_root", "recording", "file") if getattr(spec, k)}
+            import dataclasses
+
+            self.settings.setValue(SETTINGS_KEY, self.remembered.store(
+                dataclasses.replace(spec, **paths)))
+            self.controls.set_remembered(self.remembered.per_kind)
         # a headless run's screen is Qt's invented one (offscreen: 800x800): its geometry would
         # squeeze the window on a real screen, so it is not remembered
         if QtGui.QGuiApplication.platformName() not in ("offscreen", "minimal"):

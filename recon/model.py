@@ -441,6 +441,9 @@ class MethodNames(Sequence):
 METHODS = MethodNames()
 #: The estimators that fit each pixel on its own (``recon.estimators.get(name).pixelwise``).
 PIXELWISE_METHODS = MethodNames(pixelwise=True)
+#: Most surfaces per pixel any estimator fits (``reflectors`` K, ``max_reflectors``); acq.params
+#: declares the options with this limit (a test ties the two).
+MAX_REFLECTORS = 8
 
 
 @dataclass(frozen=True)
@@ -563,12 +566,14 @@ class ReconSettings:
             raise InputError(f"max_photons must be a positive integer, got {self.max_photons!r}")
         if self.reflectors != "auto":
             if isinstance(self.reflectors, str) or int(self.reflectors) != self.reflectors \
-                    or not 1 <= self.reflectors <= 8:
-                raise InputError(f"reflectors must be an integer from 1 to 8 or 'auto', got {self.reflectors!r}")
+                    or not 1 <= self.reflectors <= MAX_REFLECTORS:
+                raise InputError(f"reflectors must be an integer from 1 to {MAX_REFLECTORS} or 'auto', "
+                                 f"got {self.reflectors!r}")
             object.__setattr__(self, "reflectors", int(self.reflectors))
         if isinstance(self.max_reflectors, str) or int(self.max_reflectors) != self.max_reflectors \
-                or not 1 <= self.max_reflectors <= 8:
-            raise InputError(f"max_reflectors must be an integer from 1 to 8, got {self.max_reflectors!r}")
+                or not 1 <= self.max_reflectors <= MAX_REFLECTORS:
+            raise InputError(f"max_reflectors must be an integer from 1 to {MAX_REFLECTORS}, "
+                             f"got {self.max_reflectors!r}")
         object.__setattr__(self, "max_reflectors", int(self.max_reflectors))
         if not (isinstance(self.false_alarm, (int, float, np.floating)) and 0 < self.false_alarm < 1):
             raise InputError(f"false_alarm must be a probability in (0, 1), got {self.false_alarm!r}")
@@ -612,8 +617,8 @@ class ReconSettings:
         return cls(method=d.get("method", "uos"), binning=binning,
                    pulse_rms_s=None if irf is not None else d.get("pulse_rms_s"), irf=irf,
                    max_photons=d.get("max_photons"), reflectors=d.get("reflectors", 1),
-                   max_reflectors=int(d.get("max_reflectors", 3)),
-                   false_alarm=float(d.get("false_alarm", 1e-3)),
+                   max_reflectors=int(d.get("max_reflectors", cls.max_reflectors)),
+                   false_alarm=float(d.get("false_alarm", cls.false_alarm)),
                    delta=float(d.get("delta", SEED_PAPER.delta)),
                    max_iterations=int(d.get("max_iterations", SEED_PAPER.max_iterations)))
 

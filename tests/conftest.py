@@ -141,10 +141,10 @@ def real_time_sim(monkeypatch):
 
 
 def _simulate(out: Path, *args: str) -> Path:
-    """``spdepth simulate ARGS --out OUT`` (in this process)."""
+    """``spdepth simulate ARGS --ptu OUT`` (in this process)."""
     from spdepth.acq.cli import main
 
-    assert main(["simulate", *args, "--out", str(out)]) == 0
+    assert main(["simulate", *args, "--ptu", str(out)]) == 0
     return out
 
 

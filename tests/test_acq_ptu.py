@@ -177,7 +177,7 @@ def test_simulate_file_reads_in_tttrlib(tmp_path):
     _quiet()
     out = tmp_path / "sim.ptu"
     assert main(["simulate", "--scene", "steps", "--size", "12x8", "--ppp", "10", "--seed", "2",
-                 "--out", str(out)]) == 0
+                 "--ptu", str(out)]) == 0
     with ptufile.PtuFile(out) as ptu:
         counts = ptu.decode_image(dtime=-1).sum(axis=(0, 3, 4)).astype(np.int64)
         n_photons = ptu.number_photons

@@ -36,7 +36,7 @@ def face_crop(shared_data, tmp_path):
 def test_recon_crop_writes_maps_png_and_json(face_crop, tmp_path, capsys, method):
     out, png = tmp_path / "maps.npz", tmp_path / "maps.png"
     code = main(["recon", str(face_crop), "--method", method, *PAPER, "--max-photons", "15",
-                 "--out", str(out), "--png", str(png), "--json"])
+                 "--npz", str(out), "--png", str(png), "--json"])
     captured = capsys.readouterr()
     assert code == 0, captured.err
     summary = _last_json(captured.out)
@@ -123,7 +123,7 @@ def test_recon_subprocess(face_crop, tmp_path):
     out = tmp_path / "m.npz"
     proc = subprocess.run(
         [sys.executable, "-m", "spdepth.acq.cli", "recon", str(face_crop), *PAPER, "--max-photons", "15",
-         "--method", "uos", "--out", str(out), "--json"],
+         "--method", "uos", "--npz", str(out), "--json"],
         capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
     assert _last_json(proc.stdout)["pixels"] == 3000 and out.stat().st_size > 1000

@@ -80,7 +80,7 @@ def test_replay_reproduces_the_live_maps_and_reports_its_stream_rate(tmp_path, c
 def test_replay_takes_a_simulated_ptu(tmp_path, capsys):
     ptu = tmp_path / "sim.ptu"
     assert main(["simulate", "--scene", "steps", "--size", "16x8", "--ppp", "20",
-                 "--out", str(ptu)]) == 0
+                 "--ptu", str(ptu)]) == 0
     out = tmp_path / "rep"
     assert main(["replay", str(ptu), "--target", "5", "--pulse-rms-ps", "360", "--out", str(out),
                  "--json"]) == 0
@@ -145,7 +145,7 @@ def test_recon_of_a_recording_gives_the_sessions_maps(tmp_path, capsys):
     out = tmp_path / "maps.npz"
     assert main(["recon", str(live / "recording.ptu"), "--method", "lmf", "--pulse-rms-ps", "360",
                  "--window-ps", "0:32040", "--bin-ps", "40", "--max-photons", "8",
-                 "--out", str(out)]) == 0
+                 "--npz", str(out)]) == 0
     a, b = DepthMaps.load_npz(live / "maps.npz"), DepthMaps.load_npz(out)
     np.testing.assert_array_equal(a.photons, b.photons)
     np.testing.assert_array_equal(a.tof_s, b.tof_s)
@@ -219,9 +219,9 @@ def test_scan_on_a_missing_device_is_one_line_and_leaves_no_directory(tmp_path, 
 
 def test_ctrl_c_closes_the_window_aborts_its_scan_and_exits_130(tmp_path):
     runs = tmp_path / "runs"                   # the window's runs folder: one folder per run
-    env = {**os.environ, "QT_QPA_PLATFORM": "offscreen"}
+    env = {**os.environ, "QT_QPA_PLATFORM": "offscreen", "XDG_CONFIG_HOME": str(tmp_path / "cfg")}
     proc = subprocess.Popen([sys.executable, "-m", "spdepth.acq.cli", "gui", "--sim", "--size",
-                             "128x128", "--target", "15", "--out", str(runs)],
+                             "128x128", "--target", "15", "--runs-dir", str(runs)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline and proc.poll() is None:

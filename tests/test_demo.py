@@ -18,7 +18,7 @@ def _mae(out: str, method: str) -> float:
 
 def test_demo_scans_reconstructs_and_writes_png(tmp_path, capsys):
     png = tmp_path / "demo.png"
-    assert main(["demo", "--no-window", "--size", "24x20", "--method", "ml", "--out", str(png)]) == 0
+    assert main(["demo", "--no-window", "--size", "24x20", "--method", "ml", "--png", str(png)]) == 0
     out = capsys.readouterr().out
     assert "scanned bust 24x20 through the drivers" in out
     assert "live ml maps equal the batch reconstruction of the final store" in out
@@ -30,7 +30,7 @@ def test_demo_scans_reconstructs_and_writes_png(tmp_path, capsys):
 def test_demo_with_faults_reports_them_and_reacquires(tmp_path, capsys):
     png = tmp_path / "demo.png"
     code = main(["demo", "--no-window", "--size", "16x16", "--compare", DEFAULT_METHOD,
-                 "--faults", "serial-unplug@0.2s,fifo-overflow@50%", "--out", str(png)])
+                 "--faults", "serial-unplug@0.2s,fifo-overflow@50%", "--png", str(png)])
     assert code == 0
     out = capsys.readouterr().out
     assert "galvo reconnects: 1" in out
@@ -41,16 +41,39 @@ def test_demo_with_faults_reports_them_and_reacquires(tmp_path, capsys):
 
 
 def test_demo_refuses_bad_options(tmp_path, capsys):
-    assert main(["demo", "--no-window", "--faults", "bogus@1s", "--out", str(tmp_path / "x.png")]) == 2
+    png = str(tmp_path / "x.png")
+    assert main(["demo", "--no-window", "--faults", "bogus@1s", "--png", png]) == 2
     assert "unknown kind 'bogus'" in capsys.readouterr().err
-    # argparse-level: same one line, exit 2; the target has one name in every command
-    assert main(["demo", "--no-window", "--target", "0", "--out", str(tmp_path / "x.png")]) == 2
+    # argparse-level: same one line, exit 2; the target has one name and one rule in every command
+    assert main(["demo", "--no-window", "--target", "0", "--png", png]) == 2
     err = capsys.readouterr().err
-    assert "--target: must be at least 1" in err and err.count("\n") == 1
-    assert main(["demo", "--no-window", "--compare", "uos,magic", "--out", str(tmp_path / "x.png")]) == 2
+    assert "--target: must be a whole number >= 1, got 0" in err and err.count("\n") == 1
+    assert main(["demo", "--no-window", "--compare", "uos,magic", "--png", png]) == 2
     assert "--compare: unknown magic" in capsys.readouterr().err
-    assert main(["demo", "--no-window", "--out", "/nonexistent/x.png"]) == 2
+    assert main(["demo", "--no-window", "--png", "/nonexistent/x.png"]) == 2
     assert "folder /nonexistent does not exist" in capsys.readouterr().err
+    # --out is the run folder in every command; the old spellings say what to write now
+    assert main(["demo", "--no-window", "--out", png]) == 2
+    assert "the PNG sheet is --png FILE" in capsys.readouterr().err
+    assert main(["demo", "--no-window", "--record", str(tmp_path / "run")]) == 2
+    assert "--record is now --out DIR" in capsys.readouterr().err
+
+
+def test_demo_takes_every_option_of_the_scan_it_runs(tmp_path, capsys):
+    """The demo's scan is spdepth scan --sim's: surfaces, pulse, a vendor tagger's driver and
+    --json included (the README says so), and --out keeps the run folder."""
+    import json
+
+    run = tmp_path / "run"
+    assert main(["demo", "--no-window", "--size", "12x10", "--target", "8", "--reflectors", "2",
+                 "--pulse-rms-ps", "360", "--tagger", "picoquant:mh150", "--compare", "ml",
+                 "--json", "--out", str(run), "--png", str(tmp_path / "d.png")]) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["state"] == "done" and summary["pixels"] == 120
+    assert summary["out"] == str(run) and "ml" in summary["compare"]
+    saved = json.loads((run / "run.json").read_text())["info"]["request"]
+    assert saved["reflectors"] == 2 and saved["pulse_rms_s"] == pytest.approx(360e-12)
+    assert saved["instruments"]["tagger"] == "picoquant:mh150"
 
 
 def test_without_pixels_empties_exactly_those_pixels():

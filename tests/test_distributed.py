@@ -38,7 +38,7 @@ def _same(a: DepthMaps, b: DepthMaps):
 def _single(path, tmp, method="uos", reflectors=1):
     out = tmp / f"single-{os.path.basename(path)}-{method}-{reflectors}.npz"
     assert main(["recon", path, "--method", method, *MODEL, "--reflectors", str(reflectors),
-                 "--out", str(out)]) == 0
+                 "--npz", str(out)]) == 0
     return DepthMaps.load_npz(out)
 
 
@@ -100,7 +100,7 @@ def test_many_files_one_task_each_equal_the_single_runs(client, simulated_ptus, 
     assert [s["input"] for s in summaries] == paths
     assert all(s["notes"] == [] and "times_s" not in str(s["settings"]) for s in summaries)
     # the command without --dask runs the same per-file path in this process
-    assert main(["recon", *paths, "--method", "uos", *MODEL, "--out", str(tmp_path / "here")]) == 0
+    assert main(["recon", *paths, "--method", "uos", *MODEL, "--npz", str(tmp_path / "here")]) == 0
     for p in paths:
         name = os.path.basename(p).replace(".ptu", ".npz")
         single = _single(p, d)
@@ -138,7 +138,7 @@ def test_a_dask_run_writes_what_the_in_process_run_writes(simulated_ptus, tmp_pa
         d = tmp_path / name
         d.mkdir()
         assert main(["recon", paths[0], *MODEL, "--fov-deg", "20", "--range-offset-m", "1.5",
-                     "--out", str(d / "maps.npz"), "--png", str(d / "maps.png"),
+                     "--npz", str(d / "maps.npz"), "--png", str(d / "maps.png"),
                      "--save-irf", str(d / "irf.csv"), "--json", *dask]) == 0
         summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
         runs[name] = (d, summary)

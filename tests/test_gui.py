@@ -373,33 +373,96 @@ def test_a_run_folder_is_locked_while_its_session_runs(qtbot, win, tmp_path):
     OutputDir(out, overwrite=True).close()
 
 
-def test_settings_are_remembered(qtbot, settings, tmp_path):
-    w = MainWindow(settings=settings)
-    qtbot.addWidget(w)
-    spec = SourceSpec(kind="replay", scene="steps", size=(24, 40), target=7, mode="raster",
-                      method="ml", dwell_limit_ms=2.5, sbr=3.0, seed=9, fov_deg=12.5,
-                      recording="/x/rec",
-                      file="/x/scan.mat", time_unit_ps=8.0, pulse_rms_ps=360.0,
-                      out_root=str(tmp_path))
-    w.controls.set_spec(spec)
-    w.close()
-    w2 = MainWindow(settings=settings)
-    qtbot.addWidget(w2)
-    # paths are remembered only once they worked: these never did
+def test_settings_are_remembered_per_source_kind_once_they_ran(qtbot, settings, tmp_path):
+    """Each source kind keeps its own controls, and only those of a run that started (before:
+    one dict for every kind, saved at close, so a replay's "target: as recorded" (0), a file's
+    surfaces or a seed typed and never run changed the next simulated scan)."""
     import dataclasses
 
     from spdepth.gui.window import DEFAULT_OUT_ROOT
 
-    assert w2.controls.spec() == dataclasses.replace(spec, recording="", file="",
-                                                     out_root=DEFAULT_OUT_ROOT)
-    # one that worked (a run started with it) is remembered, absolute
-    w2.controls.set_spec(dataclasses.replace(spec, out_root="runs-here"))
-    w2.save_settings(worked=True)
-    w2.controls.set_spec(dataclasses.replace(spec, out_root="/nonexistent/typo"))
-    w2.close()
-    w3 = MainWindow(settings=settings)
-    qtbot.addWidget(w3)
-    assert w3.controls.spec().out_root == str(Path("runs-here").resolve())
+    w = MainWindow(settings=settings)
+    qtbot.addWidget(w)
+    replay = SourceSpec(kind="replay", target=0, method="uos", reflectors=0,
+                        recording=str(tmp_path / "rec"), out_root="runs-here")
+    w.controls.set_spec(replay)
+    w.save_settings(worked=True)                    # as when a replay started
+    w.controls.set_spec(SourceSpec(kind="file", file=str(tmp_path / "x.ptu"), reflectors=2,
+                                   target=0, method="ml"))
+    w.save_settings(worked=True)                    # as when a file was read
+    w.controls.set_spec(SourceSpec(kind="sim", seed=42, size=(24, 40),
+                                   out_root="/nonexistent/typo"))    # typed, never run
+    w.close()
+    w2 = MainWindow(settings=settings)
+    qtbot.addWidget(w2)
+    shown = w2.controls.spec()                      # the kind that ran last, as it ran
+    assert (shown.kind, shown.file, shown.reflectors, shown.target) == \
+        ("file", str(tmp_path / "x.ptu"), 2, 0)
+    assert shown.out_root == str(Path("runs-here").resolve())       # absolute, the one that worked
+    sim = w2.remembered.spec("sim").to_request()    # nothing ran as sim: the declared defaults
+    assert (sim.target, sim.reflectors, sim.instruments.seed, sim.size) == (15, 1, 0, (64, 64))
+    back = w2.remembered.spec("replay")
+    assert (back.target, back.method, back.reflectors) == (0, "uos", 0)
+    # switching the source shows that kind's own values, not the last kind's
+    c = w2.controls
+    c.kind.setCurrentIndex(c.kind.findData("sim"))
+    assert (c.target.value(), c.reflectors.currentData(), c.seed.value()) == (15, 1, 0)
+    c.kind.setCurrentIndex(c.kind.findData("replay"))
+    assert (c.target.value(), c.reflectors.currentText(), c.method.currentText()) == \
+        (0, "as recorded", "uos")
+    assert c.spec() == dataclasses.replace(c.spec(), **{k: getattr(back, k) for k in
+                                                         ("target", "method", "reflectors")})
+    assert DEFAULT_OUT_ROOT
+
+
+def test_a_stored_value_that_no_longer_validates_gives_way_to_its_default(qtbot, settings):
+    from spdepth.gui.sources import SETTINGS_KEY
+
+    settings.setValue(SETTINGS_KEY, json.dumps({
+        "kind": "sim", "sim": {"target": 0, "method": "retired", "size": [5000, 2], "seed": 3,
+                               "reflectors": "auto", "colour": "red"}}))
+    w = MainWindow(settings=settings)
+    qtbot.addWidget(w)
+    spec = w.controls.spec()
+    assert (spec.target, spec.method, spec.size, spec.seed, spec.reflectors) == \
+        (15, DEFAULT_METHOD, (64, 64), 3, "auto")
+    line = w.statusBar().currentMessage()
+    assert line.count("ignored") == 3 and "\n" not in line, line
+    assert "target 0" in line and "'retired'" in line
+    assert spec.to_request().reflectors == "auto"
+
+
+def test_spdepth_gui_starts_from_its_source_kinds_settings_under_the_command_line(tmp_path):
+    """The issue's reproduction: the settings an earlier version stored after a replay (one dict,
+    target 0 "as recorded") made ``spdepth gui --sim --size 32x32 --exit-after-scan`` fail with
+    "--target must be a whole number >= 1, got 0". Now it starts with the default target; a
+    remembered sim run's values are used under the command line, which wins; --reflectors auto
+    works in the window too."""
+    cfg = tmp_path / "cfg"
+    old = QtCore.QSettings(str(cfg / "spdepth" / "spdepth.conf"), QtCore.QSettings.IniFormat)
+    old.setValue("source", json.dumps({**SourceSpec(kind="replay", target=0, reflectors=0,
+                                                    seed=42).to_dict()}))
+    old.sync()
+    env = {**os.environ, "QT_QPA_PLATFORM": "offscreen", "XDG_CONFIG_HOME": str(cfg),
+           "HOME": str(tmp_path)}
+
+    def gui(*args):
+        return subprocess.run([sys.executable, "-m", "spdepth.acq.cli", "gui", "--sim", "--size",
+                               "12x10", "--exit-after-scan", *args], env=env, capture_output=True,
+                              text=True, timeout=180, cwd=Path(__file__).resolve().parents[1])
+
+    runs = tmp_path / "runs"
+    p = gui("--runs-dir", str(runs))
+    assert p.returncode == 0, p.stderr
+    (first,) = runs.iterdir()
+    req = json.loads((first / "run.json").read_text())["info"]["request"]
+    assert (req["target"], req["reflectors"], req["instruments"]["seed"]) == (15, 1, 0)
+    # that sim run is now remembered (its seed, target); the command line still wins
+    p = gui("--target", "4", "--reflectors", "auto", "--seed", "5", "--out", str(tmp_path / "r2"))
+    assert p.returncode == 0, p.stderr
+    req = json.loads((tmp_path / "r2" / "run.json").read_text())["info"]["request"]
+    assert (req["target"], req["reflectors"], req["instruments"]["seed"]) == (4, "auto", 5)
+    assert not (runs / "r2").exists() and len(list(runs.iterdir())) == 1
 
 
 @pytest.mark.slow
@@ -409,7 +472,7 @@ def test_spdepth_gui_screenshot_offscreen(tmp_path):
     shot = tmp_path / "shot.png"
     p = subprocess.run([sys.executable, "-m", "spdepth.acq.cli", "gui", "--sim", "--size", "16x12",
                         "--target", "5", "--screenshot", str(shot), "--exit-after-scan",
-                        "--out", str(tmp_path / "runs")],
+                        "--runs-dir", str(tmp_path / "runs")],
                        env=env, capture_output=True, text=True, timeout=120,
                        cwd=Path(__file__).resolve().parents[1])
     assert p.returncode == 0, p.stderr
@@ -425,11 +488,11 @@ def test_spdepth_gui_screenshot_offscreen(tmp_path):
     assert bad.returncode == 2 and "does not exist" in bad.stderr
     # the command line's request is checked before a window opens, in the CLI's words, and run
     # as given (not as the controls would clamp it)
-    for args, said in ((["--size", "5000x2"], "--size 5000x2: each side must be 1..4096"),
+    for args, said in ((["--size", "5000x2"], "argument --size: 5000x2: each side must be 1..4096"),
                        (["--mode", "raster", "--dwell-limit-ms", "0.5"],
                         "--dwell-limit-ms is the gated dwell limit")):
         bad = subprocess.run([sys.executable, "-m", "spdepth.acq.cli", "gui", "--sim", *args,
-                              "--exit-after-scan", "--out", str(tmp_path / "runs")],
+                              "--exit-after-scan", "--runs-dir", str(tmp_path / "runs")],
                              env=env, capture_output=True, text=True, timeout=120,
                              cwd=Path(__file__).resolve().parents[1])
         assert bad.returncode == 2 and said in bad.stderr, bad.stderr
@@ -547,7 +610,8 @@ def test_a_headless_run_leaves_no_window_geometry_behind(qtbot, settings):
     w.resize(700, 500)
     w.close()
     assert not settings.contains("geometry")
-    assert settings.contains("source")
+    assert settings.contains("splitter")       # the rest is kept; the controls only once they ran
+    assert not settings.contains("sources")
 
 
 def test_a_new_estimator_after_a_scan_reconstructs_its_recording(qtbot, win, tmp_path):

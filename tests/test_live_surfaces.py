@@ -46,7 +46,7 @@ def test_live_two_surface_maps_equal_replay_and_recon_of_the_recording(two_layer
     # the file job on the recording: its recorded window, bins, pulse and target
     npz = tmp_path / "batch.npz"
     assert main(["recon", str(two_layer_scan / "recording.ptu"), "--method", "ml", "--reflectors", "2",
-                 "--out", str(npz)]) == 0
+                 "--npz", str(npz)]) == 0
     _assert_same(live, DepthMaps.load_npz(npz))
 
 
@@ -78,7 +78,7 @@ def test_replay_auto_and_spatial_equal_their_batch_reconstructions(two_layer_sca
         assert str(maps.settings["reflectors"]) == surfaces[1]
         npz = tmp_path / f"{name}.npz"
         assert main(["recon", str(two_layer_scan / "recording.ptu"), "--method", method, *surfaces,
-                     "--out", str(npz)]) == 0
+                     "--npz", str(npz)]) == 0
         _assert_same(maps, DepthMaps.load_npz(npz))
     auto = DepthMaps.load_npz(tmp_path / "auto" / "maps.npz")
     assert auto.tof_s.shape == (3, *SIZE)                       # max_reflectors deep, NaN padded
@@ -114,7 +114,7 @@ def test_without_a_pulse_the_response_measured_on_the_first_pixels_is_frozen_and
     _assert_same(live, DepthMaps.load_npz(again / "maps.npz"))
     # the file job takes the recorded response
     npz = tmp_path / "batch.npz"
-    assert main(["recon", str(out / "recording.ptu"), "--reflectors", "2", "--out", str(npz)]) == 0
+    assert main(["recon", str(out / "recording.ptu"), "--reflectors", "2", "--npz", str(npz)]) == 0
     batch = DepthMaps.load_npz(npz)
     assert batch.settings["irf"]["counts"] == live.settings["irf"]["counts"]
     _assert_same(live, batch)
@@ -128,7 +128,7 @@ def test_without_a_pulse_the_response_measured_on_the_first_pixels_is_frozen_and
 def test_bad_surfaces_options_are_one_line_errors(tmp_path, capsys):
     out = tmp_path / "x"
     assert main(["scan", "--sim", "--size", "4x4", "--reflectors", "9", "--out", str(out)]) == 2
-    assert "--reflectors must be at most 8" in capsys.readouterr().err
+    assert "--reflectors: must be at most 8 or auto" in capsys.readouterr().err   # the declared rule, at parse time
     assert main(["scan", "--sim", "--size", "4x4", "--reflectors", "two", "--out", str(out)]) == 2
     assert "whole number or auto" in capsys.readouterr().err
     assert not out.exists()

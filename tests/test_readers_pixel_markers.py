@@ -121,7 +121,7 @@ def test_fixed_dwell_simulate_file_by_pixel_markers(tmp_path):
 
     out = tmp_path / "sim.ptu"
     assert main(["simulate", "--scene", "two-layer", "--size", "10x6", "--ppp", "9",
-                 "--out", str(out)]) == 0
+                 "--ptu", str(out)]) == 0
     res = read_photons(out)
     assert res.meta["assignment"] == "pixel markers"
     with ptufile.PtuFile(out) as ptu:

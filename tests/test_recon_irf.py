@@ -182,7 +182,7 @@ def test_png_draws_a_depth_map_per_surface(tmp_path, capsys):
     one, two = tmp_path / "k1.png", tmp_path / "k2.png"
     assert main(["recon", str(src), "--time-unit-ps", "8", "--png", str(one)]) == 0
     assert main(["recon", str(src), "--time-unit-ps", "8", "--reflectors", "2", "--png", str(two),
-                 "--out", str(tmp_path / "k2.npz")]) == 0
+                 "--npz", str(tmp_path / "k2.npz")]) == 0
     out = capsys.readouterr().out
     assert "pulse estimated from the data" in out
     # the single-surface sheet: 5 maps + the pulse, 2 rows of 3 panels; with two surfaces depth and

@@ -333,10 +333,10 @@ def test_cli_recon_spatial_on_simulated_ptu_and_mat(tmp_path, capsys, shared_dat
 
     ptu = tmp_path / "steps.ptu"
     assert main(["simulate", "--scene", "steps", "--size", "24x16", "--ppp", "5", "--sbr", "1",
-                 "--seed", "1", "--out", str(ptu)]) == 0
+                 "--seed", "1", "--ptu", str(ptu)]) == 0
     # no pulse option: the response is measured from the data, as for the pixelwise methods
     out = tmp_path / "maps.npz"
-    assert main(["recon", str(ptu), "--method", "spatial", "--out", str(out), "--json"]) == 0
+    assert main(["recon", str(ptu), "--method", "spatial", "--npz", str(out), "--json"]) == 0
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert summary["method"] == "spatial" and summary["pixels_with_estimate"] == 24 * 16
     with np.load(out) as z:

@@ -15,7 +15,7 @@ from spdepth.drivers.sim import PhotonWorld, load_scene
 
 def _simulate(tmp_path, *extra, name="scan.ptu"):
     out = tmp_path / name
-    rc = main(["simulate", "--out", str(out), *extra])
+    rc = main(["simulate", "--ptu", str(out), *extra])
     return rc, out
 
 
@@ -100,5 +100,5 @@ def test_bad_options_exit_2(tmp_path, capsys, args):
 
 
 def test_bad_output_name_exits_2(tmp_path):
-    rc = main(["simulate", "--scene", "bust", "--size", "16x16", "--out", str(tmp_path / "x.bin")])
+    rc = main(["simulate", "--scene", "bust", "--size", "16x16", "--ptu", str(tmp_path / "x.bin")])
     assert rc == 2

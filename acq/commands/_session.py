@@ -1,41 +1,15 @@
-"""What ``spdepth scan``, ``replay`` and ``demo`` share: output and estimator options, a progress bar
-fed by the session's snapshots, and running a session to its summary and exit status."""
+"""What ``spdepth scan``, ``replay`` and ``demo`` share: a progress bar fed by the session's
+snapshots, and running a session to its summary and exit status (their options are declared in
+``acq.params``)."""
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import threading
 
 from spdepth.acq.commands import (EXIT_DEVICE, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK,
                                   Terminated)
-from spdepth.acq.commands._args import add_reflector_arguments, positive_float
-from spdepth.acq.requests import DEFAULT_METHOD
-from spdepth.recon import estimators
-from spdepth.recon.model import METHODS
-
-
-def add_output_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--out", required=True, metavar="DIR",
-                        help="folder for recording.ptu, events.jsonl, maps.npz, maps.png, run.json")
-    parser.add_argument("--overwrite", action="store_true",
-                        help="write into DIR even if it is not empty (never into one a running "
-                             "session holds)")
-    parser.add_argument("--json", action="store_true",
-                        help="print one JSON summary object as the last stdout line")
-
-
-def add_recon_arguments(parser: argparse.ArgumentParser, default_method: str | None = DEFAULT_METHOD) -> None:
-    shown = default_method or f"as recorded, else {DEFAULT_METHOD}"
-    parser.add_argument("--method", choices=METHODS, default=default_method,
-                        help=f"estimator for the maps (default {shown}). {estimators.live_note()}")
-    parser.add_argument("--pulse-rms-ps", type=positive_float, metavar="PS",
-                        help="pulse RMS width (default: the simulated scene's, or estimated from "
-                             "the first pixels to complete; with several surfaces the response "
-                             "measured on their surfaces)")
-    # a replay (no default method) keeps the recording's surfaces settings unless given
-    add_reflector_arguments(parser, as_recorded=default_method is None)
 
 
 class PreparingNotice:

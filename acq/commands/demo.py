@@ -11,45 +11,32 @@ import sys
 import tempfile
 import time
 
-from spdepth.acq.commands.scan import add_scan_arguments, add_sim_arguments, request_from_args
-from spdepth.acq.requests import DEFAULT_METHOD
-from spdepth.recon import estimators
-from spdepth.recon.model import METHODS
+from spdepth.acq.params import add_options
 
 HELP = "simulate a recorded count-gated scan session of a built-in scene, reconstruct it, write a PNG"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    add_sim_arguments(parser)
-    add_scan_arguments(parser)
-    parser.add_argument("--method", choices=METHODS, default=DEFAULT_METHOD,
-                        help=f"estimator of the live maps during the scan (default {DEFAULT_METHOD})")
-    pixelwise = ",".join(estimators.names(pixelwise=True))
-    parser.add_argument("--compare", default=pixelwise,
-                        help="estimators reconstructing the final photons against the truth, "
-                             f"comma-separated (default the pixelwise ones, {pixelwise})")
-    parser.add_argument("--record", metavar="DIR",
-                        help="keep the session's files (recording.ptu, events.jsonl, maps.npz, "
-                             "run.json) in DIR (default: a temporary directory, removed)")
-    parser.add_argument("--out", default="spdepth-demo.png", help="PNG sheet to write")
-    parser.add_argument("--no-window", action="store_true",
-                        help="stay headless (the PNG sheet) even when a display exists; without "
-                             "a display (CI, ssh, QT_QPA_PLATFORM=offscreen) it always is")
+    add_options(parser, "demo")
 
 
 def run(args: argparse.Namespace) -> int:
     from spdepth.acq.api import OutputDir
+    from spdepth.acq.commands.scan import request_from_args
     from spdepth.acq.errors import RequestError
+    from spdepth.acq.params import method_names, pixelwise_methods
     from spdepth.acq.requests import check_writable
 
-    args.sim, args.galvo, args.tagger = True, None, None
-    request = request_from_args(argparse.Namespace(**vars(args), pulse_rms_ps=None))
-    methods = [m.strip() for m in args.compare.split(",") if m.strip()]
-    unknown = [m for m in methods if m not in METHODS]
+    request = request_from_args(args, "demo")
+    methods = [m.strip() for m in (args.compare or ",".join(pixelwise_methods())).split(",") if m.strip()]
+    unknown = [m for m in methods if m not in method_names()]
     if not methods or unknown:
         raise RequestError(f"--compare: unknown {', '.join(unknown) or '(none given)'}; "
-                           f"choose from {', '.join(METHODS)}")
-    check_writable("--out", args.out)
+                           f"choose from {', '.join(method_names())}")
+    png = args.png or "spdepth-demo.png"
+    check_writable("--png", png)
+    if args.out is not None and str(args.out).lower().endswith(".png"):
+        raise RequestError(f"--out {args.out}: --out is the run folder; the PNG sheet is --png FILE")
     if not args.no_window:
         from spdepth.gui.app import display_available, platform_problem
 
@@ -58,11 +45,11 @@ def run(args: argparse.Namespace) -> int:
             if problem is None:
                 return _window(args, request)
             print(f"spdepth demo: {problem}; writing the PNG sheet instead", file=sys.stderr)
-    if args.record:
-        with OutputDir(args.record, name="--record") as out:
-            return _demo(args, request, methods, out.path)
+    if args.out:
+        with OutputDir(args.out, overwrite=args.overwrite) as out:
+            return _demo(args, request, methods, out.path, png)
     with tempfile.TemporaryDirectory(prefix="spdepth-demo-") as tmp:
-        return _demo(args, request, methods, tmp)
+        return _demo(args, request, methods, tmp, png)
 
 
 def _window(args, request) -> int:
@@ -71,21 +58,26 @@ def _window(args, request) -> int:
 
     print("spdepth demo: opening the window (--no-window for the headless PNG sheet)",
           file=sys.stderr)
-    if args.record:
+    if args.out:
         from spdepth.acq.api import OutputDir
 
-        with OutputDir(args.record, name="--record") as out:
+        with OutputDir(args.out, overwrite=args.overwrite) as out:
             return run_demo_window(request, out_dir=out.path)
     return run_demo_window(request, out_dir=None)
 
 
-def _demo(args, request, methods, out_dir) -> int:
+def _demo(args, request, methods, out_dir, png) -> int:
+    import dataclasses
+    import json
+
     import numpy as np
 
-    from spdepth.acq.api import build_session, open_instruments
+    from spdepth.acq.api import build_session, finish_session, open_instruments
     from spdepth.acq.commands._session import PreparingNotice, exit_status, run_session
     from spdepth.acq.evaluate import evaluate_depth, signal_detections
+    from spdepth.acq.params import DEFAULT_METHOD
     from spdepth.acq.report import render_maps_png
+    from spdepth.recon import estimators
     from spdepth.recon.estimate import reconstruct
 
     h, w = request.size
@@ -126,20 +118,25 @@ def _demo(args, request, methods, out_dir) -> int:
     print(f"{'method':<8}{'MAE (cm)':>10}{'x oracle':>10}{'missed':>8}{'recon (s)':>11}{'pixels/s':>12}")
     oracle_cm = None
     live = session.recon.requested
+    pulse_rms_s = request.pulse_rms_s or scene.pulse_rms_s
     for method in methods:
-        settings = live.__class__(method=method, binning=binning, pulse_rms_s=scene.pulse_rms_s,
-                                  max_photons=request.target)
+        # the live estimator's settings (pulse, surfaces, target) with another method
+        settings = dataclasses.replace(live, method=method, max_photons=request.target,
+                                       pulse_rms_s=live.pulse_rms_s or pulse_rms_s)
         reconstruct(store.photons(np.arange(1)), settings)   # compile outside the timing
         t1 = time.perf_counter()
         maps = reconstruct(photons, settings)
         dt = time.perf_counter() - t1
-        e = evaluate_depth(maps.depth_m, true_depth, k_signal, scene.pulse_rms_s)
+        depth = np.asarray(maps.depth_m)
+        nearest = depth[0] if depth.ndim == 3 else depth      # several surfaces: the nearest
+        e = evaluate_depth(nearest, true_depth, k_signal, pulse_rms_s)
         if oracle_cm is None:
             oracle_cm = 100 * e.oracle_mae_m
             print(f"{'oracle':<8}{oracle_cm:>10.2f}{1.0:>10.2f}{'':>8}   (per pixel, same pixels)")
-        results[method] = (maps, 100 * e.mae_m)
+        results[method] = (maps, 100 * e.mae_m, nearest)
         print(f"{method:<8}{100 * e.mae_m:>10.2f}{e.ratio_to_oracle:>10.2f}"
               f"{100 * e.miss_share:>7.1f}%{dt:>11.3f}{h * w / dt:>12,.0f}")
+    same = None
     if request.method in results:
         same = np.array_equal(session.maps().tof_s, results[request.method][0].tof_s, equal_nan=True)
         print(f"live {request.method} maps {'equal' if same else 'DIFFER FROM'} the batch "
@@ -147,16 +144,22 @@ def _demo(args, request, methods, out_dir) -> int:
 
     sheet = argparse.Namespace(truth_m=true_depth)
     panels = [("truth_m", "true depth", "m", "turbo", "percentile")]
-    for method, (maps, mae_cm) in results.items():
-        setattr(sheet, f"{method}_m", maps.depth_m)
+    for method, (maps, mae_cm, nearest) in results.items():
+        setattr(sheet, f"{method}_m", nearest)
         panels.append((f"{method}_m", f"{method}: MAE {mae_cm:.1f} cm, depth", "m", "turbo", "percentile"))
     # the background panel: the default estimator's, else the first that estimates background
     best = results.get(DEFAULT_METHOD) or next(
         (r for m, r in results.items() if estimators.get(m).background), next(iter(results.values())))
-    sheet.background = best[0].background
+    sheet.background = np.asarray(best[0].background)
     panels.append(("background", "background", "detections per bin", "magma", "percentile"))
-    render_maps_png(args.out, sheet, panels=panels,
+    render_maps_png(png, sheet, panels=panels,
                     title=f"{scene_name} {w}x{h}, {request.target} detections per pixel, "
                           f"SBR {request.instruments.sbr:g}")
-    print(f"wrote {args.out}" + (f"; session files in {out_dir}" if args.record else ""))
+    print(f"wrote {png}" + (f"; session files in {out_dir}" if args.out else ""))
+    if args.json:
+        summary = finish_session(session, None)
+        summary.update(out=str(out_dir) if args.out else None, png=str(png),
+                       oracle_mae_cm=oracle_cm, live_equals_batch=same,
+                       compare={m: {"mae_cm": r[1]} for m, r in results.items()})
+        print(json.dumps(summary))
     return exit_status(session, interrupted)

@@ -19,97 +19,33 @@ import argparse
 import json
 import sys
 
-from spdepth.acq.commands._args import add_reflector_arguments, positive_float, positive_int, window_ps
-from spdepth.acq.requests import DEFAULT_METHOD
-from spdepth.recon import estimators
-from spdepth.recon.model import METHODS
+from spdepth.acq.params import add_options
 
 HELP = "reconstruct depth/background maps from a .mat or PicoQuant PTU/HT3/PT3 T3 file"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("input", metavar="INPUT", nargs="+",
-                        help=".mat (first-photon imaging) or PTU/HT3/PT3 T3 file; with several, "
-                             "--out and --png name folders (OUT/<name>.npz)")
-    parser.add_argument("--method", choices=METHODS, default=None,
-                        help=f"estimator (default {DEFAULT_METHOD}). {estimators.summaries()}")
-    parser.add_argument("--out", metavar="MAPS.npz", help="write the maps and the settings used here")
-    parser.add_argument("--png", metavar="MAPS.png", help="write a picture of the depth, background and "
-                        "photon-count maps (a time histogram for a point measurement)")
-    parser.add_argument("--ply", metavar="POINTS.ply",
-                        help="write the maps as points (x, y, z in metres in the scanner frame, "
-                             "intensity, uncertainty, surface, flags; README 'Points')")
-    parser.add_argument("--las", metavar="POINTS.las", help="the same points as LAS 1.4")
-    parser.add_argument("--fov-deg", type=positive_float, metavar="DEG",
-                        help="field of view (square, centred) of a file without scan geometry "
-                             "(.mat): the pixels' angles for --ply/--las and the picture's axes")
-    offset = parser.add_mutually_exclusive_group()
-    offset.add_argument("--range-offset-m", type=float, metavar="M",
-                        help="add M metres to every depth (gated long-range data whose times "
-                             "start at a range gate)")
-    offset.add_argument("--gate-delay-ns", type=float, metavar="NS",
-                        help="the range gate's delay after the laser pulse: adds c*delay/2 to "
-                             "every depth")
-    parser.add_argument("--json", action="store_true",
-                        help="print one JSON summary object as the last stdout line")
-    parser.add_argument("--time-unit-ps", type=positive_float, metavar="PS",
-                        help="size of one raw time unit in ps; required for .mat files (8 for the "
-                             "first-photon-imaging files, 1 for ps); PicoQuant files: the header's resolution")
-    parser.add_argument("--window-ps", type=window_ps, metavar="START:STOP",
-                        help="keep detections with START <= t < STOP (ps after the laser sync); "
-                             "default: as recorded, else the span of the detections present")
-    parser.add_argument("--bin-ps", type=positive_float, metavar="PS",
-                        help="histogram bin width in ps (a whole number of raw units); default: as "
-                             "recorded, else a ninth of the pulse RMS")
-    pulse = parser.add_mutually_exclusive_group()
-    pulse.add_argument("--pulse-rms-ps", type=positive_float, metavar="PS",
-                       help="Gaussian pulse RMS width in ps (the seed paper: 360)")
-    pulse.add_argument("--irf", metavar="FILE", help="measured instrument response to use instead of a Gaussian")
-    parser.add_argument("--save-irf", metavar="FILE",
-                        help="write the pulse shape used (estimated from the data when neither "
-                             "--pulse-rms-ps nor --irf is given) in the format --irf reads "
-                             "(CSV time_ps,counts; .npy for an (n, 2) array), so it is measured once")
-    parser.add_argument("--max-photons", type=positive_int, metavar="N",
-                        help="keep the first N in-window detections per pixel (the seed paper: 15)")
-    add_reflector_arguments(parser)
-    parser.add_argument("--mat-var", metavar="NAME", help=".mat files: the cell-array variable to read "
-                        "when the file holds several")
-    parser.add_argument("--channel", type=int, metavar="N",
-                        help="PicoQuant files: keep only detector channel N (0-based); default all")
-    parser.add_argument("--threads", type=positive_int, metavar="N",
-                        help="worker threads for the estimator (default: all cores)")
-    parser.add_argument("--dask", metavar="ADDRESS|local:N",
-                        help="reconstruct on a dask.distributed cluster: a scheduler address, or "
-                             "local:N for N worker processes on 127.0.0.1 (docs/dask.md); same maps "
-                             "(needs the dask extra: pip install 'spdepth[dask]')")
+    add_options(parser, "recon")
 
 
 def request_from_args(args: argparse.Namespace, path: str, out: str | None = None,
                       png: str | None = None):
-    """The :class:`~acq.requests.FileReconRequest` of one input file."""
-    from spdepth.acq.requests import FileReconRequest
+    """The :class:`~acq.requests.FileReconRequest` of one input file, its maps to ``out`` (.npz)
+    and its picture to ``png``."""
+    from spdepth.acq.params import given
+    from spdepth.acq.requests import build_request
 
-    ps = lambda v: None if v is None else v * 1e-12          # noqa: E731
-    return FileReconRequest(
-        input=path, method=args.method or DEFAULT_METHOD,
-        time_unit_s=ps(args.time_unit_ps),
-        window_s=None if args.window_ps is None else tuple(v * 1e-12 for v in args.window_ps),
-        bin_s=ps(args.bin_ps), pulse_rms_s=ps(args.pulse_rms_ps), irf=args.irf,
-        max_photons=args.max_photons, reflectors=args.reflectors, max_reflectors=args.max_reflectors,
-        false_alarm=args.false_alarm, mat_var=args.mat_var,
-        channel=args.channel, threads=args.threads, out=out, png=png, save_irf=args.save_irf,
-        ply=getattr(args, "ply", None), las=getattr(args, "las", None),
-        fov_deg=getattr(args, "fov_deg", None), range_offset_m=getattr(args, "range_offset_m", None),
-        gate_delay_s=None if getattr(args, "gate_delay_ns", None) is None else args.gate_delay_ns * 1e-9)
+    values = dict(given(args, "recon"), file=path, npz=out, png=png)
+    return build_request("file", values)
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.dask or len(args.input) > 1:
+    if args.dask or len(args.file) > 1:
         return _run_many(args)
     from spdepth.acq.api import reconstruct_file
     from spdepth.acq.report import ProgressBar
 
-    request = request_from_args(args, args.input[0], args.out, args.png)
+    request = request_from_args(args, args.file[0], args.npz, args.png)
     bar = ProgressBar(f"recon {request.method}")
     try:
         result = reconstruct_file(request, progress=bar)
@@ -171,19 +107,19 @@ def _run_many(args: argparse.Namespace) -> int:
     from spdepth.acq import distributed
     from spdepth.acq.errors import RequestError
 
-    several = len(args.input) > 1
+    several = len(args.file) > 1
     if args.ply or args.las:
         raise RequestError("--ply/--las write one file's points: give one input (without --dask)")
-    names = [Path(p).name for p in args.input]
-    if several and (args.out or args.png) and len(set(names)) < len(names):
+    names = [Path(p).name for p in args.file]
+    if several and (args.npz or args.png) and len(set(names)) < len(names):
         raise RequestError("inputs share a file name, so their outputs would overwrite each other")
-    for folder in (args.out, args.png) if several else ():
+    for folder in (args.npz, args.png) if several else ():
         if folder:
             Path(folder).mkdir(parents=True, exist_ok=True)
     requests = []
-    for path in args.input:
+    for path in args.file:
         stem = Path(path).stem
-        out = str(Path(args.out) / f"{stem}.npz") if several and args.out else args.out
+        out = str(Path(args.npz) / f"{stem}.npz") if several and args.npz else args.npz
         png = str(Path(args.png) / f"{stem}.png") if several and args.png else args.png
         requests.append(request_from_args(args, path, out, png))
     t0 = time.perf_counter()

@@ -1,53 +1,31 @@
-"""``spdepth replay``: feed a recording through the same session pipeline as a live tagger."""
+"""``spdepth replay``: feed a recording through the same session pipeline as a live tagger. Its
+options are ``acq.params``' of the "replay" source."""
 
 from __future__ import annotations
 
 import argparse
 
-from spdepth.acq.commands._args import positive_float, positive_int
-from spdepth.acq.commands._session import (PreparingNotice, add_output_arguments,
-                                           add_recon_arguments, exit_status, report, run_session)
+from spdepth.acq.params import add_options
 
 HELP = "replay a recording (or a PTU with pixel markers) through the session pipeline"
 
 
-def _speed(text: str):
-    if text == "max":
-        return "max"
-    try:
-        return positive_float(text)
-    except argparse.ArgumentTypeError:
-        raise argparse.ArgumentTypeError(f"--speed must be 'max' or a positive factor, got {text!r}") from None
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("recording", metavar="RECORDING",
-                        help="a session folder or its recording.ptu, or a T3 PTU with pixel markers")
-    parser.add_argument("--target", type=positive_int, metavar="N",
-                        help="detections per pixel to keep (default: the recorded target; fewer "
-                             "shows what a shorter scan would have given; required for files "
-                             "that record none)")
-    parser.add_argument("--speed", type=_speed, default="max",
-                        help="'max' (as fast as it decodes) or a factor of recorded time (1: real time)")
-    parser.add_argument("--bin-ps", type=positive_float, default=40.0,
-                        help="bin width for files without recorded settings (default 40)")
-    add_recon_arguments(parser, default_method=None)
-    add_output_arguments(parser)
+    add_options(parser, "replay")
 
 
 def request_from_args(args: argparse.Namespace):
-    from spdepth.acq.requests import ReplayRequest
+    from spdepth.acq.params import given
+    from spdepth.acq.requests import build_request
 
-    return ReplayRequest(recording=args.recording, target=args.target, method=args.method,
-                         pulse_rms_s=None if args.pulse_rms_ps is None else args.pulse_rms_ps * 1e-12,
-                         speed=args.speed, bin_s=args.bin_ps * 1e-12, reflectors=args.reflectors,
-                         max_reflectors=args.max_reflectors, false_alarm=args.false_alarm)
+    return build_request("replay", given(args, "replay"))
 
 
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from spdepth.acq.api import OutputDir, build_session, finish_session
+    from spdepth.acq.commands._session import PreparingNotice, exit_status, report, run_session
     from spdepth.acq.errors import OutputError
 
     request = request_from_args(args)

@@ -9,26 +9,17 @@ import sys
 import time
 from pathlib import Path
 
-from spdepth.acq.commands._args import non_negative_float, positive_float, size_wxh
+from spdepth.acq.commands._args import non_negative_float, positive_float
+from spdepth.acq.params import add_options
 from spdepth.recon.errors import InputError
 
 HELP = "simulate a scan of a built-in or depth-image scene; write a T3 image PTU and its truth"
 
-SCENE_HELP = ("scene: bust, daylight, steps, tilted-plane, two-layer, or "
-              "file:PATH[,reflectivity=PATH][,scale=M_PER_UNIT][,offset=M] for a depth image "
-              "(.npy/.png/.tif; float images in metres, integer images in millimetres unless scale)")
-
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--scene", required=True, help=SCENE_HELP)
-    parser.add_argument("--size", type=size_wxh, default=None,
-                        help="WxH pixels (default 64x64; a depth image's own size for file:)")
-    parser.add_argument("--ppp", type=positive_float, default=15.0,
-                        help="mean detections (signal + background) per pixel (default 15)")
-    parser.add_argument("--sbr", type=positive_float, default=None,
-                        help="signal-to-background ratio (default the scene's: 10, daylight 0.05)")
-    parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    parser.add_argument("--out", required=True, type=Path, help="output FILE.ptu")
+    # --scene, --size, --ppp, --sbr, --seed, --ptu: the declared options (acq.params), as in
+    # spdepth scan --sim; the rest are the simulator's physics, this command's own
+    add_options(parser, "simulate")
     parser.add_argument("--dwell-us", type=positive_float, default=1000.0,
                         help="pixel dwell in microseconds the ppp refers to (default 1000)")
     parser.add_argument("--effects", default="",
@@ -57,13 +48,13 @@ def run(args: argparse.Namespace) -> int:
     from spdepth.acq.report import ProgressBar
     from spdepth.drivers.sim import PhotonWorld, load_scene
 
-    out = Path(args.out)
+    out = Path(args.ptu)
     if out.suffix.lower() != ".ptu":
-        raise InputError(f"--out {out}: the file name must end in .ptu")
+        raise InputError(f"--ptu {out}: the file name must end in .ptu")
     if not out.parent.is_dir():
-        raise InputError(f"--out {out}: folder {out.parent} does not exist")
+        raise InputError(f"--ptu {out}: folder {out.parent} does not exist")
     effects = tuple(e for e in args.effects.split(",") if e)
-    scene = load_scene(args.scene, args.size, ppp=args.ppp, sbr=args.sbr, effects=effects,
+    scene = load_scene(args.scene, args.size, ppp=args.ppp if args.ppp is not None else 15.0, sbr=args.sbr, effects=effects,
                        dwell_s=args.dwell_us * 1e-6, jitter_rms_s=args.jitter_ps * 1e-12,
                        dead_time_s=args.dead_time_ns * 1e-9, afterpulse_prob=args.afterpulse_prob,
                        dark_rate_hz=args.dark_rate_hz, pulse_rms_s=args.pulse_rms_ps * 1e-12,
@@ -74,18 +65,18 @@ def run(args: argparse.Namespace) -> int:
                          "(max 32768): raise --resolution-ps or lower --period-ns")
     h, w = scene.shape
     t0 = time.monotonic()
-    world = PhotonWorld(scene, seed=args.seed)
+    world = PhotonWorld(scene, seed=args.seed or 0)
     with ProgressBar("simulate", h * w, unit="px") as bar:
         events = world.raster(progress=bar if bar.enabled else None)
     n_photons = int(np.count_nonzero(events["kind"] == 0))
     truth = scene.truth()
-    settings = dict(truth["settings"], seed=args.seed, n_photons=n_photons,
+    settings = dict(truth["settings"], seed=args.seed or 0, n_photons=n_photons,
                     pixel_order="row-major, left to right, fixed dwell",
                     ptu_markers=", ".join(f"{m.name.lower()}={n}" for m, n in MARKER_INPUT.items())
                     + " (frame at the start of the frame; one marker kind per record)")
     n_rec = write_ptu(out, events, (h, w), s.sync_period_s, s.resolution_s, s.dwell_s, s.range_bins,
                       comment=f"spdepth simulate: scene {s.name}, {w}x{h}, ppp {s.ppp}, "
-                              f"sbr {s.sbr}, seed {args.seed}")
+                              f"sbr {s.sbr}, seed {args.seed or 0}")
     truth_path = out.with_name(out.stem + ".truth.npz")
     np.savez_compressed(truth_path, depth_m=truth["depth_m"], tof_s=truth["tof_s"],
                         reflectivity=truth["reflectivity"], occupancy=truth["occupancy"],

@@ -14,9 +14,12 @@ import time
 
 
 def _parse(argv):
+    from spdepth.acq.params import parse_size
+
     p = argparse.ArgumentParser(prog="spdepth bench generate", description=__doc__.split("\n\n")[0])
     p.add_argument("--scene", default="bust", help="scene name (default bust)")
-    p.add_argument("--size", default="256x256", help="WxH of the raster (default 256x256)")
+    p.add_argument("--size", type=parse_size, default=(256, 256), metavar="WxH",
+                   help="pixels of the raster (default 256x256)")
     p.add_argument("--ppp", type=float, default=200.0,
                    help="detections per pixel (default 200: enough detections to time)")
     p.add_argument("--repeat", type=int, default=3, help="timed runs, best reported (default 3)")
@@ -33,11 +36,7 @@ def bench(argv: list[str]) -> int:
     from spdepth.drivers.sim import PhotonWorld, load_scene
 
     args = _parse(argv)
-    try:
-        w, h = (int(v) for v in args.size.lower().split("x"))
-    except ValueError:
-        print(f"bad --size {args.size!r}, expected WxH", file=sys.stderr)
-        return 2
+    h, w = args.size
     print(f"scene {args.scene} {w}x{h}, ppp {args.ppp}, best of {args.repeat} runs, one core")
     for spec in args.effects.split(","):
         effects = () if spec == "none" else tuple(spec.split("+"))

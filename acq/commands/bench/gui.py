@@ -6,14 +6,15 @@ from __future__ import annotations
 import argparse
 import sys
 
-from spdepth.acq.commands._args import positive_int, size_wxh
+from spdepth.acq.commands._args import positive_int
+from spdepth.acq.params import parse_size
 
 
 def bench(argv=None) -> int:
     from spdepth.gui.benchmark import measure
 
     ap = argparse.ArgumentParser(prog="spdepth bench gui", description=__doc__)
-    ap.add_argument("--size", type=size_wxh, default=(48, 48), metavar="WxH")
+    ap.add_argument("--size", type=parse_size, default=(48, 48), metavar="WxH")
     ap.add_argument("--target", type=positive_int, default=10)
     ap.add_argument("--scene", default="bust")
     ap.add_argument("--repeats", type=positive_int, default=3)

@@ -22,9 +22,12 @@ from pathlib import Path
 
 
 def bench(argv: list[str]) -> int:
+    from spdepth.acq.params import parse_size
+
     p = argparse.ArgumentParser(prog="spdepth bench read", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--size", default="512x512", help="WxH of the simulated PTU (default 512x512)")
+    p.add_argument("--size", type=parse_size, default=(512, 512), metavar="WxH",
+                   help="pixels of the simulated PTU (default 512x512)")
     p.add_argument("--ppp", type=float, default=30.0, help="mean detections per pixel (default 30)")
     p.add_argument("--repeats", type=int, default=3, help="runs of each, alternated (default 3)")
     p.add_argument("--file", help="read this PTU (with pixel markers) instead of simulating one")
@@ -44,9 +47,9 @@ def bench(argv: list[str]) -> int:
     try:
         ptu = Path(a.file) if a.file else tmp / "sim.ptu"
         if not a.file:
-            w, h = (int(v) for v in a.size.lower().split("x"))
+            h, w = a.size
             if main(["simulate", "--scene", "bust", "--size", f"{w}x{h}", "--ppp", f"{a.ppp:g}",
-                     "--out", str(ptu)]) != 0:
+                     "--ptu", str(ptu)]) != 0:
                 return 1
         target = max(1, int(round(a.ppp)))
         read_photons(ptu)                      # compile / load the kernels outside the timing

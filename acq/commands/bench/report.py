@@ -78,25 +78,26 @@ class Point:
     sbr: float
 
 
-def simulate(point: Point, size: int, seed: int):
+def simulate(point: Point, size: tuple[int, int], seed: int):
     """(store, scene) of a count-gated scan of ``point``: every pixel until N recorded detections."""
     from spdepth.drivers.events import EventKind
     from spdepth.drivers.sim import PhotonWorld, load_scene
     from spdepth.recon.photons import PhotonStore
 
-    scene = load_scene(point.scene, (size, size), ppp=point.detections,
+    h, w = size
+    scene = load_scene(point.scene, (h, w), ppp=point.detections,
                        sbr=point.sbr * WINDOW_S / SYNC_PERIOD_S, tagger_range_s=WINDOW_S,
                        sync_period_s=SYNC_PERIOD_S, pulse_rms_s=PULSE_RMS_S, resolution_s=UNIT_S)
     world = PhotonWorld(scene, seed=seed)
     lists, sync = [], 0
     # generous dwell limit: a dark pixel at low N must still reach its count
     limit_s = 1000 * scene.dwell_s
-    for r in range(size):
-        for c in range(size):
+    for r in range(h):
+        for c in range(w):
             ev, n_syncs = world.count_gated(r, c, point.detections, limit_s, sync)
             sync += n_syncs
             lists.append(ev["dtime"][ev["kind"] == EventKind.PHOTON].astype(np.float64))
-    return PhotonStore.from_lists(lists, (size, size), UNIT_S), scene
+    return PhotonStore.from_lists(lists, (h, w), UNIT_S), scene
 
 
 def settings_for(method: str, reflectors: int = 1):
@@ -156,7 +157,7 @@ def errors_rows(point: Point, method: str, reflectors: int, maps, truth, compute
     return rows
 
 
-def run_sweep(detections, sbrs, methods, size: int, rate_hz: float, repeats: int, seed: int,
+def run_sweep(detections, sbrs, methods, size: tuple[int, int], rate_hz: float, repeats: int, seed: int,
               two_layer: bool = True) -> list[dict]:
     """Every point of the sweep, as CSV rows (see CSV_FIELDS)."""
     import numba
@@ -391,7 +392,7 @@ def full_table(rows: list[dict]) -> list[str]:
     return out
 
 
-def write_report(path: Path, rows: list[dict], *, command: str, size: int, rate_hz: float,
+def write_report(path: Path, rows: list[dict], *, command: str, size: tuple[int, int], rate_hz: float,
                  repeats: int, seed: int, elapsed_s: float, quick: bool) -> None:
     lines = [
         "# spdepth bench report: what accuracy costs in time",
@@ -403,7 +404,7 @@ def write_report(path: Path, rows: list[dict], *, command: str, size: int, rate_
         "",
         "## How each point is made",
         "",
-        f"- Simulated count-gated scans of {size}x{size} pixels (`drivers.sim.PhotonWorld`): every "
+        f"- Simulated count-gated scans of {size[1]}x{size[0]} pixels (`drivers.sim.PhotonWorld`): every "
         "pixel is kept until it has exactly N detections in the recorded window, the seed paper's "
         f"{N_BINS} bins of {BIN_UNITS * UNIT_S * 1e12:.0f} ps ({UNIT_S * 1e12:.0f} ps tagger units), "
         f"Gaussian pulse of {PULSE_RMS_S * 1e12:.0f} ps RMS, {1e-6 / SYNC_PERIOD_S:.0f} MHz laser. "
@@ -451,11 +452,14 @@ def write_report(path: Path, rows: list[dict], *, command: str, size: int, rate_
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--out", required=True, metavar="DIR", help="folder for report.md, results.csv, PNGs")
+    from spdepth.acq.params import add_options, parse_size
+
+    add_options(parser, "bench report")         # --out: the report's folder
     parser.add_argument("--quick", action="store_true",
                         help=f"a subset (N {QUICK_DETECTIONS}, SBR {QUICK_SBRS}, {QUICK_SIZE}x{QUICK_SIZE}): "
                              "about a minute")
-    parser.add_argument("--size", type=int, help=f"image side in pixels (default {SIZE}, quick {QUICK_SIZE})")
+    parser.add_argument("--size", type=parse_size, metavar="WxH",
+                        help=f"pixels (default {SIZE}x{SIZE}, quick {QUICK_SIZE}x{QUICK_SIZE})")
     parser.add_argument("--rate-hz", type=float, default=RATE_HZ,
                         help=f"detection rate the scan times assume (default {RATE_HZ:,.0f}/s)")
     parser.add_argument("--repeats", type=int, help="timed runs per point, best kept (default 5, quick 2)")
@@ -468,10 +472,11 @@ def bench(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(prog="spdepth bench report", description=__doc__.splitlines()[0])
     add_arguments(parser)
     args = parser.parse_args(argv)
-    size = args.size or (QUICK_SIZE if args.quick else SIZE)
+    side = QUICK_SIZE if args.quick else SIZE
+    size = args.size or (side, side)
     repeats = args.repeats or (2 if args.quick else 5)
-    if size < 4 or repeats < 1 or not (args.rate_hz > 0 and math.isfinite(args.rate_hz)):
-        raise InputError(f"bench report: need --size >= 4, --repeats >= 1 and a positive --rate-hz "
+    if min(size) < 4 or repeats < 1 or not (args.rate_hz > 0 and math.isfinite(args.rate_hz)):
+        raise InputError(f"bench report: need --size of at least 4x4, --repeats >= 1 and a positive --rate-hz "
                          f"(got {size}, {repeats}, {args.rate_hz})")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

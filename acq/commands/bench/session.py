@@ -76,7 +76,7 @@ def replay_simulated(size, ppp, method="lmf", repeats=3):
     try:
         ptu = tmp / "sim.ptu"
         main(["simulate", "--scene", "bust", "--size", f"{w}x{h}", "--ppp", str(ppp),
-              "--out", str(ptu)])
+              "--ptu", str(ptu)])
         best = None
         for i in range(repeats):
             r = build_session(ReplayRequest(recording=str(ptu), target=int(ppp), method=method,
@@ -90,8 +90,11 @@ def replay_simulated(size, ppp, method="lmf", repeats=3):
 
 
 def bench(argv: list[str]) -> int:
+    from spdepth.acq.params import parse_size
+
     p = argparse.ArgumentParser(prog="spdepth bench session", description=__doc__)
-    p.add_argument("--size", default="256x256", help="WxH (default 256x256)")
+    p.add_argument("--size", type=parse_size, default=(256, 256), metavar="WxH",
+                   help="pixels (default 256x256)")
     p.add_argument("--target", type=int, default=15, help="detections per pixel (default 15)")
     p.add_argument("--method", default="ml", help="live estimator (default ml)")
     p.add_argument("--seed", type=int, default=0)
@@ -101,7 +104,7 @@ def bench(argv: list[str]) -> int:
     p.add_argument("--memory", action="store_true",
                    help="scan only and report the peak RSS (run e.g. --size 1024x1024 --target 30)")
     a = p.parse_args(argv)
-    w, h = (int(v) for v in a.size.lower().split("x"))
+    h, w = a.size
     print(f"spdepth bench session: bust {w}x{h}, target {a.target}, live {a.method}, gated, "
           f"simulated devices through the real drivers", flush=True)
     res = scan_and_replay((h, w), a.target, a.method, a.seed, replay=not a.memory)

@@ -17,18 +17,21 @@ import sys
 
 def bench(argv: list[str]) -> int:
     from spdepth.acq.commands.bench.session import scan_and_replay
+    from spdepth.acq.params import parse_size
     from spdepth.acq.requests import DEFAULT_METHOD, DEFAULT_TARGET
 
     p = argparse.ArgumentParser(prog="spdepth bench sim", description=__doc__)
-    p.add_argument("--size", default="512x512", help="WxH of the big session (default 512x512)")
+    p.add_argument("--size", type=parse_size, default=(512, 512), metavar="WxH",
+                   help="pixels of the big session (default 512x512)")
     p.add_argument("--target", type=int, default=30, help="its detections per pixel (default 30)")
     p.add_argument("--method", default=DEFAULT_METHOD,
                    help=f"live estimator of both sessions (default {DEFAULT_METHOD})")
-    p.add_argument("--demo-size", default="96x96", help="WxH of the demo's session (default 96x96)")
+    p.add_argument("--demo-size", type=parse_size, default=(96, 96), metavar="WxH",
+                   help="pixels of the demo's session (default 96x96)")
     a = p.parse_args(argv)
     for label, size, target in (("demo", a.demo_size, DEFAULT_TARGET),
                                 ("gated session", a.size, a.target)):
-        w, h = (int(v) for v in size.lower().split("x"))
+        h, w = size
         scan_and_replay((32, 32), target, a.method, 0, replay=False)          # warm-up
         res = scan_and_replay((h, w), target, a.method, 0, replay=False)
         print(f"{label} {w}x{h}, target {target}, live {a.method}: {res['scan_wall_s']:.2f} s "
