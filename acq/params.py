@@ -105,10 +105,11 @@ def _methods_help() -> str:
 
 
 def scene_names() -> tuple[str, ...]:
-    """The built-in scenes (``drivers.sim.scenes.BUILTIN``), read when asked."""
-    from spdepth.drivers.sim import scenes
+    """The built-in scenes (``drivers.sim.builtin_scenes``, the names ``drivers.sim.scenes.BUILTIN``
+    maps), sorted as ``drivers.sim.scene_names()`` gives them; read when asked."""
+    from spdepth.drivers.sim.builtin_scenes import BUILTIN_SCENES
 
-    return tuple(sorted(scenes.BUILTIN))
+    return tuple(sorted(BUILTIN_SCENES))
 
 
 def fault_kinds() -> str:
@@ -475,6 +476,7 @@ _DECLARED = (
     # -- real devices ----------------------------------------------------------------------------
     Param("--sync-rate-hz", "sync_rate_hz", "float", group="real devices", sources=("real",),
           unit="Hz", low=0, low_open=True, default_text="required", label="Sync rate",
+          none_label="required",
           help="the laser repetition rate (recorded in the PTU header)"),
     Param("--fov-deg", "fov_deg", "float", summary="square field of view in optical degrees, centred", group="real devices", sources=("real", "file"), unit="deg",
           default=20.0, low=0, low_open=True, high=90.0, metavar="DEG",
@@ -569,7 +571,8 @@ _DECLARED = (
           none_label="estimate",
           default_text="the simulated scene's, or estimated from the first pixels to complete; with "
                        "several surfaces the response measured on their surfaces",
-          per_source={"replay": dict(default_text="as recorded"),
+          per_source={"sim": dict(none_label="the scene's"),
+                      "replay": dict(default_text="as recorded", none_label="as recorded"),
                       "file": dict(default_text="as recorded, else estimated from the data")},
           help="Gaussian pulse RMS width (the seed paper: 360)"),
     Param("--irf", "irf", "path", summary="a measured instrument response instead of a Gaussian", group="estimator", sources=("file",), metavar="FILE",

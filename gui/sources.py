@@ -37,12 +37,19 @@ and source kinds. ``dwell_limit_ms`` holds ``--dwell-limit-ms`` (gated) or ``--d
 ``out_root`` is ``--runs-dir``."""
 DWELL_OPTIONS = {"gated": "--dwell-limit-ms", "raster": "--dwell-ms"}
 PATH_FIELDS = ("out_root", "recording", "file")
-"""The controls' paths: remembered absolute, and only those that worked."""
+"""The controls' paths: remembered absolute (with the rest, only from a run that started)."""
+
+
+FIELD_SOURCES = {"galvo_port": ("real",), "tagger_url": ("real",), "fov_deg": ("real",)}
+"""Controls used by fewer kinds than their option: the window's simulated source is the bench
+itself (``spdepth gui --sim --tagger picoquant:mh150`` reaches a vendor driver from the command
+line), and its field of view is the real galvo's (a file's ``--fov-deg`` is a command-line one)."""
 
 
 def spec_fields(kind: str) -> tuple[str, ...]:
     """The ``SourceSpec`` fields a source kind uses (the others are another kind's)."""
-    own = tuple(f for f, opt in SPEC_OPTIONS.items() if kind in PARAMS[opt].sources)
+    own = tuple(f for f, opt in SPEC_OPTIONS.items()
+                if kind in FIELD_SOURCES.get(f, PARAMS[opt].sources))
     return own + (("dwell_limit_ms",) if kind in ("sim", "real") else ())
 
 

@@ -36,7 +36,7 @@ from spdepth.gui.maps import C_M_PER_S, PANEL_DEFS, MapPanel, link_panels, snaps
 from spdepth.gui.view3d import PointCloudView
 from spdepth.gui.pixel_model import pixel_histogram
 from spdepth.recon import estimators
-from spdepth.gui.sources import (SETTINGS_KEY, SPEC_OPTIONS, FileJob, Remembered, ResultView,
+from spdepth.gui.sources import (PATH_FIELDS, SETTINGS_KEY, SPEC_OPTIONS, FileJob, Remembered, ResultView,
                                  SessionView, SourceSpec, in_window_words, open_run, run_kind,
                                  spec_fields, spec_param)
 
@@ -116,10 +116,11 @@ class ControlPanel(QtWidgets.QWidget):
     kind's own (what was last set for it), never another kind's."""
 
     SOURCE_ROWS = ("scene", "sbr", "seed", "faults", "galvo_port", "tagger_url", "sync_rate_hz",
-                   "fov_deg", "recording", "file", "time_unit_ps", "pulse_rms_ps")
+                   "fov_deg", "recording", "file", "time_unit_ps")
     """The source box: each row shown only for the kinds its option belongs to."""
-    SCAN_ROWS = ("size", "mode", "target", "dwell_limit_ms", "method", "reflectors")
+    SCAN_ROWS = ("size", "mode", "target", "dwell_limit_ms", "method", "pulse_rms_ps", "reflectors")
     """The scan box: each enabled only for the kinds its option belongs to."""
+
     ATTRS = {"galvo_port": "galvo", "tagger_url": "tagger", "sync_rate_hz": "sync_mhz",
              "fov_deg": "fov", "time_unit_ps": "time_unit", "pulse_rms_ps": "pulse_rms",
              "dwell_limit_ms": "dwell"}
@@ -339,10 +340,14 @@ class ControlPanel(QtWidgets.QWidget):
                 self._show_value(name, mine.get(name, self._kind_default(name, kind)))
         self._kind = kind
         for name, row in self._rows.items():
-            self._src_form.setRowVisible(row, kind in PARAMS[SPEC_OPTIONS[name]].sources)
+            self._src_form.setRowVisible(row, name in spec_fields(kind))
+        for name, w in self.widgets.items():       # "default" words as the kind says them
+            if isinstance(w, QtWidgets.QAbstractSpinBox) and name not in ("size", "target"):
+                label = spec_param(name, kind).none_label
+                if label:
+                    w.setSpecialValueText(label)
         for name in self.SCAN_ROWS:
-            opt = SPEC_OPTIONS.get(name, "--dwell-limit-ms")
-            on = kind in PARAMS[opt].sources
+            on = name in spec_fields(kind)
             for w in ((self.width_px, self.height_px) if name == "size" else (self.widgets[name],)):
                 w.setEnabled(on)
         self.out_root.setEnabled(kind != "file")      # a file's reconstruction writes nothing
@@ -811,7 +816,7 @@ class MainWindow(QtWidgets.QMainWindow):
         if worked:
             spec = self.controls.spec()
             paths = {k: str(Path(getattr(spec, k)).expanduser().resolve())
-                     for k in ("out_root", "recording", "file") if getattr(spec, k)}
+                     for k in PATH_FIELDS if getattr(spec, k)}
             import dataclasses
 
             self.settings.setValue(SETTINGS_KEY, self.remembered.store(

@@ -18,7 +18,7 @@ from spdepth.acq.requests import (DEFAULT_BIN_S, DEFAULT_WINDOW_S, Devices, File
                                   ReplayRequest, ScanRequest, SimBench, build_request)
 
 ROOT = Path(__file__).resolve().parents[1]
-HEAVY = ("numba", "scipy", "matplotlib", "PySide6", "pyqtgraph", "shiboken6")
+HEAVY = ("numba", "numpy", "scipy", "matplotlib", "PySide6", "pyqtgraph", "shiboken6")
 
 
 def _subcommands():

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from spdepth.drivers.errors import SettingError
+from spdepth.drivers.sim.builtin_scenes import BUILTIN_SCENES
 
 
 @dataclass(frozen=True, eq=False)
@@ -126,13 +127,8 @@ def daylight(shape) -> Geometry:
     return _single(depth, refl, bg, sbr=0.05)
 
 
-BUILTIN = {
-    "bust": bust,
-    "steps": steps,
-    "tilted-plane": tilted_plane,
-    "two-layer": two_layer,
-    "daylight": daylight,
-}
+BUILTIN = dict(zip(BUILTIN_SCENES, (bust, steps, tilted_plane, two_layer, daylight)))
+"""Each built-in scene's geometry, by its name (``drivers.sim.builtin_scenes``)."""
 
 
 def _read_image(path: Path) -> np.ndarray:
