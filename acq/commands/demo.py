@@ -66,6 +66,19 @@ def _window(args, request) -> int:
     return run_demo_window(request, out_dir=None)
 
 
+def _strongest_surface(maps):
+    """(H, W) depth of each pixel's strongest surface (most signal): the one-surface scene's
+    return when several surfaces were fitted (``--reflectors``); the maps themselves for one."""
+    import numpy as np
+
+    depth = np.asarray(maps.depth_m)
+    if depth.ndim == 2:
+        return depth
+    signal = np.where(np.isfinite(depth), np.nan_to_num(np.asarray(maps.signal), nan=-1.0), -np.inf)
+    best = np.argmax(signal, axis=0)
+    return np.take_along_axis(depth, best[None], axis=0)[0]
+
+
 def _demo(args, request, methods, out_dir, png) -> int:
     import dataclasses
     import json
@@ -127,8 +140,7 @@ def _demo(args, request, methods, out_dir, png) -> int:
         t1 = time.perf_counter()
         maps = reconstruct(photons, settings)
         dt = time.perf_counter() - t1
-        depth = np.asarray(maps.depth_m)
-        nearest = depth[0] if depth.ndim == 3 else depth      # several surfaces: the nearest
+        nearest = _strongest_surface(maps)
         e = evaluate_depth(nearest, true_depth, k_signal, pulse_rms_s)
         if oracle_cm is None:
             oracle_cm = 100 * e.oracle_mae_m
