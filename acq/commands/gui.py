@@ -88,7 +88,8 @@ def run(args: argparse.Namespace) -> int:
     # window then runs exactly this request (its controls could clamp a value)
     request, spec = request_from_args(args, stored)
     source = source_of(args)
-    notes = stored.notes.get(source or stored.kind, [])
+    # the window shows its restored kind's notes itself; a source of another kind adds its own
+    notes = stored.notes.get(source, []) if source not in (None, stored.kind) else []
     size = args.window_size[::-1] if args.window_size else (WINDOW_SIZE if args.screenshot else None)
     kw = dict(controls=spec, start=request is not None, screenshot=args.screenshot,
               exit_after_scan=args.exit_after_scan, window_size=size, view=args.view, notes=notes)
