@@ -261,29 +261,18 @@ class Param:
                 raise RequestError(f"{opt} must be {self._range_words()}, got {value:g}")
             return
         if k == "window":
-            try:
-                start, stop = (float(v) for v in value)
-            except (TypeError, ValueError):
-                raise RequestError(f"{opt} must be (start, stop), got {value!r}") from None
+            start, stop = _two(opt, value, "(start, stop)", float)
             if not (math.isfinite(start) and math.isfinite(stop) and 0 <= start < stop):
                 raise RequestError(f"{opt} needs 0 <= START < STOP, got {start:g}:{stop:g} {self.unit}")
             return
         if k == "size":
-            try:
-                h, w = (int(v) for v in value)
-                if (h, w) != tuple(value):
-                    raise ValueError
-            except (TypeError, ValueError):
-                raise RequestError(f"{opt} must be WxH, got {value!r}") from None
+            h, w = _two(opt, value, "WxH", _exact_int)
             if not (1 <= h <= MAX_PIXELS_PER_AXIS and 1 <= w <= MAX_PIXELS_PER_AXIS):
                 raise RequestError(f"{opt} {w}x{h}: each side must be 1..{MAX_PIXELS_PER_AXIS} pixels "
                                    f"(the galvo controller's limit)")
             return
         if k == "xy":
-            try:
-                x, y = (float(v) for v in value)
-            except (TypeError, ValueError):
-                raise RequestError(f"{opt} must be X,Y {self.unit}, got {value!r}") from None
+            _two(opt, value, f"X,Y {self.unit}", float)
             return
         if k in ("str", "path"):
             if not isinstance(value, str):
@@ -333,6 +322,21 @@ class Param:
         return _show(self.default, self.kind)
 
 
+def _two(opt: str, value, form: str, kind) -> tuple:
+    """A pair of ``kind`` (a window, a size, X,Y), or RequestError naming ``form``."""
+    try:
+        a, b = (kind(v) for v in value)
+    except (TypeError, ValueError):
+        raise RequestError(f"{opt} must be {form}, got {value!r}") from None
+    return a, b
+
+
+def _exact_int(v) -> int:
+    if isinstance(v, bool) or int(v) != v:
+        raise ValueError(v)
+    return int(v)
+
+
 def _whole(v) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and int(v) == v
 
@@ -349,71 +353,40 @@ def _show(value, kind: str) -> str:
     return str(value)
 
 
-def _float(text: str) -> float:
-    try:
-        return float(text)
-    except ValueError:
-        raise ValueError(f"not a number: {text!r}") from None
+def _parser(convert: Callable[[str], Any], words: str, keep: tuple[str, ...] = ()):
+    """An option's text -> value: ``convert``, the words in ``keep`` as they are, and a
+    ValueError saying ``words`` otherwise."""
+    def parse(text: str):
+        if text in keep:
+            return text
+        try:
+            return convert(text)
+        except ValueError:
+            raise ValueError(f"{words}, got {text!r}") from None
+    return parse
 
 
-def _int(text: str) -> int:
-    try:
-        return int(text)
-    except ValueError:
-        raise ValueError(f"not a whole number: {text!r}") from None
+def _pair(sep: str, kind: type):
+    def convert(text: str):
+        a, b = (kind(v) for v in text.lower().split(sep))
+        return a, b
+    return convert
 
 
-def _size(text: str) -> tuple[int, int]:
+def _wxh(text: str) -> tuple[int, int]:
     """'WxH' (width first, as image sizes are written) -> (H, W), rows first as arrays are."""
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise ValueError(f"size must be WxH (e.g. 64x64), got {text!r}") from None
+    w, h = _pair("x", int)(text)
     return h, w
 
 
-def _window(text: str) -> tuple[float, float]:
-    try:
-        start, stop = (float(v) for v in text.split(":"))
-    except ValueError:
-        raise ValueError(f"expected START:STOP, got {text!r}") from None
-    return start, stop
-
-
-def _surfaces(text: str):
-    if text == "auto":
-        return "auto"
-    try:
-        return int(text)
-    except ValueError:
-        raise ValueError(f"expected a whole number or auto, got {text!r}") from None
-
-
-def _speed(text: str):
-    if text == "max":
-        return "max"
-    try:
-        return float(text)
-    except ValueError:
-        raise ValueError(f"expected max or a positive factor, got {text!r}") from None
-
-
-def _xy(text: str) -> tuple[float, float]:
-    try:
-        x, y = (float(v) for v in text.split(","))
-    except ValueError:
-        raise ValueError(f"expected X,Y, got {text!r}") from None
-    return x, y
-
-
 _PARSERS: dict[str, Callable[[str], Any]] = {
-    "float": _float, "int": _int, "str": str, "path": str, "size": _size, "window": _window,
-    "surfaces": _surfaces, "speed": _speed, "xy": _xy,
+    "float": _parser(float, "expected a number"), "int": _parser(int, "expected a whole number"),
+    "str": str, "path": str, "size": _parser(_wxh, "size must be WxH (e.g. 64x64)"),
+    "window": _parser(_pair(":", float), "expected START:STOP"),
+    "surfaces": _parser(int, "expected a whole number or auto", keep=("auto",)),
+    "speed": _parser(float, "expected max or a positive factor", keep=("max",)),
+    "xy": _parser(_pair(",", float), "expected X,Y"),
 }
-SIZE_TYPE = _size
-"""'WxH' -> (H, W): the benchmarks' ``--size`` too."""
-
-
 def parse_size(text: str) -> tuple[int, int]:
     """``--size`` WxH -> (H, W) checked, as an argparse ``type`` (the benchmarks use it too)."""
     return PARAMS["--size"].parse(text)

@@ -5,7 +5,7 @@ error codes to errors), ``protocol`` (families, codes, settings: no I/O), ``devi
 (``PicoQuantTagger``: T3 measurement, FIFO reads, reconnect; ``PicoQuantReader``: the reader
 thread with in-band loss)."""
 
-import importlib
+from spdepth.drivers.lazy import lazy_attributes
 
 from .protocol import FAMILIES, Flag, LibError, PicoQuantSettings, family
 
@@ -14,13 +14,7 @@ _LAZY = {"PicoQuantReader": "device", "PicoQuantTagger": "device", "list_devices
 """Loaded on first use: the device decodes with numba, which the protocol's tables (the tagger
 models ``--help`` lists) do not need."""
 
-
-def __getattr__(name: str):
-    if name in _LAZY:
-        value = getattr(importlib.import_module(f"{__name__}.{_LAZY[name]}"), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = lazy_attributes(__name__, _LAZY)
 
 __all__ = ["PicoQuantTagger", "PicoQuantReader", "PicoQuantSettings", "LibTransport",
            "LibraryMissingError", "PicoQuantError", "FAMILIES", "Flag", "LibError", "family",

@@ -8,22 +8,16 @@ so ``serial.serial_for_url`` and ``Galvo.open`` reach them by the same path as a
 drivers never import the simulator, so a process that only drives hardware keeps pyserial as it is.
 """
 
-import importlib
-
 import serial
+
+from spdepth.drivers.lazy import lazy_attributes
 
 _LAZY = {"EFFECTS": "scene", "Scene": "scene", "SceneSettings": "scene", "load_scene": "scene",
          "scene_names": "scene", "PhotonWorld": "world", "VirtualClock": "world", "warm_up": "world"}
 """Names loaded on first use: the scene and the photon world need numpy, scipy and numba, which a
 process that only reads the fault kinds or the scene list (``spdepth --help``) does not."""
 
-
-def __getattr__(name: str):
-    if name in _LAZY:
-        value = getattr(importlib.import_module(f"{__name__}.{_LAZY[name]}"), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = lazy_attributes(__name__, _LAZY)
 
 __all__ = ["EFFECTS", "PhotonWorld", "Scene", "SceneSettings", "VirtualClock", "load_scene",
            "register_url_handlers", "scene_names", "warm_up"]
