@@ -14,7 +14,7 @@ import pytest
 
 from spdepth.acq.instruments import open_sim
 from spdepth.acq.recording import ReplaySource, recon_settings_from_dict
-from spdepth.acq.session import ACQUIRING, AcqFlag, SessionState, SessionStateError
+from spdepth.acq.session import AcqFlag, SessionState, SessionStateError
 from spdepth.recon.maps import DepthMaps
 from tests.sessions import assert_same_maps, assert_complete_or_flagged, assert_from_complete_dwells
 from tests.sessions import replay_session as _replay
