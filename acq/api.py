@@ -264,7 +264,7 @@ def finish_session(session, out_dir: str | Path | None, title: str | None = None
         "stream_s": session.stream_s, "passes": snap.passes,
         "lost_spans": snap.lost_spans, "lost_records": snap.lost_records,
         "faults_seen": len(run["faults_seen"]), "warnings": list(run.get("warnings", ())),
-        "recon_max_lag_pixels": session.recon.max_lag, "elapsed_s": round(snap.elapsed_s, 3),
+        "recon_max_lag_pixels": session.live_recon.max_lag, "elapsed_s": round(snap.elapsed_s, 3),
         "points": n_points,
     }
 

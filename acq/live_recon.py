@@ -66,12 +66,18 @@ class LiveRecon:
         if settings.binning is None:
             raise ValueError("live reconstruction needs a fixed binning")
         self.store = store
+        self.requested = settings
+        """The settings asked for, as given: what recordings keep."""
         est = estimators.get(settings.method)
         # an estimator that does not run live runs once at the end; its stand-in draws the live maps
-        self.final_settings = None if est.live else settings
-        if self.final_settings is not None:
+        self.frame_settings = None if est.live else settings
+        """The settings of the one reconstruction of the whole final store, for an estimator
+        that does not run live (spatial); None for one that does."""
+        if self.frame_settings is not None:
             settings = dataclasses.replace(settings, method=est.live_stand_in)
-        self.settings = settings
+        self.pixel_settings = settings
+        """What each batch of pixels is reconstructed with: the requested settings, or the live
+        stand-in of an estimator that does not run live, with the pulse frozen once measured."""
         h, w = store.shape
         # several surfaces: (K, H, W) per-surface maps, K the most looked for (recon.maps.DepthMaps)
         k = () if not settings.several else (
@@ -90,7 +96,7 @@ class LiveRecon:
             self.surfaces = np.zeros((h, w), np.int16)
             self.weak = np.zeros(k + (h, w), np.bool_)
         self.done = np.zeros((h, w), bool)
-        self.resolved: dict | None = None       # settings record of the first batch
+        self.settings_used: dict | None = None   # the maps' settings record (the first batch's)
         self._pulse_note: dict = {}             # how the pulse width was found, when estimated
         self.submitted = 0
         self.processed = 0
@@ -138,11 +144,6 @@ class LiveRecon:
             raise self._error
 
     @property
-    def requested(self) -> ReconSettings:
-        """The settings asked for (spatial included), as recordings and results keep them."""
-        return self.final_settings or self.settings
-
-    @property
     def lag(self) -> int:
         """Pixels handed over and not yet reconstructed."""
         return self.submitted - self.processed
@@ -151,7 +152,7 @@ class LiveRecon:
         """Load (or compile) the estimator's kernels on one made-up pixel now, so the first real
         batch does not wait for them while the scan piles up pixels (the session calls this while
         armed)."""
-        warm_up(self.settings)
+        warm_up(self.pixel_settings)
 
     def submit(self, pixels: np.ndarray) -> None:
         """Queue flat pixel indices (frozen in the store) for reconstruction."""
@@ -188,13 +189,13 @@ class LiveRecon:
             oldest = None
             while True:
                 need = MIN_BATCH_PIXELS
-                if self.resolved is None and self._needs_pulse():
+                if self.settings_used is None and self._needs_pulse():
                     need = max(need, self._sample_pixels)
                 if self._n_pending and oldest is None:
                     oldest = time.monotonic()
                 waited = oldest is not None and time.monotonic() - oldest >= BATCH_WAIT_S
                 if self._n_pending >= need or (self._n_pending and (self._closing or (
-                        waited and not (self.resolved is None and self._needs_pulse())))):
+                        waited and not (self.settings_used is None and self._needs_pulse())))):
                     break
                 if self._closing:
                     return None
@@ -218,12 +219,12 @@ class LiveRecon:
             return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
     def _needs_pulse(self) -> bool:
-        return self.settings.pulse_rms_s is None and self.settings.irf is None
+        return self.pixel_settings.pulse_rms_s is None and self.pixel_settings.irf is None
 
     @property
     def _sample_pixels(self) -> int:
         """Final pixels the pulse (one surface) or the response (several) is measured on."""
-        return RESPONSE_SAMPLE_PIXELS if self.settings.several else PULSE_SAMPLE_PIXELS
+        return RESPONSE_SAMPLE_PIXELS if self.pixel_settings.several else PULSE_SAMPLE_PIXELS
 
     def _run(self) -> None:
         try:
@@ -231,11 +232,11 @@ class LiveRecon:
                 t0 = time.perf_counter()
                 self._reconstruct(batch)
                 self.busy_s += time.perf_counter() - t0
-            if self.final_settings is not None and self.processed:
+            if self.frame_settings is not None and self.processed:
                 t0 = time.perf_counter()
                 self._reconstruct_frame(dataclasses.replace(
-                    self.final_settings, pulse_rms_s=self.settings.pulse_rms_s,
-                    irf=self.settings.irf))
+                    self.frame_settings, pulse_rms_s=self.pixel_settings.pulse_rms_s,
+                    irf=self.pixel_settings.irf))
                 self.busy_s += time.perf_counter() - t0
         except BaseException as exc:  # noqa: BLE001 - handed to the owner at submit/finish
             # the owner reports it (one line); the traceback only at debug level
@@ -249,27 +250,27 @@ class LiveRecon:
             # freeze the model estimated from this first batch for every later pixel
             n = min(self._sample_pixels, pixels.size)
             sample = self.store.photons(pixels[:n])
-            if self.settings.several:
+            if self.pixel_settings.several:
                 # recon.multi's own measurement of the response on the surfaces (module docstring)
-                measured = reconstruct(sample, self.settings).settings
-                self.settings = dataclasses.replace(self.settings, irf=Irf.from_dict(measured["irf"]))
+                measured = reconstruct(sample, self.pixel_settings).settings
+                self.pixel_settings = dataclasses.replace(self.pixel_settings, irf=Irf.from_dict(measured["irf"]))
                 self._pulse_note = {"pulse_source": f"measured on the surfaces of the first {n} "
                                                     "final pixels, then frozen"}
             else:
-                _, _, notes = resolve_model(sample, self.settings)
-                self.settings = dataclasses.replace(self.settings, pulse_rms_s=notes["pulse_rms_s"])
+                _, _, notes = resolve_model(sample, self.pixel_settings)
+                self.pixel_settings = dataclasses.replace(self.pixel_settings, pulse_rms_s=notes["pulse_rms_s"])
                 self._pulse_note = {"pulse_source": f"estimated from the first {n} final pixels"}
         # pixels without a detection all come out alike (each estimator works pixel by pixel):
         # reconstruct one such pixel once and copy it, so a huge scan cut short by its time
         # limit does not run the estimator over millions of empty pixels
         empty = self.store.count[pixels] == 0
         full = pixels[~empty]
-        m = reconstruct(self.store.photons(full), self.settings) if full.size else None
+        m = reconstruct(self.store.photons(full), self.pixel_settings) if full.size else None
         if self._empty is None and empty.any():
             self._empty = self._empty_result()
-        if self.resolved is None:
-            self.resolved = dict(m.settings if m is not None else self._empty["settings"])
-            self.resolved.update(self._pulse_note)
+        if self.settings_used is None:
+            self.settings_used = dict(m.settings if m is not None else self._empty["settings"])
+            self.settings_used.update(self._pulse_note)
         with self.lock:        # one batch appears in the maps at once
             for name in self.fields:
                 dst = getattr(self, name)
@@ -286,7 +287,7 @@ class LiveRecon:
         from spdepth.recon.photons import PhotonStore
 
         one = PhotonStore(np.zeros(0), np.array([0, 0]), (1, 1), self.store.time_unit_s)
-        m = reconstruct(one, self.settings)
+        m = reconstruct(one, self.pixel_settings)
         out = {name: np.asarray(getattr(m, name))[..., 0, 0] for name in self.fields}
         out["settings"] = m.settings
         return out
@@ -298,13 +299,13 @@ class LiveRecon:
         with self.lock:
             for name in self.fields:
                 getattr(self, name)[...] = getattr(m, name)
-        self.resolved = dict(m.settings)
-        self.resolved["live_maps"] = f"{self.settings.method} pixel by pixel during the scan"
+        self.settings_used = dict(m.settings)
+        self.settings_used["live_maps"] = f"{self.pixel_settings.method} pixel by pixel during the scan"
 
     def maps(self, copy: bool = True) -> DepthMaps:
         """The maps as they stand (copies), in ``spdepth recon``'s format. ``copy=False`` gives
         the arrays themselves: only once the worker has ended (``finish``), for writing them."""
-        settings = dict(self.resolved) if self.resolved is not None else self.settings.to_dict()
+        settings = dict(self.settings_used) if self.settings_used is not None else self.pixel_settings.to_dict()
         if copy:
             return DepthMaps(settings=settings, **self.copy_maps(*self.fields))
         return DepthMaps(settings=settings, **{name: getattr(self, name) for name in self.fields})

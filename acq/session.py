@@ -157,7 +157,7 @@ class Session:
     source; the session cannot tell them apart. ``acq.api.build_session`` builds one from a request.
 
     plan:      what to scan; for a replay, the recorded plan with the replay's target.
-    recon:     estimator settings with a fixed binning (window and bins in tagger units) and
+    settings:  estimator settings with a fixed binning (window and bins in tagger units) and
                ``max_photons`` equal to ``plan.target`` (set here when None).
     source:    where the events come from.
     out_dir:   where the source's files (a live scan's ``recording.ptu``), ``events.jsonl``,
@@ -172,17 +172,17 @@ class Session:
     the live reconstruction's worker, and both end with the session.
     """
 
-    def __init__(self, plan: ScanPlan, recon: ReconSettings, source: Source, *,
+    def __init__(self, plan: ScanPlan, settings: ReconSettings, source: Source, *,
                  out_dir: str | Path | None = None, gate_target: int | None = None,
                  info: dict | None = None):
         if source is None or not hasattr(source, "run"):
             raise RequestError(f"a session needs a source (a scan, a replay, ...), got {source!r}")
-        if recon.binning is None:
+        if settings.binning is None:
             raise RequestError("a session needs a fixed binning (window and bin width)")
-        if recon.max_photons is None:
-            recon = replace(recon, max_photons=plan.target)
-        if recon.max_photons != plan.target:
-            raise RequestError(f"recon max_photons {recon.max_photons} differs from the target "
+        if settings.max_photons is None:
+            settings = replace(settings, max_photons=plan.target)
+        if settings.max_photons != plan.target:
+            raise RequestError(f"recon max_photons {settings.max_photons} differs from the target "
                                f"{plan.target}")
         self.source: Source = source
         self.plan = plan
@@ -191,11 +191,11 @@ class Session:
         if gate_target is None:
             gate_target = source.default_gate_target(plan)
         self.gate_target = gate_target
-        b = recon.binning
+        b = settings.binning
         self.store = PixelStore(plan.shape, plan.target,
                                 (int(np.floor(b.window_start)), int(np.ceil(b.window_stop))),
                                 b.time_unit_s)
-        self.recon = LiveRecon(self.store, recon)
+        self.live_recon = LiveRecon(self.store, settings)
         self.acq_flags = np.full(plan.shape[0] * plan.shape[1], ACQUIRING, np.uint8)
         self.final = np.zeros(plan.shape[0] * plan.shape[1], bool)
         self.lost: list = []
@@ -237,7 +237,7 @@ class Session:
         with self._state_lock:
             if self._state != SessionState.IDLE or self._thread is not None:
                 raise SessionStateError(f"cannot start a session that is {self._state.value}")
-            self.recon.start()
+            self.live_recon.start()
             self._thread = threading.Thread(target=self._main, name="acq-session", daemon=True)
             self._thread.start()
         return self
@@ -316,7 +316,7 @@ class Session:
         eta = None
         if running_s > 0 and 0 < n_final < n_total and self._state not in _TERMINAL:
             eta = (n_total - n_final) * running_s / n_final
-        r = self.recon
+        r = self.live_recon
         maps = r.copy_maps("depth_m", "background", "signal", "uncertainty_s", "done",
                            *(("surfaces", "weak") if "surfaces" in r.fields else ()))
         maps["reconstructed"] = maps.pop("done")
@@ -416,7 +416,7 @@ class Session:
             self._fail(exc)
             final = SessionState.FAILED
         finally:
-            self.recon.close()
+            self.live_recon.close()
             self._t_end = time.monotonic()
             with self._state_lock:
                 self._state = final
@@ -436,7 +436,7 @@ class Session:
                 raise OutputError(f"output folder {self.out_dir}: cannot write "
                                   f"({exc.strerror or exc})") from None
             self._log({"event": "session", "plan": self.plan.to_dict(),
-                       "recon": self.recon.requested.to_dict(), "source": self.source.name})
+                       "recon": self.live_recon.requested.to_dict(), "source": self.source.name})
         if self._abort_req:
             raise _Aborted
         self._set_state(SessionState.ARMED)
@@ -453,7 +453,7 @@ class Session:
         warm = np.zeros(2, dtype=EVENT_DTYPE)
         warm["kind"] = 255
         self.store.feed(warm)
-        self.recon.warm_up()
+        self.live_recon.warm_up()
         self.source.arm(self._host)
         if self.source.warnings:
             self._log({"event": "warnings", "warnings": list(self.source.warnings)})
@@ -484,7 +484,7 @@ class Session:
         self._set_state(SessionState.RUNNING)
 
     def _check_health(self) -> None:
-        self.recon.raise_if_failed()
+        self.live_recon.raise_if_failed()
         now = time.monotonic()
         if self.out_dir is not None and now >= self._next_output_check:
             self._next_output_check = now + OUTPUT_CHECK_S
@@ -545,7 +545,7 @@ class Session:
         self.acq_flags[pixels[keep]] = flag
         self.final[pixels] = True
         self.store.freeze(pixels)
-        self.recon.submit(pixels)
+        self.live_recon.submit(pixels)
 
     def _fault(self, kind: str, what: str, action: str) -> None:
         """Record a fault (any thread: the tagger reader reports survived anomalies)."""
@@ -568,7 +568,7 @@ class Session:
         self.acq_flags[short] = reason
         try:
             self._finalise(rest, AcqFlag.COMPLETE)
-            self.recon.finish()
+            self.live_recon.finish()
         except BaseException as exc:  # noqa: BLE001 - the worker's error ends the session
             self._fail(exc)
             final = SessionState.FAILED
@@ -579,7 +579,7 @@ class Session:
                 self._fail(OutputError(f"output folder {self.out_dir} was removed before the "
                                        "session could write its maps and run.json"))
             return SessionState.FAILED
-        maps = self.recon.maps(copy=self.recon.error is not None)   # the worker has ended
+        maps = self.live_recon.maps(copy=self.live_recon.error is not None)   # the worker has ended
         # the pixels' scan angles (degrees), so the maps can be turned into points later
         p = self.plan
         _save_maps_npz(self.out_dir / "maps.npz", maps,
@@ -592,7 +592,7 @@ class Session:
 
     def maps(self):
         """The maps as they stand, in ``spdepth recon``'s format (``DepthMaps``)."""
-        return self.recon.maps()
+        return self.live_recon.maps()
 
     def flagged_pixels(self) -> np.ndarray:
         """Flat indices of the final pixels short of the target (``maps.npz`` holds them as the
@@ -616,7 +616,7 @@ class Session:
             "software": {"name": "spdepth", "version": ver},
             "source": self.source.name,
             "plan": self.plan.to_dict(),
-            "recon": self.recon.resolved or self.recon.requested.to_dict(),
+            "recon": self.live_recon.settings_used or self.live_recon.requested.to_dict(),
             "devices": jsonable(self.source.identities()),
             "info": self.info,
             "statistics": {
@@ -626,8 +626,8 @@ class Session:
                 "lost_spans": len(self.lost), "lost_records": st["lost_records"],
                 "elapsed_s": round(st["elapsed_s"], 3),
                 "detections_per_s": round(st["detections_per_s"], 1),
-                "recon_max_lag_pixels": self.recon.max_lag,
-                "recon_busy_s": round(self.recon.busy_s, 3),
+                "recon_max_lag_pixels": self.live_recon.max_lag,
+                "recon_busy_s": round(self.live_recon.busy_s, 3),
                 **self.source.statistics(),
                 "stream_s": self.stream_s,
             },
@@ -667,7 +667,7 @@ class _Host:
 
     @property
     def recon_settings(self):
-        return self._s.recon.requested
+        return self._s.live_recon.requested
 
     @property
     def pause_requested(self) -> bool:

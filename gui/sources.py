@@ -310,7 +310,7 @@ class Run:
     @property
     def label(self) -> str:
         if isinstance(self.request, ReplayRequest):   # the estimator: as recorded unless replaced
-            return f"{self.request.label()}, {self.session.recon.settings.method}"
+            return f"{self.request.label()}, {self.session.live_recon.requested.method}"
         return self.request.label()
 
     def close(self, *, discard: bool = False) -> None:
@@ -420,19 +420,19 @@ class SessionView:
         """Changes whenever what ``pixel(r, c)`` shows may have changed."""
         s = self.session
         flat = r * self.shape[1] + c
-        return (int(s.store.count[flat]), int(s.acq_flags[flat]), bool(s.recon.done[r, c]),
-                s.recon.settings.pulse_rms_s)
+        return (int(s.store.count[flat]), int(s.acq_flags[flat]), bool(s.live_recon.done[r, c]),
+                s.live_recon.pixel_settings.pulse_rms_s)
 
     def pixel(self, r: int, c: int) -> PixelInfo:
         s = self.session
-        rc = s.recon
+        rc = s.live_recon
         flat = r * self.shape[1] + c
         acq = int(s.acq_flags[flat])
         with rc.lock:          # one batch's results, never half of one
             est = estimate_at(rc, r, c)
         return PixelInfo(
-            times=s.store.photons([flat]).times, binning=rc.settings.binning,
-            pulse_rms_s=rc.settings.pulse_rms_s, irf=rc.settings.irf, **est,
+            times=s.store.photons([flat]).times, binning=rc.pixel_settings.binning,
+            pulse_rms_s=rc.pixel_settings.pulse_rms_s, irf=rc.pixel_settings.irf, **est,
             background=float(rc.background[r, c]), estimated=bool(rc.done[r, c]),
             flag=int(rc.flags[r, c]), kept=f"{int(s.store.count[flat])} of {s.plan.target}",
             n_kept=int(s.store.count[flat]), exposure_s=s.exposure_s(flat),

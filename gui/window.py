@@ -890,11 +890,11 @@ class MainWindow(QtWidgets.QMainWindow):
         self.accuracy.show()
         self.save_settings(worked=True)
         self.health = HealthTracker(live=not isinstance(run.request, ReplayRequest))
-        self._n_bins = run.session.recon.settings.binning.n_bins
+        self._n_bins = run.session.live_recon.pixel_settings.binning.n_bins
         # the run's own folder name; the whole path is in the tooltip (and in run.json)
         where = f" — files in …/{run.out_dir.name}/" if run.out_dir else ""
         self._target = run.session.plan.target
-        tof = run.session.recon.tof_s
+        tof = run.session.live_recon.tof_s
         self.controls.set_surfaces(tof.shape[0] if tof.ndim == 3 else 1)
         self._new_run(f"{run.label}{where}", str(run.out_dir or ""),
                       ScanGeometry.from_plan(run.session.plan), run.session.plan.shape)
@@ -1070,7 +1070,7 @@ class MainWindow(QtWidgets.QMainWindow):
             self._last_sig = versions
             painted = self._paint_maps(snap, target, versions)
         # a point per HISTORY_PERIOD_S whatever the repaint rate; drawn with the maps
-        self.accuracy.add(snap, run.truth_depth_m, run.session.recon.settings.pulse_rms_s,
+        self.accuracy.add(snap, run.truth_depth_m, run.session.live_recon.pixel_settings.pulse_rms_s,
                           force=snap.state in TERMINAL and painted, draw=painted)
         self._status(snap)
         if maps:
@@ -1122,7 +1122,7 @@ class MainWindow(QtWidgets.QMainWindow):
 
                 request = dataclasses.replace(self.view.result.request, method=method)
         elif self.run is not None and self.run.session.ended.is_set():
-            if self.run.session.recon.settings.method == method:
+            if self.run.session.live_recon.requested.method == method:
                 return
             rec = self.run.out_dir / "recording.ptu" if self.run.out_dir is not None else None
             if rec is not None and rec.is_file():

@@ -100,8 +100,8 @@ def test_without_a_pulse_the_response_measured_on_the_first_pixels_is_frozen_and
                           reflectors=2)
     with open_instruments(request) as inst:
         s = build_session(request, None, inst)
-        s = Session(s.plan, dataclasses.replace(s.recon.settings, pulse_rms_s=None), s.source,
-                    out_dir=out, info=inst.info)
+        unmeasured = dataclasses.replace(s.live_recon.requested, pulse_rms_s=None)
+        s = Session(s.plan, unmeasured, s.source, out_dir=out, info=inst.info)
         assert s.run() == SessionState.DONE, s.error
     live = DepthMaps.load_npz(out / "maps.npz")
     assert live.settings["pulse_source"].startswith("measured on the surfaces of the first")
@@ -189,7 +189,7 @@ def test_live_batches_with_empty_pixels_equal_one_reconstruction_with_the_frozen
     maps = live.maps()
     assert maps.settings["pulse_source"] == (f"measured on the surfaces of the first "
                                              f"{RESPONSE_SAMPLE_PIXELS} final pixels, then frozen")
-    batch = reconstruct(whole, dataclasses.replace(settings, irf=live.settings.irf))
+    batch = reconstruct(whole, dataclasses.replace(settings, irf=live.pixel_settings.irf))
     _assert_same(maps, batch)
     assert np.all(maps.flags[n.reshape(h, w) == 0] == 1) and np.all(maps.surfaces[n.reshape(h, w) == 0] == 0)
     assert np.mean(maps.surfaces[n.reshape(h, w) >= 15] == 2) > 0.9

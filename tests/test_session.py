@@ -14,7 +14,7 @@ import pytest
 
 from spdepth.acq.instruments import open_sim
 from spdepth.acq.recording import ReplaySource, recon_settings_from_dict
-from spdepth.acq.session import ACQUIRING, AcqFlag, SessionState, SessionStateError
+from spdepth.acq.session import AcqFlag, SessionState, SessionStateError
 from spdepth.recon.maps import DepthMaps
 from tests.sessions import assert_same_maps, assert_complete_or_flagged, assert_from_complete_dwells
 from tests.sessions import replay_session as _replay
@@ -198,7 +198,7 @@ def test_replay_target_5_of_a_recording_of_12(tmp_path):
     assert rep.run() == SessionState.DONE
     assert np.all(rep.store.count == 5)
     np.testing.assert_array_equal(rep.store.times[:, :5], live.store.times[:, :5])
-    assert rep.recon.settings.max_photons == 5
+    assert rep.live_recon.pixel_settings.max_photons == 5
 
 
 def test_subscribers_get_latest_snapshots_at_most_30_hz_and_a_slow_one_does_not_slow_the_scan():
@@ -234,7 +234,7 @@ def test_recording_is_a_ptu_that_ptufile_reads_as_an_image(tmp_path):
         assert pf.shape[1:3] == (8, 8) or pf.shape[-4:-2] == (8, 8) or 8 in pf.shape
     info = ReplaySource(tmp_path).info
     assert info.plan["target"] == 10 and info.has_event_log
-    assert recon_settings_from_dict(info.recon).binning == s.recon.settings.binning
+    assert recon_settings_from_dict(info.recon).binning == s.live_recon.pixel_settings.binning
 
 
 @pytest.mark.parametrize("mode", ["gated", "raster"])
@@ -330,9 +330,9 @@ def test_spatial_session_shows_ml_live_then_the_spatial_frame_and_replays_equal(
 
     with open_sim("steps", (12, 12), ppp=3, seed=14) as inst:
         s = _session(inst, (12, 12), tmp_path, target=3, method="spatial")
-        assert s.recon.settings.method == "ml"           # the live maps, pixel by pixel
+        assert s.live_recon.pixel_settings.method == "ml"           # the live maps, pixel by pixel
         assert s.run() == SessionState.DONE
-    batch = reconstruct(s.store.photons(), s.recon.requested)
+    batch = reconstruct(s.store.photons(), s.live_recon.requested)
     assert_same_maps(s.maps(), batch)
     assert s.maps().settings["method"] == "spatial"
     rep = _replay(tmp_path)

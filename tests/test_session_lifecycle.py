@@ -95,7 +95,7 @@ def test_any_source_gives_the_same_maps_as_the_replay_it_was_taken_from(recordin
     mem = MemorySource(passes, src.sync_period_s)
     assert isinstance(mem, Source)
     plan = ScanPlan.from_dict(src.info.plan)
-    s = Session(plan, rep.recon.requested, mem)
+    s = Session(plan, rep.live_recon.requested, mem)
     assert s.run() == SessionState.DONE and mem.closed
     for k in ("depth_m", "background", "signal", "flags"):
         np.testing.assert_array_equal(getattr(s.maps(), k), getattr(rep.maps(), k), err_msg=k)

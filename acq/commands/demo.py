@@ -109,7 +109,7 @@ def _demo(args, request, methods, out_dir, png) -> int:
           f"{snap.passes} pass{'es' if snap.passes != 1 else ''}, {scan_s:.2f} s of scan time in "
           f"{snap.running_s:.2f} s after {snap.elapsed_s - snap.running_s:.2f} s preparing "
           f"({snap.detections_per_s / 1e3:,.0f} k detections/s, live "
-          f"{request.method} lagged at most {session.recon.max_lag} pixels)")
+          f"{request.method} lagged at most {session.live_recon.max_lag} pixels)")
     if request.instruments.faults:
         print(f"faults injected: {request.instruments.faults}; galvo reconnects: {galvo_reconnects}; "
               f"lost spans in the tag stream: {len(session.lost)}, re-acquired in later passes")
@@ -125,12 +125,12 @@ def _demo(args, request, methods, out_dir, png) -> int:
     if true_depth.ndim == 3:
         true_depth = true_depth[0]
     photons = store.photons()
-    binning = session.recon.requested.binning
+    binning = session.live_recon.requested.binning
     k_signal = signal_detections(truth, store.count.reshape(h, w), window_s=binning.window_stop_s)
     results = {}
     print(f"{'method':<8}{'MAE (cm)':>10}{'x oracle':>10}{'missed':>8}{'recon (s)':>11}{'pixels/s':>12}")
     oracle_cm = None
-    live = session.recon.requested
+    live = session.live_recon.requested
     pulse_rms_s = request.pulse_rms_s or scene.pulse_rms_s
     for method in methods:
         # the live estimator's settings (pulse, surfaces, target) with another method

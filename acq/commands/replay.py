@@ -36,7 +36,7 @@ def run(args: argparse.Namespace) -> int:
             session = notice.session = build_session(request, out)
             interrupted = run_session(session, "replay")
         p = session.plan
-        asked = session.recon.requested
+        asked = session.live_recon.requested
         surfaces = "" if asked.reflectors == 1 else f", surfaces {asked.reflectors}"
         summary = finish_session(session, out.path, f"replay {p.nx}x{p.ny}, {p.target} per pixel, "
                                                     f"{asked.method}{surfaces}")

@@ -45,8 +45,8 @@ def scan_and_replay(size, target, method, seed, keep_dir=None, replay=True):
         st = s.snapshot()
         out = {"scan_wall_s": wall, "scan_running_s": st.detections / max(st.detections_per_s, 1e-9),
                "detections": st.detections, "scan_det_per_s": st.detections_per_s,
-               "passes": st.passes, "state": s.state.value, "max_lag": s.recon.max_lag,
-               "recon_busy_s": s.recon.busy_s, "lag_samples": lag,
+               "passes": st.passes, "state": s.state.value, "max_lag": s.live_recon.max_lag,
+               "recon_busy_s": s.live_recon.busy_s, "lag_samples": lag,
                "rss_after_scan_mb": _peak_rss_mb()}
         if replay:
             r = build_session(ReplayRequest(recording=str(tmp / "live")), tmp / "replay")
