@@ -27,21 +27,32 @@ from spdepth.acq.commands import (EXIT_DEVICE, EXIT_FAILED, EXIT_INTERRUPTED, EX
                                   EXIT_USAGE, Terminated)
 from spdepth.acq.errors import AcqError
 from spdepth.drivers.errors import DeviceError, SettingError
-from spdepth.recon.errors import InputError
 
-EXIT_CODES: tuple[tuple[type[Exception], int], ...] = (
-    (AcqError, EXIT_USAGE),      # acq: a bad request, recording or output folder
-    (InputError, EXIT_USAGE),    # recon: a bad file or setting
-    (SettingError, EXIT_USAGE),  # drivers: a bad argument to a driver or simulated device
-    (DeviceError, EXIT_DEVICE),  # drivers: a device missing, faulted, timed out or undecodable
-)
-"""Every error family the CLI reports as one line, with its exit status; the first match wins.
-Anything else is a bug and keeps its traceback."""
+
+def exit_codes() -> tuple[tuple[type[Exception], int], ...]:
+    """Every error family the CLI reports as one line, with its exit status; the first match
+    wins. Anything else is a bug and keeps its traceback. (recon's family is imported here, not
+    with the module: importing ``spdepth.recon`` registers its estimators, which loads numpy, and
+    ``spdepth --help`` needs none of it.)"""
+    from spdepth.recon.errors import InputError
+
+    return (
+        (AcqError, EXIT_USAGE),      # acq: a bad request, recording or output folder
+        (InputError, EXIT_USAGE),    # recon: a bad file or setting
+        (SettingError, EXIT_USAGE),  # drivers: a bad argument to a driver or simulated device
+        (DeviceError, EXIT_DEVICE),  # drivers: a device missing, faulted, timed out or undecodable
+    )
+
+
+def __getattr__(name: str):
+    if name == "EXIT_CODES":         # the table as it was named before exit_codes()
+        return exit_codes()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def exit_code(exc: BaseException) -> int | None:
     """The exit status for an error of a known family, None for anything else (a bug)."""
-    return next((code for family, code in EXIT_CODES if isinstance(exc, family)), None)
+    return next((code for family, code in exit_codes() if isinstance(exc, family)), None)
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -136,7 +147,7 @@ def main(argv: list[str] | None = None) -> int:
     previous = signal.signal(signal.SIGTERM, _raise_terminated) if main_thread else None
     try:
         return int(args._run(args) or 0)
-    except tuple(family for family, _ in EXIT_CODES) as exc:
+    except tuple(family for family, _ in exit_codes()) as exc:
         print(f"spdepth {args.command}: error: {exc}", file=sys.stderr)
         return exit_code(exc)
     except KeyboardInterrupt as exc:

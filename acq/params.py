@@ -25,8 +25,8 @@ folder for scan, replay, demo and the window; the report's folder for ``bench re
 output file is named by its format: ``--npz``, ``--png``, ``--ply``, ``--las``, ``--ptu``.
 
 This module imports no numerical or Qt module: building the parser stays fast (``spdepth
---help``). Lists owned elsewhere (scenes, fault kinds, tagger models) are read when a help text or
-a check needs them.
+--help``). Lists owned elsewhere (the estimator registry ``recon.estimators``, the scenes, the
+fault kinds, the tagger models) are read when a help text or a check needs them.
 """
 
 from __future__ import annotations

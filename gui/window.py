@@ -36,9 +36,9 @@ from spdepth.gui.maps import C_M_PER_S, PANEL_DEFS, MapPanel, link_panels, snaps
 from spdepth.gui.view3d import PointCloudView
 from spdepth.gui.pixel_model import pixel_histogram
 from spdepth.recon import estimators
-from spdepth.gui.sources import (PATH_FIELDS, SETTINGS_KEY, SPEC_OPTIONS, FileJob, Remembered, ResultView,
-                                 SessionView, SourceSpec, in_window_words, open_run, run_kind,
-                                 spec_fields, spec_param)
+from spdepth.gui.sources import (PATH_FIELDS, SETTINGS_KEY, SPEC_OPTIONS, FileJob, Remembered,
+                                 ResultView, SessionView, SourceSpec, in_window_words, open_run,
+                                 run_kind, spec_fields, spec_param)
 
 log = logging.getLogger(__name__)
 

@@ -119,7 +119,7 @@ def test_a_plugin_shows_in_recon_help_a_live_scan_and_a_recording(centroid, tmp_
     live = DepthMaps.load_npz(run / "maps.npz")
     assert np.all(np.isnan(live.background)) and np.all(live.photons == 6)
     # the live maps are the estimator's own: its mean bin of each pixel's detections
-    assert main(["recon", str(run / "recording.ptu"), "--method", "centroid", "--out",
+    assert main(["recon", str(run / "recording.ptu"), "--method", "centroid", "--npz",
                  str(tmp_path / "again.npz")]) == 0
     again = DepthMaps.load_npz(tmp_path / "again.npz")
     np.testing.assert_array_equal(again.tof_s, live.tof_s)

@@ -11,7 +11,6 @@ from pathlib import Path
 
 from spdepth.acq.commands._args import non_negative_float, positive_float
 from spdepth.acq.params import add_options
-from spdepth.recon.errors import InputError
 
 HELP = "simulate a scan of a built-in or depth-image scene; write a T3 image PTU and its truth"
 
@@ -47,6 +46,7 @@ def run(args: argparse.Namespace) -> int:
     from spdepth.acq.ptu import MARKER_INPUT, write_ptu
     from spdepth.acq.report import ProgressBar
     from spdepth.drivers.sim import PhotonWorld, load_scene
+    from spdepth.recon.errors import InputError
 
     out = Path(args.ptu)
     if out.suffix.lower() != ".ptu":
