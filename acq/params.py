@@ -412,11 +412,15 @@ _DECLARED = (
           summary="the time tagger: picoquant:MODEL, swabian or usb:VID:PID",
           metavar="TAGGER", label="Tagger", example="usb:VID:PID",
           help="time tagger: {taggers}; with --sim only a vendor tagger (its driver on a stand-in)"),
-    Param("--replay", "recording", "path", summary="the recording replayed: a run folder or a PTU", group="source", sources=("replay",), metavar="RECORDING",
+    Param("--replay", "recording", "path",
+          summary="the recording replayed: a run folder or a PTU",
+          group="source", sources=("replay",), metavar="RECORDING",
           positional=("replay",), label="Recording", example="run folder or recording.ptu",
           help="a session folder or its recording.ptu, or a Generic T3 PTU with pixel markers, "
                "replayed through the session pipeline"),
-    Param("--file", "input", "path", summary="the file reconstructed: .mat or PTU/HT3/PT3", group="source", sources=("file",), metavar="INPUT",
+    Param("--file", "input", "path",
+          summary="the file reconstructed: .mat or PTU/HT3/PT3",
+          group="source", sources=("file",), metavar="INPUT",
           positional=("recon",), label="File", example="scan.ptu or data.mat",
           per_command={"recon": dict(nargs="+", help=".mat (first-photon imaging) or PTU/HT3/PT3 "
                                      "T3 file; with several, --npz and --png name folders "
@@ -424,14 +428,18 @@ _DECLARED = (
           help="a .mat (first-photon imaging) or PicoQuant PTU/HT3/PT3 T3 file, reconstructed as "
                "spdepth recon does"),
     # -- simulated bench -------------------------------------------------------------------------
-    Param("--scene", "scene", "str", summary="the simulated scene: a built-in one or file:DEPTH", group="simulated bench", sources=("sim",), default="bust",
+    Param("--scene", "scene", "str",
+          summary="the simulated scene: a built-in one or file:DEPTH",
+          group="simulated bench", sources=("sim",), default="bust",
           choices=scene_names, free=True, label="Scene",
           per_command={"simulate": dict(default=None, required=True)},
           commands=("scan", "demo", "gui", "simulate"),
           help="a built-in scene ({scenes}) or file:PATH[,reflectivity=PATH][,scale=M_PER_UNIT]"
                "[,offset=M] for a depth image (.npy/.png/.tif; float images in metres, integer "
                "images in millimetres unless scale)"),
-    Param("--ppp", "ppp", "float", summary="mean detections per pixel per scene dwell", group="simulated bench", sources=("sim",), low=0, low_open=True,
+    Param("--ppp", "ppp", "float",
+          summary="mean detections per pixel per scene dwell",
+          group="simulated bench", sources=("sim",), low=0, low_open=True,
           default_text="the target", commands=("scan", "demo", "gui", "simulate"),
           per_command={"simulate": dict(default=15.0)},
           help="mean detections (signal + background) per pixel per scene dwell"),
@@ -451,11 +459,14 @@ _DECLARED = (
           unit="Hz", low=0, low_open=True, default_text="required", label="Sync rate",
           none_label="required",
           help="the laser repetition rate (recorded in the PTU header)"),
-    Param("--fov-deg", "fov_deg", "float", summary="square field of view in optical degrees, centred", group="real devices", sources=("real", "file"), unit="deg",
+    Param("--fov-deg", "fov_deg", "float",
+          summary="square field of view in optical degrees, centred",
+          group="real devices", sources=("real", "file"), unit="deg",
           default=20.0, low=0, low_open=True, high=90.0, metavar="DEG",
           range_text="wider than a galvo mirror turns (90)", label="Field of view",
-          per_source={"file": dict(default=None, high=180, high_open=True, range_text="a field of view must be "
-                                   "under 180", default_text="none", group="points",
+          per_source={"file": dict(default=None, high=180, high_open=True,
+                                   range_text="a field of view must be under 180",
+                                   default_text="none", group="points",
                                    help="field of view (square, centred) of a file without scan "
                                         "geometry (.mat): the pixels' angles for --ply/--las and "
                                         "the picture's axes")},
@@ -480,7 +491,9 @@ _DECLARED = (
           per_command={"simulate": dict(default=None, default_text="64x64; a depth image's own "
                                         "size for file:")},
           help="pixels, width x height"),
-    Param("--target", "target", "int", summary="in-window detections kept per pixel", group="scan", sources=SCAN_SOURCES + ("replay", "file"),
+    Param("--target", "target", "int",
+          summary="in-window detections kept per pixel",
+          group="scan", sources=SCAN_SOURCES + ("replay", "file"),
           default=DEFAULT_TARGET, low=1, metavar="N", label="Target",
           per_source={"replay": dict(default=None, none_label="as recorded",
                                      default_text="the recorded target; required for files that "
@@ -494,7 +507,9 @@ _DECLARED = (
                                         "paper: 15)")},
           per_command={"recon": dict(aliases=("--max-photons",))},
           help="in-window detections per pixel"),
-    Param("--mode", "mode", "str", summary="gated (each pixel until the target) or raster (fixed dwell)", group="scan", sources=SCAN_SOURCES, default="gated",
+    Param("--mode", "mode", "str",
+          summary="gated (each pixel until the target) or raster (fixed dwell)",
+          group="scan", sources=SCAN_SOURCES, default="gated",
           choices=MODES, label="Mode",
           help="gated: hold each pixel until N detections or the dwell limit; raster: fixed "
                "dwell, frames repeated until every pixel has N"),
@@ -511,7 +526,9 @@ _DECLARED = (
     Param("--settle-us", "settle_s", "float", group="scan", sources=SCAN_SOURCES, unit="us",
           scale=1e-6, default=0.0, low=0, high=1e6, metavar="US",
           help="wait after each step before the pixel opens"),
-    Param("--max-passes", "max_passes", "int", summary="re-acquisition passes (gated) or frames (raster)", group="scan", sources=SCAN_SOURCES, low=1,
+    Param("--max-passes", "max_passes", "int",
+          summary="re-acquisition passes (gated) or frames (raster)",
+          group="scan", sources=SCAN_SOURCES, low=1,
           metavar="N", default_text="gated 10 re-acquisition passes, raster 100 frames",
           help="gated: re-acquisition passes; raster: frames"),
     Param("--time-limit-s", "time_limit_s", "float", group="scan", sources=SCAN_SOURCES, unit="s",
@@ -535,7 +552,9 @@ _DECLARED = (
                                    help="histogram bin width (a whole number of raw units)")},
           help="histogram bin width"),
     # -- estimator ---------------------------------------------------------------------------------
-    Param("--method", "method", "str", summary="the estimator", group="estimator", sources=SOURCES, default=DEFAULT_METHOD,
+    Param("--method", "method", "str",
+          summary="the estimator",
+          group="estimator", sources=SOURCES, default=DEFAULT_METHOD,
           choices=method_names, label="Estimator", metavar="{method_names}",
           per_source={"replay": dict(default=None, default_text=f"as recorded, else {DEFAULT_METHOD}")},
           help="estimator. {methods}"),
@@ -548,7 +567,9 @@ _DECLARED = (
                       "replay": dict(default_text="as recorded", none_label="as recorded"),
                       "file": dict(default_text="as recorded, else estimated from the data")},
           help="Gaussian pulse RMS width (the seed paper: 360)"),
-    Param("--irf", "irf", "path", summary="a measured instrument response instead of a Gaussian", group="estimator", sources=("file",), metavar="FILE",
+    Param("--irf", "irf", "path",
+          summary="a measured instrument response instead of a Gaussian",
+          group="estimator", sources=("file",), metavar="FILE",
           exclusive="pulse", help="a measured instrument response (CSV time_ps,counts or .npy) "
           "instead of a Gaussian"),
     Param("--reflectors", "reflectors", _SURFACES, group="estimator", sources=SOURCES,
@@ -564,7 +585,9 @@ _DECLARED = (
           default=DEFAULT_FALSE_ALARM, low=0, low_open=True, high=1, high_open=True, metavar="P",
           per_source={"replay": _AS_RECORDED},
           help="--reflectors auto: chance per pixel and surface that background passes for a surface"),
-    Param("--speed", "speed", "speed", summary="replay speed: max, or a factor of recorded time", group="replay", sources=("replay",), default="max",
+    Param("--speed", "speed", "speed",
+          summary="replay speed: max, or a factor of recorded time",
+          group="replay", sources=("replay",), default="max",
           help="'max' (as fast as it decodes) or a factor of recorded time (1: real time)"),
     # -- files -------------------------------------------------------------------------------------
     Param("--time-unit-ps", "time_unit_s", "float", group="file", sources=("file",), unit="ps",
@@ -579,7 +602,9 @@ _DECLARED = (
           default_text="all", help="PicoQuant files: keep only detector channel N (0-based)"),
     Param("--threads", "threads", "int", group="file", sources=("file",), commands=("recon",),
           low=1, metavar="N", default_text="all cores", help="worker threads for the estimator"),
-    Param("--dask", "", "str", summary="reconstruct on a dask.distributed cluster", group="file", commands=("recon",), metavar="ADDRESS|local:N",
+    Param("--dask", "", "str",
+          summary="reconstruct on a dask.distributed cluster",
+          group="file", commands=("recon",), metavar="ADDRESS|local:N",
           default_text="this process",
           help="reconstruct on a dask.distributed cluster: a scheduler address, or local:N for N "
                "worker processes on 127.0.0.1 (docs/dask.md); same maps (needs the dask extra: "
@@ -614,7 +639,9 @@ _DECLARED = (
           help="the window's runs folder: each run started in the window writes its own folder here"),
     Param("--npz", "out", "path", group="output", sources=("file",), commands=("recon",),
           metavar="MAPS.npz", help="write the maps and the settings used"),
-    Param("--png", "png", "path", summary="a picture (PNG) of the maps", group="output", sources=("file",), commands=("recon", "demo"),
+    Param("--png", "png", "path",
+          summary="a picture (PNG) of the maps",
+          group="output", sources=("file",), commands=("recon", "demo"),
           metavar="FILE.png",
           per_command={"demo": dict(default="spdepth-demo.png", help="the PNG sheet: truth and "
                                     "each --compare estimator's depth")},
