@@ -120,6 +120,7 @@ def test_options_become_the_request_in_si():
     (["recon", "x.ptu", "--out", "m.npz"], "the maps file is --npz FILE.npz"),
     (["simulate", "--scene", "bust", "--out", "x.ptu"], "the PTU file is --ptu FILE.ptu"),
     (["demo", "--record", "d"], "--record is now --out DIR"),
+    (["gui", "--file", "x.ptu", "--out", "d"], "a file reconstructed in the window writes nothing"),
 ])
 def test_one_rule_per_option_in_every_command(argv, message, capsys):
     assert main(argv) == 2

@@ -77,11 +77,12 @@ def run(args: argparse.Namespace) -> int:
 
         print(f"spdepth gui: {problem}", file=sys.stderr)
         return EXIT_FAILED
-    if args.out is not None and source_of(args) is None:
+    if args.out is not None and source_of(args) in (None, "file"):
         from spdepth.acq.errors import RequestError
 
-        raise RequestError("--out names the folder of the run started from the command line: give "
-                           "a source (--sim, --galvo/--tagger, --replay or --file), or --runs-dir")
+        raise RequestError("--out names the folder of the run started from the command line (a "
+                           "scan or a replay; a file reconstructed in the window writes nothing): "
+                           "give --sim, --galvo/--tagger or --replay, or --runs-dir")
     application()
     stored = remembered()
     # a source to start is checked here: bad arguments are one line and exit 2, no window; the
@@ -93,7 +94,7 @@ def run(args: argparse.Namespace) -> int:
     size = args.window_size[::-1] if args.window_size else (WINDOW_SIZE if args.screenshot else None)
     kw = dict(controls=spec, start=request is not None, screenshot=args.screenshot,
               exit_after_scan=args.exit_after_scan, window_size=size, view=args.view, notes=notes)
-    if args.out is not None and source != "file":
+    if args.out is not None:
         from spdepth.acq.api import OutputDir
 
         with OutputDir(args.out, overwrite=args.overwrite) as out:
