@@ -1,5 +1,5 @@
-"""Numba kernels of the spatial estimator (:mod:`recon.spatial`). Plain arrays in, disjoint outputs
-out; validation, allocation and the choice of constants happen in :mod:`recon.spatial`.
+"""Numba kernels of the spatial estimator (:mod:`recon.estimators.spatial`). Plain arrays in, disjoint outputs
+out; validation, allocation and the choice of constants happen in :mod:`recon.estimators.spatial`.
 
 Times here are continuous shifts in bins: a detection at raw time ``t`` is at
 ``(t - window_start) / bin_width - 0.5``, the shift whose pulse centroid it would be (so the mean of a

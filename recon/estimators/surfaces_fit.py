@@ -2,7 +2,7 @@
 
 ``reflectors`` K > 1 or "auto" (the pixelwise methods): every pixel is fitted by a greedy Poisson
 pursuit in the union of K shifted copies of the response plus a flat background
-(:mod:`recon.multi_kernels`): a surface is added where it raises the Poisson log-likelihood most,
+(:mod:`recon.estimators.surfaces_kernels`): a surface is added where it raises the Poisson log-likelihood most,
 with its amplitude profiled out, then the amplitudes and background are refitted and the shifts
 re-refined. K fixed keeps up to K surfaces that each lower Akaike's criterion (``LLR_MIN``), the
 doubtful ones flagged weak; "auto" keeps adding surfaces (up to ``max_reflectors``) while the
@@ -39,7 +39,7 @@ import numpy as np
 # `spdepth recon --reflectors 2`): chdtri(1, p) is chi2.isf(p, 1), the same function underneath
 from scipy.special import chdtri
 
-from spdepth.recon import multi_kernels as MK
+from spdepth.recon.estimators import surfaces_kernels as MK
 from spdepth.recon.errors import InputError
 from spdepth.recon.irf import smooth_tail
 from spdepth.recon.maps import C_M_PER_S, DepthMaps, PixelFlag
@@ -302,7 +302,7 @@ def reconstruct_multi(store: PhotonStore, settings: ReconSettings, b: Binning, k
     shift, amp, bg, var, gain, n_used, kmax, gain_min, rule = fit_surfaces(store, settings, b, kern, core_s, progress)
     notes["surfaces_rule"] = rule
     notes["surface_gain_min_nats"] = float(gain_min)
-    notes["kernel_k_surfaces"] = "greedy Poisson pursuit (recon.multi)"
+    notes["kernel_k_surfaces"] = "greedy Poisson pursuit (recon.estimators.surfaces)"
     return _maps(store, settings, b, kern, notes, shift, amp, bg, var, gain, n_used, kmax)
 
 
@@ -371,7 +371,7 @@ def reconstruct_multi_spatial(store: PhotonStore, settings: ReconSettings, b: Bi
     MK.smooth_surfaces(shift, sig, var, h, w, SPATIAL_RADIUS, float(tau), sm_shift, sm_var)
     notes["surfaces_rule"] = rule
     notes["surface_gain_min_nats"] = float(gain_min)
-    notes["kernel_k_surfaces"] = "greedy Poisson pursuit with the neighbours' proposals (recon.multi)"
+    notes["kernel_k_surfaces"] = "greedy Poisson pursuit with the neighbours' proposals (recon.estimators.surfaces)"
     notes["spatial_surfaces"] = {"radius": SPATIAL_RADIUS, "tau_bins": float(tau), "strong_nats": float(strong),
                                  "pooled_nats": float(pool), "own_strong": int(np.sum(src == 0)),
                                  "from_neighbourhood": int(np.sum(src == 1))}

@@ -1,4 +1,4 @@
-"""Numba kernel of the K-surface pixelwise estimator (:mod:`recon.multi`): a greedy Poisson pursuit.
+"""Numba kernel of the K-surface pixelwise estimator (:mod:`recon.estimators.surfaces_fit`): a greedy Poisson pursuit.
 
 Per pixel the model is ``lambda_k = B + sum_r a_r g[k - j_r + off]`` (g: the unit-area response on
 the bins, measured from the data, tail and afterpulse bump included, so they are never a surface).
@@ -590,7 +590,7 @@ def multi_return_kernel(bins, offsets, m, g, off, colsum, dg, kmax, sep_bins, ga
 
 
 # ------------------------------------------------------------------------------------------------
-# several surfaces with the neighbours' help (recon.multi.reconstruct_multi_spatial)
+# several surfaces with the neighbours' help (recon.estimators.surfaces_fit.reconstruct_multi_spatial)
 
 
 @njit(parallel=True, cache=True, nogil=True)
