@@ -216,6 +216,7 @@ def weak_far_scene(rng, h=40, w=40, near=20.0, far=2.0, bg=3.0):
 
 def test_spatial_kernels_match_numpy_reference():
     from spdepth.recon.estimators import surfaces_kernels as MK
+    from spdepth.recon.kernels import Photons
 
     rng = np.random.default_rng(155)
     store, _ = weak_far_scene(rng, 5, 6)
@@ -239,13 +240,16 @@ def test_spatial_kernels_match_numpy_reference():
                            for p in range(store.n_pixels)]).astype(np.int64)
     offsets = np.concatenate(([0], np.cumsum(ys.sum(axis=1)))).astype(np.int64)
     npix = store.n_pixels
-    out = [np.full((npix, 2), np.nan), np.zeros((npix, 2)), np.zeros(npix), np.full((npix, 2), np.nan),
-           np.zeros((npix, 2)), np.full((npix, 2), -1, np.int64)]
+    res = MK.SurfOut(np.full((npix, 2), np.nan), np.zeros((npix, 2)), np.zeros(npix), np.full((npix, 2), np.nan),
+                     np.zeros((npix, 2)), np.zeros(npix, np.int64))
+    src = np.full((npix, 2), -1, np.int64)
+    tabs = MK.surf_tables(b.n_bins, kern.g, kern.off, kern.colsum, kern.dg, fw, args["cand_step"], args["step0"])
+    nb = MK.Neighbourhood(5, 6, 1, 14.0, 8.0, float(fw), 3)
     # in two slices of pixels, as recon.estimators.surfaces_fit calls it (between progress reports)
     for p0, p1 in ((0, 13), (13, npix)):
-        MK.neighbour_surfaces(bins, offsets, 5, 6, 1, shift0, gain0, 14.0, 8.0, float(fw), fw, 2, 3,
-                              args["cand_step"], kern.g, kern.off, kern.colsum, kern.dg, b.n_bins, args["step0"],
-                              int(np.diff(offsets).max()), *out, p0, p1)
+        MK.neighbour_surfaces(Photons(bins, offsets), shift0, gain0, nb, tabs, int(np.diff(offsets).max()), res,
+                              src, p0, p1)
+    out = [res.shift, res.amp, res.bg, res.var, res.gain, src]
     expect = ref.neighbour_surfaces(ys, 5, 6, kern, ref.dense_s(kern), shift_in=shift0, gain_in=gain0, **args)
     for p, (rs, ra, rc) in enumerate(expect):
         n = rs.size

@@ -148,7 +148,8 @@ def test_censor_fit_matches_reference(small_store):
                            for p in range(h * w))
             got = [np.empty(h * w), np.empty(h * w), np.empty(h * w), np.empty(h * w, np.int64),
                    np.empty(h * w, np.int64)]
-            SK.censor_fit(x, off, h, w, radius, tau, s_min, sigma, float(M), 4, counts, width or 1.0, *got)
+            cs = SK.CensorSettings(h, w, radius, tau, sigma, float(M), 4, width or 1.0)
+            SK.censor_fit(x, off, s_min, counts, cs, *got)
             for g, wv in zip(got, want):
                 assert_allclose(g, wv, rtol=1e-10, atol=1e-12)
             assert (got[4] > 0).any() and (got[4] < got[3]).any()      # some kept, some censored

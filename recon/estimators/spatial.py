@@ -191,8 +191,8 @@ def fit(store: PhotonStore, settings: ReconSettings, b, kern, notes: dict,
         SK.window_counts(x, offsets, h, w, radius, count_width, win_counts)
     else:
         win_counts = np.empty((npix, 0), np.int32)
-    SK.censor_fit(x, offsets, h, w, radius, tau, s_min, sigma, float(m), EM_ITERS, win_counts, count_width,
-                  mu, k, bg, n_used, n_cens)
+    cs = SK.CensorSettings(h, w, radius, tau, sigma, float(m), EM_ITERS, count_width)
+    SK.censor_fit(x, offsets, s_min, win_counts, cs, mu, k, bg, n_used, n_cens)
     if progress is not None:
         progress(npix // 2, npix)
 
