@@ -7,7 +7,7 @@ Every kernel works from per-pixel photon lists (:class:`Photons`, CSR:
 :func:`pixel_bins` (scratch from :func:`pixel_scratch`), and from the 1-D pulse tables of
 :class:`recon.model.PulseKernel`, so ``S_i^T y = sum over photons of g[k - i]`` and no N x N matrix
 is ever formed. Pixels are processed in blocks of BLOCK under ``prange`` (:func:`n_blocks`,
-:func:`block_span`); each block owns its scratch arrays. The shape, after stumpy's ``stump`` ->
+:func:`block_pixels`); each block owns its scratch arrays. The shape, after stumpy's ``stump`` ->
 ``_stump``: a public kernel (validated, allocated arguments; a prange over blocks) -> a block
 function (its scratch) -> a per-pixel fit made of small named helpers.
 
@@ -238,9 +238,9 @@ def n_blocks(ph):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def block_span(ph, blk):
-    """(p0, p1): the pixels p0 <= p < p1 of block blk."""
-    return blk * BLOCK, min(ph.offsets.size - 1, (blk + 1) * BLOCK)
+def block_pixels(ph, blk):
+    """The pixels of block blk (a range)."""
+    return range(blk * BLOCK, min(ph.offsets.size - 1, (blk + 1) * BLOCK))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -266,6 +266,16 @@ def col_dot(i, j, m, pp, off, nk):
     if hi > nk:
         hi = nk
     return pp[d + dmax, hi] - pp[d + dmax, lo]
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _rotate(x, n, p, q, c, s):
+    """Columns p and q of x[:n] rotated by (c, s): a Jacobi sweep's step (rows through x.T)."""
+    for k in range(n):
+        xkp = x[k, p]
+        xkq = x[k, q]
+        x[k, p] = c * xkp - s * xkq
+        x[k, q] = s * xkp + c * xkq
 
 
 @njit(cache=True, nogil=True)
@@ -294,21 +304,9 @@ def sym_eig(a, n, vecs, vals):
                 t = (1.0 if theta >= 0 else -1.0) / (abs(theta) + math.sqrt(theta * theta + 1.0))
                 c = 1.0 / math.sqrt(t * t + 1.0)
                 s = t * c
-                for k in range(n):
-                    akp = a[k, p]
-                    akq = a[k, q]
-                    a[k, p] = c * akp - s * akq
-                    a[k, q] = s * akp + c * akq
-                for k in range(n):
-                    apk = a[p, k]
-                    aqk = a[q, k]
-                    a[p, k] = c * apk - s * aqk
-                    a[q, k] = s * apk + c * aqk
-                for k in range(n):
-                    vkp = vecs[k, p]
-                    vkq = vecs[k, q]
-                    vecs[k, p] = c * vkp - s * vkq
-                    vecs[k, q] = s * vkp + c * vkq
+                _rotate(a, n, p, q, c, s)
+                _rotate(a.T, n, p, q, c, s)
+                _rotate(vecs, n, p, q, c, s)
     for p in range(n):
         vals[p] = a[p, p]
 

@@ -2,7 +2,7 @@
 S_{k,i}`` per pixel over integer shifts, and the variance from that score's curvature there.
 
 :func:`lmf_kernel` (a prange over blocks) -> :func:`_lmf_block` (a block's scratch) ->
-:func:`lmf_shift` and :func:`lmf_var` on one pixel's distinct bins and counts
+:func:`lmf_pixel` (:func:`lmf_shift`, :func:`lmf_var`) on one pixel's distinct bins and counts
 (:func:`recon.kernels.pixel_bins`).
 """
 
@@ -13,7 +13,7 @@ from collections import namedtuple
 import numpy as np
 from numba import njit, prange
 
-from spdepth.recon.kernels import block_span, n_blocks, pixel_bins, pixel_scratch
+from spdepth.recon.kernels import block_pixels, n_blocks, pixel_bins, pixel_scratch
 
 #: LMF on a log-concave pulse: up to this many distinct photon bins, hill-climb from their mean
 #: (cost O(photons x steps), steps < bins); above it, bisect (O(photons log bins)).
@@ -98,6 +98,16 @@ def _scan(kb, kw, nu, logg, m):
 
 
 @njit(cache=True, nogil=True, _nrt=False)
+def lmf_pixel(kb, kw, nu, tabs):
+    """(shift, var) of one pixel's distinct bins kb[:nu] (counts kw): :func:`lmf_shift` and
+    :func:`lmf_var`; (-1, NaN) without photons."""
+    if nu == 0:
+        return -1, np.nan
+    i = lmf_shift(kb, kw, nu, tabs)
+    return i, lmf_var(kb, kw, nu, i, tabs)
+
+
+@njit(cache=True, nogil=True, _nrt=False)
 def lmf_shift(kb, kw, nu, tabs):
     """The first argmax shift of the score of the distinct bins kb[:nu] (counts kw), nu > 0."""
     if tabs.log_concave and nu > CLIMB_MAX_PHOTONS:
@@ -128,17 +138,9 @@ def _lmf_block(blk, ph, tabs, maxn, out_shift, out_var, out_n):
     """The pixels of block blk of :func:`lmf_kernel`, compiled on its own and called from the
     kernel's parallel loop (numba compiles a parallel loop's body twice)."""
     px = pixel_scratch(maxn, tabs.m)
-    p0, p1 = block_span(ph, blk)
-    for p in range(p0, p1):
-        nu, n = pixel_bins(ph, p, px)
-        out_n[p] = n
-        if nu == 0:
-            out_shift[p] = -1
-            out_var[p] = np.nan
-            continue
-        i = lmf_shift(px.kb, px.kw, nu, tabs)
-        out_shift[p] = i
-        out_var[p] = lmf_var(px.kb, px.kw, nu, i, tabs)
+    for p in block_pixels(ph, blk):
+        nu, out_n[p] = pixel_bins(ph, p, px)
+        out_shift[p], out_var[p] = lmf_pixel(px.kb, px.kw, nu, tabs)
 
 
 @njit(parallel=True, cache=True, nogil=True)

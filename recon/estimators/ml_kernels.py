@@ -35,7 +35,7 @@ from numba import njit, prange
 from spdepth.recon.estimators.ml_bounds import (ML_SHARE_CLAMP, ML_SHARES, _ml_at_fine, _ml_at_int, _photon_range,
                                                 mix_bounds, share_bound, share_diffs, share_sweep, share_tables,
                                                 swept_bound)
-from spdepth.recon.kernels import (block_span, fisher_tab, n_blocks, photon_intervals, pixel_bins, pixel_scratch,
+from spdepth.recon.kernels import (block_pixels, fisher_tab, n_blocks, photon_intervals, pixel_bins, pixel_scratch,
                                    sort_desc)
 
 #: ml: logliks within this share of each other are a tie (the pulse on either of two lone
@@ -427,8 +427,10 @@ def _parabola(kb, kw, nu, ntot, best_i, bq, bs, qlo, qhi, tabs, scr):
 @njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
 def ml_pixel(kb, kw, nu, tabs, scr):
     """Exact Poisson ML on one pixel's distinct bins kb[:nu] (counts kw), nu > 0: (shift, amp, bg,
-    var); shift and var NaN and amp 0 when the all-background fit wins."""
+    var); shift and var NaN and amp 0 when the all-background fit wins (or there is no photon)."""
     T, S = tabs, scr
+    if nu == 0:
+        return np.nan, 0.0, 0.0, np.nan
     ntot = 0.0
     for u in range(nu):
         ntot += kw[u]
@@ -463,13 +465,8 @@ def _ml_block(blk, ph, tabs, maxn, out_shift, out_amp, out_bg, out_var, out_n):
     ml's cold compile when the body was this code (the same speed either way)."""
     px = pixel_scratch(maxn, tabs.m)
     scr = ml_scratch(maxn, tabs)
-    p0, p1 = block_span(ph, blk)
-    for p in range(p0, p1):
-        nu, n = pixel_bins(ph, p, px)
-        out_n[p] = n
-        if nu == 0:
-            out_shift[p], out_amp[p], out_bg[p], out_var[p] = np.nan, 0.0, 0.0, np.nan
-            continue
+    for p in block_pixels(ph, blk):
+        nu, out_n[p] = pixel_bins(ph, p, px)
         out_shift[p], out_amp[p], out_bg[p], out_var[p] = ml_pixel(px.kb, px.kw, nu, tabs, scr)
 
 

@@ -47,7 +47,7 @@ from collections import namedtuple
 import numpy as np
 from numba import njit, prange
 
-from spdepth.recon.kernels import BLOCK, block_span, n_blocks, pixel_bins, pixel_scratch, unique_bins
+from spdepth.recon.kernels import BLOCK, block_pixels, n_blocks, pixel_bins, pixel_scratch, unique_bins
 
 #: Newton steps on a return's amplitude.
 NEWTON_STEPS = 12
@@ -80,6 +80,16 @@ def first_at_least(kb, nu, v):
         else:
             z = h
     return a
+
+
+@njit(cache=True, nogil=True, _nrt=False, inline="always", error_model="numpy")
+def near_return(j, shifts, nr, sep_bins, skip):
+    """Whether shift j lies within sep_bins of one of shifts[:nr] but shifts[skip] (-1: none)."""
+    near = False
+    for r in range(nr):
+        if r != skip and abs(j - shifts[r]) < sep_bins:
+            near = True
+    return near
 
 
 @njit(cache=True, nogil=True, _nrt=False, error_model="numpy", fastmath={"reassoc"})
@@ -259,10 +269,7 @@ def refine_shift(j, best, amp, kb, kw, nu, ilam, g, off, colsum, m, step0, shift
                 jj = j + sgn * step
                 if jj < 0 or jj >= m:
                     continue
-                near = False
-                for r in range(nr):
-                    if r != skip and abs(jj - shifts[r]) < sep_bins:
-                        near = True
+                near = near_return(jj, shifts, nr, sep_bins, skip)
                 for i in range(nseen):
                     if seen[i] == jj:
                         near = True
@@ -478,11 +485,7 @@ def _screen(kb, kw, nc, nr, tabs, work):
     ns = 0
     for c in range(nc):
         j = W.cand[c]
-        near = False
-        for r in range(nr):
-            if abs(j - W.shifts[r]) < T.sep_bins:
-                near = True
-        if near:
+        if near_return(j, W.shifts, nr, T.sep_bins, -1):
             continue
         sc, nin, ratio = screen_score(j, kb, kw, W.cand_u[0, c], W.cand_u[1, c], W.ilam, T.g, T.off, T.colsum)
         if sc <= 0.0:
@@ -553,20 +556,16 @@ def _rerefine(kb, kw, nu, nr, bg, tabs, work):
 
 @njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
 def sort_returns(nr, shifts, amps, gains, src):
-    """Sort the nr returns by shift (src: a label per return, moved with them)."""
+    """Sort the nr returns by shift, stably (src: a label per return, moved with them): insertion by
+    swaps, a handful of returns."""
     for a in range(1, nr):
-        vs, va, vg, vc = shifts[a], amps[a], gains[a], src[a]
-        b = a - 1
-        while b >= 0 and shifts[b] > vs:
-            shifts[b + 1] = shifts[b]
-            amps[b + 1] = amps[b]
-            gains[b + 1] = gains[b]
-            src[b + 1] = src[b]
+        b = a
+        while b > 0 and shifts[b - 1] > shifts[b]:
+            shifts[b - 1], shifts[b] = shifts[b], shifts[b - 1]
+            amps[b - 1], amps[b] = amps[b], amps[b - 1]
+            gains[b - 1], gains[b] = gains[b], gains[b - 1]
+            src[b - 1], src[b] = src[b], src[b - 1]
             b -= 1
-        shifts[b + 1] = vs
-        amps[b + 1] = va
-        gains[b + 1] = vg
-        src[b + 1] = vc
 
 
 @njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
@@ -631,10 +630,8 @@ def _multi_block(blk, ph, tabs, kmax, gain_min, maxn, out):
     """The pixels of block blk of :func:`multi_return_kernel` with their scratch."""
     px = pixel_scratch(maxn, tabs.m)
     work = fit_work(max(maxn, 1), kmax)
-    p0, p1 = block_span(ph, blk)
-    for p in range(p0, p1):
-        nu, n = pixel_bins(ph, p, px)
-        out.n[p] = n
+    for p in block_pixels(ph, blk):
+        nu, out.n[p] = pixel_bins(ph, p, px)
         nr, bg = (0, 0.0) if nu == 0 else fit_pixel(px.kb, px.kw, nu, tabs, kmax, gain_min, work)
         write_returns(p, nr, bg, tabs, work, out)
 
@@ -707,11 +704,7 @@ def _best_candidate(kb, kw, nu, nr, nc, cand, csrc, tabs, tau_bins, work):
             j = kb[u] + T.off - T.dpk
             if j < 0 or j >= T.m or abs(j - j0) > tau_bins:
                 continue
-            near = False
-            for r in range(nr):
-                if abs(j - W.shifts[r]) < T.sep_bins:
-                    near = True
-            if near:
+            if near_return(j, W.shifts, nr, T.sep_bins, -1):
                 continue
             gn, an = add_gain(j, kb, kw, nu, W.ilam, T.g, T.off, T.colsum, 0.0, best, W.wk)
             if gn > best:

@@ -17,7 +17,7 @@ from collections import namedtuple
 import numpy as np
 from numba import njit, prange
 
-from spdepth.recon.kernels import (block_span, col_dot, n_blocks, photon_intervals, pinv_solve, pixel_bins,
+from spdepth.recon.kernels import (block_pixels, col_dot, n_blocks, photon_intervals, pinv_solve, pixel_bins,
                                    pixel_scratch)
 
 #: uos's tables and settings (:func:`uos_tables`): m bins; the unit-area pulse g with its peak at
@@ -198,6 +198,15 @@ def uos_scatter(kb, kw, nu, cvec, grev, inv_gmax, nk, off, m):
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _among(v, a, n):
+    """Whether v is one of a[:n]."""
+    for t in range(n):
+        if a[t] == v:
+            return True
+    return False
+
+
+@njit(cache=True, nogil=True, inline="always")
 def union_support(newi, kk, supp, ns, om):
     """Omega = new indices U previous support, sorted and distinct, into om; returns its size."""
     nd = 0
@@ -206,11 +215,7 @@ def union_support(newi, kk, supp, ns, om):
             om[nd] = newi[r]
             nd += 1
     for s in range(ns):
-        dup = False
-        for t in range(nd):
-            if om[t] == supp[s]:
-                dup = True
-        if not dup:
+        if not _among(supp[s], om, nd):
             om[nd] = supp[s]
             nd += 1
     for a in range(1, nd):
@@ -254,14 +259,9 @@ def keep_largest(sol, nd, kk, om, nsupp, namp):
         best = -np.inf
         bi = -1
         for a in range(nd):
-            if sol[a] > best:
-                dup = False
-                for t in range(nn):
-                    if nsupp[t] == a:
-                        dup = True
-                if not dup:
-                    best = sol[a]
-                    bi = a
+            if sol[a] > best and not _among(a, nsupp, nn):
+                best = sol[a]
+                bi = a
         if bi < 0 or not best > 0.0:
             break
         nsupp[nn] = bi
@@ -283,11 +283,7 @@ def change_norm(supp, amp, ns, nsupp, namp, nn, bg, nbg):
                 prev = amp[s]
         diff += (namp[t] - prev) * (namp[t] - prev)
     for s in range(ns):
-        found = False
-        for t in range(nn):
-            if supp[s] == nsupp[t]:
-                found = True
-        if not found:
+        if not _among(supp[s], nsupp, nn):
             diff += amp[s] * amp[s]
     xnorm2 = nbg * nbg
     for t in range(nn):
@@ -321,9 +317,11 @@ def _iterate(ns, bg, ntot, niv, tabs, scr):
 
 @njit(cache=True, nogil=True, _nrt=False)
 def uos_pixel(kb, kw, nu, tabs, scr):
-    """Algorithm 1 on one pixel's distinct bins kb[:nu] (counts kw), nu > 0: (shift, amp, bg,
-    iterations, converged); shift NaN when no return is kept, amp on the unit-area pulse."""
+    """Algorithm 1 on one pixel's distinct bins kb[:nu] (counts kw): (shift, amp, bg, iterations,
+    converged); shift NaN when no return is kept (or no photon), amp on the unit-area pulse."""
     T, S = tabs, scr
+    if nu == 0:
+        return np.nan, 0.0, 0.0, 0, True
     ntot = 0.0
     for u in range(nu):
         ntot += kw[u]
@@ -353,13 +351,8 @@ def _uos_block(blk, ph, tabs, maxn, out_shift, out_amp, out_bg, out_iter, out_co
     """The pixels of block blk of :func:`uos_kernel` with their scratch."""
     px = pixel_scratch(maxn, tabs.m)
     scr = uos_scratch(maxn, tabs.m)
-    p0, p1 = block_span(ph, blk)
-    for p in range(p0, p1):
-        nu, n = pixel_bins(ph, p, px)
-        out_n[p] = n
-        if nu == 0:
-            out_shift[p], out_amp[p], out_bg[p], out_iter[p], out_conv[p] = np.nan, 0.0, 0.0, 0, True
-            continue
+    for p in block_pixels(ph, blk):
+        nu, out_n[p] = pixel_bins(ph, p, px)
         out_shift[p], out_amp[p], out_bg[p], out_iter[p], out_conv[p] = uos_pixel(px.kb, px.kw, nu, tabs, scr)
 
 
