@@ -33,7 +33,7 @@ def _lmf_score(kb, kw, nu, i, logg, m):
     return s
 
 
-@njit(cache=True, nogil=True, _nrt=False)
+@njit(cache=True, nogil=True, _nrt=False, inline="always")
 def _bisect(kb, kw, nu, logg, m):
     """The first argmax of a concave score: the first shift where it stops rising, by bisection in
     O(photons log bins) (a climb from the photons' mean could walk O(bins) steps of O(photons)
@@ -49,7 +49,7 @@ def _bisect(kb, kw, nu, logg, m):
     return lo
 
 
-@njit(cache=True, nogil=True, _nrt=False)
+@njit(cache=True, nogil=True, _nrt=False, inline="always")
 def _climb(kb, kw, nu, logg, m):
     """The first argmax of a concave score for few photons: climb from their mean bin (a handful of
     steps, cheaper than bisection)."""
@@ -84,7 +84,7 @@ def _climb(kb, kw, nu, logg, m):
     return i
 
 
-@njit(cache=True, nogil=True, _nrt=False)
+@njit(cache=True, nogil=True, _nrt=False, inline="always")
 def _scan(kb, kw, nu, logg, m):
     """The first argmax over every shift (a score that is not concave)."""
     i = 0
@@ -97,7 +97,7 @@ def _scan(kb, kw, nu, logg, m):
     return i
 
 
-@njit(cache=True, nogil=True, _nrt=False)
+@njit(cache=True, nogil=True, _nrt=False, inline="always")
 def lmf_pixel(kb, kw, nu, tabs):
     """(shift, var) of one pixel's distinct bins kb[:nu] (counts kw): :func:`lmf_shift` and
     :func:`lmf_var`; (-1, NaN) without photons."""
@@ -107,7 +107,7 @@ def lmf_pixel(kb, kw, nu, tabs):
     return i, lmf_var(kb, kw, nu, i, tabs)
 
 
-@njit(cache=True, nogil=True, _nrt=False)
+@njit(cache=True, nogil=True, _nrt=False, inline="always")
 def lmf_shift(kb, kw, nu, tabs):
     """The first argmax shift of the score of the distinct bins kb[:nu] (counts kw), nu > 0."""
     if tabs.log_concave and nu > CLIMB_MAX_PHOTONS:
@@ -117,7 +117,7 @@ def lmf_shift(kb, kw, nu, tabs):
     return _scan(kb, kw, nu, tabs.logg, tabs.m)
 
 
-@njit(cache=True, nogil=True, _nrt=False)
+@njit(cache=True, nogil=True, _nrt=False, inline="always")
 def lmf_var(kb, kw, nu, i, tabs):
     """Shift variance (bins^2) from the observed curvature of the score at shift i (NaN: none)."""
     logg = tabs.logg
@@ -133,14 +133,20 @@ def lmf_var(kb, kw, nu, i, tabs):
     return -1.0 / curv if curv < 0.0 else np.nan
 
 
-@njit(cache=True, nogil=True)
-def _lmf_block(blk, ph, tabs, maxn, out_shift, out_var, out_n):
-    """The pixels of block blk of :func:`lmf_kernel`, compiled on its own and called from the
-    kernel's parallel loop (numba compiles a parallel loop's body twice)."""
-    px = pixel_scratch(maxn, tabs.m)
+@njit(cache=True, nogil=True, _nrt=False)
+def _lmf_pixels(blk, ph, tabs, px, out_shift, out_var, out_n):
+    """The pixels of block blk with the scratch px: the per-pixel helpers are inlined here, into a
+    loop compiled without numba's reference counting (it allocates nothing)."""
     for p in block_pixels(ph, blk):
         nu, out_n[p] = pixel_bins(ph, p, px)
         out_shift[p], out_var[p] = lmf_pixel(px.kb, px.kw, nu, tabs)
+
+
+@njit(cache=True, nogil=True)
+def _lmf_block(blk, ph, tabs, maxn, out_shift, out_var, out_n):
+    """The pixels of block blk of :func:`lmf_kernel` with their scratch, compiled on its own and
+    called from the kernel's parallel loop (numba compiles a parallel loop's body twice)."""
+    _lmf_pixels(blk, ph, tabs, pixel_scratch(maxn, tabs.m), out_shift, out_var, out_n)
 
 
 @njit(parallel=True, cache=True, nogil=True)

@@ -64,6 +64,9 @@ MEMO = 32
 #: add_gain's running product of factors >= 1 is rescaled (exactly, by a power of 2) above this.
 PROD_RESCALE = 2.0 ** 512
 LN2 = math.log(2.0)
+#: EM keeps the background at least this share of the flat fit's (ntot / m): a pixel whose every
+#: detection is under a return keeps a rate above 0 where no return reaches (its inverse is taken).
+BG_FLOOR_SHARE = 1e-9
 #: add_gain's bound must be below the bar by this (relative) to skip the exact gain: far more than
 #: the rounding of either, so the skip never changes a comparison.
 BAR_MARGIN = 1e-9
@@ -576,7 +579,7 @@ def fit_pixel(kb, kw, nu, tabs, kmax, gain_min, work):
     ntot = 0.0
     for u in range(nu):
         ntot += kw[u]
-    bg_floor = 1e-9 * ntot / T.m
+    bg_floor = BG_FLOOR_SHARE * ntot / T.m
     bg = ntot / T.m
     for u in range(nu):
         W.ilam[u] = 1.0 / bg
@@ -722,7 +725,7 @@ def _censored_fit(kb, kw, nu, nc, cand, csrc, tabs, nb, kmax, work, src):
     ntot = 0.0
     for u in range(nu):
         ntot += kw[u]
-    bg_floor = 1e-9 * ntot / T.m
+    bg_floor = BG_FLOOR_SHARE * ntot / T.m
     nr = 0
     bg = ntot / T.m
     for u in range(nu):
