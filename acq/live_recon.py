@@ -7,7 +7,7 @@ each estimator works pixel by pixel. When no pulse width is given, it is estimat
 first ``PULSE_SAMPLE_PIXELS`` pixels to become final (in stream order, so a replay of the same
 stream estimates the same width) and then frozen.
 
-Several surfaces per pixel (``reflectors`` K > 1 or "auto", :mod:`recon.multi`): the maps of
+Several surfaces per pixel (``reflectors`` K > 1 or "auto", :mod:`recon.estimators.surfaces_fit`): the maps of
 tof_s, depth_m, signal, uncertainty_s and weak are (K, H, W) (K the most surfaces looked for), with
 a ``surfaces`` count map, as ``spdepth recon`` writes them. A file's multi-surface reconstruction
 measures its response on the surfaces of all its pixels; live there are no "all pixels" yet, so
@@ -251,7 +251,7 @@ class LiveRecon:
             n = min(self._sample_pixels, pixels.size)
             sample = self.store.photons(pixels[:n])
             if self.pixel_settings.several:
-                # recon.multi's own measurement of the response on the surfaces (module docstring)
+                # recon.estimators.surfaces' own measurement of the response on the surfaces (module docstring)
                 measured = reconstruct(sample, self.pixel_settings).settings
                 self.pixel_settings = dataclasses.replace(self.pixel_settings, irf=Irf.from_dict(measured["irf"]))
                 self._pulse_note = {"pulse_source": f"measured on the surfaces of the first {n} "

@@ -74,36 +74,11 @@ def render_maps_png(path: str | Path, maps, *, title: str | None = None,
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
-    import matplotlib
-    import matplotlib.ticker
 
-    from spdepth.acq.mapdefs import (DISCRETE_MAX, PANEL_DEFS, MapDef, constant_value, display,
-                                     levels_for, map_input_from_maps, resolve, whole_numbers)
     from spdepth.acq.points import geometry_of
 
     path = Path(path)
-    # (map, title, values, target, weak surfaces of this panel or None)
-    drawn: list[tuple[MapDef, str, np.ndarray, int, np.ndarray | None]] = []
-    if panels is None:
-        mi = map_input_from_maps(maps, n_bins=n_bins, target=target, counts=counts,
-                                 exposure_s=exposure_s)
-        weak = getattr(maps, "weak", None)
-        for place in PANEL_DEFS:
-            d, got = resolve(place, mi)
-            if got is None:
-                continue                       # an optional map these maps do not have
-            a = np.asarray(got, dtype=np.float64)
-            if a.ndim == 3 and a.shape[0] > 1:
-                for r in range(a.shape[0]):
-                    faded = weak[r] if weak is not None and np.shape(weak) == a.shape else None
-                    drawn.append((d, f"{d.title} ({d.unit}), surface {r + 1}", a[r], mi.target, faded))
-            else:
-                drawn.append((d, f"{d.title} ({d.unit})", a[0] if a.ndim == 3 else a, mi.target, None))
-    else:
-        for attr, name, unit, cmap_name, _rule in panels:
-            a = np.asarray(getattr(maps, attr), dtype=np.float64)
-            d = MapDef(attr, name, unit, cmap_name, "robust", lambda m: m)
-            drawn.append((d, f"{name} ({unit})", a[0] if a.ndim == 3 else a, 0, None))
+    drawn = _panels(maps, panels, n_bins, target, counts, exposure_s)
     h, w = drawn[0][2].shape
     if geometry is None:
         geometry = geometry_of(maps)
@@ -128,62 +103,102 @@ def render_maps_png(path: str | Path, maps, *, title: str | None = None,
         ax.set_visible(False)
     if irf is not None:
         _draw_irf(axes[n_ax - 1], *irf)
-    for ax, (d, name, arr, tgt, weak_px) in zip(axes, drawn):
-        cmap = matplotlib.colormaps[d.cmap].with_extremes(bad=NAN_COLOUR)
-        const = constant_value(arr)
-        lv = levels_for(d, arr, tgt) or (0.0, 1.0)
-        vmin, vmax = lv
-        counts_map = whole_numbers(arr)
-        if counts_map and 0 <= vmin and vmax <= DISCRETE_MAX:
-            # a few counts (surfaces per pixel): one colour per value, centred on its tick
-            vmin, vmax = -0.5, max(vmax, float(np.nanmax(arr))) + 0.5
-            cmap = cmap.resampled(int(vmax - vmin))
-            lv = (vmin, vmax)
-        im = ax.imshow(np.ma.masked_invalid(display(arr, lv)), cmap=cmap, vmin=vmin, vmax=vmax,
-                       interpolation="nearest", origin="upper", extent=extent,
-                       aspect="equal")
-        n_weak = 0
-        if weak_px is not None:
-            weak_px = np.asarray(weak_px, bool) & np.isfinite(arr)
-            n_weak = int(weak_px.sum())
-        if n_weak:
-            # a surface background alone could have made is drawn, but faded: it is not a finding
-            fade = matplotlib.colors.ListedColormap([np.array(FADE_RGBA) / 255.0])
-            ax.imshow(np.where(weak_px, 1.0, np.nan), cmap=fade, vmin=0, vmax=1,
-                      interpolation="nearest", origin="upper", extent=extent, aspect="equal")
-        # a panel is 4.4 inches wide: a long title goes on two lines, not under the colour bar
-        ax.set_title(name.replace(", surface", "\nsurface") if len(name) > 32 else name)
-        ax.set_ylabel("scan angle y (deg)" if geometry is not None else "row")
-        finite = arr[np.isfinite(arr)]
-        notes = []
-        if finite.size == 0:
-            notes.append("no pixel has a value")      # and no colour bar to read
-        elif const is not None:
-            # one value everywhere: a colour bar would spread rounding noise over its length
-            notes.append(f"every pixel: {const:g} {d.unit}")
-        else:
-            extend = {(False, False): "neither", (True, False): "min", (False, True): "max",
-                      (True, True): "both"}[(bool(np.any(finite < vmin)),
-                                             bool(np.any(finite > vmax)))]
-            bar = fig.colorbar(im, ax=ax, shrink=0.85, extend=extend)
-            bar.set_label(d.unit)
-            if counts_map:
-                bar.locator = matplotlib.ticker.MaxNLocator(integer=True)
-                bar.update_ticks()
-        n_inf = int(np.sum(np.isposinf(arr)))
-        if n_inf:
-            notes.append(f"{n_inf} px above the scale (no background found)")
-        n_nan = int(np.sum(np.isnan(arr)))
-        if n_nan:
-            notes.append(f"grey: no value ({n_nan} px)")
-        if n_weak:
-            notes.append(f"faded: weak, may be background ({n_weak} px)")
-        # the notes under the axis label, where the layout keeps room for them
-        ax.set_xlabel("\n".join(["scan angle x (deg)" if geometry is not None else "column"] + notes))
+    for ax, panel in zip(axes, drawn):
+        _draw_panel(fig, ax, *panel, extent, geometry is not None)
     if title:
         fig.suptitle(title)
     fig.savefig(path, dpi=dpi)
     return path
+
+
+def _panels(maps, panels, n_bins, target, counts, exposure_s) -> list:
+    """The panels of :func:`render_maps_png`: (map definition, title, values, target, weak surfaces
+    of this panel or None), from ``acq.mapdefs.PANEL_DEFS`` (a panel per surface of (K, H, W)
+    maps) or from the ``panels`` asked for."""
+    from spdepth.acq.mapdefs import PANEL_DEFS, MapDef, map_input_from_maps, resolve
+
+    drawn: list[tuple[MapDef, str, np.ndarray, int, np.ndarray | None]] = []
+    if panels is not None:
+        for attr, name, unit, cmap_name, _rule in panels:
+            a = np.asarray(getattr(maps, attr), dtype=np.float64)
+            d = MapDef(attr, name, unit, cmap_name, "robust", lambda m: m)
+            drawn.append((d, f"{name} ({unit})", a[0] if a.ndim == 3 else a, 0, None))
+        return drawn
+    mi = map_input_from_maps(maps, n_bins=n_bins, target=target, counts=counts, exposure_s=exposure_s)
+    weak = getattr(maps, "weak", None)
+    for place in PANEL_DEFS:
+        d, got = resolve(place, mi)
+        if got is None:
+            continue                       # an optional map these maps do not have
+        a = np.asarray(got, dtype=np.float64)
+        if a.ndim == 3 and a.shape[0] > 1:
+            for r in range(a.shape[0]):
+                faded = weak[r] if weak is not None and np.shape(weak) == a.shape else None
+                drawn.append((d, f"{d.title} ({d.unit}), surface {r + 1}", a[r], mi.target, faded))
+        else:
+            drawn.append((d, f"{d.title} ({d.unit})", a[0] if a.ndim == 3 else a, mi.target, None))
+    return drawn
+
+
+def _draw_panel(fig, ax, d, name: str, arr: np.ndarray, tgt: int, weak_px, extent, scan_axes: bool) -> None:
+    """One panel of :func:`render_maps_png`: the image (weak surfaces faded), its colour bar or a
+    note when there is nothing to scale, and the notes under the axis label."""
+    import matplotlib
+    import matplotlib.ticker
+
+    from spdepth.acq.mapdefs import DISCRETE_MAX, constant_value, display, levels_for, whole_numbers
+
+    cmap = matplotlib.colormaps[d.cmap].with_extremes(bad=NAN_COLOUR)
+    const = constant_value(arr)
+    lv = levels_for(d, arr, tgt) or (0.0, 1.0)
+    vmin, vmax = lv
+    counts_map = whole_numbers(arr)
+    if counts_map and 0 <= vmin and vmax <= DISCRETE_MAX:
+        # a few counts (surfaces per pixel): one colour per value, centred on its tick
+        vmin, vmax = -0.5, max(vmax, float(np.nanmax(arr))) + 0.5
+        cmap = cmap.resampled(int(vmax - vmin))
+        lv = (vmin, vmax)
+    im = ax.imshow(np.ma.masked_invalid(display(arr, lv)), cmap=cmap, vmin=vmin, vmax=vmax,
+                   interpolation="nearest", origin="upper", extent=extent,
+                   aspect="equal")
+    n_weak = 0
+    if weak_px is not None:
+        weak_px = np.asarray(weak_px, bool) & np.isfinite(arr)
+        n_weak = int(weak_px.sum())
+    if n_weak:
+        # a surface background alone could have made is drawn, but faded: it is not a finding
+        fade = matplotlib.colors.ListedColormap([np.array(FADE_RGBA) / 255.0])
+        ax.imshow(np.where(weak_px, 1.0, np.nan), cmap=fade, vmin=0, vmax=1,
+                  interpolation="nearest", origin="upper", extent=extent, aspect="equal")
+    # a panel is 4.4 inches wide: a long title goes on two lines, not under the colour bar
+    ax.set_title(name.replace(", surface", "\nsurface") if len(name) > 32 else name)
+    ax.set_ylabel("scan angle y (deg)" if scan_axes else "row")
+    finite = arr[np.isfinite(arr)]
+    notes = []
+    if finite.size == 0:
+        notes.append("no pixel has a value")      # and no colour bar to read
+    elif const is not None:
+        # one value everywhere: a colour bar would spread rounding noise over its length
+        notes.append(f"every pixel: {const:g} {d.unit}")
+    else:
+        extend = {(False, False): "neither", (True, False): "min", (False, True): "max",
+                  (True, True): "both"}[(bool(np.any(finite < vmin)),
+                                         bool(np.any(finite > vmax)))]
+        bar = fig.colorbar(im, ax=ax, shrink=0.85, extend=extend)
+        bar.set_label(d.unit)
+        if counts_map:
+            bar.locator = matplotlib.ticker.MaxNLocator(integer=True)
+            bar.update_ticks()
+    n_inf = int(np.sum(np.isposinf(arr)))
+    if n_inf:
+        notes.append(f"{n_inf} px above the scale (no background found)")
+    n_nan = int(np.sum(np.isnan(arr)))
+    if n_nan:
+        notes.append(f"grey: no value ({n_nan} px)")
+    if n_weak:
+        notes.append(f"faded: weak, may be background ({n_weak} px)")
+    # the notes under the axis label, where the layout keeps room for them
+    ax.set_xlabel("\n".join(["scan angle x (deg)" if scan_axes else "column"] + notes))
 
 
 class ProgressBar:

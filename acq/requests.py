@@ -450,7 +450,7 @@ class FileReconRequest(_Request):
                  ninth of the pulse RMS; pulse: estimated).
     irf:         a measured response file (CSV time_ps,counts or .npy) instead of a Gaussian.
     reflectors:  surfaces per pixel: K (1 to 8) or "auto" (decided per pixel by a likelihood-ratio test
-                 at ``false_alarm`` per pixel and surface, up to ``max_reflectors``); recon.multi.
+                 at ``false_alarm`` per pixel and surface, up to ``max_reflectors``); recon.estimators.surfaces_fit.
     out, png, save_irf: where the maps (.npz), the picture and the pulse shape used go (None: not
                  written); checked for writability before any work.
     ply, las:    point clouds of the maps (``acq.points``; None: not written).

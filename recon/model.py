@@ -521,11 +521,11 @@ class ReconSettings:
                     Gaussian.
     max_photons:    use only the first N in-window detections of each pixel (None: all).
     reflectors:     surfaces per pixel: 1, K > 1 (up to K, each kept when it raises the Poisson
-                    likelihood by more than recon.multi.LLR_MIN = 2 nats, Akaike's criterion, and
+                    likelihood by more than recon.estimators.surfaces_fit.LLR_MIN = 2 nats, Akaike's criterion, and
                     flagged weak when doubtful) or "auto" (decided per pixel
                     by a likelihood-ratio test at ``false_alarm``, up to ``max_reflectors``); K > 1
-                    and auto fit every pixel by recon.multi's greedy Poisson pursuit (lmf, uos, ml)
-                    or recon.multi's K-surface fit with the neighbours' help (spatial).
+                    and auto fit every pixel by recon.estimators.surfaces' greedy Poisson pursuit (lmf, uos, ml)
+                    or recon.estimators.surfaces' K-surface fit with the neighbours' help (spatial).
     max_reflectors: most surfaces per pixel for reflectors="auto" (default 3).
     false_alarm:    reflectors="auto": chance per pixel and per added surface that background (or the
                     response's own tail) passes for a surface (default 1e-3).

@@ -89,35 +89,6 @@ def refit_nonneg(y: np.ndarray, a_mat: np.ndarray, a: np.ndarray) -> np.ndarray:
     return np.zeros_like(a)
 
 
-def uos_k(y: np.ndarray, a_mat: np.ndarray, k: int, delta: float = 1e-4, ite_max: int = 10):
-    """The K-sparse generalization: the K largest proxy entries join the support, the K largest
-    depth coefficients are kept. Returns (x_hat, iterations)."""
-    n = a_mat.shape[1]
-    a = np.zeros(n)
-    v = y.copy()
-    i = 0
-    for i in range(1, ite_max + 1):
-        a_prev = a
-        x_proxy = a_mat.T @ v
-        supp_now = np.argsort(-x_proxy[:n - 1], kind="stable")[:k]
-        supp_total = np.union1d(np.union1d(supp_now, np.flatnonzero(a[:n - 1])), [n - 1]).astype(int)
-        sub = a_mat[:, supp_total]
-        b0 = np.linalg.pinv(sub, rcond=max(sub.shape) * np.finfo(float).eps) @ y
-        b = np.zeros(n)
-        b[supp_total] = b0
-        clipped = bool(np.any(b0 < 0))
-        keep = np.argsort(-b[:n - 1], kind="stable")[:k]
-        a = np.zeros(n)
-        a[keep] = b[keep]
-        a[n - 1] = b[n - 1]
-        a[a < 0] = 0
-        diff_norm = float(np.sum((a_prev - a) ** 2))
-        v = y - a_mat @ a
-        if diff_norm < delta * max(1.0, float(np.sum(a ** 2))):
-            break
-    return (refit_nonneg(y, a_mat, a) if clipped else a), i
-
-
 def poisson_profile(y: np.ndarray, s_mat: np.ndarray, iters: int = 4000):
     """For every column i of S, max over a, B >= 0 of sum_k y_k log(a S_ki + B) - a sum_k S_ki - B M
     (eq. 9 negated, constants dropped), by EM on all columns at once (monotone, slow, independent
@@ -203,7 +174,7 @@ def mat_cells(path, var: str):
 
 
 # ------------------------------------------------------------------------------------------------
-# several surfaces per pixel (recon.multi_kernels), densely: the whole histogram and S each step
+# several surfaces per pixel (recon.estimators.surfaces_kernels), densely: the whole histogram and S each step
 
 def _multi_gain(y, lam, col, csum, newton=12):
     """(gain, amplitude) of adding the column ``col`` (column sum csum) to the rate lam (dense)."""
@@ -217,7 +188,7 @@ def _multi_gain(y, lam, col, csum, newton=12):
         f1, f2 = np.sum(yy * q) - csum, -np.sum(yy * q * q)
         if f2 >= 0:
             break
-        # Newton on 1 / phi(a) = 1 / csum, phi = f' + csum: the same root (see recon.multi_kernels.add_gain)
+        # Newton on 1 / phi(a) = 1 / csum, phi = f' + csum: the same root (see recon.estimators.surfaces_kernels.add_gain)
         na = a - f1 / f2 * (f1 + csum) / csum
         na = 0.5 * a if na <= 0 else na
         done = abs(na - a) <= 1e-7 * a
@@ -245,7 +216,7 @@ def _em(y, s_mat, colsum, shifts, amps, b, bg_floor, sweeps, tol=1e-7):
 
 
 def multi_return(y, kern, s_mat, kmax, sep_bins, gain_min, cand_step, step0, em_sweeps=12, screen=4):
-    """The K-surface greedy Poisson pursuit of recon.multi_kernels on one histogram y (length M):
+    """The K-surface greedy Poisson pursuit of recon.estimators.surfaces_kernels on one histogram y (length M):
     returns (shifts (sorted), amplitudes, gains, background)."""
     m = y.size
     colsum = s_mat.sum(axis=0)
@@ -326,7 +297,7 @@ def multi_return(y, kern, s_mat, kmax, sep_bins, gain_min, cand_step, step0, em_
 
 def neighbour_surfaces(ys, h, w, kern, s_mat, radius, shift_in, gain_in, strong_nats, pool_nats, tau, sep,
                        kmax, kpool, cand_step, step0):
-    """recon.multi_kernels.neighbour_surfaces densely: ys (P, M) histograms; returns per pixel
+    """recon.estimators.surfaces_kernels.neighbour_surfaces densely: ys (P, M) histograms; returns per pixel
     (shifts, amplitudes, sources) like the kernel (sorted by shift)."""
     m = ys.shape[1]
     colsum = s_mat.sum(axis=0)
@@ -389,7 +360,7 @@ def neighbour_surfaces(ys, h, w, kern, s_mat, radius, shift_in, gain_in, strong_
 
 
 def smooth_surfaces(shift, sig, h, w, radius, tau):
-    """recon.multi_kernels.smooth_surfaces' shifts: signal-weighted mean of the surfaces within tau
+    """recon.estimators.surfaces_kernels.smooth_surfaces' shifts: signal-weighted mean of the surfaces within tau
     in each surface's neighbourhood."""
     out = shift.copy()
     for p in range(h * w):

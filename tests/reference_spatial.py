@@ -1,4 +1,4 @@
-"""Plain NumPy references of the spatial estimator's kernels (recon.spatial_kernels), one pixel or one
+"""Plain NumPy references of the spatial estimator's kernels (recon.estimators.spatial_kernels), one pixel or one
 whole-array step at a time, written to be read. Compared in tests/test_recon_spatial.py."""
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ def window_shifts(times, offsets, start, stop, width, max_photons):
 
 
 def window_counts(lists, h, w, radius, width, n_coarse):
-    """(h w) x n_coarse: the window's detections in coarse bins 0..k, as recon.spatial_kernels.window_counts."""
+    """(h w) x n_coarse: the window's detections in coarse bins 0..k, as recon.estimators.spatial_kernels.window_counts."""
     out = np.zeros((h * w, n_coarse), np.int64)
     for p in range(h * w):
         r0, c0 = divmod(p, w)
@@ -33,7 +33,7 @@ def window_counts(lists, h, w, radius, width, n_coarse):
 
 
 def censor_fit(lists, h, w, radius, tau, s_min, sigma, n_bins, em_iters):
-    """(mu, k, bg, n, kept) per pixel, as recon.spatial_kernels.censor_fit."""
+    """(mu, k, bg, n, kept) per pixel, as recon.estimators.spatial_kernels.censor_fit."""
     npix = h * w
     mu = np.full(npix, np.nan)
     k = np.zeros(npix)

@@ -106,17 +106,8 @@ def test_kill_9_mid_scan_leaves_a_recording_that_replays(tmp_path, kill_after_by
 
     rec = tmp_path / "rec"
     # 128x128 x 15 records about 1.1 MB: both kill points fall mid-scan on a quiet machine too
-    proc = subprocess.Popen([sys.executable, "-m", "spdepth.acq.cli", "scan", "--sim", "--size", "128x128",
-                             "--target", "15", "--out", str(rec)],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    proc = _scan_until_recording(rec, "128x128", kill_after_bytes)
     ptu = rec / "recording.ptu"
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline and proc.poll() is None:
-        if ptu.exists() and ptu.stat().st_size > kill_after_bytes:
-            break
-        time.sleep(0.01)
-    assert proc.poll() is None, "the scan ended before it could be killed: " + \
-        proc.stderr.read().decode()[-500:]
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait(10)
     assert not (rec / "run.json").exists()       # it really died mid-scan

@@ -108,31 +108,22 @@ class _NoTaggers:
         return ()
 
 
-@pytest.mark.parametrize("text,kind,fields", [
-    ("picoquant:mh150", "picoquant", {"model": "mh150", "serial": ""}),
-    ("picoquant:MH150:01234567", "picoquant", {"model": "mh150", "serial": "01234567"}),
-    ("swabian", "swabian", {"serial": ""}),
-    ("swabian:1910000ABC", "swabian", {"serial": "1910000ABC"}),
-    ("usb:1209:7a64", "usb", {"vid": 0x1209, "pid": 0x7A64}),
+@pytest.mark.parametrize("parse,text,kind,fields", [
+    (parse_tagger, "picoquant:mh150", "picoquant", {"model": "mh150", "serial": ""}),
+    (parse_tagger, "picoquant:MH150:01234567", "picoquant", {"model": "mh150", "serial": "01234567"}),
+    (parse_tagger, "swabian", "swabian", {"serial": ""}),
+    (parse_tagger, "swabian:1910000ABC", "swabian", {"serial": "1910000ABC"}),
+    (parse_tagger, "usb:1209:7a64", "usb", {"vid": 0x1209, "pid": 0x7A64}),
+    (parse_galvo, "nidaq:Dev1", "nidaq", {"device": "Dev1", "ao": "ao0:1"}),
+    (parse_galvo, "nidaq:PXI1Slot2/ao2:3", "nidaq", {"device": "PXI1Slot2", "ao": "ao2:3"}),
+    (parse_galvo, "/dev/ttyACM0", "serial", {"port": "/dev/ttyACM0"}),
+    (parse_galvo, "galvosim://x", "serial", {"port": "galvosim://x"}),
 ])
-def test_tagger_strings(text, kind, fields):
-    t = parse_tagger(text)
-    assert t.kind == kind
+def test_device_strings(parse, text, kind, fields):
+    d = parse(text)
+    assert d.kind == kind
     for k, v in fields.items():
-        assert getattr(t, k) == v
-
-
-@pytest.mark.parametrize("text,kind,fields", [
-    ("nidaq:Dev1", "nidaq", {"device": "Dev1", "ao": "ao0:1"}),
-    ("nidaq:PXI1Slot2/ao2:3", "nidaq", {"device": "PXI1Slot2", "ao": "ao2:3"}),
-    ("/dev/ttyACM0", "serial", {"port": "/dev/ttyACM0"}),
-    ("galvosim://x", "serial", {"port": "galvosim://x"}),
-])
-def test_galvo_strings(text, kind, fields):
-    g = parse_galvo(text)
-    assert g.kind == kind
-    for k, v in fields.items():
-        assert getattr(g, k) == v
+        assert getattr(d, k) == v
 
 
 @pytest.mark.parametrize("tagger,galvo,message", [

@@ -7,6 +7,10 @@ import pytest
 
 import reference as ref
 from spdepth.recon import kernels as K
+from spdepth.recon.estimators import lmf_kernels as LK
+from spdepth.recon.estimators import ml_bounds as MB
+from spdepth.recon.estimators import ml_kernels as MLK
+from spdepth.recon.estimators import uos_kernels as UK
 from spdepth.recon.estimate import reconstruct
 from spdepth.recon.model import FISHER_RHO0, FISHER_STEPS, Binning, Irf, ReconSettings, build_kernel
 from spdepth.recon.photons import PhotonStore
@@ -131,7 +135,7 @@ def test_lmf_kernel_matches_reference(kern, rng):
     log_s = ref.dense_logs(kern)
     assert kern.log_concave
     for concave in (True, False):    # the hill climb and the exhaustive scan agree with argmax
-        K.lmf_kernel(bins, off, M, kern.logg, concave, 15, out, var, n)
+        LK.lmf_kernel(K.Photons(bins, off), LK.LmfTables(M, kern.logg, concave), 15, out, var, n)
         want = [ref.lmf(ref.histogram(b, M), log_s) for b in lists]
         np.testing.assert_array_equal(out, want)
     assert np.all(n == 15) and np.all(var > 0)
@@ -141,44 +145,20 @@ def test_uos_kernel_matches_published_loop(kern, rng):
     lists = random_pixels(rng, 80)
     bins, off = csr(lists)
     a_mat = np.hstack([ref.dense_s(kern) / kern.gmax, np.ones((M, 1))])
-    shp = (80, 1)
-    shift, amp, var = np.full(shp, np.nan), np.zeros(shp), np.zeros(shp)
+    shift, amp = np.full(80, np.nan), np.zeros(80)
     bg, it, conv, n = np.zeros(80), np.zeros(80, np.int32), np.zeros(80, bool), np.zeros(80, np.int64)
-    K.uos_kernel(bins, off, M, kern.g, kern.off, kern.gmax, kern.colsum, kern.pp, kern.dg, 1, 1e-4, 10,
-                 8.0, 3.0, 15, shift, amp, bg, it, conv, var, n)
+    tabs = UK.uos_tables(kern.g, kern.off, kern.gmax, kern.colsum, kern.pp, M, 1e-4, 10)
+    UK.uos_kernel(K.Photons(bins, off), tabs, 15, shift, amp, bg, it, conv, n)
     for p, b in enumerate(lists):
         x, iters = ref.uos(ref.histogram(b, M), a_mat)
         nz = np.flatnonzero(x[:M])
         assert it[p] == iters
         if nz.size:
-            assert shift[p, 0] == nz[0]
-            np.testing.assert_allclose(amp[p, 0] * kern.gmax, x[nz[0]], rtol=1e-8)
+            assert shift[p] == nz[0]
+            np.testing.assert_allclose(amp[p] * kern.gmax, x[nz[0]], rtol=1e-8)
         else:
-            assert np.isnan(shift[p, 0])
+            assert np.isnan(shift[p])
         np.testing.assert_allclose(bg[p], x[M], rtol=1e-8, atol=1e-12)
-
-
-def test_uos_k_kernel_matches_reference_on_two_surfaces(kern, rng):
-    lists = []
-    for _ in range(12):
-        c1, c2 = rng.uniform(20, 80), rng.uniform(120, 180)
-        s1 = np.floor(c1 + 4 * rng.standard_normal(12) + 0.5)
-        s2 = np.floor(c2 + 4 * rng.standard_normal(10) + 0.5)
-        lists.append(np.concatenate([s1, s2, rng.integers(0, M, 3)]).astype(np.int64))
-    bins, off = csr(lists)
-    a_mat = np.hstack([ref.dense_s(kern) / kern.gmax, np.ones((M, 1))])
-    shp = (12, 2)
-    shift, amp, var = np.full(shp, np.nan), np.zeros(shp), np.zeros(shp)
-    bg, it, conv, n = np.zeros(12), np.zeros(12, np.int32), np.zeros(12, bool), np.zeros(12, np.int64)
-    K.uos_kernel(bins, off, M, kern.g, kern.off, kern.gmax, kern.colsum, kern.pp, kern.dg, 2, 1e-4, 10,
-                 8.0, 3.0, 30, shift, amp, bg, it, conv, var, n)
-    for p, b in enumerate(lists):
-        x, iters = ref.uos_k(ref.histogram(b, M), a_mat, 2)
-        want = np.sort(np.flatnonzero(x[:M]))
-        assert it[p] == iters
-        # both surfaces found, at the reference's shifts (no merge: they are far apart)
-        np.testing.assert_array_equal(shift[p], want)
-        assert np.all(np.isfinite(var[p]))
 
 
 @pytest.mark.slow
@@ -187,7 +167,7 @@ def test_ml_kernel_global_integer_optimum_matches_reference(kern, rng, k, sbr):
     # k = 120: more distinct photon bins than ML_SCAN_ALL, so each solve searches the photons under
     # the pulse (and counts the rest as one rate-0 term) instead of scanning them all; SBR 0.05:
     # so many shifts survive U that their bounds come from share_sweep (on 9 of 10 such pixels)
-    assert (k > K.ML_SCAN_ALL) == (k == 120)
+    assert (k > MB.ML_SCAN_ALL) == (k == 120)
     lists = random_pixels(rng, 10, k=k, sbr=sbr)
     bins, off = csr(lists)
     s_mat = ref.dense_s(kern)
@@ -206,14 +186,14 @@ def test_ml_kernel_global_integer_optimum_matches_reference(kern, rng, k, sbr):
         assert r.signal[0, 0] + r.background[0, 0] * M == pytest.approx(y_sum, rel=1e-6)
 
 
-@pytest.mark.parametrize("rms_bins", [K.ML_CLIMB_RMS_BINS, 4.0])
+@pytest.mark.parametrize("rms_bins", [MLK.ML_CLIMB_RMS_BINS, 4.0])
 def test_ml_fine_climb_finds_the_full_searchs_shift(rng, rms_bins):
     # the climb over the fine shifts (a smooth pulse) against the search of all of them, on the
     # narrowest pulse it is used for: few detections (where twin peaks would show), sub-bin returns
     from spdepth.recon.estimators.ml import ml_tables
     kern_w = build_kernel(BIN, pulse_rms_s=rms_bins * 40e-12)
     tabs = ml_tables(kern_w, M)
-    assert tabs[-1] is True         # what reconstruct passes for this pulse
+    assert tabs.fine_climb is True          # what reconstruct passes for this pulse
     for k in (2, 3, 5, 15, 60):
         for sbr in (0.3, 3.0, 30.0):
             n = 400
@@ -227,13 +207,13 @@ def test_ml_fine_climb_finds_the_full_searchs_shift(rng, rms_bins):
             shifts = []
             for climb in (True, False):
                 sh = np.full(n, np.nan)
-                K.ml_kernel(bins, off, M, *tabs[:-1], climb, kern_w.dg, kern_w.fisher, k, sh, np.empty(n),
-                            np.empty(n), np.empty(n), np.empty(n, np.int64))
+                MLK.ml_kernel(K.Photons(bins, off), tabs._replace(fine_climb=climb), k, sh, np.empty(n),
+                              np.empty(n), np.empty(n), np.empty(n, np.int64))
                 shifts.append(sh)
             np.testing.assert_allclose(shifts[0], shifts[1], rtol=0, atol=1e-9,
                                        err_msg=f"{k} detections, SBR {sbr}")
     # a sub-bin pulse searches every fine shift (its likelihood has flat or twin peaks between them)
-    assert ml_tables(build_kernel(BIN, pulse_rms_s=0.05 * 40e-12), M)[-1] is False
+    assert ml_tables(build_kernel(BIN, pulse_rms_s=0.05 * 40e-12), M).fine_climb is False
 
 
 def test_irf_kernel_brute_force_lmf_matches_reference(rng, tmp_path):
@@ -246,7 +226,7 @@ def test_irf_kernel_brute_force_lmf_matches_reference(rng, tmp_path):
     lists = random_pixels(rng, 30)
     bins, off = csr(lists)
     out, var, n = np.empty(30, np.int64), np.empty(30), np.empty(30, np.int64)
-    K.lmf_kernel(bins, off, M, kern.logg, kern.log_concave, 15, out, var, n)
+    LK.lmf_kernel(K.Photons(bins, off), LK.LmfTables(M, kern.logg, kern.log_concave), 15, out, var, n)
     log_s = ref.dense_logs(kern)
     np.testing.assert_array_equal(out, [ref.lmf(ref.histogram(b, M), log_s) for b in lists])
 
@@ -287,7 +267,7 @@ def test_pruned_uos_argmax_is_the_dense_argmax(kern, rng, case):
     amp = None if case % 5 == 0 else float(rng.uniform(0.0, 3.0))
     # uos1_argmax takes the peak-1 scaling: aj multiplies S_i^T S_j of the unit-area kernel
     aj_k = 0.0 if amp is None else amp / kern.gmax ** 2
-    got = K.uos1_argmax(cvec, kern.colsum, kern.colsum.min(), bgc, 0 if amp is None else 1, j, aj_k,
+    got = UK.uos1_argmax(cvec, kern.colsum, kern.colsum.min(), bgc, 0 if amp is None else 1, j, aj_k,
                         _acorr(kern), nk, m, kern.pp, off, ivlo, ivhi, niv)
     want = int(np.argmax(_dense_proxy(cvec, kern.colsum, bgc, j, None if amp is None else aj_k, kern, m)))
     assert got == want
@@ -359,7 +339,7 @@ def test_kernel_sorts_match_numpy(rng):
         keys[::7] = -np.inf
         idx = np.sort(rng.choice(400, n, replace=False)).astype(np.int64)
         got = idx.copy()
-        K._sort_desc(keys, got, n)
+        K.sort_desc(keys, got, n)
         np.testing.assert_array_equal(got, idx[np.argsort(-keys[idx], kind="mergesort")])
 
 
@@ -404,8 +384,8 @@ def test_ml_solve_from_its_own_optimum_gives_the_same_loglik(kern):
     kw = np.ones(kb.size)
     uni = 1.0 / M
     for i in (41, 42, 121, 122):
-        s_cold, ll_cold = K._ml_at_int(kb, kw, kb.size, 5.0, i, kern.g, kern.off, kern.colsum, uni, 0.5, -np.inf)
-        s_warm, ll_warm = K._ml_at_int(kb, kw, kb.size, 5.0, i, kern.g, kern.off, kern.colsum, uni, s_cold,
+        s_cold, ll_cold = MB._ml_at_int(kb, kw, kb.size, 5.0, i, kern.g, kern.off, kern.colsum, uni, 0.5, -np.inf)
+        s_warm, ll_warm = MB._ml_at_int(kb, kw, kb.size, 5.0, i, kern.g, kern.off, kern.colsum, uni, s_cold,
                                        -np.inf)
         assert abs(ll_warm - ll_cold) <= 1e-13 * abs(ll_cold)
         assert s_warm == pytest.approx(s_cold, rel=1e-9)
@@ -416,7 +396,7 @@ def test_ml_share_tables_bound_every_interior_shift_from_above(kern, rng):
     # drops a shift on it), and at the share nearest the optimum it is tight: U overshoots by
     # nats (measured here: median 5e-6 nats, the worst 0.08, at a share near 0)
     uni = 1.0 / M
-    stabs = K.share_tables(kern.g, kern.colsum[kern.off], uni, K.ML_SHARES)
+    stabs = MB.share_tables(kern.g, kern.colsum[kern.off], uni, MB.ML_SHARES)
     nk = kern.g.size
     ia, ib = kern.off, M - nk + kern.off
     tight = []
@@ -424,10 +404,10 @@ def test_ml_share_tables_bound_every_interior_shift_from_above(kern, rng):
         kb, kw = np.unique(b, return_counts=True)
         kw = kw.astype(float)
         for i in rng.integers(ia, ib + 1, 6):
-            s, ll = K._ml_at_int(kb, kw, kb.size, kw.sum(), i, kern.g, kern.off, kern.colsum, uni, 0.5, -np.inf)
-            for j in (0, K.ML_SHARES // 2, K.ML_SHARES - 1, min(int(s * K.ML_SHARES), K.ML_SHARES - 1)):
-                sj = (j + 0.5) / K.ML_SHARES
-                bnd = K.share_bound(kb, kw, 0, kb.size, 0.0, i, kern.off, stabs, j, sj)
+            s, ll = MB._ml_at_int(kb, kw, kb.size, kw.sum(), i, kern.g, kern.off, kern.colsum, uni, 0.5, -np.inf)
+            for j in (0, MB.ML_SHARES // 2, MB.ML_SHARES - 1, min(int(s * MB.ML_SHARES), MB.ML_SHARES - 1)):
+                sj = (j + 0.5) / MB.ML_SHARES
+                bnd = MB.share_bound(kb, kw, 0, kb.size, 0.0, i, kern.off, stabs, j, sj)
                 assert bnd >= ll - 1e-12 * abs(ll)
             tight.append(bnd - ll)
     assert np.median(tight) < 1e-3 and np.max(tight) < 0.5
@@ -436,20 +416,20 @@ def test_ml_share_tables_bound_every_interior_shift_from_above(kern, rng):
 def test_ml_share_sweep_gives_share_bound_at_every_interior_shift(kern, rng):
     # the sums built for all shifts at once (many survivors) against the per-shift reads
     uni = 1.0 / M
-    stabs = K.share_tables(kern.g, kern.colsum[kern.off], uni, K.ML_SHARES)
+    stabs = MB.share_tables(kern.g, kern.colsum[kern.off], uni, MB.ML_SHARES)
     nk = kern.g.size
-    sdiff = K.share_diffs(stabs)
+    sdiff = MB.share_diffs(stabs)
     ia, ib = kern.off, M - nk + kern.off
     for b in random_pixels(rng, 20, k=12, sbr=0.1):
         kb, kw = np.unique(b, return_counts=True)
         kw = kw.astype(float)
-        j = int(rng.integers(K.ML_SHARES))
-        sj = (j + 0.5) / K.ML_SHARES
+        j = int(rng.integers(MB.ML_SHARES))
+        sj = (j + 0.5) / MB.ML_SHARES
         ssum = np.zeros((4, M))
-        lo, hi = K.share_sweep(kb, kw, kb.size, kern.off, ia, ib, sdiff, j, ssum)
+        lo, hi = MB.share_sweep(kb, kw, kb.size, kern.off, ia, ib, sdiff, j, ssum)
         assert np.all(ssum[:, :max(lo, 0)] == 0.0) and np.all(ssum[:, hi + 1:] == 0.0)
         n = kw.sum()
         for i in range(ia, ib + 1):
-            swept = K.swept_bound(ssum, i, n, stabs, j, sj)
-            read = K.share_bound(kb, kw, 0, kb.size, 0.0, i, kern.off, stabs, j, sj)
+            swept = MB.swept_bound(ssum, i, n, stabs, j, sj)
+            read = MB.share_bound(kb, kw, 0, kb.size, 0.0, i, kern.off, stabs, j, sj)
             assert swept == pytest.approx(read, rel=1e-12, abs=1e-12)

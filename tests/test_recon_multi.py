@@ -1,4 +1,4 @@
-"""Several surfaces per pixel (recon.multi): kernel vs its NumPy reference, simulated two-surface and
+"""Several surfaces per pixel (recon.estimators.surfaces): kernel vs its NumPy reference, simulated two-surface and
 single-surface scenes, --reflectors auto, and the issue-15 scoring on the real two-surface file."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from spdepth.recon.estimate import reconstruct
 from spdepth.recon.errors import InputError
 from spdepth.recon.maps import PixelFlag
 from spdepth.recon.model import Binning, ReconSettings, build_kernel
-from spdepth.recon.multi import CAND_CORE, _step0, auto_threshold_nats, fit_surfaces, fwhm_bins
+from spdepth.recon.estimators.surfaces_fit import CAND_CORE, _step0, auto_threshold_nats, fit_surfaces, fwhm_bins
 from spdepth.recon.photons import PhotonStore
 
 import multidepth as MD
@@ -215,7 +215,8 @@ def weak_far_scene(rng, h=40, w=40, near=20.0, far=2.0, bg=3.0):
 
 
 def test_spatial_kernels_match_numpy_reference():
-    from spdepth.recon import multi_kernels as MK
+    from spdepth.recon.estimators import surfaces_kernels as MK
+    from spdepth.recon.kernels import Photons
 
     rng = np.random.default_rng(155)
     store, _ = weak_far_scene(rng, 5, 6)
@@ -239,13 +240,16 @@ def test_spatial_kernels_match_numpy_reference():
                            for p in range(store.n_pixels)]).astype(np.int64)
     offsets = np.concatenate(([0], np.cumsum(ys.sum(axis=1)))).astype(np.int64)
     npix = store.n_pixels
-    out = [np.full((npix, 2), np.nan), np.zeros((npix, 2)), np.zeros(npix), np.full((npix, 2), np.nan),
-           np.zeros((npix, 2)), np.full((npix, 2), -1, np.int64)]
-    # in two slices of pixels, as recon.multi calls it (between progress reports)
+    res = MK.SurfOut(np.full((npix, 2), np.nan), np.zeros((npix, 2)), np.zeros(npix), np.full((npix, 2), np.nan),
+                     np.zeros((npix, 2)), np.zeros(npix, np.int64))
+    src = np.full((npix, 2), -1, np.int64)
+    tabs = MK.surf_tables(b.n_bins, kern.g, kern.off, kern.colsum, kern.dg, fw, args["cand_step"], args["step0"])
+    nb = MK.Neighbourhood(5, 6, 1, 14.0, 8.0, float(fw), 3)
+    # in two slices of pixels, as recon.estimators.surfaces_fit calls it (between progress reports)
     for p0, p1 in ((0, 13), (13, npix)):
-        MK.neighbour_surfaces(bins, offsets, 5, 6, 1, shift0, gain0, 14.0, 8.0, float(fw), fw, 2, 3,
-                              args["cand_step"], kern.g, kern.off, kern.colsum, kern.dg, b.n_bins, args["step0"],
-                              int(np.diff(offsets).max()), *out, p0, p1)
+        MK.neighbour_surfaces(Photons(bins, offsets), shift0, gain0, nb, tabs, int(np.diff(offsets).max()), res,
+                              src, p0, p1)
+    out = [res.shift, res.amp, res.bg, res.var, res.gain, src]
     expect = ref.neighbour_surfaces(ys, 5, 6, kern, ref.dense_s(kern), shift_in=shift0, gain_in=gain0, **args)
     for p, (rs, ra, rc) in enumerate(expect):
         n = rs.size
@@ -364,7 +368,7 @@ def test_screen_bound_is_above_every_exact_gain_it_spares():
     """fit_pixel skips a screened candidate's exact gain when the screen's Jensen bound,
     N (log r - 1 + 1 / r), is below the best: the bound must never be below the exact gain (a wrong
     bound would skip a candidate that wins)."""
-    from spdepth.recon import multi_kernels as MK
+    from spdepth.recon.estimators import surfaces_kernels as MK
 
     rng = np.random.default_rng(152)
     b = Binning(UNIT_S, 0.0, 1600.0, 2.0)
@@ -395,7 +399,7 @@ def test_rate_from_em_table_is_model_irate_bit_for_bit():
     """After EM, the rate's inverse at the detections comes from EM's table of the response there
     (irate_table) instead of looking the response up again (model_irate): the same sums in the
     same order, so the same bits, with or without a return left out (the re-refinement's rate)."""
-    from spdepth.recon import multi_kernels as MK
+    from spdepth.recon.estimators import surfaces_kernels as MK
 
     rng = np.random.default_rng(153)
     b = Binning(UNIT_S, 0.0, 1600.0, 2.0)
@@ -422,7 +426,7 @@ def test_rate_from_em_table_is_model_irate_bit_for_bit():
 def test_spatial_surfaces_report_progress_as_they_go():
     """--method spatial --reflectors K fits every pixel's neighbourhood in slices and says how far
     it got after each (a 512 x 512 frame takes tens of seconds on one core), ending at the total."""
-    from spdepth.recon import multi
+    from spdepth.recon.estimators import surfaces_fit as multi
 
     rng = np.random.default_rng(156)
     lists, _ = scene(rng, 40 * 50, [12, 8], 4.0)

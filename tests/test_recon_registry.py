@@ -148,7 +148,7 @@ def test_estimators_leave_scipy_stats_unimported():
     import sys
 
     code = ("import sys\n"
-            "import spdepth.recon.multi, spdepth.recon.spatial, spdepth.recon.estimate, spdepth.acq.api\n"
+            "import spdepth.recon.estimators.surfaces_fit, spdepth.recon.estimators.spatial, spdepth.recon.estimate, spdepth.acq.api\n"
             "print('scipy.stats' in sys.modules)\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False", out.stdout + out.stderr
@@ -157,13 +157,13 @@ def test_estimators_leave_scipy_stats_unimported():
 def test_quantiles_from_scipy_special_are_scipy_stats():
     from scipy.stats import chi2, poisson
 
-    from spdepth.recon.multi import auto_threshold_nats
-    from spdepth.recon.spatial import poisson_quantile
+    from spdepth.recon.estimators.surfaces_fit import auto_threshold_nats
+    from spdepth.recon.estimators.spatial import poisson_quantile
 
     mu = np.concatenate([[0.0], np.linspace(1e-6, 60.0, 4001)])
     for q in (0.5, 0.98, 1 - 1e-3, 1 - 1e-6):
         np.testing.assert_array_equal(poisson_quantile(q, mu), poisson.ppf(q, mu))
-    # auto's threshold: half the chi2(1) quantile of the per-shift false alarm (recon.multi)
+    # auto's threshold: half the chi2(1) quantile of the per-shift false alarm (recon.estimators.surfaces)
     for fa, n_bins, width in ((1e-3, 800, 19), (1e-6, 4000, 85), (0.05, 100, 10)):
         n_eff = max(1.0, n_bins / width)
         p_one = -np.expm1(np.log1p(-fa) / n_eff)

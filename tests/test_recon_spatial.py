@@ -1,4 +1,4 @@
-"""The spatial estimator (recon.spatial): its kernels against NumPy references, beating the pixelwise
+"""The spatial estimator (recon.estimators.spatial): its kernels against NumPy references, beating the pixelwise
 oracle at 2 detections per pixel, keeping a 1 cm step, interpolated pixels flagged, and every output
 finite or flagged. Scenes are simulated here with NumPy (count-gated: N in-window detections per pixel,
 each signal with probability SBR / (1 + SBR)), so the oracle is exact: the mean of each pixel's
@@ -11,7 +11,7 @@ import pytest
 from numpy.testing import assert_allclose, assert_array_equal
 
 import reference_spatial as ref
-from spdepth.recon import spatial_kernels as SK
+from spdepth.recon.estimators import spatial_kernels as SK
 from spdepth.recon.errors import InputError
 from spdepth.recon.estimate import reconstruct
 from spdepth.recon.maps import C_M_PER_S, PixelFlag
@@ -148,7 +148,8 @@ def test_censor_fit_matches_reference(small_store):
                            for p in range(h * w))
             got = [np.empty(h * w), np.empty(h * w), np.empty(h * w), np.empty(h * w, np.int64),
                    np.empty(h * w, np.int64)]
-            SK.censor_fit(x, off, h, w, radius, tau, s_min, sigma, float(M), 4, counts, width or 1.0, *got)
+            cs = SK.CensorSettings(h, w, radius, tau, sigma, float(M), 4, width or 1.0)
+            SK.censor_fit(x, off, s_min, counts, cs, *got)
             for g, wv in zip(got, want):
                 assert_allclose(g, wv, rtol=1e-10, atol=1e-12)
             assert (got[4] > 0).any() and (got[4] < got[3]).any()      # some kept, some censored
@@ -164,12 +165,12 @@ def test_bounded_censoring_changes_no_output(monkeypatch, n, sbr, bins):
     # frames with many detections per pixel (spatial.BOUND_FROM), or fewer but with much background
     # (BOUND_FROM_BACKGROUND), bound the support by coarse window counts first, narrow ones where
     # background dominates: the maps are the same bits as with exact counts alone
-    from spdepth.recon import spatial
+    from spdepth.recon.estimators import spatial
 
     store, _ = simulate(smooth_scene(24, 24), n, sbr, seed=7)
     widths = []
-    real = spatial.SK.window_counts
-    monkeypatch.setattr(spatial.SK, "window_counts", lambda *a: widths.append(a[5]) or real(*a))
+    real = SK.window_counts
+    monkeypatch.setattr(SK, "window_counts", lambda *a: widths.append(a[5]) or real(*a))
     bounded = reconstruct(store, settings("spatial"))
     tau = spatial.TAU_RMS * RMS_UNITS / BIN_UNITS
     want = {"narrow": [pytest.approx(spatial.NARROW_COUNT_BIN_TAU * tau)],
@@ -359,7 +360,7 @@ def test_cli_recon_spatial_on_simulated_ptu_and_mat(tmp_path, capsys, shared_dat
 @pytest.mark.parametrize("sbr", [0.1, 1.0, 10.0])
 def test_background_share_measures_the_frame_without_a_model(sbr):
     # what picks the censoring bounds' coarse bins: about the true background share
-    from spdepth.recon.spatial import background_share
+    from spdepth.recon.estimators.spatial import background_share
 
     store, _ = simulate(smooth_scene(40, 40), 40, sbr, seed=3)
     x, off = _shifts(store)

@@ -35,17 +35,24 @@ def _text(buf) -> str:
     return buf.value.decode("ascii", "replace").strip()
 
 
-def list_devices(transport: LibTransport) -> list[dict]:
-    """Devices the library can open: ``[{"index", "serial"}]``. Devices held by another program
-    are skipped (they cannot be opened to ask)."""
-    found = []
+def _open_each(transport: LibTransport):
+    """(index, serial) of each device the library opens, in index order, left open for the caller
+    to close or keep; one another program holds is skipped (it cannot be opened to ask)."""
     for i in range(transport.family.max_devices):
         buf = ct.create_string_buffer(16)
         try:
             transport.call("OpenDevice", i, buf, quiet=True)
         except PicoQuantError:
             continue
-        found.append({"index": i, "serial": _text(buf)})
+        yield i, _text(buf)
+
+
+def list_devices(transport: LibTransport) -> list[dict]:
+    """Devices the library can open: ``[{"index", "serial"}]``. Devices held by another program
+    are skipped (they cannot be opened to ask)."""
+    found = []
+    for i, serial in _open_each(transport):
+        found.append({"index": i, "serial": serial})
         try:
             transport.call("CloseDevice", i, quiet=True)
         except PicoQuantError as exc:
@@ -82,13 +89,7 @@ class PicoQuantTagger:
     @staticmethod
     def _find(transport: LibTransport, serial: str | None) -> tuple[int, str]:
         seen = []
-        for i in range(transport.family.max_devices):
-            buf = ct.create_string_buffer(16)
-            try:
-                transport.call("OpenDevice", i, buf, quiet=True)
-            except PicoQuantError:
-                continue
-            got = _text(buf)
+        for i, got in _open_each(transport):
             if not serial or got == serial:
                 return i, got
             seen.append(got)

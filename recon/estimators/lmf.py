@@ -1,6 +1,6 @@
 """lmf: the log-matched filter (the seed paper's eq. 11), ``argmax_i sum_k y_k log S_{k,i}`` per
 pixel over integer shifts. It ignores background: every detection counts as signal, and its
-background map is NaN. Kernels: :mod:`recon.kernels` (``lmf_kernel``), loaded on the first run."""
+background map is NaN. Kernels: :mod:`.lmf_kernels`, loaded on the first run."""
 
 from __future__ import annotations
 
@@ -11,12 +11,15 @@ from spdepth.recon.estimators import Estimator, register
 
 def fit(store, settings, b, kern, notes, progress=None):
     """:data:`recon.estimators.Fit` of lmf on the resolved binning ``b`` and pulse ``kern``."""
-    from spdepth.recon import kernels as K
+    from spdepth.recon.estimators.lmf_kernels import LmfTables, lmf_kernel
+    from spdepth.recon.kernels import Photons
     from spdepth.recon.pixelwise import fit_pixels, pixel_maps
+
+    tabs = LmfTables(b.n_bins, kern.logg, kern.log_concave)
 
     def chunk(bins, offsets, maxn, out):
         si = np.empty(out.shift.size, np.int64)
-        K.lmf_kernel(bins, offsets, b.n_bins, kern.logg, kern.log_concave, maxn, si, out.var, out.n_used)
+        lmf_kernel(Photons(bins, offsets), tabs, maxn, si, out.var, out.n_used)
         out.shift[:] = np.where(si >= 0, si, np.nan)
         # the LMF attributes every detection to the return
         out.amp[:] = np.where(si >= 0, np.diff(offsets), 0.0)

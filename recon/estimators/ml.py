@@ -1,7 +1,7 @@
 """ml: the exact pixelwise Poisson maximum likelihood of the seed paper's eq. (9) over (shift,
 amplitude >= 0, background >= 0), global over the integer shifts (branch and bound), refined to
-1/FINE_STEPS bin and by a parabola; Fisher uncertainty. Kernels: :mod:`recon.kernels`
-(``ml_kernel``), loaded on the first run."""
+1/FINE_STEPS bin and by a parabola; Fisher uncertainty. Kernels: :mod:`.ml_kernels` (the
+search) and :mod:`.ml_bounds` (the likelihood and its bounds), loaded on the first run."""
 
 from __future__ import annotations
 
@@ -10,10 +10,11 @@ import numpy as np
 from spdepth.recon.estimators import Estimator, register
 
 
-def ml_tables(kern, m: int) -> tuple:
-    """The arguments of :func:`recon.kernels.ml_kernel` from ``g`` to ``fine_climb``, for the pulse
-    kernel ``kern`` over a window of m bins."""
-    from spdepth.recon import kernels as K
+def ml_tables(kern, m: int, fine_climb: bool | None = None):
+    """:class:`.ml_kernels.MlTables` for the pulse kernel ``kern`` over a window of m bins;
+    ``fine_climb`` overrides the choice of the fine search (default: climb on a smooth pulse, see
+    ML_CLIMB_RMS_BINS)."""
+    from spdepth.recon.estimators import ml_kernels as MK
     from spdepth.recon.model import FINE_STEPS
 
     logg_int = np.full(kern.g.size, -np.inf)
@@ -26,22 +27,23 @@ def ml_tables(kern, m: int) -> tuple:
         # no offset beats the floor (a one-bin window: a return and the background are the
         # same column): every shift's bound is the floor, the all-background fit wins
         dlo, dhi = 0, -1
-    fine_climb = bool(kern.log_concave and kern.rms_bins >= K.ML_CLIMB_RMS_BINS)
-    return (kern.g, kern.off, logg_int, dlo, dhi, kern.colsum, np.log(kern.colsum), kern.fine,
-            kern.fine_colsum, FINE_STEPS, fine_climb)
+    if fine_climb is None:
+        fine_climb = bool(kern.log_concave and kern.rms_bins >= MK.ML_CLIMB_RMS_BINS)
+    return MK.ml_tables(kern.g, kern.off, logg_int, dlo, dhi, kern.colsum, np.log(kern.colsum), kern.fine,
+                        kern.fine_colsum, FINE_STEPS, bool(fine_climb), kern.dg, kern.fisher)
 
 
 def fit(store, settings, b, kern, notes, progress=None):
     """:data:`recon.estimators.Fit` of ml on the resolved binning ``b`` and pulse ``kern``."""
-    from spdepth.recon import kernels as K
+    from spdepth.recon.estimators.ml_kernels import ml_kernel
+    from spdepth.recon.kernels import Photons
     from spdepth.recon.model import FINE_STEPS
     from spdepth.recon.pixelwise import fit_pixels, pixel_maps
 
     tabs = ml_tables(kern, b.n_bins)
 
     def chunk(bins, offsets, maxn, out):
-        K.ml_kernel(bins, offsets, b.n_bins, *tabs, kern.dg, kern.fisher, maxn,
-                    out.shift, out.amp, out.bg, out.var, out.n_used)
+        ml_kernel(Photons(bins, offsets), tabs, maxn, out.shift, out.amp, out.bg, out.var, out.n_used)
 
     res = fit_pixels(store, settings, b, chunk, progress)
     return pixel_maps(store, settings, b, kern, notes, res, shift_step=1.0 / FINE_STEPS)

@@ -1,8 +1,8 @@
 """uos: the seed paper's union-of-subspaces greedy pursuit (Algorithm 1) with one depth column and
 the background column, on its published scaling (columns peak 1, so ``delta`` means what it means
 there), over integer shifts. Its uncertainty is a matched filter's sandwich variance
-(:func:`matched_filter_var`), not the Fisher bound. Kernels: :mod:`recon.kernels` (``uos_kernel``),
-loaded on the first run."""
+(:func:`matched_filter_var`), not the Fisher bound. Kernels: :mod:`.uos_kernels`, loaded on the
+first run."""
 
 from __future__ import annotations
 
@@ -39,14 +39,16 @@ def matched_filter_var(shift: np.ndarray, amp: np.ndarray, bg: np.ndarray, kern,
 
 def fit(store, settings, b, kern, notes, progress=None):
     """:data:`recon.estimators.Fit` of uos on the resolved binning ``b`` and pulse ``kern``."""
-    from spdepth.recon import kernels as K
+    from spdepth.recon.estimators.uos_kernels import uos_kernel, uos_tables
+    from spdepth.recon.kernels import Photons
     from spdepth.recon.pixelwise import fit_pixels, pixel_maps
 
+    tabs = uos_tables(kern.g, kern.off, kern.gmax, kern.colsum, kern.pp, b.n_bins, float(settings.delta),
+                      int(settings.max_iterations))
+
     def chunk(bins, offsets, maxn, out):
-        K.uos_kernel(bins, offsets, b.n_bins, kern.g, kern.off, kern.gmax, kern.colsum, kern.pp, kern.dg,
-                     1, float(settings.delta), int(settings.max_iterations), 0.0, 0.0, maxn,
-                     out.shift.reshape(-1, 1), out.amp.reshape(-1, 1), out.bg, out.iters, out.conv,
-                     out.var.reshape(-1, 1), out.n_used)
+        uos_kernel(Photons(bins, offsets), tabs, maxn, out.shift, out.amp, out.bg, out.iters, out.conv,
+                   out.n_used)
 
     res = fit_pixels(store, settings, b, chunk, progress)
     res.var[:] = matched_filter_var(res.shift, res.amp, res.bg, kern, b.n_bins)

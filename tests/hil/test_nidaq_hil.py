@@ -8,12 +8,17 @@ Marked ``hardware``: skipped unless ``--nidaq`` names a device. Untested so far:
 
 from __future__ import annotations
 
+import sys
 import time
+from pathlib import Path
 
 import pytest
 
-from spdepth.drivers.daq import DaqCalibration, DaqGalvo
-from spdepth.drivers.galvo import Gate, GalvoState, ScanPattern
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from hil_support import named, open_picoquant  # noqa: E402
+
+from spdepth.drivers.daq import DaqCalibration, DaqGalvo  # noqa: E402
+from spdepth.drivers.galvo import Gate, GalvoState, ScanPattern  # noqa: E402
 
 pytestmark = pytest.mark.hardware
 
@@ -22,10 +27,8 @@ SAFE = DaqCalibration(deg_per_volt_x=1.0, deg_per_volt_y=1.0, v_min=-1.0, v_max=
 
 @pytest.fixture
 def galvo(request):
-    spec = request.config.getoption("--nidaq")
-    if not spec:
-        pytest.skip("no NI-DAQ device named (--nidaq Dev1[/ao0:1])")
-    g = DaqGalvo.open(spec, calibration=SAFE)
+    g = DaqGalvo.open(named(request, "--nidaq", "no NI-DAQ device named (--nidaq Dev1[/ao0:1])"),
+                      calibration=SAFE)
     try:
         yield g
     finally:
@@ -52,19 +55,15 @@ def test_a_raster_beyond_the_voltage_limits_is_refused(galvo):
 
 
 def test_session_with_a_picoquant_device(request, galvo, tmp_path):
-    spec = request.config.getoption("--picoquant")
-    if not spec:
-        pytest.skip("also name a PicoQuant device (--picoquant) for a session")
+    spec = named(request, "--picoquant", "also name a PicoQuant device (--picoquant) for a session")
     from spdepth.acq.api import scan_settings
     from spdepth.acq.plan import ScanPlan
     from spdepth.acq.requests import ScanRequest
     from spdepth.acq.scan_source import ScanSource
     from spdepth.acq.session import Session, SessionState
-    from spdepth.drivers.picoquant import PicoQuantSettings, PicoQuantTagger
+    from spdepth.drivers.picoquant import PicoQuantSettings
 
-    model, _, serial = spec.partition(":")
-    t = PicoQuantTagger.open(model, serial or None,
-                             lib_path=request.config.getoption("--picoquant-lib"))
+    t = open_picoquant(request, spec)
     try:
         t.configure(PicoQuantSettings())
         sync = t.sync_rate_hz()

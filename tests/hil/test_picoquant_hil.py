@@ -7,28 +7,28 @@ run it (README, "Vendor instruments")."""
 
 from __future__ import annotations
 
+import sys
+from contextlib import closing
+from pathlib import Path
+
 import numpy as np
 import pytest
 
-from spdepth.drivers.events import GENERIC_T3_RECORD_TYPES
-from spdepth.drivers.events import EventKind
-from spdepth.drivers.picoquant import FAMILIES, Flag, PicoQuantSettings, PicoQuantTagger
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from hil_support import chunks_for, named, open_picoquant  # noqa: E402
+
+from spdepth.drivers.events import GENERIC_T3_RECORD_TYPES  # noqa: E402
+from spdepth.drivers.events import EventKind  # noqa: E402
+from spdepth.drivers.picoquant import FAMILIES, Flag, PicoQuantSettings  # noqa: E402
 
 pytestmark = pytest.mark.hardware
 
 
 @pytest.fixture
 def device(request):
-    spec = request.config.getoption("--picoquant")
-    if not spec:
-        pytest.skip("no PicoQuant device named (--picoquant mh150[:SERIAL])")
-    model, _, serial = spec.partition(":")
-    t = PicoQuantTagger.open(model, serial or None,
-                             lib_path=request.config.getoption("--picoquant-lib"))
-    try:
+    spec = named(request, "--picoquant", "no PicoQuant device named (--picoquant mh150[:SERIAL])")
+    with closing(open_picoquant(request, spec)) as t:
         yield t
-    finally:
-        t.close()
 
 
 def test_identity_and_settings(device):
@@ -46,17 +46,7 @@ def test_identity_and_settings(device):
 def test_stream_decodes_with_increasing_syncs_and_no_loss(device):
     device.configure(PicoQuantSettings())
     r = device.reader().start()
-    chunks = []
-    try:
-        import time
-
-        t_end = time.monotonic() + 2.0
-        while time.monotonic() < t_end:
-            c = r.get(timeout_s=0.1)
-            if c is not None and c.size:
-                chunks.append(c)
-    finally:
-        r.stop()
+    chunks = chunks_for(r)
     assert r.error is None
     assert r.stats["fifo_full"] == 0 and r.stats["restarts"] == 0
     if chunks:

@@ -7,42 +7,34 @@ Marked ``hardware``: skipped unless ``--swabian`` names a device. Untested so fa
 from __future__ import annotations
 
 import os
-import time
+import sys
+from contextlib import closing
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from spdepth.drivers.events import EventKind
-from spdepth.drivers.swabian import SwabianSettings, SwabianTagger
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from hil_support import chunks_for, named  # noqa: E402
+
+from spdepth.drivers.events import EventKind  # noqa: E402
+from spdepth.drivers.swabian import SwabianSettings, SwabianTagger  # noqa: E402
 
 pytestmark = pytest.mark.hardware
 
 
 @pytest.fixture
 def tagger(request):
-    spec = request.config.getoption("--swabian")
-    if not spec:
-        pytest.skip("no Swabian tagger named (--swabian SERIAL|any)")
+    spec = named(request, "--swabian", "no Swabian tagger named (--swabian SERIAL|any)")
     rate = float(os.environ.get("SPDEPTH_SYNC_RATE_HZ", 20e6))
-    t = SwabianTagger.open(None if spec == "any" else spec,
-                           SwabianSettings(sync_period_s=1 / rate, event_divider=16))
-    try:
+    with closing(SwabianTagger.open(None if spec == "any" else spec,
+                                    SwabianSettings(sync_period_s=1 / rate, event_divider=16))) as t:
         yield t
-    finally:
-        t.close()
 
 
 def test_stream_places_events_after_syncs_without_loss(tagger):
     r = tagger.reader().start()
-    chunks = []
-    try:
-        t_end = time.monotonic() + 2.0
-        while time.monotonic() < t_end:
-            c = r.get(timeout_s=0.1)
-            if c is not None and c.size:
-                chunks.append(c)
-    finally:
-        r.stop()
+    chunks = chunks_for(r)
     assert r.error is None and r.stats["overflows"] == 0
     assert r.stats["records"] > 0, "no tags: is the laser sync on input 1?"
     if chunks:

@@ -12,6 +12,8 @@ from pathlib import Path
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))   # tests/ holds the shared contract
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from hil_support import named  # noqa: E402
 from test_tagger_contract import TaggerContract  # noqa: E402
 
 from spdepth.drivers.tagger import Tagger  # noqa: E402
@@ -21,10 +23,7 @@ pytestmark = pytest.mark.hardware
 
 @pytest.fixture
 def tagger(request):
-    url = request.config.getoption("--tagger")
-    if not url:
-        pytest.skip("no real tagger named (--tagger usb:VID:PID)")
-    t = Tagger.open(url)
+    t = Tagger.open(named(request, "--tagger", "no real tagger named (--tagger usb:VID:PID)"))
     try:
         t.stop()   # a previous run may have left it measuring
         yield t

@@ -7,6 +7,11 @@ checkout's tests/ folder (not installed); without it only the kernels are timed,
 Ratios are what to read: other work on the machine moves absolute figures, not the side-by-side
 comparison made within one run.
 
+``--before REV``: the same command of another revision of this checkout (a git revision, exported
+to a temporary folder, or a folder holding another checkout as ``spdepth``) and of this one, run
+in turn in new processes ``--rounds`` times, both outputs printed and the best of each side's
+kernel and reconstruct figures with their ratio (``acq.commands.bench.before``).
+
 Like for like: kernel and reference get the same pixels (the first ``--ref-pixels``), both are
 warm (one untimed run first) and timed best-of, on one thread, and the references' dense matrices
 are built once, outside the timed region. Each reference is the same estimator as its kernel,
@@ -22,17 +27,18 @@ import os
 import sys
 import time
 from pathlib import Path
+from typing import Callable
 
 import numba
 import numpy as np
 
-from spdepth.acq.commands.bench import ml_before
 from spdepth.acq.live_recon import MIN_BATCH_PIXELS
-from spdepth.recon import kernels as K
 from spdepth.recon.estimate import reconstruct
+from spdepth.recon.estimators import lmf_kernels, ml_kernels, uos_kernels
+from spdepth.recon.estimators.ml import ml_tables
+from spdepth.recon.kernels import Photons
 from spdepth.recon.model import FINE_STEPS, SEED_PAPER, Binning, ReconSettings, build_kernel
 from spdepth.recon.photons import PhotonStore
-from spdepth.recon.estimators.ml import ml_tables
 
 M = SEED_PAPER.n_bins
 UNIT_S = SEED_PAPER.time_unit_s
@@ -71,7 +77,6 @@ REFERENCES = {
     "lmf": "eq. 11 as one dense product log(S)^T y per pixel (tests/reference.py lmf)",
     "uos": "Algorithm 1 as published: dense A = [S/max, 1], pinv least squares each iteration "
            "(tests/reference.py uos)",
-    "ml-before": "the same as ml",
     "ml": "exact Poisson ML, every shift's profile likelihood solved by the kernel's safeguarded "
           "Newton in the signal share, vectorised over all shifts, no pruning; then the same "
           "1/8-bin refinement and parabola (ml_dense here)",
@@ -194,80 +199,147 @@ def live_batch(bins: np.ndarray, offsets: np.ndarray, binning: Binning, methods:
           flush=True)
 
 
-def bench(argv: list[str]) -> int:
+def kernel_runner(kern) -> Callable[[str, np.ndarray, np.ndarray], np.ndarray]:
+    """``run(method, bins, offsets)``: the method's kernel alone on those pixels (the tables built
+    here, once), its shift per pixel (bins, NaN: none)."""
+    lmf_tabs = lmf_kernels.LmfTables(M, kern.logg, kern.log_concave)
+    uos_tabs = uos_kernels.uos_tables(kern.g, kern.off, kern.gmax, kern.colsum, kern.pp, M, SEED_PAPER.delta,
+                                      SEED_PAPER.max_iterations)
+    ml_tabs = ml_tables(kern, M)
+
+    def run(method, b, o):
+        p = o.size - 1
+        ph = Photons(b, o)
+        shift = np.full(p, np.nan)
+        if method == "lmf":
+            si = np.empty(p, np.int64)
+            lmf_kernels.lmf_kernel(ph, lmf_tabs, DETECTIONS, si, np.empty(p), np.empty(p, np.int64))
+            shift[:] = np.where(si >= 0, si, np.nan)
+        elif method == "uos":
+            uos_kernels.uos_kernel(ph, uos_tabs, DETECTIONS, shift, np.empty(p), np.empty(p), np.empty(p, np.int32),
+                                   np.empty(p, np.bool_), np.empty(p, np.int64))
+        else:
+            ml_kernels.ml_kernel(ph, ml_tabs, DETECTIONS, shift, np.empty(p), np.empty(p), np.empty(p),
+                                 np.empty(p, np.int64))
+        return shift
+
+    return run
+
+
+def reference_runner(kern, ref) -> Callable[[str, np.ndarray, np.ndarray], np.ndarray]:
+    """``run(method, bins, offsets)``: the method's plain NumPy reference, one pixel at a time, its
+    shift per pixel (bins); the dense matrices built here, outside every timed region."""
+    s_mat = ref.dense_s(kern)
+    log_s = ref.dense_logs(kern)
+    a_mat = np.hstack([s_mat / kern.gmax, np.ones((M, 1))])
+
+    def run(method, b, o):
+        out = np.full(o.size - 1, np.nan)
+        for p in range(o.size - 1):
+            y = ref.histogram(b[o[p]:o[p + 1]], M)
+            if method == "lmf":
+                out[p] = ref.lmf(y, log_s)
+            elif method == "uos":
+                a, _ = ref.uos(y, a_mat)
+                if np.any(a[:M] > 0):
+                    out[p] = np.argmax(a[:M])
+            else:
+                out[p] = ml_dense(y, kern, s_mat, ref)
+        return out
+
+    return run
+
+
+def thread_rates(fn, n: int, rounds: int) -> dict[int, float]:
+    """Pixels/s of ``fn`` (n pixels) on 1 and 2 threads, the two alternated over ``rounds`` and the best
+    of each kept, so a burst of other work on the machine does not land on one of them only."""
+    rates = {1: 0.0, 2: 0.0}
+    for _round in range(rounds):
+        for nt in (1, 2):
+            if nt > numba.config.NUMBA_NUM_THREADS:
+                rates[nt] = np.nan
+                continue
+            numba.set_num_threads(nt)
+            rates[nt] = max(rates[nt], n / _time(fn, 0.15))
+    numba.set_num_threads(1)
+    return rates
+
+
+def method_row(method, run_kernel, run_ref, store, bins, offsets, args) -> str:
+    """The table's row of one method: kernel 1/2 threads, the whole reconstruct, and beside its
+    reference on the same pixels (when the references are there) with the share that agrees."""
+    n = offsets.size - 1
+    rates = thread_rates(lambda: run_kernel(method, bins, offsets), n, args.rounds)
+    settings = ReconSettings(method=method, binning=SEED_PAPER.binning, pulse_rms_s=RMS_S)
+    full = n / _time(lambda: reconstruct(store, settings), min_s=0.1)
+    ref_rate = same_rate = agree = np.nan
+    if run_ref is not None:
+        npr = min(n, args.ml_ref_pixels if method == "ml" else args.ref_pixels)
+        o = offsets[:npr + 1]
+        same_rate = npr / _time(lambda: run_kernel(method, bins, o), 0.1)
+        ref_rate = npr / _time(lambda: run_ref(method, bins, o), 1e-9 if method == "ml" else 0.2)
+        # agreement: same shift to 1/8 bin (both NaN counts as agreeing)
+        a, b = run_kernel(method, bins, o), run_ref(method, bins, o)
+        agree = np.mean((np.abs(a - b) <= 1 / 8 + 1e-9) | (np.isnan(a) & np.isnan(b)))
+    return (f"{method:<10} {rates[1]:13,.0f} {rates[2]:13,.0f} {rates[2] / rates[1]:8.2f}x "
+            f"{full:18,.0f} {same_rate:15,.0f} {ref_rate:11,.1f} {same_rate / ref_rate:10,.0f}x "
+            f"{100 * agree:5.0f}%")
+
+
+def big_pixel_line(methods: list[str]) -> str:
+    """One pathological pixel: a point measurement of 50,000 detections over 4096 bins."""
+    big_b = Binning(UNIT_S, 0.0, float(BIG_BINS), 1.0)
+    big_store = PhotonStore.from_lists([huge_pixel(seed=2)], (1, 1), UNIT_S)
+    line = []
+    for method in methods:
+        s = ReconSettings(method=method, binning=big_b, pulse_rms_s=BIG_RMS_UNITS * UNIT_S)
+        line.append(f"{method} {_time(lambda: reconstruct(big_store, s), min_s=0.1):.4f} s")
+    return (f"one pixel of {BIG_PHOTONS:,} detections over {BIG_BINS} bins (reconstruct, 1 thr, pulse kernel "
+            f"kept): " + ", ".join(line))
+
+
+def _parse(argv: list[str]) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog="spdepth bench recon", description=__doc__.splitlines()[0])
     parser.add_argument("--pixels", type=int, default=100_000, help="pixels per kernel run")
     parser.add_argument("--ref-pixels", type=int, default=200,
                         help="pixels of the side-by-side kernel/reference comparison (lmf, uos)")
     parser.add_argument("--ml-ref-pixels", type=int, default=40, help="the same for ml")
-    parser.add_argument("--methods", default="lmf,uos,ml,ml-before",
-                        help="ml-before: the ml kernel as it was before issue 18 (bench/ml_before.py), "
-                             "timed in the same run as today's")
-    parser.add_argument("--rounds", type=int, default=3, help="alternating 1/2-thread rounds (best kept)")
+    parser.add_argument("--methods", default="lmf,uos,ml", help="kernels to time (of lmf, uos, ml)")
+    parser.add_argument("--rounds", type=int, default=3,
+                        help="alternating 1/2-thread rounds (best kept); with --before, runs of each side")
     parser.add_argument("--sbr", type=float, default=10.0,
                         help="signal-to-background ratio of the simulated pixels (ml's search prunes less "
                              "at low SBR)")
+    parser.add_argument("--before", metavar="REV",
+                        help="also run this command of another revision (git revision or a folder holding "
+                             "spdepth), in turn with this checkout's, and print the ratios")
     args = parser.parse_args(argv)
-
-    binning = SEED_PAPER.binning
-    start_u = binning.window_start
-    kern = build_kernel(binning, pulse_rms_s=RMS_S)
     if not args.sbr > 0:
         parser.error(f"--sbr must be positive, got {args.sbr}")
+    unknown = set(args.methods.split(",")) - set(REFERENCES)
+    if unknown:
+        parser.error(f"--methods: unknown {', '.join(sorted(unknown))} (of {', '.join(REFERENCES)})")
+    return args
+
+
+def bench(argv: list[str]) -> int:
+    args = _parse(argv)
+    methods = args.methods.split(",")
+    if args.before:
+        from spdepth.acq.commands.bench.before import side_by_side, table_rows
+
+        inner = [a for i, a in enumerate(argv) if a != "--before" and (i == 0 or argv[i - 1] != "--before")
+                 and not a.startswith("--before=")]
+        side_by_side("spdepth.acq.commands.bench.recon", inner + ["--rounds", "1"], args.before, args.rounds,
+                     table_rows(methods, [0, 3]), ["kernel 1 thr", "reconstruct 1 thr"])
+        return 0
+    kern = build_kernel(SEED_PAPER.binning, pulse_rms_s=RMS_S)
     bins, offsets = simulate(args.pixels, seed=1, sbr=args.sbr)
     n = args.pixels
     ref, ref_path = _load_reference()
-
-    ml_tabs = ml_tables(kern, M)
-
-    def run_kernel(method, b, o):
-        """The kernel's shift per pixel (bins, NaN: none)."""
-        p = o.size - 1
-        shift = np.full((p, 1), np.nan)
-        if method == "lmf":
-            si = np.empty(p, np.int64)
-            K.lmf_kernel(b, o, M, kern.logg, kern.log_concave, DETECTIONS, si, np.empty(p),
-                         np.empty(p, np.int64))
-            shift[:, 0] = np.where(si >= 0, si, np.nan)
-        elif method == "uos":
-            K.uos_kernel(b, o, M, kern.g, kern.off, kern.gmax, kern.colsum, kern.pp, kern.dg, 1,
-                         SEED_PAPER.delta, SEED_PAPER.max_iterations, 2 * kern.rms_bins, 3.0, DETECTIONS,
-                         shift, np.empty((p, 1)), np.empty(p), np.empty(p, np.int32), np.empty(p, np.bool_),
-                         np.empty((p, 1)), np.empty(p, np.int64))
-        else:
-            outs = (kern.dg, DETECTIONS, shift[:, 0], np.empty(p), np.empty(p), np.empty(p),
-                    np.empty(p, np.int64))
-            if method == "ml-before":
-                # its tables: today's without the fine search's switch (it searched every fine shift)
-                ml_before.ml_kernel(b, o, M, *ml_tabs[:-1], *outs)
-            else:
-                K.ml_kernel(b, o, M, *ml_tabs, outs[0], kern.fisher, *outs[1:])
-        return shift[:, 0]
-
-    # the references' dense matrices, built once, outside every timed region
-    dense = {}
-    if ref is not None:
-        s_mat = ref.dense_s(kern)
-        dense = {"lmf": ref.dense_logs(kern), "uos": np.hstack([s_mat / kern.gmax, np.ones((M, 1))]),
-                 "ml": s_mat, "ml-before": s_mat}
-
-    def run_ref(method, b, o):
-        """The reference's shift per pixel (bins), one pixel at a time."""
-        out = np.full(o.size - 1, np.nan)
-        for p in range(o.size - 1):
-            y = ref.histogram(b[o[p]:o[p + 1]], M)
-            if method == "lmf":
-                out[p] = ref.lmf(y, dense["lmf"])
-            elif method == "uos":
-                a, _ = ref.uos(y, dense["uos"])
-                if np.any(a[:M] > 0):
-                    out[p] = np.argmax(a[:M])
-            else:
-                out[p] = ml_dense(y, kern, dense["ml"], ref)
-        return out
-
-    times_raw = (bins + 0.5) * BIN_UNITS + start_u
-    store = PhotonStore(times_raw, offsets, (1, n), UNIT_S)
+    run_kernel = kernel_runner(kern)
+    run_ref = reference_runner(kern, ref) if ref is not None else None
+    store = PhotonStore((bins + 0.5) * BIN_UNITS + SEED_PAPER.binning.window_start, offsets, (1, n), UNIT_S)
 
     print(f"recon estimators, {M} bins of {BIN_UNITS * UNIT_S * 1e12:.0f} ps, pulse RMS {RMS_S * 1e12:.0f} ps, "
           f"{DETECTIONS} detections/pixel, SBR {args.sbr:g}; pixels per second")
@@ -276,7 +348,7 @@ def bench(argv: list[str]) -> int:
     else:
         print(f"references ({ref_path}): the same estimator, dense NumPy, one pixel at a time; same "
               "pixels as the kernel, both warm, best-of, 1 thread, matrices built before timing:")
-        for method in args.methods.split(","):
+        for method in methods:
             print(f"  {method}: {REFERENCES[method]}")
     print(f"load average before: {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
     print(f"{'method':<10} {'kernel 1 thr':>13} {'kernel 2 thr':>13} {'speed-up':>9} "
@@ -284,63 +356,14 @@ def bench(argv: list[str]) -> int:
           f"{'agree':>6}")
     old_threads = numba.get_num_threads()
     try:
-        for method in args.methods.split(","):
-            rates = {1: 0.0, 2: 0.0}
-            # alternate the two thread counts over a few rounds and keep the best of each, so a
-            # burst of other work on the machine does not land on one of them only
-            for _round in range(args.rounds):
-                for nt in (1, 2):
-                    if nt > numba.config.NUMBA_NUM_THREADS:
-                        rates[nt] = np.nan
-                        continue
-                    numba.set_num_threads(nt)
-                    rates[nt] = max(rates[nt], n / _time(lambda: run_kernel(method, bins, offsets), 0.15))
-            numba.set_num_threads(1)
-            full = np.nan       # ml-before is a kernel only, not an estimator of the registry
-            if method in ("lmf", "uos", "ml"):
-                settings = ReconSettings(method=method, binning=binning, pulse_rms_s=RMS_S)
-                full = n / _time(lambda: reconstruct(store, settings), min_s=0.1)
-            ref_rate = same_rate = agree = np.nan
-            if ref is not None:
-                npr = min(n, args.ml_ref_pixels if method.startswith("ml") else args.ref_pixels)
-                o = offsets[:npr + 1]
-                same_rate = npr / _time(lambda: run_kernel(method, bins, o), 0.1)
-                ref_rate = npr / _time(lambda: run_ref(method, bins, o), 1e-9 if method.startswith("ml") else 0.2)
-                # agreement: same shift to 1/8 bin (both NaN counts as agreeing)
-                a, b = run_kernel(method, bins, o), run_ref(method, bins, o)
-                agree = np.mean((np.abs(a - b) <= 1 / 8 + 1e-9) | (np.isnan(a) & np.isnan(b)))
-            print(f"{method:<10} {rates[1]:13,.0f} {rates[2]:13,.0f} {rates[2] / rates[1]:8.2f}x "
-                  f"{full:18,.0f} {same_rate:15,.0f} {ref_rate:11,.1f} {same_rate / ref_rate:10,.0f}x "
-                  f"{100 * agree:5.0f}%", flush=True)
-        pair = [mt for mt in ("ml", "ml-before", "uos") if mt in args.methods.split(",")]
-        if "ml" in pair and len(pair) > 1:
-            # before/after as a ratio of runs taken in turn (a burst of other work on the machine
-            # lands on both): the best of each over the rounds, 1 thread
-            numba.set_num_threads(1)
-            best = {mt: 0.0 for mt in pair}
-            for _round in range(max(3, args.rounds)):
-                for mt in pair:
-                    best[mt] = max(best[mt], n / _time(lambda: run_kernel(mt, bins, offsets), 0.15))
-            print("in turn, 1 thread: " + ", ".join(f"{mt} {best[mt]:,.0f}" for mt in pair) + "; "
-                  + ", ".join(f"ml / {mt} {best['ml'] / best[mt]:.2f}x" for mt in pair if mt != "ml"),
-                  flush=True)
-        # one pathological pixel: a point measurement of 50,000 detections over 4096 bins
+        for method in methods:
+            print(method_row(method, run_kernel, run_ref, store, bins, offsets, args), flush=True)
         numba.set_num_threads(1)
-        big_b = Binning(UNIT_S, 0.0, float(BIG_BINS), 1.0)
-        big_store = PhotonStore.from_lists([huge_pixel(seed=2)], (1, 1), UNIT_S)
-        line = []
-        for method in args.methods.split(","):
-            if method not in ("lmf", "uos", "ml"):
-                continue
-            s = ReconSettings(method=method, binning=big_b, pulse_rms_s=BIG_RMS_UNITS * UNIT_S)
-            line.append(f"{method} {_time(lambda: reconstruct(big_store, s), min_s=0.1):.4f} s")
-        print(f"one pixel of {BIG_PHOTONS:,} detections over {BIG_BINS} bins (reconstruct, 1 thr, pulse kernel "
-              f"kept): " + ", ".join(line), flush=True)
-        live_batch(bins, offsets, binning, args.methods.split(","))
+        print(big_pixel_line(methods), flush=True)
+        live_batch(bins, offsets, SEED_PAPER.binning, methods)
     finally:
         numba.set_num_threads(old_threads)
     return 0
-
 
 if __name__ == "__main__":
     sys.exit(bench(sys.argv[1:]))

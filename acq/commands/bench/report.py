@@ -420,7 +420,7 @@ def write_report(path: Path, rows: list[dict], *, command: str, size: tuple[int,
         "expected signal detections, averaged over the same pixels. † marks points with under one "
         "expected signal detection per pixel, where the formula is no longer a bound (the oracle "
         "itself usually has no signal detection to average).",
-        "- `spatial` (recon/spatial.py) also uses each pixel's neighbours, so the pixelwise bound "
+        "- `spatial` (recon/estimators/spatial.py) also uses each pixel's neighbours, so the pixelwise bound "
         "does not bind it: below 1.00x oracle is what the neighbours buy on a piecewise-smooth scene.",
         f"- Scan time: count-gated at {rate_hz:,.0f} detections/s (5% of the pulses of a 10 MHz "
         f"laser, where pile-up is still small): N / rate per pixel; also given for a {FRAME_SIDE}x"

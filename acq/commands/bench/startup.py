@@ -11,8 +11,9 @@ load on the machine moves less than the wall), ``read_s`` and ``recon_s`` as the
 Algorithm 1 (``spdepth bench recon``'s uos reference, timed in this process in the same run, one
 thread; it is BLAS-bound and slows far more than the kernels when other work shares the cores,
 so the ratio is only comparable between quiet runs, while before/after in one run always is).
-``--before PKGDIR``: a directory holding another checkout as ``spdepth`` (put first on
-PYTHONPATH for its runs; e.g. a ``git worktree add`` of an older commit and a symlink to it).
+``--before PKGDIR|REV``: a directory holding another checkout as ``spdepth`` (put first on
+PYTHONPATH for its runs; e.g. a ``git worktree add`` of an older commit and a symlink to it), or a
+git revision of this checkout, exported to such a directory (``acq.commands.bench.before``).
 ``--cold``: also one run each with an empty numba cache (a fresh NUMBA_CACHE_DIR: every kernel
 compiled), the first run after an install.
 Defaults: the seed paper's mannequin and settings (README), ``--method uos``.
@@ -66,7 +67,8 @@ def bench(argv: list[str]) -> int:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--file", default=FACE, help=f"the file to reconstruct (default {FACE})")
     p.add_argument("--runs", type=int, default=5, help="warm runs per checkout, alternated (default 5)")
-    p.add_argument("--before", metavar="PKGDIR", help="also run the checkout found as spdepth in PKGDIR")
+    p.add_argument("--before", metavar="PKGDIR|REV",
+                   help="also run the checkout found as spdepth in PKGDIR, or this checkout's revision REV")
     p.add_argument("--cold", action="store_true", help="also one run each with an empty numba cache")
     p.add_argument("recon", nargs=argparse.REMAINDER,
                    help="spdepth recon options after '--' (default: the seed paper's, --method uos)")
@@ -79,7 +81,9 @@ def bench(argv: list[str]) -> int:
 
     sides = {"this checkout": None}
     if a.before:
-        sides = {"before": a.before, "after (this checkout)": None}
+        from spdepth.acq.commands.bench.before import package_dir
+
+        sides = {"before": package_dir(a.before), "after (this checkout)": None}
     print(f"spdepth bench startup: spdepth recon {' '.join(recon_argv)}")
     print(f"load average before: {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
     cold = {}

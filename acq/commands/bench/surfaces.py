@@ -3,7 +3,9 @@
 of 8 ps, 5-unit bins, Gaussian pulse RMS 40 units), warm, one thread, best of ``--rounds``.
 
 Run as ``spdepth bench surfaces``. Times the whole ``recon.estimate.reconstruct`` call (binning,
-kernel, maps), so the figures are what a user gets per thread.
+kernel, maps), so the figures are what a user gets per thread. ``--before REV``: the same command
+of another revision (a git revision or a folder holding spdepth) and of this checkout, in turn in
+new processes ``--rounds`` times, with the ratios (``acq.commands.bench.before``).
 """
 
 from __future__ import annotations
@@ -37,8 +39,16 @@ def scene(n_pix: int, seed: int) -> PhotonStore:
 def bench(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(prog="spdepth bench surfaces", description=__doc__.split("\n\n")[0])
     parser.add_argument("--pixels", type=int, default=40_000)
-    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--rounds", type=int, default=3, help="timed runs (best kept); with --before, runs of each side")
+    parser.add_argument("--before", metavar="REV", help="also run this command of another revision, in turn")
     args = parser.parse_args(argv)
+    if args.before:
+        from spdepth.acq.commands.bench.before import side_by_side, table_rows
+
+        inner = ["--pixels", str(args.pixels), "--rounds", "1"]
+        side_by_side("spdepth.acq.commands.bench.surfaces", inner, args.before, args.rounds,
+                     table_rows(["1", "2", "auto"], [0], pattern=r"^--reflectors\s+(\S+):"), ["pixels/s"])
+        return 0
     store = scene(args.pixels, 0)
     b = Binning(UNIT_S, 0, 4000, 5)
     numba.set_num_threads(1)

@@ -1,5 +1,5 @@
-"""Numba kernels of the spatial estimator (:mod:`recon.spatial`). Plain arrays in, disjoint outputs
-out; validation, allocation and the choice of constants happen in :mod:`recon.spatial`.
+"""Numba kernels of the spatial estimator (:mod:`recon.estimators.spatial`). Plain arrays in, disjoint outputs
+out; validation, allocation and the choice of constants happen in :mod:`recon.estimators.spatial`.
 
 Times here are continuous shifts in bins: a detection at raw time ``t`` is at
 ``(t - window_start) / bin_width - 0.5``, the shift whose pulse centroid it would be (so the mean of a
@@ -10,6 +10,7 @@ return's signal detections estimates the return's shift directly). Photon lists 
 from __future__ import annotations
 
 import math
+from collections import namedtuple
 
 import numpy as np
 from llvmlite import ir
@@ -134,10 +135,17 @@ def _bucket_sort(a, lo, hi, n_bins, tmp, fill):
         src[i] = tmp[i]
 
 
+#: censor_fit's settings: an h x w image, (2 radius + 1)^2 pixels around each, support within tau
+#: bins, a Gaussian pulse of sigma bins over n_bins, em_iters EM steps; count_width: window_counts'
+#: bin width (its bounds, when given).
+CensorSettings = namedtuple("CensorSettings", ["h", "w", "radius", "tau", "sigma", "n_bins", "em_iters",
+                                               "count_width"])
+
+
 @njit(parallel=True, cache=True, nogil=True)
-def censor_fit(x, offsets, h, w, radius, tau, s_min, sigma, n_bins, em_iters, win_counts, count_width,
-               out_mu, out_k, out_bg, out_n, out_kept):
-    """Per pixel: censor, then fit a pulse-plus-flat mixture to the detections kept.
+def censor_fit(x, offsets, s_min, win_counts, cs, out_mu, out_k, out_bg, out_n, out_kept):
+    """Per pixel: censor, then fit a pulse-plus-flat mixture to the detections kept
+    (:class:`CensorSettings` cs).
 
     Censoring (after Rapp and Goyal 2017): a detection is kept when at least ``s_min[p]`` other
     detections of the (2 radius + 1)^2 window (the pixel's own included) lie within ``tau`` bins;
@@ -151,7 +159,7 @@ def censor_fit(x, offsets, h, w, radius, tau, s_min, sigma, n_bins, em_iters, wi
     Outputs per pixel: out_mu (shift, bins; NaN when nothing kept), out_k (signal detections, the
     sum of responsibilities; 0 when nothing kept), out_bg (background detections per bin),
     out_n (detections used), out_kept (detections that passed censoring)."""
-    npix = h * w
+    npix = cs.h * cs.w
     longest = np.int64(0)     # not the literal 0: numba compiled the callee for that type too
     for p in range(npix):
         longest = max(longest, offsets[p + 1] - offsets[p])
@@ -159,18 +167,153 @@ def censor_fit(x, offsets, h, w, radius, tau, s_min, sigma, n_bins, em_iters, wi
     # a block's pixels in a plain function: with the loop over them inside the parallel loop,
     # numba's parallel lowering took 8 s of cold compile, as a plain function it takes about 4
     for blk in prange(n_blocks):
-        _censor_fit_block(blk * PIXEL_BLOCK, min(npix, (blk + 1) * PIXEL_BLOCK), longest, x, offsets, h,
-                          w, radius, tau, s_min, sigma, n_bins, em_iters, win_counts, count_width,
-                          out_mu, out_k, out_bg, out_n, out_kept)
+        _censor_fit_block(blk * PIXEL_BLOCK, min(npix, (blk + 1) * PIXEL_BLOCK), longest, x, offsets, s_min,
+                          win_counts, cs, out_mu, out_k, out_bg, out_n, out_kept)
+
+
+@njit(cache=True, nogil=True, _nrt=False)
+def _own_support(xp, n, need, tau, sup, sure, todo):
+    """Each detection's support from the pixel's own sorted list xp[:n] (itself excluded) into sup;
+    the detections still short of ``need`` into todo; returns how many. A detection whose `half`
+    predecessors and `half` successors all lie within tau has >= need supporters: the core of a
+    return is decided by this test (it vectorises) and the walk, whose loops mispredict, skips it."""
+    half = (need + 1) // 2
+    for i in range(n):
+        sure[i] = False
+    if n > 2 * half:
+        # as shifted views from 0, so the loop loads without gathers
+        before = xp[:n - 2 * half]
+        at = xp[half:n - half]
+        after = xp[2 * half:]
+        mid = sure[half:n - half]
+        for j in range(n - 2 * half):
+            mid[j] = (before[j] >= at[j] - tau) & (after[j] <= at[j] + tau)
+    a = 0
+    b = 0
+    nt = 0
+    for i in range(n):
+        if sure[i]:
+            sup[i] = need
+            continue
+        t = xp[i]
+        while xp[a] < t - tau:
+            a += 1
+        if b < i:
+            b = i
+        while b < n and xp[b] <= t + tau:
+            b += 1
+        sup[i] = b - a - 1
+        if sup[i] < need:
+            todo[nt] = i
+            nt += 1
+    return nt
+
+
+@njit(cache=True, nogil=True, _nrt=False)
+def _bounded(xp, nt, need, tau, wc, count_width, todo):
+    """Keep in todo[:nt] only the detections whose support the window's detections in the coarse
+    bins that [t - tau, t + tau] touches (wc: a row of window_counts, the detection itself among
+    them) can raise to more than need: one whose bound falls short is censored without counting any
+    neighbour. Returns how many are left."""
+    nc = wc.size
+    inv_width = 1.0 / count_width
+    keep = 0
+    for j in range(nt):
+        i = todo[j]
+        k0 = _count_bin(xp[i] - tau, inv_width, nc)
+        k1 = _count_bin(xp[i] + tau, inv_width, nc)
+        bound = wc[k1] - (wc[k0 - 1] if k0 > 0 else 0)
+        todo[keep] = i
+        keep += bound > need
+    return keep
+
+
+@njit(cache=True, nogil=True, _nrt=False)
+def _support_from(xp, xq, nt, tau, sup, todo):
+    """Add to sup[todo[:nt]] each undecided detection's supporters among a neighbour's sorted list
+    xq."""
+    nq = xq.size
+    if nt * nq <= WALK_ABOVE * (nt + nq):
+        # a comparison per pair without a branch (the loop vectorises): for the few detections still
+        # undecided cheaper than a walk over the neighbour's list, whose branches the processor
+        # mispredicts
+        for j in range(nt):
+            i = todo[j]
+            lo_t = xp[i] - tau
+            hi_t = xp[i] + tau
+            cnt = 0
+            for k in range(nq):
+                cnt += (xq[k] >= lo_t) & (xq[k] <= hi_t)
+            sup[i] += cnt
+        return
+    # many undecided (a background-dominated pixel): two pointers walk both sorted lists once,
+    # O(nt + nq)
+    a = 0
+    b = 0
+    for j in range(nt):
+        i = todo[j]
+        t = xp[i]
+        while a < nq and xq[a] < t - tau:
+            a += 1
+        if b < a:
+            b = a
+        while b < nq and xq[b] <= t + tau:
+            b += 1
+        sup[i] += b - a
+
+
+@njit(cache=True, nogil=True, _nrt=False)
+def _neighbour_support(p, xp, nt, need, x, offsets, cs, sup, todo):
+    """The undecided detections todo[:nt] of pixel p counted against each neighbour in turn, those
+    still short kept after each; returns how many stay short."""
+    r0 = p // cs.w
+    c0 = p - r0 * cs.w
+    for r in range(max(0, r0 - cs.radius), min(cs.h - 1, r0 + cs.radius) + 1):
+        for c in range(max(0, c0 - cs.radius), min(cs.w - 1, c0 + cs.radius) + 1):
+            q = r * cs.w + c
+            if q == p or offsets[q + 1] == offsets[q] or nt == 0:
+                continue
+            _support_from(xp, x[offsets[q]:offsets[q + 1]], nt, cs.tau, sup, todo)
+            keep = 0
+            for j in range(nt):
+                todo[keep] = todo[j]
+                keep += sup[todo[j]] < need
+            nt = keep
+    return nt
+
+
+@njit(cache=True, nogil=True, _nrt=False)
+def _densest_mean(kept, nk, reach):
+    """(mean, count) of the densest cluster of the sorted kept[:nk]: the most within reach of one of
+    them (two pointers), and the mean of those within reach of it."""
+    best = 0
+    bi = 0
+    lo = 0
+    hi = 0
+    for i in range(nk):
+        while kept[lo] < kept[i] - reach:
+            lo += 1
+        while hi < nk and kept[hi] <= kept[i] + reach:
+            hi += 1
+        if hi - lo > best:
+            best = hi - lo
+            bi = i
+    acc = 0.0
+    cnt = 0
+    for i in range(nk):
+        near = abs(kept[i] - kept[bi]) <= reach
+        acc += kept[i] if near else 0.0
+        cnt += near
+    return acc / cnt, cnt
 
 
 @njit(cache=True, nogil=True)
-def _censor_fit_block(first, last, longest, x, offsets, h, w, radius, tau, s_min, sigma, n_bins, em_iters,
-                      win_counts, count_width, out_mu, out_k, out_bg, out_n, out_kept):
+def _censor_fit_block(first, last, longest, x, offsets, s_min, win_counts, cs, out_mu, out_k, out_bg, out_n,
+                      out_kept):
     """censor_fit of pixels first..last - 1 (longest: the longest list)."""
-    inv_m = 1.0 / n_bins
-    inv_s2 = 1.0 / (sigma * sigma)
-    norm = 1.0 / (math.sqrt(2.0 * math.pi) * sigma)
+    inv_m = 1.0 / cs.n_bins
+    inv_s2 = 1.0 / (cs.sigma * cs.sigma)
+    norm = 1.0 / (math.sqrt(2.0 * math.pi) * cs.sigma)
     # scratch once per block of pixels (three allocations per pixel cost 10% at 2 detections)
     sup = np.empty(longest, np.int64)
     todo = np.empty(longest, np.int64)
@@ -187,109 +330,20 @@ def _censor_fit_block(first, last, longest, x, offsets, h, w, radius, tau, s_min
         out_kept[p] = 0
         if n == 0:
             continue
-        r0 = p // w
-        c0 = p - r0 * w
-        rlo = max(0, r0 - radius)
-        rhi = min(h - 1, r0 + radius)
-        clo = max(0, c0 - radius)
-        chi = min(w - 1, c0 + radius)
         # Each detection's support: the window's detections in [t - tau, t + tau], the detection
         # itself excluded. Only "support >= s_min" matters, so a detection stops collecting once it
         # has enough: the pixel's own list first (where a return's detections find most of theirs),
         # then each neighbour for the detections still short. The undecided ones (background, a
-        # return's tails) are counted exactly against every neighbour unless an upper bound rules them
-        # out, so the decision is the same as with full counts.
+        # return's tails) are counted exactly against every neighbour unless an upper bound rules
+        # them out, so the decision is the same as with full counts.
         need = s_min[p]
         # views indexed from 0: numba then omits its negative-index fix-up, which kept the
         # comparison loops from vectorising (2x in the pair counts)
         xp = x[o0:o1]
-        # A detection whose `half` predecessors and `half` successors in the sorted list all
-        # lie within tau has >= need supporters: the core of a return is decided by this test
-        # (it vectorises) and the walk below, whose loops mispredict, skips it.
-        half = (need + 1) // 2
-        for i in range(n):
-            sure[i] = False
-        if n > 2 * half:
-            # as shifted views from 0, so the loop loads without gathers
-            before = xp[:n - 2 * half]
-            at = xp[half:n - half]
-            after = xp[2 * half:]
-            mid = sure[half:n - half]
-            for j in range(n - 2 * half):
-                mid[j] = (before[j] >= at[j] - tau) & (after[j] <= at[j] + tau)
-        a = 0
-        b = 0
-        nt = 0
-        for i in range(n):
-            if sure[i]:
-                sup[i] = need
-                continue
-            t = xp[i]
-            while xp[a] < t - tau:
-                a += 1
-            if b < i:
-                b = i
-            while b < n and xp[b] <= t + tau:
-                b += 1
-            sup[i] = b - a - 1
-            if sup[i] < need:
-                todo[nt] = i
-                nt += 1
+        nt = _own_support(xp, n, need, cs.tau, sup, sure, todo)
         if win_counts.shape[1] > 0 and nt > 0:
-            # the window's detections in the coarse bins that [t - tau, t + tau] touches bound
-            # the support from above (the detection itself among them): a detection whose bound
-            # falls short is censored without counting any neighbour
-            nc = win_counts.shape[1]
-            inv_width = 1.0 / count_width
-            wc = win_counts[p]
-            keep = 0
-            for j in range(nt):
-                i = todo[j]
-                k0 = _count_bin(xp[i] - tau, inv_width, nc)
-                k1 = _count_bin(xp[i] + tau, inv_width, nc)
-                bound = wc[k1] - (wc[k0 - 1] if k0 > 0 else 0)
-                todo[keep] = i
-                keep += bound > need
-            nt = keep
-        for r in range(rlo, rhi + 1):
-            for c in range(clo, chi + 1):
-                q = r * w + c
-                nq = offsets[q + 1] - offsets[q]
-                if q == p or nq == 0 or nt == 0:
-                    continue
-                xq = x[offsets[q]:offsets[q + 1]]
-                if nt * nq <= WALK_ABOVE * (nt + nq):
-                    # a comparison per pair without a branch (the loop vectorises): for the few
-                    # detections still undecided cheaper than a walk over the neighbour's list,
-                    # whose branches the processor mispredicts
-                    for j in range(nt):
-                        i = todo[j]
-                        lo_t = xp[i] - tau
-                        hi_t = xp[i] + tau
-                        cnt = 0
-                        for k in range(nq):
-                            cnt += (xq[k] >= lo_t) & (xq[k] <= hi_t)
-                        sup[i] += cnt
-                else:
-                    # many undecided (a background-dominated pixel): two pointers walk both sorted
-                    # lists once, O(nt + nq)
-                    a = 0
-                    b = 0
-                    for j in range(nt):
-                        i = todo[j]
-                        t = xp[i]
-                        while a < nq and xq[a] < t - tau:
-                            a += 1
-                        if b < a:
-                            b = a
-                        while b < nq and xq[b] <= t + tau:
-                            b += 1
-                        sup[i] += b - a
-                keep = 0
-                for j in range(nt):
-                    todo[keep] = todo[j]
-                    keep += sup[todo[j]] < need
-                nt = keep
+            nt = _bounded(xp, nt, need, cs.tau, win_counts[p], cs.count_width, todo)
+        _neighbour_support(p, xp, nt, need, x, offsets, cs, sup, todo)
         # kept detections: their positions in x (the pixel's list is sorted, so kept ones are too)
         nk = 0
         for i in range(n):
@@ -298,31 +352,11 @@ def _censor_fit_block(first, last, longest, x, offsets, h, w, radius, tau, s_min
         out_kept[p] = nk
         if nk == 0:
             continue
-        # densest cluster of the kept detections (two pointers over the sorted list)
-        reach = 2.5 * sigma
-        best = 0
-        bi = 0
-        lo = 0
-        hi = 0
-        for i in range(nk):
-            while kept[lo] < kept[i] - reach:
-                lo += 1
-            while hi < nk and kept[hi] <= kept[i] + reach:
-                hi += 1
-            if hi - lo > best:
-                best = hi - lo
-                bi = i
-        acc = 0.0
-        cnt = 0
-        for i in range(nk):
-            near = abs(kept[i] - kept[bi]) <= reach
-            acc += kept[i] if near else 0.0
-            cnt += near
-        mu = acc / cnt
+        mu, cnt = _densest_mean(kept, nk, 2.5 * cs.sigma)
         pi = min(0.999, max(cnt / n, 1e-3))
         # EM over all the pixel's detections: a censored detection close to the return still
         # counts as signal in proportion to its likelihood, a kept one far from it does not
-        mu, ksum = _em_fit(xp, mu, pi, float(cnt), em_iters, inv_s2, norm, inv_m)
+        mu, ksum = _em_fit(xp, mu, pi, float(cnt), cs.em_iters, inv_s2, norm, inv_m)
         out_mu[p] = mu
         out_k[p] = ksum
         out_bg[p] = max(0.0, n - ksum) * inv_m

@@ -1,4 +1,4 @@
-"""Numba kernel of the K-surface pixelwise estimator (:mod:`recon.multi`): a greedy Poisson pursuit.
+"""Numba kernel of the K-surface pixelwise estimator (:mod:`recon.estimators.surfaces_fit`): a greedy Poisson pursuit.
 
 Per pixel the model is ``lambda_k = B + sum_r a_r g[k - j_r + off]`` (g: the unit-area response on
 the bins, measured from the data, tail and afterpulse bump included, so they are never a surface).
@@ -42,11 +42,12 @@ outputs bit for bit).
 from __future__ import annotations
 
 import math
+from collections import namedtuple
 
 import numpy as np
 from numba import njit, prange
 
-from spdepth.recon.kernels import BLOCK, unique_bins
+from spdepth.recon.kernels import BLOCK, block_pixels, n_blocks, pixel_bins, pixel_scratch, unique_bins
 
 #: Newton steps on a return's amplitude.
 NEWTON_STEPS = 12
@@ -63,6 +64,9 @@ MEMO = 32
 #: add_gain's running product of factors >= 1 is rescaled (exactly, by a power of 2) above this.
 PROD_RESCALE = 2.0 ** 512
 LN2 = math.log(2.0)
+#: EM keeps the background at least this share of the flat fit's (ntot / m): a pixel whose every
+#: detection is under a return keeps a rate above 0 where no return reaches (its inverse is taken).
+BG_FLOOR_SHARE = 1e-9
 #: add_gain's bound must be below the bar by this (relative) to skip the exact gain: far more than
 #: the rounding of either, so the skip never changes a comparison.
 BAR_MARGIN = 1e-9
@@ -79,6 +83,16 @@ def first_at_least(kb, nu, v):
         else:
             z = h
     return a
+
+
+@njit(cache=True, nogil=True, _nrt=False, inline="always", error_model="numpy")
+def near_return(j, shifts, nr, sep_bins, skip):
+    """Whether shift j lies within sep_bins of one of shifts[:nr] but shifts[skip] (-1: none)."""
+    near = False
+    for r in range(nr):
+        if r != skip and abs(j - shifts[r]) < sep_bins:
+            near = True
+    return near
 
 
 @njit(cache=True, nogil=True, _nrt=False, error_model="numpy", fastmath={"reassoc"})
@@ -258,10 +272,7 @@ def refine_shift(j, best, amp, kb, kw, nu, ilam, g, off, colsum, m, step0, shift
                 jj = j + sgn * step
                 if jj < 0 or jj >= m:
                     continue
-                near = False
-                for r in range(nr):
-                    if r != skip and abs(jj - shifts[r]) < sep_bins:
-                        near = True
+                near = near_return(jj, shifts, nr, sep_bins, skip)
                 for i in range(nseen):
                     if seen[i] == jj:
                         near = True
@@ -398,208 +409,381 @@ def shift_fisher(r, shifts, amps, nr, bg, g, dg, off, m):
     return info
 
 
+#: The K-surface fit's tables (:func:`surf_tables`): m bins; the unit-area response g with its peak
+#: at offset off, its column sums colsum and derivative dg (:class:`recon.model.PulseKernel`); dpk:
+#: the offset of g's peak; surfaces closer than sep_bins are one; one candidate shift per cand_step
+#: bins; step0: the pattern search's first step.
+SurfTables = namedtuple("SurfTables", ["m", "g", "off", "colsum", "dg", "dpk", "sep_bins", "cand_step", "step0"])
+#: Scratch of :func:`fit_pixel` (:func:`fit_work`) for up to n distinct bins and kmax returns: ilam and
+#: tmp_ilam (1 / the rate at the detections), cand (candidate shifts), the returns (shifts, amps,
+#: gains) and a copy (tmp_s, tmp_a), wk (the gathered detections), EM's gt and newa, the screen's
+#: best candidates (top_s: score, N, r; top_j: shift), seen (shifts a pattern search scored), cand_u
+#: (each candidate's first and end index of the detections under its pulse).
+FitWork = namedtuple("FitWork", ["ilam", "tmp_ilam", "cand", "shifts", "amps", "gains", "tmp_s", "tmp_a", "wk", "gt",
+                                 "newa", "top_s", "top_j", "seen", "cand_u"])
+#: Per-pixel outputs (P,) or (P, kmax): shift (bins, NaN past the returns), amp (unit-area
+#: amplitude), bg (per bin), var (1 / Fisher information, bins^2), gain (nats the return added when
+#: taken), n (detections).
+SurfOut = namedtuple("SurfOut", ["shift", "amp", "bg", "var", "gain", "n"])
+#: The neighbourhood of :func:`neighbour_surfaces`: an h x w image, (2 radius + 1)^2 pixels pooled,
+#: a pixel's own surface strong above strong_nats, a pooled one kept above pool_nats (up to kpool),
+#: a candidate within tau_bins of a detection.
+Neighbourhood = namedtuple("Neighbourhood", ["h", "w", "radius", "strong_nats", "pool_nats", "tau_bins", "kpool"])
+
+
+@njit(cache=True, nogil=True)
+def surf_tables(m, g, off, colsum, dg, sep_bins, cand_step, step0):
+    """:class:`SurfTables` of the pulse kernel's g, off, colsum, dg over m bins."""
+    return SurfTables(m, g, off, colsum, dg, int(np.argmax(g)), sep_bins, cand_step, step0)
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
 def fit_work(n, kmax):
-    """Scratch of :func:`fit_pixel` for up to n distinct bins and kmax returns, allocated once per
-    block of pixels: (ilam, tmp_ilam, cand, shifts, amps, gains, tmp_s, tmp_a, wk, gt, newa, top_s,
-    top_j, seen, cand_u); top_s: the screen's (score, N, r) of the best candidates, cand_u: each
-    candidate's first and end index of the detections under its pulse."""
+    """:class:`FitWork` for up to n distinct bins and kmax returns, allocated once per block of pixels."""
     n = max(n, 1)
     k = max(kmax, 1)
-    return (np.empty(n), np.empty(n), np.empty(n, np.int64), np.empty(k, np.int64), np.empty(k), np.empty(k),
-            np.empty(k, np.int64), np.empty(k), np.empty((2, n)), np.empty((k, n)), np.empty(k),
-            np.empty((3, SCREEN)), np.empty(SCREEN, np.int64), np.empty(MEMO, np.int64),
-            np.empty((2, n), np.int64))
+    return FitWork(np.empty(n), np.empty(n), np.empty(n, np.int64), np.empty(k, np.int64), np.empty(k),
+                   np.empty(k), np.empty(k, np.int64), np.empty(k), np.empty((2, n)), np.empty((k, n)), np.empty(k),
+                   np.empty((3, SCREEN)), np.empty(SCREEN, np.int64), np.empty(MEMO, np.int64),
+                   np.empty((2, n), np.int64))
 
 
 @njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
-def fit_pixel(kb, kw, nu, m, g, off, colsum, dg, kmax, sep_bins, gain_min, cand_step, step0, dpk, work):
-    """Greedy K-return fit of one pixel's unique bins (kb, kw); returns (nr, bg): shifts[:nr] (sorted),
-    amps[:nr], gains[:nr] (nats each return added when it was taken), the arrays of ``work``
-    (:func:`fit_work`, its 4th to 6th)."""
-    ilam, tmp_ilam, cand, shifts, amps, gains, tmp_s, tmp_a, wk, gt, newa, top_s, top_j, seen, cand_u = work
-    ntot = 0.0
-    for u in range(nu):
-        ntot += kw[u]
-    bg_floor = 1e-9 * ntot / m
-    bg = ntot / m
-    for u in range(nu):
-        ilam[u] = 1.0 / bg
-    # candidate shifts: the response's peak on a detection, one per cand_step bins
+def _candidates(kb, nu, tabs, work):
+    """Candidate shifts, the response's peak on a detection, one per cand_step bins, into work.cand,
+    and the detections under each candidate's pulse into work.cand_u, once for every round (found
+    again in each round, they cost 5% of the fit): candidates ascend, so do both ends. Returns how
+    many."""
+    T, W = tabs, work
     nc = 0
     for u in range(nu):
-        j = kb[u] + off - dpk
+        j = kb[u] + T.off - T.dpk
         if j < 0:
             j = 0
-        if j >= m:
-            j = m - 1
-        if nc == 0 or j - cand[nc - 1] >= cand_step:
-            cand[nc] = j
+        if j >= T.m:
+            j = T.m - 1
+        if nc == 0 or j - W.cand[nc - 1] >= T.cand_step:
+            W.cand[nc] = j
             nc += 1
-    # the detections under each candidate's pulse, once for every round (found again in each round,
-    # they cost 5% of the fit): candidates ascend, so do both ends
-    nk = g.size
+    nk = T.g.size
     u0 = 0
     u1 = 0
     for c in range(nc):
-        j = cand[c]
-        while u0 < nu and kb[u0] < j - off:
+        j = W.cand[c]
+        while u0 < nu and kb[u0] < j - T.off:
             u0 += 1
-        while u1 < nu and kb[u1] < j - off + nk:
+        while u1 < nu and kb[u1] < j - T.off + nk:
             u1 += 1
-        cand_u[0, c] = u0
-        cand_u[1, c] = u1
+        W.cand_u[0, c] = u0
+        W.cand_u[1, c] = u1
+    return nc
+
+
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
+def _screen(kb, kw, nc, nr, tabs, work):
+    """The SCREEN best candidates not within sep_bins of the nr returns, by the second-order screen
+    (:func:`screen_score`), into work.top_s / work.top_j (ties keep the earlier candidate first);
+    returns how many."""
+    T, W = tabs, work
+    ns = 0
+    for c in range(nc):
+        j = W.cand[c]
+        if near_return(j, W.shifts, nr, T.sep_bins, -1):
+            continue
+        sc, nin, ratio = screen_score(j, kb, kw, W.cand_u[0, c], W.cand_u[1, c], W.ilam, T.g, T.off, T.colsum)
+        if sc <= 0.0:
+            continue
+        # insertion into the top list
+        t = ns if ns < SCREEN else SCREEN - 1
+        if ns == SCREEN and not sc > W.top_s[0, t]:
+            continue
+        while t > 0 and sc > W.top_s[0, t - 1]:
+            W.top_s[0, t] = W.top_s[0, t - 1]
+            W.top_s[1, t] = W.top_s[1, t - 1]
+            W.top_s[2, t] = W.top_s[2, t - 1]
+            W.top_j[t] = W.top_j[t - 1]
+            t -= 1
+        W.top_s[0, t] = sc
+        W.top_s[1, t] = nin
+        W.top_s[2, t] = ratio
+        W.top_j[t] = j
+        if ns < SCREEN:
+            ns += 1
+    return ns
+
+
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
+def _best_screened(kb, kw, nu, ns, tabs, work):
+    """(gain, shift, amplitude) of the best of the ns screened candidates by their exact gains
+    (shift -1: none gains); a candidate after the first is skipped when the screen's Jensen bound
+    says it cannot beat the best (its exact gain would lose the comparison too)."""
+    T, W = tabs, work
+    best = 0.0
+    bj = -1
+    ba = 0.0
+    for t in range(ns):
+        W.seen[t] = W.top_j[t]
+        if t > 0:
+            ratio = W.top_s[2, t]
+            if W.top_s[1, t] * (math.log(ratio) - 1.0 + 1.0 / ratio) < best - BAR_MARGIN * (1.0 + best):
+                continue
+        gn, an = add_gain(W.top_j[t], kb, kw, nu, W.ilam, T.g, T.off, T.colsum, 0.0, best, W.wk)
+        if gn > best:
+            best, bj, ba = gn, W.top_j[t], an
+    return best, bj, ba
+
+
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
+def _rerefine(kb, kw, nu, nr, bg, tabs, work):
+    """Re-refine each return's shift with the others (and the background) fixed: the rate without
+    return r from EM's table of the response at the detections while no shift has moved since."""
+    T, W = tabs, work
+    fresh = True
+    for r in range(nr):
+        for s in range(nr):
+            W.tmp_s[s] = W.shifts[s]
+            W.tmp_a[s] = W.amps[s]
+        W.tmp_a[r] = 0.0
+        if fresh:
+            irate_table(W.gt, nu, W.tmp_a, nr, bg, W.tmp_ilam)
+        else:
+            model_irate(kb, nu, W.tmp_s, W.tmp_a, nr, bg, T.g, T.off, W.tmp_ilam)
+        g0, a0 = add_gain(W.shifts[r], kb, kw, nu, W.tmp_ilam, T.g, T.off, T.colsum, W.amps[r], 0.0, W.wk)
+        jn, gn, an = refine_shift(W.shifts[r], g0, a0, kb, kw, nu, W.tmp_ilam, T.g, T.off, T.colsum, T.m, 2,
+                                  W.shifts, nr, r, T.sep_bins, W.wk, W.seen, 0)
+        if jn != W.shifts[r]:
+            fresh = False
+        W.shifts[r] = jn
+        W.amps[r] = an
+
+
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
+def sort_returns(nr, shifts, amps, gains, src):
+    """Sort the nr returns by shift, stably (src: a label per return, moved with them): insertion by
+    swaps, a handful of returns."""
+    for a in range(1, nr):
+        b = a
+        while b > 0 and shifts[b - 1] > shifts[b]:
+            shifts[b - 1], shifts[b] = shifts[b], shifts[b - 1]
+            amps[b - 1], amps[b] = amps[b], amps[b - 1]
+            gains[b - 1], gains[b] = gains[b], gains[b - 1]
+            src[b - 1], src[b] = src[b], src[b - 1]
+            b -= 1
+
+
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
+def fit_pixel(kb, kw, nu, tabs, kmax, gain_min, work):
+    """Greedy K-return fit of one pixel's unique bins (kb, kw); returns (nr, bg): work.shifts[:nr]
+    (sorted), amps[:nr], gains[:nr] (nats each return added when it was taken)."""
+    T, W = tabs, work
+    ntot = 0.0
+    for u in range(nu):
+        ntot += kw[u]
+    bg_floor = BG_FLOOR_SHARE * ntot / T.m
+    bg = ntot / T.m
+    for u in range(nu):
+        W.ilam[u] = 1.0 / bg
+    nc = _candidates(kb, nu, T, W)
     nr = 0
     while nr < kmax:
-        # the SCREEN best candidates by the second-order screen, then their exact gains
-        ns = 0
-        for c in range(nc):
-            j = cand[c]
-            u0 = cand_u[0, c]
-            u1 = cand_u[1, c]
-            near = False
-            for r in range(nr):
-                if abs(j - shifts[r]) < sep_bins:
-                    near = True
-            if near:
-                continue
-            sc, nin, ratio = screen_score(j, kb, kw, u0, u1, ilam, g, off, colsum)
-            if sc <= 0.0:
-                continue
-            # insertion into the top list (ties keep the earlier candidate first)
-            t = ns if ns < SCREEN else SCREEN - 1
-            if ns == SCREEN and not sc > top_s[0, t]:
-                continue
-            while t > 0 and sc > top_s[0, t - 1]:
-                top_s[0, t] = top_s[0, t - 1]
-                top_s[1, t] = top_s[1, t - 1]
-                top_s[2, t] = top_s[2, t - 1]
-                top_j[t] = top_j[t - 1]
-                t -= 1
-            top_s[0, t] = sc
-            top_s[1, t] = nin
-            top_s[2, t] = ratio
-            top_j[t] = j
-            if ns < SCREEN:
-                ns += 1
-        best = 0.0
-        bj = -1
-        ba = 0.0
-        for t in range(ns):
-            seen[t] = top_j[t]
-            if t > 0:
-                # skipped when the screen's Jensen bound says it cannot beat the best: the exact gain
-                # would lose the comparison too
-                ratio = top_s[2, t]
-                if top_s[1, t] * (math.log(ratio) - 1.0 + 1.0 / ratio) < best - BAR_MARGIN * (1.0 + best):
-                    continue
-            gn, an = add_gain(top_j[t], kb, kw, nu, ilam, g, off, colsum, 0.0, best, wk)
-            if gn > best:
-                best, bj, ba = gn, top_j[t], an
+        ns = _screen(kb, kw, nc, nr, T, W)
+        best, bj, ba = _best_screened(kb, kw, nu, ns, T, W)
         if bj < 0:
             break
-        bj, best, ba = refine_shift(bj, best, ba, kb, kw, nu, ilam, g, off, colsum, m, step0, shifts, nr, -1,
-                                    sep_bins, wk, seen, ns)
+        bj, best, ba = refine_shift(bj, best, ba, kb, kw, nu, W.ilam, T.g, T.off, T.colsum, T.m, T.step0, W.shifts,
+                                    nr, -1, T.sep_bins, W.wk, W.seen, ns)
         if not best > gain_min:
             break
-        shifts[nr] = bj
-        amps[nr] = ba
-        gains[nr] = best
+        W.shifts[nr] = bj
+        W.amps[nr] = ba
+        W.gains[nr] = best
         nr += 1
-        bg = em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, ilam, EM_SWEEPS, gt, newa)
+        bg = em_refit(kb, kw, nu, W.shifts, W.amps, nr, bg, bg_floor, T.g, T.off, T.colsum, T.m, W.ilam, EM_SWEEPS,
+                      W.gt, W.newa)
         if nr > 1:
-            # re-refine each shift with the others (and the background) fixed
-            fresh = True
-            for r in range(nr):
-                for s in range(nr):
-                    tmp_s[s] = shifts[s]
-                    tmp_a[s] = amps[s]
-                # the rate without return r: from EM's table of the response at the detections while
-                # no shift has moved since
-                tmp_a[r] = 0.0
-                if fresh:
-                    irate_table(gt, nu, tmp_a, nr, bg, tmp_ilam)
-                else:
-                    model_irate(kb, nu, tmp_s, tmp_a, nr, bg, g, off, tmp_ilam)
-                g0, a0 = add_gain(shifts[r], kb, kw, nu, tmp_ilam, g, off, colsum, amps[r], 0.0, wk)
-                jn, gn, an = refine_shift(shifts[r], g0, a0, kb, kw, nu, tmp_ilam, g, off, colsum, m, 2,
-                                          shifts, nr, r, sep_bins, wk, seen, 0)
-                if jn != shifts[r]:
-                    fresh = False
-                shifts[r] = jn
-                amps[r] = an
-            bg = em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, ilam, EM_SWEEPS, gt, newa)
-    # sort by shift
-    for a in range(1, nr):
-        vs, va, vg = shifts[a], amps[a], gains[a]
-        b = a - 1
-        while b >= 0 and shifts[b] > vs:
-            shifts[b + 1] = shifts[b]
-            amps[b + 1] = amps[b]
-            gains[b + 1] = gains[b]
-            b -= 1
-        shifts[b + 1] = vs
-        amps[b + 1] = va
-        gains[b + 1] = vg
+            _rerefine(kb, kw, nu, nr, bg, T, W)
+            bg = em_refit(kb, kw, nu, W.shifts, W.amps, nr, bg, bg_floor, T.g, T.off, T.colsum, T.m, W.ilam,
+                          EM_SWEEPS, W.gt, W.newa)
+    sort_returns(nr, W.shifts, W.amps, W.gains, W.tmp_s)
     return nr, bg
 
 
-@njit(parallel=True, cache=True, nogil=True)
-def multi_return_kernel(bins, offsets, m, g, off, colsum, dg, kmax, sep_bins, gain_min, cand_step, step0,
-                        maxn, out_shift, out_amp, out_bg, out_var, out_gain, out_n):
-    """K-return greedy Poisson pursuit over pixels (see the module docstring).
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
+def write_returns(p, nr, bg, tabs, work, out):
+    """Pixel p's nr returns (work.shifts, amps, gains) and background into out (:class:`SurfOut`),
+    with each shift's variance; NaN / 0 past them."""
+    T, W = tabs, work
+    kmax = out.shift.shape[1]
+    for r in range(kmax):
+        out.shift[p, r] = np.nan
+        out.amp[p, r] = 0.0
+        out.var[p, r] = np.nan
+        out.gain[p, r] = 0.0
+    out.bg[p] = bg
+    for r in range(nr):
+        out.shift[p, r] = W.shifts[r]
+        out.amp[p, r] = W.amps[r]
+        out.gain[p, r] = W.gains[r]
+        info = shift_fisher(r, W.shifts, W.amps, nr, bg, T.g, T.dg, T.off, T.m)
+        out.var[p, r] = 1.0 / info if info > 0.0 else np.nan
 
-    bins/offsets: binned in-window detections per pixel (CSR). Outputs per pixel p, return r < kmax
-    (sorted by shift, NaN / 0 past the returns found): out_shift[p, r] (bins), out_amp[p, r]
-    (unit-area amplitude), out_var[p, r] (1 / Fisher information, bins^2), out_gain[p, r] (nats the
-    return added when taken); out_bg[p] (per bin), out_n[p] (detections)."""
-    npix = offsets.size - 1
-    nblk = (npix + BLOCK - 1) // BLOCK
-    dpk = int(np.argmax(g))
-    for blk in prange(nblk):
-        n1 = max(maxn, 1)
-        tmp = np.empty(n1, np.int64)
-        kb = np.empty(n1, np.int64)
-        kw = np.empty(n1, np.float64)
-        work = fit_work(n1, kmax)
-        tally = np.zeros(m, np.int64)
-        bits = np.zeros(m // 64 + 1, np.uint64)
-        shifts, amps, gains = work[3], work[4], work[5]
-        for p in range(blk * BLOCK, min(npix, (blk + 1) * BLOCK)):
-            o0 = offsets[p]
-            o1 = offsets[p + 1]
-            out_n[p] = o1 - o0
-            for r in range(kmax):
-                out_shift[p, r] = np.nan
-                out_amp[p, r] = 0.0
-                out_var[p, r] = np.nan
-                out_gain[p, r] = 0.0
-            nu = unique_bins(bins, o0, o1, tally, bits, tmp, kb, kw)
-            if nu == 0:
-                out_bg[p] = 0.0
-                continue
-            nr, bg = fit_pixel(kb, kw, nu, m, g, off, colsum, dg, kmax, sep_bins, gain_min, cand_step,
-                               step0, dpk, work)
-            out_bg[p] = bg
-            for r in range(nr):
-                out_shift[p, r] = shifts[r]
-                out_amp[p, r] = amps[r]
-                out_gain[p, r] = gains[r]
-                info = shift_fisher(r, shifts, amps, nr, bg, g, dg, off, m)
-                out_var[p, r] = 1.0 / info if info > 0.0 else np.nan
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _multi_block(blk, ph, tabs, kmax, gain_min, maxn, out):
+    """The pixels of block blk of :func:`multi_return_kernel` with their scratch."""
+    px = pixel_scratch(maxn, tabs.m)
+    work = fit_work(max(maxn, 1), kmax)
+    for p in block_pixels(ph, blk):
+        nu, out.n[p] = pixel_bins(ph, p, px)
+        nr, bg = (0, 0.0) if nu == 0 else fit_pixel(px.kb, px.kw, nu, tabs, kmax, gain_min, work)
+        write_returns(p, nr, bg, tabs, work, out)
+
+
+@njit(parallel=True, cache=True, nogil=True)
+def multi_return_kernel(ph, tabs, kmax, gain_min, maxn, out):
+    """K-return greedy Poisson pursuit over the pixels of ph (:class:`recon.kernels.Photons`, at most
+    maxn detections a pixel) with :class:`SurfTables` (see the module docstring): up to kmax returns a
+    pixel, each gaining more than gain_min nats, into out (:class:`SurfOut`, sorted by shift)."""
+    for blk in prange(n_blocks(ph)):
+        _multi_block(np.int64(blk), ph, tabs, kmax, gain_min, maxn, out)
 
 
 # ------------------------------------------------------------------------------------------------
-# several surfaces with the neighbours' help (recon.multi.reconstruct_multi_spatial)
+# several surfaces with the neighbours' help (recon.estimators.surfaces_fit.reconstruct_multi_spatial)
+
+
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
+def _pool_neighbourhood(ph, p, nb, pbins):
+    """The bins of every detection of pixel p's neighbourhood into pbins; returns how many."""
+    y0, x0 = p // nb.w, p % nb.w
+    n = 0
+    for y in range(max(0, y0 - nb.radius), min(nb.h, y0 + nb.radius + 1)):
+        for x in range(max(0, x0 - nb.radius), min(nb.w, x0 + nb.radius + 1)):
+            q = y * nb.w + x
+            for i in range(ph.offsets[q], ph.offsets[q + 1]):
+                pbins[n] = ph.bins[i]
+                n += 1
+    return n
+
+
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
+def _own_and_pooled(p, shift_in, gain_in, nb, npr, pshift, pamp, cand, csrc):
+    """Candidates of pixel p: its own pixelwise surfaces that are strong (csrc 0), then the pooled
+    ones by amplitude (csrc 1); returns how many. pamp is spent (set to -1)."""
+    nc = 0
+    for r in range(shift_in.shape[1]):
+        v = shift_in[p, r]
+        if v == v and gain_in[p, r] > nb.strong_nats:
+            cand[nc] = int(v)
+            csrc[nc] = 0
+            nc += 1
+    for _ in range(npr):
+        bi = -1
+        for r in range(npr):
+            if pamp[r] >= 0.0 and (bi < 0 or pamp[r] > pamp[bi]):
+                bi = r
+        cand[nc] = pshift[bi]
+        csrc[nc] = 1
+        nc += 1
+        pamp[bi] = -1.0
+    return nc
+
+
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
+def _best_candidate(kb, kw, nu, nr, nc, cand, csrc, tabs, tau_bins, work):
+    """(gain, shift, amplitude, candidate) of the candidate the pixel's own detections support most:
+    the gain at the best detection-aligned shift within tau_bins of it, none within sep_bins of the
+    nr returns (candidate -1: none gains)."""
+    T, W = tabs, work
+    best = 0.0
+    bj = -1
+    ba = 0.0
+    bc = -1
+    for c in range(nc):
+        if csrc[c] < 0:
+            continue
+        j0 = cand[c]
+        for u in range(nu):
+            j = kb[u] + T.off - T.dpk
+            if j < 0 or j >= T.m or abs(j - j0) > tau_bins:
+                continue
+            if near_return(j, W.shifts, nr, T.sep_bins, -1):
+                continue
+            gn, an = add_gain(j, kb, kw, nu, W.ilam, T.g, T.off, T.colsum, 0.0, best, W.wk)
+            if gn > best:
+                best, bj, ba, bc = gn, j, an, c
+    return best, bj, ba, bc
+
+
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
+def _censored_fit(kb, kw, nu, nc, cand, csrc, tabs, nb, kmax, work, src):
+    """Pixel p's surfaces from the candidates: greedily the one its own detections support most
+    (:func:`_best_candidate`), refined by pattern search, then amplitudes and background by EM, up
+    to kmax; every candidate within sep_bins of the one taken is spent. Returns (nr, bg); src[:nr]
+    the candidates' sources."""
+    T, W = tabs, work
+    ntot = 0.0
+    for u in range(nu):
+        ntot += kw[u]
+    bg_floor = BG_FLOOR_SHARE * ntot / T.m
+    nr = 0
+    bg = ntot / T.m
+    for u in range(nu):
+        W.ilam[u] = 1.0 / bg
+    while nr < kmax:
+        best, bj, ba, c = _best_candidate(kb, kw, nu, nr, nc, cand, csrc, T, nb.tau_bins, W)
+        if c < 0:
+            break
+        bj, best, ba = refine_shift(bj, best, ba, kb, kw, nu, W.ilam, T.g, T.off, T.colsum, T.m, T.step0, W.shifts,
+                                    nr, -1, T.sep_bins, W.wk, W.seen, 0)
+        for d in range(nc):
+            if csrc[d] >= 0 and abs(cand[d] - cand[c]) < T.sep_bins and d != c:
+                csrc[d] = -1
+        W.shifts[nr] = bj
+        W.amps[nr] = ba
+        W.gains[nr] = best
+        src[nr] = csrc[c]
+        csrc[c] = -1
+        nr += 1
+        bg = em_refit(kb, kw, nu, W.shifts, W.amps, nr, bg, bg_floor, T.g, T.off, T.colsum, T.m, W.ilam, EM_SWEEPS,
+                      W.gt, W.newa)
+    sort_returns(nr, W.shifts, W.amps, W.gains, src)
+    return nr, bg
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _neighbour_block(blk, ph, shift_in, gain_in, nb, tabs, maxn, out, out_src, p_start, p_stop):
+    """The pixels of block blk (of those from p_start to p_stop) of :func:`neighbour_surfaces`."""
+    kmax = out.shift.shape[1]
+    npool = max((2 * nb.radius + 1) * (2 * nb.radius + 1) * maxn, 1)
+    pbins = np.empty(npool, np.int64)
+    ppx = pixel_scratch(npool, tabs.m)
+    pwork = fit_work(npool, nb.kpool)
+    px = pixel_scratch(maxn, tabs.m)
+    work = fit_work(max(maxn, 1), kmax)
+    cand = np.empty(shift_in.shape[1] + nb.kpool, np.int64)
+    csrc = np.empty(shift_in.shape[1] + nb.kpool, np.int64)
+    src = np.empty(kmax, np.int64)
+    for p in range(p_start + blk * BLOCK, min(p_stop, p_start + (blk + 1) * BLOCK)):
+        nu, _ = pixel_bins(ph, p, px)
+        nr, bg = 0, 0.0
+        if nu > 0:
+            # 1. the neighbourhood's pooled fit; 2. candidates: own strong surfaces, then pooled ones
+            n = _pool_neighbourhood(ph, p, nb, pbins)
+            pnu = unique_bins(pbins, 0, n, ppx.tally, ppx.bits, ppx.tmp, ppx.kb, ppx.kw)
+            npr, _ = fit_pixel(ppx.kb, ppx.kw, pnu, tabs, nb.kpool, nb.pool_nats, pwork)
+            nc = _own_and_pooled(p, shift_in, gain_in, nb, npr, pwork.shifts, pwork.amps, cand, csrc)
+            nr, bg = _censored_fit(px.kb, px.kw, nu, nc, cand, csrc, tabs, nb, kmax, work, src)
+        write_returns(p, nr, bg, tabs, work, out)
+        for r in range(kmax):
+            out_src[p, r] = src[r] if r < nr else -1
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def neighbour_surfaces(bins, offsets, h, w, radius, shift_in, gain_in, strong_nats, pool_nats, tau_bins,
-                       sep_bins, kmax, kpool, cand_step, g, off, colsum, dg, m, step0, maxn,
-                       out_shift, out_amp, out_bg, out_var, out_gain, out_src, p_start, p_stop):
-    """Each pixel's surfaces with its neighbours' help.
+def neighbour_surfaces(ph, shift_in, gain_in, nb, tabs, maxn, out, out_src, p_start, p_stop):
+    """Each pixel's surfaces with its neighbours' help (:class:`Neighbourhood` nb).
 
-    shift_in, gain_in: (P, kmax) the pixelwise fit (NaN / 0 past the surfaces found). Per pixel:
+    shift_in, gain_in: (P, K) the pixelwise fit (NaN / 0 past the surfaces found). Per pixel:
     1. the detections of its (2 radius + 1)^2 neighbourhood pooled and fitted by the greedy pursuit
        (up to kpool surfaces, each raising the pooled likelihood by more than pool_nats): the
        surfaces the neighbourhood supports;
@@ -607,151 +791,16 @@ def neighbour_surfaces(bins, offsets, h, w, radius, shift_in, gain_in, strong_na
        (gain > strong_nats, not chance even alone) and the pooled surfaces. Greedily, the candidate
        whose best shift within tau_bins (the response peak on each of the pixel's detections there,
        refined by pattern search) raises the pixel's likelihood most is kept, then amplitudes and
-       background by EM, up to kmax, none closer than sep_bins to another. A candidate needs at
-       least one of the pixel's detections within tau_bins (censoring: a detection the
+       background by EM, up to kmax (out's), none closer than sep_bins to another. A candidate needs
+       at least one of the pixel's detections within tau_bins (censoring: a detection the
        neighbourhood supports in time is signal; a pixel that sees none of a surface does not get
        it).
-    Outputs as multi_return_kernel; out_src[p, r]: 0 the pixel's own strong surface, 1 from the
-    neighbourhood's pooled fit.
-    Only the pixels p_start <= p < p_stop are fitted (their neighbours' detections come from the
-    whole image): the caller goes through the image in slices and reports progress between them."""
-    nblk = (p_stop - p_start + BLOCK - 1) // BLOCK
-    kk = shift_in.shape[1]
-    nn = (2 * radius + 1) * (2 * radius + 1)
-    dpk = int(np.argmax(g))
-    for blk in prange(nblk):
-        n1 = max(maxn, 1)
-        npool = max(nn * maxn, 1)
-        pbins = np.empty(npool, np.int64)
-        ptmp = np.empty(npool, np.int64)
-        pkb = np.empty(npool, np.int64)
-        pkw = np.empty(npool, np.float64)
-        pwork = fit_work(npool, kpool)
-        pshift, pamp = pwork[3], pwork[4]
-        tmp = np.empty(n1, np.int64)
-        kb = np.empty(n1, np.int64)
-        kw = np.empty(n1, np.float64)
-        work = fit_work(n1, kmax)
-        tally = np.zeros(m, np.int64)
-        bits = np.zeros(m // 64 + 1, np.uint64)
-        ilam, shifts, amps, gains, wk, gt, newa, seen = work[0], work[3], work[4], work[5], work[8], work[9], \
-            work[10], work[13]
-        cand = np.empty(kk + kpool, np.int64)
-        csrc = np.empty(kk + kpool, np.int64)
-        src = np.empty(kmax, np.int64)
-        for p in range(p_start + blk * BLOCK, min(p_stop, p_start + (blk + 1) * BLOCK)):
-            o0 = offsets[p]
-            o1 = offsets[p + 1]
-            for r in range(kmax):
-                out_shift[p, r] = np.nan
-                out_amp[p, r] = 0.0
-                out_var[p, r] = np.nan
-                out_gain[p, r] = 0.0
-                out_src[p, r] = -1
-            nu = unique_bins(bins, o0, o1, tally, bits, tmp, kb, kw)
-            if nu == 0:
-                out_bg[p] = 0.0
-                continue
-            ntot = 0.0
-            for u in range(nu):
-                ntot += kw[u]
-            bg_floor = 1e-9 * ntot / m
-            # 1. the neighbourhood's pooled fit
-            y0, x0 = p // w, p % w
-            n = 0
-            for y in range(max(0, y0 - radius), min(h, y0 + radius + 1)):
-                for x in range(max(0, x0 - radius), min(w, x0 + radius + 1)):
-                    q = y * w + x
-                    for i in range(offsets[q], offsets[q + 1]):
-                        pbins[n] = bins[i]
-                        n += 1
-            pnu = unique_bins(pbins, 0, n, tally, bits, ptmp, pkb, pkw)
-            npr, _ = fit_pixel(pkb, pkw, pnu, m, g, off, colsum, dg, kpool, sep_bins, pool_nats, cand_step,
-                               step0, dpk, pwork)
-            # 2. candidates: own strong surfaces, then pooled ones by amplitude
-            nc = 0
-            for r in range(kk):
-                v = shift_in[p, r]
-                if v == v and gain_in[p, r] > strong_nats:
-                    cand[nc] = int(v)
-                    csrc[nc] = 0
-                    nc += 1
-            for _ in range(npr):
-                bi = -1
-                for r in range(npr):
-                    if pamp[r] >= 0.0 and (bi < 0 or pamp[r] > pamp[bi]):
-                        bi = r
-                cand[nc] = pshift[bi]
-                csrc[nc] = 1
-                nc += 1
-                pamp[bi] = -1.0
-            nr = 0
-            bg = ntot / m
-            for u in range(nu):
-                ilam[u] = 1.0 / bg
-            while nr < kmax:
-                # the candidate the pixel's own detections support most (gain at the best
-                # detection-aligned shift within tau_bins of it)
-                best = 0.0
-                bj = -1
-                ba = 0.0
-                bc = -1
-                for c in range(nc):
-                    if csrc[c] < 0:
-                        continue
-                    j0 = cand[c]
-                    for u in range(nu):
-                        j = kb[u] + off - dpk
-                        if j < 0 or j >= m or abs(j - j0) > tau_bins:
-                            continue
-                        near = False
-                        for r in range(nr):
-                            if abs(j - shifts[r]) < sep_bins:
-                                near = True
-                        if near:
-                            continue
-                        gn, an = add_gain(j, kb, kw, nu, ilam, g, off, colsum, 0.0, best, wk)
-                        if gn > best:
-                            best, bj, ba, bc = gn, j, an, c
-                if bc < 0:
-                    break
-                bj, best, ba = refine_shift(bj, best, ba, kb, kw, nu, ilam, g, off, colsum, m, step0, shifts, nr,
-                                            -1, sep_bins, wk, seen, 0)
-                c = bc
-                # every candidate within sep of the one taken is spent
-                for d in range(nc):
-                    if csrc[d] >= 0 and abs(cand[d] - cand[c]) < sep_bins:
-                        if d != c:
-                            csrc[d] = -1
-                shifts[nr] = bj
-                amps[nr] = ba
-                gains[nr] = best
-                src[nr] = csrc[c]
-                csrc[c] = -1
-                nr += 1
-                bg = em_refit(kb, kw, nu, shifts, amps, nr, bg, bg_floor, g, off, colsum, m, ilam, EM_SWEEPS, gt, newa)
-            # sort by shift
-            for a in range(1, nr):
-                vs, va, vg, vc = shifts[a], amps[a], gains[a], src[a]
-                b = a - 1
-                while b >= 0 and shifts[b] > vs:
-                    shifts[b + 1] = shifts[b]
-                    amps[b + 1] = amps[b]
-                    gains[b + 1] = gains[b]
-                    src[b + 1] = src[b]
-                    b -= 1
-                shifts[b + 1] = vs
-                amps[b + 1] = va
-                gains[b + 1] = vg
-                src[b + 1] = vc
-            out_bg[p] = bg
-            for r in range(nr):
-                out_shift[p, r] = shifts[r]
-                out_amp[p, r] = amps[r]
-                out_gain[p, r] = gains[r]
-                out_src[p, r] = src[r]
-                info = shift_fisher(r, shifts, amps, nr, bg, g, dg, off, m)
-                out_var[p, r] = 1.0 / info if info > 0.0 else np.nan
+    Outputs as multi_return_kernel's (out.n untouched); out_src[p, r]: 0 the pixel's own strong
+    surface, 1 from the neighbourhood's pooled fit, -1 none. Only the pixels p_start <= p < p_stop
+    are fitted (their neighbours' detections come from the whole image): the caller goes through the
+    image in slices and reports progress between them."""
+    for blk in prange((p_stop - p_start + BLOCK - 1) // BLOCK):
+        _neighbour_block(np.int64(blk), ph, shift_in, gain_in, nb, tabs, maxn, out, out_src, p_start, p_stop)
 
 
 @njit(parallel=True, cache=True, nogil=True)

@@ -2,7 +2,7 @@
 
 ``reflectors`` K > 1 or "auto" (the pixelwise methods): every pixel is fitted by a greedy Poisson
 pursuit in the union of K shifted copies of the response plus a flat background
-(:mod:`recon.multi_kernels`): a surface is added where it raises the Poisson log-likelihood most,
+(:mod:`recon.estimators.surfaces_kernels`): a surface is added where it raises the Poisson log-likelihood most,
 with its amplitude profiled out, then the amplitudes and background are refitted and the shifts
 re-refined. K fixed keeps up to K surfaces that each lower Akaike's criterion (``LLR_MIN``), the
 doubtful ones flagged weak; "auto" keeps adding surfaces (up to ``max_reflectors``) while the
@@ -39,13 +39,14 @@ import numpy as np
 # `spdepth recon --reflectors 2`): chdtri(1, p) is chi2.isf(p, 1), the same function underneath
 from scipy.special import chdtri
 
-from spdepth.recon import multi_kernels as MK
+from spdepth.recon.estimators import surfaces_kernels as MK
 from spdepth.recon.errors import InputError
 from spdepth.recon.irf import smooth_tail
+from spdepth.recon.kernels import Photons
 from spdepth.recon.maps import C_M_PER_S, DepthMaps, PixelFlag
 from spdepth.recon.model import Binning, Irf, PulseKernel, ReconSettings, build_kernel, edge_core_rms
 from spdepth.recon.photons import PhotonStore
-from spdepth.recon.pixelwise import binned_photons, honest_var, settings_record
+from spdepth.recon.pixelwise import CHUNK_PIXELS, binned_photons, honest_var, settings_record
 
 #: K fixed: a surface is kept when it raises the Poisson log-likelihood by more than this (nats):
 #: Akaike's criterion for its two parameters (shift, amplitude). The user gave the number, so the bar
@@ -125,30 +126,35 @@ def fit_surfaces(store: PhotonStore, settings: ReconSettings, b: Binning, kern: 
     (P, K), gain (P, K), n_used (P,), kmax, gain_min, rule)."""
     bins, offsets = binned_photons(store, b, settings.max_photons)
     npix = store.n_pixels
-    fw = fwhm_bins(kern.g)
-    kmax, gain_min, rule = kmax_and_gain(settings, b, fw)
-    core_bins = core_s / b.bin_width_s
-    sep = max(1, int(round(SEP_FWHM * fw)))
-    cand = max(1, int(round(CAND_CORE * core_bins)))
-    step0 = _step0(core_bins)
-    shift = np.full((npix, kmax), np.nan)
-    amp = np.zeros((npix, kmax))
-    var = np.full((npix, kmax), np.nan)
-    gain = np.zeros((npix, kmax))
-    bg = np.zeros(npix)
-    n_used = np.zeros(npix, np.int64)
+    kmax, gain_min, rule = kmax_and_gain(settings, b, fwhm_bins(kern.g))
+    tabs = surface_tables(b, kern, core_s)
+    out = surface_outputs(npix, kmax)
     counts = np.diff(offsets)
-    chunk = 16384
-    for p0 in range(0, npix, chunk):
-        p1 = min(npix, p0 + chunk)
+    for p0 in range(0, npix, CHUNK_PIXELS):
+        p1 = min(npix, p0 + CHUNK_PIXELS)
         o = offsets[p0:p1 + 1]
         maxn = int(counts[p0:p1].max()) if p1 > p0 else 0
-        MK.multi_return_kernel(bins[o[0]:o[-1]], o - o[0], b.n_bins, kern.g, kern.off, kern.colsum, kern.dg,
-                               kmax, sep, float(gain_min), cand, step0, maxn, shift[p0:p1], amp[p0:p1],
-                               bg[p0:p1], var[p0:p1], gain[p0:p1], n_used[p0:p1])
+        MK.multi_return_kernel(Photons(bins[o[0]:o[-1]], o - o[0]), tabs, kmax, float(gain_min), maxn,
+                               MK.SurfOut(*(a[p0:p1] for a in out)))
         if progress is not None:
             progress(p1, npix)
-    return shift, amp, bg, var, gain, n_used, kmax, gain_min, rule
+    return out.shift, out.amp, out.bg, out.var, out.gain, out.n, kmax, gain_min, rule
+
+
+def surface_tables(b: Binning, kern: PulseKernel, core_s: float):
+    """The K-surface kernels' tables (``surfaces_kernels.SurfTables``) for the pulse ``kern`` on ``b``
+    whose sharp part has RMS ``core_s``: surfaces SEP_FWHM apart, a candidate every CAND_CORE core
+    RMS, the pattern search's first step."""
+    core_bins = core_s / b.bin_width_s
+    sep = max(1, int(round(SEP_FWHM * fwhm_bins(kern.g))))
+    cand = max(1, int(round(CAND_CORE * core_bins)))
+    return MK.surf_tables(b.n_bins, kern.g, kern.off, kern.colsum, kern.dg, sep, cand, _step0(core_bins))
+
+
+def surface_outputs(npix: int, kmax: int):
+    """``surfaces_kernels.SurfOut`` of npix pixels and kmax surfaces, NaN / 0 past the surfaces."""
+    return MK.SurfOut(np.full((npix, kmax), np.nan), np.zeros((npix, kmax)), np.zeros(npix),
+                      np.full((npix, kmax), np.nan), np.zeros((npix, kmax)), np.zeros(npix, np.int64))
 
 
 def pooled_response(store: PhotonStore, b: Binning, tof_units: np.ndarray, signal: np.ndarray,
@@ -302,7 +308,7 @@ def reconstruct_multi(store: PhotonStore, settings: ReconSettings, b: Binning, k
     shift, amp, bg, var, gain, n_used, kmax, gain_min, rule = fit_surfaces(store, settings, b, kern, core_s, progress)
     notes["surfaces_rule"] = rule
     notes["surface_gain_min_nats"] = float(gain_min)
-    notes["kernel_k_surfaces"] = "greedy Poisson pursuit (recon.multi)"
+    notes["kernel_k_surfaces"] = "greedy Poisson pursuit (recon.estimators.surfaces)"
     return _maps(store, settings, b, kern, notes, shift, amp, bg, var, gain, n_used, kmax)
 
 
@@ -347,21 +353,15 @@ def reconstruct_multi_spatial(store: PhotonStore, settings: ReconSettings, b: Bi
     h, w = store.shape
     npix = h * w
     counts = np.diff(offsets)
-    shift = np.full((npix, kmax), np.nan)
-    amp = np.zeros((npix, kmax))
-    var = np.full((npix, kmax), np.nan)
-    gain = np.zeros((npix, kmax))
+    out = surface_outputs(npix, kmax)
+    shift, amp, bg, var, gain = out.shift, out.amp, out.bg, out.var, out.gain
     src = np.full((npix, kmax), -1, np.int64)
-    bg = np.zeros(npix)
-    sep = max(1, int(round(SEP_FWHM * fw)))
-    core_bins = core_s / b.bin_width_s
+    nb = MK.Neighbourhood(h, w, SPATIAL_RADIUS, float(strong), float(pool), float(tau), kmax + 1)
+    tabs = surface_tables(b, kern, core_s)
     # in slices of pixels, so that a long run shows its progress (the pooled fits are ~85% of it)
     for p0 in range(0, npix, SPATIAL_SLICE):
         p1 = min(npix, p0 + SPATIAL_SLICE)
-        MK.neighbour_surfaces(bins, offsets, h, w, SPATIAL_RADIUS, shift0, gain0, float(strong), float(pool),
-                              float(tau), sep, kmax, kmax + 1, max(1, int(round(CAND_CORE * core_bins))), kern.g,
-                              kern.off, kern.colsum, kern.dg, b.n_bins, _step0(core_bins), int(counts.max()),
-                              shift, amp, bg, var, gain, src, p0, p1)
+        MK.neighbour_surfaces(Photons(bins, offsets), shift0, gain0, nb, tabs, int(counts.max()), out, src, p0, p1)
         if progress is not None:
             progress(p1, npix)
     has = np.isfinite(shift)
@@ -371,7 +371,7 @@ def reconstruct_multi_spatial(store: PhotonStore, settings: ReconSettings, b: Bi
     MK.smooth_surfaces(shift, sig, var, h, w, SPATIAL_RADIUS, float(tau), sm_shift, sm_var)
     notes["surfaces_rule"] = rule
     notes["surface_gain_min_nats"] = float(gain_min)
-    notes["kernel_k_surfaces"] = "greedy Poisson pursuit with the neighbours' proposals (recon.multi)"
+    notes["kernel_k_surfaces"] = "greedy Poisson pursuit with the neighbours' proposals (recon.estimators.surfaces)"
     notes["spatial_surfaces"] = {"radius": SPATIAL_RADIUS, "tau_bins": float(tau), "strong_nats": float(strong),
                                  "pooled_nats": float(pool), "own_strong": int(np.sum(src == 0)),
                                  "from_neighbourhood": int(np.sum(src == 1))}
