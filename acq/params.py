@@ -686,13 +686,11 @@ if len(PARAMS) != len(_DECLARED):
 RENAMED = {
     "demo": {"--record": "--record is now --out DIR (the run folder, as in spdepth scan); the PNG "
                          "sheet is --png FILE"},
-    "recon": {"--out": "--out names a folder in every command; the maps file is --npz FILE.npz",
-              "--max-photons": None},
+    "recon": {"--out": "--out names a folder in every command; the maps file is --npz FILE.npz"},
     "simulate": {"--out": "--out names a folder in every command; the PTU file is --ptu FILE.ptu"},
-    "gui": {},
 }
 """Spellings an earlier version took with another meaning: refused with one line saying what to
-write now (None: still taken, as an alias)."""
+write now (recon's --max-photons, which meant --target, stays its alias)."""
 
 
 def params_of(source: str) -> list[Param]:
@@ -754,8 +752,7 @@ def add_options(parser: argparse.ArgumentParser, command: str, *, skip: tuple[st
             target = groups[group] = parser.add_argument_group(group)
         _add(target, p, command, groups)
     for old, message in RENAMED.get(command, {}).items():
-        if message:
-            parser.add_argument(old, action=_Renamed, message=message)
+        parser.add_argument(old, action=_Renamed, message=message)
 
 
 def _add(group, p: Param, command: str, groups: dict) -> None:
