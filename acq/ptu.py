@@ -291,6 +291,21 @@ class PtuLayout:
     n_records: int
     records_in_file: int
 
+    @property
+    def truncation(self) -> str | None:
+        """One line saying what the header promised and what the file holds, when it holds
+        fewer records (its whole records are read); None otherwise."""
+        if self.records_in_file >= self.n_records:
+            return None
+        return truncation_note(Path(self.path).name, self.n_records, self.records_in_file)
+
+
+def truncation_note(name: str, promised: int, held: int) -> str:
+    """The one warning for a file cut short (an acquisition stopped by another program, a copy
+    cut off): the same words for PTU, HT3 and PT3, in ``recon`` and in ``replay``."""
+    return (f"{name} is truncated: its header promises {promised:,} records, the file holds "
+            f"{held:,} whole records ({held / promised:.0%}); reading those")
+
 
 def marker_map(tags: dict) -> np.ndarray | None:
     """The file's marker bits -> our ``Marker`` bits, as a lookup table uint8[16] indexed by a
@@ -354,6 +369,6 @@ def read_layout(path: str | os.PathLike) -> PtuLayout:
 
 
 __all__ = ["MARKER_INPUT", "PIXEL_MARKER_TAG", "PLAN_TAG", "RECON_TAG", "INFO_TAG",
-           "PtuLayout",
+           "PtuLayout", "truncation_note",
            "encode_events", "image_tags", "iter_records", "marker_map", "patch_record_count",
            "ptu_header", "read_layout", "split_marker_records", "write_ptu"]

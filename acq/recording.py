@@ -23,8 +23,9 @@ consumes a live scan.
 Damage: a header whose settings tags (``SPDepth_Plan``, ``SPDepth_Recon``, ``SPDepth_Info``) do
 not parse is refused (``RecordingError`` naming the file and the tag: no invented plan). A PTU
 holding fewer records than its header counts, or a session recording whose ``events.jsonl`` is
-missing or stops before the session's end, still replays, with one warning line and the same
-words in ``ReplaySource.warnings`` (the session's ``run.json`` lists them). A count of 0 is a
+missing or stops before the session's end, still replays, with one line each in
+``ReplaySource.warnings``, which the session's ``run.json`` lists and its caller shows once (the
+CLI in its summary, ``spdepth recon`` as a note, the window in its banner). A count of 0 is a
 recording that was not closed (``kill -9``): every whole record is read, and that alone is no
 warning.
 """
@@ -32,7 +33,6 @@ warning.
 from __future__ import annotations
 
 import json
-import logging
 import threading
 import time
 from dataclasses import dataclass
@@ -54,7 +54,6 @@ from spdepth.drivers.tagger.t3 import T3DecoderState, decode_t3
 from spdepth.recon.errors import InputError
 from spdepth.recon.model import ReconSettings
 
-log = logging.getLogger(__name__)
 
 FLUSH_S = 0.5
 """Longest time records and events sit in Python's buffers before they go to the OS (the
@@ -223,7 +222,8 @@ class ReplaySource:
         self.first_read_t: float | None = None
         self.warnings: list[str] = []
         """What is wrong with the recording but still replays (a cut file, a missing or cut
-        event log); logged as one warning line and listed in the session's ``run.json``."""
+        event log), one line each: not logged here (the caller shows them once) and listed in the
+        session's ``run.json``."""
         self.events_path = p.parent / "events.jsonl"
         plan = _json_tag(p, tags, PLAN_TAG)
         recon = _json_tag(p, tags, RECON_TAG)
@@ -251,10 +251,8 @@ class ReplaySource:
         count of 0 is a recording that did not close and no warning by itself), an event log
         missing beside a session recording, or cut before the session's end."""
         lay = self.layout
-        if lay.records_in_file < lay.n_records:
-            self.warnings.append(f"{self.path.name} is truncated: its header counts "
-                                 f"{lay.n_records} records, the file holds "
-                                 f"{lay.records_in_file}")
+        if lay.truncation:
+            self.warnings.append(lay.truncation)
         if ours and log_ended is None:
             self.warnings.append(f"{self.events_path.name} is missing beside {self.path.name}: "
                                  "the stream is replayed as one full-frame pass (re-acquisition "
@@ -263,8 +261,6 @@ class ReplaySource:
             self.warnings.append(f"{self.events_path.name} is truncated (it stops before the "
                                  "session's end): passes and lost spans after the cut are "
                                  "unknown")
-        if self.warnings:
-            log.warning("replay of %s: %s", self.path, "; ".join(self.warnings))
 
     def _read_event_log(self):
         """(passes as [first record, geometry, record where the session stopped using its

@@ -73,9 +73,10 @@ class IrfEstimate:
                 "photons": self.photons, "pixels": self.pixels}
 
 
-def _edge_rms_units(times: np.ndarray) -> float:
+def _edge_rms_units(times: np.ndarray, time_unit_s: float) -> float:
     """Core RMS (raw units) of the pooled histogram's main peak from its leading edge: the rise from
-    the floor to the peak spans about 2.4 RMS for a Gaussian (10% to peak ~ 2.15 sigma)."""
+    the floor to the peak spans about 2.4 RMS for a Gaussian (10% to peak ~ 2.15 sigma).
+    ``time_unit_s`` only words the error (the bin in ps, not in raw units)."""
     lo, hi = float(times.min()), float(times.max())
     if not hi > lo:
         raise InputError(f"cannot estimate the pulse shape: all detections at one time; {NO_PEAK_HINT}")
@@ -90,7 +91,7 @@ def _edge_rms_units(times: np.ndarray) -> float:
     if not height > 5 * noise or not smooth[pk] > 3 * max(floor, 0.5):
         raise InputError(f"cannot estimate the pulse shape: the pooled arrival histogram holds no peak "
                          f"above its background ({smooth[pk]:.1f} vs a median of {floor:.1f} per "
-                         f"{step:g}-unit bin); {NO_PEAK_HINT}")
+                         f"{step * time_unit_s * 1e12:.3g} ps bin); {NO_PEAK_HINT}")
     left = pk
     while left > 0 and smooth[left - 1] > floor + 0.1 * height:
         left -= 1
@@ -108,7 +109,7 @@ def _initial_rms_units(store: PhotonStore) -> float:
             return estimate_pulse_rms_s(store.times, store.offsets, 1.0)
         except InputError:
             pass   # no usable pairs after all: fall back to the histogram edge below
-    return _edge_rms_units(store.times)
+    return _edge_rms_units(store.times, store.time_unit_s)
 
 
 def _busiest(store: PhotonStore, max_pixels: int) -> PhotonStore:

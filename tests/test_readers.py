@@ -260,24 +260,54 @@ def test_ht3_legacy_file(shared_data):
     assert res.meta["sync_rate_hz"] == 998898
 
 
-@pytest.mark.parametrize("keep", [3000, 5801, 5800 + 4 * 1000, 5800 + 4 * 1000 + 3, 431196 - 4])
-def test_truncated_ptu_copies(shared_data, tmp_path, keep):
-    data = (shared_data / PTU_V2).read_bytes()
+@pytest.mark.parametrize("keep", [3000, 5799])
+def test_ptu_cut_inside_its_header_is_refused(shared_data, tmp_path, keep):
     path = tmp_path / "cut.ptu"
-    path.write_bytes(data[:keep])
-    with pytest.raises(InputError) as info:
+    path.write_bytes((shared_data / PTU_V2).read_bytes()[:keep])
+    with pytest.raises(InputError, match=r"cut\.ptu"):
         read_photons(path)
-    assert "cut.ptu" in str(info.value)
-    if keep > 5800:  # header intact: the message says the records are short
-        assert "truncated" in str(info.value)
 
 
-@pytest.mark.parametrize("keep", [100, 790, 215224 - 4])
-def test_truncated_ht3(shared_data, tmp_path, keep):
+@pytest.mark.parametrize("keep", [5801, 5800 + 4 * 1000, 5800 + 4 * 1000 + 3, 431196 - 4])
+def test_truncated_ptu_reads_its_whole_records_with_one_note(shared_data, tmp_path, keep):
+    # an acquisition cut short by another program: every whole record is read, as replay,
+    # ptufile and tttrlib do, and one note says what the header promised and what was there
+    import ptufile
+
+    with ptufile.PtuFile(shared_data / PTU_V2) as full:
+        decoded = full.decode_records()
+    held = (keep - 5800) // 4
+    path = tmp_path / "cut.ptu"
+    path.write_bytes((shared_data / PTU_V2).read_bytes()[:keep])
+    res = read_photons(path)
+    truncated = [n for n in res.notes if "truncated" in n]
+    assert len(truncated) == 1
+    assert truncated[0].startswith("cut.ptu is truncated: its header promises 106,349 records, "
+                                   f"the file holds {held:,} whole records")
+    assert res.meta["records"] == held and res.meta["records_in_header"] == 106349
+    assert res.store.n_photons == int(np.count_nonzero(decoded["channel"][:held] >= 0))
+    assert_array_equal(np.sort(res.store.pixel(0, 0)),
+                       np.sort(decoded["dtime"][:held][decoded["channel"][:held] >= 0]))
+
+
+@pytest.mark.parametrize("keep", [100, 790])
+def test_ht3_cut_inside_its_header_is_refused(shared_data, tmp_path, keep):
     path = tmp_path / "cut.ht3"
     path.write_bytes((shared_data / "ptu/hydraharp_v20.ht3").read_bytes()[:keep])
     with pytest.raises(InputError, match=r"cut\.ht3: truncated"):
         read_photons(path)
+
+
+def test_truncated_ht3_reads_its_whole_records_with_one_note(shared_data, tmp_path):
+    data = (shared_data / "ptu/hydraharp_v20.ht3").read_bytes()
+    full = read_photons(shared_data / "ptu/hydraharp_v20.ht3")
+    path = tmp_path / "cut.ht3"
+    path.write_bytes(data[:-4 * 1000 - 2])      # 1,000 records and half of one gone
+    res = read_photons(path)
+    assert res.notes[0].startswith("cut.ht3 is truncated: its header promises 53,606 records, the "
+                                   "file holds 52,605 whole records")
+    assert res.meta["records"] == 52605 and res.meta["records_in_header"] == 53606
+    assert 0 < full.store.n_photons - res.store.n_photons <= 1001
 
 
 def test_ptu_image_from_ptufile_writer(tmp_path, rng):
@@ -418,6 +448,8 @@ def test_pt3_point_measurement(tmp_path):
     assert res.kind == "pt3" and res.store.shape == (1, 1)
     assert_array_equal(res.store.pixel(0, 0), dtimes)
     assert_allclose(res.store.time_unit_s, 4e-12)
-    path.write_bytes(_pt3_bytes(recs, 0.004, n_records=10))
-    with pytest.raises(InputError, match=r"point\.pt3: truncated"):
-        read_photons(path)
+    path.write_bytes(_pt3_bytes(recs, 0.004, n_records=10))       # 5 records there of 10
+    res = read_photons(path)
+    assert res.notes[0].startswith("point.pt3 is truncated: its header promises 10 records, the "
+                                   "file holds 5 whole records")
+    assert_array_equal(res.store.pixel(0, 0), dtimes)

@@ -28,7 +28,8 @@ import numpy as np
 from numba import njit
 
 from spdepth.acq.assign import PixelAssigner
-from spdepth.acq.ptu import PIXEL_MARKER_TAG, PLAN_TAG, PtuLayout, iter_records, marker_map
+from spdepth.acq.ptu import (PIXEL_MARKER_TAG, PLAN_TAG, PtuLayout, iter_records, marker_map,
+                             truncation_note)
 from spdepth.acq.readers.common import ReadResult
 from spdepth.drivers.errors import DriverError
 from spdepth.drivers.events import EVENT_DTYPE, GENERIC_T3_RECORD_TYPES, EventKind, Marker, RecordType
@@ -238,10 +239,10 @@ def read_ptu(path: str | Path, *, time_unit_s: float | None = None,
         if field not in tags:
             raise InputError(f"{path}: header field {field} is missing")
     size = path.stat().st_size
-    expected = record_offset + 4 * n_records
-    if size < expected:
-        raise InputError(f"{path}: truncated: the header promises {n_records} records "
-                         f"({expected} bytes), the file holds {size} bytes")
+    # a file cut short (an acquisition stopped by another program) is read up to its last whole
+    # record, as replay, ptufile and tttrlib do, with one note saying what is missing
+    layout = PtuLayout(str(path), tags, record_offset, int(n_records),
+                       max(size - record_offset, 0) // 4)
     resolution_s = float(tags["MeasDesc_Resolution"])
     if not resolution_s > 0:
         raise InputError(f"{path}: header field MeasDesc_Resolution is {resolution_s}, not a positive time")
@@ -249,7 +250,7 @@ def read_ptu(path: str | Path, *, time_unit_s: float | None = None,
     image = ptu_image(path, tags)
     meta = ptu_meta(tags, n_records)
     notes = ()
-    if tags.get(PLAN_TAG) and rectype in GENERIC_T3_RECORD_TYPES:
+    if tags.get(PLAN_TAG) and rectype in GENERIC_T3_RECORD_TYPES:   # its reader says when it is cut
         # a session's recording: its passes and lost spans are in events.jsonl beside it
         from spdepth.acq.recording import session_photons
 
@@ -258,15 +259,19 @@ def read_ptu(path: str | Path, *, time_unit_s: float | None = None,
             store = dataclasses.replace(store, time_unit_s=time_unit_s)
         return ReadResult(store=store, path=str(path), kind="ptu", is_image=True, notes=notes,
                           meta=dict(meta, **extra, time_unit_s=store.time_unit_s))
+    if layout.truncation:
+        notes = (layout.truncation,)
+        meta["records"] = layout.records_in_file
+        meta["records_in_header"] = layout.n_records
     if image is not None and int(tags.get(PIXEL_MARKER_TAG, 0) or 0):
-        layout = PtuLayout(str(path), tags, record_offset, n_records, (size - record_offset) // 4)
         result = _read_by_pixel_markers(path, layout, rectype, image, time_unit_s or resolution_s,
                                         channel, meta)
         if result is not None:
-            return result
-        notes = (f"{path.name}: the header names pixel marker {tags[PIXEL_MARKER_TAG]} but the "
-                 f"records hold none: pixels interpolated between line markers",)
-    records = np.fromfile(path, dtype="<u4", count=n_records, offset=record_offset)
+            return dataclasses.replace(result, notes=notes + result.notes)
+        notes += (f"{path.name}: the header names pixel marker {tags[PIXEL_MARKER_TAG]} but the "
+                  f"records hold none: pixels interpolated between line markers",)
+    records = np.fromfile(path, dtype="<u4", count=min(layout.n_records, layout.records_in_file),
+                          offset=record_offset)
     result = _records_to_result(path, "ptu", _decode(records, rectype), time_unit_s or resolution_s,
                                 image, channel, meta)
     if notes:
@@ -363,10 +368,11 @@ def _read_by_pixel_markers(path: Path, layout: PtuLayout, rectype: int, image: d
                          f"pixel markers needs the scan's size")
     decoder = PixelMarkerDecoder(path, layout.tags, (h, w),
                                  "serp" if image["bidirectional"] else "raster", keep_channel)
-    buf = np.empty(min(CHUNK_RECORDS, max(layout.n_records, 1)), EVENT_DTYPE)
+    n_read = min(layout.n_records, layout.records_in_file)   # fewer than promised when cut short
+    buf = np.empty(min(CHUNK_RECORDS, max(n_read, 1)), EVENT_DTYPE)
     pixel_buf = np.empty(buf.size, np.int64)
     # every photon of the file lands here in stream order, then one counting sort groups them
-    cap = max(layout.n_records, layout.records_in_file)
+    cap = n_read
     pixel_all, time_all = np.empty(cap, np.int64), np.empty(cap, np.uint32)
     n_kept = 0
     for chunk in iter_records(layout, CHUNK_RECORDS):
@@ -441,10 +447,14 @@ def _legacy_records(path: Path, data: bytes, offset: int, head: dict) -> np.ndar
         raise InputError(f"{path}: header field BitsPerRecord is {head['BitsPerRecord']}, expected 32")
     n_records = int(head["nRecords"])
     offset += 4 * max(int(head["ImgHdrSize"]), 0)
-    if n_records < 0 or len(data) < offset + 4 * n_records:
-        raise InputError(f"{path}: truncated: the header promises {n_records} records "
-                         f"({offset + 4 * n_records} bytes), the file holds {len(data)} bytes")
-    return np.frombuffer(data, dtype="<u4", count=n_records, offset=offset)
+    if n_records < 0:
+        raise InputError(f"{path}: corrupt header: nRecords is {n_records}")
+    held = max(len(data) - offset, 0) // 4
+    notes = ()
+    if held < n_records:   # cut short: its whole records are read, as for a PTU
+        notes = (truncation_note(path.name, n_records, held),)
+        n_records = held
+    return np.frombuffer(data, dtype="<u4", count=n_records, offset=offset), notes
 
 
 def _read_bytes(path: Path) -> bytes:
@@ -495,13 +505,16 @@ def read_pt3(path: str | Path, *, time_unit_s: float | None = None,
 
 def _legacy_result(path, kind, data, off, head, rectype, resolution_s, time_unit_s, channel):
     """Records of a legacy HT3/PT3 file after its header, decoded into a point measurement."""
-    records = _legacy_records(path, data, off, head)
+    records, notes = _legacy_records(path, data, off, head)
     if not resolution_s > 0:
         raise InputError(f"{path}: header field Resolution is {resolution_s * 1e12:g} ps, not positive")
     meta = {"record_type": int(rectype), "resolution_s": resolution_s, "records": int(records.size),
             "sync_rate_hz": float(head["SyncRate"]), "format_version": head["FormatVersion"]}
-    return _records_to_result(path, kind, _decode(records, rectype), time_unit_s or resolution_s,
-                              None, channel, meta)
+    if notes:
+        meta["records_in_header"] = int(head["nRecords"])
+    result = _records_to_result(path, kind, _decode(records, rectype), time_unit_s or resolution_s,
+                                None, channel, meta)
+    return dataclasses.replace(result, notes=notes + result.notes)
 
 
 @njit(cache=True, nogil=True)
