@@ -25,7 +25,7 @@ import threading
 from spdepth.acq import commands as _commands
 from spdepth.acq.commands import (EXIT_DEVICE, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK,  # noqa: F401
                                   EXIT_USAGE, Terminated)
-from spdepth.acq.errors import AcqError
+from spdepth.acq.errors import AcqError, UnreachableError
 from spdepth.drivers.errors import DeviceError, SettingError
 
 
@@ -37,6 +37,7 @@ def exit_codes() -> tuple[tuple[type[Exception], int], ...]:
     from spdepth.recon.errors import InputError
 
     return (
+        (UnreachableError, EXIT_DEVICE),  # acq: a service (Dask scheduler) that does not answer
         (AcqError, EXIT_USAGE),      # acq: a bad request, recording or output folder
         (InputError, EXIT_USAGE),    # recon: a bad file or setting
         (SettingError, EXIT_USAGE),  # drivers: a bad argument to a driver or simulated device

@@ -33,13 +33,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from spdepth.acq.errors import RequestError
+from spdepth.acq.errors import RequestError, UnreachableError
 from spdepth.recon.errors import InputError
 
 CHUNK_RECORDS = 1 << 22
 """Records per chunk task (16 MiB of records)."""
 BLOCK_PIXELS = 1 << 17
 """About this many pixels per block task (whole rows)."""
+CONNECT_TIMEOUT_S = 5.0
+"""How long a scheduler address may take to answer before the command gives up in one line."""
 
 
 def parse_address(text: str) -> tuple[str, int | str]:
@@ -80,7 +82,16 @@ def connect(spec: str):
         if not value.startswith("tls://") and host not in ("127.0.0.1", "localhost", "[::1]"):
             print(f"spdepth recon: {value} is not a tls:// address: the photons and maps cross the "
                   f"network unencrypted (docs/dask.md shows TLS)", file=sys.stderr)
-        with Client(value, timeout="30s") as client:
+        try:
+            client = Client(value, timeout=f"{CONNECT_TIMEOUT_S:g}s")
+        except OSError:      # distributed's "Timed out trying to connect", refused, unknown host
+            raise UnreachableError(f"--dask {value}: no dask scheduler answers there within "
+                                   f"{CONNECT_TIMEOUT_S:g} s (connect timeout); start one "
+                                   f"(`dask scheduler`) or use local:N") from None
+        except Exception as exc:  # noqa: BLE001 - something answers, but not as a scheduler
+            raise UnreachableError(f"--dask {value}: what answers there is not a dask scheduler "
+                                   f"({type(exc).__name__} in the handshake)") from None
+        with client:
             yield client
         return
     threads = max(1, (os.cpu_count() or 1) // value)

@@ -23,9 +23,16 @@ class OutputError(AcqError):
     in use by another running session, not writable, or removed while a session writes into it."""
 
 
+class UnreachableError(AcqError):
+    """Raised when a service a command needs does not answer at its address (a Dask scheduler)
+    within a short connect timeout; the message names the option, the address and the timeout.
+    The CLI exits 3 for it, as for a missing device."""
+
+
 class SessionStateError(AcqError):
     """Raised when a command does not fit the session's state (pause when not running, start
     twice, resume when not paused, abort after the end)."""
 
 
-__all__ = ["AcqError", "RequestError", "RecordingError", "OutputError", "SessionStateError"]
+__all__ = ["AcqError", "RequestError", "RecordingError", "OutputError", "SessionStateError",
+           "UnreachableError"]

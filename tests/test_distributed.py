@@ -153,3 +153,45 @@ def test_a_dask_run_writes_what_the_in_process_run_writes(simulated_ptus, tmp_pa
     assert {k: v for k, v in s_here.items() if k not in ignore} == \
         {k: v for k, v in s_dask.items() if k not in ignore}
     assert s_dask["save_irf"] == str(there / "irf.csv") and s_dask["range_offset_m"] == 1.5
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_a_scheduler_address_with_nothing_listening_is_one_line_and_exit_3(simulated_ptus, capsys,
+                                                                           monkeypatch):
+    monkeypatch.setattr(D, "CONNECT_TIMEOUT_S", 1.0)
+    address = f"tcp://127.0.0.1:{_free_port()}"
+    assert main(["recon", simulated_ptus[1][0], "--dask", address]) == 3
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"spdepth recon: error: --dask {address}: no dask scheduler answers there "
+                   f"within 1 s (connect timeout); start one (`dask scheduler`) or use local:N"]
+
+
+def test_an_address_that_answers_but_is_no_scheduler_is_one_line_and_exit_3(simulated_ptus, capsys,
+                                                                            monkeypatch):
+    import socket
+    import threading
+
+    monkeypatch.setattr(D, "CONNECT_TIMEOUT_S", 2.0)
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen()
+
+    def answer_like_a_web_server():
+        with server:
+            conn, _ = server.accept()
+            with conn:
+                conn.sendall(b"HTTP/1.1 400 Bad Request\r\nContent-Length: 0\r\n\r\n" * 4)
+                conn.recv(1024)
+
+    threading.Thread(target=answer_like_a_web_server, daemon=True).start()
+    address = f"tcp://127.0.0.1:{server.getsockname()[1]}"
+    assert main(["recon", simulated_ptus[1][0], "--dask", address]) == 3
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"spdepth recon: error: --dask {address}: ")
