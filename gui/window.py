@@ -754,10 +754,10 @@ class MainWindow(QtWidgets.QMainWindow):
         self._maps_stale = False
         self._restore_settings()
         # Ctrl+Q / Ctrl+W close the window (a running scan is aborted, its recording kept)
-        for keys in (QtGui.QKeySequence.Quit, QtGui.QKeySequence.Close, "Ctrl+Q", "Ctrl+W"):
-            sc = QtGui.QShortcut(QtGui.QKeySequence(keys), self)
-            sc.setContext(QtCore.Qt.ApplicationShortcut)
-            sc.activated.connect(self.close)
+        self.close_shortcut = QtGui.QShortcut(self)
+        self.close_shortcut.setKeys(close_keys())
+        self.close_shortcut.setContext(QtCore.Qt.ApplicationShortcut)
+        self.close_shortcut.activated.connect(self.close)
 
     def panel(self, key: str) -> MapPanel:
         """The map panel showing ``acq.mapdefs`` key (depth, uncertainty, background or
@@ -1372,6 +1372,23 @@ class MainWindow(QtWidgets.QMainWindow):
         self.shutdown()
         self.view3d.release()
         super().closeEvent(event)
+
+
+def close_keys() -> list[QtGui.QKeySequence]:
+    """The platform's Quit and Close keys, plus Ctrl+Q and Ctrl+W where the platform has none
+    (offscreen), each once: one shortcut holding a sequence twice, or two shortcuts holding the
+    same one (``QKeySequence.Quit`` and a literal "Ctrl+Q" on X11), is ambiguous to Qt and fires
+    neither (DESIGN.md section 6)."""
+    keys: list[QtGui.QKeySequence] = []
+    for standard, fallback in ((QtGui.QKeySequence.StandardKey.Quit, "Ctrl+Q"),
+                               (QtGui.QKeySequence.StandardKey.Close, "Ctrl+W")):
+        keys += QtGui.QKeySequence.keyBindings(standard)
+        keys.append(QtGui.QKeySequence(fallback))
+    unique: list[QtGui.QKeySequence] = []
+    for k in keys:
+        if not k.isEmpty() and k not in unique:
+            unique.append(k)
+    return unique
 
 
 __all__ = ["MainWindow", "ControlPanel", "Inspector", "AccuracyPlot", "REFRESH_HZ"]
