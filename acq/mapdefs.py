@@ -130,7 +130,7 @@ MAP_DEFS: tuple[MapDef, ...] = (
     MapDef("depth", "Depth", "m", "turbo", "robust",
            lambda m: np.asarray(m.depth_m, dtype=np.float64),
            "range along the beam, c * time of flight / 2", per_surface=True),
-    MapDef("uncertainty", "Depth uncertainty (1 sigma)", "cm", "plasma", "zero",
+    MapDef("uncertainty", "Depth uncertainty (1σ)", "cm", "plasma", "zero",
            lambda m: np.asarray(m.uncertainty_s, dtype=np.float64) * (C_M_PER_S / 2) * 100.0,
            "standard deviation of the depth, from the Poisson likelihood", per_surface=True),
     MapDef("background", "Background", "detections in window", "magma", "zero",
@@ -202,6 +202,20 @@ def constant_value(data: np.ndarray) -> float | None:
     return lo if lo == hi else None
 
 
+def constant_caption(d: MapDef, data: np.ndarray) -> str | None:
+    """What a constant map says instead of a colour bar, true whatever the scan's state: "15 in
+    every pixel" when every pixel holds the value, "15 in 312 of 1,024 pixels" when the others
+    have none (not measured yet, left by a pause or an abort); None when the map is not constant.
+    The unit is left out where it is "per pixel" (the caption says where)."""
+    const = constant_value(data)
+    if const is None:
+        return None
+    v = np.asarray(data, dtype=np.float64)
+    n, total = int(np.count_nonzero(np.isfinite(v))), int(v.size)
+    value = f"{const:g}" if d.unit == "per pixel" else f"{const:g} {d.unit}"
+    return f"{value} in every pixel" if n == total else f"{value} in {n:,} of {total:,} pixels"
+
+
 def levels_for(d: MapDef, data: np.ndarray, target: int = 0) -> tuple[float, float] | None:
     """Colour levels of ``data`` by the map's rule; None when it has no finite pixel. Always
     ``lo < hi``."""
@@ -263,5 +277,5 @@ def surfaces_of(maps) -> np.ndarray | None:
 
 
 __all__ = ["MapDef", "MapInput", "MAP_DEFS", "MAPS_BY_KEY", "PANEL_DEFS", "resolve", "NAN_COLOUR", "FADE_RGBA", "ROBUST_PERCENTILES",
-           "constant_value", "display", "levels_for", "widen", "map_input_from_maps", "first_surface",
+           "constant_value", "constant_caption", "display", "levels_for", "widen", "map_input_from_maps", "first_surface",
            "surfaces_of", "DISCRETE_MAX", "whole_numbers"]

@@ -146,7 +146,8 @@ def _draw_panel(fig, ax, d, name: str, arr: np.ndarray, tgt: int, weak_px, exten
     import matplotlib
     import matplotlib.ticker
 
-    from spdepth.acq.mapdefs import DISCRETE_MAX, constant_value, display, levels_for, whole_numbers
+    from spdepth.acq.mapdefs import (DISCRETE_MAX, constant_caption, constant_value, display,
+                                     levels_for, whole_numbers)
 
     cmap = matplotlib.colormaps[d.cmap].with_extremes(bad=NAN_COLOUR)
     const = constant_value(arr)
@@ -179,7 +180,7 @@ def _draw_panel(fig, ax, d, name: str, arr: np.ndarray, tgt: int, weak_px, exten
         notes.append("no pixel has a value")      # and no colour bar to read
     elif const is not None:
         # one value everywhere: a colour bar would spread rounding noise over its length
-        notes.append(f"every pixel: {const:g} {d.unit}")
+        notes.append(constant_caption(d, arr))
     else:
         extend = {(False, False): "neither", (True, False): "min", (False, True): "max",
                   (True, True): "both"}[(bool(np.any(finite < vmin)),

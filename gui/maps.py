@@ -8,13 +8,15 @@ first rows never fix them); "Fit levels" and the end of a run refit them to what
 
 from __future__ import annotations
 
+import types
+
 import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtCore, QtWidgets
 
 from spdepth.acq.flags import AcqFlag
 from spdepth.acq.mapdefs import (DISCRETE_MAX, FADE_RGBA, MAP_DEFS, NAN_COLOUR, PANEL_DEFS, MapDef, MapInput,
-                                 constant_value, display, levels_for, whole_numbers, widen)
+                                 constant_caption, display, levels_for, whole_numbers, widen)
 from spdepth.recon.maps import C_M_PER_S
 
 VIEW_BACKGROUND = NAN_COLOUR
@@ -41,6 +43,19 @@ def snapshot_input(snap, n_bins: int, target: int) -> MapInput:
                     exposure_s=getattr(snap, "exposure_s", None))
 
 
+def _height_only_min(label) -> None:
+    """``LabelItem.updateMin`` without the width: the text's height is the label's minimum."""
+    h = label.itemRect().height()
+    w = label.itemRect().width()
+    label.setMinimumWidth(0)
+    label.setMinimumHeight(h)
+    label._sizeHint = {QtCore.Qt.SizeHint.MinimumSize: (0, h),
+                       QtCore.Qt.SizeHint.PreferredSize: (w, h),
+                       QtCore.Qt.SizeHint.MaximumSize: (-1, -1),
+                       QtCore.Qt.SizeHint.MinimumDescent: (0, 0)}
+    label.updateGeometry()
+
+
 class MapPanel:
     """One map in a GraphicsLayout cell: plot (title), image placed in scan degrees, colour bar
     with the unit, and a square marking the inspected pixel.
@@ -53,7 +68,11 @@ class MapPanel:
         """The place (one of ``PANEL_DEFS``); ``spec`` is what it shows now (``resolve``)."""
         self.spec = spec
         self.plot = layout.addPlot(row=row, col=col)
-        self.plot.setTitle(spec.title, size="10pt")
+        # pyqtgraph makes a title's width the plot's minimum width: a long caption in the left
+        # column made the layout wider than the window at the default size, and the right
+        # column's colour-bar ticks were cut off. Its height only, then.
+        self.plot.titleLabel.updateMin = types.MethodType(_height_only_min, self.plot.titleLabel)
+        self._title(spec.title)
         self.plot.setAspectLocked(True)
         self.plot.invertY(True)
         self.plot.hideButtons()
@@ -133,7 +152,10 @@ class MapPanel:
         self.image.clear()
         self.faded.clear()
         self.marker.setData([], [])
-        self.plot.setTitle(self.spec.title, size="10pt")
+        self._title(self.spec.title)
+
+    def _title(self, text: str) -> None:
+        self.plot.setTitle(text, size="10pt")
 
     def show(self, data: np.ndarray, target: int, version=None, *, refit: bool = False,
              surface: int = 0, weak: np.ndarray | None = None) -> None:
@@ -161,12 +183,11 @@ class MapPanel:
             # a map of a few counts (surfaces per pixel): a tick per count, not 0.5 steps
             few = whole_numbers(data) and lv[1] - lv[0] <= DISCRETE_MAX
             self.bar.axis.setTickSpacing(*((1, 1) if few else (None, None)))
-        const = constant_value(data)
-        if const != self._const:
+        caption = constant_caption(self.spec, data)
+        if caption != self._const:
             # one value everywhere: say it in the title (the bar's ends would be rounding noise)
-            self._const = const
-            self.plot.setTitle(self.spec.title + (f": {const:g} {self.spec.unit} in every pixel"
-                                                  if const is not None else ""), size="10pt")
+            self._const = caption
+            self._title(self.spec.title + (f": {caption}" if caption else ""))
         # the bar holds the levels (the user may drag them); streaming never auto-levels
         self.image.setImage(display(data, self.levels), autoLevels=False, levels=self.bar.levels())
         if faded is not None and faded.any():

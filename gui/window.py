@@ -82,6 +82,41 @@ def _fmt_eta(s: float | None) -> str:
     return f"{s // 60}:{s % 60:02d}" if s >= 60 else f"{s} s"
 
 
+def fmt_depth(depth_m: float, sd_m: float) -> str:
+    """A depth to the precision its uncertainty gives it: "2.851 m ± 1.4 cm" (the uncertainty to
+    two significant digits, the depth to the same decimal place); "–" without a depth."""
+    if not math.isfinite(depth_m):
+        return "–"
+    if not (math.isfinite(sd_m) and sd_m > 0):
+        return f"{depth_m:.4f} m"
+    sd_cm = sd_m * 100
+    cm_places = min(4, max(0, 1 - math.floor(math.log10(sd_cm))))
+    return f"{depth_m:.{cm_places + 2}f} m ± {sd_cm:.{cm_places}f} cm"
+
+
+def fmt_kcps(detections: float, exposure_s: float) -> str:
+    """A count over laser time as a rate in kcps, to a hundredth of a detection over that time
+    (2.08e-08 kcps is "0.00 kcps" over half a millisecond: the estimate is that fine, no finer)."""
+    step_kcps = 0.01 / exposure_s / 1e3
+    places = min(6, max(0, math.ceil(-math.log10(step_kcps))))
+    return f"{detections / exposure_s / 1e3:.{places}f} kcps"
+
+
+def readable_span(values: np.ndarray, floor: float) -> tuple[float, float] | None:
+    """A plot range about ``values`` when they span less than a tenth of their size (or
+    ``floor``), else None (leave the range to the plot)."""
+    v = np.asarray(values, dtype=np.float64)
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        return None
+    lo, hi = float(v.min()), float(v.max())
+    least = max(0.1 * max(abs(lo), abs(hi)), floor)
+    if hi - lo >= least:
+        return None
+    mid = 0.5 * (lo + hi)
+    return mid - least, mid + least
+
+
 def _pill(label: QtWidgets.QLabel, colour: str) -> None:
     if label.property("pill") == colour:
         return
@@ -505,12 +540,12 @@ class Inspector(QtWidgets.QWidget):
         # all surfaces' signal counts against the detections kept (the first alone would not add up)
         sig_all = sum(x[2] for x in info.surfaces) if info.surfaces else sig
         rows = [
-            ("depth", f"{depth:.4f} m ± {sd_cm:.2f} cm" if math.isfinite(depth) else "–"),
+            ("depth", fmt_depth(depth, sd_cm / 100)),
             ("time of flight", f"{tof * 1e9:.3f} ns" if math.isfinite(tof) else "–"),
             ("signal", f"{sig:.2f} detections (estimated)" if done else "–"),
-            ("background", f"{bg * n_bins:.2f} detections in window (estimated; {bg:.2e} per bin)"
+            ("background", f"{bg * n_bins:.2f} detections in the window (estimated)"
              if done and math.isfinite(bg) else "–"),
-            ("background rate", f"{bg * n_bins / info.exposure_s / 1e3:.3g} kcps over "
+            ("background rate", f"{fmt_kcps(bg * n_bins, info.exposure_s)} over "
              f"{info.exposure_s * 1e3:.3g} ms of laser time"
              if done and math.isfinite(bg) and info.exposure_s > 0 else "–"),
             ("model total", f"{sig_all + bg * n_bins:.2f} = signal + background, against "
@@ -520,8 +555,8 @@ class Inspector(QtWidgets.QWidget):
             ("acquisition", info.acquisition),
         ]
         for k, (_t, s_depth, s_sig, s_sd, s_weak) in enumerate(info.surfaces):
-            rows.insert(1 + k, (f"surface {k + 1}", f"{s_depth:.4f} m ± "
-                                f"{s_sd * C_M_PER_S / 2 * 100:.2f} cm, {s_sig:.2f} signal detections"
+            rows.insert(1 + k, (f"surface {k + 1}", f"{fmt_depth(s_depth, s_sd * C_M_PER_S / 2)}, "
+                                f"{s_sig:.2f} signal detections"
                                 + (" (weak: background could make it)" if s_weak else "")))
         if truth is not None:
             rows.insert(1, ("true depth (simulated)", f"{truth:.4f} m" + (
@@ -618,6 +653,15 @@ class AccuracyPlot(QtWidgets.QWidget):
         self.sigma.setData(x, a[:, 2])
         ok = np.isfinite(a[:, 3])
         self.error.setData(x[ok], a[ok, 3])
+        # one point, or a flat line: pyqtgraph would zoom into a span of rounding noise and
+        # label its axis "1.453297857435"; give each axis a span worth reading instead
+        y = a[:, 2:4][np.isfinite(a[:, 2:4])]
+        for axis, values, floor in (("x", x, 0.5), ("y", y, 0.05)):
+            span = readable_span(values, floor)
+            if span is None:
+                self.plot.enableAutoRange(axis=axis)
+            else:
+                (self.plot.setXRange if axis == "x" else self.plot.setYRange)(*span, padding=0)
 
 
 class MainWindow(QtWidgets.QMainWindow):
@@ -672,6 +716,7 @@ class MainWindow(QtWidgets.QMainWindow):
         # a long run folder must not widen the window: the label is clipped, the tooltip has it all
         self.run_label.setSizePolicy(QtWidgets.QSizePolicy.Ignored, QtWidgets.QSizePolicy.Preferred)
         self.run_label.setMinimumWidth(50)
+        self.run_label.setWordWrap(True)       # a file's summary goes on two lines, not cut
         self.maps_view = pg.GraphicsLayoutWidget()
         self.maps_view.setBackground("w")
         self.maps_view.ci.setSpacing(4)
@@ -996,11 +1041,13 @@ class MainWindow(QtWidgets.QMainWindow):
         self.eta_label.setText(f"read {res.read_s:.1f} s, recon {res.recon_s:.1f} s")
         self.lost_label.setText("")
         b = res.binning
-        pulse = (f"pulse {res.pulse_rms_s * 1e12:.0f} ps RMS "
-                 f"{res.maps.settings.get('pulse_source', '')}" if res.pulse_rms_s else "")
+        pulse = f", pulse {res.pulse_rms_s * 1e12:.0f} ps RMS" if res.pulse_rms_s else ""
         self.run_label.setText(f"{label} — {w}×{h}, {snap.detections:,} detections, "
                                f"window {b.window_start * b.time_unit_s * 1e9:.1f}–"
-                               f"{b.window_stop * b.time_unit_s * 1e9:.1f} ns, {pulse}")
+                               f"{b.window_stop * b.time_unit_s * 1e9:.1f} ns{pulse}")
+        # where the pulse came from is a sentence: in the tooltip, with the file's path
+        source = res.maps.settings.get("pulse_source", "")
+        self.run_label.setToolTip(job.request.input + (f"\npulse: {source}" if source else ""))
         for note in res.notes:
             self.statusBar().showMessage(note, 10000)
         self.inspect((h // 2, w // 2), pin=False)
@@ -1164,14 +1211,25 @@ class MainWindow(QtWidgets.QMainWindow):
         # only what changed: each setText/setStyleSheet re-lays out and repaints the status bar
         h = self.health.update(snap)
         _set_text(self.state_label, snap.state, STATE_COLOURS.get(snap.state, "#8a8a8a"))
-        _set_text(self.rate_label, f"{_fmt_rate(snap.detections_per_s)}det/s")
+        # a rate and an ETA only while detections come: the session's rate is over its running
+        # time, pauses included, so paused or ended it would be a rate nobody measured
+        live = snap.state in ("armed", "running", "finishing")
+        _set_text(self.rate_label, f"{_fmt_rate(snap.detections_per_s)}det/s" if live
+                  else f"{snap.detections:,} det")
         if self.progress.maximum() != snap.pixels_total:
             self.progress.setMaximum(snap.pixels_total)
         # progress counts pixels complete (an aborted scan's incomplete pixels are not "done")
         complete = int(np.count_nonzero(snap.acq_flags == AcqFlag.COMPLETE))
         if self.progress.value() != complete:
             self.progress.setValue(complete)
-        _set_text(self.eta_label, f"ETA {_fmt_eta(snap.eta_s)}")
+        if live:
+            eta = f"ETA {_fmt_eta(snap.eta_s)}"
+        elif snap.state == "paused":
+            eta = "ETA – (paused)"
+        else:
+            took = snap.running_s
+            eta = f"{snap.state} after " + (f"{took:.1f} s" if took < 10 else _fmt_eta(took))
+        _set_text(self.eta_label, eta)
         _set_text(self.lost_label, f"lost {snap.lost_records} rec / {snap.lost_spans} spans")
         _set_text(self.health_label, f"● {h.text}", h.colour)
         if self.health_label.toolTip() != (h.tooltip or h.text):

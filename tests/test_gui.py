@@ -5,6 +5,7 @@ during a scan; errors shown in the window; settings remembered; ``spdepth gui`` 
 from __future__ import annotations
 
 import json
+import math
 import os
 import subprocess
 import sys
@@ -120,8 +121,9 @@ def test_inspector_shows_histogram_and_fitted_model(qtbot, win, tmp_path):
     # the background as a rate over the laser time the pixel was observed
     t = win.session.exposure_s(8 * win.session.plan.shape[1] + 3)
     assert t > 0
-    if m.background[8, 3] > 0:
-        assert f"{m.background[8, 3] * 801 / t / 1e3:.3g} kcps" in text
+    # to a hundredth of a detection over that time (not 2.08e-08 kcps)
+    places = max(0, math.ceil(-math.log10(0.01 / t / 1e3)))
+    assert f"{m.background[8, 3] * 801 / t / 1e3:.{places}f} kcps" in text and "e-" not in text
     assert f"{t * 1e3:.3g} ms of laser time" in text
     # hovering does not move a pinned pixel
     depth = win.panel("depth")
