@@ -349,6 +349,12 @@ def recorded_recon_settings(path: str | Path) -> dict | None:
         raise RecordingError(f"{where} is damaged (not JSON)") from None
     if not isinstance(d, dict) or (d.get("binning") is not None and not isinstance(d["binning"], dict)):
         raise RecordingError(f"{where} is damaged (not a settings object)")
+    from spdepth.recon.model import ReconSettings
+
+    try:     # what is used from it (window, bins, pulse, response, detections kept) is checked
+        ReconSettings.from_dict(d)
+    except Exception as exc:  # noqa: BLE001 - any failure to parse means a damaged record
+        raise RecordingError(f"{where} is damaged ({exc})") from None
     return d
 
 

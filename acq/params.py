@@ -448,7 +448,7 @@ _DECLARED = (
           per_command={"simulate": dict(default=None, default_text="the scene's: 10, daylight 0.05")},
           help="signal-to-background ratio in the detection window"),
     Param("--seed", "seed", "int", group="simulated bench", sources=("sim",), default=0, low=0,
-          label="Seed", commands=("scan", "demo", "gui", "simulate"),
+          high=2**31 - 1, label="Seed", commands=("scan", "demo", "gui", "simulate"),
           help="random seed"),
     Param("--faults", "faults", "str", group="simulated bench", sources=("sim",), default="",
           metavar="SPEC", label="Faults", example="e.g. device-vanish@40%", remembered=False,

@@ -237,7 +237,7 @@ class ReplaySource:
         except (TypeError, ValueError) as exc:
             raise RecordingError(f"recording {p}: a header tag of the image or time base is "
                                  f"not a number ({exc})") from None
-        self._passes, self._lost, ended = self._read_event_log()
+        self._passes, self._lost, ended = self._read_event_log(shape)
         self.info = RecordingInfo(
             plan=plan, recon=recon, info=_json_tag(p, tags, INFO_TAG) or {},
             shape=shape, resolution_s=resolution_s, sync_period_s=sync_period_s,
@@ -262,33 +262,39 @@ class ReplaySource:
                                  "session's end): passes and lost spans after the cut are "
                                  "unknown")
 
-    def _read_event_log(self):
+    def _read_event_log(self, shape: tuple[int, int]):
         """(passes as [first record, geometry, record where the session stopped using its
         stream or None, lost spans the session had received by then or None], lost spans,
-        whether the log ends with the session's end: None without a log)."""
+        whether the log ends with the session's end: None without a log). Every field replay
+        uses is checked (``_LogLine``): a damaged one is a ``RecordingError`` naming the line."""
         passes: list[list] = []
         lost: list[dict] = []
         if not self.events_path.is_file():
             return passes, lost, None
         ended = False
-        with open(self.events_path, encoding="utf-8") as fh:
-            for n, line in enumerate(fh, 1):
-                if not line.endswith("\n"):
-                    ended = False
-                    break                 # the last line of a killed session may be cut
-                try:
-                    e = json.loads(line)
-                except json.JSONDecodeError:
-                    raise RecordingError(f"{self.events_path}, line {n}: not JSON") from None
-                kind = e.get("event")
-                if kind == "pass" and e.get("record") is not None:
-                    passes.append([int(e["record"]), PassGeometry(**e["geometry"]), None, None])
-                elif kind == "pass_end" and passes and passes[-1][2] is None:
-                    passes[-1][2] = int(e["record"])
-                    passes[-1][3] = e.get("lost_end")
-                elif kind == "lost":
-                    lost.append(e)
-                ended = kind == "state" and e.get("state") in _END_STATES
+        try:
+            fh = open(self.events_path, encoding="utf-8", errors="strict")
+            with fh:
+                lines = list(fh)
+        except (OSError, UnicodeDecodeError) as exc:
+            raise RecordingError(f"{self.events_path}: cannot be read as text "
+                                 f"({type(exc).__name__})") from None
+        for n, line in enumerate(lines, 1):
+            if not line.endswith("\n"):
+                ended = False
+                break                 # the last line of a killed session may be cut
+            e = _LogLine(self.events_path, n, line)
+            kind = e.kind
+            if kind == "pass" and e.get("record") is not None:
+                passes.append([e.whole("record"), e.geometry(shape), None, None])
+            elif kind == "pass_end" and passes and passes[-1][2] is None:
+                passes[-1][2] = e.whole("record")
+                passes[-1][3] = e.whole("lost_end", optional=True)
+            elif kind == "lost":
+                lost.append({"record": e.whole("record"), "sync": e.whole("sync"),
+                             "records_lost": e.whole("records_lost"),
+                             "restart": e.flag("restart")})
+            ended = kind == "state" and e.text("state") in _END_STATES
         return passes, lost, ended
 
     # ---- the Source interface (acq.sources) ------------------------------------------------------
@@ -472,6 +478,70 @@ def _map_markers(kind, marker, lut):
     for i in range(kind.size):
         if kind[i] == _MARKER:
             marker[i] = lut[marker[i] & 15]
+
+
+class _LogLine:
+    """One line of ``events.jsonl``, its fields checked as replay reads them: a damaged line is
+    one ``RecordingError`` naming the file, the line and the field, never a traceback."""
+
+    _MAX = 2 ** 63 - 1
+
+    def __init__(self, path: Path, n: int, line: str):
+        self.where = f"{path}, line {n}"
+        try:
+            e = json.loads(line)
+        except (json.JSONDecodeError, RecursionError):
+            raise RecordingError(f"{self.where}: not JSON") from None
+        if not isinstance(e, dict):
+            raise RecordingError(f"{self.where}: a JSON {type(e).__name__}, not an event object")
+        self.e = e
+        kind = e.get("event")
+        if not isinstance(kind, str):
+            raise RecordingError(f"{self.where}: field 'event' is {kind!r}, not an event name")
+        self.kind = kind
+
+    def get(self, key: str):
+        return self.e.get(key)
+
+    def _bad(self, key: str, what: str):
+        return RecordingError(f"{self.where}: {self.kind} field {key!r} is {self.e.get(key)!r}, "
+                              f"not {what}")
+
+    def whole(self, key: str, optional: bool = False) -> int | None:
+        v = self.e.get(key)
+        if v is None and optional:
+            return None
+        if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= self._MAX:
+            raise self._bad(key, "a whole number >= 0")
+        return v
+
+    def flag(self, key: str) -> bool:
+        v = self.e.get(key, False)
+        if not isinstance(v, bool):
+            raise self._bad(key, "true or false")
+        return v
+
+    def text(self, key: str) -> str | None:
+        v = self.e.get(key)
+        if v is not None and not isinstance(v, str):
+            raise self._bad(key, "a name")
+        return v
+
+    def geometry(self, shape: tuple[int, int]) -> PassGeometry:
+        g = self.e.get("geometry")
+        keys = ("row0", "col0", "ny", "nx", "width")
+        if not isinstance(g, dict) or any(isinstance(g.get(k), bool) or not isinstance(g.get(k), int)
+                                          for k in keys) or not isinstance(g.get("pattern", ""), str):
+            raise self._bad("geometry", "a pass geometry (row0, col0, ny, nx, width, pattern)")
+        try:
+            geom = PassGeometry(**{k: g[k] for k in keys}, pattern=g.get("pattern", "raster"))
+        except InputError as exc:
+            raise RecordingError(f"{self.where}: {exc}") from None
+        h, w = shape
+        if geom.width != w or geom.row0 + geom.ny > h:
+            raise RecordingError(f"{self.where}: pass geometry {geom.to_dict()} does not fit the "
+                                 f"recording's {w} x {h} image")
+        return geom
 
 
 def session_photons(path: str | Path):

@@ -243,15 +243,16 @@ class Remembered:
         of earlier versions (key "source"), whose values count for its own kind only."""
         import json
 
+        # a hand-edited or damaged file: QSettings gives a list for a value with commas
         try:
-            d = json.loads(raw) if raw else None
-        except ValueError:
+            d = json.loads(raw) if isinstance(raw, str) and raw else None
+        except (ValueError, RecursionError):
             d = None
         if not isinstance(d, dict):
             d = {}
             try:
-                old = json.loads(legacy) if legacy else None
-            except ValueError:
+                old = json.loads(legacy) if isinstance(legacy, str) and legacy else None
+            except (ValueError, RecursionError):
                 old = None
             if isinstance(old, dict) and old.get("kind") in SOURCES:
                 d = {"kind": old["kind"], "out_root": old.get("out_root", ""), old["kind"]: old}

@@ -823,11 +823,12 @@ class MainWindow(QtWidgets.QMainWindow):
         self.controls.set_remembered(self.remembered.per_kind)
         self.controls.set_spec(self.remembered.spec())
         self.show_notes(self.remembered.notes.get(self.remembered.kind, []))
+        # the window's own state, as Qt saved it: anything else (a hand-edited file) is ignored
         geom = self.settings.value("geometry")
-        if geom is not None:
+        if isinstance(geom, (QtCore.QByteArray, bytes)):
             self.restore_fitting_geometry(geom)
         state = self.settings.value("splitter")
-        if state is not None:
+        if isinstance(state, (QtCore.QByteArray, bytes)):
             self.splitter.restoreState(state)
 
     def show_notes(self, notes: list[str]) -> None:

@@ -178,7 +178,7 @@ def test_mat_cell_holding_matrix_or_text(tmp_path):
         read_photons(path, time_unit_s=1e-12)
     path = tmp_path / "text.mat"
     scipy.io.savemat(path, {"Ts": _cell([[np.array(["abc"])]])})
-    with pytest.raises(InputError, match="not numbers"):
+    with pytest.raises(InputError, match=r"cell \(1,1\) holds text, not detection times"):
         read_photons(path, time_unit_s=1e-12)
 
 

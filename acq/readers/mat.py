@@ -26,6 +26,12 @@ def _describe(value) -> str:
     return f"{shape} {dtype}"
 
 
+def _kind_words(a: np.ndarray) -> str:
+    """What a cell holds, in MATLAB's words."""
+    return {"V": "a struct", "U": "text", "S": "text", "c": "complex numbers", "b": "logicals",
+            "O": "a cell array"}.get(a.dtype.kind, f"{a.dtype} values")
+
+
 def _cell_variables(contents: dict) -> dict[str, np.ndarray]:
     return {name: value for name, value in contents.items()
             if not name.startswith("__") and isinstance(value, np.ndarray)
@@ -80,6 +86,9 @@ def cells_to_store(cells: np.ndarray, time_unit_s: float, *, source: str = "cell
         if cell.ndim > 2 or (cell.ndim == 2 and min(cell.shape) > 1):
             raise InputError(f"{source}: cell ({p // w + 1},{p % w + 1}) is a {_describe(cell)} matrix, "
                              f"not a vector of detection times")
+        if cell.size and cell.dtype.kind not in "uif":     # a struct, text, complex, logical, cell
+            raise InputError(f"{source}: cell ({p // w + 1},{p % w + 1}) holds {_kind_words(cell)}, "
+                             f"not detection times")
         counts[p] = cell.size
     offsets = np.zeros(flat.size + 1, dtype=np.int64)
     np.cumsum(counts, out=offsets[1:])
@@ -291,6 +300,26 @@ def read_cells_fast(path: Path, var: str | None, time_unit_s: float) -> tuple[st
     return name, PhotonStore(times, offsets, (h, w), time_unit_s)
 
 
+MAX_TIME_S = 1.0
+"""Latest detection time after the laser pulse a file may hold: TCSPC times lie within a laser
+period (a 150 km range is 1 ms). Later ones are not times after a pulse (absolute timestamps,
+or a wrong time unit), and would become a window of 1e300 bins or a depth of 1e300 m."""
+
+
+def _check_times(path: Path, name: str, store: PhotonStore) -> None:
+    """Refuse times more than MAX_TIME_S from the laser pulse, either side (a time before it
+    is an offset a calibration may leave; a second is none)."""
+    if not store.n_photons:
+        return
+    lo, hi = float(np.min(store.times)), float(np.max(store.times))
+    t = hi if abs(hi) >= abs(lo) else lo
+    if abs(t) * store.time_unit_s > MAX_TIME_S:
+        raise InputError(f"{path}: variable {name!r}: detection times reach {t:.4g} units "
+                         f"({t * store.time_unit_s:.3g} s at {store.time_unit_s * 1e12:g} ps each), "
+                         f"more than {MAX_TIME_S:g} s from the laser pulse: not TCSPC times, or "
+                         f"the wrong --time-unit-ps")
+
+
 def read_mat(path: str | Path, *, time_unit_s: float | None, var: str | None = None) -> ReadResult:
     """Read a first-photon-imaging .mat file.
 
@@ -305,6 +334,7 @@ def read_mat(path: str | Path, *, time_unit_s: float | None, var: str | None = N
     fast = read_cells_fast(path, var, time_unit_s)
     if fast is not None:
         name, store = fast
+        _check_times(path, name, store)
         return ReadResult(store=store, path=str(path), kind="mat", is_image=True,
                           meta={"mat_var": name, "time_unit_s": time_unit_s})
     name, cells = load_cells(path, var)
@@ -313,5 +343,6 @@ def read_mat(path: str | Path, *, time_unit_s: float | None, var: str | None = N
     store = cells_to_store(cells, time_unit_s, source=f"{path}: variable {name!r}")
     if store.n_photons == 0:
         raise InputError(f"{path}: variable {name!r} holds no detections")
+    _check_times(path, name, store)
     return ReadResult(store=store, path=str(path), kind="mat", is_image=True,
                       meta={"mat_var": name, "time_unit_s": time_unit_s})
