@@ -212,15 +212,32 @@ class ProgressBar:
     line. ``force`` draws it on any stream (tests); ``max_rate_hz`` caps the redraws.
     """
 
+    PREPARING_AFTER_S = 3.0
+    """With nothing done this long after the bar appeared, it says why (``PREPARING``)."""
+    PREPARING = ("preparing: reading the input; the first run after an install also compiles "
+                 "the numerical kernels (a minute or two)")
+
     def __init__(self, label: str = "", total: int | None = None, *, unit: str = "px",
                  stream: TextIO | None = None, max_rate_hz: float = 10.0,
                  force: bool = False) -> None:
+        import threading
+
         from tqdm import tqdm
 
         self._bar = tqdm(total=total, desc=label, unit=unit,
                          file=stream if stream is not None else sys.stderr,
                          disable=False if force else None, mininterval=1.0 / max_rate_hz,
                          dynamic_ncols=True)
+        # "0 px" for a minute while numba compiles looks like a hang: say what is going on
+        self._preparing = None
+        if not self._bar.disable:
+            self._preparing = threading.Timer(self.PREPARING_AFTER_S, self._say_preparing)
+            self._preparing.daemon = True
+            self._preparing.start()
+
+    def _say_preparing(self) -> None:
+        if self._bar.n == 0 and not self._bar.disable:
+            self._bar.set_postfix_str(self.PREPARING)
 
     @property
     def enabled(self) -> bool:
@@ -232,18 +249,32 @@ class ProgressBar:
             return
         if total != self._bar.total:
             self._bar.total = total
+        if done and self._bar.n == 0:
+            self._started()
         self._bar.update(done - self._bar.n)
+
+    def _started(self) -> None:
+        """Work has begun: the preparing note (if it came) goes."""
+        if self._preparing is not None:
+            self._preparing.cancel()
+            self._preparing = None
+            if self._bar.postfix and self.PREPARING in str(self._bar.postfix):
+                self._bar.set_postfix_str("", refresh=False)
 
     def update(self, n: int = 1, note: str | None = None) -> None:
         """``n`` more done; ``note`` (what is being worked on) shown after the counts."""
         if self._bar.disable:
             return
+        if n:
+            self._started()
         if note is not None:
             self._bar.set_postfix_str(note, refresh=False)
         self._bar.update(n)
 
     def close(self) -> None:
         """Draw the final state and end the bar's line (once the work is done or given up)."""
+        if self._preparing is not None:
+            self._preparing.cancel()
         self._bar.close()
 
     def __enter__(self) -> "ProgressBar":

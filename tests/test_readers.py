@@ -453,3 +453,19 @@ def test_pt3_point_measurement(tmp_path):
     assert res.notes[0].startswith("point.pt3 is truncated: its header promises 10 records, the "
                                    "file holds 5 whole records")
     assert_array_equal(res.store.pixel(0, 0), dtimes)
+
+
+def test_picoquant_histogram_files_are_named_as_such(tmp_path):
+    # a .phd shares the PT3 header with MeasurementMode 0; a .phu starts with PQHISTO
+    fields = [f for _, f in _PT3_HEAD]
+    at = struct.calcsize("<" + "".join(fields[:[n for n, _ in _PT3_HEAD].index("MeasurementMode")]))
+    data = bytearray(_pt3_bytes(np.zeros(4, np.uint32), 0.004))
+    data[at:at + 4] = struct.pack("<i", 0)
+    phd = tmp_path / "hist.phd"
+    phd.write_bytes(bytes(data))
+    with pytest.raises(InputError, match=r"hist\.phd: a PicoQuant histogram file \(\.phd/\.hhd"):
+        read_photons(phd)
+    phu = tmp_path / "hist.phu"
+    phu.write_bytes(b"PQHISTO\0" + b"\0" * 200)
+    with pytest.raises(InputError, match=r"hist\.phu: a PicoQuant histogram file \(\.phu\)"):
+        read_photons(phu)

@@ -127,3 +127,23 @@ def test_render_maps_png_fades_weak_surfaces_and_says_how_many(tmp_path, rng):
     # faded pixels are lighter: the second depth panel's left half, the second uncertainty panel's
     light = lambda img: int(np.sum(img[..., :3].min(axis=-1) > 0.6))  # noqa: E731
     assert light(faded) - light(plain) > 2000
+
+
+def test_a_progress_bar_that_waits_says_it_is_preparing(monkeypatch):
+    """'0 px' for a minute while numba compiles looked like a hang: the bar says why, and the
+    note goes once work is done."""
+    import io
+    import time
+
+    from spdepth.acq.report import ProgressBar
+
+    monkeypatch.setattr(ProgressBar, "PREPARING_AFTER_S", 0.05)
+    out = io.StringIO()
+    bar = ProgressBar("recon ml", 10, stream=out, force=True)
+    deadline = time.monotonic() + 5
+    while "preparing" not in out.getvalue() and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert "preparing: reading the input; the first run after an install also compiles" in out.getvalue()
+    bar(10, 10)
+    bar.close()
+    assert "preparing" not in out.getvalue().rsplit("\r", 1)[-1]

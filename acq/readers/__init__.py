@@ -47,6 +47,10 @@ def sniff_kind(path: str | Path) -> str:
         return "ht3"
     if head.startswith(_PT3_IDENT):
         return "pt3"
+    if head.startswith(b"PQHISTO"):
+        raise InputError(f"{path}: a PicoQuant histogram file (.phu): it holds summed histograms, "
+                         f"not the time-tagged detections per pixel that depth needs; record in "
+                         f"T3 mode (.ptu)")
     if head.startswith(b"\x89HDF"):
         raise InputError(f"{path}: an HDF5 file (MATLAB v7.3?); save the .mat with -v7 to read it here")
     raise InputError(f"{path}: not a .mat, PTU, HT3 or PT3 file (unrecognised first bytes "

@@ -439,8 +439,13 @@ def _unpack(path: Path, data: bytes, offset: int, fields: list[tuple[str, str]])
 
 
 def _legacy_records(path: Path, data: bytes, offset: int, head: dict) -> np.ndarray:
-    if head["MeasurementMode"] != 3:
-        kind = "T2" if head["MeasurementMode"] == 2 else f"MeasurementMode={head['MeasurementMode']}"
+    mode = head["MeasurementMode"]
+    if mode == 0:          # PicoHarp .phd, HydraHarp .hhd: the same header, then histograms
+        raise InputError(f"{path}: a PicoQuant histogram file (.phd/.hhd, MeasurementMode 0): it "
+                         f"holds summed histograms, not the time-tagged detections per pixel "
+                         f"that depth needs; record in T3 mode (.ptu, .ht3, .pt3)")
+    if mode != 3:
+        kind = "T2" if mode == 2 else f"MeasurementMode={mode}"
         raise InputError(f"{path}: a {kind} file, not T3: it has no TCSPC times after a laser sync, "
                          f"so there is no depth to reconstruct")
     if head["BitsPerRecord"] != 32:

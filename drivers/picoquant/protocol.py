@@ -233,11 +233,11 @@ def family(key: str) -> Family:
     if k in FAMILIES:
         return FAMILIES[k]
     if k in KNOWN_UNSUPPORTED:
-        raise SettingError(f"picoquant:{key}: the {KNOWN_UNSUPPORTED[k]} is not supported yet: "
-                           f"its library's calls are not checked against a vendor header "
+        # the caller names the option or address (``--tagger picoquant:hh500: ...``)
+        raise SettingError(f"the {KNOWN_UNSUPPORTED[k]} ({k}) is not supported yet: its "
+                           f"library's calls are not checked against a vendor header "
                            f"(supported: {', '.join(FAMILIES)})")
-    raise SettingError(f"picoquant:{key}: unknown PicoQuant device (supported: "
-                       f"{', '.join(FAMILIES)})")
+    raise SettingError(f"unknown PicoQuant device {key!r} (supported: {', '.join(FAMILIES)})")
 
 
 @dataclass(frozen=True)
