@@ -122,7 +122,7 @@ def remembered(settings=None):
 def run_window(what=None, *, start: bool = True, screenshot: str | Path | None = None,
                exit_after_scan: bool = False, out_dir="auto",
                window_size: tuple[int, int] | None = None, settings=None, controls=None,
-               view: str = "maps", notes: list[str] | None = None) -> int:
+               view: str = "maps", notes: list[str] | None = None, on_started=None) -> int:
     """Show the window with ``what`` in its controls (a ``gui.sources.SourceSpec``, or an
     ``acq.requests`` scan/replay/file request, which is run as given), started at once when
     ``start``, and run the Qt loop. ``controls``: a ``SourceSpec`` shown in the controls first
@@ -131,7 +131,8 @@ def run_window(what=None, *, start: bool = True, screenshot: str | Path | None =
     grabbed into that PNG when the scan ends; with ``exit_after_scan`` the loop ends then.
     ``window_size`` (width, height) overrides the remembered geometry. ``view``: "maps" or "3d",
     the tab shown. ``notes``: lines for the status bar (stored settings that no longer
-    validated). Returns 0 (scan done, or
+    validated). ``on_started(run)``: called with the window's ``gui.sources.Run`` once the
+    source started (the demo keeps its session and scene for its table). Returns 0 (scan done, or
     window closed), 1 (scan aborted or failed), 2 (the source could not be started and the window
     is not kept)."""
     from PySide6 import QtCore
@@ -175,6 +176,8 @@ def run_window(what=None, *, start: bool = True, screenshot: str | Path | None =
             win.deleteLater()
             app.processEvents()
             return 2
+        if on_started is not None and win.run is not None:
+            on_started(win.run)
     elif exit_after_scan:
         log.warning("--exit-after-scan without a source: the window stays until closed")
     app.exec()
@@ -194,8 +197,15 @@ def _close_on_signals(win, result: dict) -> None:
 
     def close(_signum, _frame) -> None:
         result["interrupted"] = True
-        print("spdepth gui: interrupted; closing the window (the recording is kept)",
-              file=sys.stderr)
+        # only a run with a folder keeps a recording (the demo's runs in memory)
+        run = win.run
+        if run is None:
+            kept = ""
+        elif run.out_dir is not None:
+            kept = f" (its recording is kept in {run.out_dir})"
+        else:
+            kept = " (the run was kept in memory only: no recording)"
+        print(f"spdepth gui: interrupted; closing the window{kept}", file=sys.stderr)
         QtCore.QTimer.singleShot(0, win.close)
 
     try:
@@ -209,13 +219,13 @@ def _close_on_signals(win, result: dict) -> None:
 
 
 def run_demo_window(request, out_dir=None, *, exit_after_scan: bool = False,
-                    screenshot: str | Path | None = None) -> int:
+                    screenshot: str | Path | None = None, on_started=None) -> int:
     """``spdepth demo`` with a display: the demo's scan (an ``acq.requests.ScanRequest``) started
     in the window as given. ``out_dir``: the caller's session folder (the caller holds its lock),
     None keeps the run in memory. Returns ``run_window``'s code."""
     application()
     return run_window(request, start=True, out_dir=out_dir, exit_after_scan=exit_after_scan,
-                      screenshot=screenshot, window_size=WINDOW_SIZE)
+                      screenshot=screenshot, window_size=WINDOW_SIZE, on_started=on_started)
 
 
 __all__ = ["application", "run_window", "run_demo_window", "display_available",

@@ -135,3 +135,61 @@ def test_at_the_default_size_every_colour_bar_keeps_its_ticks(qtbot, win, tmp_pa
     assert _bar_ticks_inside(win) == []
     assert win.eta_label.text().startswith("done after ")
     assert "e-" not in win.inspector.last_text and "e+" not in win.inspector.last_text
+
+
+def _demo_request():
+    from spdepth.acq.requests import ScanRequest, SimBench
+
+    return ScanRequest(instruments=SimBench(scene="steps", sbr=10.0, seed=1), size=(12, 16),
+                       target=4, method="uos")
+
+
+def test_the_demo_with_a_window_prints_its_accuracy_table(qtbot, tmp_path, capsys, monkeypatch):
+    import argparse
+
+    from spdepth.acq.commands import demo
+    from spdepth.gui import app
+
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "cfg"))
+    real = app.run_demo_window
+    monkeypatch.setattr(app, "run_demo_window",
+                        lambda *a, **kw: real(*a, exit_after_scan=True, **kw))
+    args = argparse.Namespace(record=None)
+    assert demo._window(args, _demo_request(), ["lmf", "ml"]) == 0
+    out = capsys.readouterr().out
+    assert "method    MAE (cm)" in out and "\noracle " in out
+    assert "\nlmf " in out and "\nml " in out
+
+
+def test_a_terminated_window_says_whether_its_run_kept_a_recording(qtbot, tmp_path, capsys,
+                                                                   monkeypatch):
+    import os
+    import signal
+
+    from spdepth.gui import app
+
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "cfg"))
+    before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    settings = QtCore.QSettings(str(tmp_path / "s.ini"), QtCore.QSettings.IniFormat)
+
+    def terminate_when_done(run):
+        def check():
+            if run.session.ended.is_set():
+                os.kill(os.getpid(), signal.SIGTERM)
+            else:
+                QtCore.QTimer.singleShot(100, check)
+        QtCore.QTimer.singleShot(100, check)
+
+    try:
+        for out_dir, said in ((None, "the run was kept in memory only: no recording"),
+                              (tmp_path / "kept", f"its recording is kept in {tmp_path / 'kept'}")):
+            if out_dir is not None:
+                out_dir.mkdir()
+            code = app.run_window(_demo_request(), out_dir=out_dir, settings=settings,
+                                  on_started=terminate_when_done)
+            assert code == 130
+            err = capsys.readouterr().err
+            assert f"spdepth gui: interrupted; closing the window ({said})" in err, err
+    finally:
+        signal.signal(signal.SIGINT, before[0])
+        signal.signal(signal.SIGTERM, before[1])

@@ -43,7 +43,7 @@ def run(args: argparse.Namespace) -> int:
         if display_available():
             problem = platform_problem()
             if problem is None:
-                return _window(args, request)
+                return _window(args, request, methods)
             print(f"spdepth demo: {problem}; writing the PNG sheet instead", file=sys.stderr)
     if args.out:
         with OutputDir(args.out, overwrite=args.overwrite) as out:
@@ -52,18 +52,29 @@ def run(args: argparse.Namespace) -> int:
         return _demo(args, request, methods, tmp, png)
 
 
-def _window(args, request) -> int:
-    """With a display: the same simulated scan in the live window (spdepth gui)."""
+def _window(args, request, methods) -> int:
+    """With a display: the same simulated scan in the live window (spdepth gui), then, once the
+    window is closed, the accuracy table of the headless demo for what it scanned."""
     from spdepth.gui.app import run_demo_window
 
     print("spdepth demo: opening the window (--no-window for the headless PNG sheet)",
           file=sys.stderr)
+    ran = {}
+
+    def started(run) -> None:
+        ran.update(session=run.session, scene=run.instruments.scene)
+
     if args.out:
         from spdepth.acq.api import OutputDir
 
         with OutputDir(args.out, overwrite=args.overwrite) as out:
-            return run_demo_window(request, out_dir=out.path)
-    return run_demo_window(request, out_dir=None)
+            code = run_demo_window(request, out_dir=out.path, on_started=started)
+    else:
+        code = run_demo_window(request, out_dir=None, on_started=started)
+    session = ran.get("session")
+    if session is not None and session.ended.is_set() and session.store.count.any():
+        _accuracy_table(session, ran["scene"], request, methods)
+    return code
 
 
 def _strongest_surface(maps):
@@ -80,18 +91,15 @@ def _strongest_surface(maps):
 
 
 def _demo(args, request, methods, out_dir, png) -> int:
-    import dataclasses
     import json
 
     import numpy as np
 
     from spdepth.acq.api import build_session, finish_session, open_instruments
     from spdepth.acq.commands._session import PreparingNotice, exit_status, run_session
-    from spdepth.acq.evaluate import evaluate_depth, signal_detections
     from spdepth.acq.params import DEFAULT_METHOD
     from spdepth.acq.report import render_maps_png
     from spdepth.recon import estimators
-    from spdepth.recon.estimate import reconstruct
 
     h, w = request.size
     scene_name = request.instruments.scene
@@ -102,7 +110,6 @@ def _demo(args, request, methods, out_dir, png) -> int:
         galvo_reconnects = inst.galvo.reconnects
         scan_s = inst.rig.now_s
     snap = session.snapshot()
-    store = session.store
     if session.error is not None:
         print(f"session {session.state.value}: {session.error}", file=sys.stderr)
     print(f"scanned {scene_name} {w}x{h} through the drivers: {snap.detections} detections in "
@@ -120,6 +127,45 @@ def _demo(args, request, methods, out_dir, png) -> int:
         print(f"{sum(reasons.values())} pixels flagged short of {request.target} detections "
               f"({reasons}); they keep what they have")
 
+    results, true_depth, oracle_cm, same = _accuracy_table(session, scene, request, methods)
+
+    sheet = argparse.Namespace(truth_m=true_depth)
+    panels = [("truth_m", "true depth", "m", "turbo", "percentile")]
+    for method, (maps, mae_cm, nearest) in results.items():
+        setattr(sheet, f"{method}_m", nearest)
+        panels.append((f"{method}_m", f"{method}: MAE {mae_cm:.1f} cm, depth", "m", "turbo", "percentile"))
+    # the background panel: the default estimator's, else the first that estimates background
+    best = results.get(DEFAULT_METHOD) or next(
+        (r for m, r in results.items() if estimators.get(m).background), next(iter(results.values())))
+    sheet.background = np.asarray(best[0].background)
+    panels.append(("background", "background", "detections per bin", "magma", "percentile"))
+    render_maps_png(png, sheet, panels=panels,
+                    title=f"{scene_name} {w}x{h}, {request.target} detections per pixel, "
+                          f"SBR {request.instruments.sbr:g}")
+    print(f"wrote {png}" + (f"; session files in {out_dir}" if args.out else ""))
+    if args.json:
+        summary = finish_session(session, None)
+        summary.update(out=str(out_dir) if args.out else None, png=str(png),
+                       oracle_mae_cm=oracle_cm, live_equals_batch=same,
+                       compare={m: {"mae_cm": r[1]} for m, r in results.items()})
+        print(json.dumps(summary))
+    return exit_status(session, interrupted)
+
+
+def _accuracy_table(session, scene, request, methods):
+    """Reconstruct the session's final photons with each of ``methods`` and print the table
+    against the truth and the per-pixel oracle (the headless demo, and the window's once it is
+    closed). Returns ({method: (maps, MAE cm, strongest-surface depth)}, the true depth, the
+    oracle's MAE in cm, whether the live maps equal the batch ones (None: not compared))."""
+    import dataclasses
+
+    import numpy as np
+
+    from spdepth.acq.evaluate import evaluate_depth, signal_detections
+    from spdepth.recon.estimate import reconstruct
+
+    h, w = request.size
+    store = session.store
     truth = scene.truth()
     true_depth = np.asarray(truth["depth_m"], dtype=np.float64)
     if true_depth.ndim == 3:
@@ -153,25 +199,4 @@ def _demo(args, request, methods, out_dir, png) -> int:
         same = np.array_equal(session.maps().tof_s, results[request.method][0].tof_s, equal_nan=True)
         print(f"live {request.method} maps {'equal' if same else 'DIFFER FROM'} the batch "
               f"reconstruction of the final store")
-
-    sheet = argparse.Namespace(truth_m=true_depth)
-    panels = [("truth_m", "true depth", "m", "turbo", "percentile")]
-    for method, (maps, mae_cm, nearest) in results.items():
-        setattr(sheet, f"{method}_m", nearest)
-        panels.append((f"{method}_m", f"{method}: MAE {mae_cm:.1f} cm, depth", "m", "turbo", "percentile"))
-    # the background panel: the default estimator's, else the first that estimates background
-    best = results.get(DEFAULT_METHOD) or next(
-        (r for m, r in results.items() if estimators.get(m).background), next(iter(results.values())))
-    sheet.background = np.asarray(best[0].background)
-    panels.append(("background", "background", "detections per bin", "magma", "percentile"))
-    render_maps_png(png, sheet, panels=panels,
-                    title=f"{scene_name} {w}x{h}, {request.target} detections per pixel, "
-                          f"SBR {request.instruments.sbr:g}")
-    print(f"wrote {png}" + (f"; session files in {out_dir}" if args.out else ""))
-    if args.json:
-        summary = finish_session(session, None)
-        summary.update(out=str(out_dir) if args.out else None, png=str(png),
-                       oracle_mae_cm=oracle_cm, live_equals_batch=same,
-                       compare={m: {"mae_cm": r[1]} for m, r in results.items()})
-        print(json.dumps(summary))
-    return exit_status(session, interrupted)
+    return results, true_depth, oracle_cm, same
