@@ -433,10 +433,13 @@ def reconstruct_file(request: FileReconRequest, progress=None) -> FileResult:
         lo, hi = binning.window_start, binning.window_stop
         inside = np.count_nonzero((store.times >= lo) & (store.times < hi))
         if inside == 0:
+            from spdepth.acq.report import ps_text, window_text
+
             unit_ps = store.time_unit_s * 1e12
             raise InputError(f"{request.input}: no detections in the window "
-                             f"{lo * unit_ps:g}:{hi * unit_ps:g} ps (the file's detections span "
-                             f"{store.times.min() * unit_ps:g} to {store.times.max() * unit_ps:g} ps)")
+                             f"{window_text(lo * unit_ps, hi * unit_ps)} (the file's detections "
+                             f"span {ps_text(store.times.min() * unit_ps)} to "
+                             f"{ps_text(store.times.max() * unit_ps)} ps)")
     read_s = time.perf_counter() - t0
     set_threads(request)
     t1 = time.perf_counter()
@@ -542,13 +545,13 @@ def _write_file_outputs(res: FileResult, read) -> None:
 
         save_irf(irf_used, req.save_irf)
     if req.png:
-        from spdepth.acq.report import render_maps_png, render_point_png
+        from spdepth.acq.report import render_maps_png, render_point_png, window_text
 
         b = res.binning
         unit_ps = b.time_unit_s * 1e12
         photons = int(np.sum(maps.photons))
         title = (f"{Path(req.input).name}: {req.method}, {photons} photons, "
-                 f"window {b.window_start * unit_ps:g}-{b.window_stop * unit_ps:g} ps")
+                 f"window {window_text(b.window_start * unit_ps, b.window_stop * unit_ps)}")
         t_irf, c_irf = irf_used.arrays()
         drawn = (t_irf, c_irf, f"{maps.settings['pulse_source']}: RMS {irf_used.rms_s * 1e12:.0f} ps")
         if res.is_image:

@@ -17,6 +17,25 @@ from spdepth.recon.maps import C_M_PER_S
 
 from spdepth.acq.mapdefs import FADE_RGBA, NAN_COLOUR  # noqa: E402 - the one grey of unmeasured pixels
 
+def ps_text(v: float) -> str:
+    """A time in ps as a person reads (and ``--window-ps`` takes) it: no exponent, at most three
+    decimals, no trailing zeros ("5180000", "16000.5"; ``:g`` gave "5.18e+06")."""
+    text = f"{float(v):.3f}".rstrip("0").rstrip(".")
+    return "0" if text in ("-0", "") else text
+
+
+def window_text(start_ps: float, stop_ps: float) -> str:
+    """A window of times in ps, "START:STOP ps" as ``--window-ps`` takes it."""
+    return f"{ps_text(start_ps)}:{ps_text(stop_ps)} ps"
+
+
+def plural(n: int, word: str, many: str | None = None) -> str:
+    """ "1 pass", "2 passes" (``many``: the plural when it is not ``word`` + "es"/"s")."""
+    if n == 1:
+        return f"{n} {word}"
+    return f"{n} {many or (word + 'es' if word.endswith(('s', 'sh', 'ch', 'x')) else word + 's')}"
+
+
 def robust_limits(values: np.ndarray, lower_pct: float = 2.0, upper_pct: float = 98.0) -> tuple[float, float]:
     """Colour limits from percentiles of the finite values, so a few outliers (a stray detection
     placing one pixel kilometres away) do not wash out the map. Returns ``(vmin, vmax)`` with

@@ -92,10 +92,12 @@ def report(summary: dict, as_json: bool, label: str) -> None:
     if as_json:
         print(json.dumps(summary))
         return
+    from spdepth.acq.report import plural
+
     print(f"{label}: {summary['state']}, {summary['pixels'] - summary['flagged']}/"
           f"{summary['pixels']} pixels complete, {summary['detections']} detections "
-          f"({summary['detections_per_s'] / 1e6:.2f} M/s), {summary['passes']} passes, "
-          f"{summary['lost_spans']} lost spans; files in {summary['out']}")
+          f"({summary['detections_per_s'] / 1e6:.2f} M/s), {plural(summary['passes'], 'pass')}, "
+          f"{plural(summary['lost_spans'], 'lost span')}; files in {summary['out']}")
     if summary["flagged"]:
         print(f"  flagged pixels: {summary['flag_reasons']} (maps.npz acq_flags shows which)")
     for w in summary.get("warnings", ()):

@@ -64,10 +64,11 @@ def run(args: argparse.Namespace) -> int:
 def _print_result(result) -> None:
     import numpy as np
 
+    from spdepth.acq.report import window_text
+
     s, maps = result.summary, result.maps
-    w0, w1 = s["window_ps"]
     print(f"{s['input']}: {s['shape'][0]} x {s['shape'][1]} pixels, {s['photons']} photons used "
-          f"(of {s['photons_in_file']}), window {w0:g}:{w1:g} ps; read {s['read_s']:.2f} s, "
+          f"(of {s['photons_in_file']}), window {window_text(*s['window_ps'])}; read {s['read_s']:.2f} s, "
           f"{s['method']} {s['recon_s']:.2f} s")
     depth = np.asarray(maps.depth_m, dtype=float)
     surfaces = depth if depth.ndim == 3 else depth[None]

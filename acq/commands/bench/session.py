@@ -107,8 +107,10 @@ def bench(argv: list[str]) -> int:
     h, w = a.size
     print(f"spdepth bench session: bust {w}x{h}, target {a.target}, live {a.method}, gated, "
           f"simulated devices through the real drivers", flush=True)
+    from spdepth.acq.report import plural
+
     res = scan_and_replay((h, w), a.target, a.method, a.seed, replay=not a.memory)
-    print(f"scan    {res['state']}: {res['detections']:,} detections, {res['passes']} passes, "
+    print(f"scan    {res['state']}: {res['detections']:,} detections, {plural(res['passes'], 'pass')}, "
           f"wall {res['scan_wall_s']:.2f} s, {res['scan_det_per_s'] / 1e6:.3f} M detections/s "
           f"while running")
     samples = res["lag_samples"]
