@@ -149,6 +149,7 @@ def _mat_variants(tmp, rng):
         yield name, p
 
 
+@pytest.mark.slow
 def test_fuzz_mat_files(tmp_path, rng, capsys, caplog):
     tally = Tally(".mat")
     for name, path in _mat_variants(tmp_path, rng):
@@ -200,6 +201,7 @@ def _json_variants(doc: dict, rng):
                 yield f"{key}.{sub} = {bad!r}", json.dumps({**doc, key: {**value, sub: bad}})
 
 
+@pytest.mark.slow
 def test_fuzz_run_json(session_dir, tmp_path, rng, capsys, caplog):
     tally = Tally("run.json")
     text = (session_dir / "run.json").read_text()
@@ -244,6 +246,7 @@ def _event_variants(lines: list[str], rng):
                                    + lines[i + 1:]))
 
 
+@pytest.mark.slow
 def test_fuzz_events_jsonl(session_dir, tmp_path, rng, capsys, caplog):
     tally = Tally("events.jsonl")
     lines = (session_dir / "events.jsonl").read_text().splitlines(keepends=True)
@@ -267,6 +270,7 @@ def test_fuzz_events_jsonl(session_dir, tmp_path, rng, capsys, caplog):
 
 # ---------------------------------------------------------------- the window's settings file
 
+@pytest.mark.slow
 def test_fuzz_window_settings(tmp_path, rng, qtbot, caplog):
     pytest.importorskip("pytestqt")
     from PySide6 import QtCore

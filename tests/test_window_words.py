@@ -51,29 +51,12 @@ def test_a_constant_map_says_where_it_holds_its_value():
 
 
 @pytest.fixture
-def win(qtbot, tmp_path):
+def win(win):
+    """conftest's window at the default size of ``spdepth gui``."""
     from spdepth.gui.app import WINDOW_SIZE
 
-    w = MainWindow(settings=QtCore.QSettings(str(tmp_path / "s.ini"), QtCore.QSettings.IniFormat))
-    w.controls.out_root.setText(str(tmp_path / "runs"))
-    qtbot.addWidget(w)
-    w.resize(*WINDOW_SIZE)
-    w.show()
-    yield w
-    w.shutdown(timeout_s=10)
-
-
-@pytest.fixture
-def paced_sim(monkeypatch):
-    """The simulated galvo dwells in real time, so a pause and an abort land mid-scan."""
-    from spdepth.acq import instruments
-
-    open_sim = instruments.open_sim
-
-    def paced(*args, galvo_options=None, **kw):
-        return open_sim(*args, galvo_options={"pace": 1.0, **(galvo_options or {})}, **kw)
-
-    monkeypatch.setattr(instruments, "open_sim", paced)
+    win.resize(*WINDOW_SIZE)
+    return win
 
 
 def _spec(tmp_path, **kw):
@@ -97,7 +80,7 @@ def _bar_ticks_inside(win) -> list[str]:
     return out
 
 
-def test_paused_and_aborted_captions_are_true(qtbot, win, tmp_path, paced_sim):
+def test_paused_and_aborted_captions_are_true(qtbot, win, tmp_path, real_time_sim):
     assert win.start_run(_spec(tmp_path))
     qtbot.waitUntil(lambda: win.snap is not None and win.snap.pixels_final > 20, timeout=60_000)
     win.pause()

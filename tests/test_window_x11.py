@@ -39,6 +39,7 @@ def test_each_window_shortcut_is_registered_once(qtbot, tmp_path):
     assert len(seen) == len(set(seen)), seen
 
 
+@pytest.mark.slow
 def test_the_window_keys_on_a_real_x_server(tmp_path):
     if ON_X11:
         pytest.skip("this is the X server run itself")
@@ -59,23 +60,10 @@ def test_the_window_keys_on_a_real_x_server(tmp_path):
     assert "2 passed" in p.stdout, p.stdout[-2000:]
 
 
-@pytest.fixture
-def paced_sim(monkeypatch):
-    """The simulated galvo dwells in real time, so the scan is still running when a key comes."""
-    from spdepth.acq import instruments
-
-    open_sim = instruments.open_sim
-
-    def paced(*args, galvo_options=None, **kw):
-        return open_sim(*args, galvo_options={"pace": 1.0, **(galvo_options or {})}, **kw)
-
-    monkeypatch.setattr(instruments, "open_sim", paced)
-
-
 @x11_only
 @pytest.mark.parametrize("key", [QtCore.Qt.Key_Q, QtCore.Qt.Key_W], ids=["ctrl_q", "ctrl_w"])
 def test_x11_ctrl_key_closes_the_window_aborts_its_scan_and_keeps_its_files(qtbot, tmp_path,
-                                                                           paced_sim, key):
+                                                                           real_time_sim, key):
     from spdepth.gui.sources import SourceSpec
     from spdepth.gui.window import MainWindow
 
