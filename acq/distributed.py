@@ -109,18 +109,28 @@ def connect(spec: str):
 # one task per file
 
 
-def recon_file(request) -> dict:
+def recon_file(request, keep_going: bool = False) -> dict:
     """One file on a worker (or in this process): the library call ``spdepth recon FILE`` makes;
-    returns its JSON summary (the notes travel in it; progress bars stay on the worker)."""
+    returns its JSON summary (the notes travel in it; progress bars stay on the worker). With
+    ``keep_going`` a file that cannot be read or reconstructed (an error spdepth raises on
+    purpose: ``AcqError``, ``InputError``, ``DriverError``) gives ``{"input", "error"}`` instead,
+    so a batch goes on past it; anything else (a bug) still raises."""
     from spdepth.acq.api import reconstruct_file
+    from spdepth.acq.errors import AcqError
+    from spdepth.drivers.errors import DriverError
 
-    return reconstruct_file(request).summary
+    try:
+        return reconstruct_file(request).summary
+    except (AcqError, InputError, DriverError) as exc:
+        if not keep_going:
+            raise
+        return {"input": str(request.input), "error": str(exc)}
 
 
-def _per_file(requests: list, client) -> list[dict]:
+def _per_file(requests: list, client, keep_going: bool = False) -> list[dict]:
     if client is None:
-        return [recon_file(r) for r in requests]
-    return client.gather(client.map(recon_file, requests, pure=False))
+        return [recon_file(r, keep_going) for r in requests]
+    return client.gather(client.map(recon_file, requests, [keep_going] * len(requests), pure=False))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -318,13 +328,15 @@ def _by_blocks(request, client) -> dict | None:
     return {**res.summary, "chunks": len(plan.starts), "blocks": len(plan.rows) - 1}
 
 
-def reconstruct_files(requests: list, dask: str | None = None) -> list[dict]:
+def reconstruct_files(requests: list, dask: str | None = None,
+                      keep_going: bool = False) -> list[dict]:
     """Summaries of ``requests`` (``FileReconRequest``), in order: on a dask cluster (``dask`` an
     address or ``local:N``; one recording with a fully given model is split into blocks of rows),
-    or one after the other in this process when ``dask`` is None."""
+    or one after the other in this process when ``dask`` is None. ``keep_going``: a file that
+    fails gives ``{"input", "error"}`` in its place (``recon_file``) and the others go on."""
     with (connect(dask) if dask else contextlib.nullcontext()) as client:
         if client is not None and len(requests) == 1:
             summary = _by_blocks(requests[0], client)
             if summary is not None:
                 return [summary]
-        return _per_file(requests, client)
+        return _per_file(requests, client, keep_going)

@@ -130,3 +130,19 @@ def test_recon_subprocess(face_crop, tmp_path):
     bad = subprocess.run(["spdepth", "recon", str(tmp_path / "missing.mat")],
                          capture_output=True, text=True, timeout=300)
     assert bad.returncode == 2 and "missing.mat: no such file" in bad.stderr
+
+
+def test_a_batch_goes_on_past_a_file_it_cannot_read(small_ptu, tmp_path, capsys):
+    import shutil
+
+    a, b, bad = tmp_path / "a.ptu", tmp_path / "b.ptu", tmp_path / "bad.ptu"
+    shutil.copy(small_ptu, a)
+    shutil.copy(small_ptu, b)
+    bad.write_text("not a measurement\n")
+    out = tmp_path / "maps"
+    assert main(["recon", str(a), str(bad), str(b), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[0].startswith(f"spdepth recon: error: {bad}: not a .mat, PTU, HT3 or PT3 file")
+    assert err[-1] == "spdepth recon: 2 of 3 inputs reconstructed; 1 could not be: bad.ptu"
+    assert len(err) == 2
+    assert sorted(p.name for p in out.iterdir()) == ["a.npz", "b.npz"]    # both good ones written

@@ -106,6 +106,7 @@ def _run_many(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from spdepth.acq import distributed
+    from spdepth.acq.commands import EXIT_USAGE
     from spdepth.acq.errors import RequestError
 
     several = len(args.file) > 1
@@ -124,9 +125,16 @@ def _run_many(args: argparse.Namespace) -> int:
         png = str(Path(args.png) / f"{stem}.png") if several and args.png else args.png
         requests.append(request_from_args(args, path, out, png))
     t0 = time.perf_counter()
-    summaries = distributed.reconstruct_files(requests, args.dask)
+    # a batch goes on past a file it cannot read: one line each, a count and exit 2 at the end
+    summaries = distributed.reconstruct_files(requests, args.dask, keep_going=several)
     wall = time.perf_counter() - t0
+    failed = [s for s in summaries if "error" in s]
     for s in summaries:
+        if "error" in s:
+            print(f"spdepth recon: error: {s['error']}", file=sys.stderr)
+            if args.json:
+                print(json.dumps(s))
+            continue
         for note in s.get("notes", ()):
             print(f"spdepth recon: {note}", file=sys.stderr)
         if args.json:
@@ -136,7 +144,12 @@ def _run_many(args: argparse.Namespace) -> int:
             print(f"{s['input']}: {s['shape'][0]} x {s['shape'][1]} pixels, {s['photons']} photons, "
                   f"{s['pixels_with_estimate']} estimated, {s['method']} {s['recon_s']:.2f} s"
                   + (f"; {where}" if where else ""))
+    where = f" on dask {args.dask}" if args.dask else " in this process"
+    if failed:
+        print(f"spdepth recon: {len(summaries) - len(failed)} of {len(summaries)} inputs "
+              f"reconstructed; {len(failed)} could not be: "
+              f"{', '.join(Path(s['input']).name for s in failed)}", file=sys.stderr)
     if not args.json:
-        print(f"{len(summaries)} input(s) in {wall:.2f} s"
-              + (f" on dask {args.dask}" if args.dask else " in this process"))
-    return 0
+        print(f"{len(summaries) - len(failed)} of {len(summaries)} input(s) in {wall:.2f} s{where}"
+              if failed else f"{len(summaries)} input(s) in {wall:.2f} s{where}")
+    return EXIT_USAGE if failed else 0
