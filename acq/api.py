@@ -51,13 +51,18 @@ class OutputDir:
         if self.path.exists() and not self.path.is_dir():
             raise OutputError(f"{name} {self.path} exists and is not a folder")
         self._created = not self.path.exists()
+        from spdepth.acq.outputs import check_output_folder, probe_folder
+
+        check_output_folder(name, self.path)      # before a folder is made: nothing left behind
         try:
             self.path.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
             raise OutputError(f"{name} {self.path}: cannot create the folder ({exc.strerror})") from None
-        if not os.access(self.path, os.W_OK):
-            raise OutputError(f"{name} {self.path}: cannot be written (permission denied)")
-        self._fh = open(self.path / LOCK_NAME, "a+", encoding="utf-8")
+        probe_folder(name, self.path)
+        try:
+            self._fh = open(self.path / LOCK_NAME, "a+", encoding="utf-8")
+        except OSError as exc:
+            raise OutputError(f"{name} {self.path}: cannot be written ({exc.strerror})") from None
         try:
             fcntl.flock(self._fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:

@@ -162,8 +162,12 @@ def run_window(what=None, *, start: bool = True, screenshot: str | Path | None =
         result["code"] = 0 if state == "done" else 1
         if screenshot is not None:
             app.processEvents()          # one more paint after the end-of-scan level fit
-            win.screenshot(screenshot)
-            print(f"spdepth gui: screenshot {screenshot}", file=sys.stderr)
+            try:
+                win.screenshot(screenshot)
+                print(f"spdepth gui: screenshot {screenshot}", file=sys.stderr)
+            except OSError as exc:       # an exception here would leave the window open for good
+                print(f"spdepth gui: error: {exc}", file=sys.stderr)
+                result["code"] = 2
         if exit_after_scan:
             QtCore.QTimer.singleShot(0, win.close)
 
