@@ -137,7 +137,7 @@ def test_the_demo_with_a_window_prints_its_accuracy_table(qtbot, tmp_path, capsy
     real = app.run_demo_window
     monkeypatch.setattr(app, "run_demo_window",
                         lambda *a, **kw: real(*a, exit_after_scan=True, **kw))
-    args = argparse.Namespace(record=None)
+    args = argparse.Namespace(out=None, overwrite=False)
     assert demo._window(args, _demo_request(), ["lmf", "ml"]) == 0
     out = capsys.readouterr().out
     assert "method    MAE (cm)" in out and "\noracle " in out
