@@ -91,4 +91,23 @@ def check_output_folder(option: str, path: str | Path | None) -> None:
     probe_folder(option, existing, shown=path)
 
 
-__all__ = ["check_output_file", "check_output_folder", "probe_folder"]
+def refuse_existing(outputs, *, overwrite: bool, inputs: tuple = ()) -> None:
+    """The overwrite rule of every command that writes files: each ``(option, path)`` of
+    ``outputs`` that exists is refused unless ``overwrite`` (one line naming the first and how
+    many more), and one that is an input is refused even then."""
+    existing = []
+    for option, path in outputs:
+        if path is None:
+            continue
+        check_output_file(option, path, overwrite=True, inputs=inputs)
+        if Path(path).exists():
+            existing.append((option, path))
+    if existing and not overwrite:
+        (option, path), more = existing[0], [str(p) for _, p in existing[1:]]
+        also = "" if not more else (f", and so does {more[0]}" if len(more) == 1 else
+                                    f", and so do {more[0]} and {len(more) - 1} more")
+        raise OutputError(f"{option} {path} exists{also} (pass --overwrite to replace "
+                          f"{'them' if more else 'it'})")
+
+
+__all__ = ["check_output_file", "check_output_folder", "probe_folder", "refuse_existing"]

@@ -632,7 +632,18 @@ _DECLARED = (
               "bench report": dict(required=True,
                                    help="the report's folder: report.md, results.csv, PNGs")},
           help="the folder the command writes its files into"),
-    Param("--overwrite", "", "flag", group="output", commands=("scan", "replay", "demo", "gui"),
+    Param("--overwrite", "", "flag", group="output",
+          summary="replace outputs that exist (without it an existing output is refused before "
+                  "any work)",
+          commands=("scan", "replay", "demo", "gui", "recon", "simulate"),
+          per_command={
+              "recon": dict(help="replace output files that exist (--npz, --png, --ply, --las, "
+                                 "--save-irf); without it an existing one is refused before any "
+                                 "work"),
+              "simulate": dict(help="replace --ptu and its .truth.npz if they exist"),
+              "demo": dict(help="write into --out even if it is not empty, and replace --png"),
+              "gui": dict(help="write into --out even if it is not empty, and replace "
+                               "--screenshot")},
           help="write into --out even if it is not empty (never into one a running session holds)"),
     Param("--runs-dir", "", "path", group="output", commands=("gui",), metavar="DIR",
           label="Runs folder", default_text="the window's setting, ~/spdepth-runs",
@@ -682,6 +693,58 @@ PARAMS: dict[str, Param] = {p.option: p for p in _DECLARED}
 """Every declared option by its name."""
 if len(PARAMS) != len(_DECLARED):
     raise ImportError("acq.params: an option is declared twice")
+
+# ---- the benchmarks' options (``spdepth bench TARGET``): declared here like the others (help, default,
+# range), kept apart from PARAMS: a benchmark's --sbr or --size is its own workload's, not a scan's
+_BENCH_SIDE = dict(kind="int", low=4, high=MAX_PIXELS_PER_AXIS, metavar="N")
+BENCH_PARAMS: dict[str, tuple[Param, ...]] = {
+    "spatial": (
+        Param("--side", "", help="the frame's side in pixels (a side x side frame)",
+              group="workload", default=256, **_BENCH_SIDE),
+        Param("--detections", "", "str", group="workload", default="2,5,10,15,30,60",
+              metavar="N,N,...", help="in-window detections per pixel, comma-separated; one row "
+                                      "per value and method"),
+        Param("--sbr", "", "float", group="workload", default=10.0, low=0, low_open=True,
+              help="signal-to-background ratio of the simulated frame"),
+        Param("--methods", "", "str", group="workload", default="spatial,ml", metavar="M,M,...",
+              help="estimators to time, comma-separated"),
+        Param("--repeats", "", "int", group="timing", default=3, low=1, high=1000, metavar="N",
+              help="timed runs per row after an untimed one that compiles; the best is kept"),
+    ),
+    "gui": (
+        Param("--size", "", "size", group="workload", default=(48, 48), metavar="WxH",
+              help="the simulated scan's size"),
+        Param("--target", "", "int", group="workload", default=10, low=1,
+              metavar="N", help="in-window detections per pixel of the scan"),
+        Param("--scene", "", "str", group="workload", default="bust", choices=scene_names,
+              help="the simulated scene: {scenes}"),
+        Param("--repeats", "", "int", group="timing", default=3, low=1, high=100, metavar="N",
+              help="headless and windowed runs, alternated; each figure is the best of N"),
+        Param("--no-replay", "", "flag", group="workload",
+              help="skip the replay comparison (the same scan's recording replayed with and "
+                   "without the window)"),
+        Param("--view", "", "str", group="workload", choices=VIEWS, default="maps",
+              help="the window's tab during the runs (3d needs OpenGL: xvfb-run)"),
+    ),
+}
+"""The options of the benchmarks that declare theirs here (``add_bench_options``)."""
+
+
+def add_bench_options(parser: argparse.ArgumentParser, target: str) -> None:
+    """``spdepth bench TARGET``'s declared options, each with its help, default and checked
+    range (a --side of -3 is one line at parsing, not a NumPy traceback)."""
+    groups: dict[str, Any] = {}
+    for p in BENCH_PARAMS[target]:
+        group = groups.get(p.group) or groups.setdefault(p.group, parser.add_argument_group(p.group))
+        text = p.help.replace("{scenes}", ", ".join(p.choice_list()) if p.choices else "")
+        words = p.default_words()
+        text = (text + (f" (default {words})" if words and p.kind != "flag" else "")).replace("%", "%%")
+        if p.kind == "flag":
+            group.add_argument(p.option, dest=p.dest, action="store_true", help=text)
+        else:
+            group.add_argument(p.option, dest=p.dest, type=p.parse, default=p.default,
+                               metavar=p.metavar or _metavar(p), help=text)
+
 
 RENAMED = {
     "demo": {"--record": "--record is now --out DIR (the run folder, as in spdepth scan); the PNG "

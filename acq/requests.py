@@ -59,17 +59,12 @@ def check_bin_fits(bin_s: float | None, window_s: tuple[float, float] | None, *,
 
 def check_writable(name: str, path: str | None) -> None:
     """An output file whose folder does not exist or cannot be written is refused before any work
-    (not after the whole computation)."""
-    if path is None:
-        return
-    p = Path(path)
-    parent = p.parent if str(p.parent) else Path(".")
-    if p.is_dir():
-        raise RequestError(f"{name} {path}: is a folder; give a file name")
-    if not parent.is_dir():
-        raise RequestError(f"{name} {path}: folder {parent} does not exist")
-    if not os.access(parent, os.W_OK) or (p.exists() and not os.access(p, os.W_OK)):
-        raise RequestError(f"{name} {path}: cannot be written (permission denied)")
+    (not after the whole computation); tried, not inferred from permission bits
+    (``acq.outputs``). Whether an existing one may be replaced is the command's rule
+    (``--overwrite``)."""
+    from spdepth.acq.outputs import check_output_file
+
+    check_output_file(name, path, overwrite=True)
 
 
 # ---- device strings (one style for scan and gui; parsed here only) ----------------------------------

@@ -25,7 +25,7 @@ def run(args: argparse.Namespace) -> int:
     from spdepth.acq.commands.scan import request_from_args
     from spdepth.acq.errors import RequestError
     from spdepth.acq.params import method_names, pixelwise_methods
-    from spdepth.acq.requests import check_writable
+    from spdepth.acq.outputs import check_output_folder, refuse_existing
 
     request = request_from_args(args, "demo")
     methods = [m.strip() for m in (args.compare or ",".join(pixelwise_methods())).split(",") if m.strip()]
@@ -34,7 +34,8 @@ def run(args: argparse.Namespace) -> int:
         raise RequestError(f"--compare: unknown {', '.join(unknown) or '(none given)'}; "
                            f"choose from {', '.join(method_names())}")
     png = args.png or "spdepth-demo.png"
-    check_writable("--png", png)
+    refuse_existing([("--png", png)], overwrite=args.overwrite)
+    check_output_folder("--out", args.out)
     if args.out is not None and str(args.out).lower().endswith(".png"):
         raise RequestError(f"--out {args.out}: --out is the run folder; the PNG sheet is --png FILE")
     if not args.no_window:

@@ -83,6 +83,12 @@ def run(args: argparse.Namespace) -> int:
         raise RequestError("--out names the folder of the run started from the command line (a "
                            "scan or a replay; a file reconstructed in the window writes nothing): "
                            "give --sim, --galvo/--tagger or --replay, or --runs-dir")
+    from spdepth.acq.outputs import check_output_folder, refuse_existing
+
+    # before a window opens: the screenshot and the folders it would write
+    refuse_existing([("--screenshot", args.screenshot)], overwrite=args.overwrite)
+    check_output_folder("--out", args.out)
+    check_output_folder("--runs-dir", args.runs_dir)
     application()
     stored = remembered()
     # a source to start is checked here: bad arguments are one line and exit 2, no window; the

@@ -45,7 +45,11 @@ def run(args: argparse.Namespace) -> int:
     from spdepth.acq.api import reconstruct_file
     from spdepth.acq.report import ProgressBar
 
+    from spdepth.acq.outputs import refuse_existing
+
     request = request_from_args(args, args.file[0], args.npz, args.png)
+    # before any work: an existing output (a session's own maps.npz) is kept unless --overwrite
+    refuse_existing(_outputs(request), overwrite=args.overwrite, inputs=(request.input,))
     bar = ProgressBar(f"recon {request.method}")
     try:
         result = reconstruct_file(request, progress=bar)
@@ -59,6 +63,12 @@ def run(args: argparse.Namespace) -> int:
     else:
         _print_result(result)
     return 0
+
+
+def _outputs(request) -> list[tuple[str, str | None]]:
+    """(option, path) of every file a reconstruction writes."""
+    return [("--npz", request.out), ("--png", request.png), ("--ply", request.ply),
+            ("--las", request.las), ("--save-irf", request.save_irf)]
 
 
 def _print_result(result) -> None:
@@ -115,18 +125,36 @@ def _run_many(args: argparse.Namespace) -> int:
     names = [Path(p).name for p in args.file]
     if several and (args.npz or args.png) and len(set(names)) < len(names):
         raise RequestError("inputs share a file name, so their outputs would overwrite each other")
+    from spdepth.acq.outputs import check_output_folder, refuse_existing
+
+    for option, folder in (("--npz", args.npz), ("--png", args.png)) if several else ():
+        if folder:
+            check_output_folder(option, folder)
     for folder in (args.npz, args.png) if several else ():
         if folder:
             Path(folder).mkdir(parents=True, exist_ok=True)
-    requests = []
+    requests, unread = [], []
     for path in args.file:
         stem = Path(path).stem
         out = str(Path(args.npz) / f"{stem}.npz") if several and args.npz else args.npz
         png = str(Path(args.png) / f"{stem}.png") if several and args.png else args.png
-        requests.append(request_from_args(args, path, out, png))
+        try:
+            requests.append(request_from_args(args, path, out, png))
+        except RequestError as exc:
+            if not several:
+                raise
+            unread.append({"input": path, "error": str(exc)})   # a missing file: go on
+    if several and not requests and len({u["error"].replace(u["input"], "") for u in unread}) == 1:
+        raise RequestError(unread[0]["error"])       # the same for every file: an option's fault
+    # before any work: every output that exists is kept unless --overwrite
+    refuse_existing([o for r in requests for o in _outputs(r)], overwrite=args.overwrite,
+                    inputs=tuple(r.input for r in requests))
     t0 = time.perf_counter()
     # a batch goes on past a file it cannot read: one line each, a count and exit 2 at the end
-    summaries = distributed.reconstruct_files(requests, args.dask, keep_going=several)
+    summaries = distributed.reconstruct_files(requests, args.dask, keep_going=several) \
+        if requests else []
+    by_input = {s["input"]: s for s in summaries + unread}
+    summaries = [by_input[str(p)] for p in args.file if str(p) in by_input]
     wall = time.perf_counter() - t0
     failed = [s for s in summaries if "error" in s]
     for s in summaries:

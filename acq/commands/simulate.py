@@ -51,8 +51,11 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.ptu)
     if out.suffix.lower() != ".ptu":
         raise InputError(f"--ptu {out}: the file name must end in .ptu")
-    if not out.parent.is_dir():
-        raise InputError(f"--ptu {out}: folder {out.parent} does not exist")
+    from spdepth.acq.outputs import refuse_existing
+
+    # before any work: writable, and an existing PTU (or its truth) kept unless --overwrite
+    refuse_existing([("--ptu", out), ("--ptu", out.with_name(out.stem + ".truth.npz"))],
+                    overwrite=args.overwrite)
     effects = tuple(e for e in args.effects.split(",") if e)
     scene = load_scene(args.scene, args.size, ppp=args.ppp if args.ppp is not None else 15.0, sbr=args.sbr, effects=effects,
                        dwell_s=args.dwell_us * 1e-6, jitter_rms_s=args.jitter_ps * 1e-12,

@@ -37,12 +37,30 @@ TARGETS = {
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("target", choices=sorted(TARGETS),
+    parser.add_argument("target", choices=sorted(TARGETS), nargs="?", metavar="TARGET",
                         help="; ".join(f"{k}: {v[1]}" for k, v in TARGETS.items()))
-    parser.add_argument("rest", nargs=argparse.REMAINDER,
-                        help="options passed to the target's benchmark (see its --help)")
+    parser.add_argument("rest", nargs=argparse.REMAINDER, metavar="...",
+                        help="options passed to the target's benchmark (see spdepth bench "
+                             "TARGET --help)")
+
+
+def parser(target: str, doc: str) -> argparse.ArgumentParser:
+    """A benchmark's own parser: ``spdepth bench TARGET`` as its name, the module docstring's
+    first paragraph whole as its description, and one-line errors as every spdepth command's."""
+    from spdepth.acq.cli import OneLineParser
+
+    first = " ".join(doc.strip().split("\n\n")[0].split())
+    return OneLineParser(prog=f"spdepth bench {target}", description=first)
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.target is None:
+        from spdepth.acq.errors import RequestError
+
+        raise RequestError(f"give a benchmark: {', '.join(sorted(TARGETS))} (spdepth bench --help "
+                           f"says what each measures)")
     module = importlib.import_module(TARGETS[args.target][0])
-    return int(module.bench(list(args.rest)) or 0)
+    try:
+        return int(module.bench(list(args.rest)) or 0)
+    except SystemExit as exc:     # the benchmark's --help, or its one-line usage error
+        return int(exc.code or 0)

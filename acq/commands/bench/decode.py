@@ -9,7 +9,6 @@ Prints records/s (best of R runs, one core, output arrays preallocated for every
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 
@@ -68,10 +67,12 @@ def _best(fn, repeat: int) -> float:
 
 
 def bench(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser(prog="spdepth bench decode", description=__doc__.split("\n")[0])
+    from spdepth.acq.commands.bench import parser as bench_parser
+
+    parser = bench_parser("decode", __doc__)
     parser.add_argument("--records", type=int, default=10_000_000, help="records to decode (10e6)")
     parser.add_argument("--repeat", type=int, default=5, help="runs per decoder, best kept (5)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0, help="seed of the random records (0)")
     args = parser.parse_args(argv)
     if args.records < 1000 or args.repeat < 1:
         parser.error("--records must be >= 1000 and --repeat >= 1")

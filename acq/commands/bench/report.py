@@ -478,8 +478,12 @@ def bench(argv: list[str]) -> int:
     if min(size) < 4 or repeats < 1 or not (args.rate_hz > 0 and math.isfinite(args.rate_hz)):
         raise InputError(f"bench report: need --size of at least 4x4, --repeats >= 1 and a positive --rate-hz "
                          f"(got {size}, {repeats}, {args.rate_hz})")
+    from spdepth.acq.outputs import check_output_folder, probe_folder
+
     out = Path(args.out)
+    check_output_folder("--out", out)          # before the minutes of the sweep, not after
     out.mkdir(parents=True, exist_ok=True)
+    probe_folder("--out", out)
     t0 = time.perf_counter()
     rows = run_sweep(QUICK_DETECTIONS if args.quick else DETECTIONS, QUICK_SBRS if args.quick else SBRS,
                      METHODS, size, args.rate_hz, repeats, args.seed)

@@ -9,7 +9,6 @@ per core and the neighbours on a shared machine do not inflate it.
 
 from __future__ import annotations
 
-import argparse
 import math
 import time
 
@@ -43,13 +42,22 @@ def simulate(side: int, n: int, sbr: float, seed: int = 0):
 
 
 def bench(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser(prog="spdepth bench spatial", description=__doc__.splitlines()[0])
-    parser.add_argument("--side", type=int, default=256)
-    parser.add_argument("--detections", default="2,5,10,15,30,60", help="detections per pixel, comma separated")
-    parser.add_argument("--sbr", type=float, default=10.0)
-    parser.add_argument("--methods", default="spatial,ml")
-    parser.add_argument("--repeats", type=int, default=3)
+    from spdepth.acq.commands.bench import parser as bench_parser
+    from spdepth.acq.params import add_bench_options
+    from spdepth.recon import estimators
+
+    parser = bench_parser("spatial", __doc__)
+    add_bench_options(parser, "spatial")
     args = parser.parse_args(argv)
+    try:
+        counts = [int(v) for v in args.detections.split(",")]
+    except ValueError:
+        counts = []
+    if not counts or min(counts) < 1:
+        parser.error(f"--detections must be whole numbers >= 1, comma-separated, got {args.detections!r}")
+    unknown = [m for m in args.methods.split(",") if m not in estimators.names()]
+    if unknown:
+        parser.error(f"--methods: unknown {', '.join(unknown)}; choose from {', '.join(estimators.names())}")
     binning = Binning(UNIT_S, 0, N_BINS * BIN_UNITS, BIN_UNITS)
     old = numba.get_num_threads()
     numba.set_num_threads(1)
@@ -57,7 +65,7 @@ def bench(argv: list[str]) -> int:
           f"{args.repeats} in process CPU time")
     print(f"{'method':<8} {'N':>3} {'CPU s':>7} {'pixels/s':>11} {'MAE ps':>7}")
     try:
-        for n in (int(v) for v in args.detections.split(",")):
+        for n in counts:
             store, tof = simulate(args.side, n, args.sbr)
             for method in args.methods.split(","):
                 settings = ReconSettings(method=method, binning=binning, pulse_rms_s=RMS_UNITS * UNIT_S)
