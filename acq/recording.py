@@ -25,7 +25,7 @@ not parse is refused (``RecordingError`` naming the file and the tag: no invente
 holding fewer records than its header counts, or a session recording whose ``events.jsonl`` is
 missing or stops before the session's end, still replays, with one line each in
 ``ReplaySource.warnings``, which the session's ``run.json`` lists and its caller shows once (the
-CLI in its summary, ``spdepth recon`` as a note, the window in its banner). A count of 0 is a
+CLI in its summary, ``spdepth recon`` as a note, the window in its status bar). A count of 0 is a
 recording that was not closed (``kill -9``): every whole record is read, and that alone is no
 warning.
 """

@@ -959,6 +959,8 @@ class MainWindow(QtWidgets.QMainWindow):
             self.show_error(f"Could not start: {exc}")
             self.controls.set_running(None)
             return False
+        # what is wrong with a recording but still replays (cut, no event log): said once, here
+        self.show_notes(list(getattr(run.session.source, "warnings", ())))
         self._maps_due = time.monotonic() + 1.0 / REFRESH_HZ
         return True
 
@@ -1228,7 +1230,7 @@ class MainWindow(QtWidgets.QMainWindow):
         elif snap.state == "paused":
             eta = "ETA – (paused)"
         else:
-            took = snap.running_s
+            took = snap.elapsed_s      # what the accuracy plot's time axis counts too
             eta = f"{snap.state} after " + (f"{took:.1f} s" if took < 10 else _fmt_eta(took))
         _set_text(self.eta_label, eta)
         _set_text(self.lost_label, f"lost {snap.lost_records} rec / {snap.lost_spans} spans")

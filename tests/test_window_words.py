@@ -176,3 +176,20 @@ def test_a_terminated_window_says_whether_its_run_kept_a_recording(qtbot, tmp_pa
     finally:
         signal.signal(signal.SIGINT, before[0])
         signal.signal(signal.SIGTERM, before[1])
+
+
+def test_a_cut_recording_replayed_in_the_window_says_so_once(qtbot, win, recording, tmp_path):
+    import shutil
+
+    from spdepth.gui.sources import SourceSpec
+
+    rec = tmp_path / "cut"
+    shutil.copytree(recording, rec)
+    data = (rec / "recording.ptu").read_bytes()
+    (rec / "recording.ptu").write_bytes(data[:len(data) * 2 // 3])
+    ended = []
+    win.scan_ended.connect(ended.append)
+    assert win.start_run(SourceSpec(kind="replay", recording=str(rec), target=0,
+                                    out_root=str(tmp_path / "runs")))
+    assert "recording.ptu is truncated: its header promises" in win.statusBar().currentMessage()
+    qtbot.waitUntil(lambda: bool(ended), timeout=60_000)
