@@ -695,51 +695,8 @@ class MainWindow(QtWidgets.QMainWindow):
         scroll.setHorizontalScrollBarPolicy(QtCore.Qt.ScrollBarAlwaysOff)
         scroll.setMinimumWidth(self.controls.sizeHint().width() + 20)
 
-        self.banner = QtWidgets.QFrame()
-        self.banner.setStyleSheet("QFrame { background: #fbe3e1; border: 1px solid #d0342c; "
-                                  "border-radius: 4px; } QLabel { border: none; color: #7a1010; }")
-        bl = QtWidgets.QHBoxLayout(self.banner)
-        bl.setContentsMargins(8, 4, 4, 4)
-        self.banner_text = QtWidgets.QLabel()
-        self.banner_text.setWordWrap(True)
-        self.banner_text.setSizePolicy(QtWidgets.QSizePolicy.Ignored, QtWidgets.QSizePolicy.Preferred)
-        self.banner_text.setTextInteractionFlags(QtCore.Qt.TextSelectableByMouse)
-        dismiss = QtWidgets.QToolButton(text="✕")
-        dismiss.setAutoRaise(True)
-        dismiss.clicked.connect(self.banner.hide)
-        bl.addWidget(self.banner_text, 1)
-        bl.addWidget(dismiss)
-        self.banner.hide()
-
-        self.run_label = QtWidgets.QLabel("No scan yet: choose a source and press Start.")
-        self.run_label.setStyleSheet("font-size: 11pt; font-weight: bold; padding: 2px 4px;")
-        # a long run folder must not widen the window: the label is clipped, the tooltip has it all
-        self.run_label.setSizePolicy(QtWidgets.QSizePolicy.Ignored, QtWidgets.QSizePolicy.Preferred)
-        self.run_label.setMinimumWidth(50)
-        self.run_label.setWordWrap(True)       # a file's summary goes on two lines, not cut
-        self.maps_view = pg.GraphicsLayoutWidget()
-        self.maps_view.setBackground("w")
-        self.maps_view.ci.setSpacing(4)
-        self.panels = [MapPanel(self.maps_view.ci, spec, i // 2, i % 2)
-                       for i, spec in enumerate(PANEL_DEFS)]
-        link_panels(self.panels)
-        for i in range(2):                 # equal cells: the same region shows at the same scale
-            self.maps_view.ci.layout.setColumnStretchFactor(i, 1)
-        for i in range(3):
-            self.maps_view.ci.layout.setRowStretchFactor(i, 1)
-        self.view3d = PointCloudView()
-        self.views = QtWidgets.QTabWidget()
-        self.views.addTab(self.maps_view, "Maps")
-        self.views.addTab(self.view3d, "3D")
-        self.views.currentChanged.connect(self._view_changed)
-        self.maps_view.scene().sigMouseMoved.connect(self._mouse_moved)
-        self.maps_view.scene().sigMouseClicked.connect(self._mouse_clicked)
-        centre = QtWidgets.QWidget()
-        cl = QtWidgets.QVBoxLayout(centre)
-        cl.setContentsMargins(4, 4, 4, 4)
-        cl.addWidget(self.banner)
-        cl.addWidget(self.run_label)
-        cl.addWidget(self.views, 1)
+        self._build_banner()
+        centre = self._build_centre()
 
         self.inspector = Inspector()
         self.accuracy = AccuracyPlot()
@@ -759,20 +716,7 @@ class MainWindow(QtWidgets.QMainWindow):
         for w in (self.maps_view, self.inspector.plot, self.accuracy.plot):
             w.setBackground("w")
 
-        sb = self.statusBar()
-        self.state_label = QtWidgets.QLabel("idle")
-        self.rate_label = QtWidgets.QLabel("– det/s")
-        self.progress = QtWidgets.QProgressBar()
-        self.progress.setMaximumWidth(160)
-        self.progress.setFormat("%v / %m px")
-        self.eta_label = QtWidgets.QLabel("ETA –")
-        self.lost_label = QtWidgets.QLabel("lost 0")
-        self.health_label = QtWidgets.QLabel("● no source")
-        for w in (self.state_label, self.rate_label, self.progress, self.eta_label, self.lost_label,
-                  self.health_label):
-            sb.addPermanentWidget(w)
-        _pill(self.state_label, STATE_COLOURS["idle"])
-        _pill(self.health_label, "#8a8a8a")
+        self._build_status_bar()
 
         c = self.controls
         c.start.clicked.connect(lambda: self.start_run())
@@ -803,6 +747,74 @@ class MainWindow(QtWidgets.QMainWindow):
         self.close_shortcut.setKeys(close_keys())
         self.close_shortcut.setContext(QtCore.Qt.ApplicationShortcut)
         self.close_shortcut.activated.connect(self.close)
+
+    def _build_banner(self) -> None:
+        """The banner of errors above the maps, hidden until one is shown."""
+        self.banner = QtWidgets.QFrame()
+        self.banner.setStyleSheet("QFrame { background: #fbe3e1; border: 1px solid #d0342c; "
+                                  "border-radius: 4px; } QLabel { border: none; color: #7a1010; }")
+        bl = QtWidgets.QHBoxLayout(self.banner)
+        bl.setContentsMargins(8, 4, 4, 4)
+        self.banner_text = QtWidgets.QLabel()
+        self.banner_text.setWordWrap(True)
+        self.banner_text.setSizePolicy(QtWidgets.QSizePolicy.Ignored, QtWidgets.QSizePolicy.Preferred)
+        self.banner_text.setTextInteractionFlags(QtCore.Qt.TextSelectableByMouse)
+        dismiss = QtWidgets.QToolButton(text="✕")
+        dismiss.setAutoRaise(True)
+        dismiss.clicked.connect(self.banner.hide)
+        bl.addWidget(self.banner_text, 1)
+        bl.addWidget(dismiss)
+        self.banner.hide()
+
+    def _build_centre(self) -> QtWidgets.QWidget:
+        """The run's title, the map panels and the 3D view (tabs), under the banner."""
+        self.run_label = QtWidgets.QLabel("No scan yet: choose a source and press Start.")
+        self.run_label.setStyleSheet("font-size: 11pt; font-weight: bold; padding: 2px 4px;")
+        # a long run folder must not widen the window: the label is clipped, the tooltip has it all
+        self.run_label.setSizePolicy(QtWidgets.QSizePolicy.Ignored, QtWidgets.QSizePolicy.Preferred)
+        self.run_label.setMinimumWidth(50)
+        self.run_label.setWordWrap(True)       # a file's summary goes on two lines, not cut
+        self.maps_view = pg.GraphicsLayoutWidget()
+        self.maps_view.setBackground("w")
+        self.maps_view.ci.setSpacing(4)
+        self.panels = [MapPanel(self.maps_view.ci, spec, i // 2, i % 2)
+                       for i, spec in enumerate(PANEL_DEFS)]
+        link_panels(self.panels)
+        for i in range(2):                 # equal cells: the same region shows at the same scale
+            self.maps_view.ci.layout.setColumnStretchFactor(i, 1)
+        for i in range(3):
+            self.maps_view.ci.layout.setRowStretchFactor(i, 1)
+        self.view3d = PointCloudView()
+        self.views = QtWidgets.QTabWidget()
+        self.views.addTab(self.maps_view, "Maps")
+        self.views.addTab(self.view3d, "3D")
+        self.views.currentChanged.connect(self._view_changed)
+        self.maps_view.scene().sigMouseMoved.connect(self._mouse_moved)
+        self.maps_view.scene().sigMouseClicked.connect(self._mouse_clicked)
+        centre = QtWidgets.QWidget()
+        cl = QtWidgets.QVBoxLayout(centre)
+        cl.setContentsMargins(4, 4, 4, 4)
+        cl.addWidget(self.banner)
+        cl.addWidget(self.run_label)
+        cl.addWidget(self.views, 1)
+        return centre
+
+    def _build_status_bar(self) -> None:
+        """State, rate, progress, ETA, losses and the devices' health in the status bar."""
+        sb = self.statusBar()
+        self.state_label = QtWidgets.QLabel("idle")
+        self.rate_label = QtWidgets.QLabel("– det/s")
+        self.progress = QtWidgets.QProgressBar()
+        self.progress.setMaximumWidth(160)
+        self.progress.setFormat("%v / %m px")
+        self.eta_label = QtWidgets.QLabel("ETA –")
+        self.lost_label = QtWidgets.QLabel("lost 0")
+        self.health_label = QtWidgets.QLabel("● no source")
+        for w in (self.state_label, self.rate_label, self.progress, self.eta_label, self.lost_label,
+                  self.health_label):
+            sb.addPermanentWidget(w)
+        _pill(self.state_label, STATE_COLOURS["idle"])
+        _pill(self.health_label, "#8a8a8a")
 
     def panel(self, key: str) -> MapPanel:
         """The map panel showing ``acq.mapdefs`` key (depth, uncertainty, background or

@@ -324,8 +324,8 @@ def test_window_bins_is_first_in_window_then_bin_index(rng, max_photons):
 
 
 def test_kernel_sorts_match_numpy(rng):
-    # sort_run/heap_sort and _sort_desc stand in for np.sort / a stable argsort inside the
-    # kernels; ties are frequent here, and _sort_desc must keep equal keys in index order
+    # sort_run/heap_sort and sort_desc stand in for np.sort / a stable argsort inside the
+    # kernels; ties are frequent here, and sort_desc must keep equal keys in index order
     for n in (0, 1, 2, 5, 49, 50, 333):
         a = rng.integers(0, 40, n).astype(np.int64)
         b = a.copy()
