@@ -37,8 +37,9 @@ def _same(a: DepthMaps, b: DepthMaps):
 
 def _single(path, tmp, method="uos", reflectors=1):
     out = tmp / f"single-{os.path.basename(path)}-{method}-{reflectors}.npz"
+    # tests share the module's folder: the same single run is made again (--overwrite)
     assert main(["recon", path, "--method", method, *MODEL, "--reflectors", str(reflectors),
-                 "--npz", str(out)]) == 0
+                 "--npz", str(out), "--overwrite"]) == 0
     return DepthMaps.load_npz(out)
 
 
