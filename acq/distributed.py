@@ -304,6 +304,10 @@ def _by_blocks(request, client) -> dict | None:
         print(f"spdepth recon: {path}: the {request.method} method needs each pixel's neighbours: "
               f"reconstructing it as one task", file=sys.stderr)
         return None
+    if request.pileup == "on":
+        print(f"spdepth recon: {path}: the pile-up correction needs each pixel's whole histogram and "
+              f"the file's periods: reconstructing it as one task", file=sys.stderr)
+        return None
     found = _image_and_unit(path, request.time_unit_s)
     if found is None:
         return None
