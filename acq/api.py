@@ -16,6 +16,7 @@ The CLI, the window, Dask workers, the demo and the benchmarks only build reques
 from __future__ import annotations
 
 import fcntl
+import math
 import os
 import time
 from dataclasses import dataclass, field, replace
@@ -521,6 +522,22 @@ def _photons_in(read) -> int:
     return read.store.n_photons if read.store is not None else int(round(read.counts.n_detections))
 
 
+def pileup_decided(request: FileReconRequest, periods_known: bool, cube: bool) -> tuple[bool, dict | None]:
+    """(True, the record) when the pile-up decision needs no data: the periods unknown and not
+    asked for (None), ``--max-photons`` on a photon list (the first N detections' periods are not
+    known: not corrected), ``--pileup off``; (False, None) when it needs each pixel's histogram."""
+    if not periods_known and request.pileup == "auto":
+        return True, None
+    if request.max_photons is not None and not cube:
+        if request.pileup == "on":
+            raise RequestError(f"{request.input}: --pileup on needs every detection: drop --max-photons")
+        return True, {"mode": request.pileup, "applied": False,
+                      "reason": "--max-photons keeps the first N detections: not corrected"}
+    if request.pileup == "off":
+        return True, {"mode": "off", "applied": False, "reason": "switched off"}
+    return False, None
+
+
 def file_counts(request: FileReconRequest, result):
     """The counts a file is estimated from (None: its photon list as read) and the pile-up record
     (None when the file's laser periods are unknown and correction was not asked for).
@@ -537,14 +554,9 @@ def file_counts(request: FileReconRequest, result):
         int(np.prod(result.shape)), float(request.periods) * frames)
     if periods is None and counts is not None:
         periods = counts.periods          # a cube whose file records them
-    if periods is None and request.pileup == "auto":
-        return counts, None
-    if request.max_photons is not None and counts is None:
-        # the first N detections of each pixel: their periods are not known
-        if request.pileup == "on":
-            raise RequestError(f"{request.input}: --pileup on needs every detection: drop --max-photons")
-        return None, {"mode": request.pileup, "applied": False,
-                      "reason": "--max-photons keeps the first N detections: not corrected"}
+    decided, record = pileup_decided(request, periods is not None, counts is not None)
+    if decided:
+        return counts, record
     if counts is None:
         counts = CountStore.from_photons(result.store, periods)
     else:
@@ -704,5 +716,5 @@ def _file_summary(res: FileResult, read) -> dict:
 
 __all__ = ["OutputDir", "new_run_dir", "open_instruments", "scan_plan", "scan_settings",
            "build_session", "finish_session", "FileResult", "reconstruct_file", "file_binning",
-           "file_settings", "file_result", "set_threads", "file_counts", "sensor_fov_deg",
+           "file_settings", "file_result", "set_threads", "file_counts", "pileup_decided", "sensor_fov_deg",
            "recorded_recon_settings", "recorded_request", "read_run_record", "RUN_JSON", "SESSION_FILES"]

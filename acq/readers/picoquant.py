@@ -285,18 +285,26 @@ def read_ptu(path: str | Path, *, time_unit_s: float | None = None,
     return _with_fixed_dwell_periods(result, tags) if image is not None else result
 
 
-def _with_fixed_dwell_periods(result: ReadResult, tags: dict) -> ReadResult:
-    """The laser periods each pixel saw, for an image of fixed dwell (not a session's count-gated
+def fixed_dwell_periods(tags: dict) -> tuple[float | None, dict]:
+    """The laser periods each pixel of an image of fixed dwell saw (not a session's count-gated
     recording, read elsewhere): ``ImgHdr_TimePerPixel`` (ms) times ``TTResult_SyncRate``, the same
-    for every pixel; the result unchanged when the header lacks either."""
+    for every pixel, and the meta that says so; (None, {}) when the header lacks either."""
     dwell_ms = float(tags.get("ImgHdr_TimePerPixel", 0) or 0)
     rate = float(tags.get("TTResult_SyncRate", 0) or 0)
     if not (dwell_ms > 0 and rate > 0):
-        return result
+        return None, {}
     n = max(1.0, round(dwell_ms * 1e-3 * rate))
-    meta = dict(result.meta, periods_per_pixel=n,
-                periods_source="header ImgHdr_TimePerPixel x TTResult_SyncRate (fixed dwell)")
-    return dataclasses.replace(result, periods=np.full(result.store.n_pixels, n), meta=meta)
+    return n, {"periods_per_pixel": n,
+               "periods_source": "header ImgHdr_TimePerPixel x TTResult_SyncRate (fixed dwell)"}
+
+
+def _with_fixed_dwell_periods(result: ReadResult, tags: dict) -> ReadResult:
+    """``result`` with :func:`fixed_dwell_periods` (unchanged when the header tells none)."""
+    n, meta = fixed_dwell_periods(tags)
+    if n is None:
+        return result
+    return dataclasses.replace(result, periods=np.full(result.store.n_pixels, n),
+                               meta=dict(result.meta, **meta))
 
 
 def ptu_image(path, tags: dict) -> dict | None:
