@@ -170,7 +170,7 @@ def test_cli_reads_a_mat_cube(tmp_path, capsys):
     cube, _ = small_cube(shape=(5, 6, 150), signal=25.0)
     scipy.io.savemat(tmp_path / "c.mat", {"hst_map_set": cube, "i_map_set": cube.sum(2) * 1.0})
     rc = main(["recon", str(tmp_path / "c.mat"), "--time-unit-ps", "80", "--pulse-rms-ps", "170",
-               "--json", "--out", str(tmp_path / "m.npz"), "--fov-deg", "10"])
+               "--json", "--npz", str(tmp_path / "m.npz"), "--fov-deg", "10"])
     assert rc == 0
     s = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert s["shape"] == [5, 6] and s["source"]["cube_var"] == "hst_map_set"

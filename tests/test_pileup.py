@@ -118,12 +118,12 @@ def test_recon_of_a_high_flux_scan_is_corrected_by_itself(tmp_path, capsys):
 
     ptu = tmp_path / "hf.ptu"
     assert main(["simulate", "--scene", "tilted-plane", "--size", "12x12", "--ppp", "600", "--sbr", "10",
-                 "--dwell-us", "100", "--out", str(ptu)]) == 0
+                 "--dwell-us", "100", "--ptu", str(ptu)]) == 0
     truth = np.load(tmp_path / "hf.truth.npz")
     out = {}
     for mode in ("auto", "off"):
         assert main(["recon", str(ptu), "--pulse-rms-ps", "360", "--pileup", mode, "--json",
-                     "--out", str(tmp_path / f"{mode}.npz")]) == 0
+                     "--npz", str(tmp_path / f"{mode}.npz")]) == 0
         s = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
         from spdepth.recon.maps import DepthMaps
 
@@ -152,7 +152,7 @@ def test_a_session_recording_knows_its_periods(tmp_path, capsys):
     truth = load_scene("tilted-plane", (8, 8), ppp=9000).truth()["depth_m"]
     bias = {}
     for mode in ("auto", "off"):
-        assert main(["recon", str(out / "recording.ptu"), "--pileup", mode, "--out",
+        assert main(["recon", str(out / "recording.ptu"), "--pileup", mode, "--npz",
                      str(tmp_path / f"{mode}.npz")]) == 0
         m = DepthMaps.load_npz(tmp_path / f"{mode}.npz")
         bias[mode] = 100 * np.nanmean(m.depth_m - truth)

@@ -11,13 +11,15 @@ from __future__ import annotations
 import argparse
 import sys
 
-from spdepth.acq.commands._args import non_negative_float, positive_float, positive_int, size_wxh
+from spdepth.acq.commands._args import non_negative_float, positive_float, positive_int
+from spdepth.acq.params import parse_size
 
 HELP = "SPAD-array session: simulated array frames (or a recording's) reconstructed live, recorded (HDF5)"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    # array session options (issue 34), kept together to move into the declarations module
+    # array session options (issue 34): this command's own, as simulate's physics are (not declared
+    # in acq.params: no request carries them yet), kept together to move there
     src = parser.add_mutually_exclusive_group(required=True)
     src.add_argument("--sim", metavar="SCENE", help="simulate the array looking at this scene (tilted-plane, bust, ...)")
     src.add_argument("--replay", metavar="FRAMES.h5", help="replay an array recording")
@@ -26,7 +28,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--mode", choices=("frame", "accumulate"), default="accumulate",
                         help="maps of each frame alone, or of all frames so far (default)")
     parser.add_argument("--method", default="ml", help="estimator (default ml)")
-    parser.add_argument("--size", type=size_wxh, default=(64, 64), help="WxH pixels (--sim; default 64x64)")
+    parser.add_argument("--size", type=parse_size, default=(64, 64), help="WxH pixels (--sim; default 64x64)")
     parser.add_argument("--counts", type=positive_float, default=20.0,
                         help="mean counts per pixel and frame in range, ideal detector (--sim; default 20)")
     parser.add_argument("--sbr", type=positive_float, default=1.0, help="signal to background in range (--sim)")
@@ -53,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
     if args.sim:
         from spdepth.acq.commands.bench.array import make_sensor
 
-        sensor = make_sensor(args.sim, (args.size[1], args.size[0]), args.counts, args.sbr, args.seed,
+        sensor = make_sensor(args.sim, tuple(args.size), args.counts, args.sbr, args.seed,
                              frame_rate_hz=args.frame_rate_hz, hot_share=args.hot_share,
                              crosstalk=args.crosstalk)
         source = SimArraySource(sensor, args.frames, realtime=not args.free_run)

@@ -38,7 +38,7 @@ def flux_rows(levels=LEVELS, size: int = 32, seed: int = 0, method: str = "ml",
         for ppp in levels:
             ptu = Path(tmp) / f"flux{ppp}.ptu"
             rc = main(["simulate", "--scene", "tilted-plane", "--size", f"{size}x{size}", "--ppp", str(ppp),
-                       "--sbr", str(sbr), "--dwell-us", str(DWELL_US), "--seed", str(seed), "--out", str(ptu)])
+                       "--sbr", str(sbr), "--dwell-us", str(DWELL_US), "--seed", str(seed), "--ptu", str(ptu)])
             if rc != 0:
                 raise RuntimeError(f"spdepth simulate failed at ppp {ppp}")
             truth = np.load(ptu.with_name(ptu.stem + ".truth.npz"))
@@ -152,7 +152,7 @@ def censored_rows(ppp: int = 900, size: int = 32, pixels: int = 256, seed: int =
     with tempfile.TemporaryDirectory(prefix="spdepth-flux-") as tmp:
         ptu = Path(tmp) / "c.ptu"
         main(["simulate", "--scene", "tilted-plane", "--size", f"{size}x{size}", "--ppp", str(ppp),
-              "--sbr", str(sbr), "--dwell-us", str(DWELL_US), "--seed", str(seed), "--out", str(ptu)])
+              "--sbr", str(sbr), "--dwell-us", str(DWELL_US), "--seed", str(seed), "--ptu", str(ptu)])
         truth = np.load(ptu.with_name("c.truth.npz"))
         t0 = time.perf_counter()
         res = reconstruct_file(FileReconRequest(input=str(ptu), method="ml", pulse_rms_s=pulse_rms_ps * 1e-12,

@@ -48,10 +48,10 @@ def bench(argv: list[str]) -> int:
     recon_cmd.add_arguments(parser)
     parser.add_argument("--seed", type=int, default=0, help="seed of the split (default 0)")
     args = parser.parse_args(argv)
-    path = args.input[0]
+    path = args.file[0]
     t0 = time.perf_counter()
-    read = read_photons(path, time_unit_s=None if args.time_unit_ps is None else args.time_unit_ps * 1e-12,
-                        mat_var=args.mat_var)
+    asked = recon_cmd.request_from_args(args, path)
+    read = read_photons(path, time_unit_s=asked.time_unit_s, mat_var=asked.mat_var)
     counts = read.counts if read.counts is not None else CountStore.from_photons(read.store)
     if read.counts is None:
         raise SystemExit("spdepth bench halves: give a histogram cube")
