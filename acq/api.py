@@ -16,6 +16,7 @@ The CLI, the window, Dask workers, the demo and the benchmarks only build reques
 from __future__ import annotations
 
 import fcntl
+import math
 import os
 import time
 from dataclasses import dataclass, field, replace
@@ -27,8 +28,10 @@ from spdepth.acq.errors import OutputError, RecordingError, RequestError
 from spdepth.acq.jsonable import jsonable
 from spdepth.acq.requests import (DEFAULT_DWELL_S, DEFAULT_METHOD, FileReconRequest, ReplayRequest,
                                   ScanRequest, SimBench)
+from spdepth.recon.counts import CountStore
 from spdepth.recon.errors import InputError
 from spdepth.recon.model import Binning, ReconSettings
+from spdepth.recon.pileup import PILEUP_THRESHOLD
 
 SESSION_FILES = ("recording.ptu", "events.jsonl", "maps.npz", "maps.png", "points.ply", "run.json")
 """What a session writes into its folder (``--overwrite`` replaces exactly these)."""
@@ -299,6 +302,7 @@ class FileResult:
     recon_s: float = 0.0
     photons_in_file: int = 0
     summary: dict = field(default_factory=dict)
+    pileup: dict | None = None
 
 
 RUN_JSON = "run.json"
@@ -428,8 +432,13 @@ def reconstruct_file(request: FileReconRequest, progress=None) -> FileResult:
     t0 = time.perf_counter()
     result = read_photons(request.input, time_unit_s=request.time_unit_s, mat_var=request.mat_var,
                           channel=request.channel)
-    store = result.store
-    if store.n_photons == 0:
+    if result.counts is not None and request.max_photons is not None:
+        raise RequestError(f"{request.input}: a histogram cube keeps no detection order, so "
+                           f"--max-photons (the first N detections) does not apply")
+    counts, pileup = file_counts(request, result)
+    # counts (a cube, or a corrected photon list) go to the estimators as (bin, count) pairs
+    store = result.store if counts is None else counts
+    if (store.n_photons if counts is None else counts.n_detections) == 0:
         raise InputError(f"{request.input}: holds no photons")
     recorded = recorded_recon_settings(request.input) if result.kind == "ptu" else None
     settings = file_settings(request, store.time_unit_s, recorded, store)
@@ -445,11 +454,15 @@ def reconstruct_file(request: FileReconRequest, progress=None) -> FileResult:
                              f"{window_text(lo * unit_ps, hi * unit_ps)} (the file's detections "
                              f"span {ps_text(store.times.min() * unit_ps)} to "
                              f"{ps_text(store.times.max() * unit_ps)} ps)")
+    if counts is not None and settings.max_photons is not None:
+        # counts of a session's recording come from its store: its first target already
+        settings = replace(settings, max_photons=None)
     read_s = time.perf_counter() - t0
     set_threads(request)
     t1 = time.perf_counter()
     maps = reconstruct(store, settings, progress=progress)
-    return file_result(request, maps, result, read_s=read_s, recon_s=time.perf_counter() - t1)
+    return file_result(request, maps, result, read_s=read_s, recon_s=time.perf_counter() - t1,
+                       pileup=pileup)
 
 
 def set_threads(request: FileReconRequest) -> None:
@@ -464,19 +477,31 @@ def set_threads(request: FileReconRequest) -> None:
 
 
 def file_result(request: FileReconRequest, maps, read, *, read_s: float = 0.0,
-                recon_s: float = 0.0, photons_in_file: int | None = None) -> FileResult:
+                recon_s: float = 0.0, photons_in_file: int | None = None,
+                pileup: dict | None = None) -> FileResult:
     """A file's reconstructed maps finished as ``spdepth recon`` finishes them: the scan geometry
     and range offset added, the outputs the request names written (npz, png, pulse shape, points)
     and the summary made. ``read``: the reader's ``ReadResult`` (its ``store`` may be None when
-    the photons were read in blocks elsewhere; then give ``photons_in_file``)."""
+    the photons were read in blocks elsewhere; then give ``photons_in_file``; a cube's are its
+    ``counts``). ``pileup``: the pile-up decision (:func:`file_counts`)."""
     from spdepth.recon import estimators
 
     store = read.store
-    maps = _with_geometry_and_offset(maps, request, maps.shape)
+    maps = _with_geometry_and_offset(maps, request, maps.shape, read.meta)
+    if pileup is not None and pileup["applied"]:
+        # the maps say how their counts were corrected (a decision not to is in the summary), and
+        # their detections used are as detected, not the corrected counts the estimator saw
+        raw = CountStore.from_photons(read.store) if read.counts is None else read.counts
+        b = Binning.from_dict(maps.settings["binning"])
+        maps = replace(maps, settings={**maps.settings, "pileup": pileup},
+                       photons=np.rint(raw.in_window(b.window_start, b.window_stop).detections())
+                       .astype(np.int64))
     used = maps.settings
     used_binning = Binning.from_dict(used["binning"])
     irf_used = _irf_used(used)
     notes = tuple(read.notes)
+    if pileup is not None and (pileup["applied"] or pileup.get("max_per_period", 0) > PILEUP_THRESHOLD):
+        notes += (f"pile-up: {pileup['reason']}",)
     h, w = maps.shape
     per_pixel = float(np.sum(maps.photons)) / max(1, h * w)
     neighbours = estimators.names(pixelwise=False)
@@ -485,24 +510,91 @@ def file_result(request: FileReconRequest, maps, read, *, read_s: float = 0.0,
                   f"--method {' or '.join(neighbours)} uses the neighbours",)
     res = FileResult(request, maps, store, used_binning, used.get("pulse_rms_s"),
                      irf_used if used.get("irf") else None, read.is_image, read.kind,
-                     notes, read_s, recon_s,
-                     photons_in_file=store.n_photons if photons_in_file is None else photons_in_file)
+                     notes, read_s, recon_s, pileup=pileup,
+                     photons_in_file=_photons_in(read) if photons_in_file is None else photons_in_file)
     _write_file_outputs(res, read)
     res.summary = _file_summary(res, read)
     return res
 
 
-def _with_geometry_and_offset(maps, request: FileReconRequest, shape):
-    """The maps with their scan geometry in the settings (``--fov-deg``, else a session
-    recording's plan) and the range offset of gated data added to depth and time of flight."""
+def _photons_in(read) -> int:
+    """Detections a reader found: a photon list's, or a cube's counts."""
+    return read.store.n_photons if read.store is not None else int(round(read.counts.n_detections))
+
+
+def pileup_decided(request: FileReconRequest, periods_known: bool, cube: bool) -> tuple[bool, dict | None]:
+    """(True, the record) when the pile-up decision needs no data: the periods unknown and not
+    asked for (None), ``--max-photons`` on a photon list (the first N detections' periods are not
+    known: not corrected), ``--pileup off``; (False, None) when it needs each pixel's histogram."""
+    if not periods_known and request.pileup == "auto":
+        return True, None
+    if request.max_photons is not None and not cube:
+        if request.pileup == "on":
+            raise RequestError(f"{request.input}: --pileup on needs every detection: drop --max-photons")
+        return True, {"mode": request.pileup, "applied": False,
+                      "reason": "--max-photons keeps the first N detections: not corrected"}
+    if request.pileup == "off":
+        return True, {"mode": "off", "applied": False, "reason": "switched off"}
+    return False, None
+
+
+def file_counts(request: FileReconRequest, result):
+    """The counts a file is estimated from (None: its photon list as read) and the pile-up record
+    (None when the file's laser periods are unknown and correction was not asked for).
+
+    The periods come from ``--periods`` (per frame of a cube), else the file; Coates' correction
+    (``recon.pileup``) runs on the whole histogram at the file's own resolution, before any
+    window, since detections before the window shadow it too."""
+    from spdepth.recon.counts import CountStore
+    from spdepth.recon.pileup import Detector, correct_pileup
+
+    counts = result.counts
+    frames = int(result.meta.get("frames", 1) or 1) if counts is not None else 1
+    periods = result.periods if request.periods is None else np.full(
+        int(np.prod(result.shape)), float(request.periods) * frames)
+    if periods is None and counts is not None:
+        periods = counts.periods          # a cube whose file records them
+    decided, record = pileup_decided(request, periods is not None, counts is not None)
+    if decided:
+        return counts, record
+    if counts is None:
+        counts = CountStore.from_photons(result.store, periods)
+    else:
+        counts = replace(counts, periods=periods)
+    unit_s = counts.time_unit_s
+    period_s = result.meta.get("period_s") or (1.0 / result.meta["sync_rate_hz"]
+                                               if result.meta.get("sync_rate_hz") else None)
+    if request.dead_time_s is not None and period_s is None:
+        raise RequestError(f"{request.input}: --dead-time-ns needs the laser period, which the file "
+                           f"does not record")
+    detector = Detector(None if period_s is None else period_s / unit_s,
+                        None if request.dead_time_s is None else request.dead_time_s / unit_s)
+    corrected, record = correct_pileup(counts, request.pileup, detector)
+    if not record["applied"]:
+        return result.counts, record
+    return corrected, record
+
+
+def _with_geometry_and_offset(maps, request: FileReconRequest, shape, meta: dict | None = None):
+    """The maps with their scan geometry in the settings (``--fov-deg``, else a sensor's field of
+    view from the file (a cube's ``fov_deg``, or ``pixel_pitch_m`` and ``focal_length_m``), else a
+    session recording's plan) and the range offset of gated data added to depth and time of
+    flight."""
     from spdepth.acq.plan import ScanPlan
     from spdepth.acq.points import GEOMETRY_KEY, ScanGeometry, range_offset_m
     from spdepth.recon.maps import C_M_PER_S
 
     settings = dict(maps.settings)
     geometry = None
+    meta = meta or {}
+    sensor = sensor_fov_deg(shape, meta)
+    if sensor is not None:
+        settings["sensor"] = {k: meta[k] for k in ("fov_deg", "pixel_pitch_m", "focal_length_m")
+                              if k in meta}
     if request.fov_deg is not None:
         geometry = ScanGeometry.from_fov(shape, request.fov_deg)
+    elif sensor is not None:
+        geometry = ScanGeometry.from_fov(shape, sensor)
     elif Path(request.input).suffix.lower() == ".ptu":
         try:
             run = read_run_record(Path(request.input).parent)
@@ -520,6 +612,22 @@ def _with_geometry_and_offset(maps, request: FileReconRequest, shape):
         changes["depth_m"] = maps.depth_m + offset
         changes["tof_s"] = maps.tof_s + 2 * offset / C_M_PER_S
     return replace(maps, **changes)
+
+
+def sensor_fov_deg(shape, meta: dict) -> tuple[float, float] | None:
+    """(x, y) field of view in degrees of an array sensor a file describes: ``fov_deg`` (one
+    number: square; or (x, y)), else from ``pixel_pitch_m`` and
+    ``focal_length_m`` (``2 atan(n pitch / 2 f)`` per axis); None when it says neither."""
+    h, w = shape
+    fov = meta.get("fov_deg")
+    if fov is not None:
+        fx, fy = (float(fov), float(fov)) if np.ndim(fov) == 0 else (float(fov[0]), float(fov[1]))
+        return fx, fy
+    pitch, focal = meta.get("pixel_pitch_m"), meta.get("focal_length_m")
+    if pitch and focal:
+        deg = lambda n: math.degrees(2 * math.atan(n * float(pitch) / (2 * float(focal))))  # noqa: E731
+        return deg(w), deg(h)
+    return None
 
 
 def _irf_used(settings: dict):
@@ -602,11 +710,11 @@ def _file_summary(res: FileResult, read) -> dict:
         "depth_m_median": float(np.median(finite)) if finite.size else None,
         "out": req.out, "png": req.png, "save_irf": req.save_irf, "ply": req.ply, "las": req.las,
         "range_offset_m": maps.settings.get("range_offset_m", 0.0), "request": req.to_dict(),
-        "source": jsonable(read.meta), "notes": list(res.notes),
+        "source": jsonable(read.meta), "notes": list(res.notes), "pileup": jsonable(res.pileup),
     }
 
 
 __all__ = ["OutputDir", "new_run_dir", "open_instruments", "scan_plan", "scan_settings",
            "build_session", "finish_session", "FileResult", "reconstruct_file", "file_binning",
-           "file_settings", "file_result", "set_threads",
+           "file_settings", "file_result", "set_threads", "file_counts", "pileup_decided", "sensor_fov_deg",
            "recorded_recon_settings", "recorded_request", "read_run_record", "RUN_JSON", "SESSION_FILES"]

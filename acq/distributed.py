@@ -193,7 +193,7 @@ def plan_blocks(path: str, time_unit_s: float | None = None, *, chunk_records: i
     reader would report of the whole file. None when it is not a PTU with pixel markers (then it
     goes whole to one task)."""
     from spdepth.acq.ptu import iter_records
-    from spdepth.acq.readers.picoquant import PixelMarkerDecoder, ptu_meta
+    from spdepth.acq.readers.picoquant import PixelMarkerDecoder, fixed_dwell_periods, ptu_meta
 
     found = _image_and_unit(path, time_unit_s)
     if found is None:
@@ -208,6 +208,7 @@ def plan_blocks(path: str, time_unit_s: float | None = None, *, chunk_records: i
     if decoder.pixel_markers == 0:
         return None
     meta = decoder.meta(ptu_meta(layout.tags, layout.n_records), unit_s)
+    meta.update(fixed_dwell_periods(layout.tags)[1])
     per = max(1, block_pixels // w)
     rows = tuple(range(0, h, per)) + (h,)
     return Plan(str(path), (h, w), rectype, chunk_records, tuple(starts), tuple(states), rows,
@@ -293,7 +294,7 @@ def block_settings(request, unit_s: float):
 def _by_blocks(request, client) -> dict | None:
     """The single-recording block path; None when the input cannot be split (see module doc).
     The maps are finished and written by the library (``acq.api.file_result``), as in-process."""
-    from spdepth.acq.api import file_result
+    from spdepth.acq.api import file_result, pileup_decided
     from spdepth.acq.readers.common import ReadResult
 
     path = request.input
@@ -320,11 +321,18 @@ def _by_blocks(request, client) -> dict | None:
         return None
     if plan.photons == 0:
         raise InputError(f"{path}: holds no photons")
+    decided, pileup = pileup_decided(request, "periods_per_pixel" in plan.meta or request.periods is not None,
+                                     cube=False)
+    if not decided:
+        # Coates' correction needs each pixel's whole histogram (and the decision, all of them)
+        print(f"spdepth recon: {path}: the pile-up decision needs every pixel's histogram: "
+              f"reconstructing it as one task (--pileup off splits it into blocks)", file=sys.stderr)
+        return None
     t1 = time.perf_counter()
     maps = reconstruct_blocks(client, plan, settings, unit_s)
     read = ReadResult(store=None, path=str(path), kind="ptu", is_image=True, meta=plan.meta)
     res = file_result(request, maps, read, read_s=t1 - t0, recon_s=time.perf_counter() - t1,
-                      photons_in_file=plan.photons)
+                      photons_in_file=plan.photons, pileup=pileup)
     return {**res.summary, "chunks": len(plan.starts), "blocks": len(plan.rows) - 1}
 
 

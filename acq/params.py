@@ -423,7 +423,8 @@ _DECLARED = (
           group="source", sources=("file",), metavar="INPUT",
           positional=("recon",), label="File", example="scan.ptu or data.mat",
           per_command={"recon": dict(nargs="+", help=".mat (first-photon imaging) or PTU/HT3/PT3 "
-                                     "T3 file; with several, --npz and --png name folders "
+                                     "T3 file, or a count cube (H x W x T, or frames) in .mat/.npy/"
+                                     ".npz/HDF5; with several, --npz and --png name folders "
                                      "(NPZ/<name>.npz)")},
           help="a .mat (first-photon imaging) or PicoQuant PTU/HT3/PT3 T3 file, reconstructed as "
                "spdepth recon does"),
@@ -597,7 +598,8 @@ _DECLARED = (
                        "first-photon-imaging files, 1 for ps)",
           help="size of one raw time unit"),
     Param("--mat-var", "mat_var", "str", group="file", sources=("file",), metavar="NAME",
-          help=".mat files: the cell-array variable to read when the file holds several"),
+          help="the variable to read when the file holds several: a .mat file's cell array or "
+               "count cube, a .npz file's array, an HDF5 file's dataset"),
     Param("--channel", "channel", "int", group="file", sources=("file",), low=0, metavar="N",
           default_text="all", help="PicoQuant files: keep only detector channel N (0-based)"),
     Param("--threads", "threads", "int", group="file", sources=("file",), commands=("recon",),
@@ -609,6 +611,20 @@ _DECLARED = (
           help="reconstruct on a dask.distributed cluster: a scheduler address, or local:N for N "
                "worker processes on 127.0.0.1 (docs/dask.md); same maps (needs the dask extra: "
                "pip install 'spdepth[dask]')"),
+    # -- pile-up (high flux; recon.pileup) -----------------------------------------------------------
+    Param("--periods", "periods", "float", group="pile-up", sources=("file",), commands=("recon",),
+          low=0, low_open=True, metavar="N",
+          default_text="from the file (fixed-dwell PTU, session recordings, array recordings)",
+          help="laser periods each pixel integrated over (per frame of a cube), for files that do "
+               "not record them"),
+    Param("--pileup", "pileup", "str", group="pile-up", sources=("file",), commands=("recon",),
+          default="auto", choices=("auto", "on", "off"),
+          help="Coates' pile-up correction of each pixel's histogram: auto where some pixel saw more "
+               "than 0.05 detections per laser period and the periods are known; on; off"),
+    Param("--dead-time-ns", "dead_time_s", "float", group="pile-up", sources=("file",),
+          commands=("recon",), unit="ns", scale=1e-9, low=0, low_open=True, metavar="NS",
+          default_text="the detector re-arms at each laser sync",
+          help="the detector's dead time, when shorter than the laser period"),
     Param("--range-offset-m", "range_offset_m", "float", group="points", sources=("file",),
           unit="m", metavar="M", exclusive="offset",
           help="add M metres to every depth (gated long-range data whose times start at a range "

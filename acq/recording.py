@@ -574,7 +574,7 @@ def session_photons(path: str | Path):
                      f"{plan.target} detections")
     meta = {"assignment": "session recording (pixel markers, complete dwells)", "passes": passes,
             "target": plan.target, "window": list(store.window), "records": src.info.n_records}
-    return store.photons(), tuple(notes), meta
+    return store.photons(), tuple(notes), meta, store.periods.astype(np.float64)
 
 
 def recon_settings_from_dict(d: dict, **override) -> ReconSettings:

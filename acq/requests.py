@@ -454,6 +454,10 @@ class FileReconRequest(_Request):
     range_offset_m, gate_delay_s: gated long-range data record times after a range gate: the
                  range added to every depth (or the gate delay, c * delay / 2 added); one or none.
     threads:     estimator threads (None: all cores).
+    periods, pileup, dead_time_s: pile-up (``recon.pileup``): the laser periods each pixel (each
+                 frame of a cube) integrated over, for files that do not record them; ``auto``
+                 corrects where detections per period are not small, ``on``/``off`` force it; the
+                 detector's dead time (None: it re-arms at each laser sync).
     """
 
     KIND = "recon"
@@ -479,6 +483,9 @@ class FileReconRequest(_Request):
     fov_deg: float | None = None
     range_offset_m: float | None = None
     gate_delay_s: float | None = None
+    periods: float | None = None
+    pileup: str = default("--pileup", "file")
+    dead_time_s: float | None = None
 
     def __post_init__(self) -> None:
         if not self.input:

@@ -15,7 +15,9 @@ from typing import Callable
 import numpy as np
 
 from spdepth.recon import estimators
+from spdepth.recon.counts import CountStore
 from spdepth.recon.errors import InputError
+from spdepth.recon.given import given_pulse
 from spdepth.recon.maps import DepthMaps
 from spdepth.recon.model import Binning, ReconSettings
 from spdepth.recon.photons import PhotonStore
@@ -27,6 +29,10 @@ def reconstruct(store: PhotonStore, settings: ReconSettings,
                 progress: Callable[[int, int], None] | None = None) -> DepthMaps:
     """Estimate depth, background and signal at every pixel of ``store``.
 
+    ``store``: a photon list, or counts (``recon.counts.CountStore``: a histogram cube, or a
+    pile-up-corrected histogram), which an estimator with the ``counts`` capability takes as (bin,
+    count) pairs and any other as the equivalent photon list.
+
     Steps: resolve the binning and pulse (estimating the pulse RMS from the data when neither a width
     nor an IRF is given), then run the estimator of ``settings`` (``recon.estimators.for_settings``:
     the method, or the K-surface fit it hands several surfaces to), which keeps the first
@@ -36,11 +42,23 @@ def reconstruct(store: PhotonStore, settings: ReconSettings,
     """
     if not isinstance(settings, ReconSettings):
         raise InputError(f"settings must be ReconSettings, got {type(settings).__name__}")
-    if not isinstance(store, PhotonStore):
-        raise InputError(f"store must be a PhotonStore, got {type(store).__name__}")
+    if not isinstance(store, (PhotonStore, CountStore)):
+        raise InputError(f"store must be a PhotonStore or a CountStore, got {type(store).__name__}")
     est = estimators.for_settings(settings)
-    b, kern, notes = resolve_model(store, settings)
+    if isinstance(store, CountStore) and not est.counts:
+        store = as_photons(store)
+    model_from = store
+    if isinstance(store, CountStore) and given_pulse(settings) is None:
+        model_from = as_photons(store)    # the pulse is measured on photon times (recon.irf)
+    b, kern, notes = resolve_model(model_from, settings)
     return est.run(store, settings, b, kern, notes, progress)
+
+
+def as_photons(counts: CountStore) -> PhotonStore:
+    """The photon list of ``counts`` for what takes photons only (an estimator without the
+    ``counts`` capability, the pulse measured from the data): exact for whole counts, running
+    totals rounded for pile-up-corrected ones (:meth:`CountStore.to_photons`)."""
+    return counts.to_photons(round_counts=not counts.is_whole())
 
 
 def warm_up(settings: ReconSettings) -> None:
@@ -60,4 +78,4 @@ def warm_up(settings: ReconSettings) -> None:
     reconstruct(one, dataclasses.replace(settings, binning=b, pulse_rms_s=pulse))
 
 
-__all__ = ["reconstruct", "resolve_model", "warm_up"]
+__all__ = ["as_photons", "reconstruct", "resolve_model", "warm_up"]

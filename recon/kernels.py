@@ -207,7 +207,12 @@ def unique_bins(bins, o0, o1, tally, bits, tmp, kb, kw):
 
 #: Every pixel's in-window detections as bins (CSR): ``bins[offsets[p]:offsets[p + 1]]`` (int64,
 #: inside [0, M)) are pixel p's, in detection order; P = offsets.size - 1.
-Photons = namedtuple("Photons", ["bins", "offsets"])
+#: The ``weights`` of :class:`Photons` whose bins are per detection (every detection counts one).
+NO_WEIGHTS = np.empty(0)
+#: A chunk's pixels (CSR): ``bins[offsets[p]:offsets[p + 1]]`` per detection (``weights`` empty,
+#: the default), or a pixel's distinct bins, ascending, with their counts in ``weights`` (a histogram
+#: cube, or one corrected for pile-up: ``recon.counts.CountStore.binned``).
+Photons = namedtuple("Photons", ["bins", "offsets", "weights"], defaults=(NO_WEIGHTS,))
 #: :func:`pixel_bins`' scratch and result (:func:`pixel_scratch`): kb[:nu] a pixel's distinct bins,
 #: ascending, kw[:nu] their counts (float64); tmp, tally, bits its working space.
 PixelBins = namedtuple("PixelBins", ["kb", "kw", "tmp", "tally", "bits"])
@@ -225,10 +230,20 @@ def pixel_scratch(maxn, m):
 @njit(cache=True, nogil=True, inline="always")
 def pixel_bins(ph, p, px):
     """(nu, n): pixel p's distinct bins and their counts into px.kb[:nu], px.kw[:nu] (ascending), and
-    its detections n. The one place every estimator reads a pixel's photons from."""
+    its detections n (rounded, for pairs whose counts are not whole). The one place every
+    estimator reads a pixel's photons from."""
     o0 = ph.offsets[p]
     o1 = ph.offsets[p + 1]
-    return unique_bins(ph.bins, o0, o1, px.tally, px.bits, px.tmp, px.kb, px.kw), o1 - o0
+    if ph.weights.size == 0:
+        return unique_bins(ph.bins, o0, o1, px.tally, px.bits, px.tmp, px.kb, px.kw), o1 - o0
+    # (bin, count) pairs already: copied as they are; the detections are the counts' sum
+    n = 0.0
+    for a in range(o1 - o0):
+        px.kb[a] = ph.bins[o0 + a]
+        w = ph.weights[o0 + a]
+        px.kw[a] = w
+        n += w
+    return o1 - o0, np.int64(n + 0.5)
 
 
 @njit(cache=True, nogil=True, inline="always")

@@ -68,14 +68,26 @@ def binned_photons(store: PhotonStore, b: Binning, max_photons: int | None) -> t
     return bins[:n_kept], offsets
 
 
-def fit_pixels(store: PhotonStore, settings: ReconSettings, b: Binning,
-               fit_chunk: Callable[[np.ndarray, np.ndarray, int, PixelFit], None],
+def fit_pixels(store, settings: ReconSettings, b: Binning,
+               fit_chunk: Callable[..., None],
                progress: Callable[[int, int], None] | None = None) -> PixelFit:
     """Bin the first ``settings.max_photons`` in-window detections of every pixel and run
-    ``fit_chunk`` over chunks of CHUNK_PIXELS pixels, calling ``progress(done, total)`` after each."""
+    ``fit_chunk(bins, offsets, max_n, out)`` over chunks of CHUNK_PIXELS pixels (``max_n``: the most
+    entries a pixel has), calling ``progress(done, total)`` after each. A
+    :class:`recon.counts.CountStore` (given only to estimators with the ``counts`` capability) comes
+    as (bin, count) pairs: ``fit_chunk(bins, offsets, max_n, out, weights=counts)``."""
+    from spdepth.recon.counts import CountStore
+    from spdepth.recon.kernels import NO_WEIGHTS
+
     if settings.several:
         raise InputError("a pixelwise fit gives one surface per pixel; several: recon.estimators.surfaces")
-    bins, offsets = binned_photons(store, b, settings.max_photons)
+    if isinstance(store, CountStore):
+        if settings.max_photons is not None:
+            raise InputError("counts keep no detection order: max_photons does not apply")
+        bins, weights, offsets = store.binned(b)
+    else:
+        bins, offsets = binned_photons(store, b, settings.max_photons)
+        weights = NO_WEIGHTS
     npix = store.n_pixels
     counts = np.diff(offsets)
     out = PixelFit.empty(npix)
@@ -83,7 +95,10 @@ def fit_pixels(store: PhotonStore, settings: ReconSettings, b: Binning,
         p1 = min(npix, p0 + CHUNK_PIXELS)
         o = offsets[p0:p1 + 1]
         maxn = int(counts[p0:p1].max()) if p1 > p0 else 0
-        fit_chunk(bins[o[0]:o[-1]], o - o[0], maxn, out.rows(p0, p1))
+        if weights.size:
+            fit_chunk(bins[o[0]:o[-1]], o - o[0], maxn, out.rows(p0, p1), weights=weights[o[0]:o[-1]])
+        else:
+            fit_chunk(bins[o[0]:o[-1]], o - o[0], maxn, out.rows(p0, p1))
         if progress is not None:
             progress(p1, npix)
     return out

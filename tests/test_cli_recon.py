@@ -116,7 +116,7 @@ def test_recon_text_file_named_ptu(tmp_path, capsys):
     path = tmp_path / "notes.ptu"
     path.write_text("not a measurement\n")
     assert main(["recon", str(path)]) == 2
-    assert "notes.ptu: not a .mat, PTU, HT3 or PT3 file" in capsys.readouterr().err
+    assert "notes.ptu: not a .mat, PTU, HT3, PT3, .npy, .npz or HDF5 file" in capsys.readouterr().err
 
 
 def test_recon_subprocess(face_crop, tmp_path):

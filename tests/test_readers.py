@@ -202,7 +202,7 @@ def test_truncated_mat(shared_data, tmp_path):
 @pytest.mark.parametrize("name,content,message", [
     ("empty.ptu", b"", "file is empty"),
     ("empty.mat", b"", "file is empty"),
-    ("notes.ptu", b"just some text, not a measurement\n" * 5, "not a .mat, PTU, HT3 or PT3"),
+    ("notes.ptu", b"just some text, not a measurement\n" * 5, "not a .mat, PTU, HT3, PT3, .npy, .npz or HDF5"),
     ("magic_only.ptu", b"PQTTTR\0\0", "not a readable PTU file"),
 ])
 def test_bad_files_are_named_in_one_line(tmp_path, name, content, message):

@@ -11,6 +11,10 @@ override them. Otherwise, with neither ``--window-ps`` nor ``--bin-ps`` the esti
 from the data (window: the span of the detections; bins: a ninth of the pulse RMS); with only one
 given, the other comes from the data by recon's one rule (``recon.model.Binning.from_data``).
 Without ``--pulse-rms-ps`` or ``--irf`` the estimator estimates the pulse shape.
+
+A histogram cube (counts in time bins per pixel; frames summed) is read as counts: ``--time-unit-ps``
+is its bin width, and bin k is raw time k, so the window and bins mean what they mean for photon
+times. Pile-up (``--pileup``) is corrected where detections per laser period are not small.
 """
 
 from __future__ import annotations
@@ -21,7 +25,8 @@ import sys
 
 from spdepth.acq.params import add_options
 
-HELP = "reconstruct depth/background maps from a .mat or PicoQuant PTU/HT3/PT3 T3 file"
+HELP = ("reconstruct depth/background maps from a .mat or PicoQuant PTU/HT3/PT3 T3 file, or a "
+        "histogram cube (.mat, .npy, .npz, HDF5)")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -1,5 +1,6 @@
 """File readers: recorded measurements enter here, at the same point a live device does, and leave
-as one :class:`recon.photons.PhotonStore`.
+as one :class:`recon.photons.PhotonStore` (photon lists) or :class:`recon.counts.CountStore`
+(histogram cubes: :mod:`acq.readers.cube`).
 
 ``read_photons(path)`` picks the reader from the file's first bytes (not its name), so a text file
 called ``x.ptu`` gets a clear "not a PTU file" error instead of a decoder traceback.
@@ -24,7 +25,8 @@ _PT3_IDENT = b"PicoHarp 300"
 
 
 def sniff_kind(path: str | Path) -> str:
-    """The file's kind from its first bytes: ``"mat"``, ``"ptu"``, ``"ht3"`` or ``"pt3"``.
+    """The file's kind from its first bytes: ``"mat"``, ``"ptu"``, ``"ht3"``, ``"pt3"``, ``"npy"``,
+    ``"npz"`` or ``"hdf5"``.
 
     Raises InputError when the file is missing, empty or of none of these kinds."""
     path = Path(path)
@@ -52,19 +54,25 @@ def sniff_kind(path: str | Path) -> str:
                          f"not the time-tagged detections per pixel that depth needs; record in "
                          f"T3 mode (.ptu)")
     if head.startswith(b"\x89HDF"):
-        raise InputError(f"{path}: an HDF5 file (MATLAB v7.3?); save the .mat with -v7 to read it here")
-    raise InputError(f"{path}: not a .mat, PTU, HT3 or PT3 file (unrecognised first bytes "
-                     f"{head[:8]!r})")
+        return "hdf5"
+    if head.startswith(b"\x93NUMPY"):
+        return "npy"
+    if head.startswith(b"PK\x03\x04") and path.suffix.lower() == ".npz":
+        return "npz"
+    raise InputError(f"{path}: not a .mat, PTU, HT3, PT3, .npy, .npz or HDF5 file (unrecognised "
+                     f"first bytes {head[:8]!r})")
 
 
 def read_photons(path: str | Path, *, time_unit_s: float | None = None, mat_var: str | None = None,
                  channel: int | None = None) -> ReadResult:
-    """Read any supported file into a PhotonStore.
+    """Read any supported file into a PhotonStore (a histogram cube: into a CountStore, ``counts``).
 
-    path:        a first-photon-imaging .mat file, or a PicoQuant PTU / HT3 / PT3 T3 file.
+    path:        a .mat file (first-photon-imaging cells, or a count cube), a PicoQuant PTU / HT3 /
+                 PT3 T3 file, or a count cube in .npy / .npz / HDF5.
     time_unit_s: size of one raw time unit in seconds. Required for .mat files (they carry none);
                  for PicoQuant files it overrides the header's TCSPC resolution (rarely wanted).
-    mat_var:     the cell-array variable of a .mat file when it holds more than one.
+    mat_var:     the cell-array or cube variable of a .mat file (the array of a .npz, the dataset
+                 of an HDF5 file) when it holds more than one.
     channel:     PicoQuant files: keep only this detector channel (0-based); default all channels.
     """
     kind = sniff_kind(path)
@@ -74,6 +82,14 @@ def read_photons(path: str | Path, *, time_unit_s: float | None = None, mat_var:
         if channel is not None:
             raise InputError(f"{path}: a .mat file has no detector channels; drop the channel option")
         return read_mat(path, time_unit_s=time_unit_s, var=mat_var)
+    if kind in ("npy", "npz", "hdf5"):
+        from spdepth.acq.readers import cube
+
+        if channel is not None:
+            raise InputError(f"{path}: a count cube has no detector channels; drop the channel option")
+        if kind == "hdf5":
+            return cube.read_hdf5(path, time_unit_s=time_unit_s, var=mat_var)
+        return cube.read_numpy(path, kind, time_unit_s=time_unit_s, var=mat_var)
     if mat_var is not None:
         raise InputError(f"{path}: a {kind.upper()} file has no variables; drop the mat-var option")
     from spdepth.acq.readers import picoquant

@@ -1,5 +1,6 @@
 """First-photon-imaging .mat files: a 2-D MATLAB cell array, one cell per pixel, each cell a vector
-of detection times in detection order.
+of detection times in detection order. A .mat file holding a numeric 3-D / 4-D array instead (a
+histogram cube) is read by :mod:`acq.readers.cube`.
 
 MATLAB cell ``(i, j)`` is image row ``i``, column ``j``; scipy's ``loadmat`` keeps that as
 ``cells[i, j]``, so the row-major flat pixel index is simply ``cells.ravel(order="C")``. Cells can
@@ -38,19 +39,29 @@ def _cell_variables(contents: dict) -> dict[str, np.ndarray]:
             and value.dtype == object and value.ndim == 2}
 
 
-def load_cells(path: str | Path, var: str | None = None) -> tuple[str, np.ndarray]:
-    """Load the file's cell-array variable (or ``var``) as a 2-D object array ``cells[row, col]``."""
+def load_contents(path: Path) -> dict:
+    """Every variable of a level-5 .mat file (scipy's ``loadmat``); a v7.3 file raises
+    NotImplementedError (it is HDF5: :func:`acq.readers.cube.read_hdf5`)."""
     import scipy.io
 
-    path = Path(path)
     try:
-        contents = scipy.io.loadmat(path, squeeze_me=False, struct_as_record=True)
+        return scipy.io.loadmat(path, squeeze_me=False, struct_as_record=True)
     except NotImplementedError:
-        raise InputError(f"{path}: MATLAB v7.3 (HDF5) file; save it with -v7 to read it here") from None
+        raise
     except FileNotFoundError:
         raise InputError(f"{path}: no such file") from None
     except Exception as exc:  # scipy raises many kinds for damaged files (ValueError, TypeError, zlib.error, ...)
         raise InputError(f"{path}: not a readable .mat file ({type(exc).__name__}: {exc})") from None
+
+
+def load_cells(path: str | Path, var: str | None = None, contents: dict | None = None) -> tuple[str, np.ndarray]:
+    """Load the file's cell-array variable (or ``var``) as a 2-D object array ``cells[row, col]``."""
+    path = Path(path)
+    if contents is None:
+        try:
+            contents = load_contents(path)
+        except NotImplementedError:
+            raise InputError(f"{path}: MATLAB v7.3 (HDF5) file; save it with -v7 to read it here") from None
     cells = _cell_variables(contents)
     others = ", ".join(f"{k} ({_describe(v)})" for k, v in contents.items() if not k.startswith("__"))
     if var is not None:
@@ -337,7 +348,21 @@ def read_mat(path: str | Path, *, time_unit_s: float | None, var: str | None = N
         _check_times(path, name, store)
         return ReadResult(store=store, path=str(path), kind="mat", is_image=True,
                           meta={"mat_var": name, "time_unit_s": time_unit_s})
-    name, cells = load_cells(path, var)
+    try:
+        contents = load_contents(path)
+    except NotImplementedError:
+        # v7.3 is HDF5: only its numeric arrays (a cube) are read (cell arrays there are references)
+        from spdepth.acq.readers.cube import read_hdf5
+
+        return read_hdf5(path, time_unit_s=time_unit_s, var=var, matlab=True)
+    from spdepth.acq.readers.cube import is_cube, read_mat_cube
+
+    wanted = contents.get(var) if var is not None else None
+    if (wanted is not None and is_cube(wanted)) or (
+            var is None and not _cell_variables(contents)
+            and any(is_cube(v) for k, v in contents.items() if not k.startswith("__"))):
+        return read_mat_cube(path, contents, var, time_unit_s)
+    name, cells = load_cells(path, var, contents)
     if cells.size == 0:
         raise InputError(f"{path}: variable {name!r} is an empty cell array")
     store = cells_to_store(cells, time_unit_s, source=f"{path}: variable {name!r}")

@@ -254,11 +254,17 @@ def read_ptu(path: str | Path, *, time_unit_s: float | None = None,
         # a session's recording: its passes and lost spans are in events.jsonl beside it
         from spdepth.acq.recording import session_photons
 
-        store, notes, extra = session_photons(path)
+        store, notes, extra, periods = session_photons(path)
         if time_unit_s is not None and time_unit_s != store.time_unit_s:
             store = dataclasses.replace(store, time_unit_s=time_unit_s)
+        # a count-gated pixel's periods: up to the detection that filled it; its store holds the
+        # in-window detections only, so earlier ones outside the window shadow unseen
+        known = periods > 0
         return ReadResult(store=store, path=str(path), kind="ptu", is_image=True, notes=notes,
-                          meta=dict(meta, **extra, time_unit_s=store.time_unit_s))
+                          meta=dict(meta, **extra, time_unit_s=store.time_unit_s,
+                                    periods_source="session store (periods of the kept detections; "
+                                                   "in-window detections only)"),
+                          periods=np.where(known, periods, 1.0) if known.any() else None)
     if layout.truncation:
         notes = (layout.truncation,)
         meta["records"] = layout.records_in_file
@@ -267,7 +273,7 @@ def read_ptu(path: str | Path, *, time_unit_s: float | None = None,
         result = _read_by_pixel_markers(path, layout, rectype, image, time_unit_s or resolution_s,
                                         channel, meta)
         if result is not None:
-            return dataclasses.replace(result, notes=notes + result.notes)
+            return _with_fixed_dwell_periods(dataclasses.replace(result, notes=notes + result.notes), tags)
         notes += (f"{path.name}: the header names pixel marker {tags[PIXEL_MARKER_TAG]} but the "
                   f"records hold none: pixels interpolated between line markers",)
     records = np.fromfile(path, dtype="<u4", count=min(layout.n_records, layout.records_in_file),
@@ -276,7 +282,29 @@ def read_ptu(path: str | Path, *, time_unit_s: float | None = None,
                                 image, channel, meta)
     if notes:
         result = dataclasses.replace(result, notes=notes + result.notes)
-    return result
+    return _with_fixed_dwell_periods(result, tags) if image is not None else result
+
+
+def fixed_dwell_periods(tags: dict) -> tuple[float | None, dict]:
+    """The laser periods each pixel of an image of fixed dwell saw (not a session's count-gated
+    recording, read elsewhere): ``ImgHdr_TimePerPixel`` (ms) times ``TTResult_SyncRate``, the same
+    for every pixel, and the meta that says so; (None, {}) when the header lacks either."""
+    dwell_ms = float(tags.get("ImgHdr_TimePerPixel", 0) or 0)
+    rate = float(tags.get("TTResult_SyncRate", 0) or 0)
+    if not (dwell_ms > 0 and rate > 0):
+        return None, {}
+    n = max(1.0, round(dwell_ms * 1e-3 * rate))
+    return n, {"periods_per_pixel": n,
+               "periods_source": "header ImgHdr_TimePerPixel x TTResult_SyncRate (fixed dwell)"}
+
+
+def _with_fixed_dwell_periods(result: ReadResult, tags: dict) -> ReadResult:
+    """``result`` with :func:`fixed_dwell_periods` (unchanged when the header tells none)."""
+    n, meta = fixed_dwell_periods(tags)
+    if n is None:
+        return result
+    return dataclasses.replace(result, periods=np.full(result.store.n_pixels, n),
+                               meta=dict(result.meta, **meta))
 
 
 def ptu_image(path, tags: dict) -> dict | None:

@@ -46,6 +46,9 @@ class Estimator:
     live:          runs on a live scan's batches; else the pixelwise ``live_stand_in`` draws the
                    live maps and this one runs once on the whole final frame.
     method:        offered as a ``--method`` (False: reached only through another's ``several``).
+    counts:        its fit takes a ``recon.counts.CountStore`` as (bin, count) pairs
+                   (``recon.pixelwise.fit_pixels``); else it is handed the equivalent photon list
+                   (exact for whole counts, rounded running totals for pile-up-corrected ones).
     """
 
     name: str
@@ -58,6 +61,7 @@ class Estimator:
     live: bool = True
     live_stand_in: str | None = None
     method: bool = True
+    counts: bool = False
 
     def run(self, store, settings, binning, kernel, notes: dict, progress=None):
         """:data:`Fit` of this estimator, its module imported on the first call."""

@@ -36,14 +36,14 @@ def ml_tables(kern, m: int, fine_climb: bool | None = None):
 def fit(store, settings, b, kern, notes, progress=None):
     """:data:`recon.estimators.Fit` of ml on the resolved binning ``b`` and pulse ``kern``."""
     from spdepth.recon.estimators.ml_kernels import ml_kernel
-    from spdepth.recon.kernels import Photons
+    from spdepth.recon.kernels import NO_WEIGHTS, Photons
     from spdepth.recon.model import FINE_STEPS
     from spdepth.recon.pixelwise import fit_pixels, pixel_maps
 
     tabs = ml_tables(kern, b.n_bins)
 
-    def chunk(bins, offsets, maxn, out):
-        ml_kernel(Photons(bins, offsets), tabs, maxn, out.shift, out.amp, out.bg, out.var, out.n_used)
+    def chunk(bins, offsets, maxn, out, weights=NO_WEIGHTS):
+        ml_kernel(Photons(bins, offsets, weights), tabs, maxn, out.shift, out.amp, out.bg, out.var, out.n_used)
 
     res = fit_pixels(store, settings, b, chunk, progress)
     return pixel_maps(store, settings, b, kern, notes, res, shift_step=1.0 / FINE_STEPS)
@@ -51,4 +51,4 @@ def fit(store, settings, b, kern, notes, progress=None):
 
 ESTIMATOR = register(Estimator(
     "ml", "exact Poisson maximum likelihood (the paper's eq. 9): 1/8-bin shifts, estimates background",
-    fit, pixelwise=True, several="surfaces"))
+    fit, pixelwise=True, several="surfaces", counts=True))

@@ -84,9 +84,10 @@ def _mix_pass(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, s, bound):
             neg0 += 0.0 if pos else wu * em * em
         else:
             neg2 += wq2
-        if wu <= ML_POWER_MAX:
+        if wu <= ML_POWER_MAX and wu == math.floor(wu):
             # a bin detected a few times (common under a return): its rate once per detection,
-            # chosen by selects (a loop of unknown length mispredicted its exit)
+            # chosen by selects (a loop of unknown length mispredicted its exit); a count that is
+            # not whole (pile-up corrected) takes the log
             l2 = lam * lam
             fac = lam if wu == 1.0 else l2
             fac = fac * lam if wu == 3.0 else fac

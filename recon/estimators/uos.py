@@ -40,14 +40,14 @@ def matched_filter_var(shift: np.ndarray, amp: np.ndarray, bg: np.ndarray, kern,
 def fit(store, settings, b, kern, notes, progress=None):
     """:data:`recon.estimators.Fit` of uos on the resolved binning ``b`` and pulse ``kern``."""
     from spdepth.recon.estimators.uos_kernels import uos_kernel, uos_tables
-    from spdepth.recon.kernels import Photons
+    from spdepth.recon.kernels import NO_WEIGHTS, Photons
     from spdepth.recon.pixelwise import fit_pixels, pixel_maps
 
     tabs = uos_tables(kern.g, kern.off, kern.gmax, kern.colsum, kern.pp, b.n_bins, float(settings.delta),
                       int(settings.max_iterations))
 
-    def chunk(bins, offsets, maxn, out):
-        uos_kernel(Photons(bins, offsets), tabs, maxn, out.shift, out.amp, out.bg, out.iters, out.conv,
+    def chunk(bins, offsets, maxn, out, weights=NO_WEIGHTS):
+        uos_kernel(Photons(bins, offsets, weights), tabs, maxn, out.shift, out.amp, out.bg, out.iters, out.conv,
                    out.n_used)
 
     res = fit_pixels(store, settings, b, chunk, progress)
@@ -57,4 +57,4 @@ def fit(store, settings, b, kern, notes, progress=None):
 
 ESTIMATOR = register(Estimator(
     "uos", "union of subspaces (the seed paper's Algorithm 1): integer shifts, estimates background",
-    fit, pixelwise=True, several="surfaces"))
+    fit, pixelwise=True, several="surfaces", counts=True))
