@@ -142,7 +142,7 @@ def test_a_batch_goes_on_past_a_file_it_cannot_read(small_ptu, tmp_path, capsys)
     out = tmp_path / "maps"
     assert main(["recon", str(a), str(bad), str(b), "--npz", str(out)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert err[0].startswith(f"spdepth recon: error: {bad}: not a .mat, PTU, HT3 or PT3 file")
+    assert err[0].startswith(f"spdepth recon: error: {bad}: not a .mat, PTU, HT3, PT3, .npy, .npz or HDF5 file")
     assert err[-1] == "spdepth recon: 2 of 3 inputs reconstructed; 1 could not be: bad.ptu"
     assert len(err) == 2
     assert sorted(p.name for p in out.iterdir()) == ["a.npz", "b.npz"]    # both good ones written
