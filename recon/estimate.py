@@ -32,7 +32,9 @@ def reconstruct(store: PhotonStore, settings: ReconSettings,
     the method, or the K-surface fit it hands several surfaces to), which keeps the first
     ``max_photons`` in-window detections of each pixel, bins them, and calls ``progress(done,
     total)`` as it goes (per chunk of pixels for the pixelwise methods). Returns :class:`DepthMaps`;
-    ``settings`` in it holds everything used (binning, pulse RMS and its source).
+    then decides per pixel whether the data hold a return and sets every depth's uncertainty
+    (:mod:`recon.detect`, the one place every estimator's maps pass). ``settings`` in it holds
+    everything used (binning, pulse RMS and its source).
     """
     if not isinstance(settings, ReconSettings):
         raise InputError(f"settings must be ReconSettings, got {type(settings).__name__}")
@@ -40,7 +42,11 @@ def reconstruct(store: PhotonStore, settings: ReconSettings,
         raise InputError(f"store must be a PhotonStore, got {type(store).__name__}")
     est = estimators.for_settings(settings)
     b, kern, notes = resolve_model(store, settings)
-    return est.run(store, settings, b, kern, notes, progress)
+    maps = est.run(store, settings, b, kern, notes, progress)
+    # the one place every estimator's maps pass: is there a return, and how sure is each depth
+    from spdepth.recon.detect import decide_maps
+
+    return decide_maps(store, settings, maps)
 
 
 def warm_up(settings: ReconSettings) -> None:

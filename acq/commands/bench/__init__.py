@@ -31,6 +31,8 @@ TARGETS = {
                  "1 at 50 detections per pixel, warm, 1 thread (pixels/s)"),
     "startup": ("spdepth.acq.commands.bench.startup", "spdepth recon in a new process, warm numba cache: "
                 "wall, read_s, recon_s, ratio to the plain port of Algorithm 1 (--before: another checkout)"),
+    "honesty": ("spdepth.acq.commands.bench.honesty", "split-half check of depths and uncertainties without truth: "
+                "each pixel's alternate detections reconstructed apart, agreement within 1 and 3 sigma (FILE)"),
     "spatial": ("spdepth.acq.commands.bench.spatial", "spatial estimator on a 256x256 frame beside ml, warm, 1 thread "
                 "(pixels/s per core)"),
 }
