@@ -253,7 +253,8 @@ def finish_session(session, out_dir: str | Path | None, title: str | None = None
                         exposure_s=exposure_s, target=session.plan.target)
         geometry = geometry_of(maps)
         if geometry is not None:
-            n_points = write_points(maps, geometry, ply=out / "points.ply", note=title or "")
+            n_points = write_points(maps, geometry, ply=out / "points.ply", note=title or "",
+                                    acq_flags=session.acq_flags.reshape(session.plan.shape))
     snap = session.snapshot()
     run = session.run_record()
     return {
