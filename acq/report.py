@@ -150,7 +150,8 @@ def _draw_panel(fig, ax, d, name: str, arr: np.ndarray, tgt: int, weak_px, exten
 
     cmap = matplotlib.colormaps[d.cmap].with_extremes(bad=NAN_COLOUR)
     const = constant_value(arr)
-    lv = levels_for(d, arr, tgt) or (0.0, 1.0)
+    # confident surfaces set the levels (weak ones are faded over them; no-return pixels are NaN)
+    lv = levels_for(d, arr, tgt, weak=weak_px) or (0.0, 1.0)
     vmin, vmax = lv
     counts_map = whole_numbers(arr)
     if counts_map and 0 <= vmin and vmax <= DISCRETE_MAX:

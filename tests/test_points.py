@@ -211,3 +211,18 @@ def test_las_returns_and_flags_read_back(tmp_path, rng):
     v = plyfile.PlyData.read(str(tmp_path / "q.ply"))["vertex"]
     assert ((v["flags"] & PointFlag.NO_RETURN) != 0).sum() == 1
     assert {"return_number", "number_of_returns", "pixel_flag", "acq_flag"} <= set(v.data.dtype.names)
+
+
+def test_weak_surfaces_do_not_set_the_levels(rng):
+    # a face at 2.8-3.1 m over a wall at 3.6 m, and weak surfaces scattered over 0.2-14 m: the
+    # levels are the confident surfaces' (the face keeps its colours)
+    depth = np.full((64, 64), 3.6) + rng.normal(0, 0.01, (64, 64))
+    depth[16:40, 20:44] = np.linspace(2.8, 3.1, 24)[None, :]
+    weak = rng.random((64, 64)) < 0.25
+    depth[weak] = rng.uniform(0.2, 14.0, int(weak.sum()))
+    lo, hi = levels_for(MAPS_BY_KEY["depth"], depth, weak=weak)
+    assert 2.7 < lo < 2.85 and 3.55 < hi < 3.7
+    lo_all, hi_all = levels_for(MAPS_BY_KEY["depth"], depth)
+    assert lo_all < 1.0 and hi_all > 10.0                      # what the weak ones did before
+    # only weak surfaces: they are all there is to draw
+    assert levels_for(MAPS_BY_KEY["depth"], depth, weak=np.ones_like(weak)) == (lo_all, hi_all)
