@@ -45,7 +45,7 @@ from spdepth.acq.assign import PassGeometry
 from spdepth.acq.errors import RecordingError, RequestError
 from spdepth.acq.flags import AcqFlag
 from spdepth.acq.ptu import (INFO_TAG, PIXEL_MARKER_TAG, PLAN_TAG, RECON_TAG, iter_records,
-                             marker_map, patch_record_count, ptu_header, read_layout,
+                             marker_map, patch_pixel_time, patch_record_count, ptu_header, read_layout,
                              split_marker_records)
 from spdepth.acq.sources import feed_passes
 from spdepth.drivers.errors import ProtocolError
@@ -118,14 +118,17 @@ class Recorder:
             if not self.closed:
                 self._maybe_flush()
 
-    def close(self) -> None:
-        """Flush, patch the record count (the file is complete), close."""
+    def close(self, pixel_time_s: float | None = None) -> None:
+        """Flush, patch the record count (the file is complete) and, given the scan's typical pixel
+        time (a count-gated scan's mean dwell), the header's ``ImgHdr_TimePerPixel``; close."""
         with self._lock:
             if self.closed:
                 return
             self.closed = True
             self._fh.flush()
             patch_record_count(self._fh, self.records)
+            if pixel_time_s is not None and pixel_time_s > 0:
+                patch_pixel_time(self._fh, pixel_time_s)
             self._fh.close()
 
 
