@@ -417,7 +417,7 @@ def reconstruct_file(request: FileReconRequest, progress=None) -> FileResult:
 
     t0 = time.perf_counter()
     result = read_photons(request.input, time_unit_s=request.time_unit_s, mat_var=request.mat_var,
-                          channel=request.channel)
+                          channel=request.channel, keep=request.max_photons)
     store = result.store
     if store.n_photons == 0:
         raise InputError(f"{request.input}: holds no photons")
@@ -464,6 +464,11 @@ def file_result(request: FileReconRequest, maps, read, *, read_s: float = 0.0,
     used_binning = Binning.from_dict(used["binning"])
     irf_used = _irf_used(used)
     notes = tuple(read.notes)
+    if photons_in_file is None:
+        photons_in_file = int((read.meta or {}).get("photons_in_file", store.n_photons))
+    account = photon_account(request.input, read, store, maps) if store is not None else None
+    if account and int(np.sum(maps.photons)) < photons_in_file:
+        notes += (account,)          # said on every run that left detections out
     h, w = maps.shape
     per_pixel = float(np.sum(maps.photons)) / max(1, h * w)
     neighbours = estimators.names(pixelwise=False)
@@ -473,10 +478,39 @@ def file_result(request: FileReconRequest, maps, read, *, read_s: float = 0.0,
     res = FileResult(request, maps, store, used_binning, used.get("pulse_rms_s"),
                      irf_used if used.get("irf") else None, read.is_image, read.kind,
                      notes, read_s, recon_s,
-                     photons_in_file=store.n_photons if photons_in_file is None else photons_in_file)
+                     photons_in_file=photons_in_file)
     _write_file_outputs(res, read)
     res.summary = _file_summary(res, read)
+    res.summary["photons_account"] = account
     return res
+
+
+def photon_account(path, read, store, maps) -> str:
+    """One line: the detections in the file, those used, and why the rest were not (outside
+    lines, pixels or dwells, outside the window, past the per-pixel limit, kept by a session)."""
+    meta = read.meta or {}
+    used = int(np.sum(maps.photons))
+    b = maps.settings.get("binning") or {}
+    in_file = int(meta.get("photons_in_file", store.n_photons))
+    parts = []
+    for key, what in (("photons_outside_lines", "outside the scan lines"),
+                      ("photons_outside_pixels", "outside any pixel"),
+                      ("photons_outside_dwells", "outside any complete dwell (fly-back, parked mirror, cut passes)")):
+        if meta.get(key):
+            parts.append(f"{meta[key]} {what}")
+    if "kept_per_pixel" in meta:
+        dropped = in_file - store.n_photons - int(meta.get("photons_outside_dwells", 0))
+        parts.append(f"{dropped} beyond the first {meta['kept_per_pixel']} in-window per pixel ({meta['kept_why']}) "
+                     f"or outside the window")
+    elif b:
+        inside = int(np.count_nonzero((store.times >= b["window_start"]) & (store.times < b["window_stop"])))
+        if store.n_photons - inside:
+            parts.append(f"{store.n_photons - inside} outside the window")
+        if inside - used:
+            parts.append(f"{inside - used} beyond the first {maps.settings.get('max_photons')} per pixel "
+                         f"(--max-photons)")
+    return (f"{Path(path).name}: {in_file} detections in the file, {used} used"
+            + (": " + "; ".join(parts) if parts else ""))
 
 
 def _with_geometry_and_offset(maps, request: FileReconRequest, shape):

@@ -481,10 +481,12 @@ def _map_markers(kind, marker, lut):
             marker[i] = lut[marker[i] & 15]
 
 
-def session_photons(path: str | Path):
+def session_photons(path: str | Path, keep: int | None = None):
     """The photons a session kept, rebuilt from its recording (``acq.store``'s rule: the first
     ``target`` in-window detections of complete dwells, passes placed by the event log): what
-    ``spdepth recon`` reconstructs from a recording. Returns (PhotonStore, notes, meta)."""
+    ``spdepth recon`` reconstructs from a recording. ``keep``: that many per pixel instead of the
+    session's target (``--max-photons``). Returns (PhotonStore, notes, meta); meta says what was in
+    the file (``photons_in_file``, ``photons_outside_dwells``) and what was kept and why."""
     from spdepth.acq.plan import ScanPlan
     from spdepth.acq.store import PixelStore
 
@@ -494,7 +496,8 @@ def session_photons(path: str | Path):
             raise RecordingError(f"recording {src.path}: header tag {name} is missing")
     plan = ScanPlan.from_dict(src.info.plan)
     b = recon_settings_from_dict(src.info.recon).binning
-    store = PixelStore(plan.shape, plan.target,
+    n_keep = int(keep) if keep is not None else plan.target
+    store = PixelStore(plan.shape, n_keep,
                        (int(np.floor(b.window_start)), int(np.ceil(b.window_stop))),
                        src.info.resolution_s)
     passes = 0
@@ -505,12 +508,16 @@ def session_photons(path: str | Path):
             store.feed(chunk)
         store.end_pass()
     notes = list(src.warnings)
-    short = int(np.count_nonzero(store.count < plan.target))
+    short = int(np.count_nonzero(store.count < n_keep))
     if short:
-        notes.append(f"{src.path.name}: {short} pixels hold fewer than the session's target of "
-                     f"{plan.target} detections")
+        notes.append(f"{src.path.name}: {short} pixels hold fewer than "
+                     + (f"the session's target of {plan.target} detections" if keep is None
+                        else f"the {n_keep} detections asked for"))
     meta = {"assignment": "session recording (pixel markers, complete dwells)", "passes": passes,
-            "target": plan.target, "window": list(store.window), "records": src.info.n_records}
+            "target": plan.target, "window": list(store.window), "records": src.info.n_records,
+            "photons_in_file": int(store.photons_seen), "photons_outside_dwells": int(store.unassigned),
+            "kept_per_pixel": n_keep,
+            "kept_why": "the session's target per pixel" if keep is None else "--max-photons"}
     return store.photons(), tuple(notes), meta
 
 
