@@ -259,6 +259,7 @@ def finish_session(session, out_dir: str | Path | None, title: str | None = None
     run = session.run_record()
     return {
         "state": session.state.value, "out": None if out is None else str(out),
+        "no_pixel_complete": no_pixel_cause(session),
         "error": run["error"], "pixels": snap.pixels_total,
         "flagged": int(sum(run["flag_reasons"].values())), "flag_reasons": run["flag_reasons"],
         "detections": snap.detections, "detections_per_s": round(snap.detections_per_s, 1),
@@ -268,6 +269,37 @@ def finish_session(session, out_dir: str | Path | None, title: str | None = None
         "recon_max_lag_pixels": session.live_recon.max_lag, "elapsed_s": round(snap.elapsed_s, 3),
         "points": n_points,
     }
+
+
+def no_pixel_cause(session) -> str | None:
+    """None when a session completed a pixel; else one line naming the likely cause (a run that
+    completes nothing is not "done": its command exits 1 with this line)."""
+    from spdepth.acq.flags import AcqFlag
+
+    flags = np.asarray(session.acq_flags)
+    if flags.size == 0 or np.any(flags == AcqFlag.COMPLETE):
+        return None
+    st, plan = session.store, session.plan
+    unit_ps = st.time_unit_s * 1e12
+    lo, hi = (v * unit_ps for v in st.window)
+    seen, kept = st.photons_seen, st.kept
+    if seen == 0:
+        return "no detection arrived at all (laser, detector, sync or cabling?)"
+    if st.unassigned == seen:
+        return f"none of the {seen} detections fell in a pixel's dwell (pixel markers missing?)"
+    if kept < 0.05 * (seen - st.unassigned):
+        return (f"{'none' if kept == 0 else f'only {kept}'} of the {seen} detections fell in the window "
+                f"{lo:g}:{hi:g} ps: widen --window-ps (the returns arrive elsewhere)")
+    most = int(np.max(st.count))
+    reasons = np.bincount(flags[flags != AcqFlag.COMPLETE], minlength=len(AcqFlag))
+    why = AcqFlag(int(np.argmax(reasons)))
+    hint = {AcqFlag.DWELL_LIMIT: "each dwell reached its limit first: more flux, a longer dwell limit or a lower "
+                                 "--target",
+            AcqFlag.PASS_LIMIT: "the passes ran out first: more flux, more passes or a lower --target",
+            AcqFlag.TIME_LIMIT: "the time limit came first",
+            AcqFlag.INCOMPLETE: "the stream ended first (a replay holds no more than its recording)"}.get(why, "")
+    return (f"no pixel reached the target of {plan.target} in-window detections (at most {most} in a pixel, "
+            f"{kept} of {seen} detections in the window {lo:g}:{hi:g} ps): {hint}")
 
 
 # ---- files -----------------------------------------------------------------------------------------
@@ -628,6 +660,6 @@ def _file_summary(res: FileResult, read) -> dict:
 
 
 __all__ = ["OutputDir", "new_run_dir", "open_instruments", "scan_plan", "scan_settings",
-           "build_session", "finish_session", "FileResult", "reconstruct_file", "file_binning",
+           "build_session", "finish_session", "no_pixel_cause", "FileResult", "reconstruct_file", "file_binning",
            "file_settings", "file_result", "set_threads",
            "recorded_recon_settings", "recorded_request", "read_run_record", "RUN_JSON", "SESSION_FILES"]

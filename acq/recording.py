@@ -184,6 +184,15 @@ class RecordingInfo:
     has_event_log: bool
 
 
+class RecordedEnd(Exception):
+    """Raised by a replay at the end of a recording whose session was aborted or failed: the
+    replay ends the same way (the session catches it: state ``state``, the recorded error kept)."""
+
+    def __init__(self, state: str, error: str | None):
+        self.state, self.error = state, error
+        super().__init__(f"the recorded session {state} here" + (f" ({error})" if error else ""))
+
+
 class ReplaySource:
     """A recording (``DIR`` or ``DIR/recording.ptu``, or any T3 PTU with pixel markers) as a stream
     of event chunks, cut into the passes the live session made.
@@ -275,6 +284,8 @@ class ReplaySource:
         whether the log ends with the session's end: None without a log)."""
         passes: list[list] = []
         lost: list[dict] = []
+        self.recorded_end: str | None = None
+        """How the recorded session ended ("done", "aborted", "failed"; None: not logged)."""
         if not self.events_path.is_file():
             return passes, lost, None
         ended = False
@@ -296,6 +307,8 @@ class ReplaySource:
                 elif kind == "lost":
                     lost.append(e)
                 ended = kind == "state" and e.get("state") in _END_STATES
+                if ended:
+                    self.recorded_end = e["state"]
         return passes, lost, ended
 
     # ---- the Source interface (acq.sources) ------------------------------------------------------
@@ -309,9 +322,21 @@ class ReplaySource:
         """Nothing to open: the file is open since the source was made."""
 
     def run(self, host):
-        """The recorded passes with their chunks and lost spans, as the live session saw them."""
+        """The recorded passes with their chunks and lost spans, as the live session saw them; a
+        session that was aborted or failed ends the replay where and as it ended
+        (:class:`RecordedEnd`), not as "done"."""
         feed_passes(host, self.segments())
+        if self.recorded_end in ("aborted", "failed"):
+            raise RecordedEnd(self.recorded_end, self._recorded_error())
         return AcqFlag.INCOMPLETE
+
+    def _recorded_error(self) -> str | None:
+        """The recorded session's error line (``run.json``), when it has one."""
+        run = self.path.parent / "run.json"
+        try:
+            return json.loads(run.read_text(encoding="utf-8")).get("error")
+        except (OSError, json.JSONDecodeError, AttributeError):
+            return None
 
     def flush(self) -> None:
         """Nothing to flush: a replay writes no recording."""

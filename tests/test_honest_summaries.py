@@ -52,3 +52,33 @@ def test_a_file_summary_says_what_the_window_and_limit_left_out(tmp_path):
     line = next(n for n in s["notes"] if "detections in the file" in n)
     assert f"{s['photons_in_file']} detections in the file, {s['photons']} used" in line
     assert "beyond the first 5 per pixel (--max-photons)" in line
+
+
+def test_a_run_that_completes_no_pixel_exits_1_naming_the_cause(tmp_path, capsys):
+    assert main(["scan", "--sim", "--size", "8x8", "--window-ps", "0:1000", "--out", str(tmp_path / "w")]) == 1
+    out = capsys.readouterr().out
+    assert "no pixel completed" in out and "--window-ps" in out
+    assert main(["scan", "--sim", "--size", "8x8", "--ppp", "0.01", "--out", str(tmp_path / "p")]) == 1
+    assert "dwell reached its limit" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("state", ["aborted", "failed"])
+def test_a_replay_ends_as_the_recorded_session_ended(raster_run, tmp_path, capsys, state):
+    import json
+    import shutil
+
+    run = tmp_path / "run"
+    shutil.copytree(raster_run, run)
+    lines = (run / "events.jsonl").read_text().splitlines()
+    last = json.loads(lines[-1])
+    assert last == {**last, "event": "state", "state": "done"}
+    lines[-1] = json.dumps({**last, "state": state})
+    (run / "events.jsonl").write_text("\n".join(lines) + "\n")
+    rec = json.loads((run / "run.json").read_text())
+    rec.update(state=state, error="DeviceError: tagger vanished" if state == "failed" else None)
+    (run / "run.json").write_text(json.dumps(rec))
+    assert main(["replay", str(run), "--out", str(tmp_path / "r")]) == 1
+    out = capsys.readouterr().out
+    assert out.startswith(f"replay: {state},")
+    if state == "failed":
+        assert "tagger vanished" in out
