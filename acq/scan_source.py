@@ -39,7 +39,8 @@ MAX_GALVO_FAULTS = 3
 
 
 _DEVICE_OF_FAULT = {"lost-data": "tagger", "tagger-reconnect": "tagger", "galvo-fault": "galvo",
-                    "galvo-reconnect": "galvo"}
+                    "galvo-reconnect": "galvo", "galvo-garbled-reply": "galvo", "galvo-missing-reply": "galvo",
+                    "galvo-slow-reply": "galvo", "galvo-serial-unplug": "galvo"}
 
 
 class ScanSource:
@@ -77,6 +78,8 @@ class ScanSource:
     # ---- arming ----------------------------------------------------------------------------------
     def arm(self, host: SourceHost) -> None:
         self._host = host
+        # every galvo exchange that failed and was retried goes on record (faults_seen)
+        self.galvo.on_fault = lambda kind, what: host.fault(f"galvo-{kind}", what, RETRIED)
         if host.out_dir is not None:
             self.recorder = Recorder(host.out_dir, host.plan, host.recon_settings,
                                      resolution_s=self.tagger.resolution_s,
