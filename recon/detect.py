@@ -3,11 +3,11 @@
 Every estimator's maps pass through :func:`decide_maps` (called by :func:`recon.estimate.reconstruct`,
 the one place maps are assembled), so the decision and the uncertainty mean the same for all of them.
 
-**The test** is the one ``--reflectors auto`` uses for K = 0 against 1 (:mod:`recon.multi`): the
+**The test** is the one ``--reflectors auto`` uses for K = 0 against 1 (:mod:`recon.estimators.surfaces_fit`): the
 statistic is the Poisson log-likelihood gain of one return over a flat background,
 ``max_s max_{a, B >= 0} log L(s, a, B) - max_B log L(B)``, its shift searched over every whole bin of
 the window and its amplitude and background profiled; a pixel holds a return when the gain exceeds
-:func:`recon.multi.auto_threshold_nats` at the false-alarm rate ``ReconSettings.false_alarm``
+:func:`recon.estimators.surfaces_fit.auto_threshold_nats` at the false-alarm rate ``ReconSettings.false_alarm``
 (default 1e-3 per pixel: about one background-only pixel in a thousand is taken for a return).
 The profile is exact: with the signal share ``pi`` of the expected detections the gain at shift s is
 ``sum_j w_j log(1 + pi (g_j M / C_s - 1))`` over the pixel's distinct bins j (counts w_j, pulse
@@ -318,7 +318,7 @@ def detect(bins: np.ndarray, offsets: np.ndarray, kern, est_shift: np.ndarray, f
     NaN where the estimator reports none), for the pulse kernel ``kern`` over ``kern.n_bins`` bins;
     the shifts are scanned every ``core_bins`` (the RMS of the response's sharp part, bins),
     every bin near the best and near the estimate."""
-    from spdepth.recon.multi import auto_threshold_nats, fwhm_bins
+    from spdepth.recon.estimators.surfaces_fit import auto_threshold_nats, fwhm_bins
 
     m = int(kern.n_bins)
     npix = offsets.size - 1
@@ -364,7 +364,7 @@ def decide_maps(store, settings, maps):
     n_photons = np.diff(offsets).reshape(h, w)
     spatial = settings.method == "spatial"
     changes = {}
-    from spdepth.recon.multi import fwhm_bins
+    from spdepth.recon.estimators.surfaces_fit import fwhm_bins
 
     # a window hardly wider than the pulse: time cannot tell a return from background
     decidable = b.n_bins >= UNDECIDABLE_FWHM * fwhm_bins(kern.g)
