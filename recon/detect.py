@@ -381,7 +381,12 @@ def detect_kernel(bins, offsets, m, g, off, colsum, fine, fine_colsum, fsteps, s
         out_sd[p] = max(q68, q95 / 2.0)
         out_sandwich[p] = _sandwich_var(ud, wd, nd, e, best_pi, fine, fine_colsum, fsteps, off, m)
         if n_boot > 0 and best > thr and n >= 2:
-            out_boot[p] = _bootstrap_sd(ud, wd, nd, n, e, best_pi, step, g, off, m, colsum, r, n_boot, p)
+            # seeded by the pixel's own detections, not its index: a pixel gets the same spread in
+            # a live batch, a Dask block or the whole frame
+            seed = n
+            for i in range(n):
+                seed = (seed * 1000003 + u[i] + 1) % 2147483647
+            out_boot[p] = _bootstrap_sd(ud, wd, nd, n, e, best_pi, step, g, off, m, colsum, r, n_boot, seed)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -501,7 +506,6 @@ def decide_maps(store, settings, maps):
         "applied": ("decision kept (neighbours' support)" if spatial else
                     "not applied: the window is hardly wider than the pulse" if not decidable else
                     "no return: no depth, flag NO_RETURN"),
-        "no_return": int(np.sum(flags == PixelFlag.NO_RETURN)),
         "uncertainty": "larger of the estimator's and the profile likelihood's spread about the estimate",
     }
     changes.update(tof_s=new_tof, depth_m=C_M_PER_S * new_tof / 2.0,
