@@ -59,6 +59,10 @@ UNDECIDABLE_FWHM = 4.0
 BOOTSTRAP = 40
 #: Largest table (grid shifts x distinct bins) a pixel's bootstrap builds; larger pixels go without.
 BOOT_MAX_TABLE = 2_000_000
+#: The bootstrap looks for each resample's best shift among those whose likelihood is within this
+#: many nats of the best (a resample of n detections moves a shift's log-likelihood by about its
+#: square root; far below the best, none wins).
+BOOT_NATS = 15.0
 #: Relative sampling error of the bootstrap's 68% quantile from BOOTSTRAP resamples (about 1/sqrt(
 #: 0.68 * BOOTSTRAP) plus the grid): a bootstrap spread counts only beyond it.
 BOOT_NOISE = 0.25
@@ -209,48 +213,37 @@ def _sandwich_var(ud, wd, nd, e, pi, fine, fine_colsum, fsteps, off, m):
 
 
 @njit(cache=True, nogil=True)
-def _bootstrap_sd(ud, wd, nd, n, e, pi, step, g, off, m, colsum, r, n_boot, seed):
+def _bootstrap_sd(ud, wd, nd, n, e, pi, cand, n_cand, g, off, m, colsum, r, n_boot, seed):
     """Spread of the shift about e (bins) over ``n_boot`` bootstrap resamples of the detections:
     the 68.27% quantile of |s_b - e| (its core: a resample's far jumps at low SBR are the
-    likelihood's to weigh), s_b each resample's
-    best shift (every step bins, every bin within 2 steps of e) at the signal share ``pi``. It sees
-    what a model that fits badly hides from the likelihood: detections spread wider than the pulse
-    (a mixed footprint) make resamples pick different clusters. NaN when too large to tabulate."""
+    likelihood's to weigh), s_b each resample's best shift among ``cand[:n_cand]`` (the shifts the
+    likelihood does not rule out, BOOT_NATS) at the signal share ``pi``. It sees what a model that
+    fits badly hides from the likelihood: detections spread wider than the pulse (a mixed
+    footprint) make resamples pick different clusters. NaN when too large to tabulate."""
     ng = g.size
     pi = min(pi, 1.0 - 0.5 / n)
     lq = math.log1p(-pi)
-    ce = int(round(e))
-    fine_lo, fine_hi = ce - 2 * step, ce + 2 * step
-    n_grid = 0
-    for s in range(m):
-        if (fine_lo <= s <= fine_hi or s % step == 0) and colsum[s] > 0.0:
-            n_grid += 1
-    if n_grid == 0 or n_grid * nd > BOOT_MAX_TABLE:
+    if n_cand == 0 or n_cand * nd > BOOT_MAX_TABLE:
         return np.nan
-    gs = np.empty(n_grid, np.int64)
-    glo = np.empty(n_grid, np.int64)
-    ghi = np.empty(n_grid, np.int64)
-    tab = np.empty(n_grid * nd, np.float64)
-    start = np.empty(n_grid + 1, np.int64)
-    k = 0
-    lo, hi = 0, 0
+    glo = np.empty(n_cand, np.int64)
+    ghi = np.empty(n_cand, np.int64)
+    start = np.empty(n_cand, np.int64)
+    tab = np.empty(n_cand * nd, np.float64)
     at = 0
-    for s in range(m):
-        if not ((fine_lo <= s <= fine_hi or s % step == 0) and colsum[s] > 0.0):
-            continue
+    for k in range(n_cand):
+        s = int(cand[k])
+        lo, hi = 0, nd
         while lo < nd and ud[lo] < s - off:
             lo += 1
+        hi = lo
         while hi < nd and ud[hi] <= s + ng - 1 - off:
             hi += 1
-        gs[k], glo[k], ghi[k] = s, lo, hi
-        start[k] = at
+        glo[k], ghi[k], start[k] = lo, hi, at
         if hi > lo:
             _ratios(ud, wd, lo, hi, s, g, off, m, colsum, r)
             for j in range(lo, hi):
                 tab[at] = (math.log1p(pi * r[j]) - lq) if r[j] > -1.0 else 0.0
                 at += 1
-        k += 1
-    start[n_grid] = at
     # each detection's distinct bin, to resample detections (not bins)
     di = np.empty(n, np.int64)
     i = 0
@@ -266,13 +259,13 @@ def _bootstrap_sd(ud, wd, nd, n, e, pi, step, g, off, m, colsum, r, n_boot, seed
         for _ in range(n):
             wb[di[np.random.randint(0, n)]] += 1.0
         best, best_s = -math.inf, e
-        for q in range(n_grid):
+        for q in range(n_cand):
             v = 0.0
-            a0 = start[q]
+            a0 = start[q] - glo[q]
             for j in range(glo[q], ghi[q]):
-                v += wb[j] * tab[a0 + j - glo[q]]
+                v += wb[j] * tab[a0 + j]
             if v > best:
-                best, best_s = v, gs[q]
+                best, best_s = v, cand[q]
         dist[b] = abs(best_s - e)
     dist.sort()
     return dist[min(n_boot - 1, int(math.ceil(0.6827 * n_boot)) - 1)]
@@ -358,6 +351,13 @@ def detect_kernel(bins, offsets, m, g, off, colsum, fine, fine_colsum, fsteps, s
             ns += 1
         if ns == 0:
             continue
+        # the shifts the likelihood does not rule out: where a bootstrap resample may land
+        cand = np.empty(ns, np.float64)
+        n_cand = 0
+        for i in range(ns):
+            if logw[i] >= top - BOOT_NATS:
+                cand[n_cand] = pos[i]
+                n_cand += 1
         total = 0.0
         dist = np.empty(ns, np.float64)
         for i in range(ns):
@@ -386,7 +386,7 @@ def detect_kernel(bins, offsets, m, g, off, colsum, fine, fine_colsum, fsteps, s
             seed = n
             for i in range(n):
                 seed = (seed * 1000003 + u[i] + 1) % 2147483647
-            out_boot[p] = _bootstrap_sd(ud, wd, nd, n, e, best_pi, step, g, off, m, colsum, r, n_boot, seed)
+            out_boot[p] = _bootstrap_sd(ud, wd, nd, n, e, best_pi, cand, n_cand, g, off, m, colsum, r, n_boot, seed)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -454,6 +454,8 @@ def decide_maps(store, settings, maps):
     several = tof.ndim == 3
     first = tof[0] if several else tof
     est = (first.ravel() / b.time_unit_s - b.window_start) / b.bin_width - 0.5
+    if several:
+        est = np.full(est.shape, np.nan)    # the surfaces keep their own uncertainties: only the test
     core_s = float(rec.get("pulse_core_rms_s", rec["pulse_rms_s"]))
     det = detect(bins, offsets, kern, est, settings.false_alarm, core_s / b.bin_width_s)
     h, w = maps.shape
