@@ -540,7 +540,7 @@ def photon_account(path, read, store, maps) -> str:
             parts.append(f"{store.n_photons - inside} outside the window")
         if inside - used:
             parts.append(f"{inside - used} beyond the first {maps.settings.get('max_photons')} per pixel "
-                         f"(--max-photons)")
+                         f"(--target)")
     return (f"{Path(path).name}: {in_file} detections in the file, {used} used"
             + (": " + "; ".join(parts) if parts else ""))
 

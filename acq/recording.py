@@ -510,7 +510,7 @@ def session_photons(path: str | Path, keep: int | None = None):
     """The photons a session kept, rebuilt from its recording (``acq.store``'s rule: the first
     ``target`` in-window detections of complete dwells, passes placed by the event log): what
     ``spdepth recon`` reconstructs from a recording. ``keep``: that many per pixel instead of the
-    session's target (``--max-photons``). Returns (PhotonStore, notes, meta); meta says what was in
+    session's target (``--target``). Returns (PhotonStore, notes, meta); meta says what was in
     the file (``photons_in_file``, ``photons_outside_dwells``) and what was kept and why."""
     from spdepth.acq.plan import ScanPlan
     from spdepth.acq.store import PixelStore
@@ -542,7 +542,7 @@ def session_photons(path: str | Path, keep: int | None = None):
             "target": plan.target, "window": list(store.window), "records": src.info.n_records,
             "photons_in_file": int(store.photons_seen), "photons_outside_dwells": int(store.unassigned),
             "kept_per_pixel": n_keep,
-            "kept_why": "the session's target per pixel" if keep is None else "--max-photons"}
+            "kept_why": "the session's target per pixel" if keep is None else "--target"}
     return store.photons(), tuple(notes), meta
 
 

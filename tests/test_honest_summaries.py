@@ -20,7 +20,7 @@ def raster_run(tmp_path_factory):
 
 def test_a_header_resolution_is_never_overridden_silently(tmp_path):
     path = tmp_path / "b.ptu"
-    assert main(["simulate", "--scene", "bust", "--size", "8x8", "--out", str(path)]) == 0
+    assert main(["simulate", "--scene", "bust", "--size", "8x8", "--ptu", str(path)]) == 0
     plain = read_photons(path)
     given = read_photons(path, time_unit_s=1e-12)
     assert given.store.time_unit_s == plain.store.time_unit_s == 8e-12
@@ -42,16 +42,16 @@ def test_a_recording_summary_counts_the_file_and_max_photons_works(raster_run):
     more = reconstruct_file(FileReconRequest(input=rec, max_photons=25)).summary
     assert more["photons"] > s["photons"]
     assert np.max(reconstruct_file(FileReconRequest(input=rec, max_photons=25)).maps.photons) == 25
-    assert any("--max-photons" in n for n in more["notes"])
+    assert any("--target" in n for n in more["notes"])
 
 
 def test_a_file_summary_says_what_the_window_and_limit_left_out(tmp_path):
     path = tmp_path / "b.ptu"
-    assert main(["simulate", "--scene", "bust", "--size", "8x8", "--out", str(path)]) == 0
+    assert main(["simulate", "--scene", "bust", "--size", "8x8", "--ptu", str(path)]) == 0
     s = reconstruct_file(FileReconRequest(input=str(path), max_photons=5)).summary
     line = next(n for n in s["notes"] if "detections in the file" in n)
     assert f"{s['photons_in_file']} detections in the file, {s['photons']} used" in line
-    assert "beyond the first 5 per pixel (--max-photons)" in line
+    assert "beyond the first 5 per pixel (--target)" in line
 
 
 def test_a_run_that_completes_no_pixel_exits_1_naming_the_cause(tmp_path, capsys):
