@@ -297,6 +297,8 @@ class ControlPanel(QtWidgets.QWidget):
                 w.setCurrentText(str(v))
         elif isinstance(w, QtWidgets.QLineEdit):
             w.setText(str(v))
+        elif v is None:
+            w.setValue(w.minimum())      # a declared default of None: the spin box's "default" word
         elif isinstance(w, QtWidgets.QSpinBox):
             w.setValue(int(v))
         else:

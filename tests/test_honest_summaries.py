@@ -82,3 +82,17 @@ def test_a_replay_ends_as_the_recorded_session_ended(raster_run, tmp_path, capsy
     assert out.startswith(f"replay: {state},")
     if state == "failed":
         assert "tagger vanished" in out
+
+
+def test_one_definition_per_scene_and_physical_pulse_widths(tmp_path, capsys):
+    import json
+
+    out = tmp_path / "d"
+    assert main(["scan", "--sim", "--scene", "daylight", "--size", "8x8", "--out", str(out)]) in (0, 1)
+    run = json.loads((out / "run.json").read_text())
+    assert "0.05" in json.dumps(run["info"])                # the scene's SBR, as simulate uses
+    capsys.readouterr()
+    for bad in ("1e9", "0.36"):
+        assert main(["recon", str(out / "recording.ptu"), "--pulse-rms-ps", bad]) == 2
+        err = capsys.readouterr().err
+        assert "--pulse-rms-ps" in err and bad.replace("1e9", "1e+09") in err and "1 to 1e+06 ps" in err
