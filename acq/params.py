@@ -593,7 +593,8 @@ _DECLARED = (
     Param("--false-alarm", "false_alarm", "float", group="estimator", sources=SOURCES,
           default=DEFAULT_FALSE_ALARM, low=0, low_open=True, high=1, high_open=True, metavar="P",
           per_source={"replay": _AS_RECORDED},
-          help="--reflectors auto: chance per pixel and surface that background passes for a surface"),
+          help="chance per pixel that background alone passes for a return (every estimator's "
+               "test for a return, recon.detect), and with --reflectors auto per added surface"),
     Param("--speed", "speed", "speed",
           summary="replay speed: max, or a factor of recorded time",
           group="replay", sources=("replay",), default="max",
