@@ -204,7 +204,7 @@ def _demo(args, request, methods, out_dir, png) -> int:
     panels.append(("background", bg.title, bg.unit, bg.cmap, "percentile"))
     render_maps_png(png, sheet, panels=panels,
                     title=f"{scene_name} {w}x{h}, {request.target} detections per pixel, "
-                          f"SBR {request.instruments.sbr:g}")
+                          f"SBR {scene.settings.sbr:g}")
     print(f"wrote {png}" + (f"; session files in {out_dir}" if args.out else ""))
     if args.json:
         summary = finish_session(session, None)
