@@ -498,7 +498,7 @@ def file_result(request: FileReconRequest, maps, read, *, read_s: float = 0.0,
     notes = tuple(read.notes)
     if photons_in_file is None:
         photons_in_file = int((read.meta or {}).get("photons_in_file", store.n_photons))
-    account = photon_account(request.input, read, store, maps) if store is not None else None
+    account = photon_account(request.input, read, maps, photons_in_file)
     if account and int(np.sum(maps.photons)) < photons_in_file:
         notes += (account,)          # said on every run that left detections out
     h, w = maps.shape
@@ -517,30 +517,29 @@ def file_result(request: FileReconRequest, maps, read, *, read_s: float = 0.0,
     return res
 
 
-def photon_account(path, read, store, maps) -> str:
+def photon_account(path, read, maps, in_file: int) -> str:
     """One line: the detections in the file, those used, and why the rest were not (outside
-    lines, pixels or dwells, outside the window, past the per-pixel limit, kept by a session)."""
+    lines, pixels or dwells; outside the window or past the per-pixel limit; kept by a session).
+    From the reader's meta and the maps only, so a file read in blocks elsewhere says the same."""
     meta = read.meta or {}
     used = int(np.sum(maps.photons))
-    b = maps.settings.get("binning") or {}
-    in_file = int(meta.get("photons_in_file", store.n_photons))
     parts = []
+    rest = in_file - used
     for key, what in (("photons_outside_lines", "outside the scan lines"),
                       ("photons_outside_pixels", "outside any pixel"),
                       ("photons_outside_dwells", "outside any complete dwell (fly-back, parked mirror, cut passes)")):
         if meta.get(key):
             parts.append(f"{meta[key]} {what}")
-    if "kept_per_pixel" in meta:
-        dropped = in_file - store.n_photons - int(meta.get("photons_outside_dwells", 0))
-        parts.append(f"{dropped} beyond the first {meta['kept_per_pixel']} in-window per pixel ({meta['kept_why']}) "
-                     f"or outside the window")
-    elif b:
-        inside = int(np.count_nonzero((store.times >= b["window_start"]) & (store.times < b["window_stop"])))
-        if store.n_photons - inside:
-            parts.append(f"{store.n_photons - inside} outside the window")
-        if inside - used:
-            parts.append(f"{inside - used} beyond the first {maps.settings.get('max_photons')} per pixel "
-                         f"(--target)")
+            rest -= int(meta[key])
+    if rest > 0:
+        if "kept_per_pixel" in meta:
+            parts.append(f"{rest} beyond the first {meta['kept_per_pixel']} in-window per pixel "
+                         f"({meta['kept_why']}) or outside the window")
+        elif maps.settings.get("max_photons"):
+            parts.append(f"{rest} outside the window or beyond the first {maps.settings['max_photons']} "
+                         f"per pixel (--target)")
+        else:
+            parts.append(f"{rest} outside the window")
     return (f"{Path(path).name}: {in_file} detections in the file, {used} used"
             + (": " + "; ".join(parts) if parts else ""))
 

@@ -51,7 +51,7 @@ def test_a_file_summary_says_what_the_window_and_limit_left_out(tmp_path):
     s = reconstruct_file(FileReconRequest(input=str(path), max_photons=5)).summary
     line = next(n for n in s["notes"] if "detections in the file" in n)
     assert f"{s['photons_in_file']} detections in the file, {s['photons']} used" in line
-    assert "beyond the first 5 per pixel (--target)" in line
+    assert "outside the window or beyond the first 5 per pixel (--target)" in line
 
 
 def test_a_run_that_completes_no_pixel_exits_1_naming_the_cause(tmp_path, capsys):
