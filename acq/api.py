@@ -261,11 +261,13 @@ def finish_session(session, out_dir: str | Path | None, title: str | None = None
                         exposure_s=exposure_s, target=session.plan.target)
         geometry = geometry_of(maps)
         if geometry is not None:
-            n_points = write_points(maps, geometry, ply=out / "points.ply", note=title or "")
+            n_points = write_points(maps, geometry, ply=out / "points.ply", note=title or "",
+                                    acq_flags=session.acq_flags.reshape(session.plan.shape))
     snap = session.snapshot()
     run = session.run_record()
     return {
         "state": session.state.value, "out": None if out is None else str(out),
+        "no_pixel_complete": no_pixel_cause(session),
         "error": run["error"], "pixels": snap.pixels_total,
         "flagged": int(sum(run["flag_reasons"].values())), "flag_reasons": run["flag_reasons"],
         "detections": snap.detections, "detections_per_s": round(snap.detections_per_s, 1),
@@ -275,6 +277,37 @@ def finish_session(session, out_dir: str | Path | None, title: str | None = None
         "recon_max_lag_pixels": session.live_recon.max_lag, "elapsed_s": round(snap.elapsed_s, 3),
         "points": n_points,
     }
+
+
+def no_pixel_cause(session) -> str | None:
+    """None when a session completed a pixel; else one line naming the likely cause (a run that
+    completes nothing is not "done": its command exits 1 with this line)."""
+    from spdepth.acq.flags import AcqFlag
+
+    flags = np.asarray(session.acq_flags)
+    if flags.size == 0 or np.any(flags == AcqFlag.COMPLETE):
+        return None
+    st, plan = session.store, session.plan
+    unit_ps = st.time_unit_s * 1e12
+    lo, hi = (v * unit_ps for v in st.window)
+    seen, kept = st.photons_seen, st.kept
+    if seen == 0:
+        return "no detection arrived at all (laser, detector, sync or cabling?)"
+    if st.unassigned == seen:
+        return f"none of the {seen} detections fell in a pixel's dwell (pixel markers missing?)"
+    if kept < 0.05 * (seen - st.unassigned):
+        return (f"{'none' if kept == 0 else f'only {kept}'} of the {seen} detections fell in the window "
+                f"{lo:g}:{hi:g} ps: widen --window-ps (the returns arrive elsewhere)")
+    most = int(np.max(st.count))
+    reasons = np.bincount(flags[flags != AcqFlag.COMPLETE], minlength=len(AcqFlag))
+    why = AcqFlag(int(np.argmax(reasons)))
+    hint = {AcqFlag.DWELL_LIMIT: "each dwell reached its limit first: more flux, a longer dwell limit or a lower "
+                                 "--target",
+            AcqFlag.PASS_LIMIT: "the passes ran out first: more flux, more passes or a lower --target",
+            AcqFlag.TIME_LIMIT: "the time limit came first",
+            AcqFlag.INCOMPLETE: "the stream ended first (a replay holds no more than its recording)"}.get(why, "")
+    return (f"no pixel reached the target of {plan.target} in-window detections (at most {most} in a pixel, "
+            f"{kept} of {seen} detections in the window {lo:g}:{hi:g} ps): {hint}")
 
 
 # ---- files -----------------------------------------------------------------------------------------
@@ -431,7 +464,7 @@ def reconstruct_file(request: FileReconRequest, progress=None) -> FileResult:
 
     t0 = time.perf_counter()
     result = read_photons(request.input, time_unit_s=request.time_unit_s, mat_var=request.mat_var,
-                          channel=request.channel)
+                          channel=request.channel, keep=request.max_photons)
     if result.counts is not None and request.max_photons is not None:
         raise RequestError(f"{request.input}: a histogram cube keeps no detection order, so "
                            f"--max-photons (the first N detections) does not apply")
@@ -502,6 +535,12 @@ def file_result(request: FileReconRequest, maps, read, *, read_s: float = 0.0,
     notes = tuple(read.notes)
     if pileup is not None and (pileup["applied"] or pileup.get("max_per_period", 0) > PILEUP_THRESHOLD):
         notes += (f"pile-up: {pileup['reason']}",)
+    if photons_in_file is None:
+        recorded_in = (read.meta or {}).get("photons_in_file")
+        photons_in_file = int(recorded_in) if recorded_in is not None else _photons_in(read)
+    account = photon_account(request.input, read, maps, photons_in_file)
+    if account and int(np.sum(maps.photons)) < photons_in_file:
+        notes += (account,)          # said on every run that left detections out
     h, w = maps.shape
     per_pixel = float(np.sum(maps.photons)) / max(1, h * w)
     neighbours = estimators.names(pixelwise=False)
@@ -511,9 +550,10 @@ def file_result(request: FileReconRequest, maps, read, *, read_s: float = 0.0,
     res = FileResult(request, maps, store, used_binning, used.get("pulse_rms_s"),
                      irf_used if used.get("irf") else None, read.is_image, read.kind,
                      notes, read_s, recon_s, pileup=pileup,
-                     photons_in_file=_photons_in(read) if photons_in_file is None else photons_in_file)
+                     photons_in_file=photons_in_file)
     _write_file_outputs(res, read)
     res.summary = _file_summary(res, read)
+    res.summary["photons_account"] = account
     return res
 
 
@@ -573,6 +613,33 @@ def file_counts(request: FileReconRequest, result):
     if not record["applied"]:
         return result.counts, record
     return corrected, record
+
+
+def photon_account(path, read, maps, in_file: int) -> str:
+    """One line: the detections in the file, those used, and why the rest were not (outside
+    lines, pixels or dwells; outside the window or past the per-pixel limit; kept by a session).
+    From the reader's meta and the maps only, so a file read in blocks elsewhere says the same."""
+    meta = read.meta or {}
+    used = int(np.sum(maps.photons))
+    parts = []
+    rest = in_file - used
+    for key, what in (("photons_outside_lines", "outside the scan lines"),
+                      ("photons_outside_pixels", "outside any pixel"),
+                      ("photons_outside_dwells", "outside any complete dwell (fly-back, parked mirror, cut passes)")):
+        if meta.get(key):
+            parts.append(f"{meta[key]} {what}")
+            rest -= int(meta[key])
+    if rest > 0:
+        if "kept_per_pixel" in meta:
+            parts.append(f"{rest} beyond the first {meta['kept_per_pixel']} in-window per pixel "
+                         f"({meta['kept_why']}) or outside the window")
+        elif maps.settings.get("max_photons"):
+            parts.append(f"{rest} outside the window or beyond the first {maps.settings['max_photons']} "
+                         f"per pixel (--target)")
+        else:
+            parts.append(f"{rest} outside the window")
+    return (f"{Path(path).name}: {in_file} detections in the file, {used} used"
+            + (": " + "; ".join(parts) if parts else ""))
 
 
 def _with_geometry_and_offset(maps, request: FileReconRequest, shape, meta: dict | None = None):
@@ -715,6 +782,6 @@ def _file_summary(res: FileResult, read) -> dict:
 
 
 __all__ = ["OutputDir", "new_run_dir", "open_instruments", "scan_plan", "scan_settings",
-           "build_session", "finish_session", "FileResult", "reconstruct_file", "file_binning",
+           "build_session", "finish_session", "no_pixel_cause", "FileResult", "reconstruct_file", "file_binning",
            "file_settings", "file_result", "set_threads", "file_counts", "pileup_decided", "sensor_fov_deg",
            "recorded_recon_settings", "recorded_request", "read_run_record", "RUN_JSON", "SESSION_FILES"]

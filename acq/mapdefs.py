@@ -216,11 +216,17 @@ def constant_caption(d: MapDef, data: np.ndarray) -> str | None:
     return f"{value} in every pixel" if n == total else f"{value} in {n:,} of {total:,} pixels"
 
 
-def levels_for(d: MapDef, data: np.ndarray, target: int = 0) -> tuple[float, float] | None:
+def levels_for(d: MapDef, data: np.ndarray, target: int = 0, weak: np.ndarray | None = None
+               ) -> tuple[float, float] | None:
     """Colour levels of ``data`` by the map's rule; None when it has no finite pixel. Always
-    ``lo < hi``."""
-    v = np.asarray(data, dtype=np.float64)
-    v = v[np.isfinite(v)]
+    ``lo < hi``. ``weak`` (like data, bool): surfaces background alone could have made, left out of
+    the levels so that confident surfaces set them (all of them when no other pixel has a value)."""
+    a = np.asarray(data, dtype=np.float64)
+    v = a[np.isfinite(a)]
+    if weak is not None and np.shape(weak) == a.shape:
+        strong = a[np.isfinite(a) & ~np.asarray(weak, bool)]
+        if strong.size:
+            v = strong
     if d.levels == "target" and target > 0:
         return 0.0, float(target)
     if v.size == 0:

@@ -67,6 +67,9 @@ DEFAULT_MAX_REFLECTORS = 3
 DEFAULT_FALSE_ALARM = 1e-3
 MAX_SURFACES = 8
 """Most surfaces per pixel any estimator fits (``--reflectors``, ``--max-reflectors``)."""
+PULSE_RMS_PS = (1.0, 1e6)
+"""A pulse (response) RMS width in physical sense, ps: no single-photon detector's timing is finer
+than 1 ps, and a response wider than 1 us RMS is no pulse (1e9 put every pixel at 8,328 m)."""
 MAX_PIXELS_PER_AXIS = 4096
 """The galvo controller's largest raster side (``drivers.galvo.protocol``; a test ties the two)."""
 MIN_DWELL_MS, MAX_DWELL_MS = 100e-6, 10_000_000.0 / 1e3
@@ -444,9 +447,11 @@ _DECLARED = (
           default_text="the target", commands=("scan", "demo", "gui", "simulate"),
           per_command={"simulate": dict(default=15.0)},
           help="mean detections (signal + background) per pixel per scene dwell"),
-    Param("--sbr", "sbr", "float", group="simulated bench", sources=("sim",), default=10.0, low=0,
+    # one definition per scene: every command takes the scene's own SBR unless given (daylight's
+    # 0.05 was 10 in scan --sim, demo and the window)
+    Param("--sbr", "sbr", "float", group="simulated bench", sources=("sim",), default=None, low=0,
           low_open=True, label="SBR", commands=("scan", "demo", "gui", "simulate"),
-          per_command={"simulate": dict(default=None, default_text="the scene's: 10, daylight 0.05")},
+          default_text="the scene's: 10, daylight 0.05", none_label="the scene's",
           help="signal-to-background ratio in the detection window"),
     Param("--seed", "seed", "int", group="simulated bench", sources=("sim",), default=0, low=0,
           high=2**31 - 1, label="Seed", commands=("scan", "demo", "gui", "simulate"),
@@ -560,7 +565,11 @@ _DECLARED = (
           per_source={"replay": dict(default=None, default_text=f"as recorded, else {DEFAULT_METHOD}")},
           help="estimator. {methods}"),
     Param("--pulse-rms-ps", "pulse_rms_s", "float", group="estimator", sources=SOURCES, unit="ps",
-          scale=1e-12, low=0, low_open=True, metavar="PS", exclusive="pulse", label="Pulse RMS",
+          scale=1e-12, low=PULSE_RMS_PS[0], high=PULSE_RMS_PS[1], metavar="PS", exclusive="pulse",
+          label="Pulse RMS",
+          range_text=(f"outside {PULSE_RMS_PS[0]:g} to {PULSE_RMS_PS[1]:g} ps: no single-photon "
+                      f"detector's response is narrower than 1 ps or wider than 1 us RMS (a width in ns "
+                      f"typed as ps? 0.36 ns is 360 ps)"),
           none_label="estimate",
           default_text="the simulated scene's, or estimated from the first pixels to complete; with "
                        "several surfaces the response measured on their surfaces",
@@ -585,7 +594,8 @@ _DECLARED = (
     Param("--false-alarm", "false_alarm", "float", group="estimator", sources=SOURCES,
           default=DEFAULT_FALSE_ALARM, low=0, low_open=True, high=1, high_open=True, metavar="P",
           per_source={"replay": _AS_RECORDED},
-          help="--reflectors auto: chance per pixel and surface that background passes for a surface"),
+          help="chance per pixel that background alone passes for a return (every estimator's "
+               "test for a return, recon.detect), and with --reflectors auto per added surface"),
     Param("--speed", "speed", "speed",
           summary="replay speed: max, or a factor of recorded time",
           group="replay", sources=("replay",), default="max",

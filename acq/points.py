@@ -11,22 +11,52 @@ Files without scan geometry (the .mat files) take a field of view (``--fov-deg``
 axis; a pixel then spans ``fov / W`` by ``fov / H`` degrees.
 
 One point per estimated pixel and surface, with ``intensity`` (detections attributed to the
-return), ``uncertainty_m`` (1 sigma of the range), ``surface`` (0 nearest) and ``flags``
-(``recon.maps.PixelFlag``; LAS: ``user_data``).
+return), ``uncertainty_m`` (1 sigma of the range), ``surface`` (0 nearest), ``return_number`` and
+``number_of_returns`` (1..n per pixel, nearest first), and every flag the maps know:
+
+- ``flags``: a bit set (:class:`PointFlag`; LAS: ``user_data``): 1 weak (background alone could
+  have made this surface), 2 no return (the pixel's detections hold none; such points are written
+  only when asked for, at the scanner's origin), 4 interpolated (spatial: the depth is the
+  neighbours'), 8 not converged, 16 short (the acquisition's dwell, pass or time limit ended the
+  pixel before its target), 32 incomplete (the session or stream ended before the pixel did);
+- ``pixel_flag``: the pixel's ``recon.maps.PixelFlag``, ``acq_flag``: its ``acq.flags.AcqFlag``
+  (0 for a file, which has none).
+
+LAS also marks no-return points ``withheld`` (PDAL and CloudCompare leave withheld points out).
 """
 
 from __future__ import annotations
 
 import json
 from dataclasses import asdict, dataclass
+from enum import IntFlag
 from pathlib import Path
 
 import numpy as np
 
-from spdepth.recon.maps import C_M_PER_S
+from spdepth.acq.flags import AcqFlag
+from spdepth.recon.maps import C_M_PER_S, PixelFlag
 
-POINT_FIELDS = ("x", "y", "z", "intensity", "uncertainty_m", "surface", "flags", "row", "col")
+POINT_FIELDS = ("x", "y", "z", "intensity", "uncertainty_m", "surface", "return_number", "number_of_returns",
+                "flags", "pixel_flag", "acq_flag", "row", "col")
 """The columns of a point cloud (:func:`points_from_maps`), in PLY order."""
+
+
+class PointFlag(IntFlag):
+    """The ``flags`` bits of a point (PLY ``flags``, LAS ``user_data``)."""
+
+    WEAK = 1
+    """Background alone could have made this surface (``DepthMaps.weak``)."""
+    NO_RETURN = 2
+    """The pixel holds no return (``PixelFlag.NO_RETURN``); the point sits at the origin."""
+    INTERPOLATED = 4
+    """spatial: the depth comes from the neighbours (``PixelFlag.INTERPOLATED``)."""
+    NOT_CONVERGED = 8
+    """uos stopped at its iteration cap (``PixelFlag.NOT_CONVERGED``)."""
+    SHORT = 16
+    """The dwell, pass or time limit ended the pixel before its target (``AcqFlag`` 1-3)."""
+    INCOMPLETE = 32
+    """The session or the replayed stream ended before the pixel was complete (``AcqFlag.INCOMPLETE``)."""
 
 
 @dataclass(frozen=True)
@@ -134,7 +164,9 @@ def _surfaces(a) -> np.ndarray:
 @dataclass(frozen=True)
 class PointCloud:
     """Columns of :data:`POINT_FIELDS`, each (N,): x, y, z (m), intensity (detections),
-    uncertainty_m, surface (0 nearest), flags (``PixelFlag``), row, col (the pixel)."""
+    uncertainty_m, surface (0 nearest), return_number / number_of_returns (1..n per pixel, by
+    range), flags (:class:`PointFlag` bits), pixel_flag (``PixelFlag``), acq_flag (``AcqFlag``),
+    row, col (the pixel)."""
 
     x: np.ndarray
     y: np.ndarray
@@ -142,7 +174,11 @@ class PointCloud:
     intensity: np.ndarray
     uncertainty_m: np.ndarray
     surface: np.ndarray
+    return_number: np.ndarray
+    number_of_returns: np.ndarray
     flags: np.ndarray
+    pixel_flag: np.ndarray
+    acq_flag: np.ndarray
     row: np.ndarray
     col: np.ndarray
 
@@ -158,10 +194,13 @@ class PointCloud:
         return np.sqrt(self.x ** 2 + self.y ** 2 + self.z ** 2)
 
 
-def points_from_maps(maps, geometry: ScanGeometry, *, depth_m=None) -> PointCloud:
-    """One point per pixel and surface with a finite depth. ``maps``: a ``DepthMaps`` (or anything
-    with ``depth_m``, ``signal``, ``uncertainty_s``, ``flags``; (H, W) or (K, H, W)); ``depth_m``
-    replaces ``maps.depth_m`` (e.g. a live snapshot's)."""
+def points_from_maps(maps, geometry: ScanGeometry, *, depth_m=None, no_return: bool = False,
+                     acq_flags=None) -> PointCloud:
+    """One point per pixel and surface with a finite depth, and with ``no_return`` one at the origin
+    per pixel that has detections but no return (flag NO_RETURN). ``maps``: a ``DepthMaps`` or a
+    session's maps (anything with ``depth_m``, ``signal``, ``uncertainty_s``, ``flags``, optionally
+    ``weak`` and ``acq_flags``; (H, W) or (K, H, W)); ``depth_m`` replaces ``maps.depth_m`` (e.g. a
+    live snapshot's); ``acq_flags`` (H, W) a session's ``AcqFlag`` map (else ``maps.acq_flags``)."""
     depth = _surfaces(maps.depth_m if depth_m is None else depth_m).astype(np.float64)
     k, h, w = depth.shape
     if (h, w) != tuple(geometry.shape):
@@ -170,9 +209,29 @@ def points_from_maps(maps, geometry: ScanGeometry, *, depth_m=None) -> PointClou
     signal = _surfaces(getattr(maps, "signal", np.zeros((h, w))))
     sd_s = _surfaces(getattr(maps, "uncertainty_s", np.full((h, w), np.nan)))
     flags = np.asarray(getattr(maps, "flags", np.zeros((h, w), np.uint8)))
+    weak = getattr(maps, "weak", None)
+    weak = np.zeros(depth.shape, bool) if weak is None else _surfaces(weak).astype(bool)
+    if weak.shape != depth.shape:
+        weak = np.zeros(depth.shape, bool)
+    acq = getattr(maps, "acq_flags", None) if acq_flags is None else acq_flags
+    acq = np.zeros((h, w), np.uint8) if acq is None else np.asarray(acq, np.uint8)
     ok = np.isfinite(depth)
+    # per pixel, the surfaces by range: return number 1 the nearest, of as many as the pixel holds
+    order = np.argsort(np.where(ok, depth, np.inf), axis=0, kind="stable")
+    rank = np.empty_like(order)
+    np.put_along_axis(rank, order, np.arange(k)[:, None, None].repeat(h, 1).repeat(w, 2), axis=0)
+    count = ok.sum(axis=0)
     surf, rr, cc = np.nonzero(ok)
     rng = depth[ok]
+    ret = rank[surf, rr, cc] + 1
+    nret = count[rr, cc]
+    if no_return:
+        nr, nc = np.nonzero((flags == PixelFlag.NO_RETURN) & (count == 0))
+        surf = np.concatenate([surf, np.zeros(nr.size, surf.dtype)])
+        rr, cc = np.concatenate([rr, nr]), np.concatenate([cc, nc])
+        rng = np.concatenate([rng, np.zeros(nr.size)])
+        ret = np.concatenate([ret, np.ones(nr.size, ret.dtype)])
+        nret = np.concatenate([nret, np.ones(nr.size, nret.dtype)])
     d = geometry.directions()[rr, cc]
     p = d * rng[:, None]
 
@@ -180,36 +239,56 @@ def points_from_maps(maps, geometry: ScanGeometry, *, depth_m=None) -> PointClou
         a = np.asarray(a)
         return a[surf if a.shape[0] == k else 0, rr, cc]
 
+    pf = flags[rr, cc].astype(np.uint8)
+    af = acq[rr, cc]
+    bits = np.zeros(rr.size, np.uint8)
+    bits |= np.where(pick(weak), PointFlag.WEAK, 0).astype(np.uint8)
+    bits |= np.where(pf == PixelFlag.NO_RETURN, PointFlag.NO_RETURN, 0).astype(np.uint8)
+    bits |= np.where(pf == PixelFlag.INTERPOLATED, PointFlag.INTERPOLATED, 0).astype(np.uint8)
+    bits |= np.where(pf == PixelFlag.NOT_CONVERGED, PointFlag.NOT_CONVERGED, 0).astype(np.uint8)
+    short = np.isin(af, [AcqFlag.DWELL_LIMIT, AcqFlag.PASS_LIMIT, AcqFlag.TIME_LIMIT])
+    bits |= np.where(short, PointFlag.SHORT, 0).astype(np.uint8)
+    bits |= np.where(af == AcqFlag.INCOMPLETE, PointFlag.INCOMPLETE, 0).astype(np.uint8)
+    unc = np.where(pf == PixelFlag.NO_RETURN, np.nan, pick(sd_s) * C_M_PER_S / 2)
     return PointCloud(
         x=p[:, 0], y=p[:, 1], z=p[:, 2],
-        intensity=pick(signal).astype(np.float32),
-        uncertainty_m=(pick(sd_s) * C_M_PER_S / 2).astype(np.float32),
-        surface=surf.astype(np.uint8), flags=flags[rr, cc].astype(np.uint8),
+        intensity=np.where(pf == PixelFlag.NO_RETURN, 0.0, pick(signal)).astype(np.float32),
+        uncertainty_m=unc.astype(np.float32), surface=surf.astype(np.uint8),
+        return_number=ret.astype(np.uint8), number_of_returns=nret.astype(np.uint8),
+        flags=bits, pixel_flag=pf, acq_flag=af.astype(np.uint8),
         row=rr.astype(np.int32), col=cc.astype(np.int32))
 
 
 def write_ply(path: str | Path, cloud: PointCloud, *, comments: tuple[str, ...] = ()) -> Path:
     """Binary little-endian PLY (plyfile): vertex x, y, z (float64, m), intensity, uncertainty_m
-    (float32), surface, flags (uint8), row, col (int32)."""
+    (float32), surface, return_number, number_of_returns, flags (:class:`PointFlag` bits),
+    pixel_flag, acq_flag (uint8), row, col (int32); a comment says what the flag bits mean."""
     from plyfile import PlyData, PlyElement
 
     path = Path(path)
     dtype = [("x", "f8"), ("y", "f8"), ("z", "f8"), ("intensity", "f4"), ("uncertainty_m", "f4"),
-             ("surface", "u1"), ("flags", "u1"), ("row", "i4"), ("col", "i4")]
+             ("surface", "u1"), ("return_number", "u1"), ("number_of_returns", "u1"), ("flags", "u1"),
+             ("pixel_flag", "u1"), ("acq_flag", "u1"), ("row", "i4"), ("col", "i4")]
     v = np.empty(len(cloud), dtype=dtype)
     for name, _ in dtype:
         v[name] = getattr(cloud, name)
     frame = ("frame: right-handed at the scanner, metres; z along the optical axis, x towards "
              "increasing column angle, y towards increasing row angle")
     PlyData([PlyElement.describe(v, "vertex")], text=False,
-            comments=[frame, *comments]).write(str(path))
+            comments=[frame, FLAGS_NOTE, *comments]).write(str(path))
     return path
+
+
+FLAGS_NOTE = ("flags bits: " + ", ".join(f"{int(f)} {f.name.lower().replace('_', ' ')}" for f in PointFlag)
+              + "; pixel_flag: recon PixelFlag, acq_flag: AcqFlag")
 
 
 def write_las(path: str | Path, cloud: PointCloud, *, description: str = "") -> Path:
     """LAS 1.4, point format 6 (laspy): x, y, z at 0.1 mm, ``intensity`` (detections scaled to
-    uint16, x100), ``user_data`` the ``PixelFlag``, ``point_source_id`` the surface index, and
-    extra dimensions ``uncertainty_m`` (float32), ``surface`` (uint8), ``row``, ``col`` (int32)."""
+    uint16, x100), ``return_number`` / ``number_of_returns`` (1..n per pixel, nearest first),
+    ``user_data`` the :class:`PointFlag` bits, ``withheld`` set on no-return points,
+    ``point_source_id`` the surface index, and extra dimensions ``uncertainty_m`` (float32),
+    ``surface``, ``pixel_flag``, ``acq_flag`` (uint8), ``row``, ``col`` (int32)."""
     import laspy
 
     path = Path(path)
@@ -219,6 +298,8 @@ def write_las(path: str | Path, cloud: PointCloud, *, description: str = "") -> 
     header.offsets = np.floor(xyz.min(axis=0)) if len(cloud) else np.zeros(3)
     header.add_extra_dims([laspy.ExtraBytesParams(name="uncertainty_m", type=np.float32),
                            laspy.ExtraBytesParams(name="surface", type=np.uint8),
+                           laspy.ExtraBytesParams(name="pixel_flag", type=np.uint8),
+                           laspy.ExtraBytesParams(name="acq_flag", type=np.uint8),
                            laspy.ExtraBytesParams(name="row", type=np.int32),
                            laspy.ExtraBytesParams(name="col", type=np.int32)])
     if description:
@@ -226,10 +307,15 @@ def write_las(path: str | Path, cloud: PointCloud, *, description: str = "") -> 
     las = laspy.LasData(header)
     las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
     las.intensity = np.clip(np.round(cloud.intensity * 100), 0, 65535).astype(np.uint16)
+    las.return_number = cloud.return_number
+    las.number_of_returns = cloud.number_of_returns
     las.user_data = cloud.flags
+    las.withheld = (cloud.flags & PointFlag.NO_RETURN) != 0
     las.point_source_id = cloud.surface.astype(np.uint16)
     las.uncertainty_m = cloud.uncertainty_m
     las.surface = cloud.surface
+    las.pixel_flag = cloud.pixel_flag
+    las.acq_flag = cloud.acq_flag
     las.row = cloud.row
     las.col = cloud.col
     las.write(str(path))
@@ -237,9 +323,11 @@ def write_las(path: str | Path, cloud: PointCloud, *, description: str = "") -> 
 
 
 def write_points(maps, geometry: ScanGeometry, *, ply: str | Path | None = None,
-                 las: str | Path | None = None, note: str = "") -> int:
-    """Write the maps' points to ``ply`` and/or ``las``; returns how many points."""
-    cloud = points_from_maps(maps, geometry)
+                 las: str | Path | None = None, note: str = "", no_return: bool = False,
+                 acq_flags=None) -> int:
+    """Write the maps' points to ``ply`` and/or ``las`` (with ``no_return``, also the pixels without
+    a return, flagged, at the origin); returns how many points."""
+    cloud = points_from_maps(maps, geometry, no_return=no_return, acq_flags=acq_flags)
     comments = (f"geometry: {json.dumps(geometry.to_dict())}",) + ((note,) if note else ())
     if ply:
         write_ply(ply, cloud, comments=comments)
@@ -258,5 +346,5 @@ def range_offset_m(range_offset: float | None = None, gate_delay_s: float | None
     return 0.0
 
 
-__all__ = ["ScanGeometry", "PointCloud", "POINT_FIELDS", "GEOMETRY_KEY", "geometry_of",
+__all__ = ["ScanGeometry", "PointCloud", "PointFlag", "POINT_FIELDS", "GEOMETRY_KEY", "geometry_of",
            "points_from_maps", "write_ply", "write_las", "write_points", "range_offset_m"]

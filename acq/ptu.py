@@ -36,7 +36,13 @@ Count-gated scans (dwell varies per pixel): the pixel markers are exact, and our
 (``acq.readers.picoquant``) and tttrlib with ``CLSMImage(tttr, use_pixel_markers=True)`` (its
 ``marker_pixel`` default is our input 1) use them. Interpolating readers cannot be right there:
 tttrlib's default spreads each line evenly, and ptufile places pixels by ``ImgHdr_TimePerPixel``
-from the line start, dropping photons past ``ImgHdr_PixX`` pixel times.
+from the line start, dropping photons past ``ImgHdr_PixX`` pixel times. So a count-gated recording
+closes with that tag patched to the scan's mean pixel time (the galvo's logged dwells plus the
+settle time; the dwell limit until then): on a 32 x 32 simulated bust, ptufile then places 74% of
+the photons in their pixel (8% with the 20 ms limit there), the rest one or more pixels off or
+past the line's last pixel: as near as a fixed pixel time can come. A raster rescan pass that
+starts below row 0 or right of column 0 (only the pixels still short) cannot be placed by readers
+that know no pixel markers: PTU frames always start at row 0, column 0.
 """
 
 from __future__ import annotations
@@ -77,6 +83,7 @@ T3_MAX_BINS = T3_DTIME_MAX + 1
 _TAG_HEAD = struct.Struct("<32siI")   # name, index, type code; then an 8-byte value
 _TAG_SIZE = _TAG_HEAD.size + 8
 _TYPE_INT8 = 0x10000008
+_TYPE_FLOAT8 = 0x20000008
 _TYPES_WITH_PAYLOAD = (0x2001FFFF, 0x4001FFFF, 0x4002FFFF, 0xFFFFFFFF)  # float array, ansi, wide, blob
 
 
@@ -231,7 +238,28 @@ def patch_record_count(path_or_file: str | os.PathLike | IO[bytes], n_records: i
         fh.seek(pos)
 
 
+def patch_pixel_time(path_or_file: str | os.PathLike | IO[bytes], pixel_time_s: float) -> None:
+    """Write ``pixel_time_s`` into ``ImgHdr_TimePerPixel`` (ms, Float8): at the close of a count-gated
+    scan, the typical dwell, by which interpolating readers (ptufile's ``decode_image``) place
+    photons from each line start. Same file handling as :func:`patch_record_count`."""
+    if not (pixel_time_s > 0 and math.isfinite(pixel_time_s)):
+        raise InputError(f"PTU pixel time must be > 0 s, got {pixel_time_s!r}")
+    if isinstance(path_or_file, (str, os.PathLike)):
+        with open(path_or_file, "r+b") as fh:
+            _patch_value(fh, "ImgHdr_TimePerPixel", _TYPE_FLOAT8, struct.pack("<d", pixel_time_s * 1e3))
+        return
+    pos = path_or_file.tell()
+    try:
+        _patch_value(path_or_file, "ImgHdr_TimePerPixel", _TYPE_FLOAT8, struct.pack("<d", pixel_time_s * 1e3))
+    finally:
+        path_or_file.seek(pos)
+
+
 def _patch(fh, n_records: int) -> None:
+    _patch_value(fh, "TTResult_NumberOfRecords", _TYPE_INT8, struct.pack("<q", n_records))
+
+
+def _patch_value(fh, name: str, typ_wanted: int, value: bytes) -> None:
     fh.seek(0)
     head = fh.read(1 << 16)
     while b"Header_End" not in head:    # a header with large string tags
@@ -239,11 +267,11 @@ def _patch(fh, n_records: int) -> None:
         if not more:
             break
         head += more
-    at, typ = _find_tag(head, "TTResult_NumberOfRecords")
-    if typ != _TYPE_INT8:
-        raise InputError(f"PTU tag TTResult_NumberOfRecords has type 0x{typ:08x}, not Int8")
+    at, typ = _find_tag(head, name)
+    if typ != typ_wanted:
+        raise InputError(f"PTU tag {name} has type 0x{typ:08x}, not 0x{typ_wanted:08x}")
     fh.seek(at)
-    fh.write(struct.pack("<q", n_records))
+    fh.write(value)
     fh.flush()
 
 
@@ -370,5 +398,5 @@ def read_layout(path: str | os.PathLike) -> PtuLayout:
 
 __all__ = ["MARKER_INPUT", "PIXEL_MARKER_TAG", "PLAN_TAG", "RECON_TAG", "INFO_TAG",
            "PtuLayout", "truncation_note",
-           "encode_events", "image_tags", "iter_records", "marker_map", "patch_record_count",
+           "encode_events", "image_tags", "iter_records", "marker_map", "patch_pixel_time", "patch_record_count",
            "ptu_header", "read_layout", "split_marker_records", "write_ptu"]

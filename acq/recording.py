@@ -45,7 +45,7 @@ from spdepth.acq.assign import PassGeometry
 from spdepth.acq.errors import RecordingError, RequestError
 from spdepth.acq.flags import AcqFlag
 from spdepth.acq.ptu import (INFO_TAG, PIXEL_MARKER_TAG, PLAN_TAG, RECON_TAG, iter_records,
-                             marker_map, patch_record_count, ptu_header, read_layout,
+                             marker_map, patch_pixel_time, patch_record_count, ptu_header, read_layout,
                              split_marker_records)
 from spdepth.acq.sources import feed_passes
 from spdepth.drivers.errors import ProtocolError
@@ -117,14 +117,17 @@ class Recorder:
             if not self.closed:
                 self._maybe_flush()
 
-    def close(self) -> None:
-        """Flush, patch the record count (the file is complete), close."""
+    def close(self, pixel_time_s: float | None = None) -> None:
+        """Flush, patch the record count (the file is complete) and, given the scan's typical pixel
+        time (a count-gated scan's mean dwell), the header's ``ImgHdr_TimePerPixel``; close."""
         with self._lock:
             if self.closed:
                 return
             self.closed = True
             self._fh.flush()
             patch_record_count(self._fh, self.records)
+            if pixel_time_s is not None and pixel_time_s > 0:
+                patch_pixel_time(self._fh, pixel_time_s)
             self._fh.close()
 
 
@@ -178,6 +181,15 @@ class RecordingInfo:
     sync_period_s: float
     n_records: int
     has_event_log: bool
+
+
+class RecordedEnd(Exception):
+    """Raised by a replay at the end of a recording whose session was aborted or failed: the
+    replay ends the same way (the session catches it: state ``state``, the recorded error kept)."""
+
+    def __init__(self, state: str, error: str | None):
+        self.state, self.error = state, error
+        super().__init__(f"the recorded session {state} here" + (f" ({error})" if error else ""))
 
 
 class ReplaySource:
@@ -269,6 +281,8 @@ class ReplaySource:
         uses is checked (``_LogLine``): a damaged one is a ``RecordingError`` naming the line."""
         passes: list[list] = []
         lost: list[dict] = []
+        self.recorded_end: str | None = None
+        """How the recorded session ended ("done", "aborted", "failed"; None: not logged)."""
         if not self.events_path.is_file():
             return passes, lost, None
         ended = False
@@ -295,6 +309,8 @@ class ReplaySource:
                              "records_lost": e.whole("records_lost"),
                              "restart": e.flag("restart")})
             ended = kind == "state" and e.text("state") in _END_STATES
+            if ended:
+                self.recorded_end = e.text("state")
         return passes, lost, ended
 
     # ---- the Source interface (acq.sources) ------------------------------------------------------
@@ -308,9 +324,21 @@ class ReplaySource:
         """Nothing to open: the file is open since the source was made."""
 
     def run(self, host):
-        """The recorded passes with their chunks and lost spans, as the live session saw them."""
+        """The recorded passes with their chunks and lost spans, as the live session saw them; a
+        session that was aborted or failed ends the replay where and as it ended
+        (:class:`RecordedEnd`), not as "done"."""
         feed_passes(host, self.segments())
+        if self.recorded_end in ("aborted", "failed"):
+            raise RecordedEnd(self.recorded_end, self._recorded_error())
         return AcqFlag.INCOMPLETE
+
+    def _recorded_error(self) -> str | None:
+        """The recorded session's error line (``run.json``), when it has one."""
+        run = self.path.parent / "run.json"
+        try:
+            return json.loads(run.read_text(encoding="utf-8")).get("error")
+        except (OSError, json.JSONDecodeError, AttributeError):
+            return None
 
     def flush(self) -> None:
         """Nothing to flush: a replay writes no recording."""
@@ -544,10 +572,12 @@ class _LogLine:
         return geom
 
 
-def session_photons(path: str | Path):
+def session_photons(path: str | Path, keep: int | None = None):
     """The photons a session kept, rebuilt from its recording (``acq.store``'s rule: the first
     ``target`` in-window detections of complete dwells, passes placed by the event log): what
-    ``spdepth recon`` reconstructs from a recording. Returns (PhotonStore, notes, meta)."""
+    ``spdepth recon`` reconstructs from a recording. ``keep``: that many per pixel instead of the
+    session's target (``--target``). Returns (PhotonStore, notes, meta); meta says what was in
+    the file (``photons_in_file``, ``photons_outside_dwells``) and what was kept and why."""
     from spdepth.acq.plan import ScanPlan
     from spdepth.acq.store import PixelStore
 
@@ -557,7 +587,8 @@ def session_photons(path: str | Path):
             raise RecordingError(f"recording {src.path}: header tag {name} is missing")
     plan = ScanPlan.from_dict(src.info.plan)
     b = recon_settings_from_dict(src.info.recon).binning
-    store = PixelStore(plan.shape, plan.target,
+    n_keep = int(keep) if keep is not None else plan.target
+    store = PixelStore(plan.shape, n_keep,
                        (int(np.floor(b.window_start)), int(np.ceil(b.window_stop))),
                        src.info.resolution_s)
     passes = 0
@@ -568,12 +599,16 @@ def session_photons(path: str | Path):
             store.feed(chunk)
         store.end_pass()
     notes = list(src.warnings)
-    short = int(np.count_nonzero(store.count < plan.target))
+    short = int(np.count_nonzero(store.count < n_keep))
     if short:
-        notes.append(f"{src.path.name}: {short} pixels hold fewer than the session's target of "
-                     f"{plan.target} detections")
+        notes.append(f"{src.path.name}: {short} pixels hold fewer than "
+                     + (f"the session's target of {plan.target} detections" if keep is None
+                        else f"the {n_keep} detections asked for"))
     meta = {"assignment": "session recording (pixel markers, complete dwells)", "passes": passes,
-            "target": plan.target, "window": list(store.window), "records": src.info.n_records}
+            "target": plan.target, "window": list(store.window), "records": src.info.n_records,
+            "photons_in_file": int(store.photons_seen), "photons_outside_dwells": int(store.unassigned),
+            "kept_per_pixel": n_keep,
+            "kept_why": "the session's target per pixel" if keep is None else "--target"}
     return store.photons(), tuple(notes), meta, store.periods.astype(np.float64)
 
 

@@ -170,7 +170,8 @@ def _draw_panel(fig, ax, d, name: str, arr: np.ndarray, tgt: int, weak_px, exten
 
     cmap = matplotlib.colormaps[d.cmap].with_extremes(bad=NAN_COLOUR)
     const = constant_value(arr)
-    lv = levels_for(d, arr, tgt) or (0.0, 1.0)
+    # confident surfaces set the levels (weak ones are faded over them; no-return pixels are NaN)
+    lv = levels_for(d, arr, tgt, weak=weak_px) or (0.0, 1.0)
     vmin, vmax = lv
     counts_map = whole_numbers(arr)
     if counts_map and 0 <= vmin and vmax <= DISCRETE_MAX:
@@ -321,7 +322,8 @@ def render_point_png(path: str | Path, times_s: np.ndarray, *, tof_s: float | No
                      title: str | None = None, bins: int = 200, dpi: int = 110,
                      irf: tuple[np.ndarray, np.ndarray, str] | None = None) -> Path:
     """Write a PNG for a point measurement (one pixel): the histogram of detection times in ns,
-    log counts, with the estimated time of flight marked.
+    log counts, with the estimated time of flight (the fitted pulse's centroid) marked, and with
+    ``irf`` the pulse's peak too; the legend says what each marker is.
 
     times_s: detection times after the laser sync (s), shape (n,).
     tof_s:   estimated time of flight (s); NaN or None draws no marker.
@@ -344,9 +346,18 @@ def render_point_png(path: str | Path, times_s: np.ndarray, *, tof_s: float | No
     ax.set_xlabel("time after laser sync (ns)")
     ax.set_ylabel("detections per bin")
     if tof_s is not None and np.isfinite(tof_s):
+        # the time of flight is the pulse's centroid: with a long tail it sits well after the
+        # visible peak, so both are marked and named
         ax.axvline(tof_s * 1e9, color="#d62728", linestyle="--",
-                   label=f"estimated time of flight {tof_s * 1e9:.3f} ns "
+                   label=f"time of flight {tof_s * 1e9:.3f} ns = the fitted pulse's centroid "
                          f"(depth {tof_s * C_M_PER_S / 2:.3f} m)")
+        if irf is not None and len(irf[0]):
+            t_irf, c_irf = (np.asarray(a, dtype=np.float64) for a in irf[:2])
+            centroid = float(np.sum(t_irf * c_irf) / np.sum(c_irf)) if np.sum(c_irf) > 0 else 0.0
+            peak_s = tof_s + float(t_irf[int(np.argmax(c_irf))]) - centroid
+            ax.axvline(peak_s * 1e9, color="#d62728", linestyle=":",
+                       label=f"the fitted pulse's peak {peak_s * 1e9:.3f} ns "
+                             f"({(tof_s - peak_s) * 1e9:.3f} ns before its centroid)")
         ax.legend(loc="upper right", fontsize=8)
     ax.set_title(title or f"point measurement: {times_ns.size} detections")
     fig.savefig(path, dpi=dpi)

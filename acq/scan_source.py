@@ -39,7 +39,8 @@ MAX_GALVO_FAULTS = 3
 
 
 _DEVICE_OF_FAULT = {"lost-data": "tagger", "tagger-reconnect": "tagger", "galvo-fault": "galvo",
-                    "galvo-reconnect": "galvo"}
+                    "galvo-reconnect": "galvo", "galvo-garbled-reply": "galvo", "galvo-missing-reply": "galvo",
+                    "galvo-slow-reply": "galvo", "galvo-serial-unplug": "galvo"}
 
 
 class ScanSource:
@@ -68,6 +69,7 @@ class ScanSource:
         self._losts_received = 0                # LOST events in every chunk taken, used or not
         self._seen_reconnects = (0, 0, 0)       # galvo, tagger reconnects, tagger restarts
         self._galvo_faults = 0
+        self._dwell_ns = [0.0, 0]               # sum and count of the galvo's logged pixel dwells
         self._lock = threading.Lock()
 
     def default_gate_target(self, plan) -> int | None:
@@ -76,6 +78,8 @@ class ScanSource:
     # ---- arming ----------------------------------------------------------------------------------
     def arm(self, host: SourceHost) -> None:
         self._host = host
+        # every galvo exchange that failed and was retried goes on record (faults_seen)
+        self.galvo.on_fault = lambda kind, what: host.fault(f"galvo-{kind}", what, RETRIED)
         if host.out_dir is not None:
             self.recorder = Recorder(host.out_dir, host.plan, host.recon_settings,
                                      resolution_s=self.tagger.resolution_s,
@@ -251,6 +255,8 @@ class ScanSource:
             host.log({"event": "pixels", "first_seq": page.first_seq,
                       "records": [[r.frame, r.row, r.col, r.count, r.dwell_ns, r.flag.name]
                                   for r in page.records]})
+            self._dwell_ns[0] += float(sum(r.dwell_ns for r in page.records))
+            self._dwell_ns[1] += len(page.records)
 
     # ---- the end ---------------------------------------------------------------------------------
     def flush(self) -> None:
@@ -273,7 +279,17 @@ class ScanSource:
             if self._host is not None:
                 self._note_reconnects(self._host)
             if self.recorder is not None:
-                self.recorder.close()
+                self.recorder.close(pixel_time_s=self._typical_pixel_s())
+
+    def _typical_pixel_s(self) -> float | None:
+        """A count-gated scan's mean pixel time (the galvo's logged dwells plus the settle time),
+        for the recording's ``ImgHdr_TimePerPixel``: interpolating readers place photons by it
+        from each line start. None for fixed dwell (the header's is right) or without a log."""
+        plan = getattr(self._host, "plan", None)
+        total, n = self._dwell_ns
+        if plan is None or plan.mode != "gated" or n == 0:
+            return None
+        return total / n * 1e-9 + float(plan.settle_s)
 
     # ---- what the session reports ----------------------------------------------------------------
     def health(self, recent: Iterable[FaultRecord], error: BaseException | None) -> dict:

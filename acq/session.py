@@ -49,6 +49,7 @@ from spdepth.acq.flags import ACQUIRING, AcqFlag
 from spdepth.acq.jsonable import jsonable, write_json_atomic
 from spdepth.acq.live_recon import LiveRecon
 from spdepth.acq.plan import ScanPlan
+from spdepth.acq.recording import RecordedEnd
 from spdepth.acq.sources import HEALTH_RECENT_S, FaultRecord, Source
 from spdepth.acq.store import PixelStore
 from spdepth.drivers.events import EVENT_DTYPE
@@ -393,6 +394,14 @@ class Session:
             self._acquire()
         except _Aborted:
             final = SessionState.ABORTED
+        except RecordedEnd as end:
+            # a replay ends where and as the recorded session ended
+            if end.state == "failed":
+                self._fail(end)
+                final = SessionState.FAILED
+            else:
+                final = SessionState.ABORTED
+                self._log({"event": "replay_end", "state": end.state})
         except BaseException as exc:  # noqa: BLE001 - kept in .error, shown to every subscriber
             self._fail(exc)
             final = SessionState.FAILED

@@ -175,7 +175,7 @@ class MapPanel:
                 faded = np.asarray(weak[k], bool) & np.isfinite(data[k])
             data = data[k]
         self.data = data
-        new = levels_for(self.spec, data, target)
+        new = levels_for(self.spec, data, target, weak=faded)     # confident surfaces set the levels
         lv = new if (refit or self.levels is None) else widen(self.levels, new)
         if lv is not None and lv != self.levels:
             self.levels = lv

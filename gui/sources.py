@@ -107,7 +107,7 @@ class SourceSpec:
     mode: str = PARAMS["--mode"].default
     method: str = DEFAULT_METHOD
     dwell_limit_ms: float = 0.0
-    sbr: float = PARAMS["--sbr"].default
+    sbr: float = 0.0                     # 0: the scene's own (``--sbr``'s default)
     seed: int = PARAMS["--seed"].default
     faults: str = ""
     galvo_port: str = ""

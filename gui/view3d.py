@@ -35,7 +35,9 @@ if QtCore.QCoreApplication.instance() is None:
 
 SURFACE_COLOURS = ((0.12, 0.47, 0.71, 1.0), (1.0, 0.50, 0.05, 1.0), (0.17, 0.63, 0.17, 1.0),
                    (0.84, 0.15, 0.16, 1.0), (0.58, 0.40, 0.74, 1.0))
-"""One colour per surface (nearest first) when pixels hold several."""
+"""One colour per surface (nearest first), coloured by surface."""
+WEAK_COLOUR = (0.72, 0.72, 0.72, 0.6)
+"""Points of weak surfaces (background alone could have made them): grey, whatever the colouring."""
 POINT_SIZE_PX = 3.0
 
 
@@ -140,31 +142,42 @@ class PointCloudView(QtWidgets.QWidget):
         self.info.setText("" if geometry is not None else
                           "  this source has no scan geometry: no points")
 
-    def set_maps(self, depth_m: np.ndarray, signal: np.ndarray) -> None:
-        """Depth (H, W) or (K, H, W) and the signal detections of the same shape."""
-        self._last = (np.asarray(depth_m, dtype=np.float64), np.asarray(signal, dtype=np.float64))
+    def set_maps(self, depth_m: np.ndarray, signal: np.ndarray, weak: np.ndarray | None = None) -> None:
+        """Depth (H, W) or (K, H, W), the signal detections and the weak surfaces (background
+        alone could have made them: drawn grey, left out of the colour levels and the framing) of
+        the same shape."""
+        depth_m = np.asarray(depth_m, dtype=np.float64)
+        weak = np.zeros(depth_m.shape, bool) if weak is None or np.shape(weak) != depth_m.shape \
+            else np.asarray(weak, bool)
+        self._last = (depth_m, np.asarray(signal, dtype=np.float64), weak)
         self._redraw()
 
     def _redraw(self) -> None:
         if self._last is None or self._dirs is None:
             return
-        depth, signal = self._last
+        depth, signal, weak = self._last
         depth = depth if depth.ndim == 3 else depth[None]
         signal = signal if signal.ndim == 3 else signal[None]
+        weak = weak if weak.ndim == 3 else weak[None]
         ok = np.isfinite(depth)
         surf, rr, cc = np.nonzero(ok)
         rng = depth[ok]
+        faint = weak[ok]
+        # confident points set the levels and the framing (all points when none is)
+        sure = ~faint if np.any(~faint) else np.ones(faint.shape, bool)
         pos = self._dirs[rr, cc] * rng[:, None]
         self.n_points = int(rng.size)
         how = self.colour.currentData()
-        if how == "surface" or (how == "depth" and depth.shape[0] > 1):
+        if how == "surface":
             colours = np.array(SURFACE_COLOURS)[surf % len(SURFACE_COLOURS)]
         elif how == "intensity":
             s = signal[np.minimum(surf, signal.shape[0] - 1), rr, cc]
-            colours = _turbo(s, (0.0, float(np.nanpercentile(s, 99)) if s.size else 1.0))
+            colours = _turbo(s, (0.0, float(np.nanpercentile(s[sure], 99)) if s.size else 1.0))
         else:
-            lv = levels_for(MAPS_BY_KEY["depth"], rng) or (0.0, 1.0)
+            lv = levels_for(MAPS_BY_KEY["depth"], rng[sure]) or (0.0, 1.0)
             colours = _turbo(rng, lv)
+        colours = np.array(colours, dtype=np.float64)
+        colours[faint] = WEAK_COLOUR
         k = depth.shape[0]
         self.info.setText(f"  {self.n_points:,} points" + (f", {k} surfaces" if k > 1 else "")
                           + "; drag to rotate, wheel to zoom")
@@ -175,11 +188,14 @@ class PointCloudView(QtWidgets.QWidget):
         shown = np.stack([pos[:, 0], pos[:, 2], -pos[:, 1]], axis=1)
         self.scatter.setData(pos=shown, color=colours.astype(np.float32), size=POINT_SIZE_PX)
         if not self._camera_set and rng.size:
-            self._aim(shown)
+            self._aim(shown[sure])
 
     def _aim(self, shown: np.ndarray) -> None:
+        """Frame the points: centred on their median, sized by their 2-98% spread (a few stray
+        points far behind or in front must not shrink the scene to a wedge)."""
         centre = np.median(shown, axis=0)
-        span = float(np.max(np.ptp(shown, axis=0))) or 1.0
+        lo, hi = np.percentile(shown, [2, 98], axis=0) if len(shown) >= 20 else (shown.min(0), shown.max(0))
+        span = float(np.max(hi - lo)) or 1.0
         self.gl.opts["center"] = QtGui.QVector3D(*centre)
         # from behind the scanner, a little above and to the side: depth and relief both show
         self.gl.setCameraPosition(distance=max(2.5 * span, 0.5), elevation=15, azimuth=-115)

@@ -332,6 +332,8 @@ class ControlPanel(QtWidgets.QWidget):
                 w.setCurrentText(str(v))
         elif isinstance(w, QtWidgets.QLineEdit):
             w.setText(str(v))
+        elif v is None:
+            w.setValue(w.minimum())      # a declared default of None: the spin box's "default" word
         elif isinstance(w, QtWidgets.QSpinBox):
             w.setValue(int(v))
         else:
@@ -1220,7 +1222,7 @@ class MainWindow(QtWidgets.QMainWindow):
         if self.running() and now - self._last_3d < VIEW3D_PERIOD_S:
             return
         self._last_3d = now
-        self.view3d.set_maps(self.snap.depth_m, self.snap.signal)
+        self.view3d.set_maps(self.snap.depth_m, self.snap.signal, getattr(self.snap, "weak", None))
 
     def _status(self, snap) -> None:
         # only what changed: each setText/setStyleSheet re-lays out and repaints the status bar

@@ -38,7 +38,9 @@ def reconstruct(store: PhotonStore, settings: ReconSettings,
     the method, or the K-surface fit it hands several surfaces to), which keeps the first
     ``max_photons`` in-window detections of each pixel, bins them, and calls ``progress(done,
     total)`` as it goes (per chunk of pixels for the pixelwise methods). Returns :class:`DepthMaps`;
-    ``settings`` in it holds everything used (binning, pulse RMS and its source).
+    then decides per pixel whether the data hold a return and sets every depth's uncertainty
+    (:mod:`recon.detect`, the one place every estimator's maps pass). ``settings`` in it holds
+    everything used (binning, pulse RMS and its source).
     """
     if not isinstance(settings, ReconSettings):
         raise InputError(f"settings must be ReconSettings, got {type(settings).__name__}")
@@ -51,7 +53,12 @@ def reconstruct(store: PhotonStore, settings: ReconSettings,
     if isinstance(store, CountStore) and given_pulse(settings) is None:
         model_from = as_photons(store)    # the pulse is measured on photon times (recon.irf)
     b, kern, notes = resolve_model(model_from, settings)
-    return est.run(store, settings, b, kern, notes, progress)
+    maps = est.run(store, settings, b, kern, notes, progress)
+    # the one place every estimator's maps pass: is there a return, and how sure is each depth
+    from spdepth.recon.detect import decide_maps
+
+    photons = as_photons(store) if isinstance(store, CountStore) else store
+    return decide_maps(photons, settings, maps)
 
 
 def as_photons(counts: CountStore) -> PhotonStore:

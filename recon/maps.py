@@ -30,8 +30,12 @@ class PixelFlag(IntEnum):
     """A return was found; tof, signal, background and uncertainty are set."""
     NO_PHOTONS = 1
     """No detection in the window: tof NaN, signal and background 0."""
+    NO_RETURN = 2
+    """Detections, but no return among them: the test of :mod:`recon.detect` (a likelihood-ratio
+    test at the false-alarm rate in ``settings['detection']``) does not find one, or the fit puts
+    every detection in the background: no depth (tof NaN), signal 0."""
     NO_SIGNAL = 2
-    """Detections, but the best fit puts none of them in a return (all background): tof NaN."""
+    """The former name of NO_RETURN (the same value)."""
     NOT_CONVERGED = 3
     """uos stopped at max_iterations before ``||x_k - x_{k-1}||^2 < delta``; the estimate is kept."""
     INTERPOLATED = 4

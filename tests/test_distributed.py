@@ -99,7 +99,9 @@ def test_many_files_one_task_each_equal_the_single_runs(client, simulated_ptus, 
                 for p in paths]
     summaries = D._per_file(requests, client)
     assert [s["input"] for s in summaries] == paths
-    assert all(s["notes"] == [] and "times_s" not in str(s["settings"]) for s in summaries)
+    # the one note: the file's detections, those used and why (max_photons)
+    assert all(s["notes"] in ([], [s["photons_account"]]) and "times_s" not in str(s["settings"])
+               for s in summaries)
     # the command without --dask runs the same per-file path in this process
     assert main(["recon", *paths, "--method", "uos", *MODEL, "--npz", str(tmp_path / "here")]) == 0
     for p in paths:

@@ -67,3 +67,17 @@ def test_schedule_fires_each_fault_once():
     assert sched.take_due(100.0, 1.0) == []
     assert sched.pending == ()
     assert [f.kind for f in sched.fired] == [FaultKind.GARBLED_REPLY, FaultKind.SLOW_REPLY]
+
+
+def test_galvo_faults_on_one_exchange_survive_together_and_are_on_record(tmp_path):
+    # each alone was survived and missing from faults_seen; the three on one exchange failed the
+    # session (DeviceTimeoutError/ProtocolError, exit 3): the retry budget is per kind of failure
+    import json
+
+    from spdepth.acq.cli import main
+
+    out = tmp_path / "run"
+    assert main(["scan", "--sim", "--size", "16x16", "--faults",
+                 "missing-reply@30%,slow-reply@30%,garbled-reply@30%", "--out", str(out)]) == 0
+    kinds = {f["kind"] for f in json.loads((out / "run.json").read_text())["faults_seen"]}
+    assert {"galvo-missing-reply", "galvo-slow-reply", "galvo-garbled-reply"} <= kinds

@@ -160,3 +160,69 @@ def test_a_plan_without_angles_has_no_geometry():
     assert ScanGeometry.from_plan(ScanPlan(1, 1, 0.0, 0.0, 0.0, 0.0)) is not None   # a point
     g = ScanGeometry.from_plan(ScanPlan(8, 6, -2.0, 2.0, -1.5, 1.5))
     assert g.shape == (6, 8) and (g.x_first_deg, g.y_last_deg) == (-2.0, 1.5)
+
+
+def test_las_returns_and_flags_read_back(tmp_path, rng):
+    # two surfaces per pixel, the far one stored first in some pixels; a weak surface, a pixel
+    # without a return, and session flags: every one survives in the files
+    laspy = pytest.importorskip("laspy")
+    plyfile = pytest.importorskip("plyfile")
+    from spdepth.acq.flags import AcqFlag
+    from spdepth.acq.points import PointFlag
+    from spdepth.recon.maps import PixelFlag
+
+    maps = _maps(rng, k=2)
+    depth = maps.depth_m.copy()
+    depth[0, 0, 0], depth[1, 0, 0] = 5.0, 3.0                 # surface 0 farther than surface 1
+    depth[:, 7, 7] = np.nan
+    flags = maps.flags.copy()
+    flags[7, 7] = PixelFlag.NO_RETURN
+    weak = np.zeros(depth.shape, bool)
+    weak[1, 1, 1] = True
+    acq = np.zeros((12, 16), np.uint8)
+    acq[0, 0] = AcqFlag.DWELL_LIMIT
+    acq[1, 1] = AcqFlag.INCOMPLETE
+    from dataclasses import replace
+
+    maps = replace(maps, depth_m=depth, tof_s=2 * depth / 299792458.0, flags=flags, weak=weak, surfaces=None)
+    g = ScanGeometry.from_fov((12, 16), 20.0)
+    n = write_points(maps, g, ply=tmp_path / "p.ply", las=tmp_path / "p.las", acq_flags=acq)
+    assert n == np.isfinite(depth).sum()                      # the no-return pixel is left out
+    las = laspy.read(str(tmp_path / "p.las"))
+    ret, nret = np.asarray(las.return_number), np.asarray(las.number_of_returns)
+    assert ret.min() >= 1 and np.all(ret <= nret)
+    r = np.sqrt(np.asarray(las.x) ** 2 + np.asarray(las.y) ** 2 + np.asarray(las.z) ** 2)
+    row, col = np.asarray(las.row), np.asarray(las.col)
+    for (rr, cc) in [(0, 0), (3, 3), (2, 3)]:
+        here = (row == rr) & (col == cc)
+        order = np.argsort(ret[here])
+        assert np.all(np.diff(r[here][order]) > 0)            # return 1 the nearest
+        assert np.all(nret[here] == here.sum())
+    ud = np.asarray(las.user_data)
+    assert np.all(ud[(row == 0) & (col == 0)] & PointFlag.SHORT)
+    assert np.all(ud[(row == 1) & (col == 1)] & PointFlag.INCOMPLETE)
+    assert (ud[(row == 1) & (col == 1)] & PointFlag.WEAK).sum() == 1
+    assert not np.any(np.asarray(las.withheld))
+    # asked for, the no-return pixel is one withheld point at the origin, flagged
+    write_points(maps, g, las=tmp_path / "q.las", ply=tmp_path / "q.ply", no_return=True)
+    q = laspy.read(str(tmp_path / "q.las"))
+    nr = (np.asarray(q.user_data) & PointFlag.NO_RETURN) != 0
+    assert nr.sum() == 1 and np.asarray(q.withheld)[nr].all() and np.asarray(q.pixel_flag)[nr][0] == PixelFlag.NO_RETURN
+    v = plyfile.PlyData.read(str(tmp_path / "q.ply"))["vertex"]
+    assert ((v["flags"] & PointFlag.NO_RETURN) != 0).sum() == 1
+    assert {"return_number", "number_of_returns", "pixel_flag", "acq_flag"} <= set(v.data.dtype.names)
+
+
+def test_weak_surfaces_do_not_set_the_levels(rng):
+    # a face at 2.8-3.1 m over a wall at 3.6 m, and weak surfaces scattered over 0.2-14 m: the
+    # levels are the confident surfaces' (the face keeps its colours)
+    depth = np.full((64, 64), 3.6) + rng.normal(0, 0.01, (64, 64))
+    depth[16:40, 20:44] = np.linspace(2.8, 3.1, 24)[None, :]
+    weak = rng.random((64, 64)) < 0.25
+    depth[weak] = rng.uniform(0.2, 14.0, int(weak.sum()))
+    lo, hi = levels_for(MAPS_BY_KEY["depth"], depth, weak=weak)
+    assert 2.7 < lo < 2.85 and 3.55 < hi < 3.7
+    lo_all, hi_all = levels_for(MAPS_BY_KEY["depth"], depth)
+    assert lo_all < 1.0 and hi_all > 10.0                      # what the weak ones did before
+    # only weak surfaces: they are all there is to draw
+    assert levels_for(MAPS_BY_KEY["depth"], depth, weak=np.ones_like(weak)) == (lo_all, hi_all)

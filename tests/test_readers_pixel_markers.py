@@ -127,3 +127,23 @@ def test_fixed_dwell_simulate_file_by_pixel_markers(tmp_path):
     with ptufile.PtuFile(out) as ptu:
         counts = ptu.decode_image(dtime=-1).sum(axis=(0, 3, 4)).astype(np.int64)
     assert_array_equal(res.store.counts(), counts)
+
+
+def test_gated_recording_header_holds_the_typical_dwell(tmp_path):
+    """A count-gated session's recording closes with ``ImgHdr_TimePerPixel`` = the mean logged
+    pixel time (not the dwell limit), so ptufile's decode_image, which places photons by it from each
+    line start, puts most photons in their pixel (with the 20 ms limit there: about 8%)."""
+    import json
+    import ptufile
+
+    from spdepth.acq.cli import main
+
+    out = tmp_path / "run"
+    assert main(["scan", "--sim", "--mode", "gated", "--size", "16x16", "--out", str(out)]) == 0
+    dwells = [r[4] for line in (out / "events.jsonl").read_text().splitlines()
+              for r in (json.loads(line).get("records") or []) if json.loads(line).get("event") == "pixels"]
+    ours = read_photons(out / "recording.ptu").store.counts()
+    with ptufile.PtuFile(out / "recording.ptu") as ptu:
+        assert ptu.tags["ImgHdr_TimePerPixel"] == pytest.approx(np.mean(dwells) * 1e-6, rel=1e-6)   # ms
+        theirs = ptu.decode_image(dtime=-1).sum(axis=(0, 3, 4)).astype(np.int64)[:16, :16]
+    assert np.minimum(theirs, ours).sum() > 0.5 * ours.sum()

@@ -15,6 +15,7 @@ from hypothesis import given, settings as hsettings, strategies as st
 from spdepth.acq.cli import main
 from spdepth.recon import estimators
 from spdepth.recon.errors import InputError
+from spdepth.recon.detect import decide_maps
 from spdepth.recon.estimate import reconstruct
 from spdepth.recon.maps import DepthMaps
 from spdepth.recon.model import METHODS, PIXELWISE_METHODS, SEED_PAPER, ReconSettings
@@ -90,7 +91,8 @@ def test_reconstruct_is_the_registered_estimator(method, seed):
     store = PhotonStore.from_lists(lists, (3, 4), SEED_PAPER.time_unit_s)
     settings = SEED_PAPER.settings(method)
     a = reconstruct(store, settings)
-    b_maps = estimators.get(method).run(store, settings, *resolve_model(store, settings))
+    # the registered estimator, then the one decision of every estimator's maps (recon.detect)
+    b_maps = decide_maps(store, settings, estimators.get(method).run(store, settings, *resolve_model(store, settings)))
     for key in ("tof_s", "background", "signal", "photons", "uncertainty_s", "flags"):
         np.testing.assert_array_equal(getattr(a, key), getattr(b_maps, key))
     assert a.settings == b_maps.settings and a.settings["method"] == method

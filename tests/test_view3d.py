@@ -38,6 +38,15 @@ def test_3d_view_draws_the_points(qtbot, win, tmp_path):
     two = np.stack([win.snap.depth_m, win.snap.depth_m + 0.5])
     v.set_maps(two, np.stack([win.snap.signal] * 2))
     assert v.n_points == 2 * int(np.isfinite(win.snap.depth_m).sum())
+    # weak surfaces far behind the scene: grey, and the framing stays on the confident points
+    far = np.stack([win.snap.depth_m, win.snap.depth_m + 50.0])
+    weak = np.zeros(far.shape, bool)
+    weak[1] = True
+    v.reset_camera()
+    v.set_maps(far, np.stack([win.snap.signal] * 2), weak)
+    centre = v.gl.opts["center"]
+    assert abs(centre.y() - float(np.nanmedian(win.snap.depth_m))) < 1.0      # y shows the range
+    assert v.gl.opts["distance"] < 2.5 * 5.0
 
 
 def test_window_opens_without_opengl(qtbot, win, tmp_path):

@@ -83,7 +83,10 @@ def exit_status(session, interrupted: bool) -> int:
     if interrupted:
         return EXIT_INTERRUPTED
     if session.state.value == "done":
-        return EXIT_OK
+        from spdepth.acq.api import no_pixel_cause
+
+        # a run that completed no pixel is not done: exit 1 (report() names the likely cause)
+        return EXIT_FAILED if no_pixel_cause(session) else EXIT_OK
     return EXIT_DEVICE if isinstance(session.error, DeviceError) else EXIT_FAILED
 
 
@@ -104,3 +107,5 @@ def report(summary: dict, as_json: bool, label: str) -> None:
         print(f"  warning: {w}")
     if summary["error"]:
         print(f"  error: {summary['error']}")
+    if summary.get("no_pixel_complete"):
+        print(f"  error: no pixel completed: {summary['no_pixel_complete']}")

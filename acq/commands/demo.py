@@ -91,10 +91,21 @@ def _strongest_surface(maps):
     return np.take_along_axis(depth, best[None], axis=0)[0]
 
 
+def _nearest_surface(maps, truth_m):
+    """(H, W) depth of each pixel's estimated surface nearest ``truth_m`` (one truth surface),
+    NaN where that surface is absent (its truth NaN)."""
+    import numpy as np
+
+    est = np.asarray(maps.depth_m, dtype=np.float64)
+    est = est if est.ndim == 3 else est[None]
+    gap = np.abs(est - truth_m[None])
+    pick = np.argmin(np.where(np.isfinite(gap), gap, np.inf), axis=0)
+    got = np.take_along_axis(est, pick[None], axis=0)[0]
+    return np.where(np.isfinite(truth_m), got, np.nan)
+
+
 def _demo(args, request, methods, out_dir, png) -> int:
     import json
-
-    import numpy as np
 
     from spdepth.acq.api import build_session, finish_session, open_instruments
     from spdepth.acq.commands._session import PreparingNotice, exit_status, run_session
@@ -130,25 +141,37 @@ def _demo(args, request, methods, out_dir, png) -> int:
 
     results, true_depth, oracle_cm, same = _accuracy_table(session, scene, request, methods)
 
-    sheet = argparse.Namespace(truth_m=true_depth)
-    panels = [("truth_m", "true depth", "m", "turbo", "percentile")]
-    for method, (maps, mae_cm, nearest) in results.items():
-        setattr(sheet, f"{method}_m", nearest)
-        panels.append((f"{method}_m", f"{method}: MAE {mae_cm:.1f} cm, depth", "m", "turbo", "percentile"))
-    # the background panel: the default estimator's, else the first that estimates background
+    n_surf = true_depth.shape[0]
+    sheet = argparse.Namespace()
+    panels = []
+    for r in range(n_surf):
+        name = f", surface {r + 1}" if n_surf > 1 else ""
+        setattr(sheet, f"truth_{r}", true_depth[r])
+        panels.append((f"truth_{r}", f"true depth{name}", "m", "turbo", "percentile"))
+        for method, (maps, per_surface) in results.items():
+            got, mae_cm = per_surface[r]
+            setattr(sheet, f"{method}_{r}", got)
+            panels.append((f"{method}_{r}", f"{method}: MAE {mae_cm:.1f} cm, depth{name}", "m", "turbo",
+                           "percentile"))
+    # the background panel: the default estimator's, else the first that estimates background, in
+    # the one background quantity and unit of every sheet and the window (acq.mapdefs "background")
+    from spdepth.acq.mapdefs import MAPS_BY_KEY, map_input_from_maps
+
     best = results.get(DEFAULT_METHOD) or next(
         (r for m, r in results.items() if estimators.get(m).background), next(iter(results.values())))
-    sheet.background = np.asarray(best[0].background)
-    panels.append(("background", "background", "detections per bin", "magma", "percentile"))
+    bg = MAPS_BY_KEY["background"]
+    sheet.background = bg.extract(map_input_from_maps(best[0]))
+    panels.append(("background", bg.title, bg.unit, bg.cmap, "percentile"))
     render_maps_png(png, sheet, panels=panels,
                     title=f"{scene_name} {w}x{h}, {request.target} detections per pixel, "
-                          f"SBR {request.instruments.sbr:g}")
+                          f"SBR {scene.settings.sbr:g}")
     print(f"wrote {png}" + (f"; session files in {out_dir}" if args.out else ""))
     if args.json:
         summary = finish_session(session, None)
         summary.update(out=str(out_dir) if args.out else None, png=str(png),
-                       oracle_mae_cm=oracle_cm, live_equals_batch=same,
-                       compare={m: {"mae_cm": r[1]} for m, r in results.items()})
+                       oracle_mae_cm=oracle_cm[0], live_equals_batch=same,
+                       compare={m: {"mae_cm": r[1][0][1], "mae_cm_per_surface": [x[1] for x in r[1]]}
+                                for m, r in results.items()})
         print(json.dumps(summary))
     return exit_status(session, interrupted)
 
@@ -168,36 +191,51 @@ def _accuracy_table(session, scene, request, methods):
     h, w = request.size
     store = session.store
     truth = scene.truth()
+    # every surface the scene has, each scored against its own truth (NaN where it is absent: the
+    # pane of two-layer covers only the centre); one surface: the strongest estimated one
     true_depth = np.asarray(truth["depth_m"], dtype=np.float64)
-    if true_depth.ndim == 3:
-        true_depth = true_depth[0]
+    if true_depth.ndim == 2:
+        true_depth = true_depth[None]
+    occ = np.asarray(truth.get("occupancy", np.ones_like(true_depth)), dtype=np.float64)
+    occ = occ if occ.ndim == 3 else occ[None]
+    true_depth = np.where(occ > 0, true_depth, np.nan)
+    n_surf = true_depth.shape[0]
     photons = store.photons()
     binning = session.live_recon.requested.binning
-    k_signal = signal_detections(truth, store.count.reshape(h, w), window_s=binning.window_stop_s)
+    counts = store.count.reshape(h, w)
+    k_signal = [signal_detections(truth, counts, window_s=binning.window_stop_s, surface=r) for r in range(n_surf)]
     results = {}
-    print(f"{'method':<8}{'MAE (cm)':>10}{'x oracle':>10}{'missed':>8}{'recon (s)':>11}{'pixels/s':>12}")
-    oracle_cm = None
+    print(f"{'method':<8}" + ("surface " if n_surf > 1 else "")
+          + f"{'MAE (cm)':>10}{'x oracle':>10}{'missed':>8}{'recon (s)':>11}{'pixels/s':>12}")
+    oracle_cm = [None] * n_surf
     live = session.live_recon.requested
     pulse_rms_s = request.pulse_rms_s or scene.pulse_rms_s
     for method in methods:
-        # the live estimator's settings (pulse, surfaces, target) with another method
+        # the live estimator's settings (pulse, target) with another method, a surface per layer
         settings = dataclasses.replace(live, method=method, max_photons=request.target,
-                                       pulse_rms_s=live.pulse_rms_s or pulse_rms_s)
+                                       pulse_rms_s=live.pulse_rms_s or pulse_rms_s,
+                                       reflectors=n_surf if n_surf > 1 else live.reflectors)
         reconstruct(store.photons(np.arange(1)), settings)   # compile outside the timing
         t1 = time.perf_counter()
         maps = reconstruct(photons, settings)
         dt = time.perf_counter() - t1
-        nearest = _strongest_surface(maps)
-        e = evaluate_depth(nearest, true_depth, k_signal, pulse_rms_s)
-        if oracle_cm is None:
-            oracle_cm = 100 * e.oracle_mae_m
-            print(f"{'oracle':<8}{oracle_cm:>10.2f}{1.0:>10.2f}{'':>8}   (per pixel, same pixels)")
-        results[method] = (maps, 100 * e.mae_m, nearest)
-        print(f"{method:<8}{100 * e.mae_m:>10.2f}{e.ratio_to_oracle:>10.2f}"
-              f"{100 * e.miss_share:>7.1f}%{dt:>11.3f}{h * w / dt:>12,.0f}")
+        per_surface = []
+        for r in range(n_surf):
+            got = _strongest_surface(maps) if n_surf == 1 else _nearest_surface(maps, true_depth[r])
+            e = evaluate_depth(got, true_depth[r], k_signal[r], pulse_rms_s)
+            if oracle_cm[r] is None:
+                oracle_cm[r] = 100 * e.oracle_mae_m
+                print(f"{'oracle':<8}" + (f"{r + 1:<8}" if n_surf > 1 else "")
+                      + f"{oracle_cm[r]:>10.2f}{1.0:>10.2f}{'':>8}   (per pixel, same pixels)")
+            per_surface.append((got, 100 * e.mae_m))
+            print(f"{method:<8}" + (f"{r + 1:<8}" if n_surf > 1 else "")
+                  + f"{100 * e.mae_m:>10.2f}{e.ratio_to_oracle:>10.2f}"
+                  f"{100 * e.miss_share:>7.1f}%{dt:>11.3f}{h * w / dt:>12,.0f}")
+        results[method] = (maps, per_surface)
     same = None
     if request.method in results:
-        same = np.array_equal(session.maps().tof_s, results[request.method][0].tof_s, equal_nan=True)
+        batch = results[request.method][0] if n_surf == 1 else reconstruct(photons, live)
+        same = np.array_equal(session.maps().tof_s, batch.tof_s, equal_nan=True)
         print(f"live {request.method} maps {'equal' if same else 'DIFFER FROM'} the batch "
               f"reconstruction of the final store")
     return results, true_depth, oracle_cm, same

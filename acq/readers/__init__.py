@@ -11,6 +11,8 @@ what is wrong (missing, empty, truncated, corrupt, wrong kind, missing field).
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from pathlib import Path
 
 from spdepth.acq.readers.common import ReadResult
@@ -64,16 +66,18 @@ def sniff_kind(path: str | Path) -> str:
 
 
 def read_photons(path: str | Path, *, time_unit_s: float | None = None, mat_var: str | None = None,
-                 channel: int | None = None) -> ReadResult:
+                 channel: int | None = None, keep: int | None = None) -> ReadResult:
     """Read any supported file into a PhotonStore (a histogram cube: into a CountStore, ``counts``).
 
     path:        a .mat file (first-photon-imaging cells, or a count cube), a PicoQuant PTU / HT3 /
                  PT3 T3 file, or a count cube in .npy / .npz / HDF5.
     time_unit_s: size of one raw time unit in seconds. Required for .mat files (they carry none);
-                 for PicoQuant files it overrides the header's TCSPC resolution (rarely wanted).
+                 PicoQuant files use their header's TCSPC resolution, and a different value given
+                 here is noted (in the result's notes, naming both), never applied.
     mat_var:     the cell-array or cube variable of a .mat file (the array of a .npz, the dataset
                  of an HDF5 file) when it holds more than one.
     channel:     PicoQuant files: keep only this detector channel (0-based); default all channels.
+    keep:        a session's recording: detections kept per pixel (default the session's target).
     """
     kind = sniff_kind(path)
     if kind == "mat":
@@ -95,4 +99,12 @@ def read_photons(path: str | Path, *, time_unit_s: float | None = None, mat_var:
     from spdepth.acq.readers import picoquant
 
     reader = {"ptu": picoquant.read_ptu, "ht3": picoquant.read_ht3, "pt3": picoquant.read_pt3}[kind]
-    return reader(path, time_unit_s=time_unit_s, channel=channel)
+    result = reader(path, channel=channel, **({"keep": keep} if kind == "ptu" else {}))
+    unit_s = result.store.time_unit_s
+    if time_unit_s is not None and not math.isclose(time_unit_s, unit_s, rel_tol=1e-9):
+        # never a silent override: the header's resolution is the file's unit (several inputs may
+        # mix .mat files, which need the option, with PicoQuant files, which carry their own)
+        note = (f"{Path(path).name}: time unit {time_unit_s * 1e12:g} ps given, the header's resolution "
+                f"{unit_s * 1e12:g} ps used (PicoQuant files carry their own time unit)")
+        result = dataclasses.replace(result, notes=(note,) + tuple(result.notes))
+    return result

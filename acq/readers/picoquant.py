@@ -21,6 +21,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import logging
+import math
 import struct
 from pathlib import Path
 
@@ -212,10 +213,23 @@ def _records_to_result(path: Path, kind: str, decoded: np.ndarray, time_unit_s: 
 # PTU
 
 
+def header_unit(path, time_unit_s: float | None, resolution_s: float, field: str) -> float:
+    """The time unit of a PicoQuant file: its header's resolution. A ``time_unit_s`` given that
+    differs from it is refused, naming both (it would silently rescale every time: a bust at 3.59 m
+    read with 1 ps units sat at 0.45 m); the same value is accepted."""
+    if time_unit_s is not None and not math.isclose(time_unit_s, resolution_s, rel_tol=1e-9):
+        raise InputError(f"{path}: the time unit given ({time_unit_s * 1e12:g} ps) differs from the header's "
+                         f"resolution ({field} = {resolution_s * 1e12:g} ps); PicoQuant files carry their own "
+                         f"time unit: drop --time-unit-ps")
+    return resolution_s
+
+
 def read_ptu(path: str | Path, *, time_unit_s: float | None = None,
-             channel: int | None = None) -> ReadResult:
+             channel: int | None = None, keep: int | None = None) -> ReadResult:
     """Read a PicoQuant PTU T3 file. Times are in units of the file's TCSPC resolution
-    (``MeasDesc_Resolution``) unless ``time_unit_s`` overrides it."""
+    (``MeasDesc_Resolution``); a ``time_unit_s`` that differs from it is refused
+    (:func:`header_unit`). ``keep``: a session recording's detections kept per pixel (default its
+    target; :func:`acq.recording.session_photons`)."""
     import ptufile
 
     path = Path(path)
@@ -246,6 +260,7 @@ def read_ptu(path: str | Path, *, time_unit_s: float | None = None,
     resolution_s = float(tags["MeasDesc_Resolution"])
     if not resolution_s > 0:
         raise InputError(f"{path}: header field MeasDesc_Resolution is {resolution_s}, not a positive time")
+    time_unit_s = header_unit(path, time_unit_s, resolution_s, "MeasDesc_Resolution")
     rectype = int(tags["TTResultFormat_TTTRRecType"])
     image = ptu_image(path, tags)
     meta = ptu_meta(tags, n_records)
@@ -254,9 +269,7 @@ def read_ptu(path: str | Path, *, time_unit_s: float | None = None,
         # a session's recording: its passes and lost spans are in events.jsonl beside it
         from spdepth.acq.recording import session_photons
 
-        store, notes, extra, periods = session_photons(path)
-        if time_unit_s is not None and time_unit_s != store.time_unit_s:
-            store = dataclasses.replace(store, time_unit_s=time_unit_s)
+        store, notes, extra, periods = session_photons(path, keep)
         # a count-gated pixel's periods: up to the detection that filled it; its store holds the
         # in-window detections only, so earlier ones outside the window shadow unseen
         known = periods > 0
@@ -541,6 +554,7 @@ def _legacy_result(path, kind, data, off, head, rectype, resolution_s, time_unit
     records, notes = _legacy_records(path, data, off, head)
     if not resolution_s > 0:
         raise InputError(f"{path}: header field Resolution is {resolution_s * 1e12:g} ps, not positive")
+    time_unit_s = header_unit(path, time_unit_s, resolution_s, "Resolution")
     meta = {"record_type": int(rectype), "resolution_s": resolution_s, "records": int(records.size),
             "sync_rate_hz": float(head["SyncRate"]), "format_version": head["FormatVersion"]}
     if notes:

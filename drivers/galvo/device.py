@@ -78,7 +78,9 @@ class Galvo:
 
     transport:          see the module docstring.
     retries:            re-sends of a command whose reply was garbled or missing, when re-sending
-                        is safe (every command but START, which is checked via STAT? instead).
+                        is safe (every command but START, which is checked via STAT? instead):
+                        a budget per exchange and per kind of failure (garbled, missing or late,
+                        port lost), so faults that each survive alone survive on one exchange.
     reconnect_timeout_s: how long to keep re-opening a vanished port before giving up.
     backoff_s:          first wait between re-open attempts; doubles up to ``max_backoff_s``.
     """
@@ -98,6 +100,10 @@ class Galvo:
         self._next_seq = 0
         self.reconnects = 0
         """How many times the port was re-opened after it vanished."""
+        self.on_fault = None
+        """``on_fault(kind, what)``, called for every failed exchange that is retried (kind:
+        "garbled-reply", "missing-reply", "slow-reply", "serial-unplug"): the owner's record of
+        faults survived (a session's ``faults_seen``)."""
 
     # ---- construction ----------------------------------------------------------------------
     @classmethod
@@ -156,6 +162,7 @@ class Galvo:
                 if reply.tag == tag:
                     return reply
                 log.warning("galvo: dropped stale reply (tag %s, expected %s)", reply.tag, tag)
+                self._fault("slow-reply", f"a late reply (tag {reply.tag}) to an earlier {mnemonic} dropped")
 
     def _query(self, mnemonic: str, *args, safe: bool = True) -> str:
         """Payload of the OK reply to one command, with recovery.
@@ -164,21 +171,31 @@ class Galvo:
         port is re-opened (and the configuration restored) and the command re-sent when ``safe``.
         Numbered error replies raise their GalvoReplyError at once."""
         command = " ".join([mnemonic, *map(str, args)])
-        attempt = 0
+        attempts = {"serial-unplug": 0, "garbled-reply": 0, "missing-reply": 0}
         while True:
             try:
                 return self._exchange_once(mnemonic, args).raise_for_error(command)
             except ConnectionLostError as e:
                 log.warning("galvo: %s; reconnecting", e)
                 self._reconnect()
-                if not safe or attempt >= self.retries:
+                if not safe or attempts["serial-unplug"] >= self.retries:
                     raise
+                kind = "serial-unplug"
             except (ProtocolError, DeviceTimeoutError) as e:
-                if not safe or attempt >= self.retries:
+                kind = "garbled-reply" if isinstance(e, ProtocolError) else "missing-reply"
+                if not safe or attempts[kind] >= self.retries:
                     raise
                 log.warning("galvo: %s after %r; re-sending", e, command)
+                self._fault(kind, f"{e} after {command!r}; re-sent")
                 self._reset_input()
-            attempt += 1
+            attempts[kind] += 1
+
+    def _fault(self, kind: str, what: str) -> None:
+        if self.on_fault is not None:
+            try:
+                self.on_fault(kind, what)
+            except Exception as exc:  # noqa: BLE001 - a record keeper's failure must not fail the scan
+                log.warning("galvo: fault record failed: %s", exc)
 
     def _reset_input(self) -> None:
         try:

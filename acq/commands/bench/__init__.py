@@ -37,6 +37,8 @@ TARGETS = {
               "per second: pixelwise and spatial estimators on counts, one thread and all"),
     "flux": ("spdepth.acq.commands.bench.flux", "depth bias and signal error against detections per laser "
              "pulse (0.01 to 1), with and without the pile-up correction"),
+    "honesty": ("spdepth.acq.commands.bench.honesty", "split-half check of depths and uncertainties without truth: "
+                "each pixel's alternate detections reconstructed apart, agreement within 1 and 3 sigma (FILE)"),
     "spatial": ("spdepth.acq.commands.bench.spatial", "spatial estimator on a 256x256 frame beside ml, warm, 1 thread "
                 "(pixels/s per core)"),
 }
