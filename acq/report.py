@@ -18,9 +18,13 @@ from spdepth.recon.maps import C_M_PER_S
 from spdepth.acq.mapdefs import FADE_RGBA, NAN_COLOUR  # noqa: E402 - the one grey of unmeasured pixels
 
 def ps_text(v: float) -> str:
-    """A time in ps as a person reads (and ``--window-ps`` takes) it: no exponent, at most three
-    decimals, no trailing zeros ("5180000", "16000.5"; ``:g`` gave "5.18e+06")."""
-    text = f"{float(v):.3f}".rstrip("0").rstrip(".")
+    """A time in ps as a person reads (and ``--window-ps`` takes) it: no exponent, whole ps from
+    100,000 ps up, else six significant digits, no trailing zeros ("5180000", "16000.5",
+    "200000" for a bin edge of 199999.999...; ``:g`` gave "5.18e+06")."""
+    v = float(v)
+    if abs(v) >= 1e5:
+        return str(int(round(v)))
+    text = np.format_float_positional(v, precision=6, unique=False, fractional=False, trim="-")
     return "0" if text in ("-0", "") else text
 
 
