@@ -32,6 +32,8 @@ def _run(argv, capsys, caplog) -> tuple[int, list[str]]:
     caplog.clear()
     with caplog.at_level(logging.WARNING), warnings.catch_warnings(record=True) as warned:
         warnings.simplefilter("always")
+        # Python does not show these to a user (its default filters ignore them)
+        warnings.simplefilter("ignore", ResourceWarning)
         try:
             code = main(argv)
         except BaseException as exc:  # noqa: BLE001 - the point: nothing may escape
@@ -211,7 +213,7 @@ def test_fuzz_run_json(session_dir, tmp_path, rng, capsys, caplog):
     for i, (name, body) in enumerate(variants):
         d = _session_copy(session_dir, tmp_path, i)
         (d / "run.json").write_text(body)
-        tally.check(name, ["recon", str(d / "recording.ptu"), "--out", str(tmp_path / f"r{i}.npz")],
+        tally.check(name, ["recon", str(d / "recording.ptu"), "--npz", str(tmp_path / f"r{i}.npz")],
                     capsys, caplog)
         shutil.rmtree(d)
     tally.done()
@@ -334,4 +336,48 @@ def test_fuzz_window_settings(tmp_path, rng, qtbot, caplog):
         except Exception as exc:  # noqa: BLE001 - the point: a bad settings file must not stop the window
             tally.codes["traceback"] += 1
             tally.failures.append(f"{name}: {type(exc).__name__}: {exc}")
+    tally.done()
+
+
+# ---------------------------------------------------------------------------- histogram cubes
+
+def _cube_files(tmp, rng):
+    """(name, path) of count cubes (H x W x T) in .npy, .npz and .mat: written well and damaged
+    byte by byte, and holding the wrong things (negative, fractional, NaN, huge counts, too few
+    or too many dimensions, no time bins, text, complex numbers)."""
+    good = rng.poisson(0.3, (6, 5, 64)).astype(np.uint8)
+    good[:, :, 20] += 5
+    contents = {"good": good, "negative counts": good.astype(np.int16) - 3,
+                "fractional counts": good + 0.5, "NaN counts": np.where(good > 3, np.nan, good),
+                "infinite counts": np.where(good > 3, np.inf, good),
+                "huge counts": good.astype(np.int64) * 2**60, "float 1e308": np.where(good > 0, 1e308, 0.0),
+                "a 2-D array": good[:, :, 0], "a 4-D array": good[None, None],
+                "no time bins": good[:, :, :0], "one pixel": good[:1, :1],
+                "bool counts": good > 0, "complex counts": good + 1j, "text": np.array(["a", "b"])}
+    for name, a in contents.items():
+        for ext in ("npy", "npz", "mat"):
+            p = tmp / f"cube{rng.integers(1 << 30)}.{ext}"
+            if ext == "npy":
+                np.save(p, a)
+            elif ext == "npz":
+                np.savez(p, counts=a)
+            else:
+                try:
+                    scipy.io.savemat(p, {"hst": a})
+                except Exception:   # noqa: BLE001 - scipy cannot write that kind: nothing to read
+                    continue
+            yield f"{name} ({ext})", p
+            if name == "good":
+                for mname, data in _mutations(p.read_bytes(), rng, 8, 12):
+                    q = tmp / f"cut{rng.integers(1 << 30)}.{ext}"
+                    q.write_bytes(data)
+                    yield f"good {ext} {mname}", q
+
+
+@pytest.mark.slow
+def test_fuzz_histogram_cubes(tmp_path, rng, capsys, caplog):
+    tally = Tally("histogram cubes")
+    for name, path in _cube_files(tmp_path, rng):
+        tally.check(name, ["recon", str(path), "--time-unit-ps", "80", "--pulse-rms-ps", "170",
+                           "--periods", "1000"], capsys, caplog)
     tally.done()

@@ -59,6 +59,10 @@ def pick_cube(path: Path, arrays: dict, var: str | None, what: str = "variable")
     return cubes[0], arrays[cubes[0]]
 
 
+MAX_BIN_COUNT = float(2 ** 48)
+"""Most detections one bin of a cube may hold (a detector at 1 GHz for three days)."""
+
+
 def cube_counts(path: Path, name: str, cube, time_unit_s: float, *, periods=None,
                 frames_last: bool = False) -> tuple[CountStore, dict]:
     """The CountStore of a cube (frames summed) and what was learned: frames, shape, bins.
@@ -78,6 +82,10 @@ def cube_counts(path: Path, name: str, cube, time_unit_s: float, *, periods=None
             if fr.dtype.kind == "f" and not np.all(np.isfinite(fr)):
                 raise InputError(f"{source}: frame {f} holds NaN or infinite counts")
             arr = fr.astype(np.float64 if fr.dtype.kind == "f" else np.int64) if arr is None else arr + fr
+    if arr.dtype.kind in "uif" and arr.size and float(np.nanmax(arr)) > MAX_BIN_COUNT:
+        # not detections (no detector counts 2**60 in a bin): and they would overflow as floats
+        raise InputError(f"{source}: holds counts up to {float(np.nanmax(arr)):.3g} in one bin, "
+                         f"more than {MAX_BIN_COUNT:.3g}: not detection counts")
     if periods is not None:
         periods = np.ravel(np.asarray(periods, np.float64)) * frames
     counts = CountStore.from_cube(arr, time_unit_s, periods=periods, source=source)
