@@ -7,6 +7,9 @@ from enum import IntEnum
 
 import numpy as np
 
+# the record-type codes live where importing them costs no numpy (spdepth --help lists the taggers)
+from spdepth.drivers.record_types import GENERIC_T3_RECORD_TYPES, RecordType  # noqa: F401
+
 
 class EventKind(IntEnum):
     """What one event row means."""
@@ -33,29 +36,6 @@ class Marker(IntEnum):
     """A frame starts."""
 
 
-class RecordType(IntEnum):
-    """PTU ``TTResultFormat_TTTRRecType`` codes of the T3 records we read and write (ptufile's
-    ``PtuRecordType``); the one list of them (drivers, recordings and readers all use it)."""
-
-    PICOHARP_T3 = 0x00010303
-    """PicoHarp 300: ``channel:4 | dtime:12 | nsync:16``, channel 15 special."""
-    HYDRAHARP_T3 = 0x00010304
-    """HydraHarp v1: the Generic T3 bit layout, but each overflow record counts one."""
-    HYDRAHARP2_T3 = 0x01010304
-    """HydraHarp 400 with library v3 (HydraHarp V2 T3), what our tagger writes: Generic T3 layout."""
-    TIMEHARP260N_T3 = 0x00010305
-    """TimeHarp 260 NANO T3: Generic T3 layout."""
-    TIMEHARP260P_T3 = 0x00010306
-    """TimeHarp 260 PICO T3: Generic T3 layout."""
-    GENERIC_T3 = 0x00010307
-    """MultiHarp, PicoHarp 330, HydraHarp 500: Generic T3 records."""
-
-
-GENERIC_T3_RECORD_TYPES = frozenset({RecordType.HYDRAHARP2_T3, RecordType.TIMEHARP260N_T3,
-                                     RecordType.TIMEHARP260P_T3, RecordType.GENERIC_T3})
-"""Record types whose 32-bit records are ``special:1 | channel:6 | dtime:15 | nsync:10`` with
-overflow counts in nsync, which ``drivers.tagger.t3`` decodes (PicoQuant's file demos decode
-the TimeHarp 260 and HydraHarp V2 types with the Generic T3 routine; ptufile likewise)."""
 
 
 EVENT_DTYPE = np.dtype(

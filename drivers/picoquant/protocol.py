@@ -10,7 +10,7 @@ from dataclasses import dataclass
 from enum import IntEnum, IntFlag
 
 from spdepth.drivers.errors import SettingError
-from spdepth.drivers.events import RecordType
+from spdepth.drivers.record_types import RecordType
 
 
 class MeasMode(IntEnum):

@@ -4,13 +4,13 @@ background map is NaN. Kernels: :mod:`.lmf_kernels`, loaded on the first run."""
 
 from __future__ import annotations
 
-import numpy as np
-
 from spdepth.recon.estimators import Estimator, register
 
 
 def fit(store, settings, b, kern, notes, progress=None):
     """:data:`recon.estimators.Fit` of lmf on the resolved binning ``b`` and pulse ``kern``."""
+    import numpy as np
+
     from spdepth.recon.estimators.lmf_kernels import LmfTables, lmf_kernel
     from spdepth.recon.kernels import NO_WEIGHTS, Photons
     from spdepth.recon.pixelwise import fit_pixels, pixel_maps

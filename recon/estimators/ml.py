@@ -5,8 +5,6 @@ search) and :mod:`.ml_bounds` (the likelihood and its bounds), loaded on the fir
 
 from __future__ import annotations
 
-import numpy as np
-
 from spdepth.recon.estimators import Estimator, register
 
 
@@ -14,6 +12,8 @@ def ml_tables(kern, m: int, fine_climb: bool | None = None):
     """:class:`.ml_kernels.MlTables` for the pulse kernel ``kern`` over a window of m bins;
     ``fine_climb`` overrides the choice of the fine search (default: climb on a smooth pulse, see
     ML_CLIMB_RMS_BINS)."""
+    import numpy as np
+
     from spdepth.recon.estimators import ml_kernels as MK
     from spdepth.recon.model import FINE_STEPS
 

@@ -43,11 +43,11 @@ from __future__ import annotations
 import math
 from typing import TYPE_CHECKING, Callable
 
-import numpy as np
-
 from spdepth.recon.estimators import Estimator, register
 
 if TYPE_CHECKING:
+    import numpy as np
+
     from spdepth.recon.maps import DepthMaps
     from spdepth.recon.model import ReconSettings
     from spdepth.recon.photons import PhotonStore
@@ -98,6 +98,8 @@ def poisson_quantile(q: float, mu: np.ndarray) -> np.ndarray:
     """The smallest k with P(Poisson(mu) <= k) >= q (0 < q < 1, mu >= 0): scipy.stats.poisson.ppf,
     computed as it does, from scipy.special (importing scipy.stats alone took 1.15 s, more than the
     spatial estimator's whole run on a small frame in a new process)."""
+    import numpy as np
+
     from scipy import special
 
     k = np.ceil(special.pdtrik(q, mu))
@@ -110,6 +112,8 @@ def background_share(x: np.ndarray, offsets: np.ndarray, sigma: float, sample: i
     ``sample`` pixels spread over the frame, the detections outside each pixel's densest span of
     5 pulse RMS (the cluster censor_fit seeds its fit with) over all of them. x: each pixel's
     sorted detection shifts (bins), sigma: the pulse RMS (bins)."""
+    import numpy as np
+
     npix = offsets.size - 1
     pix = np.unique(np.linspace(0, npix - 1, min(npix, sample)).astype(np.int64))
     counts = offsets[pix + 1] - offsets[pix]
@@ -139,6 +143,8 @@ def fit(store: PhotonStore, settings: ReconSettings, b, kern, notes: dict,
     from their neighbours only are flagged ``INTERPOLATED`` (their photons, signal and background
     are their own: 0 with no detections).
     """
+    import numpy as np
+
     # the kernels (numba) and the maps load when the estimator runs, not when it is declared
     from spdepth.recon.estimators import spatial_kernels as SK
     from spdepth.recon.maps import C_M_PER_S, DepthMaps, PixelFlag
@@ -252,6 +258,8 @@ def fit(store: PhotonStore, settings: ReconSettings, b, kern, notes: dict,
 
 def _box_sum(a: np.ndarray, radius: int) -> np.ndarray:
     """Sum of ``a`` over the (2 radius + 1)^2 window around each pixel, clipped at the border."""
+    import numpy as np
+
     h, w = a.shape
     c = np.zeros((h + 1, w + 1))
     c[1:, 1:] = a.cumsum(0).cumsum(1)

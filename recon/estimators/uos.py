@@ -6,9 +6,12 @@ first run."""
 
 from __future__ import annotations
 
-import numpy as np
+from typing import TYPE_CHECKING
 
 from spdepth.recon.estimators import Estimator, register
+
+if TYPE_CHECKING:
+    import numpy as np
 
 
 def matched_filter_var(shift: np.ndarray, amp: np.ndarray, bg: np.ndarray, kern, m: int) -> np.ndarray:
@@ -20,6 +23,8 @@ def matched_filter_var(shift: np.ndarray, amp: np.ndarray, bg: np.ndarray, kern,
     by 1.54x in variance: uos reported ~59% of pixels within one sigma). For Poisson y_k with mean
     ``lambda_k = a g_k + B``: ``var = sum lambda_k g'_k^2 / (a sum g_k g''_k)^2``, over the window's
     bins. shift, amp, bg: (P,). NaN where there is no return."""
+    import numpy as np
+
     g, dg, ddg = kern.g, kern.dg, kern.ddg
     nk = g.size
     pref = np.zeros((3, nk + 1))
