@@ -37,6 +37,9 @@ TARGETS = {
               "per second: pixelwise and spatial estimators on counts, one thread and all"),
     "flux": ("spdepth.acq.commands.bench.flux", "depth bias and signal error against detections per laser "
              "pulse (0.01 to 1), with and without the pile-up correction"),
+    "compile": ("spdepth.acq.commands.bench.compile", "first run after an install: each kernel group's cold "
+                "compile in a new process with an empty numba cache, and the cold demo and recon "
+                "of the mannequin end to end (--before: another checkout)"),
     "spatial": ("spdepth.acq.commands.bench.spatial", "spatial estimator on a 256x256 frame beside ml, warm, 1 thread "
                 "(pixels/s per core)"),
 }
