@@ -301,6 +301,7 @@ class FileResult:
     read_s: float = 0.0
     recon_s: float = 0.0
     photons_in_file: int = 0
+    load_s: float = 0.0
     summary: dict = field(default_factory=dict)
     pileup: dict | None = None
 
@@ -328,6 +329,56 @@ def read_run_record(path: str | Path) -> dict | None:
     if not isinstance(record, dict):
         raise RecordingError(f"{run_json}: not a JSON object")
     return record
+
+
+class KernelWarmUp:
+    """Loads the kernels a file reconstruction runs on a thread of its own, started at once: a new
+    process pays numba's first dispatch and each kernel's load from the cache (on a fresh install:
+    its compile) on the first call, which would otherwise land inside the read and the
+    reconstruction. The reader's kernels come first (PTU files), then the estimator's, which load
+    while the file is read. :meth:`wait_reader` and :meth:`wait` return the seconds the caller
+    waited; a failure here is ignored (the real call then loads the kernel, or says what is
+    wrong)."""
+
+    def __init__(self, request: FileReconRequest):
+        import threading
+
+        self._request = request
+        self._reader = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="kernel-warm-up", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        req = self._request
+        try:
+            if Path(req.input).suffix.lower() == ".ptu":
+                from spdepth.acq.readers.picoquant import warm_up as warm_reader
+
+                warm_reader()
+        except Exception:  # noqa: BLE001 - the read itself reports what is wrong
+            pass
+        finally:
+            self._reader.set()
+        try:
+            from spdepth.recon.estimate import warm_up
+
+            warm_up(ReconSettings(method=req.method, pulse_rms_s=req.pulse_rms_s,
+                                  max_photons=req.max_photons, reflectors=req.reflectors,
+                                  max_reflectors=req.max_reflectors, false_alarm=req.false_alarm))
+        except Exception:  # noqa: BLE001 - the reconstruction itself reports what is wrong
+            pass
+
+    def wait_reader(self) -> float:
+        """Wait for the reader's kernels; returns the seconds waited."""
+        t0 = time.perf_counter()
+        self._reader.wait()
+        return time.perf_counter() - t0
+
+    def wait(self) -> float:
+        """Wait for all of them; returns the seconds waited."""
+        t0 = time.perf_counter()
+        self._thread.join()
+        return time.perf_counter() - t0
 
 
 def recorded_recon_settings(path: str | Path) -> dict | None:
@@ -429,6 +480,8 @@ def reconstruct_file(request: FileReconRequest, progress=None) -> FileResult:
     from spdepth.acq.readers import read_photons
     from spdepth.recon.estimate import reconstruct
 
+    warm = KernelWarmUp(request)
+    load_s = warm.wait_reader()
     t0 = time.perf_counter()
     result = read_photons(request.input, time_unit_s=request.time_unit_s, mat_var=request.mat_var,
                           channel=request.channel)
@@ -459,10 +512,11 @@ def reconstruct_file(request: FileReconRequest, progress=None) -> FileResult:
         settings = replace(settings, max_photons=None)
     read_s = time.perf_counter() - t0
     set_threads(request)
+    load_s += warm.wait()
     t1 = time.perf_counter()
     maps = reconstruct(store, settings, progress=progress)
     return file_result(request, maps, result, read_s=read_s, recon_s=time.perf_counter() - t1,
-                       pileup=pileup)
+                       pileup=pileup, load_s=load_s)
 
 
 def set_threads(request: FileReconRequest) -> None:
@@ -478,7 +532,7 @@ def set_threads(request: FileReconRequest) -> None:
 
 def file_result(request: FileReconRequest, maps, read, *, read_s: float = 0.0,
                 recon_s: float = 0.0, photons_in_file: int | None = None,
-                pileup: dict | None = None) -> FileResult:
+                pileup: dict | None = None, load_s: float = 0.0) -> FileResult:
     """A file's reconstructed maps finished as ``spdepth recon`` finishes them: the scan geometry
     and range offset added, the outputs the request names written (npz, png, pulse shape, points)
     and the summary made. ``read``: the reader's ``ReadResult`` (its ``store`` may be None when
@@ -511,7 +565,8 @@ def file_result(request: FileReconRequest, maps, read, *, read_s: float = 0.0,
     res = FileResult(request, maps, store, used_binning, used.get("pulse_rms_s"),
                      irf_used if used.get("irf") else None, read.is_image, read.kind,
                      notes, read_s, recon_s, pileup=pileup,
-                     photons_in_file=_photons_in(read) if photons_in_file is None else photons_in_file)
+                     photons_in_file=_photons_in(read) if photons_in_file is None else photons_in_file,
+                     load_s=load_s)
     _write_file_outputs(res, read)
     res.summary = _file_summary(res, read)
     return res
@@ -702,6 +757,7 @@ def _file_summary(res: FileResult, read) -> dict:
                                     else np.isfinite(depth).any(axis=0).sum()),
         "photons": int(np.sum(maps.photons)), "photons_in_file": res.photons_in_file,
         "method": req.method, "read_s": round(res.read_s, 4), "recon_s": round(res.recon_s, 4),
+        "load_s": round(res.load_s, 4),
         "time_unit_ps": unit_ps, "window_ps": [b.window_start * unit_ps, b.window_stop * unit_ps],
         "bin_ps": b.bin_width * unit_ps, "n_bins": b.n_bins,
         "pulse_rms_ps": None if res.pulse_rms_s is None else res.pulse_rms_s * 1e12,

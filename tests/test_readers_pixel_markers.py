@@ -127,3 +127,19 @@ def test_fixed_dwell_simulate_file_by_pixel_markers(tmp_path):
     with ptufile.PtuFile(out) as ptu:
         counts = ptu.decode_image(dtime=-1).sum(axis=(0, 3, 4)).astype(np.int64)
     assert_array_equal(res.store.counts(), counts)
+
+
+def test_the_reader_warm_up_loads_every_kernel_the_read_runs(gated):
+    # spdepth recon runs it on a thread while it opens the file: a kernel it missed would still be
+    # loaded (or compiled) inside the read, in the read's time
+    from spdepth.acq import assign
+    from spdepth.drivers.tagger import t3
+    from spdepth.recon import photons
+
+    pq.warm_up()
+    kernels = (pq._renumber_markers, pq._collect_photons, t3._decode_kernel, assign._assign_kernel,
+               photons._scatter_by_pixel)
+    before = [len(k.signatures) for k in kernels]
+    assert all(before)
+    assert read_photons(gated[0]).meta["assignment"] == "pixel markers"
+    assert [len(k.signatures) for k in kernels] == before
