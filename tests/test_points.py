@@ -160,3 +160,11 @@ def test_a_plan_without_angles_has_no_geometry():
     assert ScanGeometry.from_plan(ScanPlan(1, 1, 0.0, 0.0, 0.0, 0.0)) is not None   # a point
     g = ScanGeometry.from_plan(ScanPlan(8, 6, -2.0, 2.0, -1.5, 1.5))
     assert g.shape == (6, 8) and (g.x_first_deg, g.y_last_deg) == (-2.0, 1.5)
+
+
+def test_directions_at_pixels_are_the_frame_s_directions_bit_for_bit():
+    # points_from_maps takes the rays of the estimated pixels alone (a 4096 x 4096 frame's
+    # (H, W, 3) array is 400 MB); they must be the very floats of the whole frame's
+    g = ScanGeometry((37, 53), -7.5, 9.25, 4.0, -3.0)
+    rr, cc = np.nonzero(np.random.default_rng(5).random((37, 53)) < 0.3)
+    assert np.array_equal(g.directions_at(rr, cc), g.directions()[rr, cc])

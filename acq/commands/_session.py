@@ -40,9 +40,10 @@ class PreparingNotice:
 
 
 class SessionProgress:
-    """The one progress bar (``acq.report.ProgressBar``: pixels, detections/s, state) fed by
-    snapshots at 10 Hz; no subscriber at all when it draws nothing (not a terminal), since each
-    snapshot takes the GIL from the scan."""
+    """The one progress bar (``acq.report.ProgressBar``: pixels complete of all, detections/s,
+    state) fed by snapshots at 10 Hz; no subscriber at all when it draws nothing (not a terminal),
+    since each snapshot takes the GIL from the scan. It counts pixels that reached the target: a
+    time limit flags the rest final, and a bar of final pixels would jump to full at it."""
 
     def __init__(self, session, label: str):
         from spdepth.acq.report import ProgressBar
@@ -51,7 +52,7 @@ class SessionProgress:
         self._sub = session.subscribe(self._update, max_hz=10) if self._bar.enabled else None
 
     def _update(self, snap) -> None:
-        self._bar(snap.pixels_final, snap.pixels_total)
+        self._bar(snap.pixels_complete, snap.pixels_total)
         self._bar.update(0, f"{snap.detections_per_s / 1e6:.2f} Mdet/s, {snap.state}, "
                             f"lost {snap.lost_spans}")
 
