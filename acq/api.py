@@ -235,7 +235,10 @@ def session_maps(session):
     from spdepth.acq.flags import AcqFlag
     from spdepth.acq.points import GEOMETRY_KEY, ScanGeometry
 
-    maps = session.maps()
+    # once the session has ended its live reconstruction is over: the maps themselves, not
+    # copies (a 4096 x 4096 frame's are a gigabyte)
+    ended = session.ended.is_set() and session.live_recon.error is None
+    maps = session.live_recon.maps(copy=False) if ended else session.maps()
     p = session.plan
     geometry = ScanGeometry.from_plan(p)
     if geometry is not None:
@@ -262,17 +265,17 @@ def finish_session(session, out_dir: str | Path | None, title: str | None = None
         geometry = geometry_of(maps)
         if geometry is not None:
             n_points = write_points(maps, geometry, ply=out / "points.ply", note=title or "")
-    snap = session.snapshot()
+    st = session.stats()            # the figures of a snapshot without its map copies
     run = session.run_record()
     return {
         "state": session.state.value, "out": None if out is None else str(out),
-        "error": run["error"], "pixels": snap.pixels_total,
+        "error": run["error"], "pixels": session.plan.nx * session.plan.ny,
         "flagged": int(sum(run["flag_reasons"].values())), "flag_reasons": run["flag_reasons"],
-        "detections": snap.detections, "detections_per_s": round(snap.detections_per_s, 1),
-        "stream_s": session.stream_s, "passes": snap.passes,
-        "lost_spans": snap.lost_spans, "lost_records": snap.lost_records,
+        "detections": session.detections, "detections_per_s": round(st["detections_per_s"], 1),
+        "stream_s": session.stream_s, "passes": session.passes,
+        "lost_spans": len(session.lost), "lost_records": st["lost_records"],
         "faults_seen": len(run["faults_seen"]), "warnings": list(run.get("warnings", ())),
-        "recon_max_lag_pixels": session.live_recon.max_lag, "elapsed_s": round(snap.elapsed_s, 3),
+        "recon_max_lag_pixels": session.live_recon.max_lag, "elapsed_s": round(st["elapsed_s"], 3),
         "points": n_points,
     }
 

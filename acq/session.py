@@ -347,6 +347,11 @@ class Session:
             np.multiply(periods, float(period), out=out, where=periods > 0)
         return float(out[0]) if pixel is not None else out.reshape(self.plan.shape)
 
+    def stats(self) -> dict:
+        """The scalar figures of a snapshot (``elapsed_s``, ``running_s``, ``pixels_final``,
+        ``detections_per_s``, ``lost_records``) without its copies of the maps."""
+        return self._stats()
+
     def _stats(self) -> dict:
         now = self._t_end or time.monotonic()
         running_s = (now - self._t_running) if self._t_running else 0.0

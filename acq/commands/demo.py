@@ -97,7 +97,8 @@ def _demo(args, request, methods, out_dir, png) -> int:
     import numpy as np
 
     from spdepth.acq.api import build_session, finish_session, open_instruments
-    from spdepth.acq.commands._session import PreparingNotice, exit_status, run_session
+    from spdepth.acq.commands._session import (CompileNotice, PreparingNotice, exit_status,
+                                               run_session)
     from spdepth.acq.params import DEFAULT_METHOD
     from spdepth.acq.report import render_maps_png
     from spdepth.recon import estimators
@@ -183,7 +184,8 @@ def _accuracy_table(session, scene, request, methods):
         # the live estimator's settings (pulse, surfaces, target) with another method
         settings = dataclasses.replace(live, method=method, max_photons=request.target,
                                        pulse_rms_s=live.pulse_rms_s or pulse_rms_s)
-        reconstruct(store.photons(np.arange(1)), settings)   # compile outside the timing
+        with CompileNotice("spdepth demo"):
+            reconstruct(store.photons(np.arange(1)), settings)   # compile outside the timing
         t1 = time.perf_counter()
         maps = reconstruct(photons, settings)
         dt = time.perf_counter() - t1
