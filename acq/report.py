@@ -132,7 +132,7 @@ def render_maps_png(path: str | Path, maps, *, title: str | None = None,
         _draw_irf(axes[n_ax - 1], *irf)
     for ax, panel in zip(axes, drawn):
         _draw_panel(fig, ax, *panel, extent, geometry is not None,
-                    drawn_note=f"drawn: every {step}th pixel of {w} x {h}" if step > 1 else None)
+                    drawn_note=f"drawn: 1 pixel in {step} a side of {w} x {h}" if step > 1 else None)
     if title:
         fig.suptitle(title)
     fig.savefig(path, dpi=dpi)
