@@ -441,7 +441,7 @@ def _copy_state(dst, src):
         dst.pend_item[i] = src.pend_item[i]
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _chunk_syncs(gated, need, rate, left, limit):
     """Syncs to generate next for a pixel: the whole dwell when not gated, else enough for the
     ``need`` counts still missing at ``rate`` counted detections per sync (25% more, at least 16),
@@ -456,7 +456,7 @@ def _chunk_syncs(gated, need, rate, left, limit):
     return min(max(chunk, 16) if gated else chunk, left)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _generate(rng, p, s0, chunk, gen, rates, pulse):
     """Ideal detections of pixel ``p`` over ``chunk`` syncs from ``s0`` into ``gen`` (grown as
     needed; ``generate_chain`` resumes where the buffer filled); returns (gen, rows written)."""
@@ -479,7 +479,7 @@ def _generate(rng, p, s0, chunk, gen, rates, pulse):
         gen = _grow(gen, n_g, 2 * gen.sync.size)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _detect(rng, b, sync_end, stop_count, dbuf, saved, fx, det, gate, period_s):
     """``detector_kernel`` over the rows ``b`` into ``dbuf``; when an afterpulse cascade overflows
     the first guess of room, the state is put back and it runs again with twice the room. Returns
@@ -501,7 +501,7 @@ def _detect(rng, b, sync_end, stop_count, dbuf, saved, fx, det, gate, period_s):
         d_need = 2 * dbuf.sync.size
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _gate_cut(b, need, gate):
     """(rows up to and including the one that brings the count to ``need``, or all; count)."""
     got = 0
@@ -513,7 +513,7 @@ def _gate_cut(b, need, gate):
     return b.t.size, got
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _append(out, n_out, b, n_b, gate):
     """Append the first ``n_b`` rows of ``b`` to ``out``; returns (out, n_out, rows recorded)."""
     out = _grow(out, n_out, n_out + n_b)
@@ -528,7 +528,7 @@ def _append(out, n_out, b, n_b, gate):
     return out, n_out, recorded
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _dwell_pixel(rng, p, s, out, n_out, bufs, dwell, rates, pulse, fx, det, gate):
     """One pixel of ``dwell_run`` from sync ``s``, appended to ``out``: generation in chunks sized
     from the rate seen so far (an exponential gap running past a chunk's end is dropped and the
