@@ -97,8 +97,7 @@ def _demo(args, request, methods, out_dir, png) -> int:
     import numpy as np
 
     from spdepth.acq.api import build_session, finish_session, open_instruments
-    from spdepth.acq.commands._session import (CompileNotice, PreparingNotice, exit_status,
-                                               run_session)
+    from spdepth.acq.commands._session import PreparingNotice, exit_status, run_session
     from spdepth.acq.params import DEFAULT_METHOD
     from spdepth.acq.report import render_maps_png
     from spdepth.recon import estimators
@@ -163,6 +162,7 @@ def _accuracy_table(session, scene, request, methods):
 
     import numpy as np
 
+    from spdepth.acq.commands._session import CompileNotice
     from spdepth.acq.evaluate import evaluate_depth, signal_detections
     from spdepth.recon.estimate import reconstruct
 
