@@ -24,7 +24,6 @@ import subprocess
 import sys
 import tempfile
 import time
-from pathlib import Path
 
 from spdepth.acq.commands.bench.startup import FACE, SEED_SETTINGS
 
@@ -96,6 +95,11 @@ def _command(pkgdir: str | None, argv: list[str], cwd: str) -> dict:
     return {"wall_s": wall, "cpu_s": cpu}
 
 
+def _in_temp(pkgdir: str | None, argv: list[str]) -> dict:
+    with tempfile.TemporaryDirectory(prefix="spdepth-bench-compile-") as tmp:
+        return _command(pkgdir, argv, tmp)
+
+
 def _cell(r: dict | None) -> str:
     if r is None:
         return f"{'-':>15}"
@@ -124,16 +128,14 @@ def bench(argv: list[str]) -> int:
     for g in groups:
         rows[g] = {label: _group(pkg, GROUPS[g][1]) for label, pkg in sides.items()}
     if not a.skip_commands:
-        with tempfile.TemporaryDirectory(prefix="spdepth-bench-compile-") as tmp:
-            demo = ["demo", "--no-window", "--out", str(Path(tmp) / "demo.png")]
-            rows["spdepth demo --no-window"] = {label: _command(pkg, demo, tmp)
-                                                for label, pkg in sides.items()}
-            if FACE.is_file():
-                recon = ["recon", str(FACE), *SEED_SETTINGS]
-                rows["spdepth recon mannequin"] = {label: _command(pkg, recon, tmp)
-                                                   for label, pkg in sides.items()}
-            else:
-                print(f"(no {FACE}: the cold recon of the mannequin is left out)")
+        # each side in a folder of its own: the demo writes its sheet (spdepth-demo.png) there
+        rows["spdepth demo --no-window"] = {label: _in_temp(pkg, ["demo", "--no-window"])
+                                            for label, pkg in sides.items()}
+        if FACE.is_file():
+            recon = ["recon", str(FACE), *SEED_SETTINGS]
+            rows["spdepth recon mannequin"] = {label: _in_temp(pkg, recon) for label, pkg in sides.items()}
+        else:
+            print(f"(no {FACE}: the cold recon of the mannequin is left out)")
     print(f"{'':26}" + "".join(f"{label:>16}" for label in sides))
     for name, by_side in rows.items():
         line = f"{name:26}" + "".join(f" {_cell(by_side.get(label))}" for label in sides)
