@@ -235,7 +235,10 @@ def session_maps(session):
     from spdepth.acq.flags import AcqFlag
     from spdepth.acq.points import GEOMETRY_KEY, ScanGeometry
 
-    maps = session.maps()
+    # once the session has ended its live reconstruction is over: the maps themselves, not
+    # copies (a 4096 x 4096 frame's are a gigabyte)
+    ended = session.ended.is_set() and session.live_recon.error is None
+    maps = session.live_recon.maps(copy=False) if ended else session.maps()
     p = session.plan
     geometry = ScanGeometry.from_plan(p)
     if geometry is not None:
@@ -263,18 +266,18 @@ def finish_session(session, out_dir: str | Path | None, title: str | None = None
         if geometry is not None:
             n_points = write_points(maps, geometry, ply=out / "points.ply", note=title or "",
                                     acq_flags=session.acq_flags.reshape(session.plan.shape))
-    snap = session.snapshot()
+    st = session.stats()            # the figures of a snapshot without its map copies
     run = session.run_record()
     return {
         "state": session.state.value, "out": None if out is None else str(out),
         "no_pixel_complete": no_pixel_cause(session),
-        "error": run["error"], "pixels": snap.pixels_total,
+        "error": run["error"], "pixels": session.plan.nx * session.plan.ny,
         "flagged": int(sum(run["flag_reasons"].values())), "flag_reasons": run["flag_reasons"],
-        "detections": snap.detections, "detections_per_s": round(snap.detections_per_s, 1),
-        "stream_s": session.stream_s, "passes": snap.passes,
-        "lost_spans": snap.lost_spans, "lost_records": snap.lost_records,
+        "detections": session.detections, "detections_per_s": round(st["detections_per_s"], 1),
+        "stream_s": session.stream_s, "passes": session.passes,
+        "lost_spans": len(session.lost), "lost_records": st["lost_records"],
         "faults_seen": len(run["faults_seen"]), "warnings": list(run.get("warnings", ())),
-        "recon_max_lag_pixels": session.live_recon.max_lag, "elapsed_s": round(snap.elapsed_s, 3),
+        "recon_max_lag_pixels": session.live_recon.max_lag, "elapsed_s": round(st["elapsed_s"], 3),
         "points": n_points,
     }
 
@@ -334,6 +337,7 @@ class FileResult:
     read_s: float = 0.0
     recon_s: float = 0.0
     photons_in_file: int = 0
+    load_s: float = 0.0
     summary: dict = field(default_factory=dict)
     pileup: dict | None = None
 
@@ -361,6 +365,56 @@ def read_run_record(path: str | Path) -> dict | None:
     if not isinstance(record, dict):
         raise RecordingError(f"{run_json}: not a JSON object")
     return record
+
+
+class KernelWarmUp:
+    """Loads the kernels a file reconstruction runs on a thread of its own, started at once: a new
+    process pays numba's first dispatch and each kernel's load from the cache (on a fresh install:
+    its compile) on the first call, which would otherwise land inside the read and the
+    reconstruction. The reader's kernels come first (PTU files), then the estimator's, which load
+    while the file is read. :meth:`wait_reader` and :meth:`wait` return the seconds the caller
+    waited; a failure here is ignored (the real call then loads the kernel, or says what is
+    wrong)."""
+
+    def __init__(self, request: FileReconRequest):
+        import threading
+
+        self._request = request
+        self._reader = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="kernel-warm-up", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        req = self._request
+        try:
+            if Path(req.input).suffix.lower() == ".ptu":
+                from spdepth.acq.readers.picoquant import warm_up as warm_reader
+
+                warm_reader()
+        except Exception:  # noqa: BLE001 - the read itself reports what is wrong
+            pass
+        finally:
+            self._reader.set()
+        try:
+            from spdepth.recon.estimate import warm_up
+
+            warm_up(ReconSettings(method=req.method, pulse_rms_s=req.pulse_rms_s,
+                                  max_photons=req.max_photons, reflectors=req.reflectors,
+                                  max_reflectors=req.max_reflectors, false_alarm=req.false_alarm))
+        except Exception:  # noqa: BLE001 - the reconstruction itself reports what is wrong
+            pass
+
+    def wait_reader(self) -> float:
+        """Wait for the reader's kernels; returns the seconds waited."""
+        t0 = time.perf_counter()
+        self._reader.wait()
+        return time.perf_counter() - t0
+
+    def wait(self) -> float:
+        """Wait for all of them; returns the seconds waited."""
+        t0 = time.perf_counter()
+        self._thread.join()
+        return time.perf_counter() - t0
 
 
 def recorded_recon_settings(path: str | Path) -> dict | None:
@@ -462,6 +516,8 @@ def reconstruct_file(request: FileReconRequest, progress=None) -> FileResult:
     from spdepth.acq.readers import read_photons
     from spdepth.recon.estimate import reconstruct
 
+    warm = KernelWarmUp(request)
+    load_s = warm.wait_reader()
     t0 = time.perf_counter()
     result = read_photons(request.input, time_unit_s=request.time_unit_s, mat_var=request.mat_var,
                           channel=request.channel, keep=request.max_photons)
@@ -492,10 +548,11 @@ def reconstruct_file(request: FileReconRequest, progress=None) -> FileResult:
         settings = replace(settings, max_photons=None)
     read_s = time.perf_counter() - t0
     set_threads(request)
+    load_s += warm.wait()
     t1 = time.perf_counter()
     maps = reconstruct(store, settings, progress=progress)
     return file_result(request, maps, result, read_s=read_s, recon_s=time.perf_counter() - t1,
-                       pileup=pileup)
+                       pileup=pileup, load_s=load_s)
 
 
 def set_threads(request: FileReconRequest) -> None:
@@ -511,7 +568,7 @@ def set_threads(request: FileReconRequest) -> None:
 
 def file_result(request: FileReconRequest, maps, read, *, read_s: float = 0.0,
                 recon_s: float = 0.0, photons_in_file: int | None = None,
-                pileup: dict | None = None) -> FileResult:
+                pileup: dict | None = None, load_s: float = 0.0) -> FileResult:
     """A file's reconstructed maps finished as ``spdepth recon`` finishes them: the scan geometry
     and range offset added, the outputs the request names written (npz, png, pulse shape, points)
     and the summary made. ``read``: the reader's ``ReadResult`` (its ``store`` may be None when
@@ -550,7 +607,7 @@ def file_result(request: FileReconRequest, maps, read, *, read_s: float = 0.0,
     res = FileResult(request, maps, store, used_binning, used.get("pulse_rms_s"),
                      irf_used if used.get("irf") else None, read.is_image, read.kind,
                      notes, read_s, recon_s, pileup=pileup,
-                     photons_in_file=photons_in_file)
+                     photons_in_file=photons_in_file, load_s=load_s)
     _write_file_outputs(res, read)
     res.summary = _file_summary(res, read)
     res.summary["photons_account"] = account
@@ -769,6 +826,7 @@ def _file_summary(res: FileResult, read) -> dict:
                                     else np.isfinite(depth).any(axis=0).sum()),
         "photons": int(np.sum(maps.photons)), "photons_in_file": res.photons_in_file,
         "method": req.method, "read_s": round(res.read_s, 4), "recon_s": round(res.recon_s, 4),
+        "load_s": round(res.load_s, 4),
         "time_unit_ps": unit_ps, "window_ps": [b.window_start * unit_ps, b.window_stop * unit_ps],
         "bin_ps": b.bin_width * unit_ps, "n_bins": b.n_bins,
         "pulse_rms_ps": None if res.pulse_rms_s is None else res.pulse_rms_s * 1e12,

@@ -31,6 +31,7 @@ import numpy as np
 from numba import njit
 
 from spdepth.drivers.events import EVENT_DTYPE, EventKind, Marker
+from spdepth.drivers.jit import call_strided
 from spdepth.recon.errors import InputError
 
 UNASSIGNED = -1
@@ -257,8 +258,8 @@ class PixelAssigner:
             raise InputError(f"assign: out must be int64 with at least {events.size} entries")
         pixel = out[:events.size]
         lost_pixel = self._lost_buffer(events.size)
-        n_lost = _assign_kernel(events["kind"], events["marker"], self._geom, self._state,
-                                pixel, lost_pixel)
+        n_lost = call_strided(_assign_kernel, (0, 1), events["kind"], events["marker"], self._geom,
+                              self._state, pixel, lost_pixel)
         if n_lost:
             self.lost.extend(_lost_spans(events, lost_pixel))
         return pixel
@@ -460,10 +461,10 @@ def accumulate(events: np.ndarray, geom: np.ndarray, state: np.ndarray, window: 
     closed_syncs = np.empty(n + 1, np.int64)
     lost_pixel = np.empty(n, np.int64)
     n_lost0 = int(counters[2])
-    n_closed = _accumulate_kernel(events["sync"], events["dtime"], events["kind"], events["marker"],
-                                  geom, state, np.int64(window[0]), np.int64(window[1]), pend,
-                                  times, count, detected, dwells, periods, frozen, closed_pixel,
-                                  closed_total, closed_syncs, lost_pixel, counters)
+    n_closed = call_strided(_accumulate_kernel, (0, 1, 2, 3), events["sync"], events["dtime"],
+                            events["kind"], events["marker"], geom, state, np.int64(window[0]),
+                            np.int64(window[1]), pend, times, count, detected, dwells, periods,
+                            frozen, closed_pixel, closed_total, closed_syncs, lost_pixel, counters)
     lost = _lost_spans(events, lost_pixel) if counters[2] > n_lost0 else []
     return Accumulated(closed_pixel[:n_closed], closed_total[:n_closed], closed_syncs[:n_closed], lost)
 

@@ -96,6 +96,9 @@ class LiveRecon:
             self.surfaces = np.zeros((h, w), np.int16)
             self.weak = np.zeros(k + (h, w), np.bool_)
         self.done = np.zeros((h, w), bool)
+        # the value each map was made with, where no pixel has been written yet
+        self._made_with = {name: np.asarray(getattr(self, name)).reshape(-1)[0] for name in self.fields}
+        self._empty_as_made: dict = {}
         self.settings_used: dict | None = None   # the maps' settings record (the first batch's)
         self._pulse_note: dict = {}             # how the pulse width was found, when estimated
         self.submitted = 0
@@ -268,6 +271,13 @@ class LiveRecon:
         m = reconstruct(self.store.photons(full), self.pixel_settings) if full.size else None
         if self._empty is None and empty.any():
             self._empty = self._empty_result()
+            # a map whose empty-pixel value is the one it was made with needs no writes for them
+            # (each pixel is submitted once): a 4096 x 4096 scan cut by its time limit hands
+            # over 16 M empty pixels at its end
+            self._empty_as_made = {
+                name: bool(np.array_equal(v, np.broadcast_to(self._made_with[name], v.shape),
+                                          equal_nan=True))
+                for name, v in ((n, np.asarray(self._empty[n])) for n in self.fields)}
         if self.settings_used is None:
             self.settings_used = dict(m.settings if m is not None else self._empty["settings"])
             self.settings_used.update(self._pulse_note)
@@ -277,7 +287,7 @@ class LiveRecon:
                 flat = dst.reshape(dst.shape[:-2] + (-1,))       # (K, H*W) for a surface's maps
                 if m is not None:
                     flat[..., full] = getattr(m, name).reshape(flat.shape[:-1] + (-1,))
-                if empty.any():
+                if empty.any() and not self._empty_as_made[name]:
                     flat[..., pixels[empty]] = self._empty[name][..., None]
             self.done.reshape(-1)[pixels] = True
         self.processed += int(pixels.size)

@@ -133,6 +133,14 @@ class ScanGeometry:
         d = np.stack([tx, ty, np.ones_like(tx)], axis=-1)
         return d / np.linalg.norm(d, axis=-1, keepdims=True)
 
+    def directions_at(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """(N, 3) the rays of the pixels (rows[i], cols[i]), as :meth:`directions` gives them
+        (the same floats), without the whole frame's (H, W, 3)."""
+        tx = np.tan(np.radians(self.col_deg))[cols]
+        ty = np.tan(np.radians(self.row_deg))[rows]
+        d = np.stack([tx, ty, np.ones_like(tx)], axis=-1)
+        return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
     def to_dict(self) -> dict:
         # "rows"/"cols", not "shape": tifffile takes a JSON description holding "shape" for its own
         d = asdict(self)
@@ -232,7 +240,7 @@ def points_from_maps(maps, geometry: ScanGeometry, *, depth_m=None, no_return: b
         rng = np.concatenate([rng, np.zeros(nr.size)])
         ret = np.concatenate([ret, np.ones(nr.size, ret.dtype)])
         nret = np.concatenate([nret, np.ones(nr.size, nret.dtype)])
-    d = geometry.directions()[rr, cc]
+    d = geometry.directions_at(rr, cc)
     p = d * rng[:, None]
 
     def pick(a):

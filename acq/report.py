@@ -101,10 +101,17 @@ def render_maps_png(path: str | Path, maps, *, title: str | None = None,
     from spdepth.acq.points import geometry_of
 
     path = Path(path)
-    drawn = _panels(maps, panels, n_bins, target, counts, exposure_s)
-    h, w = drawn[0][2].shape
     if geometry is None:
         geometry = geometry_of(maps)
+    h, w = np.shape(getattr(maps, panels[0][0]) if panels else maps.depth_m)[-2:]
+    step = max(1, -(-max(h, w) // DRAWN_MAX_PX))
+    if step > 1:
+        # a panel is a few hundred pixels wide on the sheet: a 4096 x 4096 frame is drawn every
+        # step-th pixel, its derived maps and levels computed on those alone (seconds, not a minute)
+        maps = _Strided(maps, (h, w), step)
+        counts, exposure_s = (None if a is None else np.asarray(a)[..., ::step, ::step]
+                              for a in (counts, exposure_s))
+    drawn = _panels(maps, panels, n_bins, target, counts, exposure_s)
     if geometry is not None and tuple(geometry.shape) != (h, w):
         geometry = None
     if geometry is not None:
@@ -113,7 +120,8 @@ def render_maps_png(path: str | Path, maps, *, title: str | None = None,
         fx, fy = geometry.fov_deg
         aspect = fy / fx
     else:
-        extent, aspect = None, h / w
+        # pixel indices of the whole frame, also when it is drawn every step-th pixel
+        extent, aspect = ((-0.5, w - 0.5, h - 0.5, -0.5) if step > 1 else None), h / w
     n_ax = len(drawn) + (irf is not None)
     ncols = min(n_ax, 3)
     nrows = -(-n_ax // ncols)
@@ -127,7 +135,8 @@ def render_maps_png(path: str | Path, maps, *, title: str | None = None,
     if irf is not None:
         _draw_irf(axes[n_ax - 1], *irf)
     for ax, panel in zip(axes, drawn):
-        _draw_panel(fig, ax, *panel, extent, geometry is not None)
+        _draw_panel(fig, ax, *panel, extent, geometry is not None,
+                    drawn_note=f"drawn: 1 pixel in {step} a side of {w} x {h}" if step > 1 else None)
     if title:
         fig.suptitle(title)
     fig.savefig(path, dpi=dpi)
@@ -163,9 +172,11 @@ def _panels(maps, panels, n_bins, target, counts, exposure_s) -> list:
     return drawn
 
 
-def _draw_panel(fig, ax, d, name: str, arr: np.ndarray, tgt: int, weak_px, extent, scan_axes: bool) -> None:
+def _draw_panel(fig, ax, d, name: str, arr: np.ndarray, tgt: int, weak_px, extent, scan_axes: bool,
+                drawn_note: str | None = None) -> None:
     """One panel of :func:`render_maps_png`: the image (weak surfaces faded), its colour bar or a
-    note when there is nothing to scale, and the notes under the axis label."""
+    note when there is nothing to scale, and the notes under the axis label (``drawn_note`` last:
+    which pixels of a large frame are drawn)."""
     import matplotlib
     import matplotlib.ticker
 
@@ -222,8 +233,28 @@ def _draw_panel(fig, ax, d, name: str, arr: np.ndarray, tgt: int, weak_px, exten
         notes.append(f"grey: no value ({n_nan} px)")
     if n_weak:
         notes.append(f"faded: weak, may be background ({n_weak} px)")
+    if drawn_note:
+        notes.append(drawn_note)
     # the notes under the axis label, where the layout keeps room for them
     ax.set_xlabel("\n".join(["scan angle x (deg)" if scan_axes else "column"] + notes))
+
+
+DRAWN_MAX_PX = 1024
+"""Pixels a PNG panel draws at most a side; larger frames are drawn every n-th pixel."""
+
+
+class _Strided:
+    """A maps object seen every ``step``-th pixel: its arrays with the frame's (H, W) as their last
+    two axes are strided views; everything else (settings, scalars) passes through."""
+
+    def __init__(self, maps, hw, step: int):
+        self._maps, self._hw, self._step = maps, tuple(hw), step
+
+    def __getattr__(self, name):
+        v = getattr(self._maps, name)
+        if isinstance(v, np.ndarray) and v.ndim >= 2 and v.shape[-2:] == self._hw:
+            return v[..., ::self._step, ::self._step]
+        return v
 
 
 class ProgressBar:

@@ -139,6 +139,9 @@ class Snapshot:
     running_s: float = 0.0
     """Time since scanning (or replaying) began, s: ``detections_per_s`` counts over it, and
     ``elapsed_s`` minus it went on preparing (on a fresh install numba compiles the kernels)."""
+    pixels_complete: int = 0
+    """Final pixels that reached the target (``AcqFlag.COMPLETE``): ``pixels_final`` less those
+    flagged short (a time limit flags every pixel not reached yet)."""
     health: dict = field(default_factory=dict)
     reconstructed: np.ndarray | None = None
     """(H, W) pixels the live reconstruction has finished: their estimate (or its absence, a
@@ -220,6 +223,7 @@ class Session:
         self._last_photon_t: float | None = None
         self._next_output_check = 0.0
         self._stop_reason: AcqFlag = AcqFlag.INCOMPLETE
+        self._n_complete = 0
         self._events_log = None
         self._host = _Host(self)
 
@@ -324,7 +328,7 @@ class Session:
         return Snapshot(
             state=self._state.value, elapsed_s=st["elapsed_s"], running_s=running_s,
             pixels_total=n_total,
-            pixels_final=n_final, detections=self.detections,
+            pixels_final=n_final, pixels_complete=self._n_complete, detections=self.detections,
             detections_per_s=st["detections_per_s"], lost_spans=len(self.lost),
             lost_records=st["lost_records"], eta_s=eta, recon_lag=r.lag, passes=self.passes,
             **maps, counts=self.store.count.reshape(h, w).copy(),
@@ -343,6 +347,11 @@ class Session:
         if period:
             np.multiply(periods, float(period), out=out, where=periods > 0)
         return float(out[0]) if pixel is not None else out.reshape(self.plan.shape)
+
+    def stats(self) -> dict:
+        """The scalar figures of a snapshot (``elapsed_s``, ``running_s``, ``pixels_final``,
+        ``detections_per_s``, ``lost_records``) without its copies of the maps."""
+        return self._stats()
 
     def _stats(self) -> dict:
         now = self._t_end or time.monotonic()
@@ -552,6 +561,9 @@ class Session:
             return
         keep = self.acq_flags[pixels] == ACQUIRING
         self.acq_flags[pixels[keep]] = flag
+        if flag == AcqFlag.COMPLETE:
+            # a pixel is finalised once (callers pass pixels not final yet)
+            self._n_complete += int(np.count_nonzero(keep))
         self.final[pixels] = True
         self.store.freeze(pixels)
         self.live_recon.submit(pixels)

@@ -252,3 +252,31 @@ def test_a_quick_command_says_nothing_about_preparing(capsys):
     notice._timer.join(30)           # a cancelled timer ends at once, without a word
     assert not notice._timer.is_alive()
     assert capsys.readouterr().err == ""
+
+
+def test_a_first_run_says_which_kernel_it_compiles():
+    import io
+
+    from numba import njit
+
+    from spdepth.acq.commands._session import CompileNotice
+
+    def inner(x):
+        return x + 1
+
+    def outer(x):
+        return k_inner(x) * 2
+
+    inner.__module__ = outer.__module__ = "spdepth.acq.made_up"
+    k_inner = njit(inner)
+    k_outer = njit(outer)
+    out = io.StringIO()
+    with CompileNotice("spdepth test", stream=out) as notice:
+        assert k_outer(1) == 4        # compiles outer and, inside it, inner: one line
+        assert k_outer(2) == 6        # compiled already: nothing more
+    assert notice.count == 1
+    assert out.getvalue().startswith("spdepth test: compiling kernel 1, acq.made_up.outer (first run")
+    k_other = njit(lambda x: x)       # not ours (module of this test): not listed
+    with CompileNotice("spdepth test", stream=out) as notice:
+        k_other(1)
+    assert notice.count == 0

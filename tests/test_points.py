@@ -226,3 +226,11 @@ def test_weak_surfaces_do_not_set_the_levels(rng):
     assert lo_all < 1.0 and hi_all > 10.0                      # what the weak ones did before
     # only weak surfaces: they are all there is to draw
     assert levels_for(MAPS_BY_KEY["depth"], depth, weak=np.ones_like(weak)) == (lo_all, hi_all)
+
+
+def test_directions_at_pixels_are_the_frame_s_directions_bit_for_bit():
+    # points_from_maps takes the rays of the estimated pixels alone (a 4096 x 4096 frame's
+    # (H, W, 3) array is 400 MB); they must be the very floats of the whole frame's
+    g = ScanGeometry((37, 53), -7.5, 9.25, 4.0, -3.0)
+    rr, cc = np.nonzero(np.random.default_rng(5).random((37, 53)) < 0.3)
+    assert np.array_equal(g.directions_at(rr, cc), g.directions()[rr, cc])

@@ -147,3 +147,19 @@ def test_gated_recording_header_holds_the_typical_dwell(tmp_path):
         assert ptu.tags["ImgHdr_TimePerPixel"] == pytest.approx(np.mean(dwells) * 1e-6, rel=1e-6)   # ms
         theirs = ptu.decode_image(dtime=-1).sum(axis=(0, 3, 4)).astype(np.int64)[:16, :16]
     assert np.minimum(theirs, ours).sum() > 0.5 * ours.sum()
+
+
+def test_the_reader_warm_up_loads_every_kernel_the_read_runs(gated):
+    # spdepth recon runs it on a thread while it opens the file: a kernel it missed would still be
+    # loaded (or compiled) inside the read, in the read's time
+    from spdepth.acq import assign
+    from spdepth.drivers.tagger import t3
+    from spdepth.recon import photons
+
+    pq.warm_up()
+    kernels = (pq._renumber_markers, pq._collect_photons, t3._decode_kernel, assign._assign_kernel,
+               photons._scatter_by_pixel)
+    before = [len(k.signatures) for k in kernels]
+    assert all(before)
+    assert read_photons(gated[0]).meta["assignment"] == "pixel markers"
+    assert [len(k.signatures) for k in kernels] == before

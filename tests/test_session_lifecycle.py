@@ -144,6 +144,10 @@ def test_the_time_limit_ends_a_big_scan_in_time_and_run_json_stays_small(tmp_pat
         flags = z["acq_flags"]
     assert flags.shape == (1024, 1024) and not np.any(flags == ACQUIRING)
     assert int(np.count_nonzero(flags == AcqFlag.TIME_LIMIT)) == run["flag_reasons"]["TIME_LIMIT"]
+    # the progress bar's count: pixels that reached the target, not every final one
+    snap = s.snapshot()
+    assert snap.pixels_final == 1024 * 1024
+    assert snap.pixels_complete == int(np.count_nonzero(flags == AcqFlag.COMPLETE)) < 1024 * 1024 - 1000
     maps = DepthMaps.load_npz(tmp_path / "maps.npz")       # still the recon format
     assert maps.depth_m.shape == (1024, 1024)
 

@@ -13,9 +13,11 @@ from spdepth.acq.commands import (EXIT_DEVICE, EXIT_FAILED, EXIT_INTERRUPTED, EX
 
 
 class PreparingNotice:
-    """One line on stderr when a command has not started scanning (or replaying) ``after_s``
-    after it began: on a fresh install numba compiles every kernel on its first use, a minute or
-    more in which nothing else is printed. Use as a context manager around opening the
+    """What a command says before it starts scanning (or replaying): one line on stderr for each
+    kernel numba compiles (a fresh install compiles each on its first use, a minute or more in all
+    in which nothing else would be printed), with how many so far and the seconds since the
+    command began preparing (:class:`CompileNotice`); else, when it still has not started after
+    ``after_s``, one line saying it is preparing. Use as a context manager around opening the
     instruments and running the session; set ``session`` once it exists."""
 
     def __init__(self, label: str, after_s: float = 10.0):
@@ -23,26 +25,88 @@ class PreparingNotice:
         self.session = None
         self._timer = threading.Timer(after_s, self._say)
         self._timer.daemon = True
+        self._compiles = CompileNotice(f"spdepth {label}")
 
     def __enter__(self) -> "PreparingNotice":
+        self._compiles.__enter__()
         self._timer.start()
         return self
 
     def __exit__(self, *exc) -> None:
         self._timer.cancel()
+        self._compiles.__exit__(*exc)
 
     def _say(self) -> None:
-        if self.session is not None and self.session.state.value not in ("idle", "armed"):
+        if self._compiles.count or (self.session is not None
+                                    and self.session.state.value not in ("idle", "armed")):
             return
         print(f"spdepth {self.label}: preparing; the first run after an install compiles the "
               f"numerical kernels (a minute or two), later runs load them from numba's cache",
               file=sys.stderr, flush=True)
 
 
+class CompileNotice:
+    """While active, one line on stderr as numba starts compiling each of our kernels (a cache
+    miss: the first run after an install or an upgrade), e.g. ``spdepth demo: compiling kernel 3,
+    recon.kernels.ml_kernel (first run; later runs load it from numba's cache), 12 s in``.
+    Kernels a kernel calls compile inside it and are not listed; loads from the cache say
+    nothing. Any thread's compiles count (numba compiles one at a time)."""
+
+    def __init__(self, prefix: str, stream=None):
+        self.prefix = prefix
+        self.count = 0
+        self._stream = stream
+        self._depth = threading.local()
+        self._t0 = 0.0
+        self._listener = None
+
+    def __enter__(self) -> "CompileNotice":
+        import time
+
+        from numba.core import event
+
+        notice = self
+
+        class _Listener(event.Listener):
+            def on_start(self, ev):
+                notice._started(ev.data["dispatcher"])
+
+            def on_end(self, ev):
+                notice._depth.n = getattr(notice._depth, "n", 1) - 1
+
+        self._t0 = time.monotonic()
+        self._listener = _Listener()
+        event.register("numba:compile", self._listener)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        from numba.core import event
+
+        if self._listener is not None:
+            event.unregister("numba:compile", self._listener)
+            self._listener = None
+
+    def _started(self, dispatcher) -> None:
+        import time
+
+        depth = getattr(self._depth, "n", 0)
+        self._depth.n = depth + 1
+        func = getattr(dispatcher, "py_func", None)
+        module = getattr(func, "__module__", "") or ""
+        if depth or not module.startswith("spdepth."):
+            return
+        self.count += 1
+        name = f"{module.removeprefix('spdepth.')}.{func.__name__}"
+        print(f"{self.prefix}: compiling kernel {self.count}, {name} (first run; later runs load "
+              f"it from numba's cache), {time.monotonic() - self._t0:.0f} s in",
+              file=self._stream or sys.stderr, flush=True)
+
+
 class SessionProgress:
-    """The one progress bar (``acq.report.ProgressBar``: pixels, detections/s, state) fed by
-    snapshots at 10 Hz; no subscriber at all when it draws nothing (not a terminal), since each
-    snapshot takes the GIL from the scan."""
+    """The one progress bar (``acq.report.ProgressBar``: pixels complete of all, detections/s,
+    state) fed by snapshots at 10 Hz; no subscriber at all when it draws nothing (not a terminal),
+    since each snapshot takes the GIL from the scan. It counts pixels that reached the target: a
+    time limit flags the rest final, and a bar of final pixels would jump to full at it."""
 
     def __init__(self, session, label: str):
         from spdepth.acq.report import ProgressBar
@@ -51,7 +115,7 @@ class SessionProgress:
         self._sub = session.subscribe(self._update, max_hz=10) if self._bar.enabled else None
 
     def _update(self, snap) -> None:
-        self._bar(snap.pixels_final, snap.pixels_total)
+        self._bar(snap.pixels_complete, snap.pixels_total)
         self._bar.update(0, f"{snap.detections_per_s / 1e6:.2f} Mdet/s, {snap.state}, "
                             f"lost {snap.lost_spans}")
 

@@ -426,6 +426,27 @@ def _read_by_pixel_markers(path: Path, layout: PtuLayout, rectype: int, image: d
     return ReadResult(store=store, path=str(path), kind="ptu", is_image=True, meta=meta)
 
 
+
+def warm_up() -> None:
+    """Load (on a cold numba cache: compile) the kernels that reading a PTU with pixel markers
+    runs, on a made-up chunk of three records (a pixel marker, a photon, a line stop), read-only as
+    the memory map's chunks are: ``spdepth recon`` runs it on a thread while it opens the file, so
+    that the read does not pay for a new process's first kernel calls."""
+    from spdepth.drivers.tagger.t3 import T3_CHANNEL_SHIFT, T3_SPECIAL_SHIFT
+
+    special = 1 << T3_SPECIAL_SHIFT
+    # inputs 1 and 3 (line start, pixel) at nsync 1, a photon at nsync 2, input 2 (line stop) at 3
+    chunk = np.array([special | (0b101 << T3_CHANNEL_SHIFT) | 1, 2,
+                      special | (0b010 << T3_CHANNEL_SHIFT) | 3], np.uint32)
+    chunk.setflags(write=False)
+    tags = {"ImgHdr_LineStart": 1, "ImgHdr_LineStop": 2, PIXEL_MARKER_TAG: 3}
+    decoder = PixelMarkerDecoder("warm-up", tags, (1, 1), "raster")
+    pixel_all, time_all = np.empty(chunk.size, np.int64), np.empty(chunk.size, np.uint32)
+    n = decoder.decode(chunk, pixel_all, time_all, 0, buf=np.empty(chunk.size, EVENT_DTYPE),
+                       pixel_buf=np.empty(chunk.size, np.int64))
+    PhotonStore.from_pixel_indices(pixel_all[:n], time_all[:n], (1, 1), 1e-12)
+
+
 # ---------------------------------------------------------------------------------------------
 # legacy HT3 / PT3: fixed little-endian headers (PicoQuant's file format demos)
 

@@ -12,6 +12,8 @@ surface ``k``, ``ORIGIN_AFTERPULSE`` = an afterpulse, ``ORIGIN_MARKER`` = a mark
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from numba import njit
 
@@ -24,6 +26,9 @@ PULSE_TABLE = 1
 
 KIND_PHOTON = 0
 KIND_MARKER = 1
+
+# an int64 zero for kernel calls: a literal 0 argument compiles one more variant of the callee
+ZERO = np.int64(0)
 
 
 @njit(cache=True, nogil=True)
@@ -314,201 +319,305 @@ def start_at_kernel(state_i, pend_sync, pend_t, pend_item, sync):
     state_i[2] = m
 
 
-@njit(cache=True, nogil=True)
-def _copy(dst, src):
-    """dst[:src.size] = src as a loop: numba compiles a slice assignment for tens of seconds."""
-    for i in range(src.size):
-        dst[i] = src[i]
+class Dwell(NamedTuple):
+    """How ``dwell_run`` dwells (all int64 but ``stop_s``): ``n_target`` counted detections per pixel
+    (0: fixed dwell), ``limit`` syncs per pixel (the fixed dwell, or the count gate's limit),
+    ``settle`` syncs before every pixel but the first, ``off_syncs`` syncs of a pixel off the
+    scene, ``start_sync`` of the first pixel, ``stop_s`` virtual time and ``max_records`` rows
+    after which the run stops, ``capacity`` a first guess of the detections (arrays grow)."""
+
+    n_target: int
+    limit: int
+    settle: int
+    off_syncs: int
+    start_sync: int
+    stop_s: float
+    max_records: int
+    capacity: int
+
+
+class Rates(NamedTuple):
+    """The scene as rate tables over flat pixels P and surfaces K: ``sig_pp`` (P, K) and ``bg_pp``
+    (P,) mean detections per pulse, ``tof_s`` (P, K) times of flight, ``lam`` (P,) their sum per
+    pixel, ``period_s`` the laser period."""
+
+    sig_pp: np.ndarray
+    tof_s: np.ndarray
+    bg_pp: np.ndarray
+    lam: np.ndarray
+    period_s: float
+
+
+class Pulse(NamedTuple):
+    """The pulse shape ``sample_pulse_s`` draws from: ``kind`` PULSE_GAUSSIAN (``rms_s``) or
+    PULSE_TABLE (cumulative ``irf_cdf`` over bins of ``irf_bin_s`` from ``irf_t0_s``)."""
+
+    kind: int
+    rms_s: float
+    irf_cdf: np.ndarray
+    irf_t0_s: float
+    irf_bin_s: float
+
+
+class Effects(NamedTuple):
+    """The effects of a dwell: ``jitter_rms_s`` > 0 jitters every time; ``sequential`` runs
+    ``detector_kernel`` with dead time ``dead_s`` and afterpulses (``ap_prob``, ``ap_tau_s``)."""
+
+    jitter_rms_s: float
+    sequential: bool
+    dead_s: float
+    ap_prob: float
+    ap_tau_s: float
+
+
+class DetState(NamedTuple):
+    """The detector state arrays of ``detector_kernel`` (carried from call to call):
+    ``state_i`` [has_last, last_sync, n_pending], ``state_t`` [last_t], pending afterpulses."""
+
+    state_i: np.ndarray
+    state_t: np.ndarray
+    pend_sync: np.ndarray
+    pend_t: np.ndarray
+    pend_item: np.ndarray
+
+
+class Gate(NamedTuple):
+    """What a count gate counts (``_counted``): dtime = t / ``res_s`` below ``range_bins`` and in
+    [``win_lo``, ``win_hi``) tagger units."""
+
+    res_s: float
+    range_bins: int
+    win_lo: int
+    win_hi: int
+
+
+class Rows(NamedTuple):
+    """Detections in flight: sync (int64), t (float64 s), origin (uint8), item (int32)."""
+
+    sync: np.ndarray
+    t: np.ndarray
+    origin: np.ndarray
+    item: np.ndarray
 
 
 @njit(cache=True, nogil=True)
-def _grow(sync, t, origin, item, n_keep, need):
-    """Detection arrays (sync, t, origin, item) with room for ``need``: the same ones when they
-    have it, else new ones at least twice as long holding the first ``n_keep`` rows."""
-    if sync.size >= need:
-        return sync, t, origin, item
-    cap = max(need, 2 * sync.size)
-    s2, t2 = np.empty(cap, np.int64), np.empty(cap, np.float64)
-    o2, i2 = np.empty(cap, np.uint8), np.empty(cap, np.int32)
+def _no_rows():
+    return Rows(np.empty(0, np.int64), np.empty(0, np.float64), np.empty(0, np.uint8),
+                np.empty(0, np.int32))
+
+
+@njit(cache=True, nogil=True)
+def _grow(rows, n_keep, need):
+    """Rows with room for ``need``: the same ones when they have it, else new ones at least twice
+    as long holding the first ``n_keep``."""
+    if rows.sync.size >= need:
+        return rows
+    cap = max(need, 2 * rows.sync.size)
+    new = Rows(np.empty(cap, np.int64), np.empty(cap, np.float64), np.empty(cap, np.uint8),
+               np.empty(cap, np.int32))
     for q in range(n_keep):
-        s2[q] = sync[q]
-        t2[q] = t[q]
-        o2[q] = origin[q]
-        i2[q] = item[q]
-    return s2, t2, o2, i2
+        new.sync[q] = rows.sync[q]
+        new.t[q] = rows.t[q]
+        new.origin[q] = rows.origin[q]
+        new.item[q] = rows.item[q]
+    return new
 
 
 @njit(cache=True, nogil=True)
-def dwell_run(rng, pix, n_target, limit, settle, off_syncs, start_sync, stop_s, max_records,
-              sig_pp, tof_s, bg_pp, lam, period_s,
-              pulse_kind, rms_s, irf_cdf, irf_t0_s, irf_bin_s,
-              jitter_rms_s, sequential, dead_s, ap_prob, ap_tau_s,
-              state_i, state_t, pend_sync, pend_t, pend_item,
-              res_s, range_bins, win_lo, win_hi, capacity,
-              starts, n_syncs, counts):
+def _take(rows, n):
+    return Rows(rows.sync[:n], rows.t[:n], rows.origin[:n], rows.item[:n])
+
+
+@njit(cache=True, nogil=True)
+def _copy_state(dst, src):
+    """dst = src for detector states, as loops: numba compiles a slice assignment for tens of
+    seconds."""
+    for i in range(src.state_i.size):
+        dst.state_i[i] = src.state_i[i]
+    dst.state_t[0] = src.state_t[0]
+    for i in range(src.pend_sync.size):
+        dst.pend_sync[i] = src.pend_sync[i]
+        dst.pend_t[i] = src.pend_t[i]
+        dst.pend_item[i] = src.pend_item[i]
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _chunk_syncs(gated, need, rate, left, limit):
+    """Syncs to generate next for a pixel: the whole dwell when not gated, else enough for the
+    ``need`` counts still missing at ``rate`` counted detections per sync (25% more, at least 16),
+    never more than the ``left`` syncs of its limit."""
+    if not gated:
+        chunk = limit
+    elif rate > 0.0:
+        f = need / rate * 1.25 + 16
+        chunk = left if f >= left else max(np.int64(f), 16)
+    else:
+        chunk = limit
+    return min(max(chunk, 16) if gated else chunk, left)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _generate(rng, p, s0, chunk, gen, rates, pulse):
+    """Ideal detections of pixel ``p`` over ``chunk`` syncs from ``s0`` into ``gen`` (grown as
+    needed; ``generate_chain`` resumes where the buffer filled); returns (gen, rows written)."""
+    expected = rates.lam[p] * chunk
+    gen = _grow(gen, ZERO, np.int64(expected + 6.0 * np.sqrt(expected) + 64))
+    one_pix = np.full(1, p, np.int64)
+    one_start = np.full(1, s0, np.int64)
+    one_n = np.full(1, chunk, np.int64)
+    n_g = ZERO
+    i_next = ZERO
+    u_next = 0.0
+    while True:
+        n_new, i_next, u_next = generate_chain(
+            rng, one_pix, one_start, one_n, i_next, u_next, rates.sig_pp, rates.tof_s, rates.bg_pp,
+            rates.period_s, pulse.kind, pulse.rms_s, pulse.irf_cdf, pulse.irf_t0_s, pulse.irf_bin_s,
+            gen.sync[n_g:], gen.t[n_g:], gen.origin[n_g:], gen.item[n_g:])
+        n_g += n_new
+        if i_next >= 1:
+            return gen, n_g
+        gen = _grow(gen, n_g, 2 * gen.sync.size)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _detect(rng, b, sync_end, stop_count, dbuf, saved, fx, det, gate, period_s):
+    """``detector_kernel`` over the rows ``b`` into ``dbuf``; when an afterpulse cascade overflows
+    the first guess of room, the state is put back and it runs again with twice the room. Returns
+    (dbuf, rows out, counted)."""
+    n_g = b.sync.size
+    # the capacity effects._Sequential starts with
+    d_need = n_g + np.int64(n_g * 3 * fx.ap_prob / (1.0 - fx.ap_prob)) + det.pend_sync.size + 64
+    _copy_state(saved, det)
+    while True:
+        dbuf = _grow(dbuf, ZERO, d_need)
+        n_d, got = detector_kernel(
+            rng, b.sync, b.t, b.origin, b.item, period_s, fx.dead_s, fx.ap_prob, fx.ap_tau_s,
+            det.state_i, det.state_t, det.pend_sync, det.pend_t, det.pend_item, sync_end,
+            stop_count, gate.res_s, gate.range_bins, gate.win_lo, gate.win_hi,
+            dbuf.sync, dbuf.t, dbuf.origin, dbuf.item)
+        if n_d >= 0:
+            return dbuf, n_d, got
+        _copy_state(det, saved)
+        d_need = 2 * dbuf.sync.size
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _gate_cut(b, need, gate):
+    """(rows up to and including the one that brings the count to ``need``, or all; count)."""
+    got = 0
+    for q in range(b.t.size):
+        if _counted(b.t[q], gate.res_s, gate.range_bins, gate.win_lo, gate.win_hi):
+            got += 1
+            if got >= need:
+                return q + 1, got
+    return b.t.size, got
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _append(out, n_out, b, n_b, gate):
+    """Append the first ``n_b`` rows of ``b`` to ``out``; returns (out, n_out, rows recorded)."""
+    out = _grow(out, n_out, n_out + n_b)
+    recorded = 0
+    for q in range(n_b):
+        out.sync[n_out] = b.sync[q]
+        out.t[n_out] = b.t[q]
+        out.origin[n_out] = b.origin[q]
+        if np.int64(b.t[q] / gate.res_s) < gate.range_bins:
+            recorded += 1
+        n_out += 1
+    return out, n_out, recorded
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _dwell_pixel(rng, p, s, out, n_out, bufs, dwell, rates, pulse, fx, det, gate):
+    """One pixel of ``dwell_run`` from sync ``s``, appended to ``out``: generation in chunks sized
+    from the rate seen so far (an exponential gap running past a chunk's end is dropped and the
+    process resumes at the chunk's end: exact, since gaps are memoryless), jitter, detector, count
+    gate. ``bufs`` (generation rows, detector rows, saved detector state) are scratch reused from
+    pixel to pixel. Returns (syncs taken, rows recorded, out, n_out, bufs)."""
+    gen, dbuf, saved = bufs
+    gated = dwell.n_target > 0
+    done = 0          # syncs generated so far
+    counted = 0
+    reached = -1
+    rate = rates.lam[p]     # counted detections per sync, refined as we go
+    recorded = 0
+    while done < dwell.limit and (not gated or counted < dwell.n_target):
+        need = dwell.n_target - counted
+        chunk = _chunk_syncs(gated, need, rate, dwell.limit - done, dwell.limit)
+        s0 = s + done
+        gen, n_g = _generate(rng, p, s0, chunk, gen, rates, pulse)
+        b = _take(gen, n_g)
+        sort_within_sync(b.sync, b.t, b.origin, b.item)
+        if fx.jitter_rms_s > 0.0:
+            jitter_kernel(rng, b.t, fx.jitter_rms_s, rates.period_s)
+            sort_within_sync(b.sync, b.t, b.origin, b.item)
+        if fx.sequential:
+            dbuf, n_b, got = _detect(rng, b, s0 + chunk, need if gated else 0, dbuf, saved, fx, det,
+                                     gate, rates.period_s)
+            b = _take(dbuf, n_b)
+        elif gated:
+            n_b, got = _gate_cut(b, need, gate)
+        else:
+            n_b, got = n_g, 0
+        if gated and got >= need:
+            reached = b.sync[n_b - 1]
+        out, n_out, rec = _append(out, n_out, b, n_b, gate)
+        recorded += rec
+        counted += got
+        done += chunk
+        if gated and counted < dwell.n_target:
+            rate = max(counted / done, 0.5 * rate) if counted else rate / 4
+    n = reached - s + 1 if reached >= 0 else dwell.limit
+    return n, recorded, out, n_out, (gen, dbuf, saved)
+
+
+@njit(cache=True, nogil=True)
+def dwell_run(rng, pix, dwell, rates, pulse, fx, det, gate, starts, n_syncs, counts):
     """Dwells on a list of pixels one after another, as a scanner holding the mirror on each: the
     whole per-pixel pipeline (generation, jitter, detector, count gate) in one call, so a scan
     line costs one call instead of one per pixel. Each pixel gets exactly the random draws a call
     for that pixel alone would take, in the same order, so a run equals its pixels one by one.
 
-    pix (n,) int64 pixel indices into the rate tables, -1 for a pixel off the scene (nothing
-    returns; it takes ``off_syncs``). ``settle`` syncs pass before every pixel but the first
-    (which starts at ``start_sync``). Fixed dwell (``n_target`` 0): each pixel takes ``limit``
-    syncs. Count-gated: each pixel runs until the detection that brings its count (detections
-    recorded, dtime < range_bins, inside [win_lo, win_hi) tagger units) to ``n_target``, or
-    ``limit`` syncs; the next pixel starts at the sync after. Generation goes in chunks sized from
-    the rate seen so far (an exponential gap running past a chunk's end is dropped, and the
-    process resumes at the chunk's end: exact, since gaps are memoryless).
+    pix (n,) int64 pixel indices into the ``rates`` tables, -1 for a pixel off the scene (nothing
+    returns; it takes ``dwell.off_syncs``). ``dwell`` (:class:`Dwell`): ``settle`` syncs pass
+    before every pixel but the first (which starts at ``start_sync``). Fixed dwell (``n_target``
+    0): each pixel takes ``limit`` syncs. Count-gated: each pixel runs until the detection that
+    brings its count (detections recorded inside the ``gate``, :class:`Gate`) to ``n_target``, or
+    ``limit`` syncs; the next pixel starts at the sync after.
 
-    Effects: ``jitter_rms_s`` > 0 jitters every time; ``sequential`` runs ``detector_kernel``
-    (``dead_s``, ``ap_prob``, ``ap_tau_s``) on the detector state arrays, which carry over from
-    call to call. The run stops early after the first pixel that ends (plus the settle after it)
-    at or after virtual time ``stop_s``, so a fault due then fires at that pixel, and after the
-    pixel that brings its detections plus one marker per pixel to ``max_records``.
+    Effects (:class:`Effects`): jitter, and the sequential detector on the ``det`` state arrays
+    (:class:`DetState`), which carry over from call to call. The run stops early after the first
+    pixel that ends (plus the settle after it) at or after virtual time ``stop_s``, so a fault due
+    then fires at that pixel, and after the pixel that brings its detections plus one marker per
+    pixel to ``max_records``.
 
     Writes per pixel ``starts`` (first sync), ``n_syncs`` and ``counts`` (detections the tagger
     records); returns (pixels done, sync, t, origin) of the detections, sorted by (sync, t).
-    ``capacity`` is a first guess of the number of detections (the arrays grow as needed).
     """
-    n_pix = pix.size
-    # (np.int64(...) around constants: a literal argument would compile one more variant)
-    zero = np.int64(0)
-    out_sync, out_t, out_origin, out_item = _grow(np.empty(0, np.int64), np.empty(0, np.float64),
-                                                  np.empty(0, np.uint8), np.empty(0, np.int32),
-                                                  zero, np.int64(capacity))
-    n_out = 0
-    # one pixel's chunk of ideal detections, and the detector's output
-    g_sync, g_t, g_origin, g_item = _grow(np.empty(0, np.int64), np.empty(0, np.float64),
-                                          np.empty(0, np.uint8), np.empty(0, np.int32), zero,
-                                          np.int64(4096))
-    d_sync, d_t, d_origin, d_item = _grow(np.empty(0, np.int64), np.empty(0, np.float64),
-                                          np.empty(0, np.uint8), np.empty(0, np.int32), zero, zero)
-    saved_i = np.empty(3, np.int64)
-    saved_t = np.empty(1, np.float64)
-    saved_ps = np.empty(pend_sync.size, np.int64)
-    saved_pt = np.empty(pend_sync.size, np.float64)
-    saved_pi = np.empty(pend_sync.size, np.int32)
-    one_pix = np.zeros(1, np.int64)
-    one_start = np.zeros(1, np.int64)
-    one_n = np.zeros(1, np.int64)
-    s = start_sync
+    out = _grow(_no_rows(), ZERO, dwell.capacity)
+    # scratch reused from pixel to pixel: generated rows, detector rows, the saved detector state
+    bufs = (_grow(_no_rows(), ZERO, np.int64(4096)), _no_rows(),
+            DetState(np.empty(3, np.int64), np.empty(1, np.float64),
+                     np.empty(det.pend_sync.size, np.int64), np.empty(det.pend_sync.size, np.float64),
+                     np.empty(det.pend_sync.size, np.int32)))
+    n_out = ZERO
+    s = dwell.start_sync
     done_pixels = 0
-    for j in range(n_pix):
+    for j in range(pix.size):
         if j > 0:
-            s += settle
+            s += dwell.settle
         starts[j] = s
         p = pix[j]
         if p < 0:
-            n_syncs[j] = off_syncs
+            n_syncs[j] = dwell.off_syncs
             counts[j] = 0
-            s += off_syncs
         else:
-            start_at_kernel(state_i, pend_sync, pend_t, pend_item, s)
-            one_pix[0] = p
-            gated = n_target > 0
-            done = 0          # syncs generated so far
-            counted = 0
-            reached = -1
-            rate = lam[p]     # counted detections per sync, refined as we go
-            recorded = 0
-            while done < limit and (not gated or counted < n_target):
-                need = n_target - counted
-                if not gated:
-                    chunk = limit
-                elif rate > 0.0:
-                    f = need / rate * 1.25 + 16
-                    chunk = limit - done if f >= limit - done else max(np.int64(f), 16)
-                else:
-                    chunk = limit
-                chunk = min(max(chunk, 16) if gated else chunk, limit - done)
-                s0 = s + done
-                # ideal detections of the chunk (generate_chain resumes where the buffer filled)
-                expected = lam[p] * chunk
-                g_sync, g_t, g_origin, g_item = _grow(
-                    g_sync, g_t, g_origin, g_item, zero,
-                    np.int64(expected + 6.0 * np.sqrt(expected) + 64))
-                one_start[0] = s0
-                one_n[0] = chunk
-                n_g = 0
-                i_next = zero
-                u_next = 0.0
-                while True:
-                    n_new, i_next, u_next = generate_chain(
-                        rng, one_pix, one_start, one_n, i_next, u_next, sig_pp, tof_s, bg_pp,
-                        period_s, pulse_kind, rms_s, irf_cdf, irf_t0_s, irf_bin_s,
-                        g_sync[n_g:], g_t[n_g:], g_origin[n_g:], g_item[n_g:])
-                    n_g += n_new
-                    if i_next >= 1:
-                        break
-                    g_sync, g_t, g_origin, g_item = _grow(g_sync, g_t, g_origin, g_item, n_g,
-                                                          2 * g_sync.size)
-                b_sync = g_sync[:n_g]
-                b_t = g_t[:n_g]
-                b_origin = g_origin[:n_g]
-                b_item = g_item[:n_g]
-                sort_within_sync(b_sync, b_t, b_origin, b_item)
-                if jitter_rms_s > 0.0:
-                    jitter_kernel(rng, b_t, jitter_rms_s, period_s)
-                    sort_within_sync(b_sync, b_t, b_origin, b_item)
-                if sequential:
-                    # the capacity effects._Sequential starts with
-                    d_need = n_g + np.int64(n_g * 3 * ap_prob / (1.0 - ap_prob)) + pend_sync.size + 64
-                    _copy(saved_i, state_i)
-                    _copy(saved_t, state_t)
-                    _copy(saved_ps, pend_sync)
-                    _copy(saved_pt, pend_t)
-                    _copy(saved_pi, pend_item)
-                    while True:
-                        d_sync, d_t, d_origin, d_item = _grow(d_sync, d_t, d_origin, d_item, zero,
-                                                              d_need)
-                        n_d, got = detector_kernel(
-                            rng, b_sync, b_t, b_origin, b_item, period_s, dead_s, ap_prob,
-                            ap_tau_s, state_i, state_t, pend_sync, pend_t, pend_item, s0 + chunk,
-                            need if gated else 0, res_s, range_bins, win_lo, win_hi,
-                            d_sync, d_t, d_origin, d_item)
-                        if n_d >= 0:
-                            break
-                        # an afterpulse cascade overflowed the guess: again with room to spare
-                        _copy(state_i, saved_i)
-                        _copy(state_t, saved_t)
-                        _copy(pend_sync, saved_ps)
-                        _copy(pend_t, saved_pt)
-                        _copy(pend_item, saved_pi)
-                        d_need = 2 * d_sync.size
-                    b_sync = d_sync[:n_d]
-                    b_t = d_t[:n_d]
-                    b_origin = d_origin[:n_d]
-                    if gated and got >= need:
-                        reached = b_sync[n_d - 1]
-                    n_b = n_d
-                else:
-                    n_b = n_g
-                    got = 0
-                    if gated:
-                        for q in range(n_g):
-                            if _counted(b_t[q], res_s, range_bins, win_lo, win_hi):
-                                got += 1
-                                if got >= need:
-                                    n_b = q + 1
-                                    reached = b_sync[q]
-                                    break
-                out_sync, out_t, out_origin, out_item = _grow(out_sync, out_t, out_origin,
-                                                              out_item, n_out, n_out + n_b)
-                for q in range(n_b):
-                    out_sync[n_out] = b_sync[q]
-                    out_t[n_out] = b_t[q]
-                    out_origin[n_out] = b_origin[q]
-                    if np.int64(b_t[q] / res_s) < range_bins:
-                        recorded += 1
-                    n_out += 1
-                counted += got
-                done += chunk
-                if gated and counted < n_target:
-                    rate = max(counted / done, 0.5 * rate) if counted else rate / 4
-            n_syncs[j] = reached - s + 1 if reached >= 0 else limit
-            counts[j] = recorded
-            s += n_syncs[j]
+            start_at_kernel(det.state_i, det.pend_sync, det.pend_t, det.pend_item, s)
+            n_syncs[j], counts[j], out, n_out, bufs = _dwell_pixel(
+                rng, p, s, out, n_out, bufs, dwell, rates, pulse, fx, det, gate)
+        s += n_syncs[j]
         done_pixels = j + 1
-        if (s + settle) * period_s >= stop_s or n_out + done_pixels >= max_records:
+        if (s + dwell.settle) * rates.period_s >= dwell.stop_s or n_out + done_pixels >= dwell.max_records:
             break
-    return done_pixels, out_sync[:n_out], out_t[:n_out], out_origin[:n_out]
+    return done_pixels, out.sync[:n_out], out.t[:n_out], out.origin[:n_out]

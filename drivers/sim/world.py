@@ -112,15 +112,16 @@ class PhotonWorld:
         self._bg_pp = np.ascontiguousarray(scene.background_pp.reshape(h * w))
         self._lam = self._sig_pp.sum(axis=1) + self._bg_pp
         self._period_s = s.sync_period_s
+        self._rates = K.Rates(self._sig_pp, self._tof_s, self._bg_pp, self._lam, float(self._period_s))
         if scene.irf is None:
-            self._pulse = (K.PULSE_GAUSSIAN, float(s.pulse_rms_s), np.zeros(1), 0.0, 1.0)
+            self._pulse = K.Pulse(K.PULSE_GAUSSIAN, float(s.pulse_rms_s), np.zeros(1), 0.0, 1.0)
         else:
             w_irf = scene.irf / scene.irf.sum()
             b = float(s.irf_bin_s)
             t0 = -float((w_irf * (np.arange(w_irf.size) + 0.5) * b).sum())  # mean delay -> 0
             cdf = np.cumsum(w_irf)
             cdf[-1] = 1.0
-            self._pulse = (K.PULSE_TABLE, 0.0, cdf, t0, b)
+            self._pulse = K.Pulse(K.PULSE_TABLE, 0.0, cdf, t0, b)
         self.effects = build_effects(scene)
         self._stateless = [e for e in self.effects if not e.sequential]
         seq = [e for e in self.effects if e.sequential]
@@ -280,16 +281,17 @@ class PhotonWorld:
         guess = n * (n_target * 1.25 + 16.0) if gated else \
             float(self._lam[pixels[pixels >= 0]].sum() * limit) + 16.0 * n
         det = self._det
+        dwell = K.Dwell(n_target if gated else 0, limit, int(settle_syncs), int(off_syncs), start_sync,
+                        float(stop_s), int(max_records), int(min(guess, 1 << 20)) + 64)
+        fx = K.Effects(float(jitter[0].rms_s) if jitter else 0.0, seq is not None,
+                       float(seq.dead_s) if seq else 0.0, float(seq.ap_prob) if seq else 0.0,
+                       float(seq.ap_tau_s) if seq else 0.0)
+        gate = K.Gate(float(self.scene.resolution_s), int(self._range_bins), lo, hi)
         with self._lock:
             done, sync, t, origin = K.dwell_run(
-                self._rng, pixels, n_target if gated else 0, limit, int(settle_syncs),
-                int(off_syncs), start_sync, float(stop_s), int(max_records), self._sig_pp, self._tof_s,
-                self._bg_pp, self._lam, self._period_s, *self._pulse,
-                jitter[0].rms_s if jitter else 0.0, seq is not None,
-                seq.dead_s if seq else 0.0, seq.ap_prob if seq else 0.0,
-                seq.ap_tau_s if seq else 0.0, det.state_i, det.state_t, det.pend_sync,
-                det.pend_t, det.pend_item, self.scene.resolution_s, self._range_bins, lo, hi,
-                int(min(guess, 1 << 20)) + 64, starts, n_syncs, counts)
+                self._rng, pixels, dwell, self._rates, self._pulse, fx,
+                K.DetState(det.state_i, det.state_t, det.pend_sync, det.pend_t, det.pend_item),
+                gate, starts, n_syncs, counts)
         m_sync, m_bits = np.zeros(0, np.int64), np.zeros(0, np.uint8)
         if marker_bits is not None:
             m_sync, m_bits = starts[:done], np.asarray(marker_bits, np.uint8)[:done]

@@ -30,6 +30,7 @@ from numba import njit
 
 from spdepth.drivers.errors import ProtocolError, SettingError
 from spdepth.drivers.events import EVENT_DTYPE, EventKind, Marker
+from spdepth.drivers.jit import call_strided
 
 T3_WRAP_SYNCS = 1024
 """Syncs per overflow period (the 10-bit ``nsync`` field wraps here)."""
@@ -275,14 +276,15 @@ def encode_t3(events: np.ndarray, state: T3EncoderState | None = None, *,
     if sync.size and int(sync[0]) < state.sync_base:
         raise SettingError(f"event 0 at sync {int(sync[0])} precedes the encoder's overflow "
                          f"period starting at sync {state.sync_base}")
-    count = _count_encoded(sync, kind, np.int64(state.sync_base))
+    count = call_strided(_count_encoded, (0, 1), sync, kind, np.int64(state.sync_base))
     if count < 0:
         i = -count - 1
         raise SettingError(f"event {i} at sync {int(sync[i])} goes back in time "
                          f"(previous event at sync {int(sync[i - 1]) if i else state.sync_base})")
     out = np.empty(count, dtype=T3_RECORD_DTYPE)
-    n, base, bad = _encode_kernel(sync, events["dtime"], events["channel"], kind,
-                                  events["marker"], np.int64(state.sync_base), out)
+    n, base, bad = call_strided(_encode_kernel, (0, 1, 2, 3, 4), sync, events["dtime"],
+                                events["channel"], kind, events["marker"],
+                                np.int64(state.sync_base), out)
     if bad >= 0:
         e = events[bad]
         raise SettingError(f"event {bad} cannot be a T3 record: kind={int(e['kind'])}, "
@@ -382,6 +384,5 @@ def warm_up() -> None:
     records = encode_t3(ev)
     decode_t3(records)
     decode_t3(split_marker_records(records))
-    # a chunk of one event: its field views are contiguous, another specialisation of the encoder
-    # (a simulated tagger encodes in the reader's thread, and compiled it there during a first scan)
-    encode_t3(ev[:1])
+    # a chunk of one event has contiguous field views: the encoder's one strided specialisation
+    # (drivers.jit.call_strided) serves it too, so nothing more compiles in the reader's thread

@@ -1,7 +1,7 @@
 """Numba kernels of lmf (:mod:`.lmf`): the log-matched filter of eq. (11), ``argmax_i sum_k y_k log
 S_{k,i}`` per pixel over integer shifts, and the variance from that score's curvature there.
 
-:func:`lmf_kernel` (a prange over blocks) -> :func:`_lmf_block` (a block's scratch) ->
+:func:`lmf_kernel` (a loop over blocks; recon.pixelwise.on_threads shares a fit's blocks among threads) -> :func:`_lmf_block` (a block's scratch) ->
 :func:`lmf_pixel` (:func:`lmf_shift`, :func:`lmf_var`) on one pixel's distinct bins and counts
 (:func:`recon.kernels.pixel_bins`).
 """
@@ -11,7 +11,7 @@ from __future__ import annotations
 from collections import namedtuple
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 from spdepth.recon.kernels import block_pixels, n_blocks, pixel_bins, pixel_scratch
 
@@ -149,10 +149,10 @@ def _lmf_block(blk, ph, tabs, maxn, out_shift, out_var, out_n):
     _lmf_pixels(blk, ph, tabs, pixel_scratch(maxn, tabs.m), out_shift, out_var, out_n)
 
 
-@njit(parallel=True, cache=True, nogil=True)
+@njit(cache=True, nogil=True)
 def lmf_kernel(ph, tabs, maxn, out_shift, out_var, out_n):
     """Log-matched filter per pixel of ph (:class:`recon.kernels.Photons`, at most maxn detections
     a pixel) with :class:`LmfTables`. out_shift: argmax shift (int64, -1 without photons), out_var:
     shift variance in bins^2 from the observed curvature of the log-likelihood, out_n: photons."""
-    for blk in prange(n_blocks(ph)):
+    for blk in range(n_blocks(ph)):
         _lmf_block(np.int64(blk), ph, tabs, maxn, out_shift, out_var, out_n)

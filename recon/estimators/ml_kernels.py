@@ -20,7 +20,7 @@ the integer optimum while the exact likelihood rises finds it with fewer solves
 (:func:`_fine_climb`). Then a parabola through its exact neighbours (:func:`_parabola`), and the
 variance from the Fisher table (``recon.kernels.fisher_tab``).
 
-:func:`ml_kernel` (a prange over blocks) -> :func:`_ml_block` (a block's scratch,
+:func:`ml_kernel` (a loop over blocks; recon.pixelwise.on_threads shares a fit's blocks among threads) -> :func:`_ml_block` (a block's scratch,
 :func:`ml_scratch`) -> :func:`ml_pixel` -> the helpers above.
 """
 
@@ -30,7 +30,7 @@ import math
 from collections import namedtuple
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 from spdepth.recon.estimators.ml_bounds import (ML_SHARE_CLAMP, ML_SHARES, _ml_at_fine, _ml_at_int, _photon_range,
                                                 mix_bounds, share_bound, share_diffs, share_sweep, share_tables,
@@ -477,10 +477,10 @@ def _ml_block(blk, ph, tabs, maxn, out_shift, out_amp, out_bg, out_var, out_n):
                out_var, out_n)
 
 
-@njit(parallel=True, cache=True, nogil=True)
+@njit(cache=True, nogil=True)
 def ml_kernel(ph, tabs, maxn, out_shift, out_amp, out_bg, out_var, out_n):
     """Exact Poisson ML (module docstring) per pixel of ph (:class:`recon.kernels.Photons`, at most
     maxn detections a pixel) with :class:`MlTables`. Outputs: out_shift (bins, NaN none), out_amp
     (unit-area amplitude), out_bg (per bin), out_var (bins^2), out_n (photons)."""
-    for blk in prange(n_blocks(ph)):
+    for blk in range(n_blocks(ph)):
         _ml_block(np.int64(blk), ph, tabs, maxn, out_shift, out_amp, out_bg, out_var, out_n)

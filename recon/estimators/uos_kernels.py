@@ -2,7 +2,7 @@
 (Algorithm 1) with one depth column and the background column, on the published code's scaling
 (columns g / gmax, peak 1, so delta means what it means there).
 
-:func:`uos_kernel` (a prange over blocks) -> :func:`_uos_block` (a block's scratch,
+:func:`uos_kernel` (a loop over blocks; recon.pixelwise.on_threads shares a fit's blocks among threads) -> :func:`_uos_block` (a block's scratch,
 :func:`uos_scratch`) -> :func:`uos_pixel`: :func:`uos_scatter` (S^T y), iterations of
 (:func:`_iterate`: the proxy's argmax :func:`uos1_argmax`, pruned -> :func:`union_support` ->
 :func:`solve_support` -> :func:`keep_largest` -> :func:`change_norm`), then :func:`refit_nonneg`
@@ -15,7 +15,7 @@ from __future__ import annotations
 from collections import namedtuple
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 from spdepth.recon.kernels import (block_pixels, col_dot, n_blocks, photon_intervals, pinv_solve, pixel_bins,
                                    pixel_scratch)
@@ -356,12 +356,12 @@ def _uos_block(blk, ph, tabs, maxn, out_shift, out_amp, out_bg, out_iter, out_co
         out_shift[p], out_amp[p], out_bg[p], out_iter[p], out_conv[p] = uos_pixel(px.kb, px.kw, nu, tabs, scr)
 
 
-@njit(parallel=True, cache=True, nogil=True)
+@njit(cache=True, nogil=True)
 def uos_kernel(ph, tabs, maxn, out_shift, out_amp, out_bg, out_iter, out_conv, out_n):
     """Union-of-subspaces greedy pursuit (Algorithm 1) per pixel of ph (:class:`recon.kernels.Photons`,
     at most maxn detections a pixel) with :class:`UosTables`. Outputs per pixel p: out_shift
     (bins, float; NaN none), out_amp (amplitude on the unit-area kernel: expected signal detections
     of an unclipped pulse), out_bg (background per bin), out_iter (iterations), out_conv
     (converged), out_n (photons). Its variance is the caller's (a matched filter's, from these)."""
-    for blk in prange(n_blocks(ph)):
+    for blk in range(n_blocks(ph)):
         _uos_block(np.int64(blk), ph, tabs, maxn, out_shift, out_amp, out_bg, out_iter, out_conv, out_n)

@@ -39,6 +39,9 @@ TARGETS = {
              "pulse (0.01 to 1), with and without the pile-up correction"),
     "honesty": ("spdepth.acq.commands.bench.honesty", "split-half check of depths and uncertainties without truth: "
                 "each pixel's alternate detections reconstructed apart, agreement within 1 and 3 sigma (FILE)"),
+    "compile": ("spdepth.acq.commands.bench.compile", "first run after an install: each kernel group's cold "
+                "compile in a new process with an empty numba cache, and the cold demo and recon "
+                "of the mannequin end to end (--before: another checkout)"),
     "spatial": ("spdepth.acq.commands.bench.spatial", "spatial estimator on a 256x256 frame beside ml, warm, 1 thread "
                 "(pixels/s per core)"),
 }

@@ -26,6 +26,7 @@ import importlib.util
 import os
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Callable
 
@@ -39,6 +40,7 @@ from spdepth.recon.estimators.ml import ml_tables
 from spdepth.recon.kernels import Photons
 from spdepth.recon.model import FINE_STEPS, SEED_PAPER, Binning, ReconSettings, build_kernel
 from spdepth.recon.photons import PhotonStore
+from spdepth.recon.pixelwise import on_threads, threads
 
 M = SEED_PAPER.n_bins
 UNIT_S = SEED_PAPER.time_unit_s
@@ -207,10 +209,9 @@ def kernel_runner(kern) -> Callable[[str, np.ndarray, np.ndarray], np.ndarray]:
                                       SEED_PAPER.max_iterations)
     ml_tabs = ml_tables(kern, M)
 
-    def run(method, b, o):
+    def run_slice(method, b, o, shift):
         p = o.size - 1
         ph = Photons(b, o)
-        shift = np.full(p, np.nan)
         if method == "lmf":
             si = np.empty(p, np.int64)
             lmf_kernels.lmf_kernel(ph, lmf_tabs, DETECTIONS, si, np.empty(p), np.empty(p, np.int64))
@@ -221,6 +222,14 @@ def kernel_runner(kern) -> Callable[[str, np.ndarray, np.ndarray], np.ndarray]:
         else:
             ml_kernels.ml_kernel(ph, ml_tabs, DETECTIONS, shift, np.empty(p), np.empty(p), np.empty(p),
                                  np.empty(p, np.int64))
+
+    def run(method, b, o):
+        # the kernel's blocks shared among numba's threads, as a reconstruction runs them
+        shift = np.full(o.size - 1, np.nan)
+        workers = threads()
+        with ThreadPoolExecutor(workers) as pool:
+            on_threads(lambda a, c: run_slice(method, b[o[a]:o[c]], o[a:c + 1] - o[a], shift[a:c]),
+                       0, o.size - 1, pool, workers)
         return shift
 
     return run
