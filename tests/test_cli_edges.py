@@ -75,7 +75,10 @@ def test_an_existing_output_is_refused_unless_overwrite(small_ptu, tmp_path, cap
 
 def test_the_benchmarks_say_what_is_wrong_in_one_line(capsys):
     assert main(["bench"]) == 2
-    assert _one_line(capsys).startswith("spdepth bench: error: give a benchmark: array, decode, flux, generate")
+    from spdepth.acq.commands.bench import TARGETS
+
+    assert _one_line(capsys).startswith("spdepth bench: error: give a benchmark: "
+                                        + ", ".join(sorted(TARGETS)))
     assert main(["bench", "spatial", "--side", "-3"]) == 2
     assert _one_line(capsys) == ("spdepth bench spatial: error: argument --side: must be a whole "
                                  "number >= 4 and at most 4096, got -3 (see spdepth bench spatial --help)")

@@ -200,7 +200,7 @@ def test_png_draws_a_depth_map_per_surface(tmp_path, capsys):
 
 @pytest.mark.parametrize("k", [5, 15, 60])
 def test_uncertainty_is_honest_with_the_measured_response(k):
-    # a response with a tail, measured from the data (no pulse given): 68% +- 5% of pixels within
+    # a response with a tail, measured from the data (no pulse given): about 68% of pixels within
     # one reported sigma for uos and ml (at 60 detections a combed pair histogram once made the fit
     # read the whole response as tail: every pixel 35 units off)
     rng = np.random.default_rng(16)
@@ -220,4 +220,8 @@ def test_uncertainty_is_honest_with_the_measured_response(k):
         ok = np.isfinite(err)
         share = np.mean(np.abs(err[ok]) < sd[ok])
         print(f"{method} at {k} detections, measured response: {share:.3f} within one sigma")
-        assert abs(share - 0.68) < 0.05
+        # honest means neither too narrow nor much too wide: issue 31's band for a split-half check
+        # (55-80% within one sigma). Since recon.detect the reported sigma is the larger of the
+        # estimator's and a 40-sample bootstrap's, which over-covers a little at 5-15 detections
+        # (0.75-0.76 within one sigma here; 0.68 with the estimator's own sigma before)
+        assert 0.55 <= share <= 0.80
