@@ -144,7 +144,7 @@ def _det(sync, t, dead_s, ap=0.0, tau=0.0, stop=0, win=(0, 12500), seed=0):
            np.empty(2 * n + 64, np.int32)]
     m, c = K.detector_kernel(np.random.default_rng(seed), sync, t, np.zeros(n, np.uint8),
                              np.arange(n, dtype=np.int32), 100e-9, dead_s, ap, tau,
-                             st_i, st_t, ps, pt, pi, int(sync.max()) + 10, stop, 8e-12, 12500,
+                             K.DetState(st_i, st_t, ps, pt, pi), int(sync.max()) + 10, stop, 8e-12, 12500,
                              win[0], win[1], *out)
     return [o[:m] for o in out], c, st_i
 

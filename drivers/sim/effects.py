@@ -145,7 +145,7 @@ class _Sequential(Effect):
             n_out, counted = K.detector_kernel(
                 rng, batch.sync, batch.t, batch.origin, batch.item, self.period_s,
                 self.dead_s, self.ap_prob, self.ap_tau_s,
-                state.state_i, state.state_t, state.pend_sync, state.pend_t, state.pend_item,
+                K.DetState(state.state_i, state.state_t, state.pend_sync, state.pend_t, state.pend_item),
                 int(sync_end), int(counting.stop_count), float(counting.res_s),
                 int(counting.range_bins), int(counting.win_lo), int(counting.win_hi),
                 out.sync, out.t, out.origin, out.item)

@@ -157,8 +157,7 @@ def _counted(t, res_s, range_bins, win_lo, win_hi):
 
 
 @njit(cache=True, nogil=True)
-def detector_kernel(rng, sync, t, origin, item, period_s, dead_s, ap_prob, ap_tau_s,
-                    state_i, state_t, pend_sync, pend_t, pend_item, sync_end,
+def detector_kernel(rng, sync, t, origin, item, period_s, dead_s, ap_prob, ap_tau_s, det, sync_end,
                     stop_count, res_s, range_bins, win_lo, win_hi,
                     out_sync, out_t, out_origin, out_item):
     """The detector as a sequential machine: non-paralysable dead time and afterpulsing.
@@ -168,15 +167,16 @@ def detector_kernel(rng, sync, t, origin, item, period_s, dead_s, ap_prob, ap_ta
     detection releases an afterpulse ``dead_s + Exponential(ap_tau_s)`` later (0 disables), which
     may itself be blocked or afterpulse again.
 
-    State carried between calls (the detector does not know about pixels):
-    state_i = [has_last, last_sync, n_pending], state_t = [last_t]; pending afterpulses in
-    pend_sync/pend_t/pend_item[:n_pending], sorted. Pending afterpulses at or after ``sync_end``
+    State carried between calls (the detector does not know about pixels), ``det``, a
+    :class:`DetState`: state_i = [has_last, last_sync, n_pending], state_t = [last_t]; pending
+    afterpulses in pend_sync/pend_t/pend_item[:n_pending], sorted. Pending afterpulses at or after ``sync_end``
     stay pending. When ``stop_count`` > 0 the kernel stops right after the registered detection
     that makes ``stop_count`` counted ones (see ``_counted``), so the carried state is exactly the
     state at that detection.
 
     Returns (n_out, n_counted), or (-1, 0) when the output arrays are too small.
     """
+    state_i, state_t, pend_sync, pend_t, pend_item = det
     n_in = sync.size
     cap = out_sync.size
     pcap = pend_sync.size
@@ -491,9 +491,8 @@ def _detect(rng, b, sync_end, stop_count, dbuf, saved, fx, det, gate, period_s):
     while True:
         dbuf = _grow(dbuf, ZERO, d_need)
         n_d, got = detector_kernel(
-            rng, b.sync, b.t, b.origin, b.item, period_s, fx.dead_s, fx.ap_prob, fx.ap_tau_s,
-            det.state_i, det.state_t, det.pend_sync, det.pend_t, det.pend_item, sync_end,
-            stop_count, gate.res_s, gate.range_bins, gate.win_lo, gate.win_hi,
+            rng, b.sync, b.t, b.origin, b.item, period_s, fx.dead_s, fx.ap_prob, fx.ap_tau_s, det,
+            sync_end, stop_count, gate.res_s, gate.range_bins, gate.win_lo, gate.win_hi,
             dbuf.sync, dbuf.t, dbuf.origin, dbuf.item)
         if n_d >= 0:
             return dbuf, n_d, got
