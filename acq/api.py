@@ -16,6 +16,7 @@ The CLI, the window, Dask workers, the demo and the benchmarks only build reques
 from __future__ import annotations
 
 import fcntl
+import logging
 import math
 import os
 import time
@@ -32,6 +33,8 @@ from spdepth.recon.counts import CountStore
 from spdepth.recon.errors import InputError
 from spdepth.recon.model import Binning, ReconSettings
 from spdepth.recon.pileup import PILEUP_THRESHOLD
+
+log = logging.getLogger(__name__)
 
 SESSION_FILES = ("recording.ptu", "events.jsonl", "maps.npz", "maps.png", "points.ply", "run.json")
 """What a session writes into its folder (``--overwrite`` replaces exactly these)."""
@@ -392,7 +395,7 @@ class KernelWarmUp:
 
                 warm_reader()
         except Exception:  # noqa: BLE001 - the read itself reports what is wrong
-            pass
+            log.debug("reader warm-up failed; the read compiles what it needs", exc_info=True)
         finally:
             self._reader.set()
         try:
@@ -402,7 +405,8 @@ class KernelWarmUp:
                                   max_photons=req.max_photons, reflectors=req.reflectors,
                                   max_reflectors=req.max_reflectors, false_alarm=req.false_alarm))
         except Exception:  # noqa: BLE001 - the reconstruction itself reports what is wrong
-            pass
+            log.debug("estimator warm-up failed; the reconstruction compiles what it needs",
+                      exc_info=True)
 
     def wait_reader(self) -> float:
         """Wait for the reader's kernels; returns the seconds waited."""

@@ -62,7 +62,7 @@ class ArraySnapshot:
 
 
 class _Aborted(Exception):
-    pass
+    """Raised on the source's thread at its next checkpoint after ``abort()``; ends the run."""
 
 
 # ---- sources -------------------------------------------------------------------------------------
@@ -105,7 +105,7 @@ class SimArraySource:
         deliver(host, self.n_frames, self.frame_rate_hz if self.realtime else None, self.sensor.frame_pairs)
 
     def close(self) -> None:
-        pass
+        """Nothing to release: the simulated sensor holds no device or file."""
 
 
 class H5ReplaySource:
@@ -138,7 +138,7 @@ class H5ReplaySource:
         self.realtime = realtime
 
     def arm(self, host) -> None:
-        pass
+        """Nothing to prepare: the file was opened and checked when the source was made."""
 
     def run(self, host) -> None:
         deliver(host, self.n_frames, self.frame_rate_hz if self.realtime else None, self.frame_pairs)
@@ -237,7 +237,8 @@ class ArraySession:
         self.frame_digests: list = []       # (frame, digest of its maps) for every reconstruction
         self.state = ArrayState.IDLE
         self.error: BaseException | None = None
-        self._pause = threading.Event()
+        self._go = threading.Event()        # cleared while paused: the source's thread waits on it
+        self._go.set()
         self._abort = False
         self._thread = None
         self._lock = threading.Lock()
@@ -265,14 +266,14 @@ class ArraySession:
         return self.state
 
     def pause(self) -> None:
-        self._pause.set()
+        self._go.clear()
 
     def resume(self) -> None:
-        self._pause.clear()
+        self._go.set()
 
     def abort(self) -> None:
         self._abort = True
-        self._pause.clear()
+        self._go.set()
 
     def snapshot(self) -> ArraySnapshot:
         with self._lock:
@@ -285,9 +286,10 @@ class ArraySession:
     def checkpoint(self) -> None:
         if self.error is not None:
             raise self.error
-        while self._pause.is_set() and not self._abort:
+        if not self._go.is_set() and not self._abort:
+            # held here, between frames, until resume() or abort() sets the event: no polling
             self.state = ArrayState.PAUSED
-            time.sleep(0.02)
+            self._go.wait()
         if self._abort:
             raise _Aborted
         self.state = ArrayState.RUNNING

@@ -65,8 +65,8 @@ def check_output_file(option: str, path: str | Path | None, *, overwrite: bool =
         if not overwrite:
             raise OutputError(f"{option} {path} exists (pass --overwrite to replace it)")
         try:
-            with open(p, "ab"):
-                pass
+            # opened for appending and closed at once: writable without touching its contents
+            os.close(os.open(p, os.O_WRONLY | os.O_APPEND))
         except OSError as exc:
             raise OutputError(f"{option} {path}: cannot be written ({_why(exc)})") from None
         return

@@ -125,24 +125,25 @@ def test_a_live_session_keeps_every_frame_while_its_maps_skip(tmp_path):
 
 
 def test_a_session_can_be_paused_and_aborted(tmp_path):
-    import time
-
     from spdepth.acq.array_session import ArraySession, ArrayState, SimArraySource
     from spdepth.recon.model import ReconSettings
+    from tests.waiting import wait_until
 
     sensor = make_sensor("tilted-plane", (8, 8), frame_rate_hz=50.0)
     s = ArraySession(SimArraySource(sensor, 10_000, realtime=True),
                      ReconSettings(method="lmf", pulse_rms_s=360e-12), mode="frame")
     s.start()
-    deadline = time.monotonic() + 10
-    while s.snapshot().frames < 2 and time.monotonic() < deadline:
-        time.sleep(0.01)
+    wait_until(lambda: s.snapshot().frames >= 2, what="two frames")
     s.pause()
-    time.sleep(0.2)
+    # paused, the source's thread is held between frames until resume or abort: no frame comes
+    wait_until(lambda: s.snapshot().state == ArrayState.PAUSED, what="the session paused")
     held = s.snapshot().frames
-    time.sleep(0.3)
     assert s.snapshot().frames <= held + 1 and s.snapshot().state == ArrayState.PAUSED
-    s.abort()
+    s.resume()
+    wait_until(lambda: s.snapshot().frames > held + 1, what="frames again after resume")
+    s.pause()
+    wait_until(lambda: s.snapshot().state == ArrayState.PAUSED, what="paused again")
+    s.abort()                       # an abort ends a paused session too
     assert s.wait(5) == ArrayState.ABORTED
 
 

@@ -133,16 +133,14 @@ def test_a_progress_bar_that_waits_says_it_is_preparing(monkeypatch):
     """'0 px' for a minute while numba compiles looked like a hang: the bar says why, and the
     note goes once work is done."""
     import io
-    import time
 
     from spdepth.acq.report import ProgressBar
+    from tests.waiting import wait_until
 
     monkeypatch.setattr(ProgressBar, "PREPARING_AFTER_S", 0.05)
     out = io.StringIO()
     bar = ProgressBar("recon ml", 10, stream=out, force=True)
-    deadline = time.monotonic() + 5
-    while "preparing" not in out.getvalue() and time.monotonic() < deadline:
-        time.sleep(0.02)
+    wait_until(lambda: "preparing" in out.getvalue(), timeout_s=5, what="the preparing line")
     assert "preparing: reading the input; the first run after an install also compiles" in out.getvalue()
     bar(10, 10)
     bar.close()

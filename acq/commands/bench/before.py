@@ -66,7 +66,7 @@ def numbers(line: str) -> list[float]:
         try:
             out.append(float(tok))
         except ValueError:
-            pass
+            continue                        # a word of the line, not a number
     return out
 
 
