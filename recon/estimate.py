@@ -57,8 +57,7 @@ def reconstruct(store: PhotonStore, settings: ReconSettings,
     # the one place every estimator's maps pass: is there a return, and how sure is each depth
     from spdepth.recon.detect import decide_maps
 
-    photons = as_photons(store) if isinstance(store, CountStore) else store
-    return decide_maps(photons, settings, maps)
+    return decide_maps(store, settings, maps)
 
 
 def as_photons(counts: CountStore) -> PhotonStore:
