@@ -221,10 +221,12 @@ def test_beats_the_pixelwise_oracle_at_two_detections(sbr):
     err_oracle = float(np.mean(np.abs(oracle - tof)[have]))
     err = float(np.mean(np.abs(maps.tof_s / UNIT_S - tof)[have]))
     assert err <= 0.6 * err_oracle, (err, err_oracle)
-    # two detections alone cannot pass ml's test for a return (recon.detect): it reports a depth on
-    # few pixels, spatial (with the neighbours' support) on every one, and no worse where both do
+    # two detections alone seldom pass ml's test for a return (recon.detect); the neighbours'
+    # support adds the pixels whose own ml depth lies on the surface they see: ml reports a depth
+    # on part of the frame (about 43% at SBR 1, 89% at SBR 10), spatial on every pixel, and no
+    # worse where both do
     ml_has = np.isfinite(ml.tof_s)
-    assert ml_has.mean() < 0.2
+    assert 0.2 < ml_has.mean() < 0.95
     if ml_has.any():
         assert np.mean(np.abs(maps.tof_s / UNIT_S - tof)[ml_has]) <= np.mean(np.abs(ml.tof_s / UNIT_S - tof)[ml_has])
 

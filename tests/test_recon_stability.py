@@ -61,8 +61,13 @@ def test_one_detection_and_one_bin(method):
     np.testing.assert_allclose(maps.tof_s[0, 1] / UNIT_S, 502.5, atol=5.0)
     assert maps.flags[0, 1] == PixelFlag.OK
     if method != "spatial":
-        # one detection alone is no evidence of a return (recon.detect's test)
-        assert np.isnan(maps.tof_s[0, 0]) and maps.flags[0, 0] == PixelFlag.NO_RETURN
+        # one detection on its neighbour's strong return: the neighbour supports it (recon.detect)
+        assert maps.flags[0, 0] == PixelFlag.OK
+        np.testing.assert_allclose(maps.tof_s[0, 0] / UNIT_S, 502.5, atol=5.0)
+        # one detection far from its neighbour's return is no evidence of a return
+        far = run([[102.0], [802.0] * 20], method)
+        check_sane(far)
+        assert np.isnan(far.tof_s[0, 0]) and far.flags[0, 0] == PixelFlag.NO_RETURN
 
 
 @pytest.mark.parametrize("method", METHODS)
