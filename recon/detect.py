@@ -6,7 +6,7 @@ the one place maps are assembled), so the decision and the uncertainty mean the 
 **The test** is the one ``--reflectors auto`` uses for K = 0 against 1 (:mod:`recon.estimators.surfaces_fit`): the
 statistic is the Poisson log-likelihood gain of one return over a flat background,
 ``max_s max_{a, B >= 0} log L(s, a, B) - max_B log L(B)``, its shift searched over every whole bin of
-the window (ml's exact branch and bound, :func:`recon.estimators.ml_kernels._integer_optimum`) and its
+the window (ml's exact branch and bound, :func:`recon.estimators.ml_kernels.integer_optimum`) and its
 amplitude and background profiled; a pixel holds a return when the gain exceeds
 :func:`recon.estimators.surfaces_fit.auto_threshold_nats` at the false-alarm rate ``ReconSettings.false_alarm``
 (default 1e-3 per pixel: about one background-only pixel in a thousand is taken for a return).
@@ -57,7 +57,7 @@ import numpy as np
 from numba import njit
 
 from spdepth.recon.estimators.ml_bounds import ML_SCAN_ALL, _ml_at_int, _photon_range
-from spdepth.recon.estimators.ml_kernels import _integer_optimum, _upper_bounds, ml_scratch
+from spdepth.recon.estimators.ml_kernels import _upper_bounds, integer_optimum, ml_scratch
 from spdepth.recon.kernels import (NO_WEIGHTS, block_pixels, first_above, n_blocks, photon_intervals, pixel_bins,
                                    pixel_scratch)
 from spdepth.recon.maps import C_M_PER_S, PixelFlag
@@ -438,7 +438,7 @@ def _pixel_seed(kb, kw, nu):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _detect_block(blk, ph, tabs, rates, maxn, est_shift, thr, n_boot, out_gain, out_sd, out_sandwich, out_boot):
+def _detect_block(blk, ph, tabs, rates, maxn, est_shift, known_gain, known_share, thr, n_boot, out_gain, out_sd, out_sandwich, out_boot):
     """The pixels of block blk of :func:`detect_kernel` with their scratch."""
     T = tabs
     px = pixel_scratch(maxn, T.m)
@@ -456,13 +456,17 @@ def _detect_block(blk, ph, tabs, rates, maxn, est_shift, thr, n_boot, out_gain, 
         ntot = 0.0
         for u in range(nu):
             ntot += kw[u]
-        best_ll, best_i, best_s = _integer_optimum(kb, kw, nu, ntot, T, scr)
-        if best_i < 0:
-            continue
-        gain = best_ll + ntot * T.logm
-        out_gain[p] = gain
         e = est_shift[p]
-        if not (gain > thr and math.isfinite(e)):
+        if known_gain.size and math.isfinite(known_gain[p]):
+            # the estimator ran this very search (ml): its gain, its shift and share
+            gain = known_gain[p]
+            best_i = min(max(int(round(e)), 0), T.m - 1) if math.isfinite(e) else -1
+            best_s = known_share[p]
+        else:
+            best_ll, best_i, best_s = integer_optimum(kb, kw, nu, ntot, T, scr)
+            gain = best_ll + ntot * T.logm if best_i >= 0 else 0.0
+        out_gain[p] = gain
+        if not (gain > thr and math.isfinite(e) and best_i >= 0):
             continue       # no return, or no depth to give an uncertainty: nothing more to say
         # at a share of 1 a shift that leaves one detection off the pulse would be impossible;
         # half a detection's worth of background keeps it possible
@@ -474,15 +478,16 @@ def _detect_block(blk, ph, tabs, rates, maxn, est_shift, thr, n_boot, out_gain, 
 
 
 @njit(cache=True, nogil=True)
-def detect_kernel(ph, tabs, rates, maxn, est_shift, thr, n_boot, out_gain, out_sd, out_sandwich, out_boot):
+def detect_kernel(ph, tabs, rates, maxn, est_shift, known_gain, known_share, thr, n_boot, out_gain, out_sd, out_sandwich, out_boot):
     """Per pixel of ph (:class:`recon.kernels.Photons`, at most maxn entries a pixel) with ml's tables
     (:class:`recon.estimators.ml_kernels.MlTables`): the largest log-likelihood gain of one return
-    over background alone (nats; ml's exact search over every integer shift), and where it passes
+    over background alone (nats; ml's exact search over every integer shift, or ``known_gain``
+    where finite, the estimator's own, with the signal share ``known_share``), and where it passes
     ``thr`` and the estimator gave a shift ``est_shift`` (bins, NaN: none) the spreads of the
     shift about it (bins; NaN: none): the likelihood's (:func:`_spread`), the sandwich variance
     (bins^2) and the bootstrap's."""
     for blk in range(n_blocks(ph)):
-        _detect_block(np.int64(blk), ph, tabs, rates, maxn, est_shift, thr, n_boot, out_gain, out_sd, out_sandwich,
+        _detect_block(np.int64(blk), ph, tabs, rates, maxn, est_shift, known_gain, known_share, thr, n_boot, out_gain, out_sd, out_sandwich,
                       out_boot)
 
 
@@ -565,12 +570,15 @@ class Detection:
 
 
 def detect(bins: np.ndarray, offsets: np.ndarray, kern, est_shift: np.ndarray, false_alarm: float,
-           weights: np.ndarray = NO_WEIGHTS, spread_all: bool = False) -> Detection:
+           weights: np.ndarray = NO_WEIGHTS, spread_all: bool = False, known_gain: np.ndarray | None = None,
+           known_share: np.ndarray | None = None) -> Detection:
     """The test and the spreads (module docstring) of every pixel's in-window detections ``bins``
     (bin indices grouped by ``offsets``; with ``weights``, distinct bins and their counts) about
     the estimated shifts ``est_shift`` (bins, NaN where the estimator reports none), for the pulse
     kernel ``kern`` over ``kern.n_bins`` bins; the spreads where the test passes, or at every
-    pixel with an estimate when ``spread_all``. Runs on numba's threads (``recon.pixelwise.threads``)
+    pixel with an estimate when ``spread_all``. ``known_gain`` (nats, NaN: unknown) and
+    ``known_share``: the estimator's own gain and signal share where it ran the same search (ml's
+    :attr:`recon.maps.DepthMaps.gain_nats`), taken instead of searching again. Runs on numba's threads (``recon.pixelwise.threads``)
     in slices of whole blocks, as the pixelwise estimators do: the result is the same however the
     pixels are sliced."""
     from concurrent.futures import ThreadPoolExecutor
@@ -593,6 +601,8 @@ def detect(bins: np.ndarray, offsets: np.ndarray, kern, est_shift: np.ndarray, f
     offsets = np.ascontiguousarray(offsets, np.int64)
     weights = np.ascontiguousarray(weights, np.float64)
     est = np.ascontiguousarray(est_shift, np.float64)
+    kg = np.empty(0) if known_gain is None else np.ascontiguousarray(known_gain, np.float64)
+    ks = np.empty(0) if known_gain is None else np.ascontiguousarray(known_share, np.float64)
     counts = np.diff(offsets)
 
     def run(p0: int, p1: int) -> None:
@@ -600,7 +610,8 @@ def detect(bins: np.ndarray, offsets: np.ndarray, kern, est_shift: np.ndarray, f
         w = weights[o[0]:o[-1]] if weights.size else NO_WEIGHTS
         ph = Photons(bins[o[0]:o[-1]], o - o[0], w)
         maxn = int(counts[p0:p1].max()) if p1 > p0 else 0
-        detect_kernel(ph, tabs, rates, maxn, est[p0:p1], -np.inf if spread_all else thr, BOOTSTRAP, gain[p0:p1], sd[p0:p1], sw[p0:p1], boot[p0:p1])
+        detect_kernel(ph, tabs, rates, maxn, est[p0:p1], kg[p0:p1] if kg.size else kg, ks[p0:p1] if kg.size else ks,
+                      -np.inf if spread_all else thr, BOOTSTRAP, gain[p0:p1], sd[p0:p1], sw[p0:p1], boot[p0:p1])
 
     if npix:
         workers = threads()
@@ -671,7 +682,13 @@ def decide_maps(store, settings, maps):
     if several:
         est = np.full(est.shape, np.nan)    # the surfaces keep their own uncertainties: only the test
     core_s = float(rec.get("pulse_core_rms_s", rec["pulse_rms_s"]))
-    det = detect(bins, offsets, kern, est, settings.false_alarm, weights)
+    known = dict(known_gain=None, known_share=None)
+    if maps.gain_nats is not None and not several:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            share = 1.0 - np.asarray(maps.background, np.float64).ravel() * b.n_bins / n_photons
+        known = dict(known_gain=np.asarray(maps.gain_nats, np.float64).ravel(),
+                     known_share=np.clip(np.nan_to_num(share), 0.0, 1.0))
+    det = detect(bins, offsets, kern, est, settings.false_alarm, weights, **known)
     h, w = maps.shape
     spatial = settings.method == "spatial"
     from spdepth.recon.estimators.surfaces_fit import fwhm_bins
@@ -689,7 +706,8 @@ def decide_maps(store, settings, maps):
                                              settings.false_alarm, half)
         if supported.size:
             sb, sw_, so = _rows(bins, weights, offsets, supported)
-            sub = detect(sb, so, kern, est[supported], settings.false_alarm, sw_, spread_all=True)
+            sub_known = {k: None if v is None else v[supported] for k, v in known.items()}
+            sub = detect(sb, so, kern, est[supported], settings.false_alarm, sw_, spread_all=True, **sub_known)
             det.has_return[supported] = True
             det.sd_bins[supported] = sub.sd_bins
             det.sandwich_var_bins2[supported] = sub.sandwich_var_bins2
@@ -747,7 +765,7 @@ def decide_maps(store, settings, maps):
                      f"nats, false-alarm rate {det.false_alarm:g} for that span)"),
             "threshold_nats": thr_n, "half_bins": half, "pixels": int(supported.size)}
     changes.update(tof_s=new_tof, depth_m=C_M_PER_S * new_tof / 2.0,
-                   uncertainty_s=new_unc, flags=flags, settings=rec)
+                   uncertainty_s=new_unc, flags=flags, settings=rec, gain_nats=det.gain_nats.reshape(h, w))
     return dataclasses.replace(maps, **changes)
 
 

@@ -63,6 +63,9 @@ class DepthMaps:
     weak:          like tof_s, bool: the surface raised the likelihood too little to rule out a
                    chance cluster of background at a false-alarm rate of 1e-6 (``settings
                    ['weak_below_nats']``); all False for one surface per pixel.
+    gain_nats:     (H, W) float64 or None: the log-likelihood gain of one return over background
+                   alone (nats) where the estimator computed it (ml), for recon.detect's test to
+                   use instead of searching again; not saved.
     """
 
     tof_s: np.ndarray
@@ -76,6 +79,7 @@ class DepthMaps:
     settings: dict
     surfaces: np.ndarray | None = None
     weak: np.ndarray | None = None
+    gain_nats: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         tof = np.asarray(self.tof_s)

@@ -35,6 +35,9 @@ class PixelFit(NamedTuple):
     n_used: int64, detections used.
     iters:  int32, iterations (1 for a direct fit).
     conv:   bool, converged.
+    gain:   float64, the log-likelihood gain of the best integer shift over background alone (nats),
+            where the estimator computes the statistic of recon.detect's return test (ml); NaN:
+            the test computes it.
     """
 
     shift: np.ndarray
@@ -44,11 +47,12 @@ class PixelFit(NamedTuple):
     n_used: np.ndarray
     iters: np.ndarray
     conv: np.ndarray
+    gain: np.ndarray
 
     @classmethod
     def empty(cls, npix: int) -> "PixelFit":
         return cls(np.full(npix, np.nan), np.zeros(npix), np.zeros(npix), np.full(npix, np.nan),
-                   np.zeros(npix, np.int64), np.ones(npix, np.int32), np.ones(npix, np.bool_))
+                   np.zeros(npix, np.int64), np.ones(npix, np.int32), np.ones(npix, np.bool_), np.full(npix, np.nan))
 
     def rows(self, p0: int, p1: int) -> "PixelFit":
         return PixelFit(*(a[p0:p1] for a in self))
@@ -189,4 +193,5 @@ def pixel_maps(store: PhotonStore, settings: ReconSettings, b: Binning, kern: Pu
     return DepthMaps(tof_s=tof_s, depth_m=C_M_PER_S * tof_s / 2.0, background=fit.bg.reshape(h, w),
                      signal=signal.reshape(h, w), photons=fit.n_used.reshape(h, w),
                      iterations=fit.iters.reshape(h, w), uncertainty_s=unc_s.reshape(h, w),
-                     flags=flags.reshape(h, w), settings=settings_record(settings, notes, b, kern))
+                     flags=flags.reshape(h, w), settings=settings_record(settings, notes, b, kern),
+                     gain_nats=fit.gain.reshape(h, w) if np.isfinite(fit.gain).any() else None)

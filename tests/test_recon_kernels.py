@@ -208,7 +208,7 @@ def test_ml_fine_climb_finds_the_full_searchs_shift(rng, rms_bins):
             for climb in (True, False):
                 sh = np.full(n, np.nan)
                 MLK.ml_kernel(K.Photons(bins, off), tabs._replace(fine_climb=climb), k, sh, np.empty(n),
-                              np.empty(n), np.empty(n), np.empty(n, np.int64))
+                              np.empty(n), np.empty(n), np.empty(n, np.int64), np.empty(n))
                 shifts.append(sh)
             np.testing.assert_allclose(shifts[0], shifts[1], rtol=0, atol=1e-9,
                                        err_msg=f"{k} detections, SBR {sbr}")

@@ -43,7 +43,8 @@ def fit(store, settings, b, kern, notes, progress=None):
     tabs = ml_tables(kern, b.n_bins)
 
     def chunk(bins, offsets, maxn, out, weights=NO_WEIGHTS):
-        ml_kernel(Photons(bins, offsets, weights), tabs, maxn, out.shift, out.amp, out.bg, out.var, out.n_used)
+        ml_kernel(Photons(bins, offsets, weights), tabs, maxn, out.shift, out.amp, out.bg, out.var, out.n_used,
+                  out.gain)
 
     res = fit_pixels(store, settings, b, chunk, progress)
     return pixel_maps(store, settings, b, kern, notes, res, shift_step=1.0 / FINE_STEPS)

@@ -129,7 +129,7 @@ def ml_scratch(maxn, tabs):
                      np.empty(n, np.int64), np.empty(n), np.empty(max(ML_RUN, nf)), np.empty(nf, np.int64))
 
 
-@njit(cache=True, nogil=True, _nrt=False, inline="always", error_model="numpy")
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
 def _upper_bounds(kb, kw, nu, tabs, acc):
     """U(i) - floor into acc over the shifts i = k - d, d in [dlo, dhi], of the photons."""
     T = tabs
@@ -151,7 +151,7 @@ def _upper_bounds(kb, kw, nu, tabs, acc):
                     acc[i] += wu * v
 
 
-@njit(cache=True, nogil=True, _nrt=False, inline="always", error_model="numpy")
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
 def _best_bound(niv, scr):
     """The shift of the best bound (the first of equal ones; -1: none positive), without listing the
     shifts: most of the photons' reach has a positive bound, so a test per shift would be a coin
@@ -174,7 +174,7 @@ def _best_bound(niv, scr):
     return i1
 
 
-@njit(cache=True, nogil=True, _nrt=False, inline="always", error_model="numpy")
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
 def _first_solve(kb, kw, nu, ntot, i1, tabs):
     """(s, loglik) at the best bound's shift i1. Newton starts at the share of the photons whose
     bound term is positive there (the return's, and the background's under it), not at 1/2: two
@@ -189,7 +189,7 @@ def _first_solve(kb, kw, nu, ntot, i1, tabs):
     return _ml_at_int(kb, kw, nu, ntot, i1, T.g, T.off, T.colsum, T.uni, s0, -np.inf)
 
 
-@njit(cache=True, nogil=True, _nrt=False, inline="always", error_model="numpy")
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
 def _survivors(i1, floor_ll, bar, niv, scr):
     """The shifts but i1 whose U could beat bar (the best likelihood less the tie), ascending, into
     scr.surv with their U as key; returns how many."""
@@ -206,7 +206,7 @@ def _survivors(i1, floor_ll, bar, niv, scr):
     return ns
 
 
-@njit(cache=True, nogil=True, _nrt=False, inline="always", error_model="numpy")
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
 def _run_bounds(kb, kw, nu, ntot, t, t2, sweep, js, sj, sb, tabs, scr):
     """Tighten the keys of the survivors surv[t:t2] (a run: ascending, close together) to their
     first-pass tangent bound: from the sweep's sums (interior, ``sweep``), from the share tables
@@ -235,7 +235,7 @@ def _run_bounds(kb, kw, nu, ntot, t, t2, sweep, js, sj, sb, tabs, scr):
             S.key[i] = min(S.key[i], S.bnd[i - wa])
 
 
-@njit(cache=True, nogil=True, _nrt=False, inline="always", error_model="numpy")
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
 def _tighten(kb, kw, nu, ntot, ns, best_s, bar, tabs, scr):
     """The survivors' keys tightened to the tangent bound of their first Newton pass at about the
     best share so far (much tighter than U, which overshoots the likelihood by a few nats at every
@@ -276,7 +276,7 @@ def _tighten(kb, kw, nu, ntot, ns, best_s, bar, tabs, scr):
     return nc
 
 
-@njit(cache=True, nogil=True, _nrt=False, inline="always", error_model="numpy")
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
 def _solve_best_first(kb, kw, nu, ntot, nc, best_ll, best_i, best_s, tabs, scr):
     """Solve the candidates best key first until a key cannot beat the best likelihood; ties (see
     ML_TIE) go to the latest shift. Returns the best (loglik, shift, share)."""
@@ -299,7 +299,7 @@ def _solve_best_first(kb, kw, nu, ntot, nc, best_ll, best_i, best_s, tabs, scr):
     return best_ll, best_i, best_s
 
 
-@njit(cache=True, nogil=True, _nrt=False, inline="always", error_model="numpy")
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
 def _integer_optimum(kb, kw, nu, ntot, tabs, scr):
     """(loglik, shift, share) of the best integer shift (shift -1: the all-background fit, at the
     floor, wins)."""
@@ -323,6 +323,13 @@ def _integer_optimum(kb, kw, nu, ntot, tabs, scr):
     for t in range(niv):
         S.acc[S.ivlo[t]:S.ivhi[t] + 1] = 0.0
     return best_ll, best_i, best_s
+
+
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
+def integer_optimum(kb, kw, nu, ntot, tabs, scr):
+    """:func:`_integer_optimum` compiled once, on its own: ml's pixels and recon.detect's return test
+    call this one copy (inlined into both, it compiled twice: 10 s of CPU on a cold cache)."""
+    return _integer_optimum(kb, kw, nu, ntot, tabs, scr)
 
 
 @njit(cache=True, nogil=True, _nrt=False, inline="always", error_model="numpy")
@@ -427,16 +434,18 @@ def _parabola(kb, kw, nu, ntot, best_i, bq, bs, qlo, qhi, tabs, scr):
 @njit(cache=True, nogil=True, _nrt=False, inline="always", error_model="numpy")
 def ml_pixel(kb, kw, nu, tabs, scr):
     """Exact Poisson ML on one pixel's distinct bins kb[:nu] (counts kw), nu > 0: (shift, amp, bg,
-    var); shift and var NaN and amp 0 when the all-background fit wins (or there is no photon)."""
+    var, gain); shift and var NaN and amp 0 when the all-background fit wins (or there is no
+    photon). gain: the best integer shift's log-likelihood beyond the all-background fit's (nats,
+    0 when that wins), the statistic of recon.detect's return test, which takes it from here."""
     T, S = tabs, scr
     if nu == 0:
-        return np.nan, 0.0, 0.0, np.nan
+        return np.nan, 0.0, 0.0, np.nan, 0.0
     ntot = 0.0
     for u in range(nu):
         ntot += kw[u]
-    best_ll, best_i, best_s = _integer_optimum(kb, kw, nu, ntot, T, S)
+    best_ll, best_i, best_s = integer_optimum(kb, kw, nu, ntot, T, S)
     if best_i < 0 or best_s <= 0.0:
-        return np.nan, 0.0, ntot * T.uni, np.nan
+        return np.nan, 0.0, ntot * T.uni, np.nan, 0.0
     # sub-bin: the best of the fine shifts strictly between the integer neighbours, then a parabola
     # through its exact neighbours
     fs = T.fsteps
@@ -455,32 +464,34 @@ def ml_pixel(kb, kw, nu, tabs, scr):
     c = T.fine_colsum[best_i * fs + bq]
     a = bs * ntot / c
     bg = (1.0 - bs) * ntot * T.uni
-    return tau, a, bg, fisher_tab(int(tau + 0.5), a, bg, T.m, T.g, T.dg, T.off, T.ftab)
+    gain = best_ll + ntot * T.logm
+    return tau, a, bg, fisher_tab(int(tau + 0.5), a, bg, T.m, T.g, T.dg, T.off, T.ftab), gain
 
 
 @njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
-def _ml_pixels(blk, ph, tabs, px, scr, out_shift, out_amp, out_bg, out_var, out_n):
+def _ml_pixels(blk, ph, tabs, px, scr, out_shift, out_amp, out_bg, out_var, out_n, out_gain):
     """The pixels of block blk with the scratch px and scr: the per-pixel helpers are inlined here,
     into a loop compiled without numba's reference counting (it allocates nothing; called per
     pixel with the tables and scratch as named tuples, they took 13% of ml at 15 detections)."""
     for p in block_pixels(ph, blk):
         nu, out_n[p] = pixel_bins(ph, p, px)
-        out_shift[p], out_amp[p], out_bg[p], out_var[p] = ml_pixel(px.kb, px.kw, nu, tabs, scr)
+        out_shift[p], out_amp[p], out_bg[p], out_var[p], out_gain[p] = ml_pixel(px.kb, px.kw, nu, tabs, scr)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _ml_block(blk, ph, tabs, maxn, out_shift, out_amp, out_bg, out_var, out_n):
+def _ml_block(blk, ph, tabs, maxn, out_shift, out_amp, out_bg, out_var, out_n, out_gain):
     """The pixels of block blk of :func:`ml_kernel` with their scratch. Compiled on its own and called
     from the kernel's parallel loop: numba compiles a parallel loop's body a second time, 5-7 s of
     ml's cold compile when the body was this code (the same speed either way)."""
     _ml_pixels(blk, ph, tabs, pixel_scratch(maxn, tabs.m), ml_scratch(maxn, tabs), out_shift, out_amp, out_bg,
-               out_var, out_n)
+               out_var, out_n, out_gain)
 
 
 @njit(cache=True, nogil=True)
-def ml_kernel(ph, tabs, maxn, out_shift, out_amp, out_bg, out_var, out_n):
+def ml_kernel(ph, tabs, maxn, out_shift, out_amp, out_bg, out_var, out_n, out_gain):
     """Exact Poisson ML (module docstring) per pixel of ph (:class:`recon.kernels.Photons`, at most
     maxn detections a pixel) with :class:`MlTables`. Outputs: out_shift (bins, NaN none), out_amp
-    (unit-area amplitude), out_bg (per bin), out_var (bins^2), out_n (photons)."""
+    (unit-area amplitude), out_bg (per bin), out_var (bins^2), out_n (photons), out_gain (nats:
+    see :func:`ml_pixel`)."""
     for blk in range(n_blocks(ph)):
-        _ml_block(np.int64(blk), ph, tabs, maxn, out_shift, out_amp, out_bg, out_var, out_n)
+        _ml_block(np.int64(blk), ph, tabs, maxn, out_shift, out_amp, out_bg, out_var, out_n, out_gain)

@@ -221,7 +221,7 @@ def kernel_runner(kern) -> Callable[[str, np.ndarray, np.ndarray], np.ndarray]:
                                    np.empty(p, np.bool_), np.empty(p, np.int64))
         else:
             ml_kernels.ml_kernel(ph, ml_tabs, DETECTIONS, shift, np.empty(p), np.empty(p), np.empty(p),
-                                 np.empty(p, np.int64))
+                                 np.empty(p, np.int64), np.empty(p))
 
     def run(method, b, o):
         # the kernel's blocks shared among numba's threads, as a reconstruction runs them
