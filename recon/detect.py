@@ -103,8 +103,19 @@ RATE_SHARES = 256
 
 #: A pixel's scratch for the likelihood over shifts (:func:`_spread`): the shifts evaluated
 #: (ascending), their log-likelihoods and weights relative to the peak, the log rates by pulse offset (:func:`_log_rates`) and
-#: those beyond the off-pulse rate's in shift order.
-SpreadScratch = namedtuple("SpreadScratch", ["pos", "logw", "wt", "row", "rrow"])
+#: those beyond the off-pulse rate's in shift order; the sweep's sums by shift (zero between
+#: pixels) and the detections' reach as intervals of shifts.
+#: What the test reads of ml's tables (:class:`recon.estimators.ml_kernels.MlTables`), on its own:
+#: numba compiles every function a tuple is passed to for all its fields (ml's 26 took 12 s of CPU
+#: on a cold cache to compile the test's functions).
+DetTables = namedtuple("DetTables", ["m", "uni", "logm", "nk", "off", "g", "colsum", "inv_colsum", "ia", "ib",
+                                     "dlo", "dhi", "fine", "fine_colsum", "fsteps"])
+
+
+def det_tables(tabs) -> DetTables:
+    """:class:`DetTables` of ml's tables ``tabs``."""
+    return DetTables(*(getattr(tabs, f) for f in DetTables._fields))
+SpreadScratch = namedtuple("SpreadScratch", ["pos", "logw", "wt", "row", "rrow", "acc", "ivlo", "ivhi"])
 
 
 @njit(cache=True, nogil=True)
@@ -175,15 +186,15 @@ def _ll_at(kb, kw, nu, ntot, i, s, tabs, row):
 
 
 @njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
-def _spread(kb, kw, nu, ntot, e, s, best_i, tabs, rates, scr, sp):
+def _spread(kb, kw, nu, ntot, e, s, best_i, tabs, rates, sp):
     """The likelihood over the integer shifts at the fixed signal share s: (sd, ns, top), sd the
     larger of the 68.27% quantile and half the 95.45% quantile of |shift - e| under it (a flat
     prior), the ns shifts within SPREAD_NATS_BEYOND + log M of its peak in sp (ascending, with
     their log-likelihoods; the rest weigh under e^-SPREAD_NATS_BEYOND together), and the peak.
     The interior shifts' likelihoods come from one sweep, each detection adding its log rates
-    over its reach (contiguous adds into scr.ssum[0], zero between pixels); the few at the
+    over its reach (contiguous adds into sp.acc, zero between pixels); the few at the
     window's edges, whose column sums differ, one by one."""
-    T, S = tabs, scr
+    T = tabs
     nk = T.nk
     row = sp.row
     _log_rates(s, T, rates, row)
@@ -191,7 +202,7 @@ def _spread(kb, kw, nu, ntot, e, s, best_i, tabs, rates, scr, sp):
     rrow = sp.rrow
     for t in range(nk):
         rrow[t] = row[nk - 1 - t] - lo0     # shift order: i = k + off - (nk - 1) + t sees offset nk - 1 - t
-    acc = S.ssum[0]
+    acc = sp.acc
     for u in range(nu):
         i0 = kb[u] + T.off - nk + 1
         t0 = max(0, T.ia - i0)
@@ -211,14 +222,14 @@ def _spread(kb, kw, nu, ntot, e, s, best_i, tabs, rates, scr, sp):
     # that floor lies below the bar only the shifts that some detection reaches within dlo..dhi
     # count, else (low SBR) every shift
     if -ntot * T.logm >= bar:
-        S.ivlo[0], S.ivhi[0] = 0, T.m - 1
+        sp.ivlo[0], sp.ivhi[0] = 0, T.m - 1
         niv = 1
     else:
-        niv = photon_intervals(kb, nu, T.dhi, -T.dlo, T.m, S.ivlo, S.ivhi)
+        niv = photon_intervals(kb, nu, T.dhi, -T.dlo, T.m, sp.ivlo, sp.ivhi)
     ns = 0
     top = -math.inf
     for t in range(niv):
-        for i in range(S.ivlo[t], S.ivhi[t] + 1):
+        for i in range(sp.ivlo[t], sp.ivhi[t] + 1):
             if T.ia <= i <= T.ib:
                 v = base_ll + acc[i]
             else:
@@ -438,12 +449,14 @@ def _pixel_seed(kb, kw, nu):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _detect_block(blk, ph, tabs, rates, maxn, est_shift, known_gain, known_share, thr, n_boot, out_gain, out_sd, out_sandwich, out_boot):
-    """The pixels of block blk of :func:`detect_kernel` with their scratch."""
-    T = tabs
+def _detect_block(blk, ph, tabs, dt, rates, maxn, est_shift, known_gain, known_share, thr, n_boot, out_gain, out_sd, out_sandwich, out_boot):
+    """The pixels of block blk of :func:`detect_kernel` with their scratch (ml's tables ``tabs`` go
+    to ml's search only, the test's own functions read ``dt``)."""
+    T = dt
     px = pixel_scratch(maxn, T.m)
-    scr = ml_scratch(maxn, T)
-    sp = SpreadScratch(np.empty(T.m, np.int64), np.empty(T.m), np.empty(T.m), np.empty(T.nk + 1), np.empty(T.nk))
+    scr = ml_scratch(maxn, tabs)
+    sp = SpreadScratch(np.empty(T.m, np.int64), np.empty(T.m), np.empty(T.m), np.empty(T.nk + 1), np.empty(T.nk),
+                       np.zeros(T.m), np.empty(max(maxn, 1), np.int64), np.empty(max(maxn, 1), np.int64))
     for p in block_pixels(ph, blk):
         out_gain[p] = 0.0
         out_sd[p] = np.nan
@@ -463,7 +476,7 @@ def _detect_block(blk, ph, tabs, rates, maxn, est_shift, known_gain, known_share
             best_i = min(max(int(round(e)), 0), T.m - 1) if math.isfinite(e) else -1
             best_s = known_share[p]
         else:
-            best_ll, best_i, best_s = integer_optimum(kb, kw, nu, ntot, T, scr)
+            best_ll, best_i, best_s = integer_optimum(kb, kw, nu, ntot, tabs, scr)
             gain = best_ll + ntot * T.logm if best_i >= 0 else 0.0
         out_gain[p] = gain
         if not (gain > thr and math.isfinite(e) and best_i >= 0):
@@ -471,23 +484,23 @@ def _detect_block(blk, ph, tabs, rates, maxn, est_shift, known_gain, known_share
         # at a share of 1 a shift that leaves one detection off the pulse would be impossible;
         # half a detection's worth of background keeps it possible
         s = min(best_s, 1.0 - 0.5 / ntot)
-        out_sd[p], ns, top = _spread(kb, kw, nu, ntot, e, s, best_i, T, rates, scr, sp)
+        out_sd[p], ns, top = _spread(kb, kw, nu, ntot, e, s, best_i, T, rates, sp)
         out_sandwich[p] = _sandwich_var(kb, kw, nu, e, best_s, T)
         if n_boot > 0 and n >= 2 and ns > 0 and (n < BOOT_MAX_N or _modes(sp, ns, top) > 1):
             out_boot[p] = _bootstrap_sd(kb, kw, nu, ntot, e, s, sp, ns, top, T, n_boot, _pixel_seed(kb, kw, nu))
 
 
 @njit(cache=True, nogil=True)
-def detect_kernel(ph, tabs, rates, maxn, est_shift, known_gain, known_share, thr, n_boot, out_gain, out_sd, out_sandwich, out_boot):
+def detect_kernel(ph, tabs, dt, rates, maxn, est_shift, known_gain, known_share, thr, n_boot, out_gain, out_sd, out_sandwich, out_boot):
     """Per pixel of ph (:class:`recon.kernels.Photons`, at most maxn entries a pixel) with ml's tables
-    (:class:`recon.estimators.ml_kernels.MlTables`): the largest log-likelihood gain of one return
+    (:class:`recon.estimators.ml_kernels.MlTables`; ``dt`` its :class:`DetTables`): the largest log-likelihood gain of one return
     over background alone (nats; ml's exact search over every integer shift, or ``known_gain``
     where finite, the estimator's own, with the signal share ``known_share``), and where it passes
     ``thr`` and the estimator gave a shift ``est_shift`` (bins, NaN: none) the spreads of the
     shift about it (bins; NaN: none): the likelihood's (:func:`_spread`), the sandwich variance
     (bins^2) and the bootstrap's."""
     for blk in range(n_blocks(ph)):
-        _detect_block(np.int64(blk), ph, tabs, rates, maxn, est_shift, known_gain, known_share, thr, n_boot, out_gain, out_sd, out_sandwich,
+        _detect_block(np.int64(blk), ph, tabs, dt, rates, maxn, est_shift, known_gain, known_share, thr, n_boot, out_gain, out_sd, out_sandwich,
                       out_boot)
 
 
@@ -596,7 +609,8 @@ def detect(bins: np.ndarray, offsets: np.ndarray, kern, est_shift: np.ndarray, f
     boot = np.full(npix, np.nan)
     thr = float(auto_threshold_nats(false_alarm, m, fwhm_bins(kern.g)))
     tabs = ml_tables(kern, m)
-    rates = rate_tables(tabs)
+    dt = det_tables(tabs)
+    rates = rate_tables(dt)
     bins = np.ascontiguousarray(bins, np.int64)
     offsets = np.ascontiguousarray(offsets, np.int64)
     weights = np.ascontiguousarray(weights, np.float64)
@@ -610,7 +624,7 @@ def detect(bins: np.ndarray, offsets: np.ndarray, kern, est_shift: np.ndarray, f
         w = weights[o[0]:o[-1]] if weights.size else NO_WEIGHTS
         ph = Photons(bins[o[0]:o[-1]], o - o[0], w)
         maxn = int(counts[p0:p1].max()) if p1 > p0 else 0
-        detect_kernel(ph, tabs, rates, maxn, est[p0:p1], kg[p0:p1] if kg.size else kg, ks[p0:p1] if kg.size else ks,
+        detect_kernel(ph, tabs, dt, rates, maxn, est[p0:p1], kg[p0:p1] if kg.size else kg, ks[p0:p1] if kg.size else ks,
                       -np.inf if spread_all else thr, BOOTSTRAP, gain[p0:p1], sd[p0:p1], sw[p0:p1], boot[p0:p1])
 
     if npix:
