@@ -242,16 +242,32 @@ def _share(chunk: list, b: int):
 
 def block_task(plan: Plan, b: int, settings, time_unit_s: float, *shares):
     """Reconstruct block b (rows ``plan.rows[b]:plan.rows[b + 1]``) from its share of every chunk,
-    in chunk order."""
+    in chunk order, and the shares of the blocks above and below it (``shares``: every chunk's
+    share of block b, then of b - 1 and of b + 1 where they exist): their rows next to the block
+    are its halo, so the return test's neighbours' support (recon.detect) sees a block's edge rows
+    as the whole frame does. The halo's own maps are cut off."""
     from spdepth.recon.estimate import reconstruct
     from spdepth.recon.photons import PhotonStore
 
     r0, r1 = plan.rows[b], plan.rows[b + 1]
-    w = plan.shape[1]
-    pixel = np.concatenate([s[0] for s in shares]) - r0 * w
+    h, w = plan.shape
+    lo, hi = max(0, r0 - 1), min(h, r1 + 1)
+    pixel = np.concatenate([s[0] for s in shares])
     dtime = np.concatenate([s[1] for s in shares])
-    store = PhotonStore.from_pixel_indices(pixel, dtime, (r1 - r0, w), time_unit_s)
-    return reconstruct(store, settings)
+    # a pixel's detections all come from one block's shares, in chunk order, which the store keeps
+    keep = (pixel >= lo * w) & (pixel < hi * w)
+    store = PhotonStore.from_pixel_indices(pixel[keep] - lo * w, dtime[keep], (hi - lo, w), time_unit_s)
+    return crop_rows(reconstruct(store, settings), r0 - lo, r1 - lo)
+
+
+def crop_rows(maps, a: int, b: int):
+    """``maps`` of rows [a, b) only."""
+    import dataclasses
+
+    from spdepth.recon.maps import NPZ_KEYS
+
+    cut = {k: np.asarray(getattr(maps, k))[..., a:b, :] for k in NPZ_KEYS if k != "settings"}
+    return dataclasses.replace(maps, gain_nats=None, **cut)
 
 
 def assemble(parts: list) -> object:
@@ -271,7 +287,10 @@ def reconstruct_blocks(client, plan: Plan, settings, time_unit_s: float, on_subm
     chunks = [client.submit(chunk_task, plan, i, pure=False)
               for i in range(len(plan.starts))]
     shares = [[client.submit(_share, c, b, pure=False) for c in chunks] for b in range(n_blocks)]
-    blocks = [client.submit(block_task, plan, b, settings, time_unit_s, *shares[b], pure=False)
+    def halo(b):
+        return [f for n in (b - 1, b + 1) if 0 <= n < n_blocks for f in shares[n]]
+
+    blocks = [client.submit(block_task, plan, b, settings, time_unit_s, *shares[b], *halo(b), pure=False)
               for b in range(n_blocks)]
     if on_submitted is not None:
         on_submitted(chunks + blocks)

@@ -268,7 +268,9 @@ class LiveRecon:
         # limit does not run the estimator over millions of empty pixels
         empty = self.store.count[pixels] == 0
         full = pixels[~empty]
-        m = reconstruct(self.store.photons(full), self.pixel_settings) if full.size else None
+        # a batch is a list of pixels, not a frame: each pixel is tested on its own detections (the
+        # neighbours' support, recon.detect, needs the frame: spdepth recon of the recording)
+        m = reconstruct(self.store.photons(full), self.pixel_settings, neighbours=False) if full.size else None
         if self._empty is None and empty.any():
             self._empty = self._empty_result()
             # a map whose empty-pixel value is the one it was made with needs no writes for them

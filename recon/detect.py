@@ -672,9 +672,11 @@ def _kernel_of(settings: dict):
     return b, build_kernel(b, pulse_rms_s=float(settings["pulse_rms_s"]))
 
 
-def decide_maps(store, settings, maps):
+def decide_maps(store, settings, maps, neighbours: bool = True):
     """``maps`` with the test applied and honest uncertainties (module docstring): pixels without a
-    return get no depth and the flag NO_RETURN; ``settings['detection']`` records the test."""
+    return get no depth and the flag NO_RETURN; ``settings['detection']`` records the test. With
+    ``neighbours`` (the store is a frame, its pixels' neighbours beside them) a pixel that fails on
+    its own detections may be supported by its neighbours'."""
     from spdepth.recon.counts import CountStore
     from spdepth.recon.pixelwise import binned_photons
 
@@ -712,7 +714,7 @@ def decide_maps(store, settings, maps):
     supported = np.empty(0, np.int64)
     thr_n = math.nan
     half = max(1, int(round(NEIGHBOUR_HALF_CORES * core_s / b.bin_width_s)))
-    if decidable and not spatial and not several:
+    if neighbours and decidable and not spatial and not several:
         # a pixel whose own detections are too few for the test: its neighbours may hold the
         # return at its depth (a surface seen by several pixels), with its own spreads
         cand = np.flatnonzero(~det.has_return & np.isfinite(est) & (n_photons > 0))
@@ -777,7 +779,7 @@ def decide_maps(store, settings, maps):
             "rule": (f"a pixel that fails the test holds a return when its 8 neighbours' detections pooled (its "
                      f"own left out) pass the same test within {half} bins of its estimate (gain > {thr_n:.2f} "
                      f"nats, false-alarm rate {det.false_alarm:g} for that span)"),
-            "threshold_nats": thr_n, "half_bins": half, "pixels": int(supported.size)}
+            "threshold_nats": thr_n, "half_bins": half}
     changes.update(tof_s=new_tof, depth_m=C_M_PER_S * new_tof / 2.0,
                    uncertainty_s=new_unc, flags=flags, settings=rec, gain_nats=det.gain_nats.reshape(h, w))
     return dataclasses.replace(maps, **changes)

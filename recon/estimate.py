@@ -26,7 +26,7 @@ from spdepth.recon.resolve import resolve_model
 
 
 def reconstruct(store: PhotonStore, settings: ReconSettings,
-                progress: Callable[[int, int], None] | None = None) -> DepthMaps:
+                progress: Callable[[int, int], None] | None = None, neighbours: bool = True) -> DepthMaps:
     """Estimate depth, background and signal at every pixel of ``store``.
 
     ``store``: a photon list, or counts (``recon.counts.CountStore``: a histogram cube, or a
@@ -39,8 +39,10 @@ def reconstruct(store: PhotonStore, settings: ReconSettings,
     ``max_photons`` in-window detections of each pixel, bins them, and calls ``progress(done,
     total)`` as it goes (per chunk of pixels for the pixelwise methods). Returns :class:`DepthMaps`;
     then decides per pixel whether the data hold a return and sets every depth's uncertainty
-    (:mod:`recon.detect`, the one place every estimator's maps pass). ``settings`` in it holds
-    everything used (binning, pulse RMS and its source).
+    (:mod:`recon.detect`, the one place every estimator's maps pass), with the neighbours' support
+    for pixels that fail on their own detections unless ``neighbours`` is False (a batch of pixels
+    that are not a frame: a live scan's). ``settings`` in it holds everything used (binning, pulse
+    RMS and its source).
     """
     if not isinstance(settings, ReconSettings):
         raise InputError(f"settings must be ReconSettings, got {type(settings).__name__}")
@@ -57,7 +59,7 @@ def reconstruct(store: PhotonStore, settings: ReconSettings,
     # the one place every estimator's maps pass: is there a return, and how sure is each depth
     from spdepth.recon.detect import decide_maps
 
-    return decide_maps(store, settings, maps)
+    return decide_maps(store, settings, maps, neighbours=neighbours)
 
 
 def as_photons(counts: CountStore) -> PhotonStore:
