@@ -23,7 +23,13 @@ detections of complete dwells (``acq.store``: a rescan tops up, nothing is count
 Pixels are flagged (:class:`AcqFlag`) when a gated dwell hits the dwell limit, when the pass
 budget or the time limit runs out, or when the session ends first.
 
-Files: ``maps.npz`` holds the maps and the ``acq_flags`` map (uint8 :class:`AcqFlag` per pixel);
+Files: ``maps.npz`` holds the maps and the ``acq_flags`` map (uint8 :class:`AcqFlag` per pixel),
+the laser time per pixel (``exposure_s``) and the scan angles (``row_deg``, ``col_deg``); a scan
+of more than ``SPARSE_MIN_PIXELS`` pixels that reached fewer than half of them (a time limit on
+a large frame) keeps its frame-sized maps (all but ``acq_flags``) only at the pixels reached
+(``layout`` "pixels", see ``recon.maps.sparse_arrays``; ``DepthMaps.load_npz`` and
+``recon.maps.npz_arrays`` give the full maps back). Pixels never reached (no complete dwell, nothing kept) are not reconstructed:
+NaN depth, background and uncertainty, NO_PHOTONS, NaN exposure, and their ``acq_flags`` say why;
 ``run.json`` the settings, statistics, counts per flag reason (``flag_reasons``), the source's
 ``warnings`` and every fault seen (``faults_seen``, :class:`~spdepth.acq.sources.FaultRecord`).
 """
@@ -61,6 +67,9 @@ SNAPSHOT_MAX_HZ = 30.0
 FLUSH_WHILE_PAUSED_S = 0.5
 OUTPUT_CHECK_S = 0.5
 """How often the session checks that its output folder still exists."""
+SPARSE_MIN_PIXELS = 1 << 20
+"""A scan of more pixels than this that reached fewer than half of them writes ``maps.npz`` in
+the sparse layout (``recon.maps.sparse_arrays``): its maps at the pixels reached only."""
 MAX_FAULTS_LISTED = 1000
 """Faults of one kind listed in ``faults_seen``; more are only counted (``faults_not_listed``),
 so a flood of survived read anomalies cannot bloat ``run.json``."""
@@ -348,6 +357,16 @@ class Session:
             np.multiply(periods, float(period), out=out, where=periods > 0)
         return float(out[0]) if pixel is not None else out.reshape(self.plan.shape)
 
+    def progress(self) -> dict:
+        """What a progress bar shows, copying no map (a snapshot copies the maps, half a GB for a
+        4096 x 4096 frame, which at 10 Hz took a third of the scan's speed): ``state``,
+        ``pixels_complete`` (final pixels that reached the target), ``pixels_total``,
+        ``detections_per_s`` and ``lost_spans``."""
+        st = self._stats()
+        return {"state": self._state.value, "pixels_complete": self._n_complete,
+                "pixels_total": self.plan.nx * self.plan.ny,
+                "detections_per_s": st["detections_per_s"], "lost_spans": len(self.lost)}
+
     def stats(self) -> dict:
         """The scalar figures of a snapshot (``elapsed_s``, ``running_s``, ``pixels_final``,
         ``detections_per_s``, ``lost_records``) without its copies of the maps."""
@@ -584,11 +603,21 @@ class Session:
         """Flag what is short, reconstruct the rest, write maps.npz and run.json; returns the
         final state (FAILED when the reconstruction or the files fail)."""
         reason = AcqFlag.INCOMPLETE if final != SessionState.DONE else self._stop_reason
-        rest = np.flatnonzero(~self.final)
-        short = rest[self.store.count[rest] < self.plan.target]
-        self.acq_flags[short] = reason
+        # whole-frame masks, not index lists: a 4096 x 4096 scan cut by its time limit ends with
+        # 16 M pixels not final
+        rest = ~self.final
+        self.acq_flags[rest & (self.store.count < self.plan.target)] = reason
+        # pixels never reached (no complete dwell, nothing kept) are flagged and left out of the
+        # reconstruction: their maps keep the values of "not reconstructed" (NaN depth and
+        # background, NO_PHOTONS), not an estimate of an empty pixel
+        reached = rest & ((self.store.count > 0) | (self.store.dwells > 0))
+        complete = rest & (self.acq_flags == ACQUIRING)
+        self.acq_flags[complete] = AcqFlag.COMPLETE
+        self._n_complete += int(np.count_nonzero(complete))
+        self.final[rest] = True
+        self.store.freeze(rest)
         try:
-            self._finalise(rest, AcqFlag.COMPLETE)
+            self.live_recon.submit(np.flatnonzero(reached))
             self.live_recon.finish()
         except BaseException as exc:  # noqa: BLE001 - the worker's error ends the session
             self._fail(exc)
@@ -603,7 +632,10 @@ class Session:
         maps = self.live_recon.maps(copy=self.live_recon.error is not None)   # the worker has ended
         # the pixels' scan angles (degrees), so the maps can be turned into points later
         p = self.plan
+        reached = (self.store.count > 0) | (self.store.dwells > 0)
+        n = reached.size
         _save_maps_npz(self.out_dir / "maps.npz", maps,
+                       keep=reached if n > SPARSE_MIN_PIXELS and 2 * np.count_nonzero(reached) < n else None,
                        acq_flags=self.acq_flags.reshape(self.plan.shape),
                        exposure_s=self.exposure_s(),
                        row_deg=np.linspace(p.y_first_deg, p.y_last_deg, p.ny),
@@ -764,15 +796,21 @@ class _Subscription:
             self._thread.join(timeout_s)
 
 
-def _save_maps_npz(path: Path, maps, **extra: np.ndarray) -> None:
+def _save_maps_npz(path: Path, maps, keep: np.ndarray | None = None, **extra: np.ndarray) -> None:
     """``maps`` as ``DepthMaps.save_npz`` writes them (same keys, ``DepthMaps.load_npz`` reads
     it) plus ``extra`` arrays, deflated at level 1: a 4096 x 4096 scan's maps are most of a GB and
-    the default level took seconds per map. Written to a temporary name, then renamed."""
-    from spdepth.recon.maps import NPZ_KEYS
+    the default level took seconds per map. ``keep`` (flat bool mask, the pixels reached): the
+    sparse layout (``recon.maps.sparse_arrays``: the frame-sized maps only at those pixels, and
+    the one value of the pixels never reached). Written to a temporary name, then renamed."""
+    from spdepth.recon.maps import NPZ_KEYS, sparse_arrays
 
     arrays = {k: np.asarray(getattr(maps, k)) for k in NPZ_KEYS if k != "settings"}
     arrays["settings"] = np.array(json.dumps(maps.settings))
     arrays.update(extra)
+    if keep is not None:
+        # the flags stay whole (a uniform uint8 map deflates to kilobytes): np.load(...)["acq_flags"]
+        # is the frame in either layout
+        arrays = sparse_arrays(arrays, maps.shape, keep, dense=("acq_flags",))
     tmp = path.with_name(path.name + ".tmp")
     with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=1,
                          allowZip64=True) as zf:

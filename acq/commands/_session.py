@@ -104,24 +104,40 @@ class CompileNotice:
 
 class SessionProgress:
     """The one progress bar (``acq.report.ProgressBar``: pixels complete of all, detections/s,
-    state) fed by snapshots at 10 Hz; no subscriber at all when it draws nothing (not a terminal),
-    since each snapshot takes the GIL from the scan. It counts pixels that reached the target: a
-    time limit flags the rest final, and a bar of final pixels would jump to full at it."""
+    state) fed at 10 Hz by ``Session.progress`` (figures only: a snapshot's map copies cost a
+    large frame's scan most of its speed), on a thread of its own; none at all when it draws
+    nothing (not a terminal). It counts pixels that reached the target: a time limit flags the
+    rest final, and a bar of final pixels would jump to full at it."""
+
+    PERIOD_S = 0.1
 
     def __init__(self, session, label: str):
         from spdepth.acq.report import ProgressBar
 
+        self._session = session
         self._bar = ProgressBar(label, session.plan.nx * session.plan.ny)
-        self._sub = session.subscribe(self._update, max_hz=10) if self._bar.enabled else None
+        self._closed = threading.Event()
+        self._thread = None
+        if self._bar.enabled:
+            self._thread = threading.Thread(target=self._run, name="session-progress", daemon=True)
+            self._thread.start()
 
-    def _update(self, snap) -> None:
-        self._bar(snap.pixels_complete, snap.pixels_total)
-        self._bar.update(0, f"{snap.detections_per_s / 1e6:.2f} Mdet/s, {snap.state}, "
-                            f"lost {snap.lost_spans}")
+    def _run(self) -> None:
+        while True:
+            ended = self._session.ended.wait(self.PERIOD_S) or self._closed.is_set()
+            self._update(self._session.progress())
+            if ended:
+                return
+
+    def _update(self, p: dict) -> None:
+        self._bar(p["pixels_complete"], p["pixels_total"])
+        self._bar.update(0, f"{p['detections_per_s'] / 1e6:.2f} Mdet/s, {p['state']}, "
+                            f"lost {p['lost_spans']}")
 
     def close(self) -> None:
-        if self._sub is not None:
-            self._sub.close()
+        self._closed.set()
+        if self._thread is not None:
+            self._thread.join(2.0)
         self._bar.close()
 
 

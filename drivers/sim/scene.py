@@ -360,7 +360,7 @@ class LazyScene:
 
     Its light levels (``ppp`` and ``sbr`` are image means) and the pile-up decision are taken
     from ``SAMPLE_ROWS`` rows spread evenly over the frame instead of every pixel, so the image
-    means hold to the sampling's precision (about 1e-4 on the built-in scenes) instead of
+    means hold to the sampling's precision (within 4e-4 on the built-in scenes) instead of
     exactly. The whole-frame maps (``depth_m``, ``signal_pp``, ``truth()``, ...) are built on
     first use, with the same scale factors, so they are the truth of the detections simulated.
     """
