@@ -214,9 +214,11 @@ def points_from_maps(maps, geometry: ScanGeometry, *, depth_m=None, no_return: b
     if (h, w) != tuple(geometry.shape):
         raise ValueError(f"maps of {w}x{h} pixels do not match a {geometry.shape[1]}x"
                          f"{geometry.shape[0]} scan geometry")
-    signal = _surfaces(getattr(maps, "signal", np.zeros((h, w))))
-    sd_s = _surfaces(getattr(maps, "uncertainty_s", np.full((h, w), np.nan)))
-    flags = np.asarray(getattr(maps, "flags", np.zeros((h, w), np.uint8)))
+    # the stand-ins of maps a maps object lacks are made only then (a getattr default is built
+    # on every call: a 4096 x 4096 NaN map each time)
+    signal = _surfaces(maps.signal if hasattr(maps, "signal") else np.zeros((h, w)))
+    sd_s = _surfaces(maps.uncertainty_s if hasattr(maps, "uncertainty_s") else np.full((h, w), np.nan))
+    flags = np.asarray(maps.flags if hasattr(maps, "flags") else np.zeros((h, w), np.uint8))
     weak = getattr(maps, "weak", None)
     if weak is not None and _surfaces(weak).shape != depth.shape:
         weak = None

@@ -141,9 +141,29 @@ class SessionProgress:
         self._bar.close()
 
 
+WRITER_MODULES = ("matplotlib.figure", "matplotlib.backends.backend_agg", "spdepth.acq.report",
+                  "spdepth.acq.mapdefs", "spdepth.acq.points", "plyfile")
+"""What ``acq.api.finish_session`` imports to write maps.png and points.ply: imported on a thread
+while the session runs (half a second here that a time-limited scan waited for after its end)."""
+
+
+def _import_writers() -> None:
+    import importlib
+    import logging
+
+    for name in WRITER_MODULES:
+        try:
+            importlib.import_module(name)
+        except Exception as exc:  # noqa: BLE001 - finish_session imports it again and says why
+            logging.getLogger(__name__).debug("importing %s ahead failed: %s", name, exc)
+
+
 def run_session(session, label: str) -> bool:
     """Run with a progress bar. Ctrl-C or SIGTERM aborts cleanly (the session writes its files);
-    returns whether it was interrupted, so the caller still reports the summary."""
+    returns whether it was interrupted, so the caller still reports the summary. A session with
+    an output folder imports the writers of its PNG and points meanwhile (``WRITER_MODULES``)."""
+    if session.out_dir is not None:
+        threading.Thread(target=_import_writers, name="import-writers", daemon=True).start()
     bar = SessionProgress(session, label)
     try:
         session.run()
