@@ -351,3 +351,24 @@ def test_replay_of_a_killed_sessions_recording_is_no_warning_by_itself(recording
     patch_record_count(rec / "recording.ptu", 0)          # as after kill -9: count never patched
     state, run, warned = _replay_warnings(rec, tmp_path, caplog)
     assert state == SessionState.DONE and warned == [] and run["warnings"] == []
+
+
+def test_finishing_a_session_says_which_file_it_writes(tmp_path):
+    """Issue 33: the files written after a session (maps.png, points.ply) report their progress:
+    each as it starts, then all written, and each exists once reported done."""
+    from spdepth.acq.api import finish_session
+
+    seen = []
+
+    def progress(name, done, total):
+        # the files reported done so far exist; the one starting does not yet
+        seen.append((name, done, total, [p.name for p in sorted(tmp_path.glob("*.p*"))
+                                         if p.name in ("maps.png", "points.ply")]))
+
+    with open_sim("bust", (16, 16), ppp=10, seed=2) as inst:
+        s = _session(inst, (16, 16), tmp_path)
+        assert s.run() == SessionState.DONE, s.error
+    summary = finish_session(s, tmp_path, "t", progress=progress)
+    assert seen == [("maps.png", 0, 2, []), ("points.ply", 1, 2, ["maps.png"]),
+                    ("", 2, 2, ["maps.png", "points.ply"])]
+    assert summary["points"] > 0

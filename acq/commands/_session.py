@@ -141,6 +141,31 @@ class SessionProgress:
         self._bar.close()
 
 
+class OutputsProgress:
+    """The bar of the files a command writes after its session (``acq.api.finish_session``'s
+    ``progress``: maps.png, points.ply; seconds on a large frame), on a terminal only: files
+    written of all, and the one being written."""
+
+    def __init__(self, label: str):
+        self.label = label
+        self._bar = None
+
+    def __call__(self, name: str, done: int, total: int) -> None:
+        from spdepth.acq.report import ProgressBar
+
+        if self._bar is None:
+            self._bar = ProgressBar(f"{self.label} files", total, unit="file")
+        self._bar(done, total)
+        self._bar.update(0, f"writing {name}" if name else "written")
+        if done >= total:
+            self.close()
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None
+
+
 WRITER_MODULES = ("matplotlib.figure", "matplotlib.backends.backend_agg", "spdepth.acq.report",
                   "spdepth.acq.mapdefs", "spdepth.acq.points", "plyfile")
 """What ``acq.api.finish_session`` imports to write maps.png and points.ply: imported on a thread
