@@ -247,9 +247,13 @@ def session_maps(session):
     if geometry is not None:
         maps = replace(maps, settings={**maps.settings, GEOMETRY_KEY: geometry.to_dict()})
     h, w = session.plan.shape
-    counts = session.store.count.reshape(h, w).astype(np.float64)
-    counts[(counts == 0) & (session.acq_flags.reshape(h, w) != AcqFlag.COMPLETE)] = np.nan
-    return maps, counts, session.exposure_s()
+    # NaN but where something was kept or the pixel is complete (a large frame cut by its time
+    # limit: a few of its pixels, so only those are converted)
+    count = session.store.count
+    measured = np.flatnonzero((count != 0) | (session.acq_flags == AcqFlag.COMPLETE))
+    counts = np.full(h * w, np.nan)
+    counts[measured] = count[measured]
+    return maps, counts.reshape(h, w), session.exposure_s()
 
 
 def finish_session(session, out_dir: str | Path | None, title: str | None = None,
