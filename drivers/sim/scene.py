@@ -408,10 +408,15 @@ class LazyScene:
     def n_surfaces(self) -> int:
         return self._n_surfaces
 
+    _FULL = frozenset({"depth_m", "reflectivity", "occupancy", "background_rel", "signal_pp",
+                       "background_pp", "tof_s", "truth", "rate_per_pulse", "bin_rates", "with_settings"})
+    """What only the whole frame answers: asked for, it is built (gigabytes at 4096 x 4096)."""
+
     def __getattr__(self, name: str):
-        # the whole-frame maps and methods (truth, bin_rates, with_settings, ...): the full scene's
-        if name.startswith("_"):
-            raise AttributeError(name)
+        # only the names of the whole frame build it: a probe for anything else (getattr with a
+        # default) must not build 4096 x 4096 maps as a side effect
+        if name not in LazyScene._FULL:
+            raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
         return getattr(self.full(), name)
 
 
