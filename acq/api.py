@@ -247,28 +247,39 @@ def session_maps(session):
     if geometry is not None:
         maps = replace(maps, settings={**maps.settings, GEOMETRY_KEY: geometry.to_dict()})
     h, w = session.plan.shape
-    counts = session.store.count.reshape(h, w).astype(np.float64)
-    counts[(counts == 0) & (session.acq_flags.reshape(h, w) != AcqFlag.COMPLETE)] = np.nan
-    return maps, counts, session.exposure_s()
+    # NaN but where something was kept or the pixel is complete (a large frame cut by its time
+    # limit: a few of its pixels, so only those are converted)
+    count = session.store.count
+    measured = np.flatnonzero((count != 0) | (session.acq_flags == AcqFlag.COMPLETE))
+    counts = np.full(h * w, np.nan)
+    counts[measured] = count[measured]
+    return maps, counts.reshape(h, w), session.exposure_s()
 
 
-def finish_session(session, out_dir: str | Path | None, title: str | None = None) -> dict:
+def finish_session(session, out_dir: str | Path | None, title: str | None = None,
+                   progress=None) -> dict:
     """After a session has ended: ``maps.png`` and ``points.ply`` (``acq.points``: one point per
     estimated pixel and surface) beside its files (when it has a folder), and the summary every
-    front end reports (JSON-able, small)."""
+    front end reports (JSON-able, small). ``progress(name, done, total)`` is called as each file
+    starts (done of total written) and once all are written."""
     out = Path(out_dir) if out_dir is not None else None
     n_points = None
     if out is not None and out.is_dir():
         from spdepth.acq.points import geometry_of, write_points
         from spdepth.acq.report import render_maps_png
 
+        step = progress or (lambda name, done, total: None)
         maps, counts, exposure_s = session_maps(session)
+        geometry = geometry_of(maps)
+        total = 1 + (geometry is not None)
+        step("maps.png", 0, total)
         render_maps_png(out / "maps.png", maps, title=title, counts=counts,
                         exposure_s=exposure_s, target=session.plan.target)
-        geometry = geometry_of(maps)
         if geometry is not None:
+            step("points.ply", 1, total)
             n_points = write_points(maps, geometry, ply=out / "points.ply", note=title or "",
                                     acq_flags=session.acq_flags.reshape(session.plan.shape))
+        step("", total, total)
     st = session.stats()            # the figures of a snapshot without its map copies
     run = session.run_record()
     return {

@@ -209,37 +209,45 @@ def points_from_maps(maps, geometry: ScanGeometry, *, depth_m=None, no_return: b
     session's maps (anything with ``depth_m``, ``signal``, ``uncertainty_s``, ``flags``, optionally
     ``weak`` and ``acq_flags``; (H, W) or (K, H, W)); ``depth_m`` replaces ``maps.depth_m`` (e.g. a
     live snapshot's); ``acq_flags`` (H, W) a session's ``AcqFlag`` map (else ``maps.acq_flags``)."""
-    depth = _surfaces(maps.depth_m if depth_m is None else depth_m).astype(np.float64)
+    depth = _surfaces(maps.depth_m if depth_m is None else depth_m)
     k, h, w = depth.shape
     if (h, w) != tuple(geometry.shape):
         raise ValueError(f"maps of {w}x{h} pixels do not match a {geometry.shape[1]}x"
                          f"{geometry.shape[0]} scan geometry")
-    signal = _surfaces(getattr(maps, "signal", np.zeros((h, w))))
-    sd_s = _surfaces(getattr(maps, "uncertainty_s", np.full((h, w), np.nan)))
-    flags = np.asarray(getattr(maps, "flags", np.zeros((h, w), np.uint8)))
+    # the stand-ins of maps a maps object lacks are made only then (a getattr default is built
+    # on every call: a 4096 x 4096 NaN map each time)
+    signal = _surfaces(maps.signal if hasattr(maps, "signal") else np.zeros((h, w)))
+    sd_s = _surfaces(maps.uncertainty_s if hasattr(maps, "uncertainty_s") else np.full((h, w), np.nan))
+    flags = np.asarray(maps.flags if hasattr(maps, "flags") else np.zeros((h, w), np.uint8))
     weak = getattr(maps, "weak", None)
-    weak = np.zeros(depth.shape, bool) if weak is None else _surfaces(weak).astype(bool)
-    if weak.shape != depth.shape:
-        weak = np.zeros(depth.shape, bool)
+    if weak is not None and _surfaces(weak).shape != depth.shape:
+        weak = None
     acq = getattr(maps, "acq_flags", None) if acq_flags is None else acq_flags
-    acq = np.zeros((h, w), np.uint8) if acq is None else np.asarray(acq, np.uint8)
-    ok = np.isfinite(depth)
+    # everything per point is computed on the pixels with a surface only (a 4096 x 4096 scan cut
+    # by its time limit has a few hundred thousand among 16 M): no full-frame temporaries but
+    # the masks
+    has = np.isfinite(depth).any(axis=0).reshape(-1)
+    pix = np.flatnonzero(has)
+    sub = depth.reshape(k, -1)[:, pix].astype(np.float64)          # (K, n)
+    ok = np.isfinite(sub)
     # per pixel, the surfaces by range: return number 1 the nearest, of as many as the pixel holds
-    order = np.argsort(np.where(ok, depth, np.inf), axis=0, kind="stable")
+    order = np.argsort(np.where(ok, sub, np.inf), axis=0, kind="stable")
     rank = np.empty_like(order)
-    np.put_along_axis(rank, order, np.arange(k)[:, None, None].repeat(h, 1).repeat(w, 2), axis=0)
+    np.put_along_axis(rank, order, np.arange(k)[:, None].repeat(pix.size, 1), axis=0)
     count = ok.sum(axis=0)
-    surf, rr, cc = np.nonzero(ok)
-    rng = depth[ok]
-    ret = rank[surf, rr, cc] + 1
-    nret = count[rr, cc]
+    surf, j = np.nonzero(ok)             # surface-major, then pixels in flat order
+    flat = pix[j]
+    rng = sub[ok]
+    ret = rank[surf, j] + 1
+    nret = count[j]
     if no_return:
-        nr, nc = np.nonzero((flags == PixelFlag.NO_RETURN) & (count == 0))
+        nr = np.flatnonzero((flags.reshape(-1) == PixelFlag.NO_RETURN) & ~has)
         surf = np.concatenate([surf, np.zeros(nr.size, surf.dtype)])
-        rr, cc = np.concatenate([rr, nr]), np.concatenate([cc, nc])
+        flat = np.concatenate([flat, nr])
         rng = np.concatenate([rng, np.zeros(nr.size)])
         ret = np.concatenate([ret, np.ones(nr.size, ret.dtype)])
         nret = np.concatenate([nret, np.ones(nr.size, nret.dtype)])
+    rr, cc = np.divmod(flat, w)
     d = geometry.directions_at(rr, cc)
     p = d * rng[:, None]
 
@@ -248,9 +256,10 @@ def points_from_maps(maps, geometry: ScanGeometry, *, depth_m=None, no_return: b
         return a[surf if a.shape[0] == k else 0, rr, cc]
 
     pf = flags[rr, cc].astype(np.uint8)
-    af = acq[rr, cc]
+    af = np.zeros(rr.size, np.uint8) if acq is None else np.asarray(acq)[rr, cc].astype(np.uint8)
     bits = np.zeros(rr.size, np.uint8)
-    bits |= np.where(pick(weak), PointFlag.WEAK, 0).astype(np.uint8)
+    if weak is not None:
+        bits |= np.where(pick(_surfaces(weak)).astype(bool), PointFlag.WEAK, 0).astype(np.uint8)
     bits |= np.where(pf == PixelFlag.NO_RETURN, PointFlag.NO_RETURN, 0).astype(np.uint8)
     bits |= np.where(pf == PixelFlag.INTERPOLATED, PointFlag.INTERPOLATED, 0).astype(np.uint8)
     bits |= np.where(pf == PixelFlag.NOT_CONVERGED, PointFlag.NOT_CONVERGED, 0).astype(np.uint8)

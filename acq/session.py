@@ -23,13 +23,20 @@ detections of complete dwells (``acq.store``: a rescan tops up, nothing is count
 Pixels are flagged (:class:`AcqFlag`) when a gated dwell hits the dwell limit, when the pass
 budget or the time limit runs out, or when the session ends first.
 
-Files: ``maps.npz`` holds the maps and the ``acq_flags`` map (uint8 :class:`AcqFlag` per pixel);
+Files: ``maps.npz`` holds the maps and the ``acq_flags`` map (uint8 :class:`AcqFlag` per pixel),
+the laser time per pixel (``exposure_s``) and the scan angles (``row_deg``, ``col_deg``); a scan
+of more than ``SPARSE_MIN_PIXELS`` pixels that reached fewer than half of them (a time limit on
+a large frame) keeps its frame-sized maps (all but ``acq_flags``) only at the pixels reached
+(``layout`` "pixels", see ``recon.maps.sparse_arrays``; ``DepthMaps.load_npz`` and
+``recon.maps.npz_arrays`` give the full maps back). Pixels never reached (no complete dwell, nothing kept) are not reconstructed:
+NaN depth, background and uncertainty, NO_PHOTONS, NaN exposure, and their ``acq_flags`` say why;
 ``run.json`` the settings, statistics, counts per flag reason (``flag_reasons``), the source's
 ``warnings`` and every fault seen (``faults_seen``, :class:`~spdepth.acq.sources.FaultRecord`).
 """
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import os
@@ -61,6 +68,9 @@ SNAPSHOT_MAX_HZ = 30.0
 FLUSH_WHILE_PAUSED_S = 0.5
 OUTPUT_CHECK_S = 0.5
 """How often the session checks that its output folder still exists."""
+SPARSE_MIN_PIXELS = 1 << 20
+"""A scan of more pixels than this that reached fewer than half of them writes ``maps.npz`` in
+the sparse layout (``recon.maps.sparse_arrays``): its maps at the pixels reached only."""
 MAX_FAULTS_LISTED = 1000
 """Faults of one kind listed in ``faults_seen``; more are only counted (``faults_not_listed``),
 so a flood of survived read anomalies cannot bloat ``run.json``."""
@@ -225,6 +235,7 @@ class Session:
         self._stop_reason: AcqFlag = AcqFlag.INCOMPLETE
         self._n_complete = 0
         self._events_log = None
+        self._exposure_end: np.ndarray | None = None
         self._host = _Host(self)
 
     @property
@@ -340,13 +351,30 @@ class Session:
     def exposure_s(self, pixel: int | None = None):
         """(H, W) laser time, s, that each pixel's kept detections span (``PixelStore.periods``
         times the laser period); NaN for pixels with none, or when the period is not known.
-        ``pixel``: that flat pixel's alone (a float)."""
+        ``pixel``: that flat pixel's alone (a float). Once the session has written its files the
+        map no longer changes: the same read-only array is returned (a 4096 x 4096 frame's took
+        a third of a second a call)."""
+        if pixel is None and self._exposure_end is not None:
+            return self._exposure_end
         period = getattr(self.source, "sync_period_s", None)
         periods = self.store.periods if pixel is None else self.store.periods[pixel:pixel + 1]
         out = np.full(periods.shape, np.nan)
         if period:
-            np.multiply(periods, float(period), out=out, where=periods > 0)
+            # only the pixels with periods are multiplied (a masked multiply over the whole of a
+            # 4096 x 4096 frame took 0.6-0.9 s here, most of its pixels never reached)
+            kept = np.flatnonzero(periods > 0)
+            out[kept] = periods[kept] * float(period)
         return float(out[0]) if pixel is not None else out.reshape(self.plan.shape)
+
+    def progress(self) -> dict:
+        """What a progress bar shows, copying no map (a snapshot copies the maps, half a GB for a
+        4096 x 4096 frame, which at 10 Hz took a third of the scan's speed): ``state``,
+        ``pixels_complete`` (final pixels that reached the target), ``pixels_total``,
+        ``detections_per_s`` and ``lost_spans``."""
+        st = self._stats()
+        return {"state": self._state.value, "pixels_complete": self._n_complete,
+                "pixels_total": self.plan.nx * self.plan.ny,
+                "detections_per_s": st["detections_per_s"], "lost_spans": len(self.lost)}
 
     def stats(self) -> dict:
         """The scalar figures of a snapshot (``elapsed_s``, ``running_s``, ``pixels_final``,
@@ -584,11 +612,21 @@ class Session:
         """Flag what is short, reconstruct the rest, write maps.npz and run.json; returns the
         final state (FAILED when the reconstruction or the files fail)."""
         reason = AcqFlag.INCOMPLETE if final != SessionState.DONE else self._stop_reason
-        rest = np.flatnonzero(~self.final)
-        short = rest[self.store.count[rest] < self.plan.target]
-        self.acq_flags[short] = reason
+        # whole-frame masks, not index lists: a 4096 x 4096 scan cut by its time limit ends with
+        # 16 M pixels not final
+        rest = ~self.final
+        self.acq_flags[rest & (self.store.count < self.plan.target)] = reason
+        # pixels never reached (no complete dwell, nothing kept) are flagged and left out of the
+        # reconstruction: their maps keep the values of "not reconstructed" (NaN depth and
+        # background, NO_PHOTONS), not an estimate of an empty pixel
+        reached = rest & ((self.store.count > 0) | (self.store.dwells > 0))
+        complete = rest & (self.acq_flags == ACQUIRING)
+        self.acq_flags[complete] = AcqFlag.COMPLETE
+        self._n_complete += int(np.count_nonzero(complete))
+        self.final[rest] = True
+        self.store.freeze(rest)
         try:
-            self._finalise(rest, AcqFlag.COMPLETE)
+            self.live_recon.submit(np.flatnonzero(reached))
             self.live_recon.finish()
         except BaseException as exc:  # noqa: BLE001 - the worker's error ends the session
             self._fail(exc)
@@ -601,11 +639,17 @@ class Session:
                                        "session could write its maps and run.json"))
             return SessionState.FAILED
         maps = self.live_recon.maps(copy=self.live_recon.error is not None)   # the worker has ended
+        exposure = self.exposure_s()
+        exposure.flags.writeable = False
+        self._exposure_end = exposure           # final: every later call returns it
         # the pixels' scan angles (degrees), so the maps can be turned into points later
         p = self.plan
+        reached = (self.store.count > 0) | (self.store.dwells > 0)
+        n = reached.size
         _save_maps_npz(self.out_dir / "maps.npz", maps,
+                       keep=reached if n > SPARSE_MIN_PIXELS and 2 * np.count_nonzero(reached) < n else None,
                        acq_flags=self.acq_flags.reshape(self.plan.shape),
-                       exposure_s=self.exposure_s(),
+                       exposure_s=exposure,
                        row_deg=np.linspace(p.y_first_deg, p.y_last_deg, p.ny),
                        col_deg=np.linspace(p.x_first_deg, p.x_last_deg, p.nx))
         write_json_atomic(self.out_dir / "run.json", self.run_record(final))
@@ -623,14 +667,11 @@ class Session:
     def run_record(self, final: SessionState | None = None) -> dict:
         """What ``run.json`` holds (small for any scan size: the flags per pixel are in
         ``maps.npz`` as ``acq_flags``; here only their counts per reason)."""
-        from importlib.metadata import PackageNotFoundError, version
-
-        try:
-            ver = version("spdepth")
-        except PackageNotFoundError:
-            ver = "unknown"
+        ver = _version()
         st = self._stats()
-        per_flag = np.bincount(self.acq_flags, minlength=256)
+        # one count per flag value (np.bincount widens the uint8 map to int64 first: 0.7 s on a
+        # 4096 x 4096 frame)
+        per_flag = {f: int(np.count_nonzero(self.acq_flags == f)) for f in AcqFlag}
         out = {
             "state": (final or self._state).value,
             "error": None if self.error is None else f"{type(self.error).__name__}: {self.error}",
@@ -674,6 +715,18 @@ class Session:
             except OSError as exc:
                 log.warning("events.jsonl did not close cleanly: %s", exc)
             self._events_log = None
+
+
+@functools.lru_cache(maxsize=1)
+def _version() -> str:
+    """The installed spdepth's version (importlib.metadata's lookup costs tens of milliseconds, and
+    a session's end asks for its run record more than once)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("spdepth")
+    except PackageNotFoundError:
+        return "unknown"
 
 
 class _Host:
@@ -764,15 +817,21 @@ class _Subscription:
             self._thread.join(timeout_s)
 
 
-def _save_maps_npz(path: Path, maps, **extra: np.ndarray) -> None:
+def _save_maps_npz(path: Path, maps, keep: np.ndarray | None = None, **extra: np.ndarray) -> None:
     """``maps`` as ``DepthMaps.save_npz`` writes them (same keys, ``DepthMaps.load_npz`` reads
     it) plus ``extra`` arrays, deflated at level 1: a 4096 x 4096 scan's maps are most of a GB and
-    the default level took seconds per map. Written to a temporary name, then renamed."""
-    from spdepth.recon.maps import NPZ_KEYS
+    the default level took seconds per map. ``keep`` (flat bool mask, the pixels reached): the
+    sparse layout (``recon.maps.sparse_arrays``: the frame-sized maps only at those pixels, and
+    the one value of the pixels never reached). Written to a temporary name, then renamed."""
+    from spdepth.recon.maps import NPZ_KEYS, sparse_arrays
 
     arrays = {k: np.asarray(getattr(maps, k)) for k in NPZ_KEYS if k != "settings"}
     arrays["settings"] = np.array(json.dumps(maps.settings))
     arrays.update(extra)
+    if keep is not None:
+        # the flags stay whole (a uniform uint8 map deflates to kilobytes): np.load(...)["acq_flags"]
+        # is the frame in either layout
+        arrays = sparse_arrays(arrays, maps.shape, keep, dense=("acq_flags",))
     tmp = path.with_name(path.name + ".tmp")
     with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=1,
                          allowZip64=True) as zf:

@@ -109,7 +109,7 @@ class DepthMaps:
                 missing = [k for k in NPZ_KEYS if k not in z.files and k not in OPTIONAL_NPZ_KEYS]
                 if missing:
                     raise InputError(f"depth maps file {p}: missing {', '.join(missing)}")
-                data = {k: z[k] for k in NPZ_KEYS if k in z.files}
+                data = npz_arrays(z, NPZ_KEYS)
         except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
             raise InputError(f"depth maps file {p}: not a readable .npz ({exc})") from None
         try:
@@ -117,3 +117,72 @@ class DepthMaps:
         except json.JSONDecodeError as exc:
             raise InputError(f"depth maps file {p}: settings are not JSON ({exc})") from None
         return cls(settings=settings, **data)
+
+
+SPARSE_LAYOUT = "pixels"
+"""``layout`` of a maps file that holds its frame-sized arrays only at some pixels
+(:func:`sparse_arrays`): a large scan that reached few of its pixels (a time limit)."""
+FILL_SUFFIX = "__fill"
+
+
+def sparse_arrays(arrays: dict, shape: tuple[int, int], keep: np.ndarray, dense: tuple = ()) -> dict:
+    """``arrays`` for a maps file in the sparse layout: every array whose last two axes are the
+    frame's ``shape`` and whose value is one and the same outside the flat mask ``keep``
+    (pixels never reached: NaN, 0, NO_PHOTONS) is stored as its values at ``pixels`` (``(...,
+    n)``, pixels in ascending flat order) and that value (``NAME__fill``, ``(...)``); other
+    arrays, and those named in ``dense``, as they are; plus ``layout`` ("pixels"),
+    ``frame_shape`` (H, W) and ``pixels``.
+    :func:`npz_arrays` (and ``DepthMaps.load_npz``) give back the full arrays, bit for bit."""
+    keep = np.asarray(keep, bool).reshape(-1)
+    pixels = np.flatnonzero(keep)
+    out = {"layout": np.array(SPARSE_LAYOUT), "frame_shape": np.array(shape, np.int64),
+           "pixels": pixels}
+    first = int(np.argmin(keep)) if not keep.all() else None    # a pixel left out
+    for name, a in arrays.items():
+        a = np.asarray(a)
+        if first is None or name in dense or a.ndim < 2 or tuple(a.shape[-2:]) != tuple(shape):
+            out[name] = a
+            continue
+        flat = a.reshape(a.shape[:-2] + (-1,))
+        fill = flat[..., first]
+        nan = a.dtype.kind in "fc" and np.isnan(fill)
+        if np.ndim(nan) == 0 and nan:       # (NaN fills of several surfaces: the general test)
+            other = ~np.isnan(flat)
+        else:
+            other = flat != fill[..., None]
+            if a.dtype.kind in "fc":
+                other &= ~(np.isnan(flat) & np.isnan(fill)[..., None])
+        other &= ~keep
+        if other.any():
+            out[name] = a                   # not one value outside: kept whole
+            continue
+        out[name] = flat[..., pixels]
+        out[name + FILL_SUFFIX] = np.asarray(fill)
+    return out
+
+
+def npz_arrays(z, names=None) -> dict:
+    """The arrays of an opened maps file (``np.load``), full frame whichever the layout
+    (:func:`sparse_arrays`); ``names``: only those present among them."""
+    files = [f for f in z.files if not f.endswith(FILL_SUFFIX)]
+    if names is not None:
+        files = [f for f in files if f in names]
+    if "layout" not in z.files:
+        return {f: z[f] for f in files}
+    if str(z["layout"]) != SPARSE_LAYOUT:
+        raise ValueError(f"unknown maps layout {str(z['layout'])!r}")
+    h, w = (int(v) for v in z["frame_shape"])
+    pixels = z["pixels"]
+    out = {}
+    for f in files:
+        if f in ("layout", "frame_shape", "pixels"):
+            continue
+        if f + FILL_SUFFIX not in z.files:
+            out[f] = z[f]
+            continue
+        fill, vals = z[f + FILL_SUFFIX], z[f]
+        full = np.empty(fill.shape + (h * w,), vals.dtype)
+        full[...] = fill[..., None]
+        full[..., pixels] = vals
+        out[f] = full.reshape(fill.shape + (h, w))
+    return out

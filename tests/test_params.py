@@ -42,6 +42,22 @@ def test_building_the_parser_imports_nothing_heavy():
     assert out.strip() == "[] []", out
 
 
+def test_every_commands_help_and_the_version_import_nothing_heavy():
+    """Issue 33: ``spdepth --help``, ``--version`` and every subcommand's ``--help``, run through
+    ``main`` as the console script runs them, in one fresh process: none loads numpy, numba,
+    scipy, matplotlib or Qt (which take the start from about 0.1 s to most of a second)."""
+    names = sorted(_subcommands()[1])
+    code = ("import contextlib, io, sys; from spdepth.acq.cli import main; out = io.StringIO(); "
+            "rc = []\nwith contextlib.redirect_stdout(out):\n"
+            f"    for argv in [['--help'], ['--version']] + [[n, '--help'] for n in {names!r}]:\n"
+            "        rc.append(main(argv))\n"
+            f"print(rc, [m for m in {HEAVY!r} if m in sys.modules], out.getvalue().count('usage: spdepth'))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         cwd=ROOT).stdout
+    assert out.strip() == f"{[0] * (len(names) + 2)} [] {len(names) + 1}", out
+    assert {"scan", "recon", "replay", "demo", "gui", "bench", "simulate"} <= set(names)
+
+
 def test_every_command_option_is_declared_once():
     parser, commands = _subcommands()
     declared = {n for p in params.PARAMS.values() for n in (p.option, *p.aliases)} | \

@@ -152,6 +152,40 @@ def test_the_time_limit_ends_a_big_scan_in_time_and_run_json_stays_small(tmp_pat
     assert maps.depth_m.shape == (1024, 1024)
 
 
+def test_a_time_limited_scan_reconstructs_only_what_it_reached_and_writes_those_pixels(
+        tmp_path, monkeypatch):
+    """Issue 33: pixels the galvo never reached are flagged and not reconstructed (no value is
+    made up for them), and a large frame that reached few pixels writes them alone to maps.npz
+    (the sparse layout; here from any size), read back whole by DepthMaps.load_npz."""
+    from spdepth.acq import session as session_mod
+    from spdepth.recon.maps import PixelFlag, npz_arrays
+
+    monkeypatch.setattr(session_mod, "SPARSE_MIN_PIXELS", 0)
+    with open_sim("bust", (1024, 1024), ppp=10, seed=4) as inst:
+        s = _session(inst, (1024, 1024), tmp_path, time_limit_s=0.5)
+        assert s.run() == SessionState.DONE, s.error
+    st = s.store
+    reached = (st.count > 0) | (st.dwells > 0)
+    assert 0 < np.count_nonzero(reached) < 1024 * 1024 // 2
+    assert s.live_recon.submitted == np.count_nonzero(reached)      # each reached pixel, once
+    live = s.live_recon.maps()
+    with np.load(tmp_path / "maps.npz") as z:
+        assert str(z["layout"]) == "pixels"
+        np.testing.assert_array_equal(z["pixels"], np.flatnonzero(reached))
+        assert z["depth_m"].shape == (np.count_nonzero(reached),)
+        assert z["acq_flags"].shape == (1024, 1024)                   # whole in either layout
+        full = npz_arrays(z)
+    maps = DepthMaps.load_npz(tmp_path / "maps.npz")
+    for name in ("tof_s", "depth_m", "background", "signal", "photons", "uncertainty_s", "flags"):
+        np.testing.assert_array_equal(getattr(maps, name), getattr(live, name), err_msg=name)
+    np.testing.assert_array_equal(full["exposure_s"], s.exposure_s())
+    never = ~reached.reshape(1024, 1024)
+    assert np.all(full["acq_flags"][never] == AcqFlag.TIME_LIMIT)
+    assert np.all(maps.flags[never] == PixelFlag.NO_PHOTONS) and np.all(maps.photons[never] == 0)
+    assert np.all(np.isnan(maps.background[never]) & np.isnan(maps.depth_m[never]))
+    assert (tmp_path / "maps.npz").stat().st_size < 4_000_000
+
+
 def test_a_live_recon_worker_failure_ends_the_session_failed_with_one_line(recording, tmp_path,
                                                                           caplog):
     import dataclasses
@@ -317,3 +351,24 @@ def test_replay_of_a_killed_sessions_recording_is_no_warning_by_itself(recording
     patch_record_count(rec / "recording.ptu", 0)          # as after kill -9: count never patched
     state, run, warned = _replay_warnings(rec, tmp_path, caplog)
     assert state == SessionState.DONE and warned == [] and run["warnings"] == []
+
+
+def test_finishing_a_session_says_which_file_it_writes(tmp_path):
+    """Issue 33: the files written after a session (maps.png, points.ply) report their progress:
+    each as it starts, then all written, and each exists once reported done."""
+    from spdepth.acq.api import finish_session
+
+    seen = []
+
+    def progress(name, done, total):
+        # the files reported done so far exist; the one starting does not yet
+        seen.append((name, done, total, [p.name for p in sorted(tmp_path.glob("*.p*"))
+                                         if p.name in ("maps.png", "points.ply")]))
+
+    with open_sim("bust", (16, 16), ppp=10, seed=2) as inst:
+        s = _session(inst, (16, 16), tmp_path)
+        assert s.run() == SessionState.DONE, s.error
+    summary = finish_session(s, tmp_path, "t", progress=progress)
+    assert seen == [("maps.png", 0, 2, []), ("points.ply", 1, 2, ["maps.png"]),
+                    ("", 2, 2, ["maps.png", "points.ply"])]
+    assert summary["points"] > 0

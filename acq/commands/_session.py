@@ -104,30 +104,91 @@ class CompileNotice:
 
 class SessionProgress:
     """The one progress bar (``acq.report.ProgressBar``: pixels complete of all, detections/s,
-    state) fed by snapshots at 10 Hz; no subscriber at all when it draws nothing (not a terminal),
-    since each snapshot takes the GIL from the scan. It counts pixels that reached the target: a
-    time limit flags the rest final, and a bar of final pixels would jump to full at it."""
+    state) fed at 10 Hz by ``Session.progress`` (figures only: a snapshot's map copies cost a
+    large frame's scan most of its speed), on a thread of its own; none at all when it draws
+    nothing (not a terminal). It counts pixels that reached the target: a time limit flags the
+    rest final, and a bar of final pixels would jump to full at it."""
+
+    PERIOD_S = 0.1
 
     def __init__(self, session, label: str):
         from spdepth.acq.report import ProgressBar
 
+        self._session = session
         self._bar = ProgressBar(label, session.plan.nx * session.plan.ny)
-        self._sub = session.subscribe(self._update, max_hz=10) if self._bar.enabled else None
+        self._closed = threading.Event()
+        self._thread = None
+        if self._bar.enabled:
+            self._thread = threading.Thread(target=self._run, name="session-progress", daemon=True)
+            self._thread.start()
 
-    def _update(self, snap) -> None:
-        self._bar(snap.pixels_complete, snap.pixels_total)
-        self._bar.update(0, f"{snap.detections_per_s / 1e6:.2f} Mdet/s, {snap.state}, "
-                            f"lost {snap.lost_spans}")
+    def _run(self) -> None:
+        while True:
+            ended = self._session.ended.wait(self.PERIOD_S) or self._closed.is_set()
+            self._update(self._session.progress())
+            if ended:
+                return
+
+    def _update(self, p: dict) -> None:
+        self._bar(p["pixels_complete"], p["pixels_total"])
+        self._bar.update(0, f"{p['detections_per_s'] / 1e6:.2f} Mdet/s, {p['state']}, "
+                            f"lost {p['lost_spans']}")
 
     def close(self) -> None:
-        if self._sub is not None:
-            self._sub.close()
+        self._closed.set()
+        if self._thread is not None:
+            self._thread.join(2.0)
         self._bar.close()
+
+
+class OutputsProgress:
+    """The bar of the files a command writes after its session (``acq.api.finish_session``'s
+    ``progress``: maps.png, points.ply; seconds on a large frame), on a terminal only: files
+    written of all, and the one being written."""
+
+    def __init__(self, label: str):
+        self.label = label
+        self._bar = None
+
+    def __call__(self, name: str, done: int, total: int) -> None:
+        from spdepth.acq.report import ProgressBar
+
+        if self._bar is None:
+            self._bar = ProgressBar(f"{self.label} files", total, unit="file")
+        self._bar(done, total)
+        self._bar.update(0, f"writing {name}" if name else "written")
+        if done >= total:
+            self.close()
+
+    def close(self) -> None:
+        if self._bar is not None:
+            self._bar.close()
+            self._bar = None
+
+
+WRITER_MODULES = ("matplotlib.figure", "matplotlib.backends.backend_agg", "spdepth.acq.report",
+                  "spdepth.acq.mapdefs", "spdepth.acq.points", "plyfile")
+"""What ``acq.api.finish_session`` imports to write maps.png and points.ply: imported on a thread
+while the session runs (half a second here that a time-limited scan waited for after its end)."""
+
+
+def _import_writers() -> None:
+    import importlib
+    import logging
+
+    for name in WRITER_MODULES:
+        try:
+            importlib.import_module(name)
+        except Exception as exc:  # noqa: BLE001 - finish_session imports it again and says why
+            logging.getLogger(__name__).debug("importing %s ahead failed: %s", name, exc)
 
 
 def run_session(session, label: str) -> bool:
     """Run with a progress bar. Ctrl-C or SIGTERM aborts cleanly (the session writes its files);
-    returns whether it was interrupted, so the caller still reports the summary."""
+    returns whether it was interrupted, so the caller still reports the summary. A session with
+    an output folder imports the writers of its PNG and points meanwhile (``WRITER_MODULES``)."""
+    if session.out_dir is not None:
+        threading.Thread(target=_import_writers, name="import-writers", daemon=True).start()
     bar = SessionProgress(session, label)
     try:
         session.run()

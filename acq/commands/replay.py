@@ -25,7 +25,8 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from spdepth.acq.api import OutputDir, build_session, finish_session
-    from spdepth.acq.commands._session import PreparingNotice, exit_status, report, run_session
+    from spdepth.acq.commands._session import (OutputsProgress, PreparingNotice, exit_status, report,
+                                               run_session)
     from spdepth.acq.errors import OutputError
 
     request = request_from_args(args)
@@ -39,6 +40,7 @@ def run(args: argparse.Namespace) -> int:
         asked = session.live_recon.requested
         surfaces = "" if asked.reflectors == 1 else f", surfaces {asked.reflectors}"
         summary = finish_session(session, out.path, f"replay {p.nx}x{p.ny}, {p.target} per pixel, "
-                                                    f"{asked.method}{surfaces}")
+                                                    f"{asked.method}{surfaces}",
+                                 progress=OutputsProgress("replay"))
     report(summary, args.json, "replay")
     return exit_status(session, interrupted)

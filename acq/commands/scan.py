@@ -32,13 +32,14 @@ def request_from_args(args: argparse.Namespace, command: str = "scan"):
 
 def run(args: argparse.Namespace) -> int:
     from spdepth.acq.api import OutputDir, build_session, finish_session, open_instruments
-    from spdepth.acq.commands._session import PreparingNotice, exit_status, report, run_session
+    from spdepth.acq.commands._session import (OutputsProgress, PreparingNotice, exit_status, report,
+                                               run_session)
 
     request = request_from_args(args)
     with OutputDir(args.out, overwrite=args.overwrite) as out:
         with PreparingNotice("scan") as notice, open_instruments(request) as inst:
             session = notice.session = build_session(request, out, inst)
             interrupted = run_session(session, "scan")
-        summary = finish_session(session, out.path, request.label())
+        summary = finish_session(session, out.path, request.label(), progress=OutputsProgress("scan"))
     report(summary, args.json, "scan")
     return exit_status(session, interrupted)

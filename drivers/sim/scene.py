@@ -262,11 +262,23 @@ def _table_cdf(irf, bin_s, x):
     return np.where(pos >= w.size, 1.0, out)
 
 
-def _build(geom: _scenes.Geometry, settings: SceneSettings, irf) -> Scene:
-    s = settings
+@dataclass(frozen=True)
+class _Light:
+    """How a scene's geometry becomes rates: signal_pp = amp * signal_per_amp, background_pp =
+    background_rel * background_per_rel + dark_pp (per laser pulse); ``active`` its effects."""
+
+    signal_per_amp: float
+    background_per_rel: float
+    dark_pp: float
+    active: tuple[str, ...]
+
+
+def _light(s: SceneSettings, mean_amp: float, bg_rel_mean: float, max_rate) -> _Light:
+    """The scale factors of ``s``'s light levels for a geometry whose signal strength
+    (reflectivity x occupancy, summed over surfaces) averages ``mean_amp`` and whose relative
+    background averages ``bg_rel_mean``; ``max_rate(light)`` the largest detections per pulse
+    those factors give a pixel (it decides the dead time's pile-up)."""
     n = s.syncs_per_dwell
-    amp = geom.reflectivity * geom.occupancy
-    mean_amp = float(amp.sum(axis=0).mean())
     if not mean_amp > 0:
         raise SettingError(f"scene {s.name}: nothing reflects (all reflectivity x occupancy is 0)")
     if math.isinf(s.sbr):
@@ -282,25 +294,130 @@ def _build(geom: _scenes.Geometry, settings: SceneSettings, irf) -> Scene:
             f"pixel, more than the {bg_mean * n:.3g} background detections ppp={s.ppp} and "
             f"sbr={s.sbr} allow")
     ambient_mean = max(ambient_mean, 0.0)
-    bg_rel = np.asarray(geom.background, np.float64)
-    if np.any(bg_rel < 0) or not np.all(np.isfinite(bg_rel)) or bg_rel.mean() <= 0:
-        raise SettingError(f"scene {s.name}: background map must be finite, >= 0 and not all 0")
-    signal_pp = amp * (sig_mean / mean_amp)
-    background_pp = bg_rel * (ambient_mean / bg_rel.mean()) + dark_pp
-    if geom.depth_m.shape[1:] != s.shape:
-        raise SettingError(f"scene {s.name}: geometry shape {geom.depth_m.shape[1:]} != {s.shape}")
+    light = _Light(sig_mean / mean_amp, ambient_mean / bg_rel_mean, dark_pp, ())
     active = list(e for e in EFFECTS if e in s.effects)
     if "dead_time" not in active and s.dead_time_s > 0:
-        if float((signal_pp.sum(axis=0) + background_pp).max()) > PILEUP_THRESHOLD:
+        if max_rate(light) > PILEUP_THRESHOLD:
             active.insert(1 if "jitter" in active else 0, "dead_time")
-    if irf is not None:
-        irf = np.asarray(irf, np.float64).ravel()
-        if irf.size < 1 or np.any(irf < 0) or not np.all(np.isfinite(irf)) or irf.sum() <= 0:
-            raise SettingError("measured IRF must be a non-empty array of finite values >= 0, not all 0")
-        if s.irf_bin_s is None or not s.irf_bin_s > 0:
-            raise SettingError("a measured IRF needs its bin width irf_bin_s > 0")
+    return dataclasses.replace(light, active=tuple(active))
+
+
+def _rates(geom: _scenes.Geometry, light: _Light) -> tuple[np.ndarray, np.ndarray]:
+    """(signal_pp (K, H, W), background_pp (H, W)) of a geometry (or a band of its rows)."""
+    amp = geom.reflectivity * geom.occupancy
+    bg_rel = np.asarray(geom.background, np.float64)
+    return amp * light.signal_per_amp, bg_rel * light.background_per_rel + light.dark_pp
+
+
+def _check_background(name: str, bg_rel: np.ndarray) -> None:
+    if np.any(bg_rel < 0) or not np.all(np.isfinite(bg_rel)) or bg_rel.mean() <= 0:
+        raise SettingError(f"scene {name}: background map must be finite, >= 0 and not all 0")
+
+
+def _check_irf(s: SceneSettings, irf):
+    if irf is None:
+        return None
+    irf = np.asarray(irf, np.float64).ravel()
+    if irf.size < 1 or np.any(irf < 0) or not np.all(np.isfinite(irf)) or irf.sum() <= 0:
+        raise SettingError("measured IRF must be a non-empty array of finite values >= 0, not all 0")
+    if s.irf_bin_s is None or not s.irf_bin_s > 0:
+        raise SettingError("a measured IRF needs its bin width irf_bin_s > 0")
+    return irf
+
+
+def _build(geom: _scenes.Geometry, settings: SceneSettings, irf, light: _Light | None = None) -> Scene:
+    """The scene of a whole geometry; ``light`` the scale factors to use (a lazy scene's, taken
+    from its sampled rows), else those of this geometry's own means."""
+    s = settings
+    amp = geom.reflectivity * geom.occupancy
+    bg_rel = np.asarray(geom.background, np.float64)
+    if light is None:
+        mean_amp = float(amp.sum(axis=0).mean())
+        if mean_amp > 0:
+            _check_background(s.name, bg_rel)
+        light = _light(s, mean_amp, float(bg_rel.mean()), lambda lt: float(
+            ((amp * lt.signal_per_amp).sum(axis=0) + (bg_rel * lt.background_per_rel + lt.dark_pp)).max()))
+    signal_pp, background_pp = _rates(geom, light)
+    if geom.depth_m.shape[1:] != s.shape:
+        raise SettingError(f"scene {s.name}: geometry shape {geom.depth_m.shape[1:]} != {s.shape}")
     return Scene(s, np.asarray(geom.depth_m, np.float64), np.asarray(geom.reflectivity, np.float64),
-                 np.asarray(geom.occupancy, np.float64), bg_rel, signal_pp, background_pp, tuple(active), irf)
+                 np.asarray(geom.occupancy, np.float64), bg_rel, signal_pp, background_pp, light.active,
+                 _check_irf(s, irf))
+
+
+LAZY_PIXELS = 1 << 21
+"""Built-in scenes of more pixels than this (above 2048 x 1024) are built lazily
+(:class:`LazyScene`): a band of rows when the galvo first reaches it, never the whole frame up
+front (a 4096 x 4096 frame's maps are gigabytes and took seconds to build)."""
+SAMPLE_ROWS = 256
+"""Rows of a lazy scene its light levels are scaled by (evenly spread over the frame)."""
+
+
+class LazyScene:
+    """A built-in scene too large to build whole before a scan: the same interface as
+    :class:`Scene`, its rates computed a band of rows at a time (:meth:`band`) as the simulated
+    galvo reaches them.
+
+    Its light levels (``ppp`` and ``sbr`` are image means) and the pile-up decision are taken
+    from ``SAMPLE_ROWS`` rows spread evenly over the frame instead of every pixel, so the image
+    means hold to the sampling's precision (within 4e-4 on the built-in scenes) instead of
+    exactly. The whole-frame maps (``depth_m``, ``signal_pp``, ``truth()``, ...) are built on
+    first use, with the same scale factors, so they are the truth of the detections simulated.
+    """
+
+    lazy = True
+
+    def __init__(self, builder, settings: SceneSettings, irf=None):
+        self.settings = settings
+        self._builder = builder
+        h, w = settings.shape
+        rows = np.unique(np.linspace(0, h - 1, min(h, SAMPLE_ROWS)).round().astype(np.int64))
+        parts = [builder(settings.shape, rows=(int(r), int(r) + 1)) for r in rows]
+        amp = np.concatenate([(g.reflectivity * g.occupancy).sum(axis=0) for g in parts])
+        bg_rel = np.concatenate([np.asarray(g.background, np.float64) for g in parts])
+        self._n_surfaces = int(parts[0].depth_m.shape[0])
+        mean_amp = float(amp.mean())
+        if mean_amp > 0:
+            _check_background(settings.name, bg_rel)
+        self._light = _light(settings, mean_amp, float(bg_rel.mean()), lambda lt: float(
+            (amp * lt.signal_per_amp + (bg_rel * lt.background_per_rel + lt.dark_pp)).max()))
+        self.active_effects = self._light.active
+        self.irf = _check_irf(settings, irf)
+        self._full: Scene | None = None
+
+    def band(self, r0: int, r1: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(signal_pp (K, n, W), tof_s (K, n, W), background_pp (n, W)) of rows r0..r1-1."""
+        geom = self._builder(self.settings.shape, rows=(r0, r1))
+        signal_pp, background_pp = _rates(geom, self._light)
+        return signal_pp, 2.0 * np.asarray(geom.depth_m, np.float64) / C_M_PER_S, background_pp
+
+    def full(self) -> Scene:
+        """The whole frame as a :class:`Scene` (built once, on first use), with this scene's
+        scale factors."""
+        if self._full is None:
+            self._full = _build(self._builder(self.settings.shape), self.settings, self.irf, self._light)
+        return self._full
+
+    shape = Scene.shape
+    sync_period_s = Scene.sync_period_s
+    resolution_s = Scene.resolution_s
+    pulse_rms_s = Scene.pulse_rms_s
+    dwell_s = Scene.dwell_s
+
+    @property
+    def n_surfaces(self) -> int:
+        return self._n_surfaces
+
+    _FULL = frozenset({"depth_m", "reflectivity", "occupancy", "background_rel", "signal_pp",
+                       "background_pp", "tof_s", "truth", "rate_per_pulse", "bin_rates", "with_settings"})
+    """What only the whole frame answers: asked for, it is built (gigabytes at 4096 x 4096)."""
+
+    def __getattr__(self, name: str):
+        # only the names of the whole frame build it: a probe for anything else (getattr with a
+        # default) must not build 4096 x 4096 maps as a side effect
+        if name not in LazyScene._FULL:
+            raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+        return getattr(self.full(), name)
 
 
 def scene_names() -> list[str]:
@@ -309,7 +426,8 @@ def scene_names() -> list[str]:
 
 
 def load_scene(name: str, shape: tuple[int, int] | None = None, *, ppp: float = 15.0,
-               sbr: float | None = None, irf: np.ndarray | None = None, **settings) -> Scene:
+               sbr: float | None = None, irf: np.ndarray | None = None,
+               **settings) -> "Scene | LazyScene":
     """Build a scene.
 
     name:  a built-in scene (``scene_names()``: bust, daylight, steps, tilted-plane, two-layer)
@@ -322,6 +440,8 @@ def load_scene(name: str, shape: tuple[int, int] | None = None, *, ppp: float = 
     irf:   a measured instrument response (histogram, any scale) replacing the Gaussian pulse;
            give ``irf_bin_s`` too.
     settings: any other ``SceneSettings`` field (dwell_s, sync_period_s, effects, ...).
+    A built-in scene of more than ``LAZY_PIXELS`` pixels is a :class:`LazyScene` (built a band of
+    rows at a time as it is scanned).
     Raises SettingError for an unknown scene or a bad setting.
     """
     if shape is not None:
@@ -336,12 +456,12 @@ def load_scene(name: str, shape: tuple[int, int] | None = None, *, ppp: float = 
         shape = geom.depth_m.shape[1:]
     elif name in _scenes.BUILTIN:
         shape = shape or (64, 64)
-        geom = _scenes.BUILTIN[name](shape)
+        geom = None if shape[0] * shape[1] > LAZY_PIXELS else _scenes.BUILTIN[name](shape)
     else:
         raise SettingError(f"unknown scene {name!r}; built-in scenes: {', '.join(scene_names())}, "
                          "or file:PATH for a depth image")
     if sbr is None:
-        sbr = geom.defaults.get("sbr", 10.0)
+        sbr = (geom.defaults if geom is not None else _scenes.BUILTIN[name]((1, 1)).defaults).get("sbr", 10.0)
     if "effects" in settings:
         eff = settings["effects"]
         settings["effects"] = tuple(eff.split(",")) if isinstance(eff, str) else tuple(eff)
@@ -349,4 +469,6 @@ def load_scene(name: str, shape: tuple[int, int] | None = None, *, ppp: float = 
         s = SceneSettings(name=name, shape=tuple(shape), ppp=float(ppp), sbr=float(sbr), **settings)
     except TypeError as exc:
         raise SettingError(f"bad scene setting: {exc}") from None
+    if geom is None:
+        return LazyScene(_scenes.BUILTIN[name], s, irf)
     return _build(geom, s, irf)

@@ -3,6 +3,9 @@
 Every builder takes the image shape (H, W) and returns a ``Geometry``: per-surface depth,
 reflectivity and occupancy, shape (K, H, W), and a relative background map (H, W). Builders are
 pure functions of the shape, so the truth of a built-in scene is the same on every machine.
+``rows=(r0, r1)`` builds only the rows r0..r1-1 of that image (shape (K, r1 - r0, W)), with each
+pixel's values the same as in the whole image's: a large simulated frame is built row band by
+row band as the galvo reaches it (``drivers.sim.scene.LazyScene``).
 """
 
 from __future__ import annotations
@@ -36,10 +39,21 @@ class Geometry:
     defaults: dict = field(default_factory=dict)
 
 
-def _grid(shape):
-    """Normalised coordinates: x in [-1, 1] left to right, y in [-1, 1] top to bottom."""
+def _band(shape, rows):
+    """(r0, r1, band shape) of the rows a builder makes (``rows`` None: all of them)."""
     h, w = shape
-    y = (np.arange(h) + 0.5) / h * 2.0 - 1.0
+    r0, r1 = (0, h) if rows is None else (int(rows[0]), int(rows[1]))
+    if not 0 <= r0 < r1 <= h:
+        raise SettingError(f"rows {rows} outside a scene of {h} rows")
+    return r0, r1, (r1 - r0, w)
+
+
+def _grid(shape, rows=None):
+    """Normalised coordinates: x in [-1, 1] left to right, y in [-1, 1] top to bottom (of the
+    rows ``rows`` only, when given)."""
+    h, w = shape
+    r0, r1, _ = _band(shape, rows)
+    y = (np.arange(r0, r1) + 0.5) / h * 2.0 - 1.0
     x = (np.arange(w) + 0.5) / w * 2.0 - 1.0
     return np.meshgrid(x, y)
 
@@ -49,9 +63,10 @@ def _single(depth, refl, background, **defaults) -> Geometry:
                     np.ones((1,) + depth.shape), background.astype(np.float64), defaults)
 
 
-def _bust_depth_refl(shape):
+def _bust_depth_refl(shape, rows=None):
     """A head on a neck and shoulders in front of a wall, like the seed paper's mannequin."""
-    x, y = _grid(shape)
+    x, y = _grid(shape, rows)
+    shape = x.shape
     wall_m = 3.6
     depth = np.full(shape, wall_m)
     refl = np.full(shape, 0.25)
@@ -79,37 +94,39 @@ def _bust_depth_refl(shape):
     return depth, refl
 
 
-def bust(shape) -> Geometry:
+def bust(shape, rows=None) -> Geometry:
     """A smooth head-like surface at about 3 m before a wall at 3.6 m (the seed paper's target)."""
-    depth, refl = _bust_depth_refl(shape)
-    return _single(depth, refl, np.ones(shape))
+    depth, refl = _bust_depth_refl(shape, rows)
+    return _single(depth, refl, np.ones(depth.shape))
 
 
 STEP_HEIGHTS_M = (0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1)
 
 
-def steps(shape) -> Geometry:
+def steps(shape, rows=None) -> Geometry:
     """A resolution target: horizontal bands, each alternating between 3 m and 3 m + h in
     column blocks, with h = 1, 2, 5, 10, 20, 50, 100 mm from top to bottom."""
     h, w = shape
-    band = np.minimum((np.arange(h) * len(STEP_HEIGHTS_M)) // h, len(STEP_HEIGHTS_M) - 1)
+    r0, r1, shape = _band(shape, rows)
+    band = np.minimum((np.arange(r0, r1) * len(STEP_HEIGHTS_M)) // h, len(STEP_HEIGHTS_M) - 1)
     block = max(1, w // 8)
     raised = ((np.arange(w) // block) % 2 == 1)
     depth = 3.0 + np.asarray(STEP_HEIGHTS_M)[band][:, None] * raised[None, :]
     return _single(depth, np.full(shape, 0.6), np.ones(shape))
 
 
-def tilted_plane(shape) -> Geometry:
+def tilted_plane(shape, rows=None) -> Geometry:
     """A plane from 2.5 m (left) to 3.5 m (right), rising 0.2 m from top to bottom."""
-    x, y = _grid(shape)
+    x, y = _grid(shape, rows)
     depth = 3.0 + 0.5 * x + 0.1 * y
-    return _single(depth, np.full(shape, 0.5), np.ones(shape))
+    return _single(depth, np.full(x.shape, 0.5), np.ones(x.shape))
 
 
-def two_layer(shape) -> Geometry:
+def two_layer(shape, rows=None) -> Geometry:
     """A semi-transparent pane at 2 m over the central half of the image, before a wall at
     3.5 m: K = 2 surfaces. The pane reflects 30%; the wall behind it is seen at transmission^2."""
-    x, y = _grid(shape)
+    x, y = _grid(shape, rows)
+    shape = x.shape
     pane = (np.abs(x) < 0.5) & (np.abs(y) < 0.5)
     transmission = 0.7
     depth = np.stack([np.full(shape, 2.0), 3.5 + 0.05 * y])
@@ -118,11 +135,11 @@ def two_layer(shape) -> Geometry:
     return Geometry(depth, refl, occ, np.ones(shape))
 
 
-def daylight(shape) -> Geometry:
+def daylight(shape, rows=None) -> Geometry:
     """The bust in bright daylight: background far above signal (default SBR 0.05), brightest
     at the top (sky) and ten times dimmer at the bottom, with a sunlit patch on the left."""
-    x, y = _grid(shape)
-    depth, refl = _bust_depth_refl(shape)
+    x, y = _grid(shape, rows)
+    depth, refl = _bust_depth_refl(shape, rows)
     bg = 1.0 + 9.0 * (1.0 - y) / 2.0 + 4.0 * np.exp(-(((x + 0.6) / 0.3) ** 2 + (y / 0.4) ** 2))
     return _single(depth, refl, bg, sbr=0.05)
 

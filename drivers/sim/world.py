@@ -24,6 +24,11 @@ from spdepth.drivers.sim import kernels as K
 from spdepth.drivers.sim.effects import Batch, Counting, DetectorState, Jitter, build_effects
 
 
+BAND_ROWS = 16
+"""Rows of a lazy scene (``drivers.sim.scene.LazyScene``) built at once when a dwell first
+reaches one of them."""
+
+
 class VirtualClock:
     """Simulated time in seconds.
 
@@ -107,10 +112,20 @@ class PhotonWorld:
         self._lock = threading.Lock()
         h, w = scene.shape
         k = scene.n_surfaces
-        self._sig_pp = np.ascontiguousarray(scene.signal_pp.reshape(k, h * w).T)
-        self._tof_s = np.ascontiguousarray(scene.tof_s.reshape(k, h * w).T)
-        self._bg_pp = np.ascontiguousarray(scene.background_pp.reshape(h * w))
-        self._lam = self._sig_pp.sum(axis=1) + self._bg_pp
+        # a lazy scene's rows are filled in as the dwells reach them (_ensure_rows); until then
+        # their pages of these zeroed arrays are never touched, so they take no memory
+        self._rows_built = None if getattr(scene, "lazy", False) else np.ones(h, bool)
+        if self._rows_built is None:
+            self._rows_built = np.zeros(h, bool)
+            self._sig_pp = np.zeros((h * w, k))
+            self._tof_s = np.zeros((h * w, k))
+            self._bg_pp = np.zeros(h * w)
+            self._lam = np.zeros(h * w)
+        else:
+            self._sig_pp = np.ascontiguousarray(scene.signal_pp.reshape(k, h * w).T)
+            self._tof_s = np.ascontiguousarray(scene.tof_s.reshape(k, h * w).T)
+            self._bg_pp = np.ascontiguousarray(scene.background_pp.reshape(h * w))
+            self._lam = self._sig_pp.sum(axis=1) + self._bg_pp
         self._period_s = s.sync_period_s
         self._rates = K.Rates(self._sig_pp, self._tof_s, self._bg_pp, self._lam, float(self._period_s))
         if scene.irf is None:
@@ -134,6 +149,35 @@ class PhotonWorld:
     def shape(self) -> tuple[int, int]:
         """Scene pixels (H, W)."""
         return self.scene.shape
+
+    def _ensure_rows(self, pixels: np.ndarray | None = None) -> None:
+        """Build the rates of a lazy scene's rows that ``pixels`` (flat indices, -1 off the
+        scene; None: every row) reach and that are not built yet, in bands of ``BAND_ROWS``.
+        Called with the world's lock held."""
+        built = self._rows_built
+        if pixels is None:
+            rows = np.flatnonzero(~built)
+        else:
+            on = pixels[pixels >= 0]
+            if not on.size:
+                return
+            h, w = self.scene.shape
+            r0, r1 = int(on.min()) // w, int(on.max()) // w + 1
+            if built[r0:r1].all():
+                return
+            rows = np.unique(on // w)
+            rows = rows[~built[rows]]
+        h, w = self.scene.shape
+        for b0 in np.unique(rows // BAND_ROWS) * BAND_ROWS:
+            b1 = min(h, int(b0) + BAND_ROWS)
+            sig, tof, bg = self.scene.band(int(b0), b1)
+            k = sig.shape[0]
+            lo, hi = int(b0) * w, b1 * w
+            self._sig_pp[lo:hi] = sig.reshape(k, -1).T
+            self._tof_s[lo:hi] = tof.reshape(k, -1).T
+            self._bg_pp[lo:hi] = bg.reshape(-1)
+            self._lam[lo:hi] = self._sig_pp[lo:hi].sum(axis=1) + self._bg_pp[lo:hi]
+            built[int(b0):b1] = True
 
     @property
     def sync_period_s(self) -> float:
@@ -278,6 +322,9 @@ class PhotonWorld:
         seq = self._sequential
         jitter = [e for e in self._stateless if isinstance(e, Jitter)]
         # first guess of the detections (the kernel grows its arrays when it is short)
+        if not gated:
+            with self._lock:
+                self._ensure_rows(pixels)     # the guess reads their rates
         guess = n * (n_target * 1.25 + 16.0) if gated else \
             float(self._lam[pixels[pixels >= 0]].sum() * limit) + 16.0 * n
         det = self._det
@@ -288,6 +335,7 @@ class PhotonWorld:
                        float(seq.ap_tau_s) if seq else 0.0)
         gate = K.Gate(float(self.scene.resolution_s), int(self._range_bins), lo, hi)
         with self._lock:
+            self._ensure_rows(pixels)
             done, sync, t, origin = K.dwell_run(
                 self._rng, pixels, dwell, self._rates, self._pulse, fx,
                 K.DetState(det.state_i, det.state_t, det.pend_sync, det.pend_t, det.pend_item),
@@ -360,6 +408,8 @@ class PhotonWorld:
 
     def _raster_fixed(self, n_dwell, gap, start_sync, progress):
         h, w = self.scene.shape
+        with self._lock:
+            self._ensure_rows()           # a whole frame is written: every row's rates
         line_len = w * n_dwell + gap
         # Blocks of ~1M detections keep the scratch buffers small and reused; the output is
         # allocated once for the whole frame (fresh memory is the dearest part of the job).
