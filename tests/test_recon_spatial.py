@@ -214,10 +214,13 @@ def test_beats_the_pixelwise_oracle_at_two_detections(sbr):
     store, oracle = simulate(tof, 2, sbr, seed=int(sbr))
     maps = reconstruct(store, settings("spatial"))
     ml = reconstruct(store, settings("ml"))
-    assert np.all(np.isfinite(maps.tof_s))
+    # censoring at the stated false-alarm rate per pixel (--false-alarm, recon.estimators.spatial.
+    # censor_alpha) keeps no detection of some pixels; those are filled from the neighbours only
+    # where a detection of their own agrees (measured: 73.8% of pixels at SBR 1, 98.7% at SBR 10)
+    assert np.isfinite(maps.tof_s).mean() >= (0.7 if sbr < 5 else 0.95)
     # the oracle has no estimate where a pixel got no signal detection: count those as the ML
     # does (it has to guess too), i.e. compare on the pixels the oracle covers
-    have = np.isfinite(oracle)
+    have = np.isfinite(oracle) & np.isfinite(maps.tof_s)
     err_oracle = float(np.mean(np.abs(oracle - tof)[have]))
     err = float(np.mean(np.abs(maps.tof_s / UNIT_S - tof)[have]))
     assert err <= 0.6 * err_oracle, (err, err_oracle)
@@ -318,14 +321,19 @@ def test_window_about_the_pulse_width_censors_nothing():
 
 
 def test_sub_bin_pulse_and_a_lone_pixel():
-    # a pulse of 0.05 bins: the pixels with a tight cluster are fitted, the one whose two
-    # detections are 1.2 bins apart (24 pulse widths: no support) is filled from its neighbours
+    # a pulse of 0.05 bins: the pixels with a tight cluster are fitted; the one whose two
+    # detections are 1.2 bins apart (24 pulse widths: no support) keeps none, and neither lies
+    # near the neighbours' surface (each 0.6 bins, 12 pulse widths, off it): no return, not filled
     b = Binning(UNIT_S, 0.0, 1000.0, 5.0)
     maps = reconstruct(_row([[499.9] * 5 + [500.1] * 5, [502.0] * 3, [497.0, 503.0]]),
                        ReconSettings(method="spatial", binning=b, pulse_rms_s=0.05 * 40e-12))
-    assert_array_equal(maps.flags[0], [PixelFlag.OK, PixelFlag.OK, PixelFlag.INTERPOLATED])
+    assert_array_equal(maps.flags[0], [PixelFlag.OK, PixelFlag.OK, PixelFlag.NO_RETURN])
     assert maps.signal[0, 0] == pytest.approx(10, rel=0.01) and maps.signal[0, 1] == pytest.approx(3, rel=0.01)
-    assert np.all(np.isfinite(maps.tof_s)) and np.all(np.abs(maps.tof_s / UNIT_S - 501) < 3)
+    assert np.all(np.abs(maps.tof_s[0, :2] / UNIT_S - 501) < 3) and np.isnan(maps.tof_s[0, 2])
+    # a detection of its own on the first neighbour's surface: the neighbour supports it
+    maps = reconstruct(_row([[499.9] * 5 + [500.1] * 5, [502.0] * 3, [497.0, 500.0]]),
+                       ReconSettings(method="spatial", binning=b, pulse_rms_s=0.05 * 40e-12))
+    assert maps.flags[0, 2] == PixelFlag.OK and abs(maps.tof_s[0, 2] / UNIT_S - 500.0) < 0.5
 
 
 # ------------------------------------------------------------------------------------------------
@@ -346,13 +354,16 @@ def test_cli_recon_spatial_on_simulated_ptu_and_mat(tmp_path, capsys, shared_dat
     out = tmp_path / "maps.npz"
     assert main(["recon", str(ptu), "--method", "spatial", "--npz", str(out), "--json"]) == 0
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    assert summary["method"] == "spatial" and summary["pixels_with_estimate"] == 24 * 16
+    # 5 detections at SBR 1: censoring at the stated false-alarm rate keeps none of a few pixels'
+    # (362 of 384 reported when this was written), which are then no return, never a guess
+    assert summary["method"] == "spatial" and summary["pixels_with_estimate"] >= 0.9 * 24 * 16
     with np.load(out) as z:
         depth, flags = z["depth_m"], z["flags"]
     with np.load(tmp_path / "steps.truth.npz") as z:
-        err = np.abs(depth - z["depth_m"])
-    assert np.all(np.isfinite(depth)) and np.median(err) < 0.02 and np.mean(err > 0.1) < 0.02
-    assert set(np.unique(flags)) <= {PixelFlag.OK, PixelFlag.INTERPOLATED}
+        err = np.abs(depth - z["depth_m"])[np.isfinite(depth)]
+    assert np.median(err) < 0.02 and np.mean(err > 0.1) < 0.02
+    assert set(np.unique(flags)) <= {PixelFlag.OK, PixelFlag.INTERPOLATED, PixelFlag.NO_RETURN}
+    assert np.all(np.isnan(depth[flags == PixelFlag.NO_RETURN]))
     # the seed paper's mannequin at 2 detections per pixel (a crop, to stay fast)
     cells = scipy.io.loadmat(shared_data / "fpi/mannequin_face_8ppp.mat")["Ts"][120:160, 140:180]
     mat = tmp_path / "crop.mat"
@@ -361,7 +372,8 @@ def test_cli_recon_spatial_on_simulated_ptu_and_mat(tmp_path, capsys, shared_dat
                  "16000:48000", "--bin-ps", "40", "--pulse-rms-ps", "360", "--max-photons", "2",
                  "--json"]) == 0
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    assert summary["pixels_with_estimate"] == 40 * 40 and 4.2 < summary["depth_m_median"] < 4.5
+    # 1586 of 1600 when this was written: a pixel without a return is no longer filled by its neighbours
+    assert summary["pixels_with_estimate"] >= 0.97 * 40 * 40 and 4.2 < summary["depth_m_median"] < 4.5
 
 
 @pytest.mark.parametrize("sbr", [0.1, 1.0, 10.0])
