@@ -292,8 +292,16 @@ def finish_session(session, out_dir: str | Path | None, title: str | None = None
         "lost_spans": len(session.lost), "lost_records": st["lost_records"],
         "faults_seen": len(run["faults_seen"]), "warnings": list(run.get("warnings", ())),
         "recon_max_lag_pixels": session.live_recon.max_lag, "elapsed_s": round(st["elapsed_s"], 3),
-        "points": n_points,
+        "points": n_points, "pileup": live_pileup(session),
     }
+
+
+def live_pileup(session) -> dict | None:
+    """What the live reconstruction's pile-up rule did (``acq.live_recon``: Coates' correction of
+    the pixels with many detections per laser period), None for a session without it."""
+    live = getattr(session, "live_recon", None)
+    pileup = getattr(live, "pileup", None)
+    return dict(pileup) if isinstance(pileup, dict) else None
 
 
 def no_pixel_cause(session) -> str | None:
@@ -854,7 +862,7 @@ def _file_summary(res: FileResult, read) -> dict:
     }
 
 
-__all__ = ["OutputDir", "new_run_dir", "open_instruments", "scan_plan", "scan_settings",
+__all__ = ["OutputDir", "live_pileup", "new_run_dir", "open_instruments", "scan_plan", "scan_settings",
            "build_session", "finish_session", "no_pixel_cause", "FileResult", "reconstruct_file", "file_binning",
            "file_settings", "file_result", "set_threads", "file_counts", "pileup_decided", "sensor_fov_deg",
            "recorded_recon_settings", "recorded_request", "read_run_record", "RUN_JSON", "SESSION_FILES"]

@@ -16,6 +16,12 @@ the first ``RESPONSE_SAMPLE_PIXELS`` final pixels and its measured shape is froz
 every pixel (recorded in the settings, so a replay and ``spdepth recon`` of the recording use the
 same response). The simulated bench gives its pulse, so its scans measure nothing.
 
+Pile-up (``recon.pileup``): a pixel whose kept detections per laser period (``PixelStore.periods``:
+the periods they span) exceed ``recon.pileup.PILEUP_THRESHOLD`` is estimated from its Coates-corrected
+histogram (a detector that re-arms at each sync), as ``spdepth recon --pileup auto`` corrects a
+file; decided per pixel, so a pixel's maps do not depend on the batch it came in. ``pileup``
+(and the maps' ``settings['pileup']``) says how many pixels were corrected.
+
 An estimator that does not run live (``recon.estimators.get(method).live`` False: spatial, which
 needs each pixel's neighbours) cannot run pixel by pixel: the live maps come from its pixelwise
 ``live_stand_in`` (spatial's: ml) and, once every pixel is final, one full-frame reconstruction of
@@ -115,6 +121,48 @@ class LiveRecon:
         self._error: BaseException | None = None
         self._empty: dict | None = None         # one empty pixel's results (pixelwise estimators)
         self._thread: threading.Thread | None = None
+        self.pileup_pixels = 0
+        """Pixels estimated from their Coates-corrected histogram (module docstring)."""
+        self.pileup_max_per_period = 0.0
+
+    @property
+    def pileup(self) -> dict:
+        """What the pile-up rule did so far (JSON-able), for the summary and the maps' settings."""
+        from spdepth.recon.pileup import PILEUP_THRESHOLD
+
+        n = self.pileup_pixels
+        return {"mode": "auto", "applied": n > 0, "pixels": n, "threshold_per_period": PILEUP_THRESHOLD,
+                "max_per_period": self.pileup_max_per_period,
+                "reason": (f"{n} pixels above {PILEUP_THRESHOLD:g} detections per laser period (up to "
+                           f"{self.pileup_max_per_period:.3g}): Coates' correction (detector re-arms at each sync)"
+                           if n else f"at most {self.pileup_max_per_period:.3g} detections per laser period: "
+                                     "pile-up negligible")}
+
+    def corrected(self, pixels: np.ndarray | None = None):
+        """The store's pixels (flat indices; None: the whole frame) to estimate from: their photon
+        list, or counts with Coates' correction at the pixels whose detections per laser period
+        pass PILEUP_THRESHOLD (module docstring)."""
+        from spdepth.recon.counts import CountStore
+        from spdepth.recon.pileup import PILEUP_THRESHOLD, coates
+
+        photons = self.store.photons(pixels)
+        known = getattr(self.store, "periods", None)
+        if known is None:            # a store that does not count periods: nothing to correct by
+            return photons
+        idx = np.arange(self.store.n_pixels) if pixels is None else np.asarray(pixels, np.int64)
+        periods = known[idx].astype(np.float64)
+        n = self.store.count[idx].astype(np.float64)
+        rate = np.divide(n, periods, out=np.zeros_like(n), where=periods > 0)
+        hot = (periods > 0) & (rate > PILEUP_THRESHOLD)
+        if pixels is not None:
+            self.pileup_max_per_period = max(self.pileup_max_per_period, float(rate.max(initial=0.0)))
+            self.pileup_pixels += int(hot.sum())
+        if not hot.any():
+            return photons
+        counts = CountStore.from_photons(photons, np.where(periods > 0, periods, 1.0))
+        fixed = coates(counts)
+        entry_hot = hot[counts.pixel_index()]
+        return dataclasses.replace(counts, counts=np.where(entry_hot, fixed.counts, counts.counts))
 
     def start(self) -> "LiveRecon":
         """Start the worker thread (the session does, on ``Session.start``)."""
@@ -270,7 +318,7 @@ class LiveRecon:
         full = pixels[~empty]
         # a batch is a list of pixels, not a frame: each pixel is tested on its own detections (the
         # neighbours' support, recon.detect, needs the frame: spdepth recon of the recording)
-        m = reconstruct(self.store.photons(full), self.pixel_settings, neighbours=False) if full.size else None
+        m = _reconstruct_store(self.corrected(full), self.pixel_settings, neighbours=False) if full.size else None
         if self._empty is None and empty.any():
             self._empty = self._empty_result()
             # a map whose empty-pixel value is the one it was made with needs no writes for them
@@ -292,6 +340,7 @@ class LiveRecon:
                 if empty.any() and not self._empty_as_made[name]:
                     flat[..., pixels[empty]] = self._empty[name][..., None]
             self.done.reshape(-1)[pixels] = True
+            self.settings_used["pileup"] = self.pileup
         self.processed += int(pixels.size)
 
     def _empty_result(self) -> dict:
@@ -307,17 +356,19 @@ class LiveRecon:
     def _reconstruct_frame(self, settings: ReconSettings) -> None:
         """One reconstruction of the whole final store (the last step of an estimator that does not
         run live)."""
-        m = reconstruct(self.store.photons(), settings)
+        m = _reconstruct_store(self.corrected(), settings)
         with self.lock:
             for name in self.fields:
                 getattr(self, name)[...] = getattr(m, name)
         self.settings_used = dict(m.settings)
+        self.settings_used["pileup"] = self.pileup
         self.settings_used["live_maps"] = f"{self.pixel_settings.method} pixel by pixel during the scan"
 
     def maps(self, copy: bool = True) -> DepthMaps:
         """The maps as they stand (copies), in ``spdepth recon``'s format. ``copy=False`` gives
         the arrays themselves: only once the worker has ended (``finish``), for writing them."""
         settings = dict(self.settings_used) if self.settings_used is not None else self.pixel_settings.to_dict()
+        settings["pileup"] = self.pileup
         if copy:
             return DepthMaps(settings=settings, **self.copy_maps(*self.fields))
         return DepthMaps(settings=settings, **{name: getattr(self, name) for name in self.fields})
@@ -326,6 +377,17 @@ class LiveRecon:
         """Copies of the named maps, all taken between two batches (never half a batch)."""
         with self.lock:
             return {name: getattr(self, name).copy() for name in names}
+
+
+def _reconstruct_store(store, settings: ReconSettings, **options) -> DepthMaps:
+    """``reconstruct`` (``options`` passed on); corrected counts (LiveRecon.corrected) keep no
+    detection order, and the store already holds only each pixel's first ``max_photons``, so they
+    go without it."""
+    from spdepth.recon.counts import CountStore
+
+    if isinstance(store, CountStore) and settings.max_photons is not None:
+        settings = dataclasses.replace(settings, max_photons=None)
+    return reconstruct(store, settings, **options)
 
 
 _MAP_FIELDS = ("tof_s", "depth_m", "background", "signal", "photons", "iterations",

@@ -226,6 +226,9 @@ def report(summary: dict, as_json: bool, label: str) -> None:
           f"{summary['pixels']} pixels complete, {summary['detections']} detections "
           f"({summary['detections_per_s'] / 1e6:.2f} M/s), {plural(summary['passes'], 'pass')}, "
           f"{plural(summary['lost_spans'], 'lost span')}; files in {summary['out']}")
+    pileup = summary.get("pileup")
+    if pileup and pileup.get("applied"):
+        print(f"  pile-up: {pileup['reason']}")
     if summary["flagged"]:
         print(f"  flagged pixels: {summary['flag_reasons']} (maps.npz acq_flags shows which)")
     for w in summary.get("warnings", ()):

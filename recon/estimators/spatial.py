@@ -100,6 +100,8 @@ FILL_RADIUS = 2
 #: Uncertainty: noisy copies of the frame the regulariser runs on (regulariser_variance; the
 #: variance of each pixel is then good to about sqrt(2 / PROBES)).
 PROBES = 16
+#: Uncertainty: a pixel's move by the regulariser beyond this many of its own sigmas joins its variance.
+PULL_SIGMAS = 2.0
 
 
 def poisson_quantile(q: float, mu: np.ndarray) -> np.ndarray:
@@ -258,7 +260,14 @@ def fit(store: PhotonStore, settings: ReconSettings, b, kern, notes: dict,
 
     # uncertainty: what the regulariser makes of the data's own noise (regulariser_variance)
     finite = np.isfinite(shift)
-    var = sigma * sigma * regulariser_variance(f, wt, z, reach, SK).ravel()
+    spread = shift_variance(x, counts, mu, k, sigma, m).reshape(h, w) / (sigma * sigma)
+    var = sigma * sigma * regulariser_variance(f, wt, z, reach, SK, noise=spread).ravel()
+    # a pixel whose own fit the regulariser moved beyond PULL_SIGMAS of its own spread: its light and
+    # its neighbours' disagree (another surface, or a background cluster), and which wins is not
+    # in the noise above: the move itself is part of the uncertainty
+    pull = ((f - z) ** 2).ravel()
+    moved = has.ravel() & (pull > PULL_SIGMAS ** 2 * spread.ravel())
+    var = np.where(moved, var + sigma * sigma * pull, var)
     var = np.where(np.isfinite(var), var, np.inf)
     var = np.minimum(var, m * m / 12.0)          # never more than the window's uniform spread
     unc_s = np.where(finite, np.sqrt(var), np.nan) * b.bin_width_s
@@ -300,8 +309,29 @@ def _regularise(f: np.ndarray, wt: np.ndarray, SK) -> tuple[np.ndarray, np.ndarr
     return z, reach
 
 
+def shift_variance(x: np.ndarray, counts: np.ndarray, mu: np.ndarray, k: np.ndarray, sigma: float,
+                   m: float) -> np.ndarray:
+    """Variance of each pixel's fitted shift (bins^2; NaN where none): the larger of the model's
+    (Fisher, sigma^2 / k) and the sandwich's, sum_i r_i^2 (x_i - mu)^2 / k^2 over the pixel's
+    detections x_i with their responsibilities r_i at the fit. The sandwich sees what the pulse
+    model hides: returns spread wider than the pulse (a mixed or tilted footprint; tower_9km.mat's
+    spread over ~2 ns where the pulse core is 241 ps). x: every pixel's shifts in pixel order."""
+    import numpy as np
+
+    n = counts.astype(np.float64)
+    fitted = np.isfinite(mu) & (k > 1e-6)
+    pix = np.repeat(np.arange(counts.size), counts)
+    pi = np.where(fitted, np.clip(k / np.maximum(n, 1.0), 1e-3, 0.999), 0.0)
+    d = x - np.where(fitted, mu, 0.0)[pix]
+    a = pi[pix] * np.exp(-0.5 * d * d / (sigma * sigma)) / (math.sqrt(2.0 * math.pi) * sigma)
+    r = a / (a + (1.0 - pi[pix]) / m)
+    num = np.bincount(pix, weights=r * r * d * d, minlength=counts.size)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(fitted, np.fmax(sigma * sigma / k, num / (k * k)), np.nan)
+
+
 def regulariser_variance(f: np.ndarray, wt: np.ndarray, z: np.ndarray, reach: np.ndarray, SK,
-                         probes: int | None = None, seed: int = 0) -> np.ndarray:
+                         probes: int | None = None, seed: int = 0, noise: np.ndarray | None = None) -> np.ndarray:
     """Variance of each regularised shift z (pulse RMS^2; NaN outside ``reach``): the pixelwise
     shifts f carry noise of variance 1 / wt (the fit's Fisher weight, in pulse widths), which the
     regulariser averages over as many neighbours as it fuses, far beyond the 8 next to a pixel on a
@@ -315,7 +345,9 @@ def regulariser_variance(f: np.ndarray, wt: np.ndarray, z: np.ndarray, reach: np
     probes = PROBES if probes is None else probes
     rng = np.random.default_rng(seed)
     has = wt > 0
-    sd = np.where(has, 1.0 / np.sqrt(np.where(has, wt, 1.0)), 0.0)
+    if noise is None:
+        noise = 1.0 / np.where(has, wt, 1.0)
+    sd = np.where(has, np.sqrt(np.where(has, noise, 0.0)), 0.0)
     acc = np.zeros(f.shape)
     for _ in range(probes):
         fj = np.where(has, f + sd * rng.standard_normal(f.shape), 0.0)
