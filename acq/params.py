@@ -46,7 +46,7 @@ SCAN_SOURCES = ("sim", "real")
 SOURCE_COMMANDS = {"sim": ("scan", "demo", "gui"), "real": ("scan", "gui"),
                    "replay": ("replay", "gui"), "file": ("recon", "gui")}
 """The commands that run each source kind (an option of a source is an option of each)."""
-COMMANDS = ("scan", "replay", "demo", "gui", "recon", "simulate", "bench report")
+COMMANDS = ("scan", "replay", "demo", "gui", "recon", "simulate", "array", "bench report")
 """The commands whose options are declared here, in the option table's column order."""
 
 # ---- limits and defaults owned here (the requests, the window and recon's checks read them) ------
@@ -76,6 +76,8 @@ MIN_DWELL_MS, MAX_DWELL_MS = 100e-6, 10_000_000.0 / 1e3
 """The galvo controller's dwell range per pixel (100 ns .. 10 s)."""
 MODES = ("gated", "raster")
 """gated: hold each pixel until the target or the dwell limit; raster: fixed dwell, frames repeated."""
+ARRAY_MODES = ("frame", "accumulate")
+"""spdepth array: the maps of each frame alone, or of all frames so far."""
 PATTERNS = ("raster", "serp")
 VIEWS = ("maps", "3d")
 
@@ -402,7 +404,10 @@ _SCAN_DWELL = (f"the galvo controller holds a pixel {MIN_DWELL_MS:g}..{MAX_DWELL
 
 _DECLARED = (
     # -- source ------------------------------------------------------------------------------------
-    Param("--sim", "", "flag", group="source", commands=("scan", "gui"),
+    Param("--sim", "", "flag", group="source", commands=("scan", "gui", "array"),
+          per_command={"array": dict(kind="str", metavar="SCENE", choices=scene_names, free=True,
+                                     exclusive="array source", required=True,
+                                     help="simulate the array looking at this scene ({scenes})")},
           help="the simulated bench: a scene behind the real drivers (galvo emulator over a pyserial "
                "URL, tagger over pyusb); with --tagger/--galvo naming a vendor device, reached "
                "through that vendor's driver and a stand-in of its library"),
@@ -419,6 +424,9 @@ _DECLARED = (
           summary="the recording replayed: a run folder or a PTU",
           group="source", sources=("replay",), metavar="RECORDING",
           positional=("replay",), label="Recording", example="run folder or recording.ptu",
+          commands=("replay", "gui", "array"),
+          per_command={"array": dict(metavar="FRAMES.h5", exclusive="array source", required=True,
+                                     help="replay an array recording (frames.h5)")},
           help="a session folder or its recording.ptu, or a Generic T3 PTU with pixel markers, "
                "replayed through the session pipeline"),
     Param("--file", "input", "path",
@@ -450,11 +458,14 @@ _DECLARED = (
     # one definition per scene: every command takes the scene's own SBR unless given (daylight's
     # 0.05 was 10 in scan --sim, demo and the window)
     Param("--sbr", "sbr", "float", group="simulated bench", sources=("sim",), default=None, low=0,
-          low_open=True, label="SBR", commands=("scan", "demo", "gui", "simulate"),
+          low_open=True, label="SBR", commands=("scan", "demo", "gui", "simulate", "array"),
           default_text="the scene's: 10, daylight 0.05", none_label="the scene's",
+          per_command={"array": dict(default=1.0, group="array",
+                                     help="signal to background in range (--sim)")},
           help="signal-to-background ratio in the detection window"),
     Param("--seed", "seed", "int", group="simulated bench", sources=("sim",), default=0, low=0,
-          high=2**31 - 1, label="Seed", commands=("scan", "demo", "gui", "simulate"),
+          high=2**31 - 1, label="Seed", commands=("scan", "demo", "gui", "simulate", "array"),
+          per_command={"array": dict(group="array", help="random seed (--sim)")},
           help="random seed"),
     Param("--faults", "faults", "str", group="simulated bench", sources=("sim",), default="",
           metavar="SPEC", label="Faults", example="e.g. device-vanish@40%", remembered=False,
@@ -493,9 +504,10 @@ _DECLARED = (
           help="Swabian: tag every N-th laser sync only (high laser rates)"),
     # -- scan --------------------------------------------------------------------------------------
     Param("--size", "size", "size", group="scan", sources=SCAN_SOURCES, default=DEFAULT_SIZE,
-          metavar="WxH", label="Size", commands=("scan", "demo", "gui", "simulate"),
+          metavar="WxH", label="Size", commands=("scan", "demo", "gui", "simulate", "array"),
           per_command={"simulate": dict(default=None, default_text="64x64; a depth image's own "
-                                        "size for file:")},
+                                        "size for file:"),
+                       "array": dict(group="array", help="the array's pixels, width x height (--sim)")},
           help="pixels, width x height"),
     Param("--target", "target", "int",
           summary="in-window detections kept per pixel",
@@ -514,9 +526,11 @@ _DECLARED = (
           per_command={"recon": dict(aliases=("--max-photons",))},
           help="in-window detections per pixel"),
     Param("--mode", "mode", "str",
-          summary="gated (each pixel until the target) or raster (fixed dwell)",
+          summary="gated (each pixel until the target) or raster (fixed dwell); array: frame or accumulate",
           group="scan", sources=SCAN_SOURCES, default="gated",
-          choices=MODES, label="Mode",
+          choices=MODES, label="Mode", commands=("scan", "demo", "gui", "array"),
+          per_command={"array": dict(choices=ARRAY_MODES, default="accumulate", group="array",
+                                     help="maps of each frame alone, or of all frames so far")},
           help="gated: hold each pixel until N detections or the dwell limit; raster: fixed "
                "dwell, frames repeated until every pixel has N"),
     Param("--dwell-limit-ms", "dwell_limit_s", "float", group="scan", sources=SCAN_SOURCES,
@@ -562,6 +576,8 @@ _DECLARED = (
           summary="the estimator",
           group="estimator", sources=SOURCES, default=DEFAULT_METHOD,
           choices=method_names, label="Estimator", metavar="{method_names}",
+          commands=("scan", "replay", "demo", "gui", "recon", "array"),
+          per_command={"array": dict(help="estimator of every frame's maps. {methods}")},
           per_source={"replay": dict(default=None, default_text=f"as recorded, else {DEFAULT_METHOD}")},
           help="estimator. {methods}"),
     Param("--pulse-rms-ps", "pulse_rms_s", "float", group="estimator", sources=SOURCES, unit="ps",
@@ -645,8 +661,9 @@ _DECLARED = (
     # -- outputs -------------------------------------------------------------------------------------
     Param("--out", "", "path", summary="the folder the command writes into: a session's run folder, "
           "bench report's report", group="output", commands=("scan", "replay", "demo", "gui",
-                                                           "bench report"), metavar="DIR",
+                                                           "array", "bench report"), metavar="DIR",
           per_command={
+              "array": dict(required=True, help="the run folder: frames.h5 (live), maps.npz, run.json"),
               "scan": dict(required=True, help="the run folder: recording.ptu, "
                            "events.jsonl, maps.npz, maps.png, points.ply, run.json"),
               "replay": dict(required=True, help="the run folder: recording.ptu, "
@@ -701,7 +718,8 @@ _DECLARED = (
     Param("--no-window", "", "flag", group="demo", commands=("demo",),
           help="stay headless (the PNG sheet) even when a display exists; without a display (CI, "
                "ssh, QT_QPA_PLATFORM=offscreen) it always is"),
-    Param("--screenshot", "", "path", group="window", commands=("gui",), metavar="PNG",
+    Param("--screenshot", "", "path", group="window", commands=("gui", "array"), metavar="PNG",
+          per_command={"array": dict(help="with --gui: save the window into PNG at the end and close it")},
           help="grab the whole window into PNG when the scan ends"),
     Param("--exit-after-scan", "", "flag", group="window", commands=("gui",),
           help="close the window when the scan ends (exit 0 when done, 1 otherwise)"),
@@ -713,6 +731,25 @@ _DECLARED = (
           help="the window's size in screen pixels"),
     Param("--json", "", "flag", group="output", commands=("scan", "replay", "demo", "recon"),
           help="print one JSON summary object as the last stdout line"),
+    # -- the SPAD array (spdepth array; no request carries them: the command's own, as simulate's)
+    Param("--frames", "", "int", group="array", commands=("array",), default=30, low=1, metavar="N",
+          help="frames to acquire (--sim)"),
+    Param("--counts", "", "float", group="array", commands=("array",), default=20.0, low=0, low_open=True,
+          metavar="X", help="mean counts per pixel and frame in range, ideal detector (--sim)"),
+    Param("--frame-rate-hz", "", "float", group="array", commands=("array",), default=30.0, low=0,
+          low_open=True, unit="Hz", metavar="HZ", help="frames per second of the simulated array (--sim)"),
+    Param("--hot-share", "", "float", group="array", commands=("array",), default=0.0, low=0, high=1,
+          metavar="X", help="share of hot pixels (--sim)"),
+    Param("--crosstalk", "", "float", group="array", commands=("array",), default=0.0, low=0, high=1,
+          metavar="P", help="probability a detection fires a neighbour (--sim)"),
+    Param("--free-run", "", "flag", group="array", commands=("array",),
+          help="do not pace frames at the frame rate (a replay runs free unless --realtime)"),
+    Param("--realtime", "", "flag", group="array", commands=("array",),
+          help="replay at the recorded frame rate"),
+    Param("--gui", "", "flag", group="window", commands=("array",),
+          help="show the session live in a window (maps and 3D)"),
+    Param("--every-frame", "", "flag", group="array", commands=("array",),
+          help="reconstruct every frame (the acquisition waits for the estimator)"),
 )
 
 PARAMS: dict[str, Param] = {p.option: p for p in _DECLARED}
@@ -854,16 +891,20 @@ def _add(group, p: Param, command: str, groups: dict) -> None:
     if p.kind == "flag":
         group.add_argument(*names, dest=p.dest, action="store_true", help=help_text)
         return
+    required = p.required
     if p.exclusive:
         key = ("exclusive", p.exclusive)
         if key not in groups:
-            groups[key] = group.add_mutually_exclusive_group()
+            # required (one of them must be given) is the group's: argparse takes no required
+            # member of an exclusive group
+            groups[key] = group.add_mutually_exclusive_group(required=p.required)
         group = groups[key]
+        required = False
     # a request option's default is the request's (None here: not given); a command's own
     # option carries its declared default
     own = None if p.sources_of(command) else p.default
     group.add_argument(*names, dest=p.dest, type=p.parse, default=own, metavar=p.metavar or
-                       _metavar(p), help=help_text, required=p.required)
+                       _metavar(p), help=help_text, required=required)
 
 
 def _metavar(p: Param) -> str:

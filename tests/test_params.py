@@ -65,7 +65,7 @@ def test_every_command_option_is_declared_once():
     own = {"simulate": {"--dwell-us", "--effects", "--jitter-ps", "--dead-time-ns",
                         "--afterpulse-prob", "--dark-rate-hz", "--pulse-rms-ps",
                         "--resolution-ps", "--period-ns"}}
-    for name in ("scan", "replay", "demo", "gui", "recon", "simulate"):
+    for name in ("scan", "replay", "demo", "gui", "recon", "simulate", "array"):
         for action in commands[name]._actions:
             for opt in action.option_strings:
                 if opt in ("-h", "--help") or action.help == "==SUPPRESS==":
@@ -206,3 +206,20 @@ def test_the_window_controls_carry_their_declarations(qtbot):
     assert [c.mode.itemText(i) for i in range(c.mode.count())] == list(params.MODES)
     assert c.reflectors.findData("auto") >= 0 and c.reflectors.findData(params.MAX_SURFACES) >= 0
     assert c.width_px.maximum() == params.MAX_PIXELS_PER_AXIS
+
+
+def test_the_array_command_takes_its_options_from_the_declarations(capsys):
+    """spdepth array's options are declared (acq.params): their ranges and choices are checked at
+    parsing, one of --sim/--replay is required, and the defaults are the declared ones."""
+    from spdepth.acq.cli import main
+
+    parser, commands = _subcommands()
+    args = commands["array"].parse_args(["--sim", "tilted-plane", "--out", "x"])
+    assert (args.frames, args.counts, args.mode, args.method, args.size, args.sbr) == \
+        (30, 20.0, "accumulate", "ml", (64, 64), 1.0)
+    for argv, words in ((["--out", "x"], "one of the arguments --sim --replay is required"),
+                        (["--sim", "bust", "--replay", "f.h5", "--out", "x"], "not allowed with"),
+                        (["--sim", "bust", "--hot-share", "2", "--out", "x"], "--hot-share"),
+                        (["--sim", "bust", "--mode", "gated", "--out", "x"], "frame, accumulate")):
+        assert main(["array", *argv]) == 2
+        assert words in capsys.readouterr().err

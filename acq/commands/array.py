@@ -11,39 +11,15 @@ from __future__ import annotations
 import argparse
 import sys
 
-from spdepth.acq.commands._args import non_negative_float, positive_float, positive_int
-from spdepth.acq.params import parse_size
+from spdepth.acq.params import add_options
 
 HELP = "SPAD-array session: simulated array frames (or a recording's) reconstructed live, recorded (HDF5)"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    # array session options (issue 34): this command's own, as simulate's physics are (not declared
-    # in acq.params: no request carries them yet), kept together to move there
-    src = parser.add_mutually_exclusive_group(required=True)
-    src.add_argument("--sim", metavar="SCENE", help="simulate the array looking at this scene (tilted-plane, bust, ...)")
-    src.add_argument("--replay", metavar="FRAMES.h5", help="replay an array recording")
-    parser.add_argument("--out", required=True, metavar="DIR", help="folder for frames.h5, maps.npz, run.json")
-    parser.add_argument("--frames", type=positive_int, default=30, help="frames to acquire (--sim; default 30)")
-    parser.add_argument("--mode", choices=("frame", "accumulate"), default="accumulate",
-                        help="maps of each frame alone, or of all frames so far (default)")
-    parser.add_argument("--method", default="ml", help="estimator (default ml)")
-    parser.add_argument("--size", type=parse_size, default=(64, 64), help="WxH pixels (--sim; default 64x64)")
-    parser.add_argument("--counts", type=positive_float, default=20.0,
-                        help="mean counts per pixel and frame in range, ideal detector (--sim; default 20)")
-    parser.add_argument("--sbr", type=positive_float, default=1.0, help="signal to background in range (--sim)")
-    parser.add_argument("--frame-rate-hz", type=positive_float, default=30.0, help="(--sim; default 30)")
-    parser.add_argument("--hot-share", type=non_negative_float, default=0.0, help="share of hot pixels (--sim)")
-    parser.add_argument("--crosstalk", type=non_negative_float, default=0.0,
-                        help="probability a detection fires a neighbour (--sim)")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--free-run", action="store_true",
-                        help="do not pace frames at the frame rate (a replay runs free unless --realtime)")
-    parser.add_argument("--realtime", action="store_true", help="replay at the recorded frame rate")
-    parser.add_argument("--gui", action="store_true", help="show the session live in a window (maps and 3D)")
-    parser.add_argument("--screenshot", metavar="PNG", help="with --gui: save the window at the end and close it")
-    parser.add_argument("--every-frame", action="store_true",
-                        help="reconstruct every frame (the acquisition waits for the estimator)")
+    # declared in acq.params like every command's options (no request carries them: the
+    # command's own, as simulate's physics are)
+    add_options(parser, "array")
 
 
 def run(args: argparse.Namespace) -> int:
