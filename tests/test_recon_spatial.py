@@ -6,6 +6,8 @@ signal detection times."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from numpy.testing import assert_allclose, assert_array_equal
@@ -388,3 +390,35 @@ def test_background_share_measures_the_frame_without_a_model(sbr):
     # the densest 5-RMS span of a pixel holds its signal and the background that falls there
     assert true - 0.12 <= share <= true + 0.02, (share, true)
     assert background_share(x, off, RMS_UNITS / BIN_UNITS, sample=50) == pytest.approx(share, abs=0.08)
+
+
+def test_censoring_holds_the_stated_false_alarm_rate_on_background_alone():
+    # 64 x 64 pixels of 50 background detections each (art_top.mat's density) and no return: a
+    # pixel keeps a detection (and so reports a return, OK) at most at the stated rate per pixel
+    # (--false-alarm; censor_alpha over its 50 tests). A fixed 0.02 per detection, as before,
+    # let about 1 - 0.98^50 = 64% of them through.
+    rng = np.random.default_rng(3)
+    h = w = 64
+    n = 50
+    times = np.sort(rng.uniform(0, M * BIN_UNITS, (h * w, n)), axis=1)
+    store = PhotonStore(times.ravel(), np.arange(0, h * w * n + 1, n), (h, w), UNIT_S)
+    seen = {}
+    for rate in (1e-3, 1e-2, 1e-1):
+        maps = reconstruct(store, dataclasses.replace(settings("spatial"), false_alarm=rate))
+        seen[rate] = float(np.mean(maps.flags == PixelFlag.OK))
+        assert seen[rate] <= 1.5 * rate, (rate, seen[rate])
+        assert "censoring_false_alarm" in maps.settings["spatial"]
+    assert seen[1e-3] < seen[1e-2] < seen[1e-1]
+    # a pixel filled from a false one's neighbours is flagged, never OK; at the default rate few are
+    maps = reconstruct(store, settings("spatial"))
+    assert np.mean(np.isfinite(maps.tof_s)) < 0.02
+    assert set(np.unique(maps.flags[np.isfinite(maps.tof_s)])) <= {PixelFlag.OK, PixelFlag.INTERPOLATED}
+
+
+def test_censor_alpha_is_the_sidak_level_of_the_pixel_rate():
+    from spdepth.recon.estimators.spatial import censor_alpha
+
+    n = np.array([1, 2, 50, 1000])
+    a = censor_alpha(1e-3, n)
+    assert_allclose(1 - (1 - a) ** n, 1e-3, rtol=1e-9)
+    assert a[0] == pytest.approx(1e-3) and np.all(np.diff(a) < 0)

@@ -32,7 +32,7 @@ TARGETS = {
     "startup": ("spdepth.acq.commands.bench.startup", "spdepth recon in a new process, warm numba cache: "
                 "wall, read_s, recon_s, ratio to the plain port of Algorithm 1 (--before: another checkout)"),
     "halves": ("spdepth.acq.commands.bench.halves", "a histogram cube split into two halves at random, "
-               "each reconstructed: the share of pixels whose depths agree within 3 combined sigma"),
+               "each reconstructed: the shares of pixels whose depths agree within 3 and 1 combined sigma"),
     "array": ("spdepth.acq.commands.bench.array", "SPAD-array frames (64x64x1024, ~20 counts per pixel) "
               "per second: pixelwise and spatial estimators on counts, one thread and all"),
     "flux": ("spdepth.acq.commands.bench.flux", "depth bias and signal error against detections per laser "
