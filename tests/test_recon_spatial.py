@@ -206,6 +206,37 @@ def test_local_mean_and_tv_match_reference():
     assert ref.tv_objective(z_long, f, wt, 0.7) <= ref.tv_objective(z, f, wt, 0.7) + 1e-6
 
 
+def test_tv_of_many_copies_is_tv_of_each():
+    # the uncertainty's bootstrap smooths its copies in one parallel call: the same as one by one
+    rng = np.random.default_rng(2)
+    wt = np.where(rng.uniform(size=(11, 14)) < 0.3, 0.0, rng.uniform(0.5, 3, (11, 14)))
+    fs = rng.normal(size=(5, 11, 14))
+    zs = rng.normal(size=fs.shape)
+    want = zs.copy()
+    for j in range(fs.shape[0]):
+        SK.tv_pdhg(fs[j], wt, 0.8, want[j], 30, *(np.empty_like(wt) for _ in range(3)))
+    SK.tv_pdhg_many(fs, wt, 0.8, zs, 30)
+    assert_array_equal(zs, want)
+
+
+def test_the_uncertainty_is_the_spread_of_the_smoothing_over_noisy_copies():
+    # regulariser_variance against its definition: a flat patch of weak data is fused by TV, so its
+    # pixels' variance lies far below one pixel's own 1 / wt (the former neighbour rule's 1 / (wt +
+    # 4 wt) at best); a lone pixel of strong data among none keeps about its own
+    from spdepth.recon.estimators.spatial import _regularise, regulariser_variance
+
+    wt = np.full((20, 20), 1.0)
+    f = np.zeros((20, 20))
+    z, reach = _regularise(f, wt, SK)
+    var = regulariser_variance(f, wt, z, reach, SK, probes=64)
+    assert np.all(np.isfinite(var)) and np.median(var) < 0.2 * (1 / (1.0 + 4.0))
+    wt1 = np.zeros((9, 9))
+    wt1[4, 4] = 400.0
+    z1, reach1 = _regularise(np.zeros((9, 9)), wt1, SK)
+    var1 = regulariser_variance(np.zeros((9, 9)), wt1, z1, reach1, SK, probes=64)
+    assert var1[4, 4] == pytest.approx(1 / 400.0, rel=0.4)
+
+
 # ------------------------------------------------------------------------------------------------
 # accuracy
 

@@ -561,6 +561,20 @@ def tv_pdhg(f, wt, lam, z, iters, px, py, zbar):
                 _primal(zr, zbr, fr, wr, c, pxr[c] - pxr[c - 1] + pyr[c] - pyu[c], step)
 
 
+@njit(parallel=True, cache=True, nogil=True)
+def tv_pdhg_many(fs, wt, lam, zs, iters):
+    """tv_pdhg of each frame fs[j] (the same weights wt) into zs[j] (holding each start): the
+    copies of the uncertainty's bootstrap (recon.estimators.spatial.regulariser_variance) in
+    parallel, one whole serial run per copy and thread (one parallel region per call, not two per
+    iteration)."""
+    n, h, w = fs.shape
+    for j in prange(n):
+        px = np.empty((h, w))
+        py = np.empty((h, w))
+        zbar = np.empty((h, w))
+        tv_pdhg(fs[j], wt, lam, zs[j], iters, px, py, zbar)
+
+
 @njit(inline="always", cache=True, nogil=True)
 def _dual(pxr, pyr, c, gx, gy, step, lam):
     """tv_pdhg's dual step at one pixel of a row."""
