@@ -42,6 +42,11 @@ SMALL_SORT = 64
 #: :func:`unique_bins` marks a pixel's detections in a bitmap of the window's bins when the 64-bin
 #: words they span are at most this many per detection; above, it sorts them (:func:`unique_counts`)
 BITMAP_WORDS = 4
+#: A zero of numba type int64 for kernels to pass where a literal 0 would go: numba compiles a
+#: callee once per argument type, and a literal's type (Literal[int](0), also a loop-carried
+#: variable's before type inference unifies it) is another than int64's: one more compile of
+#: the callee and of everything it calls, each for seconds on a cold cache.
+ZERO = np.int64(0)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -87,7 +92,7 @@ def heap_sort(a, n):
         v = a[0]
         a[0] = a[end]
         a[end] = v
-        _sift_down(a, 0, end)
+        _sift_down(a, ZERO, end)
 
 
 @njit(cache=True, nogil=True)
@@ -424,7 +429,7 @@ def fisher_var(shift, a, bg, m, g, dg, off):
         i22 += inv
     if bg > 0.0:
         i22 += (m - n_in) / bg
-    return shift_var(i00, i01, i02, i11, i12, i22, bg > 0.0)
+    return shift_var(i00, i01, i02, i11, i12, i22, np.bool_(bg > 0.0))
 
 
 @njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
@@ -465,7 +470,7 @@ def fisher_tab(shift, a, bg, m, g, dg, off, ftab):
     last = ftab.shape[0] - 1
     if a > 0.0 and bg == 0.0 and shift >= off and shift - off + nk <= m:
         # the rate is a g_t: i00 = a sum dg^2 / g, i01 = -sum dg, i11 = sum g / a (the limit row)
-        return shift_var(a * ftab[last, 0], -ftab[last, 1], 0.0, ftab[last, 3] / a, 0.0, 0.0, False)
+        return shift_var(a * ftab[last, 0], -ftab[last, 1], 0.0, ftab[last, 3] / a, 0.0, 0.0, np.bool_(False))
     if a > 0.0 and bg > 0.0 and shift >= off and shift - off + nk <= m:
         x = (math.log(a / bg) - FISHER_RHO0) * FISHER_STEPS
         if x >= 1.0 and x < last - 2:
@@ -485,7 +490,7 @@ def fisher_tab(shift, a, bg, m, g, dg, off, ftab):
             s5 = _catmull_rom(ftab, i, 5, w0, w1, w2, w3)
             ib = 1.0 / bg
             return shift_var(a * a * s0 * ib, -a * s1 * ib, -a * s2 * ib, s3 * ib, s4 * ib,
-                             (s5 + (m - nk)) * ib, True)
+                             (s5 + (m - nk)) * ib, np.bool_(True))
     return fisher_var(shift, a, bg, m, g, dg, off)
 
 
@@ -563,7 +568,7 @@ def sort_desc(keys, idx, n):
             v = idx[0]
             idx[0] = idx[end]
             idx[end] = v
-            _sift_after(keys, idx, 0, end)
+            _sift_after(keys, idx, ZERO, end)
         return
     for a in range(1, n):
         v = idx[a]

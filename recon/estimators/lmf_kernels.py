@@ -1,8 +1,8 @@
 """Numba kernels of lmf (:mod:`.lmf`): the log-matched filter of eq. (11), ``argmax_i sum_k y_k log
 S_{k,i}`` per pixel over integer shifts, and the variance from that score's curvature there.
 
-:func:`lmf_kernel` (a loop over blocks; recon.pixelwise.on_threads shares a fit's blocks among threads) -> :func:`_lmf_block` (a block's scratch) ->
-:func:`lmf_pixel` (:func:`lmf_shift`, :func:`lmf_var`) on one pixel's distinct bins and counts
+:func:`lmf_kernel` (the scratch; recon.pixelwise.on_threads shares a fit's pixels among threads) ->
+:func:`_lmf_pixels` (the compiled loop) -> :func:`lmf_pixel` (:func:`lmf_shift`, :func:`lmf_var`) on one pixel's distinct bins and counts
 (:func:`recon.kernels.pixel_bins`).
 """
 
@@ -13,7 +13,7 @@ from collections import namedtuple
 import numpy as np
 from numba import njit
 
-from spdepth.recon.kernels import block_pixels, n_blocks, pixel_bins, pixel_scratch
+from spdepth.recon.kernels import ZERO, pixel_bins, pixel_scratch
 
 #: LMF on a log-concave pulse: up to this many distinct photon bins, hill-climb from their mean
 #: (cost O(photons x steps), steps < bins); above it, bisect (O(photons log bins)).
@@ -88,7 +88,7 @@ def _climb(kb, kw, nu, logg, m):
 def _scan(kb, kw, nu, logg, m):
     """The first argmax over every shift (a score that is not concave)."""
     i = 0
-    best = _lmf_score(kb, kw, nu, 0, logg, m)
+    best = _lmf_score(kb, kw, nu, ZERO, logg, m)
     for j in range(1, m):
         s = _lmf_score(kb, kw, nu, j, logg, m)
         if s > best:
@@ -134,25 +134,18 @@ def lmf_var(kb, kw, nu, i, tabs):
 
 
 @njit(cache=True, nogil=True, _nrt=False)
-def _lmf_pixels(blk, ph, tabs, px, out_shift, out_var, out_n):
-    """The pixels of block blk with the scratch px: the per-pixel helpers are inlined here, into a
-    loop compiled without numba's reference counting (it allocates nothing)."""
-    for p in block_pixels(ph, blk):
+def _lmf_pixels(ph, tabs, px, out_shift, out_var, out_n):
+    """Every pixel of ph with the scratch px: the per-pixel helpers are inlined here, into a loop
+    compiled without numba's reference counting (it allocates nothing)."""
+    for p in range(ph.offsets.size - 1):
         nu, out_n[p] = pixel_bins(ph, p, px)
         out_shift[p], out_var[p] = lmf_pixel(px.kb, px.kw, nu, tabs)
 
 
-@njit(cache=True, nogil=True)
-def _lmf_block(blk, ph, tabs, maxn, out_shift, out_var, out_n):
-    """The pixels of block blk of :func:`lmf_kernel` with their scratch, compiled on its own and
-    called from the kernel's parallel loop (numba compiles a parallel loop's body twice)."""
-    _lmf_pixels(blk, ph, tabs, pixel_scratch(maxn, tabs.m), out_shift, out_var, out_n)
-
-
-@njit(cache=True, nogil=True)
 def lmf_kernel(ph, tabs, maxn, out_shift, out_var, out_n):
     """Log-matched filter per pixel of ph (:class:`recon.kernels.Photons`, at most maxn detections
     a pixel) with :class:`LmfTables`. out_shift: argmax shift (int64, -1 without photons), out_var:
-    shift variance in bins^2 from the observed curvature of the log-likelihood, out_n: photons."""
-    for blk in range(n_blocks(ph)):
-        _lmf_block(np.int64(blk), ph, tabs, maxn, out_shift, out_var, out_n)
+    shift variance in bins^2 from the observed curvature of the log-likelihood, out_n: photons.
+    Releases the GIL. The scratch is allocated here, so that the compiled loop is the function
+    called from Python (see :func:`.ml_kernels.ml_kernel`: one level of compiled calls fewer)."""
+    _lmf_pixels(ph, tabs, pixel_scratch(maxn, tabs.m), out_shift, out_var, out_n)

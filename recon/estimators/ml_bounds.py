@@ -13,7 +13,7 @@ import math
 import numpy as np
 from numba import njit
 
-from spdepth.recon.kernels import first_above
+from spdepth.recon.kernels import ZERO, first_above
 
 #: ml: pixels with at most this many distinct photon bins run every pass over all their photons
 #: (one out of the pulse's reach reads rate 0, as the w_out term does), sparing the binary search
@@ -229,7 +229,7 @@ def mix_ml(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, s0, cut):
 @njit(cache=True, nogil=True, error_model="numpy")
 def _photon_range(kb, nu, lo, hi):
     """[ua, ub): the sorted distinct photon bins kb[:nu] lying in [lo, hi] (binary search)."""
-    return first_above(kb, nu, lo, False), first_above(kb, nu, hi, True)
+    return first_above(kb, nu, lo, np.bool_(False)), first_above(kb, nu, hi, np.bool_(True))
 
 
 @njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
@@ -243,7 +243,7 @@ def _ml_at_int(kb, kw, nu, wtot, i, g, off, colsum, uni, s0, cut):
         w_out = wtot
         for u in range(ua, ub):
             w_out -= kw[u]
-    return mix_ml(kb, kw, ua, ub, w_out, g, off - i, 1, 0, 1.0 / colsum[i], uni, s0, cut)
+    return mix_ml(kb, kw, ua, ub, w_out, g, off - i, np.int64(1), ZERO, 1.0 / colsum[i], uni, s0, cut)
 
 
 @njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
@@ -278,7 +278,7 @@ def mix_bounds(kb, kw, nu, wtot, trev, base, step, qa, nq, inv_c, uni, s, r0s, w
     ua = 0
     if nu > ML_SCAN_ALL:
         # the first photon with (k + base) * step - qa >= 0 (a binary search on a big pixel)
-        ua = first_above(kb, nu, -((-qa) // step) - base, False)
+        ua = first_above(kb, nu, -((-qa) // step) - base, np.bool_(False))
     n = 0
     for u in range(ua, nu):
         jj = (kb[u] + base) * step - qa

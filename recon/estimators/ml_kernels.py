@@ -20,8 +20,8 @@ the integer optimum while the exact likelihood rises finds it with fewer solves
 (:func:`_fine_climb`). Then a parabola through its exact neighbours (:func:`_parabola`), and the
 variance from the Fisher table (``recon.kernels.fisher_tab``).
 
-:func:`ml_kernel` (a loop over blocks; recon.pixelwise.on_threads shares a fit's blocks among threads) -> :func:`_ml_block` (a block's scratch,
-:func:`ml_scratch`) -> :func:`ml_pixel` -> the helpers above.
+:func:`ml_kernel` (the scratch, :func:`ml_scratch`; recon.pixelwise.on_threads shares a fit's pixels among
+threads) -> :func:`_ml_pixels` (the compiled loop) -> :func:`ml_pixel` -> the helpers above.
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ from numba import njit
 from spdepth.recon.estimators.ml_bounds import (ML_SHARE_CLAMP, ML_SHARES, _ml_at_fine, _ml_at_int, _photon_range,
                                                 mix_bounds, share_bound, share_diffs, share_sweep, share_tables,
                                                 swept_bound)
-from spdepth.recon.kernels import (block_pixels, fisher_tab, n_blocks, photon_intervals, pixel_bins, pixel_scratch,
+from spdepth.recon.kernels import (ZERO, fisher_tab, photon_intervals, pixel_bins, pixel_scratch,
                                    sort_desc)
 
 #: ml: logliks within this share of each other are a tie (the pulse on either of two lone
@@ -158,11 +158,11 @@ def _best_bound(niv, scr):
     flip. Each interval's best goes into scr.ivmax: the survivors are sought only in intervals whose
     best can beat the likelihood found (a lone background detection's reach seldom can)."""
     S = scr
-    i1 = -1
+    i1 = np.int64(-1)
     amax = 0.0
     for t in range(niv):
         imax = 0.0
-        ii = -1
+        ii = np.int64(-1)
         for i in range(S.ivlo[t], S.ivhi[t] + 1):
             if S.acc[i] > imax:
                 imax = S.acc[i]
@@ -228,7 +228,7 @@ def _run_bounds(kb, kw, nu, ntot, t, t2, sweep, js, sj, sb, tabs, scr):
             i = S.surv[tt]
             S.key[i] = min(S.key[i], share_bound(kb, kw, ua, ub, w_out, i, T.off, T.stabs, js, sj))
     else:
-        mix_bounds(kb, kw, nu, ntot, T.grev, T.off - wa, 1, 0, wb - wa + 1, T.inv_colsum[wa:], T.uni, sb, S.r0s,
+        mix_bounds(kb, kw, nu, ntot, T.grev, T.off - wa, np.int64(1), ZERO, wb - wa + 1, T.inv_colsum[wa:], T.uni, sb, S.r0s,
                    S.ws, S.bnd)
         for tt in range(t, t2):
             i = S.surv[tt]
@@ -257,7 +257,7 @@ def _tighten(kb, kw, nu, ntot, ns, best_s, bar, tabs, scr):
         slo, shi = share_sweep(kb, kw, nu, T.off, T.ia, T.ib, T.sdiff, js, S.ssum)
     # else in runs of nearby survivors (ascending), so the photons that reach a run are found once:
     # at SBR 0.1 a shift's reach holds a sixth of a pixel's detections
-    nc = 0
+    nc = ZERO
     t = 0
     while t < ns:
         wa = S.surv[t]
@@ -305,7 +305,7 @@ def _integer_optimum(kb, kw, nu, ntot, tabs, scr):
     floor, wins)."""
     T, S = tabs, scr
     floor_ll = -ntot * T.logm          # s = 0: all background
-    best_ll, best_i, best_s = floor_ll, -1, 0.0
+    best_ll, best_i, best_s = floor_ll, np.int64(-1), 0.0
     if T.dhi < T.dlo:
         return best_ll, best_i, best_s
     niv = photon_intervals(kb, nu, T.dhi, -T.dlo, T.m, S.ivlo, S.ivhi)
@@ -380,7 +380,7 @@ def _fine_sweep(kb, kw, nu, ntot, best_i, qlo, qhi, bll, bs, tabs, scr):
     sb = min(max(bs, ML_SHARE_CLAMP), 1.0 - ML_SHARE_CLAMP)
     mix_bounds(kb, kw, nu, ntot, T.fine_rev, T.off - best_i, T.fsteps, qlo, nq,
                T.inv_fine_colsum[best_i * T.fsteps + qlo:], T.uni, sb, S.r0s, S.ws, S.bnd)
-    nfc = 0
+    nfc = ZERO
     for t in range(nq):
         if qlo + t != 0:
             S.fidx[nfc] = t
@@ -469,29 +469,24 @@ def ml_pixel(kb, kw, nu, tabs, scr):
 
 
 @njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
-def _ml_pixels(blk, ph, tabs, px, scr, out_shift, out_amp, out_bg, out_var, out_n, out_gain):
-    """The pixels of block blk with the scratch px and scr: the per-pixel helpers are inlined here,
-    into a loop compiled without numba's reference counting (it allocates nothing; called per
-    pixel with the tables and scratch as named tuples, they took 13% of ml at 15 detections)."""
-    for p in block_pixels(ph, blk):
+def _ml_pixels(ph, tabs, px, scr, out_shift, out_amp, out_bg, out_var, out_n, out_gain):
+    """Every pixel of ph with the scratch px and scr: the per-pixel helpers are inlined here, into
+    a loop compiled without numba's reference counting (it allocates nothing; called per pixel with
+    the tables and scratch as named tuples, they took 13% of ml at 15 detections)."""
+    for p in range(ph.offsets.size - 1):
         nu, out_n[p] = pixel_bins(ph, p, px)
         out_shift[p], out_amp[p], out_bg[p], out_var[p], out_gain[p] = ml_pixel(px.kb, px.kw, nu, tabs, scr)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _ml_block(blk, ph, tabs, maxn, out_shift, out_amp, out_bg, out_var, out_n, out_gain):
-    """The pixels of block blk of :func:`ml_kernel` with their scratch. Compiled on its own and called
-    from the kernel's parallel loop: numba compiles a parallel loop's body a second time, 5-7 s of
-    ml's cold compile when the body was this code (the same speed either way)."""
-    _ml_pixels(blk, ph, tabs, pixel_scratch(maxn, tabs.m), ml_scratch(maxn, tabs), out_shift, out_amp, out_bg,
-               out_var, out_n, out_gain)
-
-
-@njit(cache=True, nogil=True)
 def ml_kernel(ph, tabs, maxn, out_shift, out_amp, out_bg, out_var, out_n, out_gain):
     """Exact Poisson ML (module docstring) per pixel of ph (:class:`recon.kernels.Photons`, at most
     maxn detections a pixel) with :class:`MlTables`. Outputs: out_shift (bins, NaN none), out_amp
     (unit-area amplitude), out_bg (per bin), out_var (bins^2), out_n (photons), out_gain (nats:
-    see :func:`ml_pixel`)."""
-    for blk in range(n_blocks(ph)):
-        _ml_block(np.int64(blk), ph, tabs, maxn, out_shift, out_amp, out_bg, out_var, out_n, out_gain)
+    see :func:`ml_pixel`). Releases the GIL.
+
+    The scratch is allocated here and the loop is the compiled function called from Python: numba
+    compiles every function a kernel calls on its own and then optimises and emits the whole call
+    tree again at each level above, so a kernel that only allocated and called the loop cost ml's
+    cold compile about 3 s (the same speed either way)."""
+    _ml_pixels(ph, tabs, pixel_scratch(maxn, tabs.m), ml_scratch(maxn, tabs), out_shift, out_amp, out_bg,
+               out_var, out_n, out_gain)

@@ -2,8 +2,8 @@
 (Algorithm 1) with one depth column and the background column, on the published code's scaling
 (columns g / gmax, peak 1, so delta means what it means there).
 
-:func:`uos_kernel` (a loop over blocks; recon.pixelwise.on_threads shares a fit's blocks among threads) -> :func:`_uos_block` (a block's scratch,
-:func:`uos_scratch`) -> :func:`uos_pixel`: :func:`uos_scatter` (S^T y), iterations of
+:func:`uos_kernel` (the scratch, :func:`uos_scratch`; recon.pixelwise.on_threads shares a fit's pixels
+among threads) -> :func:`_uos_pixels` (the compiled loop) -> :func:`uos_pixel`: :func:`uos_scatter` (S^T y), iterations of
 (:func:`_iterate`: the proxy's argmax :func:`uos1_argmax`, pruned -> :func:`union_support` ->
 :func:`solve_support` -> :func:`keep_largest` -> :func:`change_norm`), then :func:`refit_nonneg`
 when the last fit was clipped. Several surfaces per pixel are the K-surface fit's
@@ -17,7 +17,7 @@ from collections import namedtuple
 import numpy as np
 from numba import njit
 
-from spdepth.recon.kernels import (block_pixels, col_dot, n_blocks, photon_intervals, pinv_solve, pixel_bins,
+from spdepth.recon.kernels import (ZERO, col_dot, photon_intervals, pinv_solve, pixel_bins,
                                    pixel_scratch)
 
 #: uos's tables and settings (:func:`uos_tables`): m bins; the unit-area pulse g with its peak at
@@ -123,14 +123,14 @@ def uos1_argmax(cvec, colsum, cmin, bgc, ns, j, aj, acorr, nk, m, pp, off, ivlo,
         whi = m - 1
     clipped = ns > 0 and not (j - off >= 0 and j + (nk - 1 - off) < m)
     best = -np.inf
-    bi = -1
+    bi = np.int64(-1)
     for t in range(niv):
         best, bi = _scan_range(ivlo[t], ivhi[t], best, bi, cvec, colsum, bgc, j, aj, wlo, whi, clipped,
                                acorr, nk, m, pp, off)
     far_bound = 0.0 - bgc * cmin
     if best > far_bound:
         return bi
-    best, bi = _scan_range(0, m - 1, -np.inf, -1, cvec, colsum, bgc, j, aj, wlo, whi, clipped,
+    best, bi = _scan_range(ZERO, m - 1, -np.inf, np.int64(-1), cvec, colsum, bgc, j, aj, wlo, whi, clipped,
                            acorr, nk, m, pp, off)
     return bi
 
@@ -328,7 +328,7 @@ def uos_pixel(kb, kw, nu, tabs, scr):
     # cvec is all zero between pixels: only the photon intervals are touched, reset below
     niv = photon_intervals(kb, nu, T.nk - 1 - T.off, T.off, T.m, S.ivlo, S.ivhi)
     uos_scatter(kb, kw, nu, S.cvec, T.grev, T.inv_gmax, T.nk, T.off, T.m)
-    ns = 0
+    ns = ZERO
     bg = 0.0
     it = 0
     clipped = False
@@ -346,22 +346,22 @@ def uos_pixel(kb, kw, nu, tabs, scr):
     return np.nan, 0.0, bg, it, conv
 
 
-@njit(cache=True, nogil=True)
-def _uos_block(blk, ph, tabs, maxn, out_shift, out_amp, out_bg, out_iter, out_conv, out_n):
-    """The pixels of block blk of :func:`uos_kernel` with their scratch."""
-    px = pixel_scratch(maxn, tabs.m)
-    scr = uos_scratch(maxn, tabs.m)
-    for p in block_pixels(ph, blk):
+@njit(cache=True, nogil=True, _nrt=False)
+def _uos_pixels(ph, tabs, px, scr, out_shift, out_amp, out_bg, out_iter, out_conv, out_n):
+    """Every pixel of ph with the scratch px and scr (it allocates nothing: compiled without
+    numba's reference counting, as uos_pixel is)."""
+    for p in range(ph.offsets.size - 1):
         nu, out_n[p] = pixel_bins(ph, p, px)
         out_shift[p], out_amp[p], out_bg[p], out_iter[p], out_conv[p] = uos_pixel(px.kb, px.kw, nu, tabs, scr)
 
 
-@njit(cache=True, nogil=True)
 def uos_kernel(ph, tabs, maxn, out_shift, out_amp, out_bg, out_iter, out_conv, out_n):
     """Union-of-subspaces greedy pursuit (Algorithm 1) per pixel of ph (:class:`recon.kernels.Photons`,
     at most maxn detections a pixel) with :class:`UosTables`. Outputs per pixel p: out_shift
     (bins, float; NaN none), out_amp (amplitude on the unit-area kernel: expected signal detections
     of an unclipped pulse), out_bg (background per bin), out_iter (iterations), out_conv
-    (converged), out_n (photons). Its variance is the caller's (a matched filter's, from these)."""
-    for blk in range(n_blocks(ph)):
-        _uos_block(np.int64(blk), ph, tabs, maxn, out_shift, out_amp, out_bg, out_iter, out_conv, out_n)
+    (converged), out_n (photons). Its variance is the caller's (a matched filter's, from these).
+    Releases the GIL. The scratch is allocated here, so that the compiled loop is the function
+    called from Python (see :func:`.ml_kernels.ml_kernel`: one level of compiled calls fewer)."""
+    _uos_pixels(ph, tabs, pixel_scratch(maxn, tabs.m), uos_scratch(maxn, tabs.m), out_shift, out_amp, out_bg,
+                out_iter, out_conv, out_n)
