@@ -69,12 +69,14 @@ def as_photons(counts: CountStore) -> PhotonStore:
     return counts.to_photons(round_counts=not counts.is_whole())
 
 
-def warm_up(settings: ReconSettings) -> None:
+def warm_up(settings: ReconSettings, decide: bool = True) -> None:
     """Load (or, on a cold numba cache, compile) the kernels that ``settings``' estimator runs, on
     one made-up pixel of four detections, so that a later call on real data does not wait for them
     (a new process loads each kernel from the cache on its first call). Without a binning (a file's
     comes from its data) a made-up one of 64 bins serves: the kernels' code does not depend on it.
-    Only the method and the number of surfaces choose kernels; results are discarded."""
+    Only the method and the number of surfaces choose kernels; results are discarded. ``decide``:
+    also the return test's (:mod:`recon.detect`, which every reconstruction runs); False: the
+    estimator's alone."""
     b = settings.binning
     if b is None:
         b = Binning(1e-12, 0.0, 64.0, 1.0)
@@ -83,7 +85,56 @@ def warm_up(settings: ReconSettings) -> None:
     pulse = settings.pulse_rms_s
     if pulse is None and settings.irf is None:
         pulse = 3 * b.bin_width_s          # any width: only the kernels' loading matters
-    reconstruct(one, dataclasses.replace(settings, binning=b, pulse_rms_s=pulse))
+    settings = dataclasses.replace(settings, binning=b, pulse_rms_s=pulse)
+    if decide:
+        reconstruct(one, settings)
+        return
+    bb, kern, notes = resolve_model(one, settings)
+    estimators.for_settings(settings).run(one, settings, bb, kern, notes)
 
 
-__all__ = ["as_photons", "reconstruct", "resolve_model", "warm_up"]
+def compile_apart(settings: list[ReconSettings]) -> "subprocess.Popen | None":
+    """The first run after an install: compile the estimator kernels of each of ``settings`` (as
+    :func:`warm_up` with ``decide=False``) into numba's cache in a new interpreter, started now, and
+    return it; wait for it before their first call here, which then loads them from the cache.
+    None when each is in the cache already (or its kernels are not found: then its first call
+    compiles it here, as without this). Numba compiles one function at a time in a process (one
+    lock for every thread), so only another process puts a second core to compiling while this one
+    compiles or runs other kernels. The child inherits the environment (NUMBA_CACHE_DIR, the path)."""
+    import json
+    import subprocess
+    import sys
+
+    cold = [s for s in settings if not _kernels_cached(estimators.for_settings(s))]
+    if not cold:
+        return None
+    code = ("import json, sys\nfrom spdepth.recon.estimate import warm_up\n"
+            "from spdepth.recon.model import ReconSettings\n"
+            "for d in json.loads(sys.argv[1]):\n    warm_up(ReconSettings.from_dict(d), decide=False)\n")
+    return subprocess.Popen([sys.executable, "-c", code, json.dumps([s.to_dict() for s in cold])],
+                            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+
+def _kernels_cached(est) -> bool:
+    """Whether numba's cache holds compiled code of any kernel of ``est``'s kernel module (the fit's
+    module with ``_kernels`` after it, as lmf, uos and ml have; True when there is none), read from
+    the cache's index files without loading any code (numba's own FunctionCache reader: an index
+    left by other sources reads as empty)."""
+    import importlib
+
+    fit = est.fit
+    module = fit.partition(":")[0] if isinstance(fit, str) else getattr(fit, "__module__", "")
+    try:
+        kernels = importlib.import_module(module + "_kernels")
+    except ImportError:
+        return True
+    caches = [getattr(v, "_cache", None) for v in vars(kernels).values()
+              if getattr(getattr(v, "py_func", None), "__module__", None) == kernels.__name__]
+    files = [getattr(c, "_cache_file", None) for c in caches]
+    files = [f for f in files if f is not None and hasattr(f, "_load_index")]
+    if not files:
+        return True
+    return any(f._load_index() for f in files)
+
+
+__all__ = ["as_photons", "compile_apart", "reconstruct", "resolve_model", "warm_up"]

@@ -61,6 +61,7 @@ def _window(args, request, methods) -> int:
     print("spdepth demo: opening the window (--no-window for the headless PNG sheet)",
           file=sys.stderr)
     ran = {}
+    apart = _compile_comparison_apart(request, methods)
 
     def started(run) -> None:
         ran.update(session=run.session, scene=run.instruments.scene)
@@ -74,7 +75,7 @@ def _window(args, request, methods) -> int:
         code = run_demo_window(request, out_dir=None, on_started=started)
     session = ran.get("session")
     if session is not None and session.ended.is_set() and session.store.count.any():
-        _accuracy_table(session, ran["scene"], request, methods)
+        _accuracy_table(session, ran["scene"], request, methods, apart)
     return code
 
 
@@ -115,6 +116,7 @@ def _demo(args, request, methods, out_dir, png) -> int:
 
     h, w = request.size
     scene_name = request.instruments.scene
+    apart = _compile_comparison_apart(request, methods)
     with PreparingNotice("demo") as notice, open_instruments(request) as inst:
         scene = inst.scene
         session = notice.session = build_session(request, out_dir, inst)
@@ -139,7 +141,7 @@ def _demo(args, request, methods, out_dir, png) -> int:
         print(f"{sum(reasons.values())} pixels flagged short of {request.target} detections "
               f"({reasons}); they keep what they have")
 
-    results, true_depth, oracle_cm, same = _accuracy_table(session, scene, request, methods)
+    results, true_depth, oracle_cm, same = _accuracy_table(session, scene, request, methods, apart)
 
     n_surf = true_depth.shape[0]
     sheet = argparse.Namespace()
@@ -176,10 +178,27 @@ def _demo(args, request, methods, out_dir, png) -> int:
     return exit_status(session, interrupted)
 
 
-def _accuracy_table(session, scene, request, methods):
+def _compile_comparison_apart(request, methods):
+    """On a cold numba cache, the kernels of the compared methods other than the live one compile
+    in a second process while this one simulates the scan and compiles the live estimator's
+    (``recon.estimate.compile_apart``), with a line saying so; None when they are cached."""
+    from spdepth.recon.estimate import compile_apart
+    from spdepth.recon.model import ReconSettings
+
+    others = [m for m in methods if m != request.method]
+    apart = compile_apart([ReconSettings(method=m, max_photons=request.target, reflectors=request.reflectors)
+                           for m in others]) if others else None
+    if apart is not None:
+        print(f"spdepth demo: compiling the kernels of {', '.join(others)} in a second process while the "
+              f"scan is prepared (first run; later runs load them from numba's cache)", file=sys.stderr)
+    return apart
+
+
+def _accuracy_table(session, scene, request, methods, apart=None):
     """Reconstruct the session's final photons with each of ``methods`` and print the table
     against the truth and the per-pixel oracle (the headless demo, and the window's once it is
-    closed). Returns ({method: (maps, MAE cm, strongest-surface depth)}, the true depth, the
+    closed); ``apart``: the process compiling their kernels (:func:`_compile_comparison_apart`),
+    waited for first. Returns ({method: (maps, MAE cm, strongest-surface depth)}, the true depth, the
     oracle's MAE in cm, whether the live maps equal the batch ones (None: not compared))."""
     import dataclasses
 
@@ -211,6 +230,8 @@ def _accuracy_table(session, scene, request, methods):
     oracle_cm = [None] * n_surf
     live = session.live_recon.requested
     pulse_rms_s = request.pulse_rms_s or scene.pulse_rms_s
+    if apart is not None:
+        apart.wait()
     for method in methods:
         # the live estimator's settings (pulse, target) with another method, a surface per layer
         settings = dataclasses.replace(live, method=method, max_photons=request.target,
