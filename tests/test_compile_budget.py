@@ -1,0 +1,71 @@
+"""What a first run after an install compiles: each kernel once, and kernels compiled in a second
+process (recon.estimate.compile_apart) loaded here from numba's cache, not compiled again. Each
+test runs a new interpreter with an empty numba cache (NUMBA_CACHE_DIR), as a fresh install has."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+pytestmark = pytest.mark.slow
+
+#: every dispatcher of ours that compiled, with how many signatures, as one JSON line
+_SIGNATURES = """
+import gc, json
+from numba.core.registry import CPUDispatcher
+print(json.dumps({f"{o.py_func.__module__}.{o.py_func.__name__}": len(o.overloads) for o in gc.get_objects()
+                  if isinstance(o, CPUDispatcher) and o.py_func.__module__.startswith("spdepth.")
+                  and len(o.overloads)}))
+"""
+
+
+def _cold(code: str, tmp_path) -> dict:
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba-cache"))
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-2000:]
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def test_estimator_kernels_compile_one_signature_each(tmp_path):
+    # a literal argument (a 0 passed, a loop variable before numba unifies its type) compiles a
+    # callee and all it calls a second time for Literal[int](0): seconds each on a cold cache
+    sigs = _cold("from spdepth.recon.estimate import warm_up\n"
+                 "from spdepth.recon.model import ReconSettings\n"
+                 "for m in ('lmf', 'uos'):\n"
+                 "    warm_up(ReconSettings(method=m, max_photons=15), decide=False)\n" + _SIGNATURES, tmp_path)
+    ours = {k: n for k, n in sigs.items() if k.startswith(("spdepth.recon.kernels", "spdepth.recon.estimators"))}
+    assert "spdepth.recon.estimators.uos_kernels._iterate" in ours      # the nested helpers compiled here
+    assert {k: n for k, n in ours.items() if n != 1} == {}
+
+
+def test_kernels_compiled_apart_load_from_the_cache(tmp_path):
+    got = _cold("""
+import json
+from numba.core import event
+from spdepth.recon.estimate import compile_apart, warm_up
+from spdepth.recon.model import ReconSettings
+
+settings = [ReconSettings(method="lmf", max_photons=15)]
+child = compile_apart(settings)
+started = child is not None
+code = child.wait() if started else None
+again = compile_apart(settings)          # cached now: nothing to start
+compiled = []
+
+class Count(event.Listener):
+    def on_start(self, ev):
+        compiled.append(ev.data["dispatcher"].py_func.__name__)
+
+    def on_end(self, ev):
+        pass
+
+event.register("numba:compile", Count())
+warm_up(settings[0], decide=False)
+print(json.dumps({"started": started, "code": code, "again": again is None, "compiled": compiled}))
+""", tmp_path)
+    assert got["started"] and got["code"] == 0 and got["again"]
+    assert got["compiled"] == []                  # every lmf kernel came from the child's cache
