@@ -10,6 +10,7 @@ whose pilot fits run an estimator on a given model) <- this module.
 from __future__ import annotations
 
 import dataclasses
+import subprocess
 from typing import Callable
 
 import numpy as np
@@ -93,7 +94,7 @@ def warm_up(settings: ReconSettings, decide: bool = True) -> None:
     estimators.for_settings(settings).run(one, settings, bb, kern, notes)
 
 
-def compile_apart(settings: list[ReconSettings]) -> "subprocess.Popen | None":
+def compile_apart(settings: list[ReconSettings]) -> subprocess.Popen | None:
     """The first run after an install: compile the estimator kernels of each of ``settings`` (as
     :func:`warm_up` with ``decide=False``) into numba's cache in a new interpreter, started now, and
     return it; wait for it before their first call here, which then loads them from the cache.
@@ -102,7 +103,6 @@ def compile_apart(settings: list[ReconSettings]) -> "subprocess.Popen | None":
     lock for every thread), so only another process puts a second core to compiling while this one
     compiles or runs other kernels. The child inherits the environment (NUMBA_CACHE_DIR, the path)."""
     import json
-    import subprocess
     import sys
 
     cold = [s for s in settings if not _kernels_cached(estimators.for_settings(s))]

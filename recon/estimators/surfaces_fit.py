@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from concurrent.futures import ThreadPoolExecutor
 from typing import Callable
 
 import numpy as np
@@ -46,7 +47,7 @@ from spdepth.recon.kernels import Photons
 from spdepth.recon.maps import C_M_PER_S, DepthMaps, PixelFlag
 from spdepth.recon.model import Binning, Irf, PulseKernel, ReconSettings, build_kernel, edge_core_rms
 from spdepth.recon.photons import PhotonStore
-from spdepth.recon.pixelwise import CHUNK_PIXELS, binned_photons, honest_var, settings_record
+from spdepth.recon.pixelwise import CHUNK_PIXELS, binned_photons, honest_var, on_threads, settings_record, threads
 
 #: K fixed: a surface is kept when it raises the Poisson log-likelihood by more than this (nats):
 #: Akaike's criterion for its two parameters (shift, amplitude). The user gave the number, so the bar
@@ -130,14 +131,20 @@ def fit_surfaces(store: PhotonStore, settings: ReconSettings, b: Binning, kern: 
     tabs = surface_tables(b, kern, core_s)
     out = surface_outputs(npix, kmax)
     counts = np.diff(offsets)
-    for p0 in range(0, npix, CHUNK_PIXELS):
-        p1 = min(npix, p0 + CHUNK_PIXELS)
+
+    def fit(p0: int, p1: int) -> None:
         o = offsets[p0:p1 + 1]
         maxn = int(counts[p0:p1].max()) if p1 > p0 else 0
         MK.multi_return_kernel(Photons(bins[o[0]:o[-1]], o - o[0]), tabs, kmax, float(gain_min), maxn,
                                MK.SurfOut(*(a[p0:p1] for a in out)))
-        if progress is not None:
-            progress(p1, npix)
+
+    workers = threads()
+    with ThreadPoolExecutor(workers) as pool:
+        for p0 in range(0, npix, CHUNK_PIXELS):
+            p1 = min(npix, p0 + CHUNK_PIXELS)
+            on_threads(fit, p0, p1, pool, workers)
+            if progress is not None:
+                progress(p1, npix)
     return out.shift, out.amp, out.bg, out.var, out.gain, out.n, kmax, gain_min, rule
 
 
@@ -358,12 +365,19 @@ def reconstruct_multi_spatial(store: PhotonStore, settings: ReconSettings, b: Bi
     src = np.full((npix, kmax), -1, np.int64)
     nb = MK.Neighbourhood(h, w, SPATIAL_RADIUS, float(strong), float(pool), float(tau), kmax + 1)
     tabs = surface_tables(b, kern, core_s)
+    ph, maxn = Photons(bins, offsets), int(counts.max())
+
+    def fit(p0: int, p1: int) -> None:
+        MK.neighbour_surfaces(ph, shift0, gain0, nb, tabs, maxn, out, src, p0, p1)
+
     # in slices of pixels, so that a long run shows its progress (the pooled fits are ~85% of it)
-    for p0 in range(0, npix, SPATIAL_SLICE):
-        p1 = min(npix, p0 + SPATIAL_SLICE)
-        MK.neighbour_surfaces(Photons(bins, offsets), shift0, gain0, nb, tabs, int(counts.max()), out, src, p0, p1)
-        if progress is not None:
-            progress(p1, npix)
+    workers = threads()
+    with ThreadPoolExecutor(workers) as pool:
+        for p0 in range(0, npix, SPATIAL_SLICE):
+            p1 = min(npix, p0 + SPATIAL_SLICE)
+            on_threads(fit, p0, p1, pool, workers)
+            if progress is not None:
+                progress(p1, npix)
     has = np.isfinite(shift)
     sig = np.where(has, amp * kern.colsum[np.clip(np.nan_to_num(shift).astype(np.int64), 0, b.n_bins - 1)], 0.0)
     sm_shift = np.empty_like(shift)

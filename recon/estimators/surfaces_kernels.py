@@ -33,8 +33,8 @@ surfaces found the same (90.2%).
 
 The helpers a pixel's fit calls allocate nothing and are compiled with ``_nrt=False``, as in
 :mod:`recon.kernels` (no atomic reference counting of their array arguments at each call: 4% here).
-The functions the parallel loops call are compiled with ``error_model="numpy"``, as numba compiles
-those loops' bodies: a division by zero gives inf or NaN instead of raising, so numba adds no
+The pixel loops and what they call are compiled with ``error_model="numpy"`` (as numba compiled the
+parallel loops they were before): a division by zero gives inf or NaN instead of raising, so numba adds no
 zero-divisor check to each division (4-6% of the K-surface fit at 50 detections per pixel, same
 outputs bit for bit).
 """
@@ -45,9 +45,9 @@ import math
 from collections import namedtuple
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
-from spdepth.recon.kernels import BLOCK, block_pixels, n_blocks, pixel_bins, pixel_scratch, unique_bins
+from spdepth.recon.kernels import ZERO, pixel_bins, pixel_scratch, unique_bins
 
 #: Newton steps on a return's amplitude.
 NEWTON_STEPS = 12
@@ -549,8 +549,8 @@ def _rerefine(kb, kw, nu, nr, bg, tabs, work):
         else:
             model_irate(kb, nu, W.tmp_s, W.tmp_a, nr, bg, T.g, T.off, W.tmp_ilam)
         g0, a0 = add_gain(W.shifts[r], kb, kw, nu, W.tmp_ilam, T.g, T.off, T.colsum, W.amps[r], 0.0, W.wk)
-        jn, gn, an = refine_shift(W.shifts[r], g0, a0, kb, kw, nu, W.tmp_ilam, T.g, T.off, T.colsum, T.m, 2,
-                                  W.shifts, nr, r, T.sep_bins, W.wk, W.seen, 0)
+        jn, gn, an = refine_shift(W.shifts[r], g0, a0, kb, kw, nu, W.tmp_ilam, T.g, T.off, T.colsum, T.m, np.int64(2),
+                                  W.shifts, nr, r, T.sep_bins, W.wk, W.seen, ZERO)
         if jn != W.shifts[r]:
             fresh = False
         W.shifts[r] = jn
@@ -584,14 +584,14 @@ def fit_pixel(kb, kw, nu, tabs, kmax, gain_min, work):
     for u in range(nu):
         W.ilam[u] = 1.0 / bg
     nc = _candidates(kb, nu, T, W)
-    nr = 0
+    nr = ZERO
     while nr < kmax:
         ns = _screen(kb, kw, nc, nr, T, W)
         best, bj, ba = _best_screened(kb, kw, nu, ns, T, W)
         if bj < 0:
             break
         bj, best, ba = refine_shift(bj, best, ba, kb, kw, nu, W.ilam, T.g, T.off, T.colsum, T.m, T.step0, W.shifts,
-                                    nr, -1, T.sep_bins, W.wk, W.seen, ns)
+                                    nr, np.int64(-1), T.sep_bins, W.wk, W.seen, ns)
         if not best > gain_min:
             break
         W.shifts[nr] = bj
@@ -628,24 +628,24 @@ def write_returns(p, nr, bg, tabs, work, out):
         out.var[p, r] = 1.0 / info if info > 0.0 else np.nan
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _multi_block(blk, ph, tabs, kmax, gain_min, maxn, out):
-    """The pixels of block blk of :func:`multi_return_kernel` with their scratch."""
-    px = pixel_scratch(maxn, tabs.m)
-    work = fit_work(max(maxn, 1), kmax)
-    for p in block_pixels(ph, blk):
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
+def _multi_pixels(ph, tabs, kmax, gain_min, px, work, out):
+    """Every pixel of ph with the scratch px and work (it allocates nothing)."""
+    for p in range(ph.offsets.size - 1):
         nu, out.n[p] = pixel_bins(ph, p, px)
-        nr, bg = (0, 0.0) if nu == 0 else fit_pixel(px.kb, px.kw, nu, tabs, kmax, gain_min, work)
+        nr, bg = (ZERO, 0.0) if nu == 0 else fit_pixel(px.kb, px.kw, nu, tabs, kmax, gain_min, work)
         write_returns(p, nr, bg, tabs, work, out)
 
 
-@njit(parallel=True, cache=True, nogil=True)
 def multi_return_kernel(ph, tabs, kmax, gain_min, maxn, out):
     """K-return greedy Poisson pursuit over the pixels of ph (:class:`recon.kernels.Photons`, at most
     maxn detections a pixel) with :class:`SurfTables` (see the module docstring): up to kmax returns a
-    pixel, each gaining more than gain_min nats, into out (:class:`SurfOut`, sorted by shift)."""
-    for blk in prange(n_blocks(ph)):
-        _multi_block(np.int64(blk), ph, tabs, kmax, gain_min, maxn, out)
+    pixel, each gaining more than gain_min nats, into out (:class:`SurfOut`, sorted by shift).
+    Releases the GIL (``recon.pixelwise.on_threads`` shares a fit's pixels among threads); the
+    scratch is allocated here, the compiled loop called from Python (no ``parallel=True`` loop,
+    whose compile numba pays twice, and one level of compiled calls fewer)."""
+    _multi_pixels(ph, tabs, np.int64(kmax), float(gain_min), pixel_scratch(maxn, tabs.m),
+                  fit_work(max(maxn, 1), kmax), out)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -735,7 +735,7 @@ def _censored_fit(kb, kw, nu, nc, cand, csrc, tabs, nb, kmax, work, src):
         if c < 0:
             break
         bj, best, ba = refine_shift(bj, best, ba, kb, kw, nu, W.ilam, T.g, T.off, T.colsum, T.m, T.step0, W.shifts,
-                                    nr, -1, T.sep_bins, W.wk, W.seen, 0)
+                                    nr, np.int64(-1), T.sep_bins, W.wk, W.seen, ZERO)
         for d in range(nc):
             if csrc[d] >= 0 and abs(cand[d] - cand[c]) < T.sep_bins and d != c:
                 csrc[d] = -1
@@ -752,34 +752,6 @@ def _censored_fit(kb, kw, nu, nc, cand, csrc, tabs, nb, kmax, work, src):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _neighbour_block(blk, ph, shift_in, gain_in, nb, tabs, maxn, out, out_src, p_start, p_stop):
-    """The pixels of block blk (of those from p_start to p_stop) of :func:`neighbour_surfaces`."""
-    kmax = out.shift.shape[1]
-    npool = max((2 * nb.radius + 1) * (2 * nb.radius + 1) * maxn, 1)
-    pbins = np.empty(npool, np.int64)
-    ppx = pixel_scratch(npool, tabs.m)
-    pwork = fit_work(npool, nb.kpool)
-    px = pixel_scratch(maxn, tabs.m)
-    work = fit_work(max(maxn, 1), kmax)
-    cand = np.empty(shift_in.shape[1] + nb.kpool, np.int64)
-    csrc = np.empty(shift_in.shape[1] + nb.kpool, np.int64)
-    src = np.empty(kmax, np.int64)
-    for p in range(p_start + blk * BLOCK, min(p_stop, p_start + (blk + 1) * BLOCK)):
-        nu, _ = pixel_bins(ph, p, px)
-        nr, bg = 0, 0.0
-        if nu > 0:
-            # 1. the neighbourhood's pooled fit; 2. candidates: own strong surfaces, then pooled ones
-            n = _pool_neighbourhood(ph, p, nb, pbins)
-            pnu = unique_bins(pbins, 0, n, ppx.tally, ppx.bits, ppx.tmp, ppx.kb, ppx.kw)
-            npr, _ = fit_pixel(ppx.kb, ppx.kw, pnu, tabs, nb.kpool, nb.pool_nats, pwork)
-            nc = _own_and_pooled(p, shift_in, gain_in, nb, npr, pwork.shifts, pwork.amps, cand, csrc)
-            nr, bg = _censored_fit(px.kb, px.kw, nu, nc, cand, csrc, tabs, nb, kmax, work, src)
-        write_returns(p, nr, bg, tabs, work, out)
-        for r in range(kmax):
-            out_src[p, r] = src[r] if r < nr else -1
-
-
-@njit(parallel=True, cache=True, nogil=True)
 def neighbour_surfaces(ph, shift_in, gain_in, nb, tabs, maxn, out, out_src, p_start, p_stop):
     """Each pixel's surfaces with its neighbours' help (:class:`Neighbourhood` nb).
 
@@ -798,12 +770,34 @@ def neighbour_surfaces(ph, shift_in, gain_in, nb, tabs, maxn, out, out_src, p_st
     Outputs as multi_return_kernel's (out.n untouched); out_src[p, r]: 0 the pixel's own strong
     surface, 1 from the neighbourhood's pooled fit, -1 none. Only the pixels p_start <= p < p_stop
     are fitted (their neighbours' detections come from the whole image): the caller goes through the
-    image in slices and reports progress between them."""
-    for blk in prange((p_stop - p_start + BLOCK - 1) // BLOCK):
-        _neighbour_block(np.int64(blk), ph, shift_in, gain_in, nb, tabs, maxn, out, out_src, p_start, p_stop)
+    image in slices, each shared among threads (it releases the GIL; no ``parallel=True`` loop, whose
+    compile numba pays twice), and reports progress between them."""
+    kmax = out.shift.shape[1]
+    npool = max((2 * nb.radius + 1) * (2 * nb.radius + 1) * maxn, 1)
+    pbins = np.empty(npool, np.int64)
+    ppx = pixel_scratch(npool, tabs.m)
+    pwork = fit_work(npool, nb.kpool)
+    px = pixel_scratch(maxn, tabs.m)
+    work = fit_work(max(maxn, 1), kmax)
+    cand = np.empty(shift_in.shape[1] + nb.kpool, np.int64)
+    csrc = np.empty(shift_in.shape[1] + nb.kpool, np.int64)
+    src = np.empty(kmax, np.int64)
+    for p in range(p_start, p_stop):
+        nu, _ = pixel_bins(ph, p, px)
+        nr, bg = ZERO, 0.0
+        if nu > 0:
+            # 1. the neighbourhood's pooled fit; 2. candidates: own strong surfaces, then pooled ones
+            n = _pool_neighbourhood(ph, p, nb, pbins)
+            pnu = unique_bins(pbins, ZERO, n, ppx.tally, ppx.bits, ppx.tmp, ppx.kb, ppx.kw)
+            npr, _ = fit_pixel(ppx.kb, ppx.kw, pnu, tabs, nb.kpool, nb.pool_nats, pwork)
+            nc = _own_and_pooled(p, shift_in, gain_in, nb, npr, pwork.shifts, pwork.amps, cand, csrc)
+            nr, bg = _censored_fit(px.kb, px.kw, nu, nc, cand, csrc, tabs, nb, kmax, work, src)
+        write_returns(p, nr, bg, tabs, work, out)
+        for r in range(kmax):
+            out_src[p, r] = src[r] if r < nr else -1
 
 
-@njit(parallel=True, cache=True, nogil=True)
+@njit(cache=True, nogil=True)
 def smooth_surfaces(shift, sig, var, h, w, radius, tau_bins, out_shift, out_var):
     """Weighted smoothing per surface that keeps edges: each surface's shift becomes the mean of the
     surfaces within tau_bins of it in its (2 radius + 1)^2 neighbourhood (itself included), weighted
@@ -812,7 +806,7 @@ def smooth_surfaces(shift, sig, var, h, w, radius, tau_bins, out_shift, out_var)
     above the surface's own."""
     npix = shift.shape[0]
     kk = shift.shape[1]
-    for p in prange(npix):
+    for p in range(npix):
         y0, x0 = p // w, p % w
         for r in range(kk):
             s = shift[p, r]
