@@ -1,15 +1,19 @@
 """The numba helpers every estimator's kernels share (theirs sit beside each estimator in
-:mod:`recon.estimators`): binning, a pixel's distinct bins and their counts, blocks of pixels,
+:mod:`recon.estimators`): binning, a pixel's distinct bins and their counts,
 sorting, the small linear algebra, and the shift's Fisher information.
 
 Every kernel works from per-pixel photon lists (:class:`Photons`, CSR:
 ``bins[offsets[p]:offsets[p+1]]`` are the bin indices, all inside ``[0, M)``) turned into sorted (bin, count) pairs by ONE helper,
 :func:`pixel_bins` (scratch from :func:`pixel_scratch`), and from the 1-D pulse tables of
 :class:`recon.model.PulseKernel`, so ``S_i^T y = sum over photons of g[k - i]`` and no N x N matrix
-is ever formed. Pixels are processed in blocks of BLOCK under ``prange`` (:func:`n_blocks`,
-:func:`block_pixels`); each block owns its scratch arrays. The shape, after stumpy's ``stump`` ->
-``_stump``: a public kernel (validated, allocated arguments; a prange over blocks) -> a block
-function (its scratch) -> a per-pixel fit made of small named helpers.
+is ever formed. The shape, after stumpy's ``stump`` -> ``_stump``: a public kernel, plain Python
+(validated, allocated arguments and scratch), -> the compiled pixel loop, nogil, that
+``recon.pixelwise.on_threads`` runs over slices of whole BLOCKs of pixels side by side -> a
+per-pixel fit made of small named helpers. No ``parallel=True`` loop (numba compiles its body
+twice) and no compiled level that only allocates and calls the next: numba compiles every called
+function on its own, then optimises and emits the whole call tree again at each level above it.
+Arguments are never literals where a callee is compiled (:data:`ZERO`): a literal's type is a
+signature of its own.
 
 Shift ``i`` means the pulse centroid is at the centre of bin ``i`` (0 <= i < M).
 
@@ -33,7 +37,7 @@ from numba.cpython.unsafe.numbers import trailing_zeros
 
 from spdepth.recon.model import FISHER_RHO0, FISHER_STEPS
 
-#: Pixels per block: a block owns its scratch, blocks run in parallel (prange).
+#: Pixels per block: the threads of a fit take slices of whole blocks (recon.pixelwise.on_threads).
 BLOCK = 64
 #: Sorts of up to this many items are insertion sorts, longer ones heap sorts (a million detections
 #: must not be quadratic). At the 50 detections of `spdepth bench surfaces` insertion sort took 1.1
@@ -249,18 +253,6 @@ def pixel_bins(ph, p, px):
         px.kw[a] = w
         n += w
     return o1 - o0, np.int64(n + 0.5)
-
-
-@njit(cache=True, nogil=True, inline="always")
-def n_blocks(ph):
-    """Blocks of BLOCK pixels over ph's pixels (the prange of every kernel)."""
-    return (ph.offsets.size - 1 + BLOCK - 1) // BLOCK
-
-
-@njit(cache=True, nogil=True, inline="always")
-def block_pixels(ph, blk):
-    """The pixels of block blk (a range)."""
-    return range(blk * BLOCK, min(ph.offsets.size - 1, (blk + 1) * BLOCK))
 
 
 # ------------------------------------------------------------------------------------------------

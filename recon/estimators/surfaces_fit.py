@@ -372,10 +372,10 @@ def reconstruct_multi_spatial(store: PhotonStore, settings: ReconSettings, b: Bi
 
     # in slices of pixels, so that a long run shows its progress (the pooled fits are ~85% of it)
     workers = threads()
-    with ThreadPoolExecutor(workers) as pool:
+    with ThreadPoolExecutor(workers) as executor:
         for p0 in range(0, npix, SPATIAL_SLICE):
             p1 = min(npix, p0 + SPATIAL_SLICE)
-            on_threads(fit, p0, p1, pool, workers)
+            on_threads(fit, p0, p1, executor, workers)
             if progress is not None:
                 progress(p1, npix)
     has = np.isfinite(shift)
