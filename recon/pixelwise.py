@@ -104,14 +104,21 @@ def fit_pixels(store, settings: ReconSettings, b: Binning,
         else:
             fit_chunk(bins[o[0]:o[-1]], o - o[0], maxn, out.rows(p0, p1))
 
+    over_threads(fit, npix, CHUNK_PIXELS, progress)
+    return out
+
+
+def over_threads(fit: Callable[[int, int], None], npix: int, chunk_pixels: int,
+                 progress: Callable[[int, int], None] | None = None) -> None:
+    """``fit(a, b)`` over the pixels [0, npix) in chunks of ``chunk_pixels``, each shared among
+    :func:`threads` threads (:func:`on_threads`), calling ``progress(done, npix)`` after each."""
     workers = threads()
     with ThreadPoolExecutor(workers) as pool:
-        for p0 in range(0, npix, CHUNK_PIXELS):
-            p1 = min(npix, p0 + CHUNK_PIXELS)
+        for p0 in range(0, npix, chunk_pixels):
+            p1 = min(npix, p0 + chunk_pixels)
             on_threads(fit, p0, p1, pool, workers)
             if progress is not None:
                 progress(p1, npix)
-    return out
 
 
 def threads() -> int:

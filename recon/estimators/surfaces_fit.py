@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from concurrent.futures import ThreadPoolExecutor
 from typing import Callable
 
 import numpy as np
@@ -47,7 +46,7 @@ from spdepth.recon.kernels import Photons
 from spdepth.recon.maps import C_M_PER_S, DepthMaps, PixelFlag
 from spdepth.recon.model import Binning, Irf, PulseKernel, ReconSettings, build_kernel, edge_core_rms
 from spdepth.recon.photons import PhotonStore
-from spdepth.recon.pixelwise import CHUNK_PIXELS, binned_photons, honest_var, on_threads, settings_record, threads
+from spdepth.recon.pixelwise import CHUNK_PIXELS, binned_photons, honest_var, over_threads, settings_record
 
 #: K fixed: a surface is kept when it raises the Poisson log-likelihood by more than this (nats):
 #: Akaike's criterion for its two parameters (shift, amplitude). The user gave the number, so the bar
@@ -138,13 +137,7 @@ def fit_surfaces(store: PhotonStore, settings: ReconSettings, b: Binning, kern: 
         MK.multi_return_kernel(Photons(bins[o[0]:o[-1]], o - o[0]), tabs, kmax, float(gain_min), maxn,
                                MK.SurfOut(*(a[p0:p1] for a in out)))
 
-    workers = threads()
-    with ThreadPoolExecutor(workers) as pool:
-        for p0 in range(0, npix, CHUNK_PIXELS):
-            p1 = min(npix, p0 + CHUNK_PIXELS)
-            on_threads(fit, p0, p1, pool, workers)
-            if progress is not None:
-                progress(p1, npix)
+    over_threads(fit, npix, CHUNK_PIXELS, progress)
     return out.shift, out.amp, out.bg, out.var, out.gain, out.n, kmax, gain_min, rule
 
 
@@ -371,13 +364,7 @@ def reconstruct_multi_spatial(store: PhotonStore, settings: ReconSettings, b: Bi
         MK.neighbour_surfaces(ph, shift0, gain0, nb, tabs, maxn, out, src, p0, p1)
 
     # in slices of pixels, so that a long run shows its progress (the pooled fits are ~85% of it)
-    workers = threads()
-    with ThreadPoolExecutor(workers) as executor:
-        for p0 in range(0, npix, SPATIAL_SLICE):
-            p1 = min(npix, p0 + SPATIAL_SLICE)
-            on_threads(fit, p0, p1, executor, workers)
-            if progress is not None:
-                progress(p1, npix)
+    over_threads(fit, npix, SPATIAL_SLICE, progress)
     has = np.isfinite(shift)
     sig = np.where(has, amp * kern.colsum[np.clip(np.nan_to_num(shift).astype(np.int64), 0, b.n_bins - 1)], 0.0)
     sm_shift = np.empty_like(shift)
