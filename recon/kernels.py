@@ -1,5 +1,5 @@
 """The numba helpers every estimator's kernels share (theirs sit beside each estimator in
-:mod:`recon.estimators`): binning, a pixel's distinct bins and their counts,
+:mod:`recon.estimators`): binning, a pixel's distinct bins and their counts, blocks of pixels,
 sorting, the small linear algebra, and the shift's Fisher information.
 
 Every kernel works from per-pixel photon lists (:class:`Photons`, CSR:
@@ -253,6 +253,18 @@ def pixel_bins(ph, p, px):
         px.kw[a] = w
         n += w
     return o1 - o0, np.int64(n + 0.5)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def n_blocks(ph):
+    """Blocks of BLOCK pixels over ph's pixels (recon.detect's loop over them)."""
+    return (ph.offsets.size - 1 + BLOCK - 1) // BLOCK
+
+
+@njit(cache=True, nogil=True, inline="always")
+def block_pixels(ph, blk):
+    """The pixels of block blk (a range)."""
+    return range(blk * BLOCK, min(ph.offsets.size - 1, (blk + 1) * BLOCK))
 
 
 # ------------------------------------------------------------------------------------------------
