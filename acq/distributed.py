@@ -287,14 +287,14 @@ def reconstruct_blocks(client, plan: Plan, settings, time_unit_s: float, on_subm
     chunks = [client.submit(chunk_task, plan, i, pure=False)
               for i in range(len(plan.starts))]
     shares = [[client.submit(_share, c, b, pure=False) for c in chunks] for b in range(n_blocks)]
-    def halo(b):
-        return [f for n in (b - 1, b + 1) if 0 <= n < n_blocks for f in shares[n]]
-
-    blocks = [client.submit(block_task, plan, b, settings, time_unit_s, *shares[b], *halo(b), pure=False)
+    # each block's own shares, then its neighbours' (the halo rows: block_task)
+    inputs = [shares[b] + [f for n in (b - 1, b + 1) if 0 <= n < n_blocks for f in shares[n]]
+              for b in range(n_blocks)]
+    blocks = [client.submit(block_task, plan, b, settings, time_unit_s, *inputs[b], pure=False)
               for b in range(n_blocks)]
     if on_submitted is not None:
         on_submitted(chunks + blocks)
-    del chunks, shares      # the scheduler keeps what the blocks still need, and how to remake it
+    del chunks, shares, inputs      # the scheduler keeps what the blocks still need, and how to remake it
     return assemble(client.gather(blocks))
 
 

@@ -57,7 +57,7 @@ import numpy as np
 from numba import njit
 
 from spdepth.recon.estimators.ml_bounds import ML_SCAN_ALL, _ml_at_int, _photon_range
-from spdepth.recon.estimators.ml_kernels import _upper_bounds, integer_optimum, ml_scratch
+from spdepth.recon.estimators.ml_kernels import integer_optimum, ml_scratch
 from spdepth.recon.kernels import (NO_WEIGHTS, block_pixels, first_above, n_blocks, photon_intervals, pixel_bins,
                                    pixel_scratch)
 from spdepth.recon.maps import C_M_PER_S, PixelFlag
@@ -421,7 +421,7 @@ def _bootstrap_sd(kb, kw, nu, ntot, e, s, sp, ns, top, tabs, n_boot, seed):
             if whole:
                 cnt[di[min(int(x * n), n - 1)]] += 1.0
             else:
-                cnt[min(first_above(cum, nu, x * c, True), nu - 1)] += 1.0
+                cnt[min(first_above(cum, nu, x * c, np.bool_(True)), nu - 1)] += 1.0
         v[:] = 0.0
         for u in range(nu):
             w = cnt[u]
