@@ -277,18 +277,22 @@ def _spread(kb, kw, nu, ntot, e, s, best_i, tabs, rates, sp):
 
 
 @njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
+def _is_peak(sp, ns, k):
+    """Whether the k-th shift of sp is a local maximum of the likelihood over shifts (a run of
+    adjacent shifts with one maximum has one)."""
+    v = sp.logw[k]
+    up = k == 0 or sp.pos[k - 1] != sp.pos[k] - 1 or sp.logw[k - 1] < v
+    down = k == ns - 1 or sp.pos[k + 1] != sp.pos[k] + 1 or sp.logw[k + 1] <= v
+    return up and down
+
+
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
 def _modes(sp, ns, top):
     """How many local maxima the likelihood over shifts has among the shifts within BOOT_NATS of
-    its peak (a run of adjacent shifts with one maximum is one mode)."""
-    bar = top - BOOT_NATS
+    its peak."""
     n = 0
     for k in range(ns):
-        v = sp.logw[k]
-        if v < bar:
-            continue
-        up = k == 0 or sp.pos[k - 1] != sp.pos[k] - 1 or sp.logw[k - 1] < v
-        down = k == ns - 1 or sp.pos[k + 1] != sp.pos[k] + 1 or sp.logw[k + 1] <= v
-        if up and down:
+        if sp.logw[k] >= top - BOOT_NATS and _is_peak(sp, ns, k):
             n += 1
     return n
 
@@ -356,20 +360,23 @@ def _uniform(state):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _bootstrap_sd(kb, kw, nu, ntot, e, s, sp, ns, top, tabs, n_boot, seed):
+def _bootstrap_sd(kb, kw, nu, ntot, e, s, sp, ns, top, tabs, n_boot, seed, peaks_only):
     """Spread of the shift about e (bins) over ``n_boot`` bootstrap resamples of the pixel's
     detections (n = ntot draws, each a distinct bin with probability count / ntot, also for
     counts that are not whole): the 68.27% quantile of |s_b - e| (its core: a
     resample's far jumps at low SBR are the likelihood's to weigh), s_b each resample's best
     shift at the signal share s among the shifts within BOOT_NATS of the likelihood's peak (a
     resample of n detections moves a shift's log-likelihood by about its square root; far below
-    the peak, none wins). NaN when too large to tabulate."""
+    the peak, none wins). With ``peaks_only`` the candidates are the likelihood's local maxima
+    among them: a resample then picks a mode, and the spread within one is the sandwich
+    variance's (a pixel of BOOT_MAX_N detections or more; at low SBR its many likely shifts made
+    the table most of a frame's time). NaN when too large to tabulate."""
     T = tabs
     nk = T.nk
     bar = top - BOOT_NATS
     n_cand = 0
     for k in range(ns):
-        if sp.logw[k] >= bar:
+        if sp.logw[k] >= bar and (not peaks_only or _is_peak(sp, ns, k)):
             n_cand += 1
     if n_cand == 0 or n_cand * nu > BOOT_MAX_TABLE:
         return np.nan
@@ -382,7 +389,7 @@ def _bootstrap_sd(kb, kw, nu, ntot, e, s, sp, ns, top, tabs, n_boot, seed):
     lo0 = row[nk]
     q = 0
     for k in range(ns):
-        if sp.logw[k] < bar:
+        if sp.logw[k] < bar or (peaks_only and not _is_peak(sp, ns, k)):
             continue
         i = int(sp.pos[k])
         cand[q] = i
@@ -487,7 +494,8 @@ def _detect_block(blk, ph, tabs, dt, rates, maxn, est_shift, known_gain, known_s
         out_sd[p], ns, top = _spread(kb, kw, nu, ntot, e, s, best_i, T, rates, sp)
         out_sandwich[p] = _sandwich_var(kb, kw, nu, e, best_s, T)
         if n_boot > 0 and n >= 2 and ns > 0 and (n < BOOT_MAX_N or _modes(sp, ns, top) > 1):
-            out_boot[p] = _bootstrap_sd(kb, kw, nu, ntot, e, s, sp, ns, top, T, n_boot, _pixel_seed(kb, kw, nu))
+            out_boot[p] = _bootstrap_sd(kb, kw, nu, ntot, e, s, sp, ns, top, T, n_boot, _pixel_seed(kb, kw, nu),
+                                        n >= BOOT_MAX_N)
 
 
 @njit(cache=True, nogil=True)
