@@ -28,7 +28,8 @@ exceeds the estimator's own (its Fisher or sandwich variance) beyond its resolut
   no detection costs the whole return, n log(1 - pi)). Where the likelihood has several peaks (low
   SBR: a background cluster nearly as likely as the return) the far ones widen it. Its shifts come
   from one sweep of tabulated log rates (:func:`_spread`); those more than log M + 12 nats below
-  the peak are left out (ml's bound U rules most out unseen);
+  the peak are left out (a shift no detection reaches within the pulse's offsets dlo..dhi, where
+  its rate beats the background's, lies below ntot log(1/M) and is skipped unseen when that is);
 - the sandwich (robust) variance at the estimate: the detections' score spread over the curvature;
 - a bootstrap's, on pixels of fewer than BOOT_MAX_N detections or with several likely peaks: the
   68.27% quantile of |s_b - estimate| over BOOTSTRAP resamples of the pixel's detections, s_b each
@@ -217,8 +218,8 @@ def _spread(kb, kw, nu, ntot, e, s, best_i, tabs, rates, sp):
     base_ll = ntot * lo0                 # every detection off the pulse
     ref = _ll_at(kb, kw, nu, ntot, best_i, s, T, row)
     bar = ref - (SPREAD_NATS_BEYOND + T.logm)
-    # a shift where no detection's rate beats the background's, uni (ml's U is at its floor there:
-    # every detection at an offset outside dlo..dhi), has a likelihood below ntot log uni; when
+    # a shift where no detection's rate beats the background's, uni (every detection at an offset
+    # outside dlo..dhi), has a likelihood below ntot log uni; when
     # that floor lies below the bar only the shifts that some detection reaches within dlo..dhi
     # count, else (low SBR) every shift
     if -ntot * T.logm >= bar:
@@ -642,15 +643,6 @@ def detect(bins: np.ndarray, offsets: np.ndarray, kern, est_shift: np.ndarray, f
     return Detection(gain > thr, gain, sd, sw, boot, thr, float(false_alarm))
 
 
-def _rows(bins: np.ndarray, weights: np.ndarray, offsets: np.ndarray, idx: np.ndarray):
-    """The pixels ``idx`` of a CSR list of bins (and weights, when given) as a CSR list of their own."""
-    counts = np.diff(offsets)[idx]
-    sub_off = np.zeros(idx.size + 1, np.int64)
-    np.cumsum(counts, out=sub_off[1:])
-    at = np.repeat(offsets[idx] - sub_off[:-1], counts) + np.arange(sub_off[-1])
-    return bins[at], (weights[at] if weights.size else NO_WEIGHTS), sub_off
-
-
 def neighbour_support(bins, weights, offsets, shape, kern, est, cand, false_alarm: float, half: int):
     """Which pixels ``cand`` (indices) their neighbours support: the 8 neighbours' detections
     pooled (the pixel's own left out, so the pixel's estimate ``est`` chose nothing among them)
@@ -686,6 +678,7 @@ def decide_maps(store, settings, maps, neighbours: bool = True):
     ``neighbours`` (the store is a frame, its pixels' neighbours beside them) a pixel that fails on
     its own detections may be supported by its neighbours'."""
     from spdepth.recon.counts import CountStore
+    from spdepth.recon.photons import rows_of
     from spdepth.recon.pixelwise import binned_photons
 
     rec = dict(maps.settings)
@@ -729,7 +722,8 @@ def decide_maps(store, settings, maps, neighbours: bool = True):
         supported, thr_n = neighbour_support(bins, weights, offsets, (h, w), kern, est, cand,
                                              settings.false_alarm, half)
         if supported.size:
-            sb, sw_, so = _rows(bins, weights, offsets, supported)
+            at, so = rows_of(offsets, supported)
+            sb, sw_ = bins[at], (weights[at] if weights.size else NO_WEIGHTS)
             sub_known = {k: None if v is None else v[supported] for k, v in known.items()}
             sub = detect(sb, so, kern, est[supported], settings.false_alarm, sw_, spread_all=True, **sub_known)
             det.has_return[supported] = True

@@ -125,6 +125,15 @@ class PhotonStore:
         return self.times[self.offsets[p]:self.offsets[p + 1]]
 
 
+def rows_of(offsets: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The entries of the pixels ``idx`` in a CSR list grouped by ``offsets``: (their flat indices in
+    the pixels' order, the offsets of that list of its own)."""
+    counts = np.diff(offsets)[idx]
+    sub = np.zeros(idx.size + 1, np.int64)
+    np.cumsum(counts, out=sub[1:])
+    return np.repeat(offsets[idx] - sub[:-1], counts) + np.arange(sub[-1]), sub
+
+
 @njit(cache=True, nogil=True)
 def _scatter_by_pixel(pixel, times, offsets, out):
     """Stable counting sort: ``out[offsets[p] + j]`` is the j-th time (in input order) of pixel p."""

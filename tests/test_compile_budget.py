@@ -61,7 +61,7 @@ class Count(event.Listener):
         compiled.append(ev.data["dispatcher"].py_func.__name__)
 
     def on_end(self, ev):
-        pass
+        return None     # numba's Listener needs it; only the starts are counted
 
 event.register("numba:compile", Count())
 warm_up(settings[0], decide=False)

@@ -39,15 +39,20 @@ def _cell_variables(contents: dict) -> dict[str, np.ndarray]:
             and value.dtype == object and value.ndim == 2}
 
 
+class MatlabHdf5(Exception):
+    """The file is MATLAB v7.3, which is HDF5 (scipy's ``loadmat`` reads level 5 only): its numeric
+    arrays are read by :func:`acq.readers.cube.read_hdf5`."""
+
+
 def load_contents(path: Path) -> dict:
-    """Every variable of a level-5 .mat file (scipy's ``loadmat``); a v7.3 file raises
-    NotImplementedError (it is HDF5: :func:`acq.readers.cube.read_hdf5`)."""
+    """Every variable of a level-5 .mat file (scipy's ``loadmat``); :class:`MatlabHdf5` for a v7.3
+    file."""
     import scipy.io
 
     try:
         return scipy.io.loadmat(path, squeeze_me=False, struct_as_record=True)
-    except NotImplementedError:
-        raise
+    except NotImplementedError:       # scipy's word for "v7.3: use HDF5 reader"
+        raise MatlabHdf5(str(path)) from None
     except FileNotFoundError:
         raise InputError(f"{path}: no such file") from None
     except Exception as exc:  # scipy raises many kinds for damaged files (ValueError, TypeError, zlib.error, ...)
@@ -60,7 +65,7 @@ def load_cells(path: str | Path, var: str | None = None, contents: dict | None =
     if contents is None:
         try:
             contents = load_contents(path)
-        except NotImplementedError:
+        except MatlabHdf5:
             raise InputError(f"{path}: MATLAB v7.3 (HDF5) file; save it with -v7 to read it here") from None
     cells = _cell_variables(contents)
     others = ", ".join(f"{k} ({_describe(v)})" for k, v in contents.items() if not k.startswith("__"))
@@ -350,7 +355,7 @@ def read_mat(path: str | Path, *, time_unit_s: float | None, var: str | None = N
                           meta={"mat_var": name, "time_unit_s": time_unit_s})
     try:
         contents = load_contents(path)
-    except NotImplementedError:
+    except MatlabHdf5:
         # v7.3 is HDF5: only its numeric arrays (a cube) are read (cell arrays there are references)
         from spdepth.acq.readers.cube import read_hdf5
 

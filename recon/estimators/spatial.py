@@ -171,8 +171,10 @@ def background_share(x: np.ndarray, offsets: np.ndarray, sigma: float, sample: i
     total = int(counts.sum())
     if total == 0:
         return 0.0
+    from spdepth.recon.photons import rows_of
+
     # one sorted key per detection (pixel, then time): the detections of a span are a key range
-    idx = np.repeat(offsets[pix], counts) + np.arange(total) - np.repeat(np.cumsum(counts) - counts, counts)
+    idx = rows_of(offsets, pix)[0]
     span = 5.0 * sigma
     xs = x[idx]
     apart = float(xs.max() - xs.min()) + span + 1.0
