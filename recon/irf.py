@@ -164,6 +164,30 @@ def _first_dip(h: np.ndarray, w: float, sigma0: float) -> float:
     return float(max(dip, 3 * k) * w)
 
 
+def _return_background_floor(times: np.ndarray, c: np.ndarray, w: float) -> np.ndarray:
+    """Shape over |dt| = c of the pairs of a return with a background detection, from the pooled
+    detection times: background is flat over the detections' span [t0, t0 + W), so a return at t
+    pairs with it at |dt| = d with density proportional to [t - t0 >= d] + [t0 + W - t > d]. The
+    returns' times are the pooled histogram above its median (the background level). Flat until d
+    reaches the returns' distance from the window's edges, then falling: at low SBR these pairs
+    outnumber the return-return ones, and a fit without them reads the fall as a diffusion tail."""
+    t = np.asarray(times, dtype=np.float64)
+    t0, span = float(t.min()), float(t.max() - t.min()) + 1.0
+    nb = max(1, int(math.ceil(span / w)))
+    pooled = np.bincount(np.minimum(((t - t0) / w).astype(np.int64), nb - 1), minlength=nb).astype(np.float64)
+    ret = np.maximum(pooled - np.median(pooled), 0.0)
+    if not ret.sum() > 0:
+        return np.zeros_like(c)
+    centre = (np.arange(nb) + 0.5) * w
+    # sum over the returns' bins of [centre >= d] + [span - centre > d], for each d in c
+    order = np.argsort(centre)
+    after = np.concatenate([np.cumsum(ret[order][::-1])[::-1], [0.0]])
+    from_start = after[np.searchsorted(centre[order], c, side="left")]
+    before_end = after[np.searchsorted(centre[order], span - c, side="left")]
+    g = from_start + (ret.sum() - before_end)
+    return g / g[0]
+
+
 def fit_emg_pairs(store: PhotonStore) -> tuple[float, float, float, int]:
     """(sigma, share, tau) in raw units of the detector response, fitted to the histogram of
     within-pixel detection-time differences (scene depth cancels in them), and the pairs used.
@@ -196,6 +220,7 @@ def fit_emg_pairs(store: PhotonStore) -> tuple[float, float, float, int]:
     c, h = c[use], h[use]
     if c.size < 12:
         raise InputError(f"cannot estimate the pulse shape: the detections span too little time; {NO_PEAK_HINT}")
+    edge = _return_background_floor(store.times, c, w)
     far = h[c > 0.6 * c[-1]]
     a0 = float(np.median(far)) if far.size else 0.0
     amp0 = max(float(np.sum(h - a0)), 1.0)
@@ -207,20 +232,20 @@ def fit_emg_pairs(store: PhotonStore) -> tuple[float, float, float, int]:
     tau_hi = min(60 * sigma0, c[-1] / 4)
 
     def unpack(p, tail):
-        # p: log sigma, amplitude, floor, floor slope[, logit share, log tau]
-        return math.exp(p[0]), (1 / (1 + math.exp(-p[4])) if tail else 0.0), (math.exp(p[5]) if tail else 1.0)
+        # p: log sigma, amplitude, floor, floor slope, return-background pairs[, logit share, log tau]
+        return math.exp(p[0]), (1 / (1 + math.exp(-p[5])) if tail else 0.0), (math.exp(p[6]) if tail else 1.0)
 
     def fit(tail):
         def resid(p):
             sig, sh, tau = unpack(p, tail)
-            mu = p[1] * w * _pair_model(c, sig, sh, tau) + p[2] + p[3] * c / c[-1]
+            mu = p[1] * w * _pair_model(c, sig, sh, tau) + p[2] + p[3] * c / c[-1] + p[4] * edge
             return (h - mu) / np.sqrt(np.maximum(mu, 1.0))
 
         best = None
         for tau0 in ((1.0, 3.0, 10.0) if tail else (None,)):
-            p0 = [math.log(sigma0), amp0, a0, 0.0]
-            lo = [math.log(sigma0 / 10), 0.0, 0.0, -np.inf]
-            hi = [math.log(sigma0 * 10), np.inf, np.inf, np.inf]
+            p0 = [math.log(sigma0), amp0, a0, 0.0, 0.0]
+            lo = [math.log(sigma0 / 10), 0.0, 0.0, -np.inf, 0.0]
+            hi = [math.log(sigma0 * 10), np.inf, np.inf, np.inf, np.inf]
             if tail:
                 p0 += [-1.0, math.log(min(tau0 * sigma0, 0.5 * tau_hi))]
                 lo += [-12.0, math.log(min(0.2 * sigma0, 0.1 * tau_hi))]
@@ -243,7 +268,7 @@ def fit_emg_pairs(store: PhotonStore) -> tuple[float, float, float, int]:
             best = fit(tail=False)
     if best is None or not best.x[1] > 0:
         raise InputError(f"cannot estimate the pulse shape: no peak of coincident detections; {NO_PEAK_HINT}")
-    tail = best.x.size > 4
+    tail = best.x.size > 5
     sig, sh, tau = unpack(best.x, tail)
     return sig, sh, tau, int(hist.sum())
 

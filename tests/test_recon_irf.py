@@ -225,3 +225,20 @@ def test_uncertainty_is_honest_with_the_measured_response(k):
         # estimator's and a 40-sample bootstrap's, which over-covers a little at 5-15 detections
         # (0.75-0.76 within one sigma here; 0.68 with the estimator's own sigma before)
         assert 0.55 <= share <= 0.80
+
+
+def test_bright_background_is_not_read_as_a_tail(tmp_path):
+    # simulated daylight (SBR 0.05, a Gaussian pulse of 360 ps with 50 ps jitter): a return's pairs
+    # with the background fall off in |dt| once they pass the window's start, which a long "tail"
+    # mimics; read as the response, it put every depth late by its mean delay (4.4 m)
+    from tests.conftest import _simulate
+
+    ptu = _simulate(tmp_path / "day.ptu", "--scene", "daylight", "--size", "64x64", "--ppp", "100", "--seed", "1")
+    store = read_photons(ptu).store
+    est = estimate_irf(store)
+    assert est.tail_share < 0.05
+    assert est.irf.rms_s == pytest.approx(np.hypot(360e-12, 50e-12), rel=0.1)
+    maps = reconstruct(store, ReconSettings(method="ml", irf=est.irf))
+    truth = np.load(tmp_path / "day.truth.npz")["depth_m"]
+    err = np.abs(maps.depth_m - truth)[np.isfinite(maps.depth_m)]
+    assert np.median(err) < 0.05
