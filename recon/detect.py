@@ -70,6 +70,7 @@ from spdepth.recon.kernels import (NO_WEIGHTS, block_pixels, first_above, n_bloc
                                    pixel_scratch)
 from spdepth.recon.maps import C_M_PER_S, PixelFlag
 from spdepth.recon.model import Binning, Irf, build_kernel
+from spdepth.recon.pixelwise import over_threads
 
 #: spatial: the pixel's own likelihood spread replaces the estimator's uncertainty when it is more
 #: than this many times larger (decide_maps).
@@ -194,23 +195,18 @@ def _ll_at(kb, kw, nu, ntot, i, s, tabs, row):
 
 
 @njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
-def _spread(kb, kw, nu, ntot, e, s, best_i, tabs, rates, sp, region):
-    """The likelihood over the integer shifts at the fixed signal share s: (sd, ns, top), sd the
-    larger of the 68.27% quantile and half the 95.45% quantile of |shift - e| under it (a flat
-    prior), the ns shifts within SPREAD_NATS_BEYOND + log M of its peak in sp (ascending, with
-    their log-likelihoods; the rest weigh under e^-SPREAD_NATS_BEYOND together), and the peak.
-    The interior shifts' likelihoods come from one sweep, each detection adding its log rates
-    over its reach (contiguous adds into sp.acc, zero between pixels); the few at the
-    window's edges, whose column sums differ, one by one."""
+def _sweep(kb, kw, nu, s, tabs, rates, row, rrow, acc):
+    """Add into acc[i] (zero outside the last pixel's span) the log-likelihood beyond all
+    detections off the pulse of the return at each interior shift i (ia..ib) at the signal share
+    s: each detection adds its row of tabulated log rates over its reach, contiguous. Returns the
+    log rate of a detection off the pulse (the likelihood at an interior shift i is then
+    ntot * that + acc[i]); row gets the log rates by pulse offset (:func:`_log_rates`)."""
     T = tabs
     nk = T.nk
-    row = sp.row
     _log_rates(s, T, rates, row)
     lo0 = row[nk]
-    rrow = sp.rrow
     for t in range(nk):
         rrow[t] = row[nk - 1 - t] - lo0     # shift order: i = k + off - (nk - 1) + t sees offset nk - 1 - t
-    acc = sp.acc
     for u in range(nu):
         i0 = kb[u] + T.off - nk + 1
         t0 = max(0, T.ia - i0)
@@ -222,6 +218,32 @@ def _spread(kb, kw, nu, ntot, e, s, best_i, tabs, rates, sp, region):
         w = kw[u]
         for t in range(seg.size):
             seg[t] += w * sub[t]
+    return lo0
+
+
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
+def _sweep_clear(kb, nu, tabs, acc):
+    """acc back to zero over the span :func:`_sweep` wrote for the detections kb (ascending)."""
+    T = tabs
+    lo = max(T.ia, kb[0] + T.off - T.nk + 1)
+    hi = min(T.ib, kb[nu - 1] + T.off)
+    if hi >= lo:
+        acc[lo:hi + 1] = 0.0
+
+
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
+def _spread(kb, kw, nu, ntot, e, s, best_i, tabs, rates, sp, region):
+    """The likelihood over the integer shifts at the fixed signal share s: (sd, ns, top), sd the
+    larger of the 68.27% quantile and half the 95.45% quantile of |shift - e| under it (a flat
+    prior), the ns shifts within SPREAD_NATS_BEYOND + log M of its peak in sp (ascending, with
+    their log-likelihoods; the rest weigh under e^-SPREAD_NATS_BEYOND together), and the peak.
+    The interior shifts' likelihoods come from one sweep, each detection adding its log rates
+    over its reach (contiguous adds into sp.acc, zero between pixels); the few at the
+    window's edges, whose column sums differ, one by one."""
+    T = tabs
+    row = sp.row
+    acc = sp.acc
+    lo0 = _sweep(kb, kw, nu, s, T, rates, row, sp.rrow, acc)
     base_ll = ntot * lo0                 # every detection off the pulse
     ref = _ll_at(kb, kw, nu, ntot, best_i, s, T, row)
     bar = ref - (SPREAD_NATS_BEYOND + T.logm)
@@ -247,11 +269,7 @@ def _spread(kb, kw, nu, ntot, e, s, best_i, tabs, rates, sp, region):
                 sp.logw[ns] = v
                 top = max(top, v)
                 ns += 1
-    # the sweep's span back to zero for the next pixel
-    lo = max(T.ia, kb[0] + T.off - nk + 1)
-    hi = min(T.ib, kb[nu - 1] + T.off)
-    if hi >= lo:
-        acc[lo:hi + 1] = 0.0
+    _sweep_clear(kb, nu, T, acc)
     if ns == 0:
         return np.nan, 0, top
     total = 0.0
@@ -532,9 +550,11 @@ def detect_kernel(ph, tabs, dt, rates, maxn, est_shift, known_gain, known_share,
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _pool_neighbours(bins, weights, offsets, w, p):
+def _pool_neighbours(bins, weights, offsets, w, p, dense):
     """The up to 8 neighbours' detections of pixel p (row-major in a frame w pixels wide) pooled,
-    its own left out: (distinct bins ascending, their counts, how many, total)."""
+    its own left out: (distinct bins ascending, their counts, how many, total). ``dense``: zeros,
+    one per bin (the counts gather there and it is zero again on return; bins are few against the
+    detections of 8 pixels, so a pass over them orders the pool without a sort)."""
     npix = offsets.size - 1
     h = npix // w
     y, x = p // w, p % w
@@ -542,35 +562,25 @@ def _pool_neighbours(bins, weights, offsets, w, p):
     for yy in range(max(0, y - 1), min(h, y + 2)):
         for xx in range(max(0, x - 1), min(w, x + 2)):
             q = yy * w + xx
-            if q != p:
-                total += offsets[q + 1] - offsets[q]
-    pb = np.empty(total, np.int64)
-    pw = np.empty(total)
-    k = 0
-    for yy in range(max(0, y - 1), min(h, y + 2)):
-        for xx in range(max(0, x - 1), min(w, x + 2)):
-            q = yy * w + xx
             if q == p:
                 continue
             for a in range(offsets[q], offsets[q + 1]):
-                pb[k] = bins[a]
-                pw[k] = weights[a] if weights.size else 1.0
-                k += 1
-    order = np.argsort(pb)
+                if dense[bins[a]] == 0.0:
+                    total += 1
+                dense[bins[a]] += weights[a] if weights.size else 1.0
     kb = np.empty(total, np.int64)
     kw = np.empty(total)
     nu = 0
-    for a in range(total):
-        b = pb[order[a]]
-        if nu > 0 and kb[nu - 1] == b:
-            kw[nu - 1] += pw[order[a]]
-        else:
-            kb[nu] = b
-            kw[nu] = pw[order[a]]
-            nu += 1
     ntot = 0.0
-    for u in range(nu):
-        ntot += kw[u]
+    for b in range(dense.size):
+        if nu == total:
+            break
+        if dense[b] != 0.0:
+            kb[nu] = b
+            kw[nu] = dense[b]
+            ntot += dense[b]
+            dense[b] = 0.0
+            nu += 1
     return kb, kw, nu, ntot
 
 
@@ -582,9 +592,10 @@ def neighbour_gain_kernel(bins, weights, offsets, w, cand, est, half, tabs, out)
     est[cand[c]] (bins). bins/weights/offsets: every pixel's in-window bins (weights empty: one
     detection each)."""
     T = tabs
+    dense = np.zeros(T.m)
     for c in range(cand.size):
         p = cand[c]
-        kb, kw, nu, ntot = _pool_neighbours(bins, weights, offsets, w, p)
+        kb, kw, nu, ntot = _pool_neighbours(bins, weights, offsets, w, p, dense)
         out[c] = 0.0
         if nu == 0:
             continue
@@ -599,28 +610,45 @@ def neighbour_gain_kernel(bins, weights, offsets, w, cand, est, half, tabs, out)
         out[c] = best
 
 
+#: Signal shares at which :func:`neighbour_region_kernel` weighs the neighbours' likelihood (the
+#: largest gain over them stands for the profiled one, a little below it between grid points).
+REGION_SHARES = (1 / 64, 1 / 32, 1 / 16, 1 / 8, 1 / 4, 1 / 2, 3 / 4, 15 / 16)
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
-def neighbour_region_kernel(bins, weights, offsets, w, cand, half, thr, tabs, out):
+def neighbour_region_kernel(bins, weights, offsets, w, cand, half, thr, tabs, rates, shares, out):
     """For each supported pixel cand[c]: out[c, i] = 1 where a return at shift i is within
     ``half`` bins of a shift at which its neighbours' pooled detections (its own left out) pass
-    the support test (profiled gain over ``thr`` nats), else 0: where its neighbours see returns."""
+    the support test (gain over ``thr`` nats at the best of the signal ``shares``), else 0: where
+    its neighbours see returns. ``tabs``: the test's :class:`DetTables`, ``rates`` its
+    :func:`rate_tables`; the likelihood at every shift from one sweep a share (:func:`_sweep`)."""
     T = tabs
+    m = T.m
+    row = np.empty(T.nk + 1)
+    rrow = np.empty(T.nk)
+    acc = np.zeros(m)
+    dense = np.zeros(m)
     for c in range(cand.size):
-        kb, kw, nu, ntot = _pool_neighbours(bins, weights, offsets, w, cand[c])
-        row = out[c]
-        row[:] = 0
+        kb, kw, nu, ntot = _pool_neighbours(bins, weights, offsets, w, cand[c], dense)
+        reg = out[c]
+        reg[:] = 0
         if nu == 0:
             continue
-        s0 = 0.5
-        last = -1
-        for i in range(T.m):
-            s, ll = _ml_at_int(kb, kw, nu, ntot, i, T.g, T.off, T.colsum, T.uni, s0, -np.inf)
-            if 0.0 < s < 1.0:
-                s0 = s
-            if ll + ntot * T.logm > thr:
-                for j in range(max(last + 1, i - half), min(T.m, i + half + 1)):
-                    row[j] = 1
-                last = min(T.m - 1, i + half)
+        for j in range(shares.size):
+            s = shares[j]
+            lo0 = _sweep(kb, kw, nu, s, T, rates, row, rrow, acc)
+            base = ntot * (lo0 + T.logm)
+            upto = -1             # marked up to here at this share
+            for i in range(m):
+                if T.ia <= i <= T.ib:
+                    g = base + acc[i]
+                else:
+                    g = _ll_at(kb, kw, nu, ntot, i, s, T, row) + ntot * T.logm
+                if g > thr:
+                    for k in range(max(upto + 1, i - half), min(m, i + half + 1)):
+                        reg[k] = 1
+                    upto = i + half
+            _sweep_clear(kb, nu, T, acc)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -653,12 +681,9 @@ def detect(bins: np.ndarray, offsets: np.ndarray, kern, est_shift: np.ndarray, f
     :attr:`recon.maps.DepthMaps.gain_nats`), taken instead of searching again. Runs on numba's threads (``recon.pixelwise.threads``)
     in slices of whole blocks, as the pixelwise estimators do: the result is the same however the
     pixels are sliced."""
-    from concurrent.futures import ThreadPoolExecutor
-
     from spdepth.recon.estimators.ml import ml_tables
     from spdepth.recon.estimators.surfaces_fit import auto_threshold_nats, fwhm_bins
     from spdepth.recon.kernels import Photons
-    from spdepth.recon.pixelwise import on_threads, threads
 
     m = int(kern.n_bins)
     npix = offsets.size - 1
@@ -688,10 +713,7 @@ def detect(bins: np.ndarray, offsets: np.ndarray, kern, est_shift: np.ndarray, f
                       -np.inf if spread_all else thr, BOOTSTRAP, reg[p0:p1] if reg.shape[0] else reg, gain[p0:p1],
                       sd[p0:p1], sw[p0:p1], boot[p0:p1])
 
-    if npix:
-        workers = threads()
-        with ThreadPoolExecutor(workers) as pool:
-            on_threads(run, 0, npix, pool, workers)
+    over_threads(run, npix, max(npix, 1))
     return Detection(gain > thr, gain, sd, sw, boot, thr, float(false_alarm))
 
 
@@ -706,12 +728,35 @@ def neighbour_support(bins, weights, offsets, shape, kern, est, cand, false_alar
 
     thr = float(auto_threshold_nats(false_alarm, 2 * half + 1, fwhm_bins(kern.g)))
     gains = np.zeros(cand.size)
-    if cand.size:
-        neighbour_gain_kernel(np.ascontiguousarray(bins, np.int64), np.ascontiguousarray(weights, np.float64),
-                              np.ascontiguousarray(offsets, np.int64), int(shape[1]),
-                              np.ascontiguousarray(cand, np.int64), np.ascontiguousarray(est, np.float64),
-                              int(half), ml_tables(kern, int(kern.n_bins)), gains)
+    bins, weights, offsets, cand = _frame_arrays(bins, weights, offsets, cand)
+    est = np.ascontiguousarray(est, np.float64)
+    tabs = ml_tables(kern, int(kern.n_bins))
+    over_threads(lambda a, b: neighbour_gain_kernel(bins, weights, offsets, int(shape[1]), cand[a:b], est,
+                                                    int(half), tabs, gains[a:b]), cand.size, max(cand.size, 1))
     return cand[gains > thr], thr
+
+
+def neighbour_regions(bins, weights, offsets, width: int, kern, cand, half: int, thr: float) -> np.ndarray:
+    """uint8 (cand.size, bins): where the pixels ``cand`` (indices of a frame ``width`` pixels
+    wide) have their neighbours see returns (:func:`neighbour_region_kernel`)."""
+    from spdepth.recon.estimators.ml import ml_tables
+
+    dt = det_tables(ml_tables(kern, int(kern.n_bins)))
+    rates = rate_tables(dt)
+    shares = np.array(REGION_SHARES)
+    bins, weights, offsets, cand = _frame_arrays(bins, weights, offsets, cand)
+    regions = np.empty((cand.size, int(kern.n_bins)), np.uint8)
+    over_threads(lambda a, b: neighbour_region_kernel(bins, weights, offsets, int(width), cand[a:b], int(half),
+                                                      float(thr), dt, rates, shares, regions[a:b]), cand.size,
+                 max(cand.size, 1))
+    return regions
+
+
+def _frame_arrays(bins, weights, offsets, cand):
+    """The frame's arrays as the neighbour kernels take them."""
+    return (np.ascontiguousarray(bins, np.int64), np.ascontiguousarray(weights, np.float64),
+            np.ascontiguousarray(offsets, np.int64), np.ascontiguousarray(cand, np.int64))
+
 
 
 def _kernel_of(settings: dict):
@@ -780,12 +825,7 @@ def decide_maps(store, settings, maps, neighbours: bool = True):
             # their spreads only over where their neighbours see returns: the reported depth
             # lies there by the support's rule (the likelihood's and the bootstrap's far modes
             # elsewhere would not have been reported)
-            from spdepth.recon.estimators.ml import ml_tables
-
-            regions = np.empty((supported.size, int(kern.n_bins)), np.uint8)
-            neighbour_region_kernel(np.ascontiguousarray(bins, np.int64), np.ascontiguousarray(weights, np.float64),
-                                    np.ascontiguousarray(offsets, np.int64), int(w), supported, half, thr_n,
-                                    ml_tables(kern, int(kern.n_bins)), regions)
+            regions = neighbour_regions(bins, weights, offsets, w, kern, supported, half, thr_n)
             sub = detect(sb, so, kern, est[supported], settings.false_alarm, sw_, spread_all=True, regions=regions,
                          **sub_known)
             det.has_return[supported] = True
