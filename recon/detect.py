@@ -33,7 +33,11 @@ exceeds the estimator's own (its Fisher or sandwich variance) beyond its resolut
 - the sandwich (robust) variance at the estimate: the detections' score spread over the curvature;
 - a bootstrap's, on pixels of fewer than BOOT_MAX_N detections or with several likely peaks: the
   68.27% quantile of |s_b - estimate| over BOOTSTRAP resamples of the pixel's detections, s_b each
-  resample's best shift. It sees what a model that fits badly hides from the
+  resample's best shift; among several peaks (BOOT_MAX_N detections or more) only those that
+  are returns in their own right (gain over the test's threshold) are candidates, and the
+  spread is the larger of the 68.27% quantile and half the 95.45%, as the likelihood's: a pane
+  and a wall behind it (two_layer_top.mat, ml halves within 3 sigma 92.5% -> 95.8%), not a
+  background cluster, whose resamples' duplicates make coincidences the halves do not pick. It sees what a model that fits badly hides from the
   likelihood: on tower_9km.mat returns spread over ~2 ns in pixels whose pulse core is 241 ps, and
   the halves of such a pixel chose different clusters, each with a "2 cm" sigma.
 
@@ -395,7 +399,7 @@ def _candidate(sp, ns, k, bar, peaks_only, region):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _bootstrap_sd(kb, kw, nu, ntot, e, s, sp, ns, top, tabs, n_boot, seed, peaks_only, region):
+def _bootstrap_sd(kb, kw, nu, ntot, e, s, sp, ns, top, tabs, n_boot, seed, peaks_only, region, mode_thr):
     """Spread of the shift about e (bins) over ``n_boot`` bootstrap resamples of the pixel's
     detections (n = ntot draws, each a distinct bin with probability count / ntot, also for
     counts that are not whole): the 68.27% quantile of |s_b - e| (its core: a
@@ -409,6 +413,11 @@ def _bootstrap_sd(kb, kw, nu, ntot, e, s, sp, ns, top, tabs, n_boot, seed, peaks
     T = tabs
     nk = T.nk
     bar = top - BOOT_NATS
+    if peaks_only:
+        # a mode is a candidate only as a return in its own right: a background cluster's
+        # resamples (their duplicates make coincidences) are picked far more often than the
+        # halves of the data pick it (simulated daylight: 76% within 1 sigma -> 85% with them)
+        bar = max(bar, mode_thr - ntot * T.logm)
     n_cand = 0
     for k in range(ns):
         if _candidate(sp, ns, k, bar, peaks_only, region):
@@ -477,7 +486,13 @@ def _bootstrap_sd(kb, kw, nu, ntot, e, s, sp, ns, top, tabs, n_boot, seed, peaks
                 best = q
         dist[b] = abs(cand[best] - e)
     dist.sort()
-    return dist[min(n_boot - 1, int(math.ceil(0.6827 * n_boot)) - 1)]
+    q68 = dist[min(n_boot - 1, int(math.ceil(0.6827 * n_boot)) - 1)]
+    if not peaks_only:
+        return q68
+    # among modes, as the likelihood's (:func:`_spread`): the larger of the 68.27% quantile and
+    # half the 95.45%, which a second mode picked by more than 1 resample in 22 reaches
+    q95 = dist[min(n_boot - 1, int(math.ceil(0.9545 * n_boot)) - 1)]
+    return max(q68, q95 / 2.0)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -491,7 +506,7 @@ def _pixel_seed(kb, kw, nu):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _detect_block(blk, ph, tabs, dt, rates, maxn, est_shift, known_gain, known_share, thr, n_boot, regions, out_gain, out_sd, out_sandwich, out_boot):
+def _detect_block(blk, ph, tabs, dt, rates, maxn, est_shift, known_gain, known_share, thr, mode_thr, n_boot, regions, out_gain, out_sd, out_sandwich, out_boot):
     """The pixels of block blk of :func:`detect_kernel` with their scratch (ml's tables ``tabs`` go
     to ml's search only, the test's own functions read ``dt``)."""
     T = dt
@@ -532,11 +547,11 @@ def _detect_block(blk, ph, tabs, dt, rates, maxn, est_shift, known_gain, known_s
         out_sandwich[p] = _sandwich_var(kb, kw, nu, e, best_s, T)
         if n_boot > 0 and n >= 2 and ns > 0 and (n < BOOT_MAX_N or _modes(sp, ns, top) > 1):
             out_boot[p] = _bootstrap_sd(kb, kw, nu, ntot, e, s, sp, ns, top, T, n_boot, _pixel_seed(kb, kw, nu),
-                                        n >= BOOT_MAX_N, region)
+                                        n >= BOOT_MAX_N, region, mode_thr)
 
 
 @njit(cache=True, nogil=True)
-def detect_kernel(ph, tabs, dt, rates, maxn, est_shift, known_gain, known_share, thr, n_boot, regions, out_gain, out_sd, out_sandwich, out_boot):
+def detect_kernel(ph, tabs, dt, rates, maxn, est_shift, known_gain, known_share, thr, mode_thr, n_boot, regions, out_gain, out_sd, out_sandwich, out_boot):
     """Per pixel of ph (:class:`recon.kernels.Photons`, at most maxn entries a pixel) with ml's tables
     (:class:`recon.estimators.ml_kernels.MlTables`; ``dt`` its :class:`DetTables`): the largest log-likelihood gain of one return
     over background alone (nats; ml's exact search over every integer shift, or ``known_gain``
@@ -545,8 +560,8 @@ def detect_kernel(ph, tabs, dt, rates, maxn, est_shift, known_gain, known_share,
     shift about it (bins; NaN: none): the likelihood's (:func:`_spread`), the sandwich variance
     (bins^2) and the bootstrap's."""
     for blk in range(n_blocks(ph)):
-        _detect_block(np.int64(blk), ph, tabs, dt, rates, maxn, est_shift, known_gain, known_share, thr, n_boot, regions, out_gain,
-                      out_sd, out_sandwich, out_boot)
+        _detect_block(np.int64(blk), ph, tabs, dt, rates, maxn, est_shift, known_gain, known_share, thr, mode_thr,
+                      n_boot, regions, out_gain, out_sd, out_sandwich, out_boot)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -710,7 +725,7 @@ def detect(bins: np.ndarray, offsets: np.ndarray, kern, est_shift: np.ndarray, f
         ph = Photons(bins[o[0]:o[-1]], o - o[0], w)
         maxn = int(counts[p0:p1].max()) if p1 > p0 else 0
         detect_kernel(ph, tabs, dt, rates, maxn, est[p0:p1], kg[p0:p1] if kg.size else kg, ks[p0:p1] if kg.size else ks,
-                      -np.inf if spread_all else thr, BOOTSTRAP, reg[p0:p1] if reg.shape[0] else reg, gain[p0:p1],
+                      -np.inf if spread_all else thr, thr, BOOTSTRAP, reg[p0:p1] if reg.shape[0] else reg, gain[p0:p1],
                       sd[p0:p1], sw[p0:p1], boot[p0:p1])
 
     over_threads(run, npix, max(npix, 1))
