@@ -97,6 +97,21 @@ def test_the_benchmarks_say_what_is_wrong_in_one_line(capsys):
         (main(["bench", "decode", "--help"]), capsys.readouterr().out)[1].split())
 
 
+def test_no_benchmark_help_shows_an_unfilled_placeholder(capsys):
+    """A benchmark that takes another command's declared options fills their lists ({method_names},
+    {scenes}, ...) into its help as the command does (bench halves once showed them raw)."""
+    import re
+
+    from spdepth.acq.commands.bench import TARGETS
+
+    for target in sorted(TARGETS):
+        assert main(["bench", target, "--help"]) == 0
+        out = capsys.readouterr().out
+        assert not re.search(r"\{[a-z_]+\}", out), (target, re.findall(r"\{[a-z_]+\}", out))
+    assert main(["bench", "halves", "--help"]) == 0
+    assert "{lmf,uos,ml,spatial}" in capsys.readouterr().out
+
+
 def test_the_window_refuses_a_missing_file_in_one_line(capsys, tmp_path):
     assert main(["gui", "--file", str(tmp_path / "nonexistent.mat"), "--exit-after-scan"]) == 2
     assert _one_line(capsys) == f"spdepth gui: error: {tmp_path / 'nonexistent.mat'}: no such file"

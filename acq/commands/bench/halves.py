@@ -8,7 +8,6 @@ Gaussian error bars, and at least 95%; within 1 combined sigma near 68%.
 
 from __future__ import annotations
 
-import argparse
 import sys
 import tempfile
 import time
@@ -46,7 +45,10 @@ def bench(argv: list[str]) -> int:
     from spdepth.acq.readers import read_photons
     from spdepth.recon.counts import CountStore
 
-    parser = argparse.ArgumentParser(prog="spdepth bench halves", description=__doc__.splitlines()[0])
+    from spdepth.acq.commands.bench import parser as bench_parser
+
+    # the bench's own parser fills the recon options' method list into their help (acq.params.expand)
+    parser = bench_parser("halves", __doc__.splitlines()[0])
     recon_cmd.add_arguments(parser)
     parser.add_argument("--seed", type=int, default=0, help="seed of the split (default 0)")
     args = parser.parse_args(argv)
