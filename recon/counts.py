@@ -154,28 +154,36 @@ class CountStore:
 
     def to_photons(self, *, round_counts: bool = False) -> PhotonStore:
         """The equivalent photon list: each time repeated by its count, in time order within each
-        pixel. Whole counts only, unless ``round_counts``: then each pixel's running total is
-        rounded (every count becomes the floor or the ceiling of itself, the pixel's total is kept
-        to within one, and no count is rounded away systematically), for the estimators that take
-        photons only (spatial, several surfaces) on a pile-up-corrected store."""
+        pixel. Whole counts only, unless ``round_counts``: then the counts are :meth:`rounded`
+        first."""
         if round_counts:
-            run = np.cumsum(self.counts)
-            start = np.zeros(self.n_pixels)
-            has = np.diff(self.offsets) > 0
-            start[has] = (run - self.counts)[self.offsets[:-1][has]]
-            edge = np.floor(run - np.repeat(start, np.diff(self.offsets)) + 0.5)
-            prev = np.empty_like(edge)
-            prev[1:] = edge[:-1]
-            prev[self.offsets[:-1][has]] = 0.0
-            reps = (edge - prev).astype(np.int64)
-        elif not self.is_whole():
+            return self.rounded().to_photons()
+        if not self.is_whole():
             raise InputError("only whole counts expand into a photon list (this store is corrected)")
-        else:
-            reps = self.counts.astype(np.int64)
-        per_pixel = np.bincount(self.pixel_index(), weights=reps, minlength=self.n_pixels)
+        reps = self.counts.astype(np.int64)
         offsets = np.zeros(self.n_pixels + 1, np.int64)
-        np.cumsum(per_pixel.astype(np.int64), out=offsets[1:])
+        np.cumsum(np.bincount(self.pixel_index(), weights=reps, minlength=self.n_pixels).astype(np.int64),
+                  out=offsets[1:])
         return PhotonStore(np.repeat(self.times, reps), offsets, self.shape, self.time_unit_s)
+
+    def rounded(self) -> "CountStore":
+        """Whole counts for what needs them (the photon list, spatial's censoring, the K-surface
+        fit) from a pile-up-corrected store: each pixel's running total is rounded, so every count
+        becomes the floor or the ceiling of itself, the pixel's total is kept to within one, and no
+        count is rounded away systematically; entries rounded to 0 are dropped. A store of whole
+        counts is returned as it is."""
+        if self.is_whole():
+            return self
+        run = np.cumsum(self.counts)
+        start = np.zeros(self.n_pixels)
+        has = np.diff(self.offsets) > 0
+        start[has] = (run - self.counts)[self.offsets[:-1][has]]
+        edge = np.floor(run - np.repeat(start, np.diff(self.offsets)) + 0.5)
+        prev = np.empty_like(edge)
+        prev[1:] = edge[:-1]
+        prev[self.offsets[:-1][has]] = 0.0
+        reps = edge - prev
+        return self._subset(reps > 0, reps, self.periods)
 
     def binned(self, binning) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The counts in ``binning``'s window (a :class:`recon.model.Binning` in this store's raw

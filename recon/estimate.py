@@ -32,7 +32,8 @@ def reconstruct(store: PhotonStore, settings: ReconSettings,
 
     ``store``: a photon list, or counts (``recon.counts.CountStore``: a histogram cube, or a
     pile-up-corrected histogram), which an estimator with the ``counts`` capability takes as (bin,
-    count) pairs and any other as the equivalent photon list.
+    count) pairs (of whole counts, rounded first, for the "whole" ones) and any other as the
+    equivalent photon list.
 
     Steps: resolve the binning and pulse (estimating the pulse RMS from the data when neither a width
     nor an IRF is given), then run the estimator of ``settings`` (``recon.estimators.for_settings``:
@@ -52,6 +53,8 @@ def reconstruct(store: PhotonStore, settings: ReconSettings,
     est = estimators.for_settings(settings)
     if isinstance(store, CountStore) and not est.counts:
         store = as_photons(store)
+    elif isinstance(store, CountStore) and est.counts == "whole":
+        store = store.rounded()
     model_from = store
     if isinstance(store, CountStore) and given_pulse(settings) is None:
         model_from = as_photons(store)    # the pulse is measured on photon times (recon.irf)

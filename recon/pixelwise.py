@@ -73,6 +73,23 @@ def binned_photons(store: PhotonStore, b: Binning, max_photons: int | None) -> t
     return bins[:n_kept], offsets
 
 
+def store_pairs(store, b: Binning, max_photons: int | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(bins, weights, offsets) of every pixel's in-window detections: a photon list's first
+    ``max_photons`` as :func:`binned_photons` gives them, with ``weights`` empty
+    (``recon.kernels.NO_WEIGHTS``: each entry one detection), or a
+    :class:`recon.counts.CountStore`'s (bin, count) pairs (``CountStore.binned``), which keep no
+    detection order (``max_photons`` refused)."""
+    from spdepth.recon.counts import CountStore
+    from spdepth.recon.kernels import NO_WEIGHTS
+
+    if isinstance(store, CountStore):
+        if max_photons is not None:
+            raise InputError("counts keep no detection order: max_photons does not apply")
+        return store.binned(b)
+    bins, offsets = binned_photons(store, b, max_photons)
+    return bins, NO_WEIGHTS, offsets
+
+
 def fit_pixels(store, settings: ReconSettings, b: Binning,
                fit_chunk: Callable[..., None],
                progress: Callable[[int, int], None] | None = None) -> PixelFit:
@@ -81,18 +98,9 @@ def fit_pixels(store, settings: ReconSettings, b: Binning,
     entries a pixel has), calling ``progress(done, total)`` after each. A
     :class:`recon.counts.CountStore` (given only to estimators with the ``counts`` capability) comes
     as (bin, count) pairs: ``fit_chunk(bins, offsets, max_n, out, weights=counts)``."""
-    from spdepth.recon.counts import CountStore
-    from spdepth.recon.kernels import NO_WEIGHTS
-
     if settings.several:
         raise InputError("a pixelwise fit gives one surface per pixel; several: recon.estimators.surfaces")
-    if isinstance(store, CountStore):
-        if settings.max_photons is not None:
-            raise InputError("counts keep no detection order: max_photons does not apply")
-        bins, weights, offsets = store.binned(b)
-    else:
-        bins, offsets = binned_photons(store, b, settings.max_photons)
-        weights = NO_WEIGHTS
+    bins, weights, offsets = store_pairs(store, b, settings.max_photons)
     npix = store.n_pixels
     counts = np.diff(offsets)
     out = PixelFit.empty(npix)

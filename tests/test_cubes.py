@@ -180,7 +180,7 @@ def test_cli_reads_a_mat_cube(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("method,reflectors", [("lmf", 1), ("uos", 1), ("ml", 1), ("spatial", 1), ("uos", 2),
-                                               ("ml", "auto")])
+                                               ("ml", "auto"), ("spatial", 2), ("spatial", "auto")])
 def test_every_estimator_gives_the_same_maps_from_a_cube_as_from_its_photon_list(method, reflectors):
     """(bin, count) pairs in, the maps of the equivalent photon list out, exactly."""
     from spdepth.recon.estimate import reconstruct
@@ -196,6 +196,24 @@ def test_every_estimator_gives_the_same_maps_from_a_cube_as_from_its_photon_list
         for key in ("tof_s", "signal", "background", "uncertainty_s", "flags", "photons", "surfaces"):
             np.testing.assert_array_equal(getattr(a, key), getattr(b, key), err_msg=f"{method} {key}")
         assert np.isfinite(a.tof_s).any()
+
+
+@pytest.mark.parametrize("method", ["ml", "spatial"])
+def test_the_k_surface_fit_measures_its_response_on_counts_as_on_photons(method):
+    """No pulse given: the K-surface fit re-measures the response pooled on its surfaces, from the
+    (bin, count) pairs as from the photon list, with the same maps."""
+    from spdepth.recon.estimate import reconstruct
+    from spdepth.recon.model import Binning, ReconSettings
+
+    cube, _ = small_cube(seed=5, shape=(24, 24, 200), signal=40.0, bg=0.05)
+    counts = CountStore.from_cube(cube, 80e-12)
+    s = ReconSettings(method=method, binning=Binning.from_window(80e-12, (0.0, 200 * 80e-12), 80e-12),
+                      reflectors=2)
+    a, b = reconstruct(counts, s), reconstruct(counts.to_photons(), s)
+    assert a.settings["pulse_source"] == "estimated, then measured on the surfaces"
+    assert a.settings["irf"] == b.settings["irf"]
+    for key in ("tof_s", "signal", "background", "uncertainty_s", "flags", "photons", "surfaces"):
+        np.testing.assert_array_equal(getattr(a, key), getattr(b, key), err_msg=f"{method} {key}")
 
 
 @pytest.mark.parametrize("method", ["lmf", "uos", "ml"])

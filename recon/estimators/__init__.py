@@ -47,8 +47,9 @@ class Estimator:
                    live maps and this one runs once on the whole final frame.
     method:        offered as a ``--method`` (False: reached only through another's ``several``).
     counts:        its fit takes a ``recon.counts.CountStore`` as (bin, count) pairs
-                   (``recon.pixelwise.fit_pixels``); else it is handed the equivalent photon list
-                   (exact for whole counts, rounded running totals for pile-up-corrected ones).
+                   (``recon.pixelwise.fit_pixels``, ``store_pairs``); "whole": as pairs of whole
+                   counts, a pile-up-corrected store's rounded first (``CountStore.rounded``, as
+                   for its photon list); False: it is handed the equivalent photon list.
     """
 
     name: str
@@ -61,7 +62,7 @@ class Estimator:
     live: bool = True
     live_stand_in: str | None = None
     method: bool = True
-    counts: bool = False
+    counts: bool | str = False
 
     def run(self, store, settings, binning, kernel, notes: dict, progress=None):
         """:data:`Fit` of this estimator, its module imported on the first call."""

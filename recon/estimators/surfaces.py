@@ -11,8 +11,8 @@ from spdepth.recon.estimators import Estimator, register
 SURFACES = register(Estimator(
     "surfaces", "the same K-surface fit (a greedy Poisson pursuit)",
     "spdepth.recon.estimators.surfaces_fit:reconstruct_multi", pixelwise=True, max_surfaces=8,
-    method=False))
+    method=False, counts="whole"))
 SPATIAL_SURFACES = register(Estimator(
     "spatial-surfaces", "the K-surface fit with the neighbours' proposals and smoothing",
     "spdepth.recon.estimators.surfaces_fit:reconstruct_multi_spatial", pixelwise=False,
-    max_surfaces=8, live=False, live_stand_in="surfaces", method=False))
+    max_surfaces=8, live=False, live_stand_in="surfaces", method=False, counts="whole"))

@@ -39,6 +39,7 @@ import numpy as np
 # `spdepth recon --reflectors 2`): chdtri(1, p) is chi2.isf(p, 1), the same function underneath
 from scipy.special import chdtri
 
+from spdepth.recon.counts import CountStore
 from spdepth.recon.estimators import surfaces_kernels as MK
 from spdepth.recon.errors import InputError
 from spdepth.recon.irf import smooth_tail
@@ -46,7 +47,7 @@ from spdepth.recon.kernels import Photons
 from spdepth.recon.maps import C_M_PER_S, DepthMaps, PixelFlag
 from spdepth.recon.model import Binning, Irf, PulseKernel, ReconSettings, build_kernel, edge_core_rms
 from spdepth.recon.photons import PhotonStore
-from spdepth.recon.pixelwise import CHUNK_PIXELS, binned_photons, honest_var, over_threads, settings_record
+from spdepth.recon.pixelwise import CHUNK_PIXELS, honest_var, over_threads, settings_record, store_pairs
 
 #: K fixed: a surface is kept when it raises the Poisson log-likelihood by more than this (nats):
 #: Akaike's criterion for its two parameters (shift, amplitude). The user gave the number, so the bar
@@ -122,9 +123,10 @@ def _step0(core_bins: float) -> int:
 
 def fit_surfaces(store: PhotonStore, settings: ReconSettings, b: Binning, kern: PulseKernel, core_s: float,
                  progress: Callable[[int, int], None] | None = None):
-    """Run the K-surface kernel on every pixel. Returns (shift bins (P, K), amp (P, K), bg (P,), var
-    (P, K), gain (P, K), n_used (P,), kmax, gain_min, rule)."""
-    bins, offsets = binned_photons(store, b, settings.max_photons)
+    """Run the K-surface kernel on every pixel (a photon list's detections, or a count store's (bin,
+    count) pairs). Returns (shift bins (P, K), amp (P, K), bg (P,), var (P, K), gain (P, K), n_used
+    (P,), kmax, gain_min, rule)."""
+    bins, weights, offsets = store_pairs(store, b, settings.max_photons)
     npix = store.n_pixels
     kmax, gain_min, rule = kmax_and_gain(settings, b, fwhm_bins(kern.g))
     tabs = surface_tables(b, kern, core_s)
@@ -134,11 +136,20 @@ def fit_surfaces(store: PhotonStore, settings: ReconSettings, b: Binning, kern: 
     def fit(p0: int, p1: int) -> None:
         o = offsets[p0:p1 + 1]
         maxn = int(counts[p0:p1].max()) if p1 > p0 else 0
-        MK.multi_return_kernel(Photons(bins[o[0]:o[-1]], o - o[0]), tabs, kmax, float(gain_min), maxn,
+        ph = Photons(bins[o[0]:o[-1]], o - o[0], weights[o[0]:o[-1]] if weights.size else weights)
+        MK.multi_return_kernel(ph, tabs, kmax, float(gain_min), maxn,
                                MK.SurfOut(*(a[p0:p1] for a in out)))
 
     over_threads(fit, npix, CHUNK_PIXELS, progress)
     return out.shift, out.amp, out.bg, out.var, out.gain, out.n, kmax, gain_min, rule
+
+
+def _detections(weights: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """Detections per pixel (int64) of CSR entries: one each (``weights`` empty) or their counts."""
+    if not weights.size:
+        return np.diff(offsets)
+    total = np.concatenate([[0.0], np.cumsum(weights)])
+    return np.rint(total[offsets[1:]] - total[offsets[:-1]]).astype(np.int64)
 
 
 def surface_tables(b: Binning, kern: PulseKernel, core_s: float):
@@ -182,6 +193,8 @@ def pooled_response(store: PhotonStore, b: Binning, tof_units: np.ndarray, signa
     counts = np.diff(store.offsets)
     pix = np.repeat(np.arange(store.n_pixels), counts)
     t = store.times
+    # a count store's entries are (time, count) pairs: each adds its count to the pooled histogram
+    weights = store.counts if isinstance(store, CountStore) else None
     inwin = (t >= b.window_start) & (t < b.window_stop)
     kk = tof_units.shape[1]
     has = np.isfinite(tof_units)
@@ -205,7 +218,7 @@ def pooled_response(store: PhotonStore, b: Binning, tof_units: np.ndarray, signa
         use = major[:, r] & (sig[:, r] >= POOL_MIN_SIGNAL) & (hi > lo)
         sel = inwin & use[pix] & (t >= lo[pix]) & (t < hi[pix])
         res = t[sel] - tr[pix[sel]]
-        hist += np.histogram(res, bins=edges)[0]
+        hist += np.histogram(res, bins=edges, weights=None if weights is None else weights[sel])[0]
         # exposure per lag bin: surfaces whose observed span covers the bin
         a = np.clip(np.searchsorted(edges, (lo - tr)[use]), 0, nb)
         z = np.clip(np.searchsorted(edges, (hi - tr)[use]), 0, nb)
@@ -349,16 +362,16 @@ def reconstruct_multi_spatial(store: PhotonStore, settings: ReconSettings, b: Bi
     tau = SPATIAL_TAU_FWHM * fw
     strong = auto_threshold_nats(STRONG_FALSE_ALARM, b.n_bins, fw)
     pool = auto_threshold_nats(settings.false_alarm, b.n_bins, fw)
-    bins, offsets = binned_photons(store, b, settings.max_photons)
+    bins, weights, offsets = store_pairs(store, b, settings.max_photons)
     h, w = store.shape
     npix = h * w
-    counts = np.diff(offsets)
+    counts = _detections(weights, offsets)
     out = surface_outputs(npix, kmax)
     shift, amp, bg, var, gain = out.shift, out.amp, out.bg, out.var, out.gain
     src = np.full((npix, kmax), -1, np.int64)
     nb = MK.Neighbourhood(h, w, SPATIAL_RADIUS, float(strong), float(pool), float(tau), kmax + 1)
     tabs = surface_tables(b, kern, core_s)
-    ph, maxn = Photons(bins, offsets), int(counts.max())
+    ph, maxn = Photons(bins, offsets, weights), int(np.diff(offsets).max())
 
     def fit(p0: int, p1: int) -> None:
         MK.neighbour_surfaces(ph, shift0, gain0, nb, tabs, maxn, out, src, p0, p1)

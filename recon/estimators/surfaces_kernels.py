@@ -47,7 +47,7 @@ from collections import namedtuple
 import numpy as np
 from numba import njit
 
-from spdepth.recon.kernels import ZERO, pixel_bins, pixel_scratch, unique_bins
+from spdepth.recon.kernels import ZERO, lowest_set_bit, pixel_bins, pixel_scratch, unique_bins
 
 #: Newton steps on a return's amplitude.
 NEWTON_STEPS = 12
@@ -70,6 +70,8 @@ BG_FLOOR_SHARE = 1e-9
 #: add_gain's bound must be below the bar by this (relative) to skip the exact gain: far more than
 #: the rounding of either, so the skip never changes a comparison.
 BAR_MARGIN = 1e-9
+#: _pool_pairs' bitmap: one bit a window bin.
+ONE_BIT = np.uint64(1)
 
 
 @njit(cache=True, nogil=True, _nrt=False, inline="always", error_model="numpy")
@@ -667,6 +669,40 @@ def _pool_neighbourhood(ph, p, nb, pbins):
 
 
 @njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
+def _pool_pairs(ph, p, nb, dense, bits, kb, kw):
+    """The (bin, count) pairs of pixel p's neighbourhood merged: its distinct bins ascending into
+    kb, their summed counts into kw (what unique_bins gives for the detections pooled one by one,
+    without them); returns how many. dense (float64, one per window bin) and bits (one bit a bin)
+    must be zero, and are left zero."""
+    y0, x0 = p // nb.w, p % nb.w
+    lo = dense.size
+    hi = -1
+    for y in range(max(0, y0 - nb.radius), min(nb.h, y0 + nb.radius + 1)):
+        for x in range(max(0, x0 - nb.radius), min(nb.w, x0 + nb.radius + 1)):
+            q = y * nb.w + x
+            for i in range(ph.offsets[q], ph.offsets[q + 1]):
+                k = ph.bins[i]
+                dense[k] += ph.weights[i]
+                bits[k >> 6] |= ONE_BIT << np.uint64(k & 63)
+                lo = min(lo, k)
+                hi = max(hi, k)
+    nu = 0
+    if hi < 0:
+        return nu
+    for wd in range(lo >> 6, (hi >> 6) + 1):
+        word = bits[wd]
+        bits[wd] = 0
+        while word != 0:
+            k = (wd << 6) + lowest_set_bit(word)
+            kb[nu] = k
+            kw[nu] = dense[k]
+            dense[k] = 0.0
+            nu += 1
+            word &= word - ONE_BIT
+    return nu
+
+
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
 def _own_and_pooled(p, shift_in, gain_in, nb, npr, pshift, pamp, cand, csrc):
     """Candidates of pixel p: its own pixelwise surfaces that are strong (csrc 0), then the pooled
     ones by amplitude (csrc 1); returns how many. pamp is spent (set to -1)."""
@@ -776,6 +812,7 @@ def neighbour_surfaces(ph, shift_in, gain_in, nb, tabs, maxn, out, out_src, p_st
     npool = max((2 * nb.radius + 1) * (2 * nb.radius + 1) * maxn, 1)
     pbins = np.empty(npool, np.int64)
     ppx = pixel_scratch(npool, tabs.m)
+    pdense = np.zeros(tabs.m)
     pwork = fit_work(npool, nb.kpool)
     px = pixel_scratch(maxn, tabs.m)
     work = fit_work(max(maxn, 1), kmax)
@@ -787,8 +824,11 @@ def neighbour_surfaces(ph, shift_in, gain_in, nb, tabs, maxn, out, out_src, p_st
         nr, bg = ZERO, 0.0
         if nu > 0:
             # 1. the neighbourhood's pooled fit; 2. candidates: own strong surfaces, then pooled ones
-            n = _pool_neighbourhood(ph, p, nb, pbins)
-            pnu = unique_bins(pbins, ZERO, n, ppx.tally, ppx.bits, ppx.tmp, ppx.kb, ppx.kw)
+            if ph.weights.size == 0:
+                n = _pool_neighbourhood(ph, p, nb, pbins)
+                pnu = unique_bins(pbins, ZERO, n, ppx.tally, ppx.bits, ppx.tmp, ppx.kb, ppx.kw)
+            else:
+                pnu = _pool_pairs(ph, p, nb, pdense, ppx.bits, ppx.kb, ppx.kw)
             npr, _ = fit_pixel(ppx.kb, ppx.kw, pnu, tabs, nb.kpool, nb.pool_nats, pwork)
             nc = _own_and_pooled(p, shift_in, gain_in, nb, npr, pwork.shifts, pwork.amps, cand, csrc)
             nr, bg = _censored_fit(px.kb, px.kw, nu, nc, cand, csrc, tabs, nb, kmax, work, src)
