@@ -90,6 +90,16 @@ def store_pairs(store, b: Binning, max_photons: int | None) -> tuple[np.ndarray,
     return bins, NO_WEIGHTS, offsets
 
 
+def detections_per_pixel(weights: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """Detections per pixel (int64) of CSR entries: one each (``weights`` empty), else the entries'
+    counts summed (rounded: a corrected store's need not be whole)."""
+    if not weights.size:
+        return np.diff(offsets)
+    through = np.zeros(weights.size + 1)
+    np.cumsum(weights, out=through[1:])
+    return np.rint(through[offsets[1:]] - through[offsets[:-1]]).astype(np.int64)
+
+
 def fit_pixels(store, settings: ReconSettings, b: Binning,
                fit_chunk: Callable[..., None],
                progress: Callable[[int, int], None] | None = None) -> PixelFit:

@@ -182,7 +182,9 @@ def test_cli_reads_a_mat_cube(tmp_path, capsys):
 @pytest.mark.parametrize("method,reflectors", [("lmf", 1), ("uos", 1), ("ml", 1), ("spatial", 1), ("uos", 2),
                                                ("ml", "auto"), ("spatial", 2), ("spatial", "auto")])
 def test_every_estimator_gives_the_same_maps_from_a_cube_as_from_its_photon_list(method, reflectors):
-    """(bin, count) pairs in, the maps of the equivalent photon list out, exactly."""
+    """(bin, count) pairs in, the maps of the equivalent photon list out: exactly, but for
+    spatial's fit, whose EM sums a count times a responsibility where the photon list adds it count
+    times (a few ulp; its censoring and every decision are exact)."""
     from spdepth.recon.estimate import reconstruct
     from spdepth.recon.model import Binning, ReconSettings
 
@@ -193,9 +195,16 @@ def test_every_estimator_gives_the_same_maps_from_a_cube_as_from_its_photon_list
                     Binning.from_window(80e-12, (10 * 80e-12, 190 * 80e-12), 160e-12)):
         s = ReconSettings(method=method, pulse_rms_s=170e-12, binning=binning, reflectors=reflectors)
         a, b = reconstruct(counts, s), reconstruct(photons, s)
-        for key in ("tof_s", "signal", "background", "uncertainty_s", "flags", "photons", "surfaces"):
+        for key in ("flags", "photons", "surfaces"):
             np.testing.assert_array_equal(getattr(a, key), getattr(b, key), err_msg=f"{method} {key}")
+        for key in ("tof_s", "signal", "background", "uncertainty_s"):
+            if method == "spatial" and reflectors == 1:
+                np.testing.assert_allclose(getattr(a, key), getattr(b, key), rtol=1e-12, atol=0,
+                                           err_msg=f"{method} {key}")
+            else:
+                np.testing.assert_array_equal(getattr(a, key), getattr(b, key), err_msg=f"{method} {key}")
         assert np.isfinite(a.tof_s).any()
+        assert np.array_equal(np.isnan(a.tof_s), np.isnan(b.tof_s))
 
 
 @pytest.mark.parametrize("method", ["ml", "spatial"])

@@ -114,7 +114,7 @@ def test_window_counts_matches_reference(small_store, width):
     nc = int(np.ceil(M / width))
     for radius in (1, 2):
         got = np.empty((h * w, nc), np.int32)
-        SK.window_counts(x, off, h, w, radius, width, got)
+        SK.window_counts(x, np.ones(x.size, np.int32), off, h, w, radius, width, got)
         assert_array_equal(got, ref.window_counts(lists, h, w, radius, width, nc))
 
 
@@ -144,14 +144,14 @@ def test_censor_fit_matches_reference(small_store):
             nc = 0 if width is None else int(np.ceil(M / width))
             counts = np.empty((h * w, nc), np.int32)
             if width is not None:
-                SK.window_counts(x, off, h, w, radius, width, counts)
+                SK.window_counts(x, np.ones(x.size, np.int32), off, h, w, radius, width, counts)
                 # some detection's bound does fall short of its threshold (the path is taken)
                 assert any((_support_bound(counts[p], lists[p], tau, width) <= s_min[p]).any()
                            for p in range(h * w))
             got = [np.empty(h * w), np.empty(h * w), np.empty(h * w), np.empty(h * w, np.int64),
                    np.empty(h * w, np.int64)]
             cs = SK.CensorSettings(h, w, radius, tau, sigma, float(M), 4, width or 1.0)
-            SK.censor_fit(x, off, s_min, counts, cs, *got)
+            SK.censor_fit(x, np.ones(x.size, np.int32), off, s_min, counts, cs, *got)
             for g, wv in zip(got, want):
                 assert_allclose(g, wv, rtol=1e-10, atol=1e-12)
             assert (got[4] > 0).any() and (got[4] < got[3]).any()      # some kept, some censored
@@ -172,7 +172,7 @@ def test_bounded_censoring_changes_no_output(monkeypatch, n, sbr, bins):
     store, _ = simulate(smooth_scene(24, 24), n, sbr, seed=7)
     widths = []
     real = SK.window_counts
-    monkeypatch.setattr(SK, "window_counts", lambda *a: widths.append(a[5]) or real(*a))
+    monkeypatch.setattr(SK, "window_counts", lambda *a: widths.append(a[6]) or real(*a))
     bounded = reconstruct(store, settings("spatial"))
     tau = spatial.TAU_RMS * RMS_UNITS / BIN_UNITS
     want = {"narrow": [pytest.approx(spatial.NARROW_COUNT_BIN_TAU * tau)],
@@ -416,11 +416,11 @@ def test_background_share_measures_the_frame_without_a_model(sbr):
 
     store, _ = simulate(smooth_scene(40, 40), 40, sbr, seed=3)
     x, off = _shifts(store)
-    share = background_share(x, off, RMS_UNITS / BIN_UNITS)
+    share = background_share(x, np.ones(x.size, np.int32), off, RMS_UNITS / BIN_UNITS)
     true = 1.0 / (1.0 + sbr)
     # the densest 5-RMS span of a pixel holds its signal and the background that falls there
     assert true - 0.12 <= share <= true + 0.02, (share, true)
-    assert background_share(x, off, RMS_UNITS / BIN_UNITS, sample=50) == pytest.approx(share, abs=0.08)
+    assert background_share(x, np.ones(x.size, np.int32), off, RMS_UNITS / BIN_UNITS, sample=50) == pytest.approx(share, abs=0.08)
 
 
 def test_censoring_holds_the_stated_false_alarm_rate_on_background_alone():

@@ -156,11 +156,12 @@ def support_needed(counts: np.ndarray, window: np.ndarray, share: float, false_a
     return np.maximum(s.astype(np.int64)[index.ravel()], 1)
 
 
-def background_share(x: np.ndarray, offsets: np.ndarray, sigma: float, sample: int = SHARE_SAMPLE) -> float:
+def background_share(x: np.ndarray, wx: np.ndarray, offsets: np.ndarray, sigma: float,
+                     sample: int = SHARE_SAMPLE) -> float:
     """About the share of the frame's detections that are background, without a model: on up to
     ``sample`` pixels spread over the frame, the detections outside each pixel's densest span of
     5 pulse RMS (the cluster censor_fit seeds its fit with) over all of them. x: each pixel's
-    sorted detection shifts (bins), sigma: the pulse RMS (bins)."""
+    sorted detection shifts (bins), wx the detections at each; sigma: the pulse RMS (bins)."""
     import numpy as np
 
     npix = offsets.size - 1
@@ -168,20 +169,21 @@ def background_share(x: np.ndarray, offsets: np.ndarray, sigma: float, sample: i
     counts = offsets[pix + 1] - offsets[pix]
     keep = counts > 0
     pix, counts = pix[keep], counts[keep]
-    total = int(counts.sum())
-    if total == 0:
+    if not counts.size:
         return 0.0
     from spdepth.recon.photons import rows_of
 
-    # one sorted key per detection (pixel, then time): the detections of a span are a key range
+    # one sorted key per entry (pixel, then time): the detections of a span are a key range
     idx = rows_of(offsets, pix)[0]
     span = 5.0 * sigma
     xs = x[idx]
+    through = np.zeros(idx.size + 1, np.int64)      # the detections before each entry
+    np.cumsum(wx[idx], out=through[1:])
     apart = float(xs.max() - xs.min()) + span + 1.0
     key = np.repeat(np.arange(pix.size) * apart, counts) + xs
-    in_span = np.searchsorted(key, key + span, side="right") - np.arange(total)
+    in_span = through[np.searchsorted(key, key + span, side="right")] - through[:-1]
     densest = np.maximum.reduceat(in_span, np.cumsum(counts) - counts)
-    return 1.0 - float(densest.sum()) / total
+    return 1.0 - float(densest.sum()) / float(through[-1])
 
 
 def fit(store: PhotonStore, settings: ReconSettings, b, kern, notes: dict,
@@ -199,7 +201,7 @@ def fit(store: PhotonStore, settings: ReconSettings, b, kern, notes: dict,
     # the kernels (numba) and the maps load when the estimator runs, not when it is declared
     from spdepth.recon.estimators import spatial_kernels as SK
     from spdepth.recon.maps import C_M_PER_S, DepthMaps, PixelFlag
-    from spdepth.recon.pixelwise import settings_record
+    from spdepth.recon.pixelwise import detections_per_pixel, settings_record
 
     h, w = store.shape
     npix = h * w
@@ -211,13 +213,9 @@ def fit(store: PhotonStore, settings: ReconSettings, b, kern, notes: dict,
     # 1 sigma, were 97.6% / 84.7%)
     sigma = float(notes.get("pulse_core_rms_s", notes["pulse_rms_s"])) / b.bin_width_s
 
-    x = np.empty(store.times.size, np.float64)
-    offsets = np.empty(npix + 1, np.int64)
-    n_kept = SK.window_shifts(store.times, store.offsets, b.window_start, b.window_stop, b.bin_width,
-                              -1 if settings.max_photons is None else int(settings.max_photons),
-                              x, offsets)
-    x = x[:n_kept]
-    counts = np.diff(offsets)
+    x, wx, offsets = _shifts(store, b, settings.max_photons, SK)
+    entries = np.diff(offsets)
+    counts = detections_per_pixel(wx, offsets)
     nonzero = counts[counts > 0]
     typical = float(np.median(nonzero)) if nonzero.size else 0.0
     radius = 2 if typical < WIDE_BELOW else 1
@@ -241,16 +239,16 @@ def fit(store: PhotonStore, settings: ReconSettings, b, kern, notes: dict,
     # neighbour counts of most background detections, which pays with many detections per pixel or
     # much background
     count_width = COUNT_BIN_TAU * tau
-    share = background_share(x, offsets, sigma) if typical >= BOUND_FROM_BACKGROUND else 0.0
+    share = background_share(x, wx, offsets, sigma) if typical >= BOUND_FROM_BACKGROUND else 0.0
     if typical >= BOUND_FROM or share >= BOUND_BACKGROUND_SHARE:
         if share >= NARROW_FROM_BACKGROUND:
             count_width = NARROW_COUNT_BIN_TAU * tau
         win_counts = np.empty((npix, int(math.ceil(m / count_width))), np.int32)
-        SK.window_counts(x, offsets, h, w, radius, count_width, win_counts)
+        SK.window_counts(x, wx, offsets, h, w, radius, count_width, win_counts)
     else:
         win_counts = np.empty((npix, 0), np.int32)
     cs = SK.CensorSettings(h, w, radius, tau, sigma, float(m), EM_ITERS, count_width)
-    SK.censor_fit(x, offsets, s_min, win_counts, cs, mu, k, bg, n_used, n_cens)
+    SK.censor_fit(x, wx, offsets, s_min, win_counts, cs, mu, k, bg, n_used, n_cens)
     if progress is not None:
         progress(npix // 2, npix)
 
@@ -268,7 +266,7 @@ def fit(store: PhotonStore, settings: ReconSettings, b, kern, notes: dict,
     # pixels without a detection, so without background either, beside strong returns of the tower)
     zs = z.ravel() * sigma
     near = np.zeros(npix, bool)
-    pix = np.repeat(np.arange(npix), counts)
+    pix = np.repeat(np.arange(npix), entries)
     close = np.abs(x - zs[pix]) <= tau
     near[pix[close]] = True
     n_near = _box_sum((wt > 0).astype(np.float64), 1).ravel()
@@ -306,6 +304,35 @@ def fit(store: PhotonStore, settings: ReconSettings, b, kern, notes: dict,
                      signal=signal.reshape(h, w), photons=n_used.reshape(h, w),
                      iterations=np.full((h, w), TV_ITERS, np.int32),
                      uncertainty_s=unc_s.reshape(h, w), flags=flags.reshape(h, w), settings=rec)
+
+
+def _shifts(store, b, max_photons: int | None, SK) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(x, wx, offsets): each pixel's in-window detections as sorted shifts (bins, spatial_kernels'
+    module docstring) and the detections at each (int32): a photon list's first ``max_photons``
+    one by one, or a count store's (time, count) pairs as they are (its times ascending and
+    distinct within a pixel; whole counts, a corrected store's rounded), so that the work grows
+    with the occupied bins and the results are those of its photon list."""
+    import numpy as np
+
+    from spdepth.recon.counts import CountStore
+    from spdepth.recon.errors import InputError
+
+    if isinstance(store, CountStore):
+        if max_photons is not None:
+            raise InputError("counts keep no detection order: max_photons does not apply")
+        store = store.rounded()
+        t = store.times
+        keep = (t >= b.window_start) & (t < b.window_stop)
+        # the same arithmetic as SK.window_shifts', so a pair's shift is its detections' to the bit
+        x = (t[keep] - float(b.window_start)) / float(b.bin_width) - 0.5
+        offsets = np.zeros(store.n_pixels + 1, np.int64)
+        np.cumsum(np.bincount(store.pixel_index()[keep], minlength=store.n_pixels), out=offsets[1:])
+        return x, store.counts[keep].astype(np.int32), offsets
+    x = np.empty(store.times.size, np.float64)
+    offsets = np.empty(store.n_pixels + 1, np.int64)
+    n_kept = SK.window_shifts(store.times, store.offsets, b.window_start, b.window_stop, b.bin_width,
+                              -1 if max_photons is None else int(max_photons), x, offsets)
+    return x[:n_kept], np.ones(n_kept, np.int32), offsets
 
 
 def _start(f: np.ndarray, wt: np.ndarray, SK) -> tuple[np.ndarray, np.ndarray]:
@@ -412,4 +439,4 @@ def _box_sum(a: np.ndarray, radius: int) -> np.ndarray:
 
 ESTIMATOR = register(Estimator(
     "spatial", "uses the neighbours: censoring, a pixelwise fit and edge-preserving TV", fit,
-    pixelwise=False, several="spatial-surfaces", live=False, live_stand_in="ml"))
+    pixelwise=False, several="spatial-surfaces", live=False, live_stand_in="ml", counts="whole"))

@@ -4,7 +4,11 @@ out; validation, allocation and the choice of constants happen in :mod:`recon.es
 Times here are continuous shifts in bins: a detection at raw time ``t`` is at
 ``(t - window_start) / bin_width - 0.5``, the shift whose pulse centroid it would be (so the mean of a
 return's signal detections estimates the return's shift directly). Photon lists are CSR
-(``x[offsets[p]:offsets[p + 1]]``, pixels row-major over an H x W image), each pixel's list sorted.
+(``x[offsets[p]:offsets[p + 1]]``, pixels row-major over an H x W image), each pixel's list sorted,
+with ``wx`` the detections at each entry (int32, >= 1): 1 each for a photon list, a time's count for
+a histogram's (time, count) pairs, so that the work grows with the occupied bins. An entry of count c
+is c detections at one time: every result is the one of its photon list (each count expanded), the
+support counts exactly, the sums of the fit to rounding.
 """
 
 from __future__ import annotations
@@ -143,7 +147,7 @@ CensorSettings = namedtuple("CensorSettings", ["h", "w", "radius", "tau", "sigma
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def censor_fit(x, offsets, s_min, win_counts, cs, out_mu, out_k, out_bg, out_n, out_kept):
+def censor_fit(x, wx, offsets, s_min, win_counts, cs, out_mu, out_k, out_bg, out_n, out_kept):
     """Per pixel: censor, then fit a pulse-plus-flat mixture to the detections kept
     (:class:`CensorSettings` cs).
 
@@ -156,6 +160,8 @@ def censor_fit(x, offsets, s_min, win_counts, cs, out_mu, out_k, out_bg, out_n, 
     win_counts (window_counts' output, or (h w) x 0 for none) and its bin width count_width bound each
     detection's support before the neighbours are counted: the outputs are the same with or without.
 
+    x, wx: each pixel's sorted shifts and the detections at each (module docstring).
+
     Outputs per pixel: out_mu (shift, bins; NaN when nothing kept), out_k (signal detections, the
     sum of responsibilities; 0 when nothing kept), out_bg (background detections per bin),
     out_n (detections used), out_kept (detections that passed censoring)."""
@@ -167,16 +173,17 @@ def censor_fit(x, offsets, s_min, win_counts, cs, out_mu, out_k, out_bg, out_n, 
     # a block's pixels in a plain function: with the loop over them inside the parallel loop,
     # numba's parallel lowering took 8 s of cold compile, as a plain function it takes about 4
     for blk in prange(n_blocks):
-        _censor_fit_block(blk * PIXEL_BLOCK, min(npix, (blk + 1) * PIXEL_BLOCK), longest, x, offsets, s_min,
-                          win_counts, cs, out_mu, out_k, out_bg, out_n, out_kept)
+        _censor_fit_block(blk * PIXEL_BLOCK, min(npix, (blk + 1) * PIXEL_BLOCK), longest, x, wx, offsets,
+                          s_min, win_counts, cs, out_mu, out_k, out_bg, out_n, out_kept)
 
 
 @njit(cache=True, nogil=True, _nrt=False)
-def _own_support(xp, n, need, tau, sup, sure, todo):
-    """Each detection's support from the pixel's own sorted list xp[:n] (itself excluded) into sup;
-    the detections still short of ``need`` into todo; returns how many. A detection whose `half`
-    predecessors and `half` successors all lie within tau has >= need supporters: the core of a
-    return is decided by this test (it vectorises) and the walk, whose loops mispredict, skips it."""
+def _own_support(xp, wp, n, need, tau, sup, sure, todo):
+    """Each entry's support from the pixel's own sorted list xp[:n] of counts wp (one of the entry's
+    own detections excluded) into sup; the entries still short of ``need`` into todo; returns how
+    many. An entry whose `half` predecessors and `half` successors all lie within tau has >= need
+    supporters (each entry holds at least one detection): the core of a return is decided by this
+    test (it vectorises) and the walk, whose loops mispredict, skips it."""
     half = (need + 1) // 2
     for i in range(n):
         sure[i] = False
@@ -190,6 +197,7 @@ def _own_support(xp, n, need, tau, sup, sure, todo):
             mid[j] = (before[j] >= at[j] - tau) & (after[j] <= at[j] + tau)
     a = 0
     b = 0
+    inside = 0        # the detections of entries a..b-1
     nt = 0
     for i in range(n):
         if sure[i]:
@@ -197,12 +205,16 @@ def _own_support(xp, n, need, tau, sup, sure, todo):
             continue
         t = xp[i]
         while xp[a] < t - tau:
+            if a < b:
+                inside -= wp[a]
             a += 1
-        if b < i:
-            b = i
+        if b < a:
+            b = a
+            inside = 0
         while b < n and xp[b] <= t + tau:
+            inside += wp[b]
             b += 1
-        sup[i] = b - a - 1
+        sup[i] = inside - 1
         if sup[i] < need:
             todo[nt] = i
             nt += 1
@@ -229,9 +241,9 @@ def _bounded(xp, nt, need, tau, wc, count_width, todo):
 
 
 @njit(cache=True, nogil=True, _nrt=False)
-def _support_from(xp, xq, nt, tau, sup, todo):
-    """Add to sup[todo[:nt]] each undecided detection's supporters among a neighbour's sorted list
-    xq."""
+def _support_from(xp, xq, wq, nt, tau, sup, todo):
+    """Add to sup[todo[:nt]] each undecided entry's supporters among a neighbour's sorted list xq
+    of counts wq."""
     nq = xq.size
     if nt * nq <= WALK_ABOVE * (nt + nq):
         # a comparison per pair without a branch (the loop vectorises): for the few detections still
@@ -243,27 +255,32 @@ def _support_from(xp, xq, nt, tau, sup, todo):
             hi_t = xp[i] + tau
             cnt = 0
             for k in range(nq):
-                cnt += (xq[k] >= lo_t) & (xq[k] <= hi_t)
+                cnt += ((xq[k] >= lo_t) & (xq[k] <= hi_t)) * wq[k]
             sup[i] += cnt
         return
     # many undecided (a background-dominated pixel): two pointers walk both sorted lists once,
     # O(nt + nq)
     a = 0
     b = 0
+    inside = 0        # the detections of entries a..b-1
     for j in range(nt):
         i = todo[j]
         t = xp[i]
         while a < nq and xq[a] < t - tau:
+            if a < b:
+                inside -= wq[a]
             a += 1
         if b < a:
             b = a
+            inside = 0
         while b < nq and xq[b] <= t + tau:
+            inside += wq[b]
             b += 1
-        sup[i] += b - a
+        sup[i] += inside
 
 
 @njit(cache=True, nogil=True, _nrt=False)
-def _neighbour_support(p, xp, nt, need, x, offsets, cs, sup, todo):
+def _neighbour_support(p, xp, nt, need, x, wx, offsets, cs, sup, todo):
     """The undecided detections todo[:nt] of pixel p counted against each neighbour in turn, those
     still short kept after each; returns how many stay short."""
     r0 = p // cs.w
@@ -273,7 +290,7 @@ def _neighbour_support(p, xp, nt, need, x, offsets, cs, sup, todo):
             q = r * cs.w + c
             if q == p or offsets[q + 1] == offsets[q] or nt == 0:
                 continue
-            _support_from(xp, x[offsets[q]:offsets[q + 1]], nt, cs.tau, sup, todo)
+            _support_from(xp, x[offsets[q]:offsets[q + 1]], wx[offsets[q]:offsets[q + 1]], nt, cs.tau, sup, todo)
             keep = 0
             for j in range(nt):
                 todo[keep] = todo[j]
@@ -283,33 +300,37 @@ def _neighbour_support(p, xp, nt, need, x, offsets, cs, sup, todo):
 
 
 @njit(cache=True, nogil=True, _nrt=False)
-def _densest_mean(kept, nk, reach):
-    """(mean, count) of the densest cluster of the sorted kept[:nk]: the most within reach of one of
-    them (two pointers), and the mean of those within reach of it."""
+def _densest_mean(kept, kw, nk, reach):
+    """(mean, count) of the densest cluster of the sorted kept[:nk] of counts kw: the most
+    detections within reach of one of them (two pointers), and the mean of those within reach of
+    it."""
     best = 0
     bi = 0
     lo = 0
     hi = 0
+    inside = 0        # the detections of entries lo..hi-1
     for i in range(nk):
         while kept[lo] < kept[i] - reach:
+            inside -= kw[lo]
             lo += 1
         while hi < nk and kept[hi] <= kept[i] + reach:
+            inside += kw[hi]
             hi += 1
-        if hi - lo > best:
-            best = hi - lo
+        if inside > best:
+            best = inside
             bi = i
     acc = 0.0
     cnt = 0
     for i in range(nk):
         near = abs(kept[i] - kept[bi]) <= reach
-        acc += kept[i] if near else 0.0
-        cnt += near
+        acc += kept[i] * kw[i] if near else 0.0
+        cnt += kw[i] if near else 0
     return acc / cnt, cnt
 
 
 @njit(cache=True, nogil=True)
-def _censor_fit_block(first, last, longest, x, offsets, s_min, win_counts, cs, out_mu, out_k, out_bg, out_n,
-                      out_kept):
+def _censor_fit_block(first, last, longest, x, wx, offsets, s_min, win_counts, cs, out_mu, out_k, out_bg,
+                      out_n, out_kept):
     """censor_fit of pixels first..last - 1 (longest: the longest list)."""
     inv_m = 1.0 / cs.n_bins
     inv_s2 = 1.0 / (cs.sigma * cs.sigma)
@@ -319,14 +340,19 @@ def _censor_fit_block(first, last, longest, x, offsets, s_min, win_counts, cs, o
     todo = np.empty(longest, np.int64)
     sure = np.empty(longest, np.bool_)
     kept = np.empty(longest, np.float64)
+    kept_w = np.empty(longest, wx.dtype)
     for p in range(first, last):
         o0 = offsets[p]
         o1 = offsets[p + 1]
         n = o1 - o0
-        out_n[p] = n
+        wp = wx[o0:o1]
+        nd = 0            # the pixel's detections
+        for i in range(n):
+            nd += wp[i]
+        out_n[p] = nd
         out_mu[p] = np.nan
         out_k[p] = 0.0
-        out_bg[p] = n * inv_m
+        out_bg[p] = nd * inv_m
         out_kept[p] = 0
         if n == 0:
             continue
@@ -340,30 +366,34 @@ def _censor_fit_block(first, last, longest, x, offsets, s_min, win_counts, cs, o
         # views indexed from 0: numba then omits its negative-index fix-up, which kept the
         # comparison loops from vectorising (2x in the pair counts)
         xp = x[o0:o1]
-        nt = _own_support(xp, n, need, cs.tau, sup, sure, todo)
+        nt = _own_support(xp, wp, n, need, cs.tau, sup, sure, todo)
         if win_counts.shape[1] > 0 and nt > 0:
             nt = _bounded(xp, nt, need, cs.tau, win_counts[p], cs.count_width, todo)
-        _neighbour_support(p, xp, nt, need, x, offsets, cs, sup, todo)
+        _neighbour_support(p, xp, nt, need, x, wx, offsets, cs, sup, todo)
         # kept detections: their positions in x (the pixel's list is sorted, so kept ones are too)
         nk = 0
+        n_kept = 0
         for i in range(n):
             kept[nk] = xp[i]
-            nk += sup[i] >= need
-        out_kept[p] = nk
+            kept_w[nk] = wp[i]
+            keep = sup[i] >= need
+            nk += keep
+            n_kept += wp[i] if keep else 0
+        out_kept[p] = n_kept
         if nk == 0:
             continue
-        mu, cnt = _densest_mean(kept, nk, 2.5 * cs.sigma)
-        pi = min(0.999, max(cnt / n, 1e-3))
+        mu, cnt = _densest_mean(kept, kept_w, nk, 2.5 * cs.sigma)
+        pi = min(0.999, max(cnt / nd, 1e-3))
         # EM over all the pixel's detections: a censored detection close to the return still
         # counts as signal in proportion to its likelihood, a kept one far from it does not
-        mu, ksum = _em_fit(xp, mu, pi, float(cnt), cs.em_iters, inv_s2, norm, inv_m)
+        mu, ksum = _em_fit(xp, wp, nd, mu, pi, float(cnt), cs.em_iters, inv_s2, norm, inv_m)
         out_mu[p] = mu
         out_k[p] = ksum
-        out_bg[p] = max(0.0, n - ksum) * inv_m
+        out_bg[p] = max(0.0, nd - ksum) * inv_m
 
 
 @njit(cache=True, nogil=True)
-def window_counts(x, offsets, h, w, radius, width, out):
+def window_counts(x, wx, offsets, h, w, radius, width, out):
     """out[p, k]: the detections of pixel p's (2 radius + 1)^2 window (clipped at the border) whose
     coarse bin (_count_bin with this width) is at most k, cumulative so that any range of bins
     costs two look-ups: censor_fit's upper bounds on a detection's support. Each pixel's list
@@ -382,13 +412,16 @@ def window_counts(x, offsets, h, w, radius, width, out):
         # then a running maximum fills the empty bins. The bins first, in a loop of their own:
         # stores at computed places amid the loads of x ran 3x slower.
         xp = x[offsets[p]:offsets[p + 1]]
+        wp = wx[offsets[p]:offsets[p + 1]]
         for i in range(xp.size):
             bins[i] = _count_bin(xp[i], inv_width, nc)
         row = own[p]
         for k in range(nc):
             row[k] = 0
+        through = 0       # the detections up to entry i
         for i in range(xp.size):
-            row[bins[i]] = i + 1
+            through += wp[i]
+            row[bins[i]] = through
         run = 0
         for k in range(nc):
             run = max(run, row[k])
@@ -419,10 +452,10 @@ def _count_bin(v, inv_width, nc):
 
 
 @njit(cache=True, nogil=True, fastmath={"contract", "reassoc"}, error_model="numpy")
-def _em_fit(xp, mu, pi, ksum, em_iters, inv_s2, norm, inv_m):
-    """``em_iters`` EM steps of ``pi N(mu, sigma^2) + (1 - pi) inv_m`` on the detections xp from
-    (mu, pi); returns (mu, sum of responsibilities), or (mu, ksum) as given when the first step finds
-    none.
+def _em_fit(xp, wp, nd, mu, pi, ksum, em_iters, inv_s2, norm, inv_m):
+    """``em_iters`` EM steps of ``pi N(mu, sigma^2) + (1 - pi) inv_m`` on the nd detections at xp
+    (wp at each) from (mu, pi); returns (mu, sum of responsibilities), or (mu, ksum) as given when
+    the first step finds none.
 
     Written for the compiler to vectorise the loop over detections: exp inlined as a polynomial
     (libm's is a call per detection), divisions without numba's zero check (error_model; no
@@ -437,13 +470,13 @@ def _em_fit(xp, mu, pi, ksum, em_iters, inv_s2, norm, inv_m):
         for i in range(n):
             d = xp[i] - mu
             a = pn * _exp_neg(-0.5 * d * d * inv_s2)
-            rr = a / (a + c)
+            rr = wp[i] * (a / (a + c))
             sr += rr
             srt += rr * xp[i]
         if sr <= 1e-9:
             break
         mu = srt / sr
-        pi = min(0.999, max(sr / n, 1e-3))
+        pi = min(0.999, max(sr / nd, 1e-3))
         ksum = sr
     return mu, ksum
 

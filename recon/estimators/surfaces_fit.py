@@ -47,7 +47,8 @@ from spdepth.recon.kernels import Photons
 from spdepth.recon.maps import C_M_PER_S, DepthMaps, PixelFlag
 from spdepth.recon.model import Binning, Irf, PulseKernel, ReconSettings, build_kernel, edge_core_rms
 from spdepth.recon.photons import PhotonStore
-from spdepth.recon.pixelwise import CHUNK_PIXELS, honest_var, over_threads, settings_record, store_pairs
+from spdepth.recon.pixelwise import (CHUNK_PIXELS, detections_per_pixel, honest_var, over_threads, settings_record,
+                                     store_pairs)
 
 #: K fixed: a surface is kept when it raises the Poisson log-likelihood by more than this (nats):
 #: Akaike's criterion for its two parameters (shift, amplitude). The user gave the number, so the bar
@@ -142,14 +143,6 @@ def fit_surfaces(store: PhotonStore, settings: ReconSettings, b: Binning, kern: 
 
     over_threads(fit, npix, CHUNK_PIXELS, progress)
     return out.shift, out.amp, out.bg, out.var, out.gain, out.n, kmax, gain_min, rule
-
-
-def _detections(weights: np.ndarray, offsets: np.ndarray) -> np.ndarray:
-    """Detections per pixel (int64) of CSR entries: one each (``weights`` empty) or their counts."""
-    if not weights.size:
-        return np.diff(offsets)
-    total = np.concatenate([[0.0], np.cumsum(weights)])
-    return np.rint(total[offsets[1:]] - total[offsets[:-1]]).astype(np.int64)
 
 
 def surface_tables(b: Binning, kern: PulseKernel, core_s: float):
@@ -365,7 +358,7 @@ def reconstruct_multi_spatial(store: PhotonStore, settings: ReconSettings, b: Bi
     bins, weights, offsets = store_pairs(store, b, settings.max_photons)
     h, w = store.shape
     npix = h * w
-    counts = _detections(weights, offsets)
+    counts = detections_per_pixel(weights, offsets)
     out = surface_outputs(npix, kmax)
     shift, amp, bg, var, gain = out.shift, out.amp, out.bg, out.var, out.gain
     src = np.full((npix, kmax), -1, np.int64)
