@@ -684,6 +684,22 @@ class Detection:
     false_alarm: float
 
 
+_TEST_TABLES: dict = {}
+
+
+def _tables_of(tabs):
+    """(DetTables, rate_tables) of ml's tables ``tabs``, kept with them: ml_tables gives the same
+    object for one pulse and window, so a live batch or an array frame does not rebuild them."""
+    hit = _TEST_TABLES.get(id(tabs))
+    if hit is None or hit[0] is not tabs:
+        dt = det_tables(tabs)
+        hit = (tabs, dt, rate_tables(dt))
+        if len(_TEST_TABLES) >= 2:      # as many as ml_tables keeps
+            _TEST_TABLES.clear()
+        _TEST_TABLES[id(tabs)] = hit
+    return hit[1], hit[2]
+
+
 def detect(bins: np.ndarray, offsets: np.ndarray, kern, est_shift: np.ndarray, false_alarm: float,
            weights: np.ndarray = NO_WEIGHTS, spread_all: bool = False, known_gain: np.ndarray | None = None,
            known_share: np.ndarray | None = None, regions: np.ndarray | None = None) -> Detection:
@@ -708,8 +724,7 @@ def detect(bins: np.ndarray, offsets: np.ndarray, kern, est_shift: np.ndarray, f
     boot = np.full(npix, np.nan)
     thr = float(auto_threshold_nats(false_alarm, m, fwhm_bins(kern.g)))
     tabs = ml_tables(kern, m)
-    dt = det_tables(tabs)
-    rates = rate_tables(dt)
+    dt, rates = _tables_of(tabs)
     bins = np.ascontiguousarray(bins, np.int64)
     offsets = np.ascontiguousarray(offsets, np.int64)
     weights = np.ascontiguousarray(weights, np.float64)
@@ -756,8 +771,7 @@ def neighbour_regions(bins, weights, offsets, width: int, kern, cand, half: int,
     wide) have their neighbours see returns (:func:`neighbour_region_kernel`)."""
     from spdepth.recon.estimators.ml import ml_tables
 
-    dt = det_tables(ml_tables(kern, int(kern.n_bins)))
-    rates = rate_tables(dt)
+    dt, rates = _tables_of(ml_tables(kern, int(kern.n_bins)))
     shares = np.array(REGION_SHARES)
     bins, weights, offsets, cand = _frame_arrays(bins, weights, offsets, cand)
     regions = np.empty((cand.size, int(kern.n_bins)), np.uint8)

@@ -143,3 +143,21 @@ def test_two_real_surfaces_widen_a_one_surface_uncertainty(shared_data):
     assert r["depth_full"] > 0.99
     assert r["within_3_sigma"] >= 0.95
     assert 0.55 <= r["within_1_sigma"] <= 0.80
+
+
+def test_the_tables_are_kept_with_their_pulse_kernel():
+    """ml's tables and the test's rate tables are built once per pulse kernel and window (every live
+    batch and array frame asked for them anew), and never handed to another kernel."""
+    from spdepth.recon.detect import _tables_of
+    from spdepth.recon.estimators.ml import ml_tables
+    from spdepth.recon.model import Binning, build_kernel
+
+    b = Binning.from_window(80e-12, (0.0, 200 * 80e-12), 80e-12)
+    k1, k2 = build_kernel(b, pulse_rms_s=170e-12), build_kernel(b, pulse_rms_s=250e-12)
+    t1 = ml_tables(k1, b.n_bins)
+    assert ml_tables(k1, b.n_bins) is t1 and ml_tables(k1, b.n_bins, t1.fine_climb) is t1
+    assert ml_tables(k2, b.n_bins) is not t1 and ml_tables(k1, b.n_bins, not t1.fine_climb) is not t1
+    assert ml_tables(k2, b.n_bins).g is k2.g
+    dt, rates = _tables_of(t1)
+    assert _tables_of(t1)[1] is rates and _tables_of(ml_tables(k2, b.n_bins))[1] is not rates
+    assert dt.m == b.n_bins and rates.shape[1] == t1.nk + 1
