@@ -195,6 +195,13 @@ def unique_bins(bins, o0, o1, tally, bits, tmp, kb, kw):
         k = bins[i]
         tally[k] += 1
         bits[k >> 6] |= _BIT << np.uint64(k & 63)
+    return marked_in_order(bits, wlo, whi, tally, kb, kw)
+
+
+@njit(cache=True, nogil=True, _nrt=False, inline="always")
+def marked_in_order(bits, wlo, whi, tally, kb, kw):
+    """The bins marked in the bitmap words wlo..whi (one bit a bin), ascending, into kb and their
+    tallies into kw; returns how many. The words and the tallies read are left zero."""
     nu = 0
     for w in range(wlo, whi + 1):
         x = bits[w]

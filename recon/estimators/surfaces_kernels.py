@@ -47,7 +47,7 @@ from collections import namedtuple
 import numpy as np
 from numba import njit
 
-from spdepth.recon.kernels import ZERO, lowest_set_bit, pixel_bins, pixel_scratch, unique_bins
+from spdepth.recon.kernels import ZERO, marked_in_order, pixel_bins, pixel_scratch, unique_bins
 
 #: Newton steps on a return's amplitude.
 NEWTON_STEPS = 12
@@ -686,20 +686,9 @@ def _pool_pairs(ph, p, nb, dense, bits, kb, kw):
                 bits[k >> 6] |= ONE_BIT << np.uint64(k & 63)
                 lo = min(lo, k)
                 hi = max(hi, k)
-    nu = 0
     if hi < 0:
-        return nu
-    for wd in range(lo >> 6, (hi >> 6) + 1):
-        word = bits[wd]
-        bits[wd] = 0
-        while word != 0:
-            k = (wd << 6) + lowest_set_bit(word)
-            kb[nu] = k
-            kw[nu] = dense[k]
-            dense[k] = 0.0
-            nu += 1
-            word &= word - ONE_BIT
-    return nu
+        return ZERO
+    return marked_in_order(bits, lo >> 6, hi >> 6, dense, kb, kw)
 
 
 @njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
