@@ -225,6 +225,31 @@ def test_the_k_surface_fit_measures_its_response_on_counts_as_on_photons(method)
         np.testing.assert_array_equal(getattr(a, key), getattr(b, key), err_msg=f"{method} {key}")
 
 
+@pytest.mark.parametrize("method,reflectors", [("spatial", 1), ("ml", 2), ("spatial", 2)])
+def test_spatial_and_several_surfaces_round_corrected_counts_as_their_photon_list(method, reflectors):
+    """A pile-up-corrected store's counts are not whole: spatial's censoring and the K-surface fit
+    count whole detections, so its pairs are rounded (CountStore.rounded) as its photon list is
+    (to_photons(round_counts=True)), and the maps are that list's."""
+    import dataclasses
+
+    from spdepth.recon.estimate import reconstruct
+    from spdepth.recon.model import Binning, ReconSettings
+
+    cube, _ = small_cube(seed=7, shape=(9, 10, 160), signal=25.0)
+    whole = CountStore.from_cube(cube, 80e-12)
+    corrected = dataclasses.replace(whole, counts=whole.counts * 1.37)
+    assert not corrected.is_whole() and corrected.rounded().is_whole()
+    assert abs(corrected.rounded().n_detections - corrected.n_detections) <= corrected.n_pixels
+    s = ReconSettings(method=method, pulse_rms_s=170e-12, reflectors=reflectors,
+                      binning=Binning.from_window(80e-12, (0.0, 160 * 80e-12), 80e-12))
+    a, b = reconstruct(corrected, s), reconstruct(corrected.to_photons(round_counts=True), s)
+    for key in ("flags", "photons", "surfaces"):
+        np.testing.assert_array_equal(getattr(a, key), getattr(b, key), err_msg=key)
+    for key in ("tof_s", "signal", "background", "uncertainty_s"):
+        np.testing.assert_allclose(getattr(a, key), getattr(b, key), rtol=1e-12, atol=0, err_msg=key)
+    assert np.isfinite(a.tof_s).any()
+
+
 @pytest.mark.parametrize("method", ["lmf", "uos", "ml"])
 def test_counts_need_not_be_whole(method):
     """Pile-up-corrected counts are not whole numbers: a count a hair above a whole one gives the
