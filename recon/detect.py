@@ -627,7 +627,9 @@ def neighbour_gain_kernel(bins, weights, offsets, w, cand, est, half, tabs, out)
 
 #: Signal shares at which :func:`neighbour_region_kernel` weighs the neighbours' likelihood (the
 #: largest gain over them stands for the profiled one, a little below it between grid points).
-REGION_SHARES = (1 / 64, 1 / 32, 1 / 16, 1 / 8, 1 / 4, 1 / 2, 3 / 4, 15 / 16)
+#: Four shares, not eight (1/64 ... 15/16): the same halves within 3 / 1 sigma on the tower, daylight,
+#: mannequin and art_top.mat (within 0.2%), the regions of an array frame 5.1 -> 2.9 ms.
+REGION_SHARES = (1 / 32, 1 / 8, 1 / 2, 7 / 8)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
