@@ -665,7 +665,6 @@ def file_counts(request: FileReconRequest, result):
     The periods come from ``--periods`` (per frame of a cube), else the file; Coates' correction
     (``recon.pileup``) runs on the whole histogram at the file's own resolution, before any
     window, since detections before the window shadow it too."""
-    from spdepth.recon.counts import CountStore
     from spdepth.recon.pileup import Detector, correct_pileup
 
     counts = result.counts
@@ -677,10 +676,8 @@ def file_counts(request: FileReconRequest, result):
     decided, record = pileup_decided(request, periods is not None, counts is not None)
     if decided:
         return counts, record
-    if counts is None:
-        counts = CountStore.from_photons(result.store, periods)
-    else:
-        counts = replace(counts, periods=periods)
+    # a photon list is histogrammed only if the correction applies (correct_pileup)
+    counts = result.store if counts is None else replace(counts, periods=periods)
     unit_s = counts.time_unit_s
     period_s = result.meta.get("period_s") or (1.0 / result.meta["sync_rate_hz"]
                                                if result.meta.get("sync_rate_hz") else None)
@@ -689,7 +686,7 @@ def file_counts(request: FileReconRequest, result):
                            f"does not record")
     detector = Detector(None if period_s is None else period_s / unit_s,
                         None if request.dead_time_s is None else request.dead_time_s / unit_s)
-    corrected, record = correct_pileup(counts, request.pileup, detector)
+    corrected, record = correct_pileup(counts, request.pileup, detector, periods=periods)
     if not record["applied"]:
         return result.counts, record
     return corrected, record

@@ -27,6 +27,7 @@ from numba import njit
 
 from spdepth.recon.counts import CountStore
 from spdepth.recon.errors import InputError
+from spdepth.recon.photons import PhotonStore
 
 #: Detections per laser period (in a pixel's whole histogram) above which the correction switches
 #: itself on: the first-bin bias of the uncorrected histogram is of the order of this share, and the
@@ -64,9 +65,15 @@ class Detector:
         return self.dead_units is None or self.dead_units >= self.period_units
 
 
-def detections_per_period(counts: CountStore) -> np.ndarray:
+def detections_per_period(counts: CountStore | PhotonStore, periods=None) -> np.ndarray:
     """Mean detections per laser period of each pixel, (H, W); InputError when the periods are
-    not known."""
+    not known. ``counts``: a histogram (its own periods), or a photon list with ``periods`` (one
+    per pixel), whose detections per pixel are its row lengths."""
+    if isinstance(counts, PhotonStore):
+        if periods is None:
+            raise InputError("the laser periods each pixel saw are not known")
+        return np.diff(counts.offsets).astype(np.float64).reshape(counts.shape) / \
+            np.asarray(periods, np.float64).reshape(counts.shape)
     if counts.periods is None:
         raise InputError("the laser periods each pixel saw are not known")
     return counts.detections() / counts.periods.reshape(counts.shape)
@@ -132,24 +139,30 @@ def _coates_kernel(times, y, offsets, periods, period, dead, cap, out):
             cum_q += y[q]
 
 
-def correct_pileup(counts: CountStore, mode: str = "auto", detector: Detector = Detector(),
-                   threshold: float = PILEUP_THRESHOLD) -> tuple[CountStore, dict]:
+def correct_pileup(counts: CountStore | PhotonStore, mode: str = "auto",
+                   detector: Detector = Detector(), threshold: float = PILEUP_THRESHOLD,
+                   periods=None) -> tuple[CountStore | PhotonStore, dict]:
     """Coates' correction when ``mode`` (PILEUP_MODES) asks for it; returns the counts to estimate
     from and a JSON-able record of what was decided (``applied``, ``reason``, the detections per
-    period seen), for the result's settings and the summary."""
+    period seen), for the result's settings and the summary. ``counts`` may be a photon list with
+    its ``periods`` (one per pixel): it is histogrammed (``CountStore.from_photons``) only when the
+    correction applies, and returned as it is when not (the decision needs each pixel's detections
+    only; a 512x512 file's histogram took 0.4 s)."""
     if mode not in PILEUP_MODES:
         raise InputError(f"pile-up mode must be one of {', '.join(PILEUP_MODES)}, got {mode!r}")
     rec = {"mode": mode, "applied": False, "threshold_per_period": threshold}
     if mode == "off":
         rec["reason"] = "switched off"
         return counts, rec
-    if counts.periods is None:
+    if isinstance(counts, CountStore):
+        periods = counts.periods
+    if periods is None:
         if mode == "on":
             raise InputError("pile-up correction asked for, but the laser periods each pixel saw are "
                              "not known: give them (--periods)")
         rec["reason"] = "laser periods per pixel unknown: not corrected"
         return counts, rec
-    rate = detections_per_period(counts)
+    rate = detections_per_period(counts, periods)
     worst = float(rate.max()) if rate.size else 0.0
     rec.update(max_per_period=worst, mean_per_period=float(rate.mean()) if rate.size else 0.0,
                detector={"period_units": detector.period_units, "dead_units": detector.dead_units})
@@ -160,6 +173,8 @@ def correct_pileup(counts: CountStore, mode: str = "auto", detector: Detector = 
     rec["reason"] = (f"up to {worst:.3g} detections per period: Coates' correction"
                      + (f" (dead time {detector.dead_units * counts.time_unit_s * 1e9:g} ns)"
                         if not detector.rearms_at_sync else " (detector re-arms at each sync)"))
+    if isinstance(counts, PhotonStore):
+        counts = CountStore.from_photons(counts, periods)
     return coates(counts, detector), rec
 
 

@@ -108,6 +108,32 @@ def test_auto_switches_on_where_detections_per_period_are_not_small():
         correct_pileup(unknown, "on")
 
 
+def test_a_photon_list_is_decided_as_its_histogram_and_histogrammed_only_when_corrected():
+    """A file's photon list goes to the decision as it is (its histogram is built only when the
+    correction applies): the same record, and the same corrected counts, as from its histogram."""
+    from spdepth.recon.photons import PhotonStore
+
+    rng = np.random.default_rng(4)
+    n = 2_000
+    for signal, applied in ((0.02, False), (0.6, True)):
+        hist = [first_photon_histogram(rates(signal=signal, bg=0.005), n, rng) for _ in range(6)]
+        photons = PhotonStore.from_lists([np.repeat(np.arange(h.size), h).astype(np.float64)
+                                          for h in hist], (2, 3), 1e-12)
+        periods = np.full(6, float(n))
+        counts = CountStore.from_photons(photons, periods)
+        got, rec = correct_pileup(photons, periods=periods)
+        want, rec_counts = correct_pileup(counts)
+        assert rec == rec_counts and rec["applied"] is applied
+        if applied:
+            assert isinstance(got, CountStore)
+            np.testing.assert_array_equal(got.counts, want.counts)
+            np.testing.assert_array_equal(got.times, want.times)
+        else:
+            assert got is photons
+    with pytest.raises(InputError, match="periods"):
+        correct_pileup(photons, "on")
+
+
 @pytest.mark.slow
 def test_recon_of_a_high_flux_scan_is_corrected_by_itself(tmp_path, capsys):
     """At ~0.6 detections per pulse the uncorrected depth leans early by about a centimetre and the
