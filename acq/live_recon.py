@@ -90,20 +90,18 @@ class LiveRecon:
             settings.max_reflectors if settings.reflectors == "auto" else settings.reflectors,)
         self.fields = _MAP_FIELDS + (_SURFACE_FIELDS if settings.several else ())
         """The maps kept (the several-surface ones only with several surfaces)."""
-        self.tof_s = np.full(k + (h, w), np.nan)
-        self.depth_m = np.full(k + (h, w), np.nan)
-        self.background = np.full((h, w), np.nan)
-        self.signal = np.zeros(k + (h, w))
-        self.photons = np.zeros((h, w), np.int64)
-        self.iterations = np.zeros((h, w), np.int32)
-        self.uncertainty_s = np.full(k + (h, w), np.nan)
-        self.flags = np.full((h, w), PixelFlag.NO_PHOTONS, np.uint8)
-        if settings.several:
-            self.surfaces = np.zeros((h, w), np.int16)
-            self.weak = np.zeros(k + (h, w), np.bool_)
-        self.done = np.zeros((h, w), bool)
-        # the value each map was made with, where no pixel has been written yet
-        self._made_with = {name: np.asarray(getattr(self, name)).reshape(-1)[0] for name in self.fields}
+        # each map's shape, dtype and the value it is made with, where no pixel has been written
+        # yet; made on first use (_allocate), not here: a 4096 x 4096 frame's NaN maps are half a
+        # GB, which took 0.3 s of a time-limited scan's start (the session has them made while
+        # the scan runs, warm_up(wait=False))
+        self._layout = {name: (k + (h, w) if name in _PER_SURFACE else (h, w), dtype, fill)
+                        for name, (dtype, fill) in _MAP_MADE_WITH.items()
+                        if name in self.fields or name == "done"}
+        self._made_with = {name: np.asarray(fill, dtype)[()] for name, (_, dtype, fill)
+                           in self._layout.items() if name in self.fields}
+        self._allocated = False
+        self._allocate_lock = threading.Lock()
+        self._warm_thread: threading.Thread | None = None
         self._empty_as_made: dict = {}
         self.settings_used: dict | None = None   # the maps' settings record (the first batch's)
         self._pulse_note: dict = {}             # how the pulse width was found, when estimated
@@ -124,6 +122,25 @@ class LiveRecon:
         self.pileup_pixels = 0
         """Pixels estimated from their Coates-corrected histogram (module docstring)."""
         self.pileup_max_per_period = 0.0
+
+    def __getattr__(self, name: str):
+        # the maps (and ``done``) exist once first asked for (_allocate)
+        layout = self.__dict__.get("_layout")
+        if layout is None or name not in layout:
+            raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+        self._allocate()
+        return self.__dict__[name]
+
+    def _allocate(self) -> None:
+        """Make the maps, each filled with the value it is made with (idempotent, any thread)."""
+        with self._allocate_lock:
+            if self._allocated:
+                return
+            for name, (shape, dtype, fill) in self._layout.items():
+                # zeros are pages the system maps on first write (nothing to fill now)
+                self.__dict__[name] = (np.zeros(shape, dtype) if fill == 0
+                                       else np.full(shape, fill, dtype))
+            self._allocated = True
 
     @property
     def pileup(self) -> dict:
@@ -199,11 +216,33 @@ class LiveRecon:
         """Pixels handed over and not yet reconstructed."""
         return self.submitted - self.processed
 
-    def warm_up(self) -> None:
-        """Load (or compile) the estimator's kernels on one made-up pixel now, so the first real
-        batch does not wait for them while the scan piles up pixels (the session calls this while
-        armed)."""
-        warm_up(self.pixel_settings)
+    def warm_up(self, wait: bool = True) -> None:
+        """Load (or compile) the estimator's kernels on one made-up pixel, and make the maps, so
+        the first real batch does not wait for them. ``wait`` False: on a thread of its own,
+        started now, that the first batch waits for (the session asks for this while armed: the
+        scan starts at once and its first pixels are scanned while the kernels load; a time
+        limit then bounds the wait from the command's start, and a first run's compile no longer
+        holds the scan in "armed")."""
+        if wait:
+            self._warm_up()
+            return
+        if self._warm_thread is None:
+            self._warm_thread = threading.Thread(target=self._warm_up, name="live-recon-warm-up",
+                                                 daemon=True)
+            self._warm_thread.start()
+
+    def _warm_up(self) -> None:
+        try:
+            warm_up(self.pixel_settings)
+        except Exception:  # noqa: BLE001 - the first batch runs the same kernels and says what fails
+            log.debug("live reconstruction warm-up failed; the first batch loads its kernels",
+                      exc_info=True)
+        self._allocate()
+
+    def _wait_warm_up(self) -> None:
+        thread = self._warm_thread
+        if thread is not None and thread is not threading.current_thread():
+            thread.join()
 
     def submit(self, pixels: np.ndarray) -> None:
         """Queue flat pixel indices (frozen in the store) for reconstruction."""
@@ -280,6 +319,7 @@ class LiveRecon:
     def _run(self) -> None:
         try:
             while (batch := self._take()) is not None:
+                self._wait_warm_up()
                 t0 = time.perf_counter()
                 self._reconstruct(batch)
                 self.busy_s += time.perf_counter() - t0
@@ -394,3 +434,12 @@ _MAP_FIELDS = ("tof_s", "depth_m", "background", "signal", "photons", "iteration
                "uncertainty_s", "flags")
 _SURFACE_FIELDS = ("surfaces", "weak")
 """Maps of several surfaces only (``DepthMaps`` derives them for one)."""
+_PER_SURFACE = ("tof_s", "depth_m", "signal", "uncertainty_s", "weak")
+"""Maps that are (K, H, W) with several surfaces."""
+_MAP_MADE_WITH = {"tof_s": (np.float64, np.nan), "depth_m": (np.float64, np.nan),
+                  "background": (np.float64, np.nan), "signal": (np.float64, 0),
+                  "photons": (np.int64, 0), "iterations": (np.int32, 0),
+                  "uncertainty_s": (np.float64, np.nan),
+                  "flags": (np.uint8, int(PixelFlag.NO_PHOTONS)), "surfaces": (np.int16, 0),
+                  "weak": (np.bool_, 0), "done": (np.bool_, 0)}
+"""Each map's dtype and the value of a pixel not reconstructed (``done``: whether it was)."""

@@ -1,7 +1,7 @@
 """Session lifecycles and the source interface: no thread outlives a session, the time limit ends a
-big scan in time, a failing live-recon worker or subscriber or a removed output folder ends cleanly
-with one line, survived faults are listed, damaged recordings are refused or replayed with a
-warning, and snapshots never hold half a reconstruction batch."""
+big scan (what follows bounded by what it reached), a failing live-recon worker or subscriber or a
+removed output folder ends cleanly with one line, survived faults are listed, damaged recordings
+are refused or replayed with a warning, and snapshots never hold half a reconstruction batch."""
 
 from __future__ import annotations
 
@@ -9,7 +9,6 @@ import json
 import logging
 import shutil
 import threading
-import time
 
 import numpy as np
 import pytest
@@ -129,15 +128,20 @@ def test_a_session_built_and_never_started_leaves_no_thread(recording):
     wait_until(lambda: _own_threads() == before, 10, what="session threads to end")
 
 
-def test_the_time_limit_ends_a_big_scan_in_time_and_run_json_stays_small(tmp_path):
+def test_the_time_limit_ends_a_big_scan_and_what_follows_is_bounded_by_what_it_reached(tmp_path):
+    """Issue 33: the time limit stops the scan (the frame's rest is flagged TIME_LIMIT, not scanned
+    to its end), only the pixels reached go to the reconstruction, and run.json stays small: what
+    bounds the wait after the limit. The wall time itself, start to exit of the command, is
+    measured by ``spdepth bench startup --scan`` (a benchmark, not a timed test)."""
     with open_sim("bust", (1024, 1024), ppp=10, seed=3) as inst:
         s = _session(inst, (1024, 1024), tmp_path, time_limit_s=1.0)
-        t0 = time.monotonic()
         assert s.run() == SessionState.DONE, s.error
-        took = time.monotonic() - t0
-    assert took < 1.0 + 8.0, f"a 1 s time limit took {took:.1f} s"
     run = json.loads((tmp_path / "run.json").read_text())
     assert run["flag_reasons"].get("TIME_LIMIT", 0) > 1000
+    st = s.store
+    reached = int(np.count_nonzero((st.count > 0) | (st.dwells > 0)))
+    assert 0 < reached < 1024 * 1024 - 1000
+    assert s.live_recon.submitted == s.live_recon.processed == reached
     assert "flagged_pixels" not in run
     assert (tmp_path / "run.json").stat().st_size < 50_000
     with np.load(tmp_path / "maps.npz") as z:

@@ -172,9 +172,15 @@ WRITER_MODULES = ("matplotlib.figure", "matplotlib.backends.backend_agg", "spdep
 while the session runs (half a second here that a time-limited scan waited for after its end)."""
 
 
-def _import_writers() -> None:
+def _import_writers(session) -> None:
     import importlib
     import logging
+
+    from spdepth.acq.session import SessionState
+
+    # once scanning: while armed the session loads its kernels, and imports compete with them for
+    # the interpreter; a time limit counts from RUNNING (a session that ends first: at once)
+    session.wait_for_state(SessionState.RUNNING, timeout_s=None)
 
     for name in WRITER_MODULES:
         try:
@@ -188,7 +194,8 @@ def run_session(session, label: str) -> bool:
     returns whether it was interrupted, so the caller still reports the summary. A session with
     an output folder imports the writers of its PNG and points meanwhile (``WRITER_MODULES``)."""
     if session.out_dir is not None:
-        threading.Thread(target=_import_writers, name="import-writers", daemon=True).start()
+        threading.Thread(target=_import_writers, args=(session,), name="import-writers",
+                         daemon=True).start()
     bar = SessionProgress(session, label)
     try:
         session.run()

@@ -17,6 +17,12 @@ git revision of this checkout, exported to such a directory (``acq.commands.benc
 ``--cold``: also one run each with an empty numba cache (a fresh NUMBA_CACHE_DIR: every kernel
 compiled), the first run after an install.
 Defaults: the seed paper's mannequin and settings (README), ``--method uos``.
+
+``--scan``: instead, the time-limited scan of issue 33, ``spdepth scan --sim --size 4096x4096
+--target 1 --time-limit-s 5 --out DIR`` (``--size``, ``--time-limit-s``), run the same way: per
+checkout its wall time from the interpreter's start to its exit against the limit + 5 s, its CPU
+time, its peak resident memory (the child's own, from ``wait4``) against 2 GB, the size of its
+run.json and the pixels it completed.
 """
 
 from __future__ import annotations
@@ -56,6 +62,66 @@ def _run(pkgdir: str | None, argv: list[str], cache_dir: str | None) -> dict:
     return summary
 
 
+def _run_scan(pkgdir: str | None, argv: list[str], out_dir: Path) -> dict:
+    """One ``spdepth scan ... --out out_dir --json`` in a new interpreter: its summary plus
+    ``wall_s``, ``cpu_s``, ``peak_rss_mb`` (the child's own) and ``run_json_bytes``."""
+    import shutil
+
+    env = dict(os.environ)
+    if pkgdir:
+        env["PYTHONPATH"] = os.pathsep.join([pkgdir] + [p for p in [env.get("PYTHONPATH")] if p])
+    shutil.rmtree(out_dir, ignore_errors=True)
+    with tempfile.TemporaryFile("w+") as out, tempfile.TemporaryFile("w+") as err:
+        t0 = time.perf_counter()
+        proc = subprocess.Popen([sys.executable, "-m", "spdepth.acq.cli", "scan", *argv, "--out",
+                                 str(out_dir), "--json"], env=env, stdout=out, stderr=err,
+                                stdin=subprocess.DEVNULL)
+        # wait4, not wait: the rusage of this child alone (RUSAGE_CHILDREN's peak is the largest
+        # of every child so far)
+        _, status, usage = os.wait4(proc.pid, 0)
+        wall = time.perf_counter() - t0
+        proc.returncode = os.waitstatus_to_exitcode(status)
+        out.seek(0)
+        err.seek(0)
+        stdout, stderr = out.read(), err.read()
+    if proc.returncode != 0:
+        raise RuntimeError(f"spdepth scan exited {proc.returncode}: {stderr.strip()[-500:]}")
+    summary = json.loads(stdout.strip().splitlines()[-1])
+    summary.update(wall_s=wall, cpu_s=usage.ru_utime + usage.ru_stime,
+                   peak_rss_mb=usage.ru_maxrss / 1024,
+                   run_json_bytes=(out_dir / "run.json").stat().st_size)
+    return summary
+
+
+def bench_scan(sides: dict, size: tuple[int, int], limit_s: float, runs: int) -> None:
+    """``--scan`` (module docstring): ``runs`` runs of each side in turn, after one untimed run
+    each (which leaves, or finds, each checkout's numba cache warm)."""
+    h, w = size
+    argv = ["--sim", "--size", f"{w}x{h}", "--target", "1", "--time-limit-s", f"{limit_s:g}"]
+    print(f"spdepth bench startup --scan: spdepth scan {' '.join(argv)} --out DIR")
+    print(f"load average before: {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
+    with tempfile.TemporaryDirectory(prefix="spdepth-bench-scan-") as tmp:
+        for i, pkg in enumerate(sides.values()):
+            _run_scan(pkg, argv, Path(tmp) / f"warm-{i}")
+        results: dict[str, list[dict]] = {label: [] for label in sides}
+        for _ in range(runs):
+            for i, (label, pkg) in enumerate(sides.items()):
+                results[label].append(_run_scan(pkg, argv, Path(tmp) / f"run-{i}"))
+    print(f"{runs} runs each, in turn; best / median; targets: wall <= {limit_s + 5:g} s "
+          f"(the limit + 5 s), peak RSS <= 2048 MB")
+    print(f"{'':22} {'wall s':>13} {'cpu s':>13} {'peak RSS MB':>13} {'run.json B':>13} "
+          f"{'pixels complete':>17}")
+    for label, rs in results.items():
+        def col(key, fmt="{:.2f}"):
+            v = [r[key] for r in rs]
+            return f"{fmt.format(min(v))} / {fmt.format(statistics.median(v))}"
+
+        complete = [r["pixels"] - r["flagged"] for r in rs]
+        print(f"{label:22} {col('wall_s'):>13} {col('cpu_s'):>13} {col('peak_rss_mb', '{:.0f}'):>13} "
+              f"{col('run_json_bytes', '{:.0f}'):>13} {min(complete):>8,} / {max(complete):,}")
+    print(f"load average after: {' '.join(f'{v:.2f}' for v in os.getloadavg())}")
+
+
 def _children_cpu_s() -> float:
     """CPU seconds (user + system) of this process's finished children."""
     ru = resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -66,13 +132,31 @@ def bench(argv: list[str]) -> int:
     p = argparse.ArgumentParser(prog="spdepth bench startup", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--file", default=FACE, help=f"the file to reconstruct (default {FACE})")
-    p.add_argument("--runs", type=int, default=5, help="warm runs per checkout, alternated (default 5)")
+    p.add_argument("--runs", type=int, default=None,
+                   help="warm runs per checkout, alternated (default 5; --scan: 3)")
     p.add_argument("--before", metavar="PKGDIR|REV",
                    help="also run the checkout found as spdepth in PKGDIR, or this checkout's revision REV")
     p.add_argument("--cold", action="store_true", help="also one run each with an empty numba cache")
+    p.add_argument("--scan", action="store_true",
+                   help="time the time-limited scan instead (module docstring; --runs default 3)")
+    p.add_argument("--size", default="4096x4096", metavar="WxH",
+                   help="--scan: the frame (default 4096x4096)")
+    p.add_argument("--time-limit-s", type=float, default=5.0,
+                   help="--scan: the time limit (default 5)")
     p.add_argument("recon", nargs=argparse.REMAINDER,
                    help="spdepth recon options after '--' (default: the seed paper's, --method uos)")
     a = p.parse_args(argv)
+    if a.scan:
+        from spdepth.acq.params import parse_size
+
+        sides = {"this checkout": None}
+        if a.before:
+            from spdepth.acq.commands.bench.before import package_dir
+
+            sides = {"before": package_dir(a.before), "after (this checkout)": None}
+        bench_scan(sides, parse_size(a.size), a.time_limit_s, a.runs or 3)
+        return 0
+    a.runs = a.runs or 5
     if not Path(a.file).is_file():
         p.error(f"no file {a.file} (give one with --file)")
     settings = [v for v in a.recon if v != "--"] or SEED_SETTINGS
