@@ -138,6 +138,7 @@ def sparse_arrays(arrays: dict, shape: tuple[int, int], keep: np.ndarray, dense:
     out = {"layout": np.array(SPARSE_LAYOUT), "frame_shape": np.array(shape, np.int64),
            "pixels": pixels}
     first = int(np.argmin(keep)) if not keep.all() else None    # a pixel left out
+    n_out = keep.size - pixels.size
     for name, a in arrays.items():
         a = np.asarray(a)
         if first is None or name in dense or a.ndim < 2 or tuple(a.shape[-2:]) != tuple(shape):
@@ -145,20 +146,28 @@ def sparse_arrays(arrays: dict, shape: tuple[int, int], keep: np.ndarray, dense:
             continue
         flat = a.reshape(a.shape[:-2] + (-1,))
         fill = flat[..., first]
-        nan = a.dtype.kind in "fc" and np.isnan(fill)
-        if np.ndim(nan) == 0 and nan:       # (NaN fills of several surfaces: the general test)
-            other = ~np.isnan(flat)
-        else:
-            other = flat != fill[..., None]
-            if a.dtype.kind in "fc":
-                other &= ~(np.isnan(flat) & np.isnan(fill)[..., None])
-        other &= ~keep
-        if other.any():
+        kept = flat[..., pixels]
+        # every pixel outside holds the fill when the pixels that do, over the whole frame, are
+        # those inside that do plus all n_out outside: counted, not masked (a mask of the pixels
+        # outside for each map of a 4096 x 4096 frame took most of this function's 0.3 s)
+        if np.count_nonzero(_is_fill(flat, fill)) - np.count_nonzero(_is_fill(kept, fill)) \
+                != n_out * int(np.prod(flat.shape[:-1])):
             out[name] = a                   # not one value outside: kept whole
             continue
-        out[name] = flat[..., pixels]
+        out[name] = kept
         out[name + FILL_SUFFIX] = np.asarray(fill)
     return out
+
+
+def _is_fill(flat: np.ndarray, fill) -> np.ndarray:
+    """Where ``flat`` (..., n) holds ``fill`` (...), NaN matching NaN (the fill of each surface)."""
+    if flat.dtype.kind not in "fc":
+        return flat == np.asarray(fill)[..., None]
+    fill = np.asarray(fill)
+    if fill.ndim == 0 and np.isnan(fill):
+        return np.isnan(flat)
+    same = flat == fill[..., None]
+    return same | (np.isnan(flat) & np.isnan(fill)[..., None])
 
 
 def npz_arrays(z, names=None) -> dict:

@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import pytest
 
-from spdepth.acq.commands.bench.report import CSV_FIELDS, METHODS, QUICK_DETECTIONS, QUICK_SBRS
+from spdepth.acq.commands.bench.report import CSV_FIELDS, QUICK_DETECTIONS, QUICK_SBRS
+from spdepth.recon.model import METHODS
 
 
 @pytest.mark.slow

@@ -43,19 +43,44 @@ def test_building_the_parser_imports_nothing_heavy():
 
 
 def test_every_commands_help_and_the_version_import_nothing_heavy():
-    """Issue 33: ``spdepth --help``, ``--version`` and every subcommand's ``--help``, run through
-    ``main`` as the console script runs them, in one fresh process: none loads numpy, numba,
-    scipy, matplotlib or Qt (which take the start from about 0.1 s to most of a second)."""
+    """Issue 33: ``spdepth --help``, ``--version``, every subcommand's ``--help`` and every
+    ``spdepth bench TARGET --help``, run through ``main`` as the console script runs them, in one
+    fresh process: none loads numpy, numba, scipy, matplotlib or Qt (which take the start from
+    about 0.1 s to most of a second; the benchmarks' took 0.4-0.8 s)."""
+    from spdepth.acq.commands.bench import TARGETS
+
     names = sorted(_subcommands()[1])
+    # every benchmark's own --help too (it imports the benchmark's module to build its parser)
+    argvs = [["--help"], ["--version"]] + [[n, "--help"] for n in names] + \
+        [["bench", t, "--help"] for t in sorted(TARGETS)]
     code = ("import contextlib, io, sys; from spdepth.acq.cli import main; out = io.StringIO(); "
             "rc = []\nwith contextlib.redirect_stdout(out):\n"
-            f"    for argv in [['--help'], ['--version']] + [[n, '--help'] for n in {names!r}]:\n"
+            f"    for argv in {argvs!r}:\n"
             "        rc.append(main(argv))\n"
             f"print(rc, [m for m in {HEAVY!r} if m in sys.modules], out.getvalue().count('usage: spdepth'))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          cwd=ROOT).stdout
-    assert out.strip() == f"{[0] * (len(names) + 2)} [] {len(names) + 1}", out
+    assert out.strip() == f"{[0] * len(argvs)} [] {len(argvs) - 1}", out
     assert {"scan", "recon", "replay", "demo", "gui", "bench", "simulate"} <= set(names)
+    assert {"recon", "startup", "compile", "halves"} <= set(TARGETS)
+
+
+@pytest.mark.parametrize("given, after", [(None, "0"), ("1", "1")])
+def test_the_command_runs_numpy_without_huge_pages_unless_told(given, after):
+    """Issue 33: ``spdepth`` sets NUMPY_MADVISE_HUGEPAGE=0 before numpy loads (first touches of
+    huge pages cost a fresh recon of a 512x512 PTU 0.35-0.6 s of system time here), and leaves a
+    value the user set; numpy, loaded after, follows it."""
+    import os
+
+    code = ("import os; from spdepth.acq.cli import main; main(['--version']); import numpy; "
+            "from numpy._core import multiarray as m; on = m._set_madvise_hugepage(False); "
+            "print(os.environ['NUMPY_MADVISE_HUGEPAGE'], int(on))")
+    env = {k: v for k, v in os.environ.items() if k != "NUMPY_MADVISE_HUGEPAGE"}
+    if given is not None:
+        env["NUMPY_MADVISE_HUGEPAGE"] = given
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         cwd=ROOT, env=env).stdout.splitlines()[-1].split()
+    assert out == [after, after], out
 
 
 def test_every_command_option_is_declared_once():

@@ -13,8 +13,6 @@ import argparse
 import sys
 import time
 
-import numpy as np
-
 SIZE = 64
 N_BINS = 1024
 BIN_S = 80e-12
@@ -46,6 +44,8 @@ def make_sensor(scene_name: str, shape: tuple[int, int], counts: float = COUNTS,
 def array_frames(n_frames: int, size: int = SIZE, counts: float = COUNTS, sbr: float = SBR, seed: int = 0):
     """(sensor, [CountStore per frame]) of the tilted plane at ``counts`` per pixel and frame
     (in range, ideal detector) and ``sbr`` in range."""
+    import numpy as np
+
     from spdepth.recon.counts import CountStore
 
     sensor = make_sensor("tilted-plane", (size, size), counts, sbr, seed)
@@ -56,15 +56,17 @@ def array_frames(n_frames: int, size: int = SIZE, counts: float = COUNTS, sbr: f
 
 
 def bench(argv: list[str]) -> int:
-    import numba
-
-    from spdepth.recon.estimate import reconstruct
-    from spdepth.recon.model import Binning, ReconSettings
-
     parser = argparse.ArgumentParser(prog="spdepth bench array", description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=30, help="timed frames per row (default 30)")
     parser.add_argument("--methods", default="lmf,uos,ml,spatial")
     args = parser.parse_args(argv)
+    # after the parse: --help loads none of numpy, numba or the estimators
+    import numba
+    import numpy as np
+
+    from spdepth.recon.estimate import reconstruct
+    from spdepth.recon.model import Binning, ReconSettings
+
     t0 = time.perf_counter()
     sensor, frames = array_frames(args.frames)
     made = time.perf_counter() - t0

@@ -12,15 +12,17 @@ from __future__ import annotations
 import sys
 import time
 
-import numpy as np
-
-from spdepth.drivers.events import EVENT_DTYPE, EventKind
-from spdepth.drivers.tagger.t3 import T3DecoderState, decode_t3, encode_t3
+# numpy and the numba decoder are imported where used: ``spdepth bench decode --help`` loads neither
 
 
 def make_records(n_records: int, seed: int = 0) -> np.ndarray:
     """A lidar-like stream: photons on 2 channels at about 0.05 per sync (so an overflow record
     every ~50 records), with pixel markers every ~100 records."""
+    import numpy as np
+
+    from spdepth.drivers.events import EVENT_DTYPE, EventKind
+    from spdepth.drivers.tagger.t3 import encode_t3
+
     rng = np.random.default_rng(seed)
     n_events = int(n_records * 0.98)
     ev = np.zeros(n_events, dtype=EVENT_DTYPE)
@@ -35,6 +37,8 @@ def make_records(n_records: int, seed: int = 0) -> np.ndarray:
 
 def decode_numpy(records: np.ndarray, out: np.ndarray, sync_base: int = 0) -> int:
     """Vectorised NumPy decoder (the baseline): same output as ``decode_t3``; returns events."""
+    import numpy as np
+
     r = records.astype(np.int64)
     nsync = r & 0x3FF                 # nsync: 10 bits
     dtime = (r >> 10) & 0x7FFF        # dtime: 15 bits
@@ -76,6 +80,10 @@ def bench(argv: list[str]) -> int:
     args = parser.parse_args(argv)
     if args.records < 1000 or args.repeat < 1:
         parser.error("--records must be >= 1000 and --repeat >= 1")
+    import numpy as np
+
+    from spdepth.drivers.events import EVENT_DTYPE
+    from spdepth.drivers.tagger.t3 import T3DecoderState, decode_t3
 
     records = make_records(args.records, args.seed)
     n = records.size

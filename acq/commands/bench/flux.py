@@ -16,8 +16,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-
 #: detections per pixel at a 100 us dwell of a 10 MHz laser (1,000 periods): 0.01 to 1 per pulse
 LEVELS = (10, 30, 100, 300, 600, 900, 1000)
 QUICK_LEVELS = (10, 300, 900)
@@ -29,6 +27,8 @@ def flux_rows(levels=LEVELS, size: int = 32, seed: int = 0, method: str = "ml",
               pulse_rms_ps: float = 360.0, sbr: float = 10.0) -> list[dict]:
     """One row per level: detections per pulse, and per correction (off/on) the depth bias (cm),
     MAE (cm), signal error (share) and reconstruction seconds; also what ``auto`` decided."""
+    import numpy as np
+
     from spdepth.acq.api import reconstruct_file
     from spdepth.acq.cli import main
     from spdepth.acq.requests import FileReconRequest
@@ -116,6 +116,7 @@ def censored_ml(hist: np.ndarray, n_periods: float, bin_units: float, unit_s: fl
     integrated over the bin, a signal photons and b background per bin, per period), so
     log L = sum_i y_i log(1 - e^-lambda_i) - (N - D_i - y_i) lambda_i. Returns (time of the pulse
     centroid in s, expected signal photons over the N periods)."""
+    import numpy as np
     from scipy.optimize import minimize
     from scipy.special import ndtr
 
@@ -143,6 +144,8 @@ def censored_rows(ppp: int = 900, size: int = 32, pixels: int = 256, seed: int =
                   pulse_rms_ps: float = 360.0, sbr: float = 10.0) -> dict:
     """Coates' correction + ml beside the censored likelihood (:func:`censored_ml`) on the same
     pixels of one simulated scan: depth bias and MAE (cm), signal error, seconds per pixel each."""
+    import numpy as np
+
     from spdepth.acq.api import reconstruct_file
     from spdepth.acq.cli import main
     from spdepth.acq.readers import read_photons

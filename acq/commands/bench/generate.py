@@ -31,11 +31,11 @@ def _parse(argv):
 
 def bench(argv: list[str]) -> int:
     """Print generation speed figures; returns 0."""
+    args = _parse(argv)
     import numpy as np
 
     from spdepth.drivers.sim import PhotonWorld, load_scene
 
-    args = _parse(argv)
     h, w = args.size
     print(f"scene {args.scene} {w}x{h}, ppp {args.ppp}, best of {args.repeat} runs, one core")
     for spec in args.effects.split(","):

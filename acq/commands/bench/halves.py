@@ -13,11 +13,11 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-
 
 def dense(counts, n_bins: int) -> np.ndarray:
     """The H x W x n_bins cube of a store of whole counts."""
+    import numpy as np
+
     cube = np.zeros((counts.n_pixels, n_bins), np.uint16)
     cube[counts.pixel_index(), counts.times.astype(np.int64)] = counts.counts.astype(np.uint16)
     return cube.reshape(*counts.shape, n_bins)
@@ -25,6 +25,8 @@ def dense(counts, n_bins: int) -> np.ndarray:
 
 def compare(a, b, k: float = 3.0) -> dict:
     """Agreement of two depth maps within k combined sigma, where both have a depth."""
+    import numpy as np
+
     both = np.isfinite(a.depth_m) & np.isfinite(b.depth_m)
     sa = a.uncertainty_s * 299792458.0 / 2
     sb = b.uncertainty_s * 299792458.0 / 2
@@ -40,11 +42,7 @@ def compare(a, b, k: float = 3.0) -> dict:
 
 
 def bench(argv: list[str]) -> int:
-    from spdepth.acq.api import reconstruct_file
     from spdepth.acq.commands import recon as recon_cmd
-    from spdepth.acq.readers import read_photons
-    from spdepth.recon.counts import CountStore
-
     from spdepth.acq.commands.bench import parser as bench_parser
 
     # the bench's own parser fills the recon options' method list into their help (acq.params.expand)
@@ -52,6 +50,13 @@ def bench(argv: list[str]) -> int:
     recon_cmd.add_arguments(parser)
     parser.add_argument("--seed", type=int, default=0, help="seed of the split (default 0)")
     args = parser.parse_args(argv)
+    # after the parse: --help loads none of numpy, numba or the estimators
+    import numpy as np
+
+    from spdepth.acq.api import reconstruct_file
+    from spdepth.acq.readers import read_photons
+    from spdepth.recon.counts import CountStore
+
     path = args.file[0]
     t0 = time.perf_counter()
     asked = recon_cmd.request_from_args(args, path)

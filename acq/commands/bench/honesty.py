@@ -18,14 +18,15 @@ import argparse
 import dataclasses
 import json
 
-import numpy as np
-
-from spdepth.recon.model import METHODS, Binning, Irf, ReconSettings
-from spdepth.recon.photons import PhotonStore
+# numpy and the estimators are imported where used: ``spdepth bench honesty --help`` loads neither
 
 
 def split_halves(store: PhotonStore) -> tuple[PhotonStore, PhotonStore]:
     """The two halves of every pixel's detections: the 1st, 3rd, ... and the 2nd, 4th, ..."""
+    import numpy as np
+
+    from spdepth.recon.photons import PhotonStore
+
     counts = np.diff(store.offsets)
     rank = np.arange(store.n_photons) - np.repeat(store.offsets[:-1], counts)
     pix = np.repeat(np.arange(store.n_pixels), counts)
@@ -39,6 +40,8 @@ def split_halves(store: PhotonStore) -> tuple[PhotonStore, PhotonStore]:
 def resolved_settings(settings: ReconSettings, used: dict) -> ReconSettings:
     """``settings`` with the binning and the pulse a reconstruction resolved (``used``: its
     ``settings`` record), so the halves are fitted with the same model."""
+    from spdepth.recon.model import Binning, Irf
+
     b = Binning.from_dict(used["binning"])
     if used.get("irf"):
         return dataclasses.replace(settings, binning=b, irf=Irf.from_dict(used["irf"]), pulse_rms_s=None)
@@ -47,6 +50,8 @@ def resolved_settings(settings: ReconSettings, used: dict) -> ReconSettings:
 
 def agreement(a, b) -> dict:
     """Split-half figures of two maps of the same scene (surface 0 when they hold several)."""
+    import numpy as np
+
     da, db = np.asarray(a.depth_m, float), np.asarray(b.depth_m, float)
     sa = np.asarray(a.uncertainty_s, float)
     sb = np.asarray(b.uncertainty_s, float)
@@ -65,6 +70,8 @@ def agreement(a, b) -> dict:
 def split_half(store: PhotonStore, settings: ReconSettings) -> dict:
     """Reconstruct ``store`` whole and its two halves alone; the figures of :func:`agreement` plus
     the share of pixels with a depth in the whole and the decision's settings."""
+    import numpy as np
+
     from spdepth.recon.estimate import reconstruct
 
     full = reconstruct(store, settings)
@@ -92,6 +99,7 @@ def bench(argv: list[str]) -> int:
     parser.add_argument("--json", action="store_true", help="one JSON object per estimator")
     args = parser.parse_args(argv)
     from spdepth.acq.readers import read_photons
+    from spdepth.recon.model import METHODS, Binning, ReconSettings
 
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     bad = [m for m in methods if m not in METHODS]

@@ -30,24 +30,34 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Callable
 
-import numba
-import numpy as np
 
-from spdepth.acq.live_recon import MIN_BATCH_PIXELS
-from spdepth.recon.estimate import reconstruct
-from spdepth.recon.estimators import lmf_kernels, ml_kernels, uos_kernels
-from spdepth.recon.estimators.ml import ml_tables
-from spdepth.recon.kernels import Photons
-from spdepth.recon.model import FINE_STEPS, SEED_PAPER, Binning, ReconSettings, build_kernel
-from spdepth.recon.photons import PhotonStore
-from spdepth.recon.pixelwise import on_threads, threads
+def _import_heavy() -> None:
+    """Bind numpy, numba, the estimators' kernels and the seed paper's grid (M bins of BIN_UNITS
+    raw units of UNIT_S, pulse RMS_S, DETECTIONS per pixel) as this module's globals, which its
+    functions use; once, by :func:`bench` after its arguments are parsed and by the functions
+    other benchmarks call, so that ``spdepth bench recon --help`` loads none of them."""
+    if "np" in globals():
+        return
+    import numba
+    import numpy as np
 
-M = SEED_PAPER.n_bins
-UNIT_S = SEED_PAPER.time_unit_s
-BIN_UNITS = float(SEED_PAPER.bin_units)
-RMS_S = SEED_PAPER.pulse_rms_s
-#: detections per pixel
-DETECTIONS = SEED_PAPER.max_photons
+    from spdepth.acq.live_recon import MIN_BATCH_PIXELS
+    from spdepth.recon.estimate import reconstruct
+    from spdepth.recon.estimators import lmf_kernels, ml_kernels, uos_kernels
+    from spdepth.recon.estimators.ml import ml_tables
+    from spdepth.recon.kernels import Photons
+    from spdepth.recon.model import FINE_STEPS, SEED_PAPER, Binning, ReconSettings, build_kernel
+    from spdepth.recon.photons import PhotonStore
+    from spdepth.recon.pixelwise import on_threads, threads
+
+    globals().update(
+        numba=numba, np=np, MIN_BATCH_PIXELS=MIN_BATCH_PIXELS, reconstruct=reconstruct,
+        lmf_kernels=lmf_kernels, ml_kernels=ml_kernels, uos_kernels=uos_kernels, ml_tables=ml_tables,
+        Photons=Photons, FINE_STEPS=FINE_STEPS, SEED_PAPER=SEED_PAPER, Binning=Binning,
+        ReconSettings=ReconSettings, build_kernel=build_kernel, PhotonStore=PhotonStore,
+        on_threads=on_threads, threads=threads, M=SEED_PAPER.n_bins, UNIT_S=SEED_PAPER.time_unit_s,
+        BIN_UNITS=float(SEED_PAPER.bin_units), RMS_S=SEED_PAPER.pulse_rms_s,
+        DETECTIONS=SEED_PAPER.max_photons)
 
 
 def _load_reference():
@@ -60,8 +70,11 @@ def _load_reference():
     return mod, path
 
 
-def simulate(n_pix: int, seed: int, k: int = DETECTIONS, sbr: float = 10.0):
-    """Per-pixel bin lists (CSR) of the paper's model: Gaussian return + uniform background."""
+def simulate(n_pix: int, seed: int, k: int | None = None, sbr: float = 10.0):
+    """Per-pixel bin lists (CSR) of the paper's model: Gaussian return + uniform background; ``k``
+    detections per pixel (default the paper's)."""
+    _import_heavy()
+    k = DETECTIONS if k is None else k
     rng = np.random.default_rng(seed)
     sig_bins = RMS_S / (UNIT_S * BIN_UNITS)
     ns = rng.binomial(k, sbr / (1 + sbr), n_pix)
@@ -162,6 +175,7 @@ def uos_port_rate(n_pix: int = 200) -> float:
     """Pixels/s of the plain port of Algorithm 1 (tests/reference.py ``uos``: dense A, pinv each
     iteration) on :func:`simulate`'s pixels at the paper's settings, warm, best-of, one pixel at a
     time as ``spdepth bench recon``'s reference column; NaN without the source checkout's tests/."""
+    _import_heavy()
     ref, _ = _load_reference()
     if ref is None:
         return np.nan
@@ -333,6 +347,7 @@ def _parse(argv: list[str]) -> argparse.Namespace:
 
 def bench(argv: list[str]) -> int:
     args = _parse(argv)
+    _import_heavy()
     methods = args.methods.split(",")
     if args.before:
         from spdepth.acq.commands.bench.before import side_by_side, table_rows

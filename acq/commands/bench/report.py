@@ -42,9 +42,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
-from spdepth.recon.model import METHODS  # the report covers every estimator
+# numpy and the estimators (recon.model.METHODS: the report covers every one) are imported where
+# used: ``spdepth bench report --help`` loads neither
 
 DETECTIONS = (2, 5, 10, 15, 30, 60)
 SBRS = (0.1, 1.0, 10.0)
@@ -80,6 +79,8 @@ class Point:
 
 def simulate(point: Point, size: tuple[int, int], seed: int):
     """(store, scene) of a count-gated scan of ``point``: every pixel until N recorded detections."""
+    import numpy as np
+
     from spdepth.drivers.events import EventKind
     from spdepth.drivers.sim import PhotonWorld, load_scene
     from spdepth.recon.photons import PhotonStore
@@ -128,6 +129,8 @@ def warm_time_s(store, settings, repeats: int) -> tuple[object, float]:
 def errors_rows(point: Point, method: str, reflectors: int, maps, truth, compute_s: float,
                 rate_hz: float) -> list[dict]:
     """CSV rows of one reconstruction: one per surface evaluated."""
+    import numpy as np
+
     from spdepth.acq.evaluate import evaluate_depth, signal_detections
 
     n_pix = maps.photons.size
@@ -243,6 +246,8 @@ COLOURS = {"lmf": "tab:red", "uos": "tab:blue", "ml": "tab:green", "spatial": "t
 
 def _error_panel(ax, pts: list[dict], x_key: str, xlabel: str, title: str) -> None:
     """One panel: MAE of each estimator and the oracle bound against ``x_key``."""
+    from spdepth.recon.model import METHODS
+
     for method in sorted({r["method"] for r in pts}, key=METHODS.index):
         s = sorted(_series(pts, method=method), key=lambda r: r[x_key])
         ax.plot([r[x_key] for r in s], [r["mae_cm"] for r in s], "o-", color=COLOURS.get(method),
@@ -276,6 +281,8 @@ def plot_error_vs_detections(path: Path, rows: list[dict]) -> None:
 def plot_error_vs_compute(path: Path, rows: list[dict], rate_hz: float) -> None:
     """Left: MAE vs compute per pixel; right: MAE vs scan + compute per pixel. Each line is one
     estimator through its detection counts (labelled); the lower-left envelope is the Pareto front."""
+    from spdepth.recon.model import METHODS
+
     bust = _series(rows, scene="bust")
     sbr = max(r["sbr"] for r in bust)
     pts = _series(bust, sbr=sbr)
@@ -321,6 +328,7 @@ def plot_error_vs_sbr(path: Path, rows: list[dict]) -> None:
 def _versions() -> str:
     import matplotlib
     import numba
+    import numpy as np
 
     try:
         rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
@@ -356,6 +364,8 @@ def _fmt_ratio(r: dict) -> str:
 
 def headline_table(rows: list[dict]) -> list[str]:
     """MAE (x oracle) per estimator and detections per pixel at the highest SBR, with scan time."""
+    from spdepth.recon.model import METHODS
+
     bust = _series(rows, scene="bust")
     sbr = max(r["sbr"] for r in bust)
     pts = _series(bust, sbr=sbr)
@@ -482,11 +492,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def bench(argv: list[str]) -> int:
-    from spdepth.recon.errors import InputError
-
     parser = argparse.ArgumentParser(prog="spdepth bench report", description=__doc__.splitlines()[0])
     add_arguments(parser)
     args = parser.parse_args(argv)
+    from spdepth.recon.errors import InputError
+    from spdepth.recon.model import METHODS
     side = QUICK_SIZE if args.quick else SIZE
     size = args.size or (side, side)
     repeats = args.repeats or (2 if args.quick else 5)

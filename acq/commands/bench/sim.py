@@ -16,9 +16,7 @@ import sys
 
 
 def bench(argv: list[str]) -> int:
-    from spdepth.acq.commands.bench.session import scan_and_replay
-    from spdepth.acq.params import parse_size
-    from spdepth.acq.requests import DEFAULT_METHOD, DEFAULT_TARGET
+    from spdepth.acq.params import DEFAULT_METHOD, DEFAULT_TARGET, parse_size
 
     p = argparse.ArgumentParser(prog="spdepth bench sim", description=__doc__)
     p.add_argument("--size", type=parse_size, default=(512, 512), metavar="WxH",
@@ -29,6 +27,8 @@ def bench(argv: list[str]) -> int:
     p.add_argument("--demo-size", type=parse_size, default=(96, 96), metavar="WxH",
                    help="pixels of the demo's session (default 96x96)")
     a = p.parse_args(argv)
+    from spdepth.acq.commands.bench.session import scan_and_replay
+
     for label, size, target in (("demo", a.demo_size, DEFAULT_TARGET),
                                 ("gated session", a.size, a.target)):
         h, w = size

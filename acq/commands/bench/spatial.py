@@ -12,22 +12,21 @@ from __future__ import annotations
 import math
 import time
 
-import numba
-import numpy as np
-
-from spdepth.recon.estimate import reconstruct
-from spdepth.recon.maps import C_M_PER_S
-from spdepth.recon.model import SEED_PAPER, Binning, ReconSettings
-from spdepth.recon.photons import PhotonStore
-
-UNIT_S = SEED_PAPER.time_unit_s
-BIN_UNITS = SEED_PAPER.bin_units
-N_BINS = SEED_PAPER.n_bins
-RMS_UNITS = SEED_PAPER.pulse_rms_units
+# numpy, numba and the estimators are imported where used (the seed paper's grid with them):
+# ``spdepth bench spatial --help`` loads none of them
 
 
 def simulate(side: int, n: int, sbr: float, seed: int = 0):
-    """(store, true tof in s) of a side x side count-gated frame, N detections per pixel."""
+    """(store, true tof in s) of a side x side count-gated frame, N detections per pixel, on the
+    seed paper's grid."""
+    import numpy as np
+
+    from spdepth.recon.maps import C_M_PER_S
+    from spdepth.recon.model import SEED_PAPER
+    from spdepth.recon.photons import PhotonStore
+
+    UNIT_S, BIN_UNITS = SEED_PAPER.time_unit_s, SEED_PAPER.bin_units
+    N_BINS, RMS_UNITS = SEED_PAPER.n_bins, SEED_PAPER.pulse_rms_units
     rng = np.random.default_rng(seed)
     yy, xx = np.mgrid[0:side, 0:side]
     cm = 0.02 / C_M_PER_S / UNIT_S
@@ -44,11 +43,19 @@ def simulate(side: int, n: int, sbr: float, seed: int = 0):
 def bench(argv: list[str]) -> int:
     from spdepth.acq.commands.bench import parser as bench_parser
     from spdepth.acq.params import add_bench_options
-    from spdepth.recon import estimators
 
     parser = bench_parser("spatial", __doc__)
     add_bench_options(parser, "spatial")
     args = parser.parse_args(argv)
+    import numba
+    import numpy as np
+
+    from spdepth.recon import estimators
+    from spdepth.recon.estimate import reconstruct
+    from spdepth.recon.model import SEED_PAPER, Binning, ReconSettings
+
+    UNIT_S, BIN_UNITS = SEED_PAPER.time_unit_s, SEED_PAPER.bin_units
+    N_BINS, RMS_UNITS = SEED_PAPER.n_bins, SEED_PAPER.pulse_rms_units
     try:
         counts = [int(v) for v in args.detections.split(",")]
     except ValueError:

@@ -13,18 +13,18 @@ from __future__ import annotations
 import argparse
 import time
 
-import numba
-import numpy as np
-
-from spdepth.recon.estimate import reconstruct
-from spdepth.recon.model import Binning, ReconSettings
-from spdepth.recon.photons import PhotonStore
+# numpy, numba and the estimators are imported where used: ``spdepth bench surfaces --help``
+# loads none of them
 
 UNIT_S = 8e-12
 RMS_U = 40.0
 
 
 def scene(n_pix: int, seed: int) -> PhotonStore:
+    import numpy as np
+
+    from spdepth.recon.photons import PhotonStore
+
     rng = np.random.default_rng(seed)
     lists = []
     for _ in range(n_pix):
@@ -49,6 +49,12 @@ def bench(argv: list[str]) -> int:
         side_by_side("spdepth.acq.commands.bench.surfaces", inner, args.before, args.rounds,
                      table_rows(["1", "2", "auto"], [0], pattern=r"^--reflectors\s+(\S+):"), ["pixels/s"])
         return 0
+    import numba
+    import numpy as np
+
+    from spdepth.recon.estimate import reconstruct
+    from spdepth.recon.model import Binning, ReconSettings
+
     store = scene(args.pixels, 0)
     b = Binning(UNIT_S, 0, 4000, 5)
     numba.set_num_threads(1)
