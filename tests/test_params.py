@@ -83,6 +83,23 @@ def test_the_command_runs_numpy_without_huge_pages_unless_told(given, after):
     assert out == [after, after], out
 
 
+@pytest.mark.parametrize("inner, status, said", [
+    ("return orig(['recon', '/no/such/file.ptu'])", 2, "/no/such/file.ptu: no such file"),
+    ("raise RuntimeError('a bug')", 1, "RuntimeError: a bug")])
+def test_the_console_script_keeps_the_status_and_the_exit_handlers(inner, status, said):
+    """Issue 33: the console script ends without the interpreter's teardown (which unloads the
+    numba kernels: 0.7-1.3 s), and only that is skipped: main's exit status (1 for a bug, with
+    its traceback), and the atexit handlers registered while the command ran, are kept."""
+    code = ("import atexit\nfrom spdepth.acq import cli\norig = cli.main\n"
+            "def main(argv=None):\n"
+            "    atexit.register(lambda: print('handler ran', flush=True))\n"
+            f"    {inner}\n"
+            "cli.main = main\ncli.console_main()\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
+    assert out.returncode == status, out.stderr
+    assert out.stdout.strip() == "handler ran" and said in out.stderr
+
+
 def test_every_command_option_is_declared_once():
     parser, commands = _subcommands()
     declared = {n for p in params.PARAMS.values() for n in (p.option, *p.aliases)} | \
