@@ -115,3 +115,13 @@ def test_no_benchmark_help_shows_an_unfilled_placeholder(capsys):
 def test_the_window_refuses_a_missing_file_in_one_line(capsys, tmp_path):
     assert main(["gui", "--file", str(tmp_path / "nonexistent.mat"), "--exit-after-scan"]) == 2
     assert _one_line(capsys) == f"spdepth gui: error: {tmp_path / 'nonexistent.mat'}: no such file"
+
+
+def test_bench_honesty_of_a_cube_names_bench_halves(shared_data, capsys):
+    # a cube keeps no detection order: the alternate-detection split has nothing to alternate over
+    from spdepth.acq.commands.bench.honesty import bench
+
+    with pytest.raises(SystemExit) as exc:
+        bench([str(shared_data / "cube" / "art_top.mat"), "--time-unit-ps", "80"])
+    assert exc.value.code == 2
+    assert "spdepth bench halves" in capsys.readouterr().err

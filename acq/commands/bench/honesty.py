@@ -107,6 +107,10 @@ def bench(argv: list[str]) -> int:
         parser.error(f"--methods: unknown {', '.join(bad)} (choose from {', '.join(METHODS)})")
     unit_s = None if args.time_unit_ps is None else args.time_unit_ps * 1e-12
     store = read_photons(args.file, time_unit_s=unit_s).store
+    if store is None:
+        # a histogram cube keeps no detection order to alternate over
+        parser.error(f"{args.file} is a count cube: its halves are drawn at random by "
+                     f"spdepth bench halves {args.file} (each count to one half)")
     binning = None
     if args.window_ps or args.bin_ps:
         window_s = None
