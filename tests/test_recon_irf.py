@@ -242,3 +242,15 @@ def test_bright_background_is_not_read_as_a_tail(tmp_path):
     truth = np.load(tmp_path / "day.truth.npz")["depth_m"]
     err = np.abs(maps.depth_m - truth)[np.isfinite(maps.depth_m)]
     assert np.median(err) < 0.05
+
+
+@pytest.mark.parametrize("nh,hi", [(4096, 12500.0), (1000, 7.3)])
+def test_the_pair_histogram_bins_as_numpy_does(nh, hi):
+    # recon.model._uniform_histogram replaces np.histogram in the pair-difference histogram: the
+    # same counts bin for bin, integer times, fractions and the edges themselves included
+    from spdepth.recon.model import _uniform_histogram
+
+    rng = np.random.default_rng(16)
+    x = np.concatenate([np.floor(rng.uniform(0, hi, 50_000)), rng.uniform(0, hi, 50_000),
+                        np.linspace(0, hi, nh + 1)])
+    assert np.array_equal(_uniform_histogram(x, nh, hi), np.histogram(x, bins=nh, range=(0.0, hi))[0])
