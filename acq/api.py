@@ -22,6 +22,7 @@ import os
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -398,16 +399,33 @@ class KernelWarmUp:
     waited; a failure here is ignored (the real call then loads the kernel, or says what is
     wrong)."""
 
-    def __init__(self, request: FileReconRequest):
+    def __init__(self, request: FileReconRequest, notice: Callable[[str], None] | None = None):
         import threading
 
         self._request = request
+        self._notice = notice
         self._reader = threading.Event()
         self._thread = threading.Thread(target=self._run, name="kernel-warm-up", daemon=True)
         self._thread.start()
 
+    def _settings(self) -> ReconSettings:
+        req = self._request
+        return ReconSettings(method=req.method, pulse_rms_s=req.pulse_rms_s, max_photons=req.max_photons,
+                             reflectors=req.reflectors, max_reflectors=req.max_reflectors,
+                             false_alarm=req.false_alarm)
+
     def _run(self) -> None:
         req = self._request
+        try:
+            # a cold cache: the return test's kernels, most of a first run's compile, in a second
+            # process (recon.estimate.compile_apart) while this one reads and compiles the estimator
+            from spdepth.recon.estimate import compile_apart
+
+            if compile_apart([self._settings()], decide=True, estimator=False) is not None and self._notice:
+                self._notice("compiling the return test's kernels in a second process while the file is read "
+                             "and the estimator's compile here (first run; later runs load them from numba's cache)")
+        except Exception:  # noqa: BLE001 - then the warm-up below compiles them here
+            log.debug("compiling apart failed; the warm-up compiles here", exc_info=True)
         try:
             if Path(req.input).suffix.lower() == ".ptu":
                 from spdepth.acq.readers.picoquant import warm_up as warm_reader
@@ -420,9 +438,7 @@ class KernelWarmUp:
         try:
             from spdepth.recon.estimate import warm_up
 
-            warm_up(ReconSettings(method=req.method, pulse_rms_s=req.pulse_rms_s,
-                                  max_photons=req.max_photons, reflectors=req.reflectors,
-                                  max_reflectors=req.max_reflectors, false_alarm=req.false_alarm))
+            warm_up(self._settings())
         except Exception:  # noqa: BLE001 - the reconstruction itself reports what is wrong
             log.debug("estimator warm-up failed; the reconstruction compiles what it needs",
                       exc_info=True)
@@ -531,15 +547,17 @@ def file_settings(request: FileReconRequest, time_unit_s: float, recorded: dict 
                          max_reflectors=request.max_reflectors, false_alarm=request.false_alarm)
 
 
-def reconstruct_file(request: FileReconRequest, progress=None) -> FileResult:
+def reconstruct_file(request: FileReconRequest, progress=None,
+                     notice: Callable[[str], None] | None = None) -> FileResult:
     """Read ``request.input``, reconstruct it, write the outputs it names (``out`` .npz, ``png``,
     ``save_irf``), and return the maps with their summary. A session's own recording is read with
     its recorded settings unless the request overrides them. Raises ``InputError``/
-    ``RecordingError`` naming the file for what cannot be read."""
+    ``RecordingError`` naming the file for what cannot be read. ``notice(text)``: told what a first
+    run compiles apart (:class:`KernelWarmUp`)."""
     from spdepth.acq.readers import read_photons
     from spdepth.recon.estimate import reconstruct
 
-    warm = KernelWarmUp(request)
+    warm = KernelWarmUp(request, notice)
     load_s = warm.wait_reader()
     t0 = time.perf_counter()
     result = read_photons(request.input, time_unit_s=request.time_unit_s, mat_var=request.mat_var,

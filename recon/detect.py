@@ -70,8 +70,8 @@ from numba import njit
 
 from spdepth.recon.estimators.ml_bounds import ML_SCAN_ALL, _ml_at_int, _photon_range
 from spdepth.recon.estimators.ml_kernels import integer_optimum, ml_scratch
-from spdepth.recon.kernels import (NO_WEIGHTS, block_pixels, first_above, n_blocks, photon_intervals, pixel_bins,
-                                   pixel_scratch)
+from spdepth.recon.kernels import (INNER, NO_WEIGHTS, block_pixels, first_above, heap_sort, n_blocks, photon_intervals,
+                                   pixel_bins, pixel_scratch)
 from spdepth.recon.maps import C_M_PER_S, PixelFlag
 from spdepth.recon.model import Binning, Irf, build_kernel
 from spdepth.recon.pixelwise import over_threads
@@ -147,7 +147,7 @@ def rate_tables(tabs):
     return out
 
 
-@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy", **INNER)
 def _log_rates(s, tabs, rates, row):
     """row[d] = log(uni + s (g[d] / C - uni)), the log rate of a detection at pulse offset d at
     an interior shift (column sum C) and signal share s, interpolated between the two nearest
@@ -166,7 +166,7 @@ def _log_rates(s, tabs, rates, row):
     row[T.nk] = math.log(T.uni * (1.0 - s))
 
 
-@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy", **INNER)
 def _ll_at(kb, kw, nu, ntot, i, s, tabs, row):
     """The log-likelihood at integer shift i and the fixed signal share s (0 <= s < 1):
     sum_u w_u log(uni + s (r_u - uni)), r_u = g[k_u - i + off] / C_i (0 off the pulse), over the
@@ -198,7 +198,7 @@ def _ll_at(kb, kw, nu, ntot, i, s, tabs, row):
     return ll
 
 
-@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy", **INNER)
 def _sweep(kb, kw, nu, s, tabs, rates, row, rrow, acc):
     """Add into acc[i] (zero outside the last pixel's span) the log-likelihood beyond all
     detections off the pulse of the return at each interior shift i (ia..ib) at the signal share
@@ -225,7 +225,7 @@ def _sweep(kb, kw, nu, s, tabs, rates, row, rrow, acc):
     return lo0
 
 
-@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy", **INNER)
 def _sweep_clear(kb, nu, tabs, acc):
     """acc back to zero over the span :func:`_sweep` wrote for the detections kb (ascending)."""
     T = tabs
@@ -235,7 +235,7 @@ def _sweep_clear(kb, nu, tabs, acc):
         acc[lo:hi + 1] = 0.0
 
 
-@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy", **INNER)
 def _spread(kb, kw, nu, ntot, e, s, best_i, tabs, rates, sp, region):
     """The likelihood over the integer shifts at the fixed signal share s: (sd, ns, top), sd the
     larger of the 68.27% quantile and half the 95.45% quantile of |shift - e| under it (a flat
@@ -307,7 +307,7 @@ def _spread(kb, kw, nu, ntot, e, s, best_i, tabs, rates, sp, region):
     return max(q68, d / 2.0), ns, top
 
 
-@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy", **INNER)
 def _is_peak(sp, ns, k):
     """Whether the k-th shift of sp is a local maximum of the likelihood over shifts (a run of
     adjacent shifts with one maximum has one)."""
@@ -317,7 +317,7 @@ def _is_peak(sp, ns, k):
     return up and down
 
 
-@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy", **INNER)
 def _modes(sp, ns, top):
     """How many local maxima the likelihood over shifts has among the shifts within BOOT_NATS of
     its peak."""
@@ -328,7 +328,7 @@ def _modes(sp, ns, top):
     return n
 
 
-@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy", **INNER)
 def _interp(table, x):
     """table at fractional index x (linear), 0 outside."""
     if x < 0.0 or x > table.size - 1:
@@ -340,7 +340,7 @@ def _interp(table, x):
     return table[i] * (1.0 - f) + table[i + 1] * f
 
 
-@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy", **INNER)
 def _term(k, e, s, c, tabs):
     """A detection's log rate ratio log(1 + s (g(k - e) M / C_e - 1)) at the fractional shift e
     (column sum c there)."""
@@ -350,7 +350,7 @@ def _term(k, e, s, c, tabs):
     return math.log(max(1.0 + s * rk, 1e-300))
 
 
-@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy", **INNER)
 def _sandwich_var(kb, kw, nu, e, s, tabs):
     """Robust (sandwich) variance of the shift at e (bins^2): the spread of the detections' scores
     over the likelihood's curvature squared, by central differences half a bin wide. It equals the
@@ -390,7 +390,7 @@ def _uniform(state):
     return state, float(z >> np.uint64(11)) * (1.0 / 9007199254740992.0)
 
 
-@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy", **INNER)
 def _candidate(sp, ns, k, bar, peaks_only, region):
     """Whether the k-th shift of sp is one of the bootstrap's candidates (:func:`_bootstrap_sd`)."""
     if sp.logw[k] < bar or (peaks_only and not _is_peak(sp, ns, k)):
@@ -398,7 +398,7 @@ def _candidate(sp, ns, k, bar, peaks_only, region):
     return region.size == 0 or region[sp.pos[k]] != 0
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", **INNER)
 def _bootstrap_sd(kb, kw, nu, ntot, e, s, sp, ns, top, tabs, n_boot, seed, peaks_only, region, mode_thr):
     """Spread of the shift about e (bins) over ``n_boot`` bootstrap resamples of the pixel's
     detections (n = ntot draws, each a distinct bin with probability count / ntot, also for
@@ -485,7 +485,7 @@ def _bootstrap_sd(kb, kw, nu, ntot, e, s, sp, ns, top, tabs, n_boot, seed, peaks
             if v[q] > v[best]:
                 best = q
         dist[b] = abs(cand[best] - e)
-    dist.sort()
+    heap_sort(dist, n_boot)      # not dist.sort(): numpy's quicksort cost about 1 s more to compile
     q68 = dist[min(n_boot - 1, int(math.ceil(0.6827 * n_boot)) - 1)]
     if not peaks_only:
         return q68
@@ -495,7 +495,7 @@ def _bootstrap_sd(kb, kw, nu, ntot, e, s, sp, ns, top, tabs, n_boot, seed, peaks
     return max(q68, q95 / 2.0)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", **INNER)
 def _pixel_seed(kb, kw, nu):
     """A bootstrap seed from the pixel's own (bin, count) pairs, not its index: a pixel gets the
     same spread in a live batch, a Dask block, the whole frame, or from a cube."""
@@ -505,7 +505,9 @@ def _pixel_seed(kb, kw, nu):
     return seed
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+# inlined into detect_kernel: as a function of its own it was compiled, then optimised and emitted
+# again inside detect_kernel (1.8-3.9 s of CPU on a cold cache for a loop over blocks)
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _detect_block(blk, ph, tabs, dt, rates, maxn, est_shift, known_gain, known_share, thr, mode_thr, n_boot, regions, out_gain, out_sd, out_sandwich, out_boot):
     """The pixels of block blk of :func:`detect_kernel` with their scratch (ml's tables ``tabs`` go
     to ml's search only, the test's own functions read ``dt``)."""
@@ -550,7 +552,9 @@ def _detect_block(blk, ph, tabs, dt, rates, maxn, est_shift, known_gain, known_s
                                         n >= BOOT_MAX_N, region, mode_thr)
 
 
-@njit(cache=True, nogil=True)
+# numpy's error model as in _detect_block, which is inlined here and compiled under these options
+# (python's would add a zero check to every division and raise on one)
+@njit(cache=True, nogil=True, error_model="numpy")
 def detect_kernel(ph, tabs, dt, rates, maxn, est_shift, known_gain, known_share, thr, mode_thr, n_boot, regions, out_gain, out_sd, out_sandwich, out_boot):
     """Per pixel of ph (:class:`recon.kernels.Photons`, at most maxn entries a pixel) with ml's tables
     (:class:`recon.estimators.ml_kernels.MlTables`; ``dt`` its :class:`DetTables`): the largest log-likelihood gain of one return
@@ -564,7 +568,7 @@ def detect_kernel(ph, tabs, dt, rates, maxn, est_shift, known_gain, known_share,
                       n_boot, regions, out_gain, out_sd, out_sandwich, out_boot)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", **INNER)
 def _pool_neighbours(bins, weights, offsets, w, p, dense):
     """The up to 8 neighbours' detections of pixel p (row-major in a frame w pixels wide) pooled,
     its own left out: (distinct bins ascending, their counts, how many, total). ``dense``: zeros,

@@ -59,10 +59,12 @@ def reconstruct(store: PhotonStore, settings: ReconSettings,
     if isinstance(store, CountStore) and given_pulse(settings) is None:
         model_from = as_photons(store)    # the pulse is measured on photon times (recon.irf)
     b, kern, notes = resolve_model(model_from, settings)
+    _wait_apart(settings.method)        # its kernels compiling in another process: load them
     maps = est.run(store, settings, b, kern, notes, progress)
     # the one place every estimator's maps pass: is there a return, and how sure is each depth
     from spdepth.recon.detect import decide_maps
 
+    _wait_apart(DECIDE)
     return decide_maps(store, settings, maps, neighbours=neighbours)
 
 
@@ -73,14 +75,15 @@ def as_photons(counts: CountStore) -> PhotonStore:
     return counts.to_photons(round_counts=not counts.is_whole())
 
 
-def warm_up(settings: ReconSettings, decide: bool = True) -> None:
+def warm_up(settings: ReconSettings, decide: bool = True, estimator: bool = True) -> None:
     """Load (or, on a cold numba cache, compile) the kernels that ``settings``' estimator runs, on
     one made-up pixel of four detections, so that a later call on real data does not wait for them
     (a new process loads each kernel from the cache on its first call). Without a binning (a file's
     comes from its data) a made-up one of 64 bins serves: the kernels' code does not depend on it.
     Only the method and the number of surfaces choose kernels; results are discarded. ``decide``:
-    also the return test's (:mod:`recon.detect`, which every reconstruction runs); False: the
-    estimator's alone."""
+    also the return test's (:mod:`recon.detect`, which every reconstruction runs, with the
+    neighbours' support); False: the estimator's alone. ``estimator`` False: the return test's
+    alone (what :func:`compile_apart` compiles beside an estimator compiled here)."""
     b = settings.binning
     if b is None:
         b = Binning(1e-12, 0.0, 64.0, 1.0)
@@ -90,45 +93,105 @@ def warm_up(settings: ReconSettings, decide: bool = True) -> None:
     if pulse is None and settings.irf is None:
         pulse = 3 * b.bin_width_s          # any width: only the kernels' loading matters
     settings = dataclasses.replace(settings, binning=b, pulse_rms_s=pulse)
+    if estimator:
+        _wait_apart(settings.method)
     if decide:
+        _wait_apart(DECIDE)
+    if estimator and decide:
         reconstruct(one, settings)
-        return
-    bb, kern, notes = resolve_model(one, settings)
-    estimators.for_settings(settings).run(one, settings, bb, kern, notes)
+    elif estimator:
+        bb, kern, notes = resolve_model(one, settings)
+        estimators.for_settings(settings).run(one, settings, bb, kern, notes)
+    if decide:
+        # the test and the neighbours' support on the made-up pixel, as decide_maps calls them
+        # (the support's kernel runs only where a pixel fails, which the pixel above may not)
+        from spdepth.recon.detect import detect, neighbour_regions, neighbour_support
+        from spdepth.recon.pixelwise import binned_photons
+
+        bb, kern, _ = resolve_model(one, settings)
+        bins, offsets = binned_photons(one, bb, settings.max_photons)
+        est = np.full(1, 0.5 * bb.n_bins)
+        if not estimator:
+            detect(bins, offsets, kern, est, settings.false_alarm)
+        cand = np.zeros(1, np.int64)
+        neighbour_support(bins, np.empty(0), offsets, (1, 1), kern, est, cand, settings.false_alarm, 1)
+        neighbour_regions(bins, np.empty(0), offsets, 1, kern, cand, 1, 0.0)
 
 
-def compile_apart(settings: list[ReconSettings]) -> subprocess.Popen | None:
-    """The first run after an install: compile the estimator kernels of each of ``settings`` (as
-    :func:`warm_up` with ``decide=False``) into numba's cache in a new interpreter, started now, and
-    return it; wait for it before their first call here, which then loads them from the cache.
-    None when each is in the cache already (or its kernels are not found: then its first call
-    compiles it here, as without this). Numba compiles one function at a time in a process (one
-    lock for every thread), so only another process puts a second core to compiling while this one
-    compiles or runs other kernels. The child inherits the environment (NUMBA_CACHE_DIR, the path)."""
+#: What :func:`compile_apart` names the return test's kernels (:mod:`recon.detect`) beside the methods'.
+DECIDE = "decide"
+#: The processes compiling kernels into numba's cache for this one (:func:`compile_apart`), each with
+#: what it compiles (method names, DECIDE): :func:`reconstruct` and :func:`warm_up` wait for one
+#: before they need its kernels, so that this process loads them rather than compiling them too.
+_APART: list[tuple[subprocess.Popen, frozenset]] = []
+
+
+def _wait_apart(what: str) -> None:
+    """Wait for the processes of :func:`compile_apart` that compile ``what`` (a method, DECIDE)."""
+    for child, covers in list(_APART):
+        if what in covers:
+            child.wait()
+    _APART[:] = [(c, w) for c, w in _APART if c.poll() is None]
+
+
+def compile_apart(settings: list[ReconSettings], decide: bool = False,
+                  estimator: bool = True) -> subprocess.Popen | None:
+    """The first run after an install: compile the kernels of each of ``settings`` (as
+    :func:`warm_up` with the same ``decide`` and ``estimator``: the estimator's, and with ``decide``
+    the return test's) into numba's cache in a new interpreter, started now, and return it;
+    :func:`reconstruct` and :func:`warm_up` here wait for it before they need those kernels, and
+    then load them from the cache (``wait()`` on it waits for all). None when each is in the cache
+    already (or its kernels are not found: then its first call compiles it here, as without
+    this). Numba compiles one function at a time in a process (one lock for every thread), so only
+    another process puts a second core to compiling while this one compiles or runs other kernels.
+    The child inherits the environment (NUMBA_CACHE_DIR, the path)."""
     import json
     import sys
 
-    cold = [s for s in settings if not _kernels_cached(estimators.for_settings(s))]
-    if not cold:
+    todo, covers = [], set()
+    test_cold = decide and not _module_cached("spdepth.recon.detect")
+    for s in settings:
+        est_cold = estimator and not _kernels_cached(estimators.for_settings(s))
+        if est_cold or test_cold:
+            todo.append({"settings": s.to_dict(), "estimator": est_cold, "decide": test_cold})
+            covers |= {s.method} if est_cold else set()
+            covers |= {DECIDE} if test_cold else set()
+            test_cold = False               # the first one compiles the test for all
+    if not todo:
         return None
     code = ("import json, sys\nfrom spdepth.recon.estimate import warm_up\n"
             "from spdepth.recon.model import ReconSettings\n"
-            "for d in json.loads(sys.argv[1]):\n    warm_up(ReconSettings.from_dict(d), decide=False)\n")
-    return subprocess.Popen([sys.executable, "-c", code, json.dumps([s.to_dict() for s in cold])],
-                            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            "for d in json.loads(sys.argv[1]):\n"
+            "    warm_up(ReconSettings.from_dict(d['settings']), decide=d['decide'], estimator=d['estimator'])\n")
+    child = subprocess.Popen([sys.executable, "-c", code, json.dumps(todo)],
+                             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    _APART.append((child, frozenset(covers)))
+    return child
+
+
+def kernels_cached(settings: ReconSettings, decide: bool = False) -> bool:
+    """Whether numba's cache holds the kernels of ``settings``' estimator (and, with ``decide``,
+    the return test's), as :func:`compile_apart` judges them."""
+    return _kernels_cached(estimators.for_settings(settings)) and (
+        not decide or _module_cached("spdepth.recon.detect"))
 
 
 def _kernels_cached(est) -> bool:
     """Whether numba's cache holds compiled code of any kernel of ``est``'s kernel module (the fit's
-    module with ``_kernels`` after it, as lmf, uos and ml have; True when there is none), read from
-    the cache's index files without loading any code (numba's own FunctionCache reader: an index
-    left by other sources reads as empty)."""
-    import importlib
-
+    module with ``_kernels`` after it, as lmf, uos and ml have; True when there is none)."""
     fit = est.fit
     module = fit.partition(":")[0] if isinstance(fit, str) else getattr(fit, "__module__", "")
+    return _module_cached(module + "_kernels")
+
+
+def _module_cached(module: str) -> bool:
+    """Whether numba's cache holds compiled code of any kernel of ``module`` (True when it has none
+    or cannot be imported), read from the cache's index files without loading any code (numba's own
+    FunctionCache reader: an index left by other sources reads as empty)."""
+    import importlib
+
     try:
-        kernels = importlib.import_module(module + "_kernels")
+        kernels = importlib.import_module(module)
     except ImportError:
         return True
     caches = [getattr(v, "_cache", None) for v in vars(kernels).values()
@@ -140,4 +203,4 @@ def _kernels_cached(est) -> bool:
     return any(f._load_index() for f in files)
 
 
-__all__ = ["as_photons", "compile_apart", "reconstruct", "resolve_model", "warm_up"]
+__all__ = ["DECIDE", "as_photons", "compile_apart", "kernels_cached", "reconstruct", "resolve_model", "warm_up"]

@@ -51,6 +51,12 @@ BITMAP_WORDS = 4
 #: variable's before type inference unifies it) is another than int64's: one more compile of
 #: the callee and of everything it calls, each for seconds on a cold cache.
 ZERO = np.int64(0)
+#: numba options of a kernel helper that only compiled code calls: no CPython and C wrappers, which
+#: numba otherwise compiles for every function, each unboxing all its arguments (a helper taking
+#: ml's 26-field tables had one unboxing them all, compiled and emitted for nothing): ml's cold
+#: compile 17.7-18.9 -> 16.3-16.6 s of CPU with its search's helpers so. Such a function cannot be
+#: called from Python (the call crashes), so none that a test or Python code calls gets it.
+INNER = dict(no_cpython_wrapper=True, no_cfunc_wrapper=True)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -99,7 +105,7 @@ def heap_sort(a, n):
         _sift_down(a, ZERO, end)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, **INNER)
 def _sift_down(a, root, n):
     v = a[root]
     while True:
@@ -131,7 +137,7 @@ def sort_run(a, lo, hi):
         a[b + 1] = v
 
 
-@njit(cache=True, nogil=True, _nrt=False)
+@njit(cache=True, nogil=True, _nrt=False, **INNER)
 def unique_counts(bins, o0, o1, tmp, kb, kw):
     """Sorted distinct bins of one pixel and their counts into kb/kw; returns how many.
 
@@ -309,7 +315,7 @@ def _rotate(x, n, p, q, c, s):
         x[k, q] = s * xkp + c * xkq
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, **INNER)
 def sym_eig(a, n, vecs, vals):
     """Eigen-decomposition of the leading n x n block of symmetric a (cyclic Jacobi; a is
     overwritten). Columns of vecs are eigenvectors. n is at most 2K+1, so this is a few dozen flops."""
@@ -342,7 +348,7 @@ def sym_eig(a, n, vecs, vals):
         vals[p] = a[p, p]
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, **INNER)
 def pinv_solve(gram, rhs, n, work, vecs, vals, out):
     """out = pinv(A) y from the Gram matrix A^T A (n x n) and rhs = A^T y, dropping directions whose
     eigenvalue is below 1e-12 of the largest (singular value ratio 1e-6): what pinv's tolerance does
@@ -443,7 +449,7 @@ def fisher_var(shift, a, bg, m, g, dg, off):
     return shift_var(i00, i01, i02, i11, i12, i22, np.bool_(bg > 0.0))
 
 
-@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy", **INNER)
 def shift_var(i00, i01, i02, i11, i12, i22, with_bg):
     """1 / the shift's information once the amplitude (and the background, with_bg) are profiled
     out of the Fisher matrix [[i00, i01, i02], [., i11, i12], [., ., i22]] (shift, a, bg); NaN when
@@ -550,7 +556,7 @@ def _after(keys, x, y):
     return keys[x] < keys[y] or (keys[x] == keys[y] and x > y)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, **INNER)
 def _sift_after(keys, idx, root, n):
     v = idx[root]
     while True:

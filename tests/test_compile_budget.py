@@ -69,3 +69,36 @@ print(json.dumps({"started": started, "code": code, "again": again is None, "com
 """, tmp_path)
     assert got["started"] and got["code"] == 0 and got["again"]
     assert got["compiled"] == []                  # every lmf kernel came from the child's cache
+
+
+def test_the_return_test_compiled_apart_loads_here_while_the_estimator_compiles_here(tmp_path):
+    # spdepth recon's first run: the return test's kernels (most of its compile) in a second
+    # process, the estimator's here; the reconstruction waits for the child, then loads the test's
+    got = _cold("""
+import json
+from numba.core import event
+from spdepth.recon.estimate import compile_apart, kernels_cached, warm_up
+from spdepth.recon.model import ReconSettings
+
+s = ReconSettings(method="lmf", max_photons=15)
+cold = not kernels_cached(s, decide=True)
+child = compile_apart([s], decide=True, estimator=False)
+compiled = []
+
+class Count(event.Listener):
+    def on_start(self, ev):
+        f = ev.data["dispatcher"].py_func
+        compiled.append(f.__module__ + "." + f.__name__)
+
+    def on_end(self, ev):
+        return None     # numba's Listener needs it; only the starts are counted
+
+event.register("numba:compile", Count())
+warm_up(s)
+print(json.dumps({"cold": cold, "started": child is not None, "code": child.wait() if child else None,
+                  "compiled": compiled, "cached": kernels_cached(s, decide=True)}))
+""", tmp_path)
+    assert got["cold"] and got["started"] and got["code"] == 0 and got["cached"]
+    ours = [c for c in got["compiled"] if c.startswith("spdepth.")]
+    assert "spdepth.recon.estimators.lmf_kernels._lmf_pixels" in ours          # the estimator compiled here
+    assert [c for c in ours if c.startswith(("spdepth.recon.detect", "spdepth.recon.estimators.ml"))] == []

@@ -178,20 +178,53 @@ def _demo(args, request, methods, out_dir, png) -> int:
     return exit_status(session, interrupted)
 
 
+class _CompiledApart:
+    """The first run's compiles begun by :func:`_compile_comparison_apart`: ``wait()`` for all."""
+
+    def __init__(self, child, thread):
+        self._child, self._thread = child, thread
+
+    def wait(self) -> None:
+        if self._thread is not None:
+            self._thread.join()
+        if self._child is not None:
+            self._child.wait()
+
+
 def _compile_comparison_apart(request, methods):
-    """On a cold numba cache, the kernels of the compared methods other than the live one compile
-    in a second process while this one simulates the scan and compiles the live estimator's
-    (``recon.estimate.compile_apart``), with a line saying so; None when they are cached."""
-    from spdepth.recon.estimate import compile_apart
+    """On a cold numba cache, split the first run's compiles over both cores: the live estimator's
+    kernels and the return test's (most of it) in a second process (``recon.estimate.compile_apart``,
+    which the session's warm-up waits for and then loads), the other compared methods' here on a
+    thread while the simulator's kernels compile and the scan is prepared; a line says so. None
+    when they are all cached."""
+    import threading
+
+    from spdepth.recon.estimate import compile_apart, kernels_cached, warm_up
     from spdepth.recon.model import ReconSettings
 
-    others = [m for m in methods if m != request.method]
-    apart = compile_apart([ReconSettings(method=m, max_photons=request.target, reflectors=request.reflectors)
-                           for m in others]) if others else None
-    if apart is not None:
-        print(f"spdepth demo: compiling the kernels of {', '.join(others)} in a second process while the "
-              f"scan is prepared (first run; later runs load them from numba's cache)", file=sys.stderr)
-    return apart
+    def settings(method):
+        return ReconSettings(method=method, max_photons=request.target, reflectors=request.reflectors)
+
+    child = compile_apart([settings(request.method)], decide=True)
+    others = [m for m in methods if m != request.method and not kernels_cached(settings(m))]
+    thread = None
+    if others:
+        def compile_here() -> None:
+            for m in others:
+                try:
+                    warm_up(settings(m), decide=False)
+                except Exception:  # noqa: BLE001 - the comparison's own call then says what is wrong
+                    return
+
+        thread = threading.Thread(target=compile_here, name="compile-compared", daemon=True)
+        thread.start()
+    if child is None and thread is None:
+        return None
+    parts = ([f"{request.method}'s and the return test's kernels in a second process"] if child else []) + (
+        [f"those of {', '.join(others)} here"] if others else [])
+    print(f"spdepth demo: compiling {' and '.join(parts)} while the scan is prepared (first run; later runs "
+          f"load them from numba's cache)", file=sys.stderr)
+    return _CompiledApart(child, thread)
 
 
 def _accuracy_table(session, scene, request, methods, apart=None):

@@ -57,7 +57,8 @@ def run(args: argparse.Namespace) -> int:
     refuse_existing(_outputs(request), overwrite=args.overwrite, inputs=(request.input,))
     bar = ProgressBar(f"recon {request.method}")
     try:
-        result = reconstruct_file(request, progress=bar)
+        result = reconstruct_file(request, progress=bar,
+                                  notice=lambda text: print(f"spdepth recon: {text}", file=sys.stderr, flush=True))
     finally:
         bar.close()
     summary = result.summary

@@ -13,7 +13,7 @@ from collections import namedtuple
 import numpy as np
 from numba import njit
 
-from spdepth.recon.kernels import ZERO, pixel_bins, pixel_scratch
+from spdepth.recon.kernels import INNER, ZERO, pixel_bins, pixel_scratch
 
 #: LMF on a log-concave pulse: up to this many distinct photon bins, hill-climb from their mean
 #: (cost O(photons x steps), steps < bins); above it, bisect (O(photons log bins)).
@@ -24,7 +24,7 @@ CLIMB_MAX_PHOTONS = 64
 LmfTables = namedtuple("LmfTables", ["m", "logg", "log_concave"])
 
 
-@njit(cache=True, nogil=True, _nrt=False)
+@njit(cache=True, nogil=True, _nrt=False, **INNER)
 def _lmf_score(kb, kw, nu, i, logg, m):
     s = 0.0
     # unsigned index: spares numba's negative-index wraparound on each gather (the index is >= 0)

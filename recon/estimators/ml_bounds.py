@@ -13,7 +13,7 @@ import math
 import numpy as np
 from numba import njit
 
-from spdepth.recon.kernels import ZERO, first_above
+from spdepth.recon.kernels import INNER, ZERO, first_above
 
 #: ml: pixels with at most this many distinct photon bins run every pass over all their photons
 #: (one out of the pulse's reach reads rate 0, as the w_out term does), sparing the binary search
@@ -116,7 +116,7 @@ def _mix_bound(ll, f1, s, kap_hi, kap_lo):
     return ll - f1 * t - 0.5 * kap_lo * t * t
 
 
-@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy", **INNER)
 def _mix_end(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, f1):
     """Whether :func:`mix_ml`'s maximum lies at s = 0 (f1, the slope at some s, <= 0) or at s = 1
     (f1 > 0), and there (s, loglik): (False, 0, 0) when it does not."""
@@ -162,7 +162,7 @@ def _mix_end(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, f1):
     return False, 0.0, 0.0
 
 
-@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy", **INNER)
 def mix_ml(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, s0, cut):
     """max over s in [0, 1] of sum_u w_u log((1 - s) uni + s r_u): the Poisson likelihood of eq. (9)
     with (a, B) profiled onto a C + B M = n (where its maximum lies), s = a C / n the signal share,
@@ -226,7 +226,7 @@ def mix_ml(kb, kw, ua, ub, w_out, tab, base, step, q, inv_c, uni, s0, cut):
     return s, ll
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", **INNER)
 def _photon_range(kb, nu, lo, hi):
     """[ua, ub): the sorted distinct photon bins kb[:nu] lying in [lo, hi] (binary search)."""
     return first_above(kb, nu, lo, np.bool_(False)), first_above(kb, nu, hi, np.bool_(True))
@@ -246,7 +246,7 @@ def _ml_at_int(kb, kw, nu, wtot, i, g, off, colsum, uni, s0, cut):
     return mix_ml(kb, kw, ua, ub, w_out, g, off - i, np.int64(1), ZERO, 1.0 / colsum[i], uni, s0, cut)
 
 
-@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy", **INNER)
 def _ml_at_fine(kb, kw, nu, wtot, i, q, fine, off, fine_colsum, fsteps, uni, s0, cut):
     """Profile at shift i + q / fsteps (|q| <= fsteps), from the fine kernel table."""
     nf = fine.size
@@ -263,7 +263,7 @@ def _ml_at_fine(kb, kw, nu, wtot, i, q, fine, off, fine_colsum, fsteps, uni, s0,
                   s0, cut)
 
 
-@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy", **INNER)
 def mix_bounds(kb, kw, nu, wtot, trev, base, step, qa, nq, inv_c, uni, s, r0s, ws, out):
     """:func:`mix_ml`'s first-pass bound (:func:`_mix_bound` of :func:`_mix_pass` at share s, which
     must lie in (0, 1)) for nq consecutive positions of a pulse table in one call: position t reads

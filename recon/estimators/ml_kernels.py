@@ -35,7 +35,7 @@ from numba import njit
 from spdepth.recon.estimators.ml_bounds import (ML_SHARE_CLAMP, ML_SHARES, _ml_at_fine, _ml_at_int, _photon_range,
                                                 mix_bounds, share_bound, share_diffs, share_sweep, share_tables,
                                                 swept_bound)
-from spdepth.recon.kernels import (ZERO, fisher_tab, photon_intervals, pixel_bins, pixel_scratch,
+from spdepth.recon.kernels import (INNER, ZERO, fisher_tab, photon_intervals, pixel_bins, pixel_scratch,
                                    sort_desc)
 
 #: ml: logliks within this share of each other are a tie (the pulse on either of two lone
@@ -129,7 +129,7 @@ def ml_scratch(maxn, tabs):
                      np.empty(n, np.int64), np.empty(n), np.empty(max(ML_RUN, nf)), np.empty(nf, np.int64))
 
 
-@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy", **INNER)
 def _upper_bounds(kb, kw, nu, tabs, acc):
     """U(i) - floor into acc over the shifts i = k - d, d in [dlo, dhi], of the photons."""
     T = tabs
@@ -151,7 +151,7 @@ def _upper_bounds(kb, kw, nu, tabs, acc):
                     acc[i] += wu * v
 
 
-@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy", **INNER)
 def _best_bound(niv, scr):
     """The shift of the best bound (the first of equal ones; -1: none positive), without listing the
     shifts: most of the photons' reach has a positive bound, so a test per shift would be a coin
@@ -174,7 +174,7 @@ def _best_bound(niv, scr):
     return i1
 
 
-@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy", **INNER)
 def _first_solve(kb, kw, nu, ntot, i1, tabs):
     """(s, loglik) at the best bound's shift i1. Newton starts at the share of the photons whose
     bound term is positive there (the return's, and the background's under it), not at 1/2: two
@@ -189,7 +189,7 @@ def _first_solve(kb, kw, nu, ntot, i1, tabs):
     return _ml_at_int(kb, kw, nu, ntot, i1, T.g, T.off, T.colsum, T.uni, s0, -np.inf)
 
 
-@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy", **INNER)
 def _survivors(i1, floor_ll, bar, niv, scr):
     """The shifts but i1 whose U could beat bar (the best likelihood less the tie), ascending, into
     scr.surv with their U as key; returns how many."""
@@ -206,7 +206,7 @@ def _survivors(i1, floor_ll, bar, niv, scr):
     return ns
 
 
-@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy", **INNER)
 def _run_bounds(kb, kw, nu, ntot, t, t2, sweep, js, sj, sb, tabs, scr):
     """Tighten the keys of the survivors surv[t:t2] (a run: ascending, close together) to their
     first-pass tangent bound: from the sweep's sums (interior, ``sweep``), from the share tables
@@ -235,7 +235,7 @@ def _run_bounds(kb, kw, nu, ntot, t, t2, sweep, js, sj, sb, tabs, scr):
             S.key[i] = min(S.key[i], S.bnd[i - wa])
 
 
-@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy", **INNER)
 def _tighten(kb, kw, nu, ntot, ns, best_s, bar, tabs, scr):
     """The survivors' keys tightened to the tangent bound of their first Newton pass at about the
     best share so far (much tighter than U, which overshoots the likelihood by a few nats at every
@@ -258,7 +258,7 @@ def _tighten(kb, kw, nu, ntot, ns, best_s, bar, tabs, scr):
     # else in runs of nearby survivors (ascending), so the photons that reach a run are found once:
     # at SBR 0.1 a shift's reach holds a sixth of a pixel's detections
     nc = ZERO
-    t = 0
+    t = ZERO           # not a literal 0: _run_bounds would compile a second time for Literal[int](0)
     while t < ns:
         wa = S.surv[t]
         t2 = t + 1
@@ -276,7 +276,7 @@ def _tighten(kb, kw, nu, ntot, ns, best_s, bar, tabs, scr):
     return nc
 
 
-@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy", **INNER)
 def _solve_best_first(kb, kw, nu, ntot, nc, best_ll, best_i, best_s, tabs, scr):
     """Solve the candidates best key first until a key cannot beat the best likelihood; ties (see
     ML_TIE) go to the latest shift. Returns the best (loglik, shift, share)."""
@@ -300,9 +300,12 @@ def _solve_best_first(kb, kw, nu, ntot, nc, best_ll, best_i, best_s, tabs, scr):
 
 
 @njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
-def _integer_optimum(kb, kw, nu, ntot, tabs, scr):
+def integer_optimum(kb, kw, nu, ntot, tabs, scr):
     """(loglik, shift, share) of the best integer shift (shift -1: the all-background fit, at the
-    floor, wins)."""
+    floor, wins). Compiled once, on its own (not inlined): ml's pixels and recon.detect's return
+    test call this one copy (inlined into both, it compiled twice: 10 s of CPU on a cold cache; a
+    wrapper level around it cost another 0.8-1.2 s, each level optimising and emitting the whole
+    tree below again)."""
     T, S = tabs, scr
     floor_ll = -ntot * T.logm          # s = 0: all background
     best_ll, best_i, best_s = floor_ll, np.int64(-1), 0.0
@@ -323,13 +326,6 @@ def _integer_optimum(kb, kw, nu, ntot, tabs, scr):
     for t in range(niv):
         S.acc[S.ivlo[t]:S.ivhi[t] + 1] = 0.0
     return best_ll, best_i, best_s
-
-
-@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
-def integer_optimum(kb, kw, nu, ntot, tabs, scr):
-    """:func:`_integer_optimum` compiled once, on its own: ml's pixels and recon.detect's return test
-    call this one copy (inlined into both, it compiled twice: 10 s of CPU on a cold cache)."""
-    return _integer_optimum(kb, kw, nu, ntot, tabs, scr)
 
 
 @njit(cache=True, nogil=True, _nrt=False, inline="always", error_model="numpy")

@@ -17,7 +17,7 @@ from collections import namedtuple
 import numpy as np
 from numba import njit
 
-from spdepth.recon.kernels import (ZERO, col_dot, photon_intervals, pinv_solve, pixel_bins,
+from spdepth.recon.kernels import (INNER, ZERO, col_dot, photon_intervals, pinv_solve, pixel_bins,
                                    pixel_scratch)
 
 #: uos's tables and settings (:func:`uos_tables`): m bins; the unit-area pulse g with its peak at
@@ -77,7 +77,7 @@ def _scan_plain(cvec, colsum, bgc, a, b, best, bi):
     return best, bi
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, **INNER)
 def _scan_range(lo, hi, best, bi, cvec, colsum, bgc, j, aj, wlo, whi, clipped, acorr, nk, m, pp, off):
     """Running (max, first argmax) of the proxy over shifts lo..hi (inclusive), continuing from
     (best, bi). The entry is ``cvec[i] - bgc*colsum[i]``, minus ``aj * S_i^T S_j`` inside the support
@@ -135,7 +135,7 @@ def uos1_argmax(cvec, colsum, cmin, bgc, ns, j, aj, acorr, nk, m, pp, off, ivlo,
     return bi
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, **INNER)
 def refit_nonneg(supp, amp, ns, use_bg, cvec, colsum, ntot, m, pp, off, nk, inv_gmax, inv_g2, gram, rhs,
                  work, vecs, vals, sol):
     """Least squares on the kept support (depth columns supp[:ns], and the background column when
@@ -291,7 +291,7 @@ def change_norm(supp, amp, ns, nsupp, namp, nn, bg, nbg):
     return diff, xnorm2
 
 
-@njit(cache=True, nogil=True, _nrt=False)
+@njit(cache=True, nogil=True, _nrt=False, **INNER)
 def _iterate(ns, bg, ntot, niv, tabs, scr):
     """One iteration of the pursuit from the support (scr.supp[:ns], scr.amp[:ns]) and background
     bg: the proxy's largest entry joins the support, least squares on it, the largest positive
@@ -315,7 +315,9 @@ def _iterate(ns, bg, ntot, niv, tabs, scr):
     return nn, nbg, diff < T.delta * max(1.0, xnorm2), clipped
 
 
-@njit(cache=True, nogil=True, _nrt=False)
+# inlined into _uos_pixels, its one caller, as ml_pixel is into _ml_pixels: a compiled level of its
+# own optimised and emitted the whole pursuit twice on a cold cache
+@njit(cache=True, nogil=True, _nrt=False, inline="always")
 def uos_pixel(kb, kw, nu, tabs, scr):
     """Algorithm 1 on one pixel's distinct bins kb[:nu] (counts kw): (shift, amp, bg, iterations,
     converged); shift NaN when no return is kept (or no photon), amp on the unit-area pulse."""
