@@ -125,3 +125,12 @@ def test_bench_honesty_of_a_cube_names_bench_halves(shared_data, capsys):
         bench([str(shared_data / "cube" / "art_top.mat"), "--time-unit-ps", "80"])
     assert exc.value.code == 2
     assert "spdepth bench halves" in capsys.readouterr().err
+
+
+def test_a_benchmark_s_message_exit_is_one_line_not_a_traceback(capsys):
+    # bench recon --before with neither a folder nor a revision exits with a message (SystemExit
+    # of a string): the bench command said it as a ValueError traceback
+    assert main(["bench", "recon", "--before", "/no/such/folder"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("spdepth bench recon: error: --before /no/such/folder") and "Traceback" not in err
+    assert err.count("\n") == 1

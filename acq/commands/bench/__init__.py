@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import sys
 
 HELP = "measure speed (generation, reconstruction, T3 decoding) and accuracy for time (report)"
 
@@ -74,4 +75,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         return int(module.bench(list(args.rest)) or 0)
     except SystemExit as exc:     # the benchmark's --help, or its one-line usage error
+        if isinstance(exc.code, str):           # SystemExit("message"): said in one line, status 2
+            print(f"spdepth bench {args.target}: error: {' '.join(exc.code.split())}", file=sys.stderr)
+            return 2
         return int(exc.code or 0)
