@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import atexit
+import contextlib
 import importlib
 import logging
 import os
@@ -197,10 +198,9 @@ def console_main() -> None:
 def _hard_exit() -> None:
     logging.shutdown()       # registered before console_main's handler: it would not run
     for stream in (sys.stdout, sys.stderr):
-        try:
+        # a stream closed or replaced has nothing to flush
+        with contextlib.suppress(OSError, ValueError, AttributeError):
             stream.flush()
-        except (OSError, ValueError, AttributeError):   # closed or replaced: nothing to flush
-            pass
     os._exit(_status[0] if _status else 1)
 
 

@@ -179,11 +179,11 @@ def _return_background_floor(times: np.ndarray, c: np.ndarray, w: float) -> np.n
     if not ret.sum() > 0:
         return np.zeros_like(c)
     centre = (np.arange(nb) + 0.5) * w
-    # sum over the returns' bins of [centre >= d] + [span - centre > d], for each d in c
-    order = np.argsort(centre)
-    after = np.concatenate([np.cumsum(ret[order][::-1])[::-1], [0.0]])
-    from_start = after[np.searchsorted(centre[order], c, side="left")]
-    before_end = after[np.searchsorted(centre[order], span - c, side="left")]
+    # sum over the returns' bins of [centre >= d] + [span - centre > d], for each d in c (the
+    # centres ascend: after[k] is the returns' sum from bin k on)
+    after = np.concatenate([np.cumsum(ret[::-1])[::-1], [0.0]])
+    from_start = after[np.searchsorted(centre, c, side="left")]
+    before_end = after[np.searchsorted(centre, span - c, side="left")]
     g = from_start + (ret.sum() - before_end)
     return g / g[0]
 
