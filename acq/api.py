@@ -412,7 +412,7 @@ class KernelWarmUp:
         req = self._request
         return ReconSettings(method=req.method, pulse_rms_s=req.pulse_rms_s, max_photons=req.max_photons,
                              reflectors=req.reflectors, max_reflectors=req.max_reflectors,
-                             false_alarm=req.false_alarm)
+                             false_alarm=req.false_alarm, neighbour_false_alarm=req.neighbour_false_alarm)
 
     def _run(self) -> None:
         req = self._request
@@ -544,7 +544,8 @@ def file_settings(request: FileReconRequest, time_unit_s: float, recorded: dict 
             max_photons = int(recorded["max_photons"])
     return ReconSettings(method=request.method, binning=binning, pulse_rms_s=pulse_rms_s,
                          irf=irf, max_photons=max_photons, reflectors=request.reflectors,
-                         max_reflectors=request.max_reflectors, false_alarm=request.false_alarm)
+                         max_reflectors=request.max_reflectors, false_alarm=request.false_alarm,
+                         neighbour_false_alarm=request.neighbour_false_alarm)
 
 
 def reconstruct_file(request: FileReconRequest, progress=None,

@@ -65,6 +65,7 @@ issue 18 to keep up with a live scan (``spdepth bench session`` prints the live 
 DEFAULT_REFLECTORS = 1
 DEFAULT_MAX_REFLECTORS = 3
 DEFAULT_FALSE_ALARM = 1e-3
+DEFAULT_NEIGHBOUR_FALSE_ALARM = 0.05
 MAX_SURFACES = 8
 """Most surfaces per pixel any estimator fits (``--reflectors``, ``--max-reflectors``)."""
 PULSE_RMS_PS = (1.0, 1e6)
@@ -612,6 +613,11 @@ _DECLARED = (
           per_source={"replay": _AS_RECORDED},
           help="chance per pixel that background alone passes for a return (every estimator's "
                "test for a return, recon.detect), and with --reflectors auto per added surface"),
+    Param("--neighbour-false-alarm", "neighbour_false_alarm", "float", group="estimator", sources=("file",),
+          default=DEFAULT_NEIGHBOUR_FALSE_ALARM, low=0, high=1, high_open=True, metavar="P",
+          help="a pixel that fails the test, and its neighbours' support at its own estimate, is "
+               "tested where its neighbours see returns: the chance that a pixel at a surface's "
+               "edge without a return of its own there is given one (0: never; recon.detect)"),
     Param("--speed", "speed", "speed",
           summary="replay speed: max, or a factor of recorded time",
           group="replay", sources=("replay",), default="max",

@@ -472,6 +472,7 @@ class FileReconRequest(_Request):
     reflectors: int | str = default("--reflectors", "file")
     max_reflectors: int = default("--max-reflectors", "file")
     false_alarm: float = default("--false-alarm", "file")
+    neighbour_false_alarm: float = default("--neighbour-false-alarm", "file")
     mat_var: str | None = None
     channel: int | None = None
     threads: int | None = None

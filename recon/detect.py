@@ -20,6 +20,18 @@ see lends each its evidence (tower_9km.mat: ml reports a depth on 24.4% of pixel
 39.8% with any detection); the depth stays the pixel's own estimate. A pixel whose own estimate lies
 elsewhere (a background detection beside a wall) is not supported.
 
+**Where the neighbours see returns.** A pixel that fails both (a background cluster beat its faint
+return for its own best shift) holds a return when its own detections pass the test within the
+region where its neighbours see returns (:func:`neighbour_fill`: within the support's span of a
+shift at which their pooled detections, its own left out, pass the support test) at the
+false-alarm rate ``ReconSettings.neighbour_false_alarm`` (default 0.05) for that region's span of shifts; its depth is then ml's best
+within the region, whatever the estimator. Background alone all around passes only where the
+neighbours passed their test too (at most false_alarm x that rate); beside a surface a
+pixel without a return of its own at those shifts is given one at that rate at most (a
+faint wall with holes, test_recon_detect: holes 4.4 -> 6.6%, the wall's pixels 29.4 -> 36.8%).
+art_top.mat, ml: a depth on 24.8 -> 37.7% of pixels, halves within 3 / 1 sigma 96.7 / 66.1% ->
+96.3 / 66.9% on 481 -> 1,246 pixels; tower_9km.mat 24.4 -> 25.2% (95.5 / 68.6% -> 95.4 / 69.0%).
+
 **The uncertainty** of a reported depth is the largest of three spreads, each used only where it
 exceeds the estimator's own (its Fisher or sandwich variance) beyond its resolution:
 
@@ -71,7 +83,7 @@ import numpy as np
 from numba import njit
 
 from spdepth.recon.estimators.ml_bounds import ML_SCAN_ALL, _ml_at_int, _photon_range
-from spdepth.recon.estimators.ml_kernels import integer_optimum, ml_scratch
+from spdepth.recon.estimators.ml_kernels import integer_optimum, ml_refine, ml_scratch
 from spdepth.recon.kernels import (INNER, NO_WEIGHTS, block_pixels, first_above, heap_sort, n_blocks, photon_intervals,
                                    pixel_bins, pixel_scratch)
 from spdepth.recon.maps import C_M_PER_S, PixelFlag
@@ -674,6 +686,38 @@ def neighbour_region_kernel(bins, weights, offsets, w, cand, half, thr, tabs, ra
             _sweep_clear(kb, nu, T, acc)
 
 
+@njit(cache=True, nogil=True, error_model="numpy")
+def region_ml_kernel(ph, tabs, maxn, cand, regions, out_shift, out_amp, out_bg, out_var, out_gain, out_share):
+    """ml within where the neighbours see returns: for each pixel cand[c] of ph, its own detections'
+    best integer shift among those with regions[c, i] set (profiled share, ml's likelihood), refined
+    as ml refines its global one (:func:`recon.estimators.ml_kernels.ml_refine`): out_shift (bins,
+    NaN: none), out_amp, out_bg, out_var (bins^2), out_gain (nats: the best region shift's
+    log-likelihood beyond the all-background fit's) and out_share (its signal share)."""
+    T = tabs
+    px = pixel_scratch(maxn, T.m)
+    scr = ml_scratch(maxn, T)
+    for c in range(cand.size):
+        nu, n = pixel_bins(ph, cand[c], px)
+        kb, kw = px.kb, px.kw
+        ntot = 0.0
+        for u in range(nu):
+            ntot += kw[u]
+        best_ll, best_i, best_s = -ntot * T.logm, np.int64(-1), 0.0
+        s0 = 0.5
+        reg = regions[c]
+        for i in range(T.m):
+            if reg[i] == 0 or nu == 0:
+                continue
+            s, ll = _ml_at_int(kb, kw, nu, ntot, i, T.g, T.off, T.colsum, T.uni, s0, -np.inf)
+            if 0.0 < s < 1.0:
+                s0 = s
+            if ll > best_ll:
+                best_ll, best_i, best_s = ll, np.int64(i), s
+        out_share[c] = best_s
+        out_shift[c], out_amp[c], out_bg[c], out_var[c], out_gain[c] = ml_refine(kb, kw, nu, ntot, best_ll, best_i,
+                                                                                 best_s, T, scr)
+
+
 @dataclasses.dataclass(frozen=True)
 class Detection:
     """The decision at every pixel (flat arrays, P pixels)."""
@@ -789,6 +833,50 @@ def neighbour_regions(bins, weights, offsets, width: int, kern, cand, half: int,
     return regions
 
 
+Fill = namedtuple("Fill", ["pixels", "shift", "amp", "bg", "var", "gain", "share", "regions"])
+
+
+def neighbour_fill(bins, weights, offsets, width: int, kern, cand, half: int, thr: float, rate: float) -> Fill:
+    """Of the pixels ``cand`` (indices of a frame ``width`` pixels wide), those whose own detections
+    hold a return within where their neighbours see returns (:func:`neighbour_regions` at the
+    support's ``half`` and threshold ``thr``): ml's best shift there (:func:`region_ml_kernel`),
+    its gain over the threshold at the false-alarm rate ``rate`` for the region's span of shifts.
+    Under background alone around it a pixel is given a return only where its neighbours passed
+    the support's test too; beside a surface, a pixel without one at those shifts is given one at
+    the rate ``rate``."""
+    from spdepth.recon.estimators.surfaces_fit import auto_threshold_nats, fwhm_bins
+
+    regions = neighbour_regions(bins, weights, offsets, width, kern, cand, half, thr)
+    span = regions.sum(axis=1, dtype=np.int64)
+    keep = span > 0
+    cand, regions, span = cand[keep], regions[keep], span[keep]
+    out = region_fit(bins, weights, offsets, kern, cand, regions)
+    fw = fwhm_bins(kern.g)
+    thr_of = {int(k): auto_threshold_nats(rate, int(k), fw) for k in np.unique(span)}
+    need = np.array([thr_of[int(k)] for k in span]) if cand.size else np.zeros(0)
+    ok = np.isfinite(out[0]) & (out[4] > need)
+    return Fill(cand[ok], *(o[ok] for o in out), regions[ok])
+
+
+def region_fit(bins, weights, offsets, kern, cand, regions) -> list:
+    """[shift, amp, bg, var, gain, share] of the pixels ``cand`` (indices), each ml's best within
+    its row of ``regions`` (:func:`region_ml_kernel`)."""
+    from spdepth.recon.estimators.ml import ml_tables
+    from spdepth.recon.kernels import Photons
+
+    n = cand.size
+    out = [np.full(n, np.nan), np.zeros(n), np.zeros(n), np.full(n, np.nan), np.zeros(n), np.zeros(n)]
+    if n:
+        tabs = ml_tables(kern, int(kern.n_bins))
+        bins, weights, offsets, cand = _frame_arrays(bins, weights, offsets, cand)
+        ph = Photons(bins, offsets, weights)
+        maxn = int(np.diff(offsets)[cand].max())
+        regions = np.ascontiguousarray(regions, np.uint8)
+        over_threads(lambda a, b: region_ml_kernel(ph, tabs, maxn, cand[a:b], regions[a:b],
+                                                   *(o[a:b] for o in out)), n, n)
+    return out
+
+
 def _frame_arrays(bins, weights, offsets, cand):
     """The frame's arrays as the neighbour kernels take them."""
     return (np.ascontiguousarray(bins, np.int64), np.ascontiguousarray(weights, np.float64),
@@ -804,6 +892,26 @@ def _kernel_of(settings: dict):
     if isinstance(irf, dict) and irf.get("times_s"):
         return b, build_kernel(b, irf=Irf.from_dict(irf))
     return b, build_kernel(b, pulse_rms_s=float(settings["pulse_rms_s"]))
+
+
+def _filled_maps(maps, b, kern, fill: Fill):
+    """(tof_s, uncertainty_s, signal, background) of ``maps`` with the pixels of ``fill`` given
+    ml's estimate within where their neighbours see returns (as :func:`recon.pixelwise.pixel_maps`
+    makes ml's own maps); the background stays NaN where the estimator does not estimate it."""
+    from spdepth.recon.model import FINE_STEPS
+    from spdepth.recon.pixelwise import honest_var
+
+    tof, unc = np.array(maps.tof_s, np.float64), np.array(maps.uncertainty_s, np.float64)
+    signal, bg = np.array(maps.signal, np.float64), np.array(maps.background, np.float64)
+    f = fill.pixels
+    tof.ravel()[f] = b.shift_to_time_s(fill.shift)
+    has = np.ones(f.size, bool)
+    unc.ravel()[f] = np.sqrt(honest_var(fill.var, has, kern.rms_bins, b.n_bins, 1.0 / FINE_STEPS)) * b.bin_width_s
+    q = np.clip(np.rint(fill.shift * FINE_STEPS).astype(np.int64), 0, kern.fine_colsum.size - 1)
+    signal.ravel()[f] = fill.amp * kern.fine_colsum[q]
+    if np.isfinite(bg).any():
+        bg.ravel()[f] = fill.bg
+    return tof, unc, signal, bg
 
 
 def decide_maps(store, settings, maps, neighbours: bool = True):
@@ -847,6 +955,7 @@ def decide_maps(store, settings, maps, neighbours: bool = True):
     # a window hardly wider than the pulse: time cannot tell a return from background
     decidable = b.n_bins >= UNDECIDABLE_FWHM * fwhm_bins(kern.g)
     supported = np.empty(0, np.int64)
+    filled = None
     thr_n = math.nan
     half = max(1, int(round(NEIGHBOUR_HALF_CORES * core_s / b.bin_width_s)))
     if neighbours and decidable and not spatial and not several:
@@ -869,10 +978,29 @@ def decide_maps(store, settings, maps, neighbours: bool = True):
             det.sd_bins[supported] = sub.sd_bins
             det.sandwich_var_bins2[supported] = sub.sandwich_var_bins2
             det.bootstrap_sd_bins[supported] = sub.bootstrap_sd_bins
+        # a pixel whose own estimate lies elsewhere (a background cluster beat a faint return):
+        # its own detections tested where its neighbours see returns, and given ml's depth there
+        fill = neighbour_fill(bins, weights, offsets, w, kern, np.flatnonzero(~det.has_return & (n_photons > 0)),
+                              half, thr_n, settings.neighbour_false_alarm)
+        if fill.pixels.size:
+            f = fill.pixels
+            at, so = rows_of(offsets, f)
+            sub = detect(bins[at], so, kern, fill.shift, settings.false_alarm,
+                         weights[at] if weights.size else NO_WEIGHTS, spread_all=True, regions=fill.regions,
+                         known_gain=fill.gain, known_share=fill.share)
+            det.has_return[f] = True
+            det.sd_bins[f] = sub.sd_bins
+            det.sandwich_var_bins2[f] = sub.sandwich_var_bins2
+            det.bootstrap_sd_bins[f] = sub.bootstrap_sd_bins
+            filled = _filled_maps(maps, b, kern, fill)
     has = det.has_return.reshape(h, w)
     flags = np.array(maps.flags, np.uint8, copy=True)
     n_photons = n_photons.reshape(h, w)
     changes = {}
+    signal = maps.signal
+    if filled is not None:
+        tof, unc, signal, changes["background"] = filled
+        flags.ravel()[fill.pixels] = PixelFlag.OK
     if spatial or not decidable:
         drop = np.zeros((h, w), bool)          # the neighbours' support is the spatial estimator's to judge
     else:
@@ -904,7 +1032,7 @@ def decide_maps(store, settings, maps, neighbours: bool = True):
             use_boot &= far
         sd = np.fmax(np.where(use_post & decidable, post, 0.0), np.where(use_boot & decidable, boot, 0.0))
         new_unc = np.where(np.isfinite(new_tof), np.fmax(unc, sd), np.nan)
-        changes["signal"] = np.where(drop, 0.0, maps.signal)
+        changes["signal"] = np.where(drop, 0.0, signal)
     flags[drop] = PixelFlag.NO_RETURN
     rec["detection"] = {
         "rule": (f"likelihood-ratio test of one return against background alone, false-alarm rate "
@@ -920,7 +1048,13 @@ def decide_maps(store, settings, maps, neighbours: bool = True):
             "rule": (f"a pixel that fails the test holds a return when its 8 neighbours' detections pooled (its "
                      f"own left out) pass the same test within {half} bins of its estimate (gain > {thr_n:.2f} "
                      f"nats, false-alarm rate {det.false_alarm:g} for that span)"),
-            "threshold_nats": thr_n, "half_bins": half}
+            "threshold_nats": thr_n, "half_bins": half, "supported": int(supported.size)}
+        n_fill = 0 if filled is None else int(fill.pixels.size)
+        rec["detection"]["neighbours_region"] = {
+            "rule": (f"a pixel that fails both holds a return when its own detections, where its neighbours see "
+                     f"returns (within {half} bins of a shift at which they pass), pass the test at a false-alarm "
+                     f"rate of {settings.neighbour_false_alarm:g} for that region's span; its depth is ml's best there"),
+            "false_alarm": settings.neighbour_false_alarm, "filled": n_fill}
     changes.update(tof_s=new_tof, depth_m=C_M_PER_S * new_tof / 2.0,
                    uncertainty_s=new_unc, flags=flags, settings=rec, gain_nats=det.gain_nats.reshape(h, w))
     return dataclasses.replace(maps, **changes)

@@ -105,7 +105,7 @@ def warm_up(settings: ReconSettings, decide: bool = True, estimator: bool = True
     if decide:
         # the test and the neighbours' support on the made-up pixel, as decide_maps calls them
         # (the support's kernel runs only where a pixel fails, which the pixel above may not)
-        from spdepth.recon.detect import detect, neighbour_regions, neighbour_support
+        from spdepth.recon.detect import detect, neighbour_regions, neighbour_support, region_fit
         from spdepth.recon.pixelwise import binned_photons
 
         bb, kern, _ = resolve_model(one, settings)
@@ -116,6 +116,7 @@ def warm_up(settings: ReconSettings, decide: bool = True, estimator: bool = True
         cand = np.zeros(1, np.int64)
         neighbour_support(bins, np.empty(0), offsets, (1, 1), kern, est, cand, settings.false_alarm, 1)
         neighbour_regions(bins, np.empty(0), offsets, 1, kern, cand, 1, 0.0)
+        region_fit(bins, np.empty(0), offsets, kern, cand, np.ones((1, bb.n_bins), np.uint8))
 
 
 #: What :func:`compile_apart` names the return test's kernels (:mod:`recon.detect`) beside the methods'.

@@ -529,6 +529,11 @@ class ReconSettings:
     max_reflectors: most surfaces per pixel for reflectors="auto" (default 3).
     false_alarm:    reflectors="auto": chance per pixel and per added surface that background (or the
                     response's own tail) passes for a surface (default 1e-3).
+    neighbour_false_alarm: the return test's rule for a pixel that fails on its own and by its
+                    neighbours' support at its own estimate (:mod:`recon.detect`): its detections are
+                    tested where its neighbours see returns at this false-alarm rate for that
+                    region's span of shifts, the chance that a pixel at a surface's edge without a
+                    return of its own at those shifts is given one (default 0.05; 0: never).
     delta:          uos stopping threshold on ``||x_k - x_{k-1}||^2`` (paper: 1e-4, with the pulse
                     columns scaled to peak 1 as in the published code).
     max_iterations: uos iteration cap (paper: 10).
@@ -544,6 +549,7 @@ class ReconSettings:
     max_iterations: int = SEED_PAPER.max_iterations
     max_reflectors: int = 3
     false_alarm: float = 1e-3
+    neighbour_false_alarm: float = 0.05
 
     def __post_init__(self) -> None:
         from spdepth.recon import estimators
@@ -578,6 +584,9 @@ class ReconSettings:
         if not (isinstance(self.false_alarm, (int, float, np.floating)) and 0 < self.false_alarm < 1):
             raise InputError(f"false_alarm must be a probability in (0, 1), got {self.false_alarm!r}")
         object.__setattr__(self, "false_alarm", float(self.false_alarm))
+        if not (isinstance(self.neighbour_false_alarm, (int, float, np.floating)) and 0 <= self.neighbour_false_alarm < 1):
+            raise InputError(f"neighbour_false_alarm must be a probability in [0, 1), got {self.neighbour_false_alarm!r}")
+        object.__setattr__(self, "neighbour_false_alarm", float(self.neighbour_false_alarm))
         if not (math.isfinite(self.delta) and self.delta > 0):
             raise InputError(f"delta must be positive, got {self.delta!r}")
         if int(self.max_iterations) != self.max_iterations or self.max_iterations < 1:
@@ -591,7 +600,8 @@ class ReconSettings:
              "irf": None if self.irf is None else self.irf.to_dict(),
              "max_photons": self.max_photons, "reflectors": self.reflectors,
              "delta": self.delta, "max_iterations": int(self.max_iterations),
-             "max_reflectors": self.max_reflectors, "false_alarm": self.false_alarm}
+             "max_reflectors": self.max_reflectors, "false_alarm": self.false_alarm,
+             "neighbour_false_alarm": self.neighbour_false_alarm}
         json.dumps(d)   # fail here, not when saving, if something is not serialisable
         return d
 
@@ -619,6 +629,7 @@ class ReconSettings:
                    max_photons=d.get("max_photons"), reflectors=d.get("reflectors", 1),
                    max_reflectors=int(d.get("max_reflectors", cls.max_reflectors)),
                    false_alarm=float(d.get("false_alarm", cls.false_alarm)),
+                   neighbour_false_alarm=float(d.get("neighbour_false_alarm", cls.neighbour_false_alarm)),
                    delta=float(d.get("delta", SEED_PAPER.delta)),
                    max_iterations=int(d.get("max_iterations", SEED_PAPER.max_iterations)))
 

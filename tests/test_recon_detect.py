@@ -1,5 +1,7 @@
 """recon.detect: the per-pixel "is there a return?" test and the honest uncertainty of every depth."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -104,6 +106,35 @@ def test_neighbours_support_a_surface_too_faint_for_one_pixel():
     # a hole's own best detection lies near the wall's depth on about 10 x 2 x 2.5 x 45 / 4000 of
     # them; the neighbours support nothing elsewhere
     assert found[hole].mean() < 0.2
+
+
+def test_a_faint_return_beside_a_background_cluster_is_found_where_the_neighbours_see_it():
+    # a faint wall (3 signal detections over 60 of background a pixel): on most of its pixels a
+    # background cluster beats the return for the pixel's own best shift, so the neighbours'
+    # support at that shift fails; tested where the neighbours see returns, the pixel's own
+    # detections hold it. A hole (background only) is given a return there at most at the rate
+    rng = np.random.default_rng(8)
+    side = 40
+    hole = (np.arange(side * side) % 7) == 3
+    lists = [np.floor(np.concatenate([2000 + RMS_U * rng.standard_normal(0 if hole[i] else 3),
+                                      rng.uniform(0, 4000, 60)])) for i in range(side * side)]
+    store = PhotonStore.from_lists(lists, (side, side), UNIT_S)
+    s = ReconSettings(method="ml", binning=B, pulse_rms_s=RMS_U * UNIT_S)
+    maps = reconstruct(store, s)
+    rate = s.neighbour_false_alarm
+    before = np.isfinite(reconstruct(store, dataclasses.replace(s, neighbour_false_alarm=0.0)).depth_m).ravel()
+    found = np.isfinite(maps.depth_m).ravel()
+    assert np.all(found[before])
+    filled = found & ~before
+    assert filled.sum() == maps.settings["detection"]["neighbours_region"]["filled"]
+    assert found[~hole].mean() > before[~hole].mean() + 0.04          # 0.294 -> 0.368
+    assert found[hole].mean() - before[hole].mean() <= rate
+    # the filled pixels' depths are the wall's within their uncertainty, and their maps consistent
+    t, sig = maps.tof_s.ravel() / UNIT_S, maps.uncertainty_s.ravel() / UNIT_S
+    wall = filled & ~hole
+    assert np.mean(np.abs(t[wall] - 2000) <= 3 * sig[wall]) >= 0.95
+    assert np.all(maps.flags.ravel()[filled] == PixelFlag.OK)
+    assert np.all(maps.signal.ravel()[filled] > 0) and np.all(np.isfinite(maps.background.ravel()[filled]))
 
 
 def test_a_supported_pixel_s_uncertainty_is_that_where_its_neighbours_see_returns():
