@@ -732,10 +732,13 @@ def build_kernel(binning: Binning, pulse_rms_s: float | None = None, irf: Irf | 
         reach = sig * math.sqrt(2 * math.log(1 / KERNEL_TAIL_REL)) + 1.0
         lo_x, hi_x = -reach, reach
         rms_bins = sig
+        irf_step = 0.0
     else:
         cdf, (lo_x, hi_x) = _irf_cdf(irf, w_s)
         rms_bins = irf.rms_s / w_s
         lo_x, hi_x = lo_x - 1.0, hi_x + 1.0
+        t_irf = irf.arrays()[0]
+        irf_step = float(np.median(np.diff(t_irf))) / w_s if t_irf.size > 1 else 0.0
     l0 = int(min(m - 1, math.ceil(-lo_x)))
     l1 = int(min(m - 1, math.ceil(hi_x)))
     d = np.arange(-l0, l1 + 1, dtype=np.float64)
@@ -758,8 +761,11 @@ def build_kernel(binning: Binning, pulse_rms_s: float | None = None, irf: Irf | 
     xf = np.arange((nk - 1) * FINE_STEPS + 1) / FINE_STEPS - l0
     fine = cdf(xf + 0.5) - cdf(xf - 0.5)
     fine = np.where(fine >= KERNEL_TAIL_REL * gmax, fine, 0.0)
-    # derivative at integer offsets by central differences on the fine grid
-    h = 1.0 / FINE_STEPS
+    # derivative at integer offsets by central differences on the fine grid, and no finer than a
+    # sampled response's own step: its CDF is piecewise linear between samples, so differences
+    # over less than a sample read a step function, whose jumps doubled the Fisher information
+    # of a response measured in 88 ps steps on 40 ps bins (K-surface halves within 1 sigma 51%)
+    h = max(1.0 / FINE_STEPS, irf_step)
     dg = (cdf(d + h + 0.5) - cdf(d + h - 0.5) - cdf(d - h + 0.5) + cdf(d - h - 0.5)) / (2 * h)
     # second derivative (uos's matched-filter variance); one-bin steps keep a sampled IRF's
     # piecewise-linear CDF from turning it into noise
