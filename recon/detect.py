@@ -30,7 +30,7 @@ neighbours passed their test too (at most false_alarm x that rate); beside a sur
 pixel without a return of its own at those shifts is given one at that rate at most (a
 faint wall with holes, test_recon_detect: holes 4.4 -> 6.6%, the wall's pixels 29.4 -> 36.8%).
 art_top.mat, ml: a depth on 24.8 -> 37.7% of pixels, halves within 3 / 1 sigma 96.7 / 66.1% ->
-96.3 / 66.9% on 481 -> 1,246 pixels; tower_9km.mat 24.4 -> 25.2% (95.5 / 68.6% -> 95.4 / 69.0%).
+96.1 / 66.9% on 481 -> 1,246 pixels; tower_9km.mat 24.4 -> 25.2% (95.5 / 68.6% -> 95.4 / 69.0%).
 
 **The uncertainty** of a reported depth is the largest of three spreads, each used only where it
 exceeds the estimator's own (its Fisher or sandwich variance) beyond its resolution:
@@ -85,9 +85,9 @@ import numpy as np
 from numba import njit
 
 from spdepth.recon.estimators.ml_bounds import ML_SCAN_ALL, _ml_at_int, _photon_range
-from spdepth.recon.estimators.ml_kernels import integer_optimum, ml_refine, ml_scratch
-from spdepth.recon.kernels import (INNER, NO_WEIGHTS, block_pixels, first_above, heap_sort, n_blocks, photon_intervals,
-                                   pixel_bins, pixel_scratch)
+from spdepth.recon.estimators.ml_kernels import integer_optimum, ml_scratch
+from spdepth.recon.kernels import (INNER, NO_WEIGHTS, block_pixels, first_above, fisher_tab, heap_sort, n_blocks,
+                                   photon_intervals, pixel_bins, pixel_scratch)
 from spdepth.recon.maps import C_M_PER_S, PixelFlag
 from spdepth.recon.model import Binning, Irf, build_kernel
 from spdepth.recon.pixelwise import over_threads
@@ -693,20 +693,22 @@ def neighbour_region_kernel(bins, weights, offsets, w, cand, half, thr, tabs, ra
 @njit(cache=True, nogil=True, error_model="numpy")
 def region_ml_kernel(ph, tabs, maxn, cand, regions, out_shift, out_amp, out_bg, out_var, out_gain, out_share):
     """ml within where the neighbours see returns: for each pixel cand[c] of ph, its own detections'
-    best integer shift among those with regions[c, i] set (profiled share, ml's likelihood), refined
-    as ml refines its global one (:func:`recon.estimators.ml_kernels.ml_refine`): out_shift (bins,
-    NaN: none), out_amp, out_bg, out_var (bins^2), out_gain (nats: the best region shift's
-    log-likelihood beyond the all-background fit's) and out_share (its signal share)."""
+    best integer shift among those with regions[c, i] set (profiled share, ml's likelihood),
+    refined by the parabola through its integer neighbours: out_shift (bins, NaN: none), out_amp
+    (unit-area amplitude), out_bg (per bin), out_var (Fisher, bins^2), out_gain (nats: the best
+    region shift's log-likelihood beyond the all-background fit's) and out_share (its signal
+    share). Not ml's 1/8-bin search: that compiled, inlined here, for 3 s of CPU on a cold cache,
+    and these pixels' spreads are many bins."""
     T = tabs
     px = pixel_scratch(maxn, T.m)
-    scr = ml_scratch(maxn, T)
     for c in range(cand.size):
         nu, n = pixel_bins(ph, cand[c], px)
         kb, kw = px.kb, px.kw
         ntot = 0.0
         for u in range(nu):
             ntot += kw[u]
-        best_ll, best_i, best_s = -ntot * T.logm, np.int64(-1), 0.0
+        out_shift[c], out_amp[c], out_bg[c], out_var[c], out_gain[c], out_share[c] = np.nan, 0.0, 0.0, np.nan, 0.0, 0.0
+        best_ll, best_i, best_s = -ntot * T.logm, -1, 0.0
         s0 = 0.5
         reg = regions[c]
         for i in range(T.m):
@@ -716,10 +718,22 @@ def region_ml_kernel(ph, tabs, maxn, cand, regions, out_shift, out_amp, out_bg, 
             if 0.0 < s < 1.0:
                 s0 = s
             if ll > best_ll:
-                best_ll, best_i, best_s = ll, np.int64(i), s
-        out_share[c] = best_s
-        out_shift[c], out_amp[c], out_bg[c], out_var[c], out_gain[c] = ml_refine(kb, kw, nu, ntot, best_ll, best_i,
-                                                                                 best_s, T, scr)
+                best_ll, best_i, best_s = ll, i, s
+        if best_i < 0 or best_s <= 0.0:
+            continue
+        frac = 0.0
+        if 0 < best_i < T.m - 1:
+            lm = _ml_at_int(kb, kw, nu, ntot, best_i - 1, T.g, T.off, T.colsum, T.uni, best_s, -np.inf)[1]
+            lp = _ml_at_int(kb, kw, nu, ntot, best_i + 1, T.g, T.off, T.colsum, T.uni, best_s, -np.inf)[1]
+            den = lm - 2.0 * best_ll + lp
+            if den < 0.0:
+                frac = min(max(0.5 * (lm - lp) / den, -0.5), 0.5)
+        tau = best_i + frac
+        a = best_s * ntot / T.colsum[best_i]
+        bg = (1.0 - best_s) * ntot * T.uni
+        out_shift[c], out_amp[c], out_bg[c], out_share[c] = tau, a, bg, best_s
+        out_var[c] = fisher_tab(int(tau + 0.5), a, bg, T.m, T.g, T.dg, T.off, T.ftab)
+        out_gain[c] = best_ll + ntot * T.logm
 
 
 @dataclasses.dataclass(frozen=True)
@@ -901,7 +915,8 @@ def _kernel_of(settings: dict):
 def _filled_maps(maps, b, kern, fill: Fill):
     """(tof_s, uncertainty_s, signal, background) of ``maps`` with the pixels of ``fill`` given
     ml's estimate within where their neighbours see returns (as :func:`recon.pixelwise.pixel_maps`
-    makes ml's own maps); the background stays NaN where the estimator does not estimate it."""
+    makes ml's own maps, on a grid of whole bins refined by a parabola); the background stays NaN
+    where the estimator does not estimate it."""
     from spdepth.recon.model import FINE_STEPS
     from spdepth.recon.pixelwise import honest_var
 
@@ -910,7 +925,7 @@ def _filled_maps(maps, b, kern, fill: Fill):
     f = fill.pixels
     tof.ravel()[f] = b.shift_to_time_s(fill.shift)
     has = np.ones(f.size, bool)
-    unc.ravel()[f] = np.sqrt(honest_var(fill.var, has, kern.rms_bins, b.n_bins, 1.0 / FINE_STEPS)) * b.bin_width_s
+    unc.ravel()[f] = np.sqrt(honest_var(fill.var, has, kern.rms_bins, b.n_bins, 1.0)) * b.bin_width_s
     q = np.clip(np.rint(fill.shift * FINE_STEPS).astype(np.int64), 0, kern.fine_colsum.size - 1)
     signal.ravel()[f] = fill.amp * kern.fine_colsum[q]
     if np.isfinite(bg).any():

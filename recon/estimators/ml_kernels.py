@@ -440,15 +440,6 @@ def ml_pixel(kb, kw, nu, tabs, scr):
     for u in range(nu):
         ntot += kw[u]
     best_ll, best_i, best_s = integer_optimum(kb, kw, nu, ntot, T, S)
-    return ml_refine(kb, kw, nu, ntot, best_ll, best_i, best_s, T, S)
-
-
-@njit(cache=True, nogil=True, _nrt=False, inline="always", error_model="numpy")
-def ml_refine(kb, kw, nu, ntot, best_ll, best_i, best_s, tabs, scr):
-    """:func:`ml_pixel`'s result from the best integer shift best_i (log-likelihood best_ll, share
-    best_s; -1: the all-background fit): refined to the sub-bin optimum within a bin of it. Also
-    :func:`recon.detect.region_ml_kernel`'s, whose shift is the best within a region."""
-    T, S = tabs, scr
     if best_i < 0 or best_s <= 0.0:
         return np.nan, 0.0, ntot * T.uni, np.nan, 0.0
     # sub-bin: the best of the fine shifts strictly between the integer neighbours, then a parabola
