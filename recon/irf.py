@@ -112,12 +112,16 @@ def _initial_rms_units(store: PhotonStore) -> float:
     return _edge_rms_units(store.times, store.time_unit_s)
 
 
-def _busiest(store: PhotonStore, max_pixels: int) -> PhotonStore:
-    """The store restricted to its max_pixels pixels with the most detections (1 x n)."""
+def _sample(store: PhotonStore, max_pixels: int) -> PhotonStore:
+    """The store restricted to at most max_pixels of its pixels that hold a pair of detections,
+    evenly spaced in raster order (1 x n): the scene's mix of signal and background. The busiest
+    pixels were the most background under daylight (a 256 x 256 scan at SBR 0.05: a pair peak
+    2.8 times its floor among them, 4.3 over the frame, so the frame was refused)."""
     counts = np.diff(store.offsets)
     if store.n_pixels <= max_pixels:
         return store
-    keep = np.sort(np.argpartition(-counts, max_pixels - 1)[:max_pixels])
+    pairs = np.flatnonzero(counts >= 2)
+    keep = pairs if pairs.size <= max_pixels else pairs[np.linspace(0, pairs.size - 1, max_pixels).astype(np.int64)]
     lists = [store.times[store.offsets[p]:store.offsets[p + 1]] for p in keep]
     return PhotonStore.from_lists(lists, (1, keep.size), store.time_unit_s)
 
@@ -299,7 +303,7 @@ def _estimate_irf(store: PhotonStore, binning: Binning | None, max_photons: int 
         store = store.first_in_window(lo, hi, max_photons)
         if store.n_photons == 0:
             raise InputError(f"cannot estimate the pulse shape: no detections in the window; {NO_PEAK_HINT}")
-    sample = _busiest(store, MAX_PIXELS)
+    sample = _sample(store, MAX_PIXELS)
     counts = np.diff(sample.offsets)
     if np.median(counts[counts > 0]) < ALIGN_MIN_PHOTONS:
         return _from_pairs(sample)
