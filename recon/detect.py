@@ -851,29 +851,64 @@ def neighbour_regions(bins, weights, offsets, width: int, kern, cand, half: int,
     return regions
 
 
-Fill = namedtuple("Fill", ["pixels", "shift", "amp", "bg", "var", "gain", "share", "regions"])
+Fill = namedtuple("Fill", ["pixels", "shift", "amp", "bg", "var", "gain", "share"])
+#: Pixels whose neighbours' regions (pixels x bins, uint8) are held at once.
+REGION_CHUNK = 8192
 
 
-def neighbour_fill(bins, weights, offsets, width: int, kern, cand, half: int, thr: float, rate: float) -> Fill:
+def neighbour_fill(bins, weights, offsets, width: int, kern, cand, half: int, thr: float, rate: float,
+                   det: Detection, false_alarm: float) -> Fill:
     """Of the pixels ``cand`` (indices of a frame ``width`` pixels wide), those whose own detections
     hold a return within where their neighbours see returns (:func:`neighbour_regions` at the
     support's ``half`` and threshold ``thr``): ml's best shift there (:func:`region_ml_kernel`),
-    its gain over the threshold at the false-alarm rate ``rate`` for the region's span of shifts.
-    Under background alone around it a pixel is given a return only where its neighbours passed
-    the support's test too; beside a surface, a pixel without one at those shifts is given one at
-    the rate ``rate``."""
+    its gain over the threshold at the false-alarm rate ``rate`` for the region's span of shifts
+    (0: none). Under background alone around it a pixel is given a return only where its
+    neighbours passed the support's test too; beside a surface, a pixel without one at those
+    shifts is given one at the rate ``rate``. Their decision and their spreads over the region
+    (at the test's ``false_alarm``) go into ``det``."""
     from spdepth.recon.estimators.surfaces_fit import auto_threshold_nats, fwhm_bins
 
-    regions = neighbour_regions(bins, weights, offsets, width, kern, cand, half, thr)
-    span = regions.sum(axis=1, dtype=np.int64)
-    keep = span > 0
-    cand, regions, span = cand[keep], regions[keep], span[keep]
-    out = region_fit(bins, weights, offsets, kern, cand, regions)
+    parts = []
     fw = fwhm_bins(kern.g)
-    thr_of = {int(k): auto_threshold_nats(rate, int(k), fw) for k in np.unique(span)}
-    need = np.array([thr_of[int(k)] for k in span]) if cand.size else np.zeros(0)
-    ok = np.isfinite(out[0]) & (out[4] > need)
-    return Fill(cand[ok], *(o[ok] for o in out), regions[ok])
+    # a region spans at least the support's 2 half + 1 shifts, and no gain within it exceeds the
+    # pixel's best anywhere (det.gain_nats): a pixel below the smallest region's threshold is out
+    # without its region (most of them at a high background)
+    if rate > 0:
+        cand = cand[det.gain_nats[cand] > auto_threshold_nats(rate, 2 * half + 1, fw)]
+    for c0 in range(0, cand.size if rate > 0 else 0, REGION_CHUNK):
+        c = cand[c0:c0 + REGION_CHUNK]
+        regions = neighbour_regions(bins, weights, offsets, width, kern, c, half, thr)
+        span = regions.sum(axis=1, dtype=np.int64)
+        keep = span > 0
+        c, regions, span = c[keep], regions[keep], span[keep]
+        out = region_fit(bins, weights, offsets, kern, c, regions)
+        thr_of = {int(k): auto_threshold_nats(rate, int(k), fw) for k in np.unique(span)}
+        need = np.array([thr_of[int(k)] for k in span]) if c.size else np.zeros(0)
+        ok = np.isfinite(out[0]) & (out[4] > need)
+        part = Fill(c[ok], *(o[ok] for o in out))
+        _region_spreads(det, bins, weights, offsets, kern, part.pixels, part.shift, regions[ok], false_alarm,
+                        known_gain=part.gain, known_share=part.share)
+        parts.append(part)
+    if not parts:
+        return Fill(np.empty(0, np.int64), *(np.empty(0) for _ in range(6)))
+    return Fill(*(np.concatenate(f) for f in zip(*parts)))
+
+
+def _region_spreads(det: Detection, bins, weights, offsets, kern, pix, est, regions, false_alarm: float,
+                    known_gain=None, known_share=None) -> None:
+    """``det`` with the pixels ``pix`` holding a return and their spreads about ``est`` (bins)
+    taken over their ``regions`` only (:func:`detect` with ``spread_all``)."""
+    from spdepth.recon.photons import rows_of
+
+    if not pix.size:
+        return
+    at, so = rows_of(offsets, pix)
+    sub = detect(bins[at], so, kern, est, false_alarm, weights[at] if weights.size else NO_WEIGHTS,
+                 spread_all=True, regions=regions, known_gain=known_gain, known_share=known_share)
+    det.has_return[pix] = True
+    det.sd_bins[pix] = sub.sd_bins
+    det.sandwich_var_bins2[pix] = sub.sandwich_var_bins2
+    det.bootstrap_sd_bins[pix] = sub.bootstrap_sd_bins
 
 
 def region_fit(bins, weights, offsets, kern, cand, regions) -> list:
@@ -990,7 +1025,6 @@ def decide_maps(store, settings, maps, neighbours: bool = True):
     ``neighbours`` (the store is a frame, its pixels' neighbours beside them) a pixel that fails on
     its own detections may be supported by its neighbours'."""
     from spdepth.recon.counts import CountStore
-    from spdepth.recon.photons import rows_of
     from spdepth.recon.pixelwise import binned_photons
 
     rec = dict(maps.settings)
@@ -1034,34 +1068,19 @@ def decide_maps(store, settings, maps, neighbours: bool = True):
         cand = np.flatnonzero(~det.has_return & np.isfinite(est) & (n_photons > 0))
         supported, thr_n = neighbour_support(bins, weights, offsets, (h, w), kern, est, cand,
                                              settings.false_alarm, half)
-        if supported.size:
-            at, so = rows_of(offsets, supported)
-            sb, sw_ = bins[at], (weights[at] if weights.size else NO_WEIGHTS)
-            sub_known = {k: None if v is None else v[supported] for k, v in known.items()}
-            # their spreads only over where their neighbours see returns: the reported depth
-            # lies there by the support's rule (the likelihood's and the bootstrap's far modes
-            # elsewhere would not have been reported)
-            regions = neighbour_regions(bins, weights, offsets, w, kern, supported, half, thr_n)
-            sub = detect(sb, so, kern, est[supported], settings.false_alarm, sw_, spread_all=True, regions=regions,
-                         **sub_known)
-            det.has_return[supported] = True
-            det.sd_bins[supported] = sub.sd_bins
-            det.sandwich_var_bins2[supported] = sub.sandwich_var_bins2
-            det.bootstrap_sd_bins[supported] = sub.bootstrap_sd_bins
+        # their spreads only over where their neighbours see returns: the reported depth lies there
+        # by the support's rule (the likelihood's and the bootstrap's far modes elsewhere would not
+        # have been reported); in slices, so the regions (pixels x bins) stay bounded
+        for c0 in range(0, supported.size, REGION_CHUNK):
+            sup = supported[c0:c0 + REGION_CHUNK]
+            regions = neighbour_regions(bins, weights, offsets, w, kern, sup, half, thr_n)
+            _region_spreads(det, bins, weights, offsets, kern, sup, est[sup], regions, settings.false_alarm,
+                            **{k: None if v is None else v[sup] for k, v in known.items()})
         # a pixel whose own estimate lies elsewhere (a background cluster beat a faint return):
         # its own detections tested where its neighbours see returns, and given ml's depth there
         fill = neighbour_fill(bins, weights, offsets, w, kern, np.flatnonzero(~det.has_return & (n_photons > 0)),
-                              half, thr_n, settings.neighbour_false_alarm)
+                              half, thr_n, settings.neighbour_false_alarm, det, settings.false_alarm)
         if fill.pixels.size:
-            f = fill.pixels
-            at, so = rows_of(offsets, f)
-            sub = detect(bins[at], so, kern, fill.shift, settings.false_alarm,
-                         weights[at] if weights.size else NO_WEIGHTS, spread_all=True, regions=fill.regions,
-                         known_gain=fill.gain, known_share=fill.share)
-            det.has_return[f] = True
-            det.sd_bins[f] = sub.sd_bins
-            det.sandwich_var_bins2[f] = sub.sandwich_var_bins2
-            det.bootstrap_sd_bins[f] = sub.bootstrap_sd_bins
             filled = _filled_maps(maps, b, kern, fill)
     has = det.has_return.reshape(h, w)
     flags = np.array(maps.flags, np.uint8, copy=True)
