@@ -159,10 +159,11 @@ def test_real_two_surface_file_scored_beside_the_naive_baseline():
     assert spatial["both"] >= 0.91 and spatial["first"] >= 0.98
     assert sp_auto["both"] >= 0.93 and sp_auto["first"] >= 0.995
     # auto at a 1e-3 false-alarm rate cannot take a first surface of 2-5 detections on its own
-    # (its statistic is 4-9 nats, the test asks 8.2), the neighbours can; where the pixel holds 6
-    # or more on both, auto is not worse than fixed K=2
-    assert auto["both"] >= 0.77 and auto["second"] >= ours["second"]
-    assert seen_scores["uos", "auto"]["both"] >= seen_scores["uos", 2]["both"]
+    # (its statistic is 4-9 nats, the test asks 9.3), the neighbours can; where the pixel holds 6
+    # or more on both, auto is within a point of fixed K=2 (77.7% and not worse at 8.2 nats, a
+    # threshold that let background pass 1.7-2.8 times as often as stated)
+    assert auto["both"] >= 0.74 and auto["second"] >= ours["second"] - 0.005
+    assert seen_scores["uos", "auto"]["both"] >= seen_scores["uos", 2]["both"] - 0.01
     # what bounds "second": behind the object (the columns ~35-57) the pixels hold three returns (the
     # front layer, the object, the wall behind it) and the calibrated second map, a mean of detection
     # times (its values are ratios of whole numbers), lies between the object and the wall. Where

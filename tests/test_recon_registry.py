@@ -157,16 +157,18 @@ def test_estimators_leave_scipy_stats_unimported():
 
 
 def test_quantiles_from_scipy_special_are_scipy_stats():
-    from scipy.stats import chi2, poisson
+    from scipy.stats import norm, poisson
 
-    from spdepth.recon.estimators.surfaces_fit import auto_threshold_nats
+    from spdepth.recon.estimators import surfaces_fit as SF
     from spdepth.recon.estimators.spatial import poisson_quantile
 
     mu = np.concatenate([[0.0], np.linspace(1e-6, 60.0, 4001)])
     for q in (0.5, 0.98, 1 - 1e-3, 1 - 1e-6):
         np.testing.assert_array_equal(poisson_quantile(q, mu), poisson.ppf(q, mu))
-    # auto's threshold: half the chi2(1) quantile of the per-shift false alarm (recon.estimators.surfaces)
+    # auto's threshold: where the chance of passing somewhere in the window (Rice's formula for the
+    # test's field, recon.estimators.surfaces_fit) is the false-alarm rate
     for fa, n_bins, width in ((1e-3, 800, 19), (1e-6, 4000, 85), (0.05, 100, 10)):
-        n_eff = max(1.0, n_bins / width)
-        p_one = -np.expm1(np.log1p(-fa) / n_eff)
-        assert auto_threshold_nats(fa, n_bins, width) == 0.5 * float(chi2.isf(2 * p_one, 1))
+        u = SF.auto_threshold_nats(fa, n_bins, width)
+        sigma = width / (2 * np.sqrt(2 * np.log(2)))
+        rice = norm.sf(np.sqrt(2 * u)) + n_bins / (2 * np.pi * np.sqrt(2) * sigma) * np.exp(-u)
+        assert rice == pytest.approx(fa, rel=1e-9)
