@@ -198,6 +198,24 @@ def test_each_of_two_real_surfaces_has_an_honest_uncertainty(shared_data):
         assert 0.55 <= np.mean(diff <= sig) <= 0.80
 
 
+def test_background_alone_passes_the_test_at_the_stated_rate():
+    # 22,500 pixels of 10 background detections each: at --false-alarm 1e-3 about 22 may pass the
+    # own test and as many more the neighbours' support. Counting window / FWHM independent shifts
+    # let 43 and 45 pass; the threshold by Rice's formula for the search, 18 and 16
+    rng = np.random.default_rng(5)
+    side = 150
+    store = PhotonStore.from_lists([np.floor(rng.uniform(0, 4000, 10)) for _ in range(side * side)],
+                                   (side, side), UNIT_S)
+    s = ReconSettings(method="ml", binning=B, pulse_rms_s=RMS_U * UNIT_S, neighbour_false_alarm=0.0)
+    maps = reconstruct(store, s)
+    supported = maps.settings["detection"]["neighbours"]["supported"]
+    own = int(np.isfinite(maps.depth_m).sum()) - supported
+    assert own <= 1.4e-3 * side * side and supported <= 1.4e-3 * side * side
+    # the third rule adds few: a region needs the neighbours to pass somewhere first
+    filled = reconstruct(store, dataclasses.replace(s, neighbour_false_alarm=0.05)).settings["detection"]
+    assert filled["neighbours_region"]["filled"] <= 0.5e-3 * side * side
+
+
 def test_the_tables_are_kept_with_their_pulse_kernel():
     """ml's tables and the test's rate tables are built once per pulse kernel and window (every live
     batch and array frame asked for them anew), and never handed to another kernel."""
