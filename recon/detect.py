@@ -988,7 +988,7 @@ def _surface_spreads(bins, weights, offsets, kern, b, tof, unc, signal, n_photon
     the shifts between the midpoints to its neighbouring surfaces (its own part of the window):
     the fit's Fisher variance reads a response's sharp edge and misses the flat top beside it
     (two_layer_top.mat's pane and wall: 0.2 cm sigmas on halves 1-3 cm apart; halves within 3 / 1
-    sigma 92.8 / 61.8% -> 95.0 / 66.9% on the pane, 92.5 / 60.4% -> 96.1 / 68.4% on the wall)."""
+    sigma 92.8 / 61.8% -> 95.6 / 67.5% on the pane, 92.5 / 60.4% -> 96.6 / 69.0% on the wall)."""
     from spdepth.recon.photons import rows_of
 
     k_all, h, w = tof.shape
