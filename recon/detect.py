@@ -1140,13 +1140,12 @@ def decide_maps(store, settings, maps, neighbours: bool = True):
             "rule": (f"a pixel that fails the test holds a return when its 8 neighbours' detections pooled (its "
                      f"own left out) pass the same test within {half} bins of its estimate (gain > {thr_n:.2f} "
                      f"nats, false-alarm rate {det.false_alarm:g} for that span)"),
-            "threshold_nats": thr_n, "half_bins": half, "supported": int(supported.size)}
-        n_fill = 0 if filled is None else int(fill.pixels.size)
+            "threshold_nats": thr_n, "half_bins": half}
         rec["detection"]["neighbours_region"] = {
             "rule": (f"a pixel that fails both holds a return when its own detections, where its neighbours see "
                      f"returns (within {half} bins of a shift at which they pass), pass the test at a false-alarm "
                      f"rate of {settings.neighbour_false_alarm:g} for that region's span; its depth is ml's best there"),
-            "false_alarm": settings.neighbour_false_alarm, "filled": n_fill}
+            "false_alarm": settings.neighbour_false_alarm}
     changes.update(tof_s=new_tof, depth_m=C_M_PER_S * new_tof / 2.0,
                    uncertainty_s=new_unc, flags=flags, settings=rec, gain_nats=det.gain_nats.reshape(h, w))
     return dataclasses.replace(maps, **changes)
