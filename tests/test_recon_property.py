@@ -106,11 +106,12 @@ def test_uncertainty_is_honest(method):
         sd = maps.uncertainty_s.ravel() / UNIT_S
         ok = np.isfinite(err)
         # 5 detections (4.5 of them signal): the test finds no return in a pixel of ~3 signal
-        assert ok.mean() > (0.8 if k == 5 else 0.99)
+        # (77% report one at the look-elsewhere threshold, 9.2 nats; 85% at the 8.2 before it)
+        assert ok.mean() > (0.74 if k == 5 else 0.99)
         shares[k] = float(np.mean(np.abs(err[ok]) < sd[ok]))
     print(f"{method}: share within one sigma " + ", ".join(f"{k} det {v:.3f}" for k, v in shares.items()))
     for k, v in shares.items():
-        # at 5 detections only the pixels whose return passes the test report a depth (~85%): the
+        # at 5 detections only the pixels whose return passes the test report a depth (~77%): the
         # stronger ones, a little more often within their sigma
         hi = 0.76 if k == 5 else 0.73
         assert 0.63 < v < hi, f"{method} at {k} detections: {v:.3f} within one sigma"
