@@ -49,16 +49,31 @@ def resolved_settings(settings: ReconSettings, used: dict) -> ReconSettings:
 
 
 def agreement(a, b) -> dict:
-    """Split-half figures of two maps of the same scene (surface 0 when they hold several)."""
+    """Split-half figures of two maps of the same scene. With several surfaces, those of surface 0,
+    and under "surfaces" each surface's where both halves find as many surfaces and that one not weak
+    (the weak are marked as what background alone could have made)."""
     import numpy as np
 
     da, db = np.asarray(a.depth_m, float), np.asarray(b.depth_m, float)
     sa = np.asarray(a.uncertainty_s, float)
     sb = np.asarray(b.uncertainty_s, float)
     if da.ndim == 3:
-        da, db, sa, sb = da[0], db[0], sa[0], sb[0]
+        same = np.asarray(a.surfaces) == np.asarray(b.surfaces)
+        per = [_agree(da[k], db[k], sa[k], sb[k], same & ~np.asarray(a.weak[k]) & ~np.asarray(b.weak[k]))
+               for k in range(da.shape[0])]
+        out = _agree(da[0], db[0], sa[0], sb[0], None)
+        out["surfaces"] = per
+        return out
+    return _agree(da, db, sa, sb, None)
+
+
+def _agree(da, db, sa, sb, where) -> dict:
+    import numpy as np
+
     c2 = 299_792_458.0 / 2.0
     both = np.isfinite(da) & np.isfinite(db)
+    if where is not None:
+        both &= where
     z = np.abs(da - db)[both] / (c2 * np.hypot(sa[both], sb[both]))
     n = int(both.sum())
     return {"pixels": int(da.size), "depth_a": float(np.isfinite(da).mean()), "depth_b": float(np.isfinite(db).mean()),
@@ -96,6 +111,8 @@ def bench(argv: list[str]) -> int:
     parser.add_argument("--bin-ps", type=float, default=None)
     parser.add_argument("--pulse-rms-ps", type=float, default=None, help="default: measured from the data")
     parser.add_argument("--max-photons", type=int, default=None)
+    parser.add_argument("--reflectors", default=1, type=_surfaces, metavar="K|auto",
+                        help="surfaces per pixel (default 1); with several, each surface's figures too")
     parser.add_argument("--json", action="store_true", help="one JSON object per estimator")
     args = parser.parse_args(argv)
     from spdepth.acq.readers import read_photons
@@ -126,19 +143,36 @@ def bench(argv: list[str]) -> int:
     per_pixel = store.n_photons / store.n_pixels
     print(f"{args.file}: {store.shape[0]}x{store.shape[1]} pixels, {per_pixel:.2f} detections per pixel; "
           f"halves: alternate detections of each pixel, model resolved on the whole file")
+    reflectors = args.reflectors
     for method in methods:
-        settings = ReconSettings(method=method, binning=binning, max_photons=args.max_photons,
+        settings = ReconSettings(method=method, binning=binning, max_photons=args.max_photons, reflectors=reflectors,
                                  pulse_rms_s=None if args.pulse_rms_ps is None else args.pulse_rms_ps * 1e-12)
         r = split_half(store, settings)
         if args.json:
             print(json.dumps(r))
             continue
-        w3 = "-" if r["within_3_sigma"] is None else f"{100 * r['within_3_sigma']:.1f}%"
-        w1 = "-" if r["within_1_sigma"] is None else f"{100 * r['within_1_sigma']:.1f}%"
+        first = "surface 1, weak included, " if "surfaces" in r else ""
         print(f"{method:>8}: depth on {100 * r['depth_full']:5.1f}% (halves {100 * r['depth_a']:5.1f}% / "
-              f"{100 * r['depth_b']:5.1f}%); both halves {r['both']:6d} px: within 3 sigma {w3:>6}, "
-              f"within 1 sigma {w1:>6}")
+              f"{100 * r['depth_b']:5.1f}%); {first}both halves {_shares(r)}")
+        for k, rk in enumerate(r.get("surfaces", [])):
+            print(f"          surface {k + 1}, not weak, as many surfaces in both halves: {_shares(rk)}")
     return 0
+
+
+def _surfaces(text: str):
+    """--reflectors: "auto" or a whole number (ReconSettings says which are allowed)."""
+    if text == "auto":
+        return text
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"K (a whole number) or auto, got {text!r}") from None
+
+
+def _shares(r: dict) -> str:
+    w3 = "-" if r["within_3_sigma"] is None else f"{100 * r['within_3_sigma']:.1f}%"
+    w1 = "-" if r["within_1_sigma"] is None else f"{100 * r['within_1_sigma']:.1f}%"
+    return f"{r['both']:6d} px: within 3 sigma {w3:>6}, within 1 sigma {w1:>6}"
 
 
 if __name__ == "__main__":
