@@ -83,7 +83,12 @@ def warm_up(settings: ReconSettings, decide: bool = True, estimator: bool = True
     Only the method and the number of surfaces choose kernels; results are discarded. ``decide``:
     also the return test's (:mod:`recon.detect`, which every reconstruction runs, with the
     neighbours' support); False: the estimator's alone. ``estimator`` False: the return test's
-    alone (what :func:`compile_apart` compiles beside an estimator compiled here)."""
+    alone (what :func:`compile_apart` compiles beside an estimator compiled here). With
+    ``estimator``, settings that give no pulse also load what measures it (:func:`recon.irf.warm_up`)."""
+    if estimator and given_pulse(settings) is None:
+        from spdepth.recon.irf import warm_up as warm_pulse_estimate
+
+        warm_pulse_estimate()            # the pulse is measured from the data before the estimator runs
     b = settings.binning
     if b is None:
         b = Binning(1e-12, 0.0, 64.0, 1.0)

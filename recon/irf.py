@@ -277,6 +277,16 @@ def fit_emg_pairs(store: PhotonStore) -> tuple[float, float, float, int]:
     return sig, sh, tau, int(hist.sum())
 
 
+def warm_up() -> None:
+    """Load (on a cold numba cache: compile) what measuring the pulse from the data runs first in
+    a new process: the pair-difference kernels (:mod:`recon.pair_kernels`), on two made-up pixels,
+    and scipy's least squares, whose import took 0.15-0.25 s of a fresh 512x512 recon's pulse
+    estimate (:func:`recon.estimate.warm_up` runs this on a thread while the file is read)."""
+    from scipy.optimize import least_squares  # noqa: F401 - imported here so the fit finds it loaded
+
+    pair_difference_histogram(np.array([0.0, 1.0, 5.0, 2.0]), np.array([0, 2, 4]))
+
+
 def estimate_irf(store: PhotonStore, binning: Binning | None = None,
                  max_photons: int | None = None) -> IrfEstimate:
     """Measure the instrument response from ``store`` (see the module docstring).

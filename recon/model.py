@@ -49,8 +49,6 @@ DEFAULT_MAX_BINS = 4096
 FISHER_RHO0 = -20.0
 FISHER_STEPS = 16
 FISHER_SPAN = 75
-#: Pulse-width estimate: pixel pairs histogrammed per block (bounds its memory to a few tens of MB).
-PAIR_BLOCK = 1 << 20
 
 
 def _ps(value_s, what: str) -> float:
@@ -852,20 +850,15 @@ def pair_difference_histogram(times: np.ndarray, offsets: np.ndarray, max_per_pi
     # |dt| of every pair among the first max_per_pixel times of each pixel, histogrammed a block of
     # pixels at a time: memory stays bounded (keeping every difference of 1 Mpx at 32 detections
     # took about 4 GB). The range is the largest within-pixel spread, found first.
+    from spdepth.recon.pair_kernels import pair_histogram, pair_span
+
+    # |dt| of every pair among the first max_per_pixel times of each pixel, binned as each pair is
+    # formed (recon.pair_kernels): no pair is kept (keeping every difference of 1 Mpx at 32
+    # detections took about 4 GB). The range is the largest within-pixel spread, found first.
     counts = np.minimum(np.diff(offsets), max_per_pixel)
-    starts = offsets[:-1]
-    multi = np.flatnonzero(counts > 1)
-    first = times[starts[multi]]
-    lo_t = first.copy()
-    hi_t = first.copy()
-    for j in range(1, max_per_pixel):
-        sel = counts[multi] > j
-        if not np.any(sel):
-            break
-        tj = times[starts[multi[sel]] + j]
-        lo_t[sel] = np.minimum(lo_t[sel], tj)
-        hi_t[sel] = np.maximum(hi_t[sel], tj)
-    span = float((hi_t - lo_t).max()) if multi.size else 0.0
+    starts = np.ascontiguousarray(offsets[:-1])
+    multi = np.flatnonzero(counts > 1).astype(np.int64)
+    span = float(pair_span(times, starts, counts, multi))
     if not span > 0:
         raise InputError("cannot estimate the pulse width: all detections of each pixel coincide")
     # fine histogram of |dt| (raw units); step small against any plausible pulse
@@ -880,32 +873,10 @@ def pair_difference_histogram(times: np.ndarray, offsets: np.ndarray, max_per_pi
         nh = int(span // step) + 1
         edges_hi = nh * step
     hist = np.zeros(nh, np.int64)
-    block = max(1, PAIR_BLOCK // max(1, max_per_pixel * (max_per_pixel - 1) // 2))
-    for b0 in range(0, multi.size, block):
-        pix = multi[b0:b0 + block]
-        cnt = counts[pix]
-        st = starts[pix]
-        for j in range(1, max_per_pixel):
-            has = cnt > j
-            if not np.any(has):
-                break
-            tj = times[st[has] + j]
-            diffs = np.abs(tj[None, :] - np.stack([times[st[has] + i] for i in range(j)]))
-            hist += _uniform_histogram(diffs.ravel(), nh, edges_hi)
+    # np.histogram(|dt|, bins=nh, range=(0, edges_hi)), bin for bin: its edges and scale
+    edges = np.linspace(0.0, edges_hi, nh + 1, endpoint=True)
+    pair_histogram(times, starts, counts, multi, edges, nh / edges_hi, hist)
     return hist, step
-
-
-def _uniform_histogram(x: np.ndarray, nh: int, hi: float) -> np.ndarray:
-    """``np.histogram(x, bins=nh, range=(0, hi))[0]`` for 0 <= x <= hi, bin for bin (its index
-    arithmetic and edge corrections), without its per-call overhead and sort-free path checks
-    (a 512x512 scan's pulse estimate called it 310 times: 0.14 of its 0.34 s)."""
-    edges = np.linspace(0.0, hi, nh + 1, endpoint=True)
-    idx = (x * (nh / hi)).astype(np.intp)
-    idx[idx == nh] -= 1
-    idx[x < edges[idx]] -= 1
-    up = (x >= edges[idx + 1]) & (idx != nh - 1)
-    idx[up] += 1
-    return np.bincount(idx, minlength=nh)[:nh]
 
 
 def estimate_pulse_rms_s(times: np.ndarray, offsets: np.ndarray, time_unit_s: float,

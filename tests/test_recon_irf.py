@@ -244,16 +244,30 @@ def test_bright_background_is_not_read_as_a_tail(tmp_path):
     assert np.median(err) < 0.05
 
 
-@pytest.mark.parametrize("nh,hi", [(4096, 12500.0), (1000, 7.3)])
-def test_the_pair_histogram_bins_as_numpy_does(nh, hi):
-    # recon.model._uniform_histogram replaces np.histogram in the pair-difference histogram: the
-    # same counts bin for bin, integer times, fractions and the edges themselves included
-    from spdepth.recon.model import _uniform_histogram
+@pytest.mark.parametrize("kind,step", [("float", None), ("int", None), ("int", 3.0), ("float", 0.7)])
+def test_the_pair_histogram_bins_as_numpy_does(kind, step):
+    # recon.pair_kernels bins each pair as it is formed: the counts of np.histogram over every
+    # pair's |dt| among each pixel's first detections, bin for bin (integer times put many
+    # differences on the edges themselves), and the same bin width
+    from spdepth.recon.model import pair_difference_histogram
 
     rng = np.random.default_rng(16)
-    x = np.concatenate([np.floor(rng.uniform(0, hi, 50_000)), rng.uniform(0, hi, 50_000),
-                        np.linspace(0, hi, nh + 1)])
-    assert np.array_equal(_uniform_histogram(x, nh, hi), np.histogram(x, bins=nh, range=(0.0, hi))[0])
+    n = rng.integers(0, 40, 3000)
+    offsets = np.concatenate([[0], np.cumsum(n)])
+    times = rng.uniform(0, 2500.0, offsets[-1])
+    if kind == "int":
+        times = np.floor(times)
+    hist, got_step = pair_difference_histogram(times, offsets, max_per_pixel=32, step=step)
+    first = [times[offsets[p]:offsets[p] + min(n[p], 32)] for p in range(n.size)]
+    diffs = np.concatenate([np.abs(t[j] - t[:j]) for t in first for j in range(1, t.size)])
+    span = max(float(t.max() - t.min()) for t in first if t.size > 1)
+    if step is None and kind == "float":       # 4096 bins over the spread and one bin more
+        step, hi = span / 4096, span + span / 4096
+    else:                                       # whole bins of the width given (or whole units)
+        step = float(max(1, np.ceil(span / 4096))) if step is None else step
+        hi = (int(span // step) + 1) * step
+    assert got_step == step
+    assert np.array_equal(hist, np.histogram(diffs, bins=hist.size, range=(0.0, hi))[0])
 
 
 def test_the_pulse_is_measured_on_pixels_that_are_the_scene_s_mix():
