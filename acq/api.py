@@ -549,12 +549,14 @@ def file_settings(request: FileReconRequest, time_unit_s: float, recorded: dict 
 
 
 def reconstruct_file(request: FileReconRequest, progress=None,
-                     notice: Callable[[str], None] | None = None) -> FileResult:
+                     notice: Callable[[str], None] | None = None, spreads: bool = True) -> FileResult:
     """Read ``request.input``, reconstruct it, write the outputs it names (``out`` .npz, ``png``,
     ``save_irf``), and return the maps with their summary. A session's own recording is read with
     its recorded settings unless the request overrides them. Raises ``InputError``/
     ``RecordingError`` naming the file for what cannot be read. ``notice(text)``: told what a first
-    run compiles apart (:class:`KernelWarmUp`)."""
+    run compiles apart (:class:`KernelWarmUp`). ``spreads`` False: the maps' uncertainties are the
+    estimator's own, without the return test's spreads (``recon.estimate.reconstruct``), for a
+    caller that uses the summary alone and writes no map (``spdepth recon`` without outputs)."""
     from spdepth.acq.readers import read_photons
     from spdepth.recon.estimate import reconstruct
 
@@ -592,7 +594,7 @@ def reconstruct_file(request: FileReconRequest, progress=None,
     set_threads(request)
     load_s += warm.wait()
     t1 = time.perf_counter()
-    maps = reconstruct(store, settings, progress=progress)
+    maps = reconstruct(store, settings, progress=progress, spreads=spreads)
     return file_result(request, maps, result, read_s=read_s, recon_s=time.perf_counter() - t1,
                        pileup=pileup, load_s=load_s)
 

@@ -775,7 +775,8 @@ def _tables_of(tabs):
 
 def detect(bins: np.ndarray, offsets: np.ndarray, kern, est_shift: np.ndarray, false_alarm: float,
            weights: np.ndarray = NO_WEIGHTS, spread_all: bool = False, known_gain: np.ndarray | None = None,
-           known_share: np.ndarray | None = None, regions: np.ndarray | None = None) -> Detection:
+           known_share: np.ndarray | None = None, regions: np.ndarray | None = None,
+           spreads: bool = True) -> Detection:
     """The test and the spreads (module docstring) of every pixel's in-window detections ``bins``
     (bin indices grouped by ``offsets``; with ``weights``, distinct bins and their counts) about
     the estimated shifts ``est_shift`` (bins, NaN where the estimator reports none), for the pulse
@@ -784,7 +785,7 @@ def detect(bins: np.ndarray, offsets: np.ndarray, kern, est_shift: np.ndarray, f
     ``known_share``: the estimator's own gain and signal share where it ran the same search (ml's
     :attr:`recon.maps.DepthMaps.gain_nats`), taken instead of searching again. Runs on numba's threads (``recon.pixelwise.threads``)
     in slices of whole blocks, as the pixelwise estimators do: the result is the same however the
-    pixels are sliced."""
+    pixels are sliced. ``spreads`` False: the test alone, every spread NaN."""
     from spdepth.recon.estimators.ml import ml_tables
     from spdepth.recon.estimators.surfaces_fit import auto_threshold_nats, fwhm_bins
     from spdepth.recon.kernels import Photons
@@ -806,6 +807,13 @@ def detect(bins: np.ndarray, offsets: np.ndarray, kern, est_shift: np.ndarray, f
     ks = np.empty(0) if known_gain is None else np.ascontiguousarray(known_share, np.float64)
     counts = np.diff(offsets)
     reg = np.zeros((0, 1), np.uint8) if regions is None else np.ascontiguousarray(regions, np.uint8)
+    # the kernel spreads the pixels whose gain passes this (none above infinity)
+    spread_thr = np.inf if not spreads else -np.inf if spread_all else thr
+    if not spreads and kg.size and not weights.size and np.all(np.isfinite(kg[counts > 0])):
+        # the test alone on the estimator's gains: what the kernel would give (0 without a
+        # detection), without its pass over every pixel's detections
+        gain = np.where(counts > 0, kg, 0.0)
+        return Detection(gain > thr, gain, sd, sw, boot, thr, float(false_alarm))
 
     def run(p0: int, p1: int) -> None:
         o = offsets[p0:p1 + 1]
@@ -813,7 +821,7 @@ def detect(bins: np.ndarray, offsets: np.ndarray, kern, est_shift: np.ndarray, f
         ph = Photons(bins[o[0]:o[-1]], o - o[0], w)
         maxn = int(counts[p0:p1].max()) if p1 > p0 else 0
         detect_kernel(ph, tabs, dt, rates, maxn, est[p0:p1], kg[p0:p1] if kg.size else kg, ks[p0:p1] if kg.size else ks,
-                      -np.inf if spread_all else thr, thr, BOOTSTRAP, reg[p0:p1] if reg.shape[0] else reg, gain[p0:p1],
+                      spread_thr, thr, BOOTSTRAP, reg[p0:p1] if reg.shape[0] else reg, gain[p0:p1],
                       sd[p0:p1], sw[p0:p1], boot[p0:p1])
 
     over_threads(run, npix, max(npix, 1))
@@ -860,7 +868,7 @@ REGION_CHUNK = 8192
 
 
 def neighbour_fill(bins, weights, offsets, width: int, kern, cand, half: int, thr: float, rate: float,
-                   det: Detection, false_alarm: float) -> Fill:
+                   det: Detection, false_alarm: float, spreads: bool = True) -> Fill:
     """Of the pixels ``cand`` (indices of a frame ``width`` pixels wide), those whose own detections
     hold a return within where their neighbours see returns (:func:`neighbour_regions` at the
     support's ``half`` and threshold ``thr``): ml's best shift there (:func:`region_ml_kernel`),
@@ -868,7 +876,7 @@ def neighbour_fill(bins, weights, offsets, width: int, kern, cand, half: int, th
     (0: none). Under background alone around it a pixel is given a return only where its
     neighbours passed the support's test too; beside a surface, a pixel without one at those
     shifts is given one at the rate ``rate``. Their decision and their spreads over the region
-    (at the test's ``false_alarm``) go into ``det``."""
+    (at the test's ``false_alarm``; without ``spreads``, the decision alone) go into ``det``."""
     from spdepth.recon.estimators.surfaces_fit import auto_threshold_nats, fwhm_bins
 
     parts = []
@@ -890,7 +898,7 @@ def neighbour_fill(bins, weights, offsets, width: int, kern, cand, half: int, th
         ok = np.isfinite(out[0]) & (out[4] > need)
         part = Fill(c[ok], *(o[ok] for o in out))
         _region_spreads(det, bins, weights, offsets, kern, part.pixels, part.shift, regions[ok], false_alarm,
-                        known_gain=part.gain, known_share=part.share)
+                        known_gain=part.gain, known_share=part.share, spreads=spreads)
         parts.append(part)
     if not parts:
         return Fill(np.empty(0, np.int64), *(np.empty(0) for _ in range(6)))
@@ -898,17 +906,18 @@ def neighbour_fill(bins, weights, offsets, width: int, kern, cand, half: int, th
 
 
 def _region_spreads(det: Detection, bins, weights, offsets, kern, pix, est, regions, false_alarm: float,
-                    known_gain=None, known_share=None) -> None:
+                    known_gain=None, known_share=None, spreads: bool = True) -> None:
     """``det`` with the pixels ``pix`` holding a return and their spreads about ``est`` (bins)
-    taken over their ``regions`` only (:func:`detect` with ``spread_all``)."""
+    taken over their ``regions`` only (:func:`detect` with ``spread_all``; without ``spreads``,
+    the decision alone)."""
     from spdepth.recon.photons import rows_of
 
-    if not pix.size:
+    det.has_return[pix] = True
+    if not pix.size or not spreads:
         return
     at, so = rows_of(offsets, pix)
     sub = detect(bins[at], so, kern, est, false_alarm, weights[at] if weights.size else NO_WEIGHTS,
                  spread_all=True, regions=regions, known_gain=known_gain, known_share=known_share)
-    det.has_return[pix] = True
     det.sd_bins[pix] = sub.sd_bins
     det.sandwich_var_bins2[pix] = sub.sandwich_var_bins2
     det.bootstrap_sd_bins[pix] = sub.bootstrap_sd_bins
@@ -1022,11 +1031,13 @@ def _surface_spreads(bins, weights, offsets, kern, b, tof, unc, signal, n_photon
     return out.reshape(k_all, h, w)
 
 
-def decide_maps(store, settings, maps, neighbours: bool = True):
+def decide_maps(store, settings, maps, neighbours: bool = True, spreads: bool = True):
     """``maps`` with the test applied and honest uncertainties (module docstring): pixels without a
     return get no depth and the flag NO_RETURN; ``settings['detection']`` records the test. With
     ``neighbours`` (the store is a frame, its pixels' neighbours beside them) a pixel that fails on
-    its own detections may be supported by its neighbours'."""
+    its own detections may be supported by its neighbours'. ``spreads`` False: the decision alone,
+    every uncertainty the estimator's own (for a caller that writes and shows no map: the spreads
+    were about half of a 512x512 recon's estimation time), as the record says."""
     from spdepth.recon.counts import CountStore
     from spdepth.recon.pixelwise import binned_photons
 
@@ -1054,7 +1065,7 @@ def decide_maps(store, settings, maps, neighbours: bool = True):
             share = 1.0 - np.asarray(maps.background, np.float64).ravel() * b.n_bins / n_photons
         known = dict(known_gain=np.asarray(maps.gain_nats, np.float64).ravel(),
                      known_share=np.clip(np.nan_to_num(share), 0.0, 1.0))
-    det = detect(bins, offsets, kern, est, settings.false_alarm, weights, **known)
+    det = detect(bins, offsets, kern, est, settings.false_alarm, weights, spreads=spreads, **known)
     h, w = maps.shape
     spatial = settings.method == "spatial"
     from spdepth.recon.estimators.surfaces_fit import fwhm_bins
@@ -1074,7 +1085,8 @@ def decide_maps(store, settings, maps, neighbours: bool = True):
         # their spreads only over where their neighbours see returns: the reported depth lies there
         # by the support's rule (the likelihood's and the bootstrap's far modes elsewhere would not
         # have been reported); in slices, so the regions (pixels x bins) stay bounded
-        for c0 in range(0, supported.size, REGION_CHUNK):
+        det.has_return[supported] = True
+        for c0 in range(0, supported.size if spreads else 0, REGION_CHUNK):
             sup = supported[c0:c0 + REGION_CHUNK]
             regions = neighbour_regions(bins, weights, offsets, w, kern, sup, half, thr_n)
             _region_spreads(det, bins, weights, offsets, kern, sup, est[sup], regions, settings.false_alarm,
@@ -1082,7 +1094,7 @@ def decide_maps(store, settings, maps, neighbours: bool = True):
         # a pixel whose own estimate lies elsewhere (a background cluster beat a faint return):
         # its own detections tested where its neighbours see returns, and given ml's depth there
         fill = neighbour_fill(bins, weights, offsets, w, kern, np.flatnonzero(~det.has_return & (n_photons > 0)),
-                              half, thr_n, settings.neighbour_false_alarm, det, settings.false_alarm)
+                              half, thr_n, settings.neighbour_false_alarm, det, settings.false_alarm, spreads)
         if fill.pixels.size:
             filled = _filled_maps(maps, b, kern, fill)
     has = det.has_return.reshape(h, w)
@@ -1103,7 +1115,7 @@ def decide_maps(store, settings, maps, neighbours: bool = True):
         changes["surfaces"] = np.where(drop, 0, maps.surfaces).astype(np.int16)
         changes["weak"] = np.asarray(maps.weak) & keep
         changes["signal"] = np.where(keep, maps.signal, 0.0)
-        if decidable and not spatial:
+        if decidable and not spatial and spreads:
             unc = _surface_spreads(bins, weights, offsets, kern, b, tof, unc, maps.signal, n_photons.ravel(),
                                    settings.false_alarm)
         new_unc = np.where(keep, unc, np.nan)
@@ -1133,7 +1145,8 @@ def decide_maps(store, settings, maps, neighbours: bool = True):
         "applied": ("decision kept (neighbours' support)" if spatial else
                     "not applied: the window is hardly wider than the pulse" if not decidable else
                     "no return: no depth, flag NO_RETURN"),
-        "uncertainty": "larger of the estimator's and the profile likelihood's spread about the estimate",
+        "uncertainty": ("larger of the estimator's and the profile likelihood's spread about the estimate"
+                        if spreads else "the estimator's own (the test's spreads not computed: no maps written)"),
     }
     if np.isfinite(thr_n):
         rec["detection"]["neighbours"] = {

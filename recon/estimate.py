@@ -27,7 +27,8 @@ from spdepth.recon.resolve import resolve_model
 
 
 def reconstruct(store: PhotonStore, settings: ReconSettings,
-                progress: Callable[[int, int], None] | None = None, neighbours: bool = True) -> DepthMaps:
+                progress: Callable[[int, int], None] | None = None, neighbours: bool = True,
+                spreads: bool = True) -> DepthMaps:
     """Estimate depth, background and signal at every pixel of ``store``.
 
     ``store``: a photon list, or counts (``recon.counts.CountStore``: a histogram cube, or a
@@ -44,7 +45,8 @@ def reconstruct(store: PhotonStore, settings: ReconSettings,
     (:mod:`recon.detect`, the one place every estimator's maps pass), with the neighbours' support
     for pixels that fail on their own detections unless ``neighbours`` is False (a batch of pixels
     that are not a frame: a live scan's). ``settings`` in it holds everything used (binning, pulse
-    RMS and its source).
+    RMS and its source). ``spreads`` False: the decision without the uncertainty's spreads (each
+    depth's uncertainty the estimator's own, as the record says), for a caller that writes no map.
     """
     if not isinstance(settings, ReconSettings):
         raise InputError(f"settings must be ReconSettings, got {type(settings).__name__}")
@@ -60,12 +62,14 @@ def reconstruct(store: PhotonStore, settings: ReconSettings,
         model_from = as_photons(store)    # the pulse is measured on photon times (recon.irf)
     b, kern, notes = resolve_model(model_from, settings)
     _wait_apart(settings.method)        # its kernels compiling in another process: load them
-    maps = est.run(store, settings, b, kern, notes, progress)
     # the one place every estimator's maps pass: is there a return, and how sure is each depth
     from spdepth.recon.detect import decide_maps
+    from spdepth.recon.pixelwise import binned_once
 
-    _wait_apart(DECIDE)
-    return decide_maps(store, settings, maps, neighbours=neighbours)
+    with binned_once():                 # the test reads the detections the estimator binned
+        maps = est.run(store, settings, b, kern, notes, progress)
+        _wait_apart(DECIDE)
+        return decide_maps(store, settings, maps, neighbours=neighbours, spreads=spreads)
 
 
 def as_photons(counts: CountStore) -> PhotonStore:

@@ -26,7 +26,7 @@ import numpy as np
 from spdepth.recon.errors import InputError
 from spdepth.recon.model import (Binning, Irf, ReconSettings, default_binning, edge_core_rms,
                                  estimate_pulse_rms_s, pair_difference_histogram)
-from spdepth.recon.photons import PhotonStore
+from spdepth.recon.photons import PhotonStore, rows_of
 from spdepth.recon.given import reconstruct_given
 
 ROUNDS = 3
@@ -122,8 +122,8 @@ def _sample(store: PhotonStore, max_pixels: int) -> PhotonStore:
         return store
     pairs = np.flatnonzero(counts >= 2)
     keep = pairs if pairs.size <= max_pixels else pairs[np.linspace(0, pairs.size - 1, max_pixels).astype(np.int64)]
-    lists = [store.times[store.offsets[p]:store.offsets[p + 1]] for p in keep]
-    return PhotonStore.from_lists(lists, (1, keep.size), store.time_unit_s)
+    at, offsets = rows_of(store.offsets, keep)        # one gather (a list per pixel took 0.05 s)
+    return PhotonStore(store.times[at], offsets, (1, keep.size), store.time_unit_s)
 
 
 def _emg_pdf(x: np.ndarray, sigma: float, tau: float) -> np.ndarray:

@@ -56,8 +56,11 @@ def run(args: argparse.Namespace) -> int:
     # before any work: an existing output (a session's own maps.npz) is kept unless --overwrite
     refuse_existing(_outputs(request), overwrite=args.overwrite, inputs=(request.input,))
     bar = ProgressBar(f"recon {request.method}")
+    # without an output file only the summary is seen, which holds no uncertainty: the return
+    # test's spreads are not computed (half of a 512x512 PTU's estimation time)
+    writes = any(path for _, path in _outputs(request))
     try:
-        result = reconstruct_file(request, progress=bar,
+        result = reconstruct_file(request, progress=bar, spreads=writes,
                                   notice=lambda text: print(f"spdepth recon: {text}", file=sys.stderr, flush=True))
     finally:
         bar.close()
