@@ -66,6 +66,20 @@ def test_recon_human_output_and_defaults(face_crop, capsys):
     assert "60 x 50 pixels" in captured.out and "depth: median" in captured.out
 
 
+def test_recon_without_outputs_decides_alike_and_skips_the_spreads(face_crop, tmp_path, capsys):
+    # no output file: the summary (which holds no uncertainty) is that of the run writing maps,
+    # and its record says the test's spreads were not computed
+    opts = [str(face_crop), "--method", "ml", *PAPER, "--max-photons", "15", "--json"]
+    assert main(["recon", *opts]) == 0
+    bare = _last_json(capsys.readouterr().out)
+    assert main(["recon", *opts, "--npz", str(tmp_path / "m.npz")]) == 0
+    full = _last_json(capsys.readouterr().out)
+    for key in ("pixels_with_estimate", "depth_m_median", "photons"):
+        assert bare[key] == full[key]
+    assert "not computed" in bare["settings"]["detection"]["uncertainty"]
+    assert "not computed" not in full["settings"]["detection"]["uncertainty"]
+
+
 def test_recon_point_measurement_ptu(shared_data, tmp_path, capsys):
     png = tmp_path / "point.png"
     code = main(["recon", str(shared_data / "ptu/hydraharp_v20_t3.ptu"), "--channel", "0", "--pulse-rms-ps", "200",

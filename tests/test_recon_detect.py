@@ -227,3 +227,47 @@ def test_the_tables_are_kept_with_their_pulse_kernel():
     dt, rates = _tables_of(t1)
     assert _tables_of(t1)[1] is rates and _tables_of(ml_tables(k2, b.n_bins))[1] is not rates
     assert dt.m == b.n_bins and rates.shape[1] == t1.nk + 1
+
+
+@pytest.mark.parametrize("method", ["ml", "uos"])
+def test_without_spreads_the_decision_is_the_same_and_the_uncertainty_the_estimator_s(method):
+    # spreads=False (a caller that writes no map): the same pixels hold a return, neighbours'
+    # support included, the same depths, and each uncertainty is the estimator's own, which the
+    # spreads only ever widen; the record says which
+    rng = np.random.default_rng(10)
+    side = 30
+    lists = []
+    for i in range(side * side):
+        k = 2 if i % 3 else 12         # most pixels too faint alone, beside their neighbours
+        x = np.concatenate([2000 + RMS_U * rng.standard_normal(k), rng.uniform(0, 4000, 10)])
+        lists.append(np.floor(x))
+    store = PhotonStore.from_lists(lists, (side, side), UNIT_S)
+    s = ReconSettings(method=method, binning=B, pulse_rms_s=RMS_U * UNIT_S)
+    full, bare = reconstruct(store, s), reconstruct(store, s, spreads=False)
+    alone = reconstruct(store, s, neighbours=False)
+    assert np.isfinite(full.depth_m).sum() > np.isfinite(alone.depth_m).sum()     # support at work
+    assert np.array_equal(full.flags, bare.flags)
+    assert np.array_equal(full.depth_m, bare.depth_m, equal_nan=True)
+    assert np.array_equal(full.gain_nats, bare.gain_nats, equal_nan=True)
+    got = np.isfinite(full.depth_m)
+    assert np.all(bare.uncertainty_s[got] <= full.uncertainty_s[got])
+    assert np.any(bare.uncertainty_s[got] < full.uncertainty_s[got])          # the spreads widened some
+    assert "not computed" in bare.settings["detection"]["uncertainty"]
+    assert "not computed" not in full.settings["detection"]["uncertainty"]
+
+
+def test_the_return_test_reads_the_estimator_s_binned_detections():
+    # within binned_once (a reconstruction) the second binning of the same store, window and
+    # first-N is the first one's arrays; outside it, or for another window, a binning of its own
+    from spdepth.recon.pixelwise import binned_once, binned_photons
+
+    store = _store(np.random.default_rng(11), 16, 5, 5)
+    other = Binning(UNIT_S, 0, 2000, 5)
+    with binned_once():
+        first = binned_photons(store, B, None)
+        assert binned_photons(store, Binning.from_dict(B.to_dict()), None)[0] is first[0]
+        again = binned_photons(store, other, None)
+        assert again[0] is not first[0] and again[1].size == first[1].size
+        assert binned_photons(store, B, 3)[0] is not first[0]
+    assert binned_photons(store, B, None)[0] is not first[0]
+    assert np.array_equal(binned_photons(store, B, None)[0], first[0])
