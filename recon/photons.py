@@ -68,12 +68,10 @@ class PhotonStore:
         if pixel.shape != times.shape:
             raise InputError(f"pixel and time arrays differ in length ({pixel.size} vs {times.size})")
         n_pix = shape[0] * shape[1]
-        if pixel.size and (pixel.min() < 0 or pixel.max() >= n_pix):
-            raise InputError(f"pixel index out of range for a {shape[0]} x {shape[1]} image")
         offsets = np.zeros(n_pix + 1, dtype=np.int64)
-        np.cumsum(np.bincount(pixel, minlength=n_pix), out=offsets[1:])
         out = np.empty(pixel.size, np.float64)
-        _scatter_by_pixel(pixel, times, offsets, out)
+        if not _group_by_pixel(pixel, times, offsets, out):
+            raise InputError(f"pixel index out of range for a {shape[0]} x {shape[1]} image")
         return cls(out, offsets, shape, time_unit_s)
 
     @property
@@ -135,10 +133,23 @@ def rows_of(offsets: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarra
 
 
 @njit(cache=True, nogil=True)
-def _scatter_by_pixel(pixel, times, offsets, out):
-    """Stable counting sort: ``out[offsets[p] + j]`` is the j-th time (in input order) of pixel p."""
+def _group_by_pixel(pixel, times, offsets, out):
+    """Stable counting sort: ``offsets`` (zeros, one more than the pixels) becomes each pixel's
+    start and ``out[offsets[p] + j]`` the j-th time (in input order) of pixel p. False, with
+    nothing grouped, when an index lies outside [0, pixels). One pass to count (which checks the
+    range) and one to place: the range check, count and placing in NumPy read the indices four
+    times (0.17 s of a 512x512 PTU's read)."""
+    n_pix = offsets.size - 1
+    for i in range(pixel.size):
+        p = pixel[i]
+        if p < 0 or p >= n_pix:
+            return False
+        offsets[p + 1] += 1
+    for p in range(n_pix):
+        offsets[p + 1] += offsets[p]
     fill = offsets[:-1].copy()
     for i in range(pixel.size):
         p = pixel[i]
         out[fill[p]] = times[i]
         fill[p] += 1
+    return True

@@ -24,6 +24,8 @@ def test_counting_sort_equals_the_stable_argsort(rng, n, shape):
 def test_bad_pixel_indices_are_refused():
     with pytest.raises(InputError, match="out of range"):
         PhotonStore.from_pixel_indices(np.array([0, 6]), np.array([1.0, 2.0]), (2, 3), 8e-12)
+    with pytest.raises(InputError, match="out of range"):
+        PhotonStore.from_pixel_indices(np.array([2, -1, 0]), np.array([1.0, 2.0, 3.0]), (2, 3), 8e-12)
     with pytest.raises(InputError, match="differ in length"):
         PhotonStore.from_pixel_indices(np.array([0, 1]), np.array([1.0]), (2, 3), 8e-12)
 

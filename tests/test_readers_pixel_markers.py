@@ -158,7 +158,7 @@ def test_the_reader_warm_up_loads_every_kernel_the_read_runs(gated):
 
     pq.warm_up()
     kernels = (pq._renumber_markers, pq._collect_photons, t3._decode_kernel, assign._assign_kernel,
-               photons._scatter_by_pixel)
+               photons._group_by_pixel)
     before = [len(k.signatures) for k in kernels]
     assert all(before)
     assert read_photons(gated[0]).meta["assignment"] == "pixel markers"
