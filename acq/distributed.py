@@ -120,7 +120,8 @@ def recon_file(request, keep_going: bool = False) -> dict:
     from spdepth.drivers.errors import DriverError
 
     try:
-        return reconstruct_file(request).summary
+        # the summary alone comes back: without an output file, no spreads (as spdepth recon FILE)
+        return reconstruct_file(request, spreads=request.writes_files()).summary
     except (AcqError, InputError, DriverError) as exc:
         if not keep_going:
             raise

@@ -518,6 +518,12 @@ class FileReconRequest(_Request):
     def label(self) -> str:
         return f"{Path(self.input).name}, {self.method}"
 
+    def writes_files(self) -> bool:
+        """Whether the reconstruction writes a file (maps, picture, pulse shape, points); when not,
+        its summary alone is seen, which holds no uncertainty (``acq.api.reconstruct_file``'s
+        ``spreads``)."""
+        return any((self.out, self.png, self.save_irf, self.ply, self.las))
+
 
 def build_request(source: str, values: dict):
     """The request of ``source`` ("sim", "real", "replay", "file") for option values in their

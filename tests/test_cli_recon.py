@@ -78,6 +78,10 @@ def test_recon_without_outputs_decides_alike_and_skips_the_spreads(face_crop, tm
         assert bare[key] == full[key]
     assert "not computed" in bare["settings"]["detection"]["uncertainty"]
     assert "not computed" not in full["settings"]["detection"]["uncertainty"]
+    # several inputs (one summary line each) as one: the same record
+    assert main(["recon", str(face_crop), *opts]) == 0
+    both = [json.loads(line) for line in capsys.readouterr().out.strip().splitlines()]
+    assert len(both) == 2 and all(s["settings"]["detection"] == bare["settings"]["detection"] for s in both)
 
 
 def test_recon_point_measurement_ptu(shared_data, tmp_path, capsys):

@@ -58,9 +58,8 @@ def run(args: argparse.Namespace) -> int:
     bar = ProgressBar(f"recon {request.method}")
     # without an output file only the summary is seen, which holds no uncertainty: the return
     # test's spreads are not computed (half of a 512x512 PTU's estimation time)
-    writes = any(path for _, path in _outputs(request))
     try:
-        result = reconstruct_file(request, progress=bar, spreads=writes,
+        result = reconstruct_file(request, progress=bar, spreads=request.writes_files(),
                                   notice=lambda text: print(f"spdepth recon: {text}", file=sys.stderr, flush=True))
     finally:
         bar.close()
