@@ -872,10 +872,21 @@ def pair_difference_histogram(times: np.ndarray, offsets: np.ndarray, max_per_pi
     else:
         nh = int(span // step) + 1
         edges_hi = nh * step
-    hist = np.zeros(nh, np.int64)
-    # np.histogram(|dt|, bins=nh, range=(0, edges_hi)), bin for bin: its edges and scale
+    from spdepth.recon.pixelwise import over_threads
+
+    # np.histogram(|dt|, bins=nh, range=(0, edges_hi)), bin for bin: its edges and scale; each
+    # slice of pixels on numba's threads counts into its own histogram (counts: the sum is exact)
     edges = np.linspace(0.0, edges_hi, nh + 1, endpoint=True)
-    pair_histogram(times, starts, counts, multi, edges, nh / edges_hi, hist)
+    parts: dict[int, np.ndarray] = {}
+
+    def count(a: int, b: int) -> None:
+        parts[a] = np.zeros(nh, np.int64)
+        pair_histogram(times, starts, counts, multi[a:b], edges, nh / edges_hi, parts[a])
+
+    over_threads(count, multi.size, max(multi.size, 1))
+    hist = np.zeros(nh, np.int64)
+    for part in parts.values():
+        hist += part
     return hist, step
 
 
