@@ -872,22 +872,24 @@ def pair_difference_histogram(times: np.ndarray, offsets: np.ndarray, max_per_pi
     else:
         nh = int(span // step) + 1
         edges_hi = nh * step
-    from spdepth.recon.pixelwise import over_threads
+    import numba
+    from concurrent.futures import ThreadPoolExecutor
 
-    # np.histogram(|dt|, bins=nh, range=(0, edges_hi)), bin for bin: its edges and scale; each
-    # slice of pixels on numba's threads counts into its own histogram (counts: the sum is exact)
+    # np.histogram(|dt|, bins=nh, range=(0, edges_hi)), bin for bin: its edges and scale. One
+    # slice of the pixels per thread of numba's (--threads), each counting into its own histogram
+    # (counts: their sum is exact); a pool of its own, as recon.pixelwise's would be an import
+    # cycle (pixelwise imports this module), made once a reconstruction
     edges = np.linspace(0.0, edges_hi, nh + 1, endpoint=True)
-    parts: dict[int, np.ndarray] = {}
+    workers = max(1, min(numba.get_num_threads(), multi.size))
+    cuts = np.linspace(0, multi.size, workers + 1).astype(np.int64)
+    parts = np.zeros((workers, nh), np.int64)
 
-    def count(a: int, b: int) -> None:
-        parts[a] = np.zeros(nh, np.int64)
-        pair_histogram(times, starts, counts, multi[a:b], edges, nh / edges_hi, parts[a])
+    def count(k: int) -> None:
+        pair_histogram(times, starts, counts, multi[cuts[k]:cuts[k + 1]], edges, nh / edges_hi, parts[k])
 
-    over_threads(count, multi.size, max(multi.size, 1))
-    hist = np.zeros(nh, np.int64)
-    for part in parts.values():
-        hist += part
-    return hist, step
+    with ThreadPoolExecutor(workers) as pool:
+        list(pool.map(count, range(workers)))
+    return parts.sum(axis=0), step
 
 
 def estimate_pulse_rms_s(times: np.ndarray, offsets: np.ndarray, time_unit_s: float,
