@@ -26,7 +26,7 @@ region where its neighbours see returns (:func:`neighbour_fill`: within the supp
 shift at which their pooled detections, its own left out, pass the support test) at the
 false-alarm rate ``ReconSettings.neighbour_false_alarm`` (default 0.05) for that region's span of shifts; its depth is then ml's best
 within the region, whatever the estimator. Background alone all around passes only where the
-neighbours passed their test too (at most false_alarm x that rate); beside a surface a
+neighbours passed the support's test somewhere too (measured below); beside a surface a
 pixel without a return of its own at those shifts is given one at that rate at most (a
 faint wall with holes, test_recon_detect: holes 4.4 -> 4.4%, the wall's pixels 23.9 -> 26.3%).
 art_top.mat, ml: a depth on 23.4 -> 30.2% of pixels, halves within 3 / 1 sigma 97.0 / 67.5% ->
