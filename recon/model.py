@@ -22,7 +22,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from scipy.special import log_ndtr, ndtr
 
 from spdepth.recon.errors import InputError
 
@@ -679,6 +678,10 @@ class PulseKernel:
 
 
 def _gaussian_cdf(sigma_bins: float):
+    # scipy.special where used, not at import: it costs a new process 0.17 s (its array-API layer
+    # loads numpy.f2py), which a file's reconstruction pays on the warm-up thread during the read
+    from scipy.special import ndtr
+
     return lambda x: ndtr(np.asarray(x, dtype=np.float64) / sigma_bins)
 
 
@@ -807,6 +810,8 @@ def build_kernel(binning: Binning, pulse_rms_s: float | None = None, irf: Irf | 
     # log table for the log-matched filter over every offset a window can hold
     dl = np.arange(-(m - 1), m, dtype=np.float64)
     if irf is None:
+        from scipy.special import log_ndtr
+
         sig = rms_bins
         aa = (np.abs(dl) - 0.5) / sig
         bb = (np.abs(dl) + 0.5) / sig

@@ -172,3 +172,12 @@ def test_quantiles_from_scipy_special_are_scipy_stats():
         sigma = width / (2 * np.sqrt(2 * np.log(2)))
         rice = norm.sf(np.sqrt(2 * u)) + n_bins / (2 * np.pi * np.sqrt(2) * sigma) * np.exp(-u)
         assert rice == pytest.approx(fa, rel=1e-9)
+
+def test_the_speed_of_light_is_scipy_s():
+    # written out (exact by the SI's definition of the metre): scipy.constants' import took 70 ms
+    from scipy.constants import c
+
+    from spdepth.drivers.sim.scene import C_M_PER_S as sim_c
+    from spdepth.recon.maps import C_M_PER_S
+
+    assert C_M_PER_S == sim_c == c

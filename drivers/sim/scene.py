@@ -9,10 +9,12 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.constants import c as C_M_PER_S   # the value recon.maps uses too
 
 from spdepth.drivers.errors import SettingError
 from spdepth.drivers.sim import scenes as _scenes
+
+#: Speed of light in vacuum, m/s: exact by the SI's definition of the metre, the value recon.maps uses.
+C_M_PER_S = 299_792_458.0
 
 EFFECTS = ("jitter", "dead_time", "afterpulsing")
 """Effects a scene may name. Anything else of equation (3) (pulse shape, background, dark counts,

@@ -43,9 +43,6 @@ import math
 from typing import Callable
 
 import numpy as np
-# scipy.special, not scipy.stats (whose import alone took 1.15 s, a third of a new process's
-# `spdepth recon --reflectors 2`): ndtr is norm.cdf, the same function underneath
-from scipy.special import ndtr
 
 from spdepth.recon.counts import CountStore
 from spdepth.recon.estimators import surfaces_kernels as MK
@@ -99,7 +96,7 @@ def search_false_alarm(gain_nats: float, window_bins: float, width_bins: float) 
     z = math.sqrt(2.0 * max(gain_nats, 0.0))
     sigma = max(width_bins, 1.0) / FWHM_PER_RMS
     ups = max(window_bins, 1.0) / (2.0 * math.pi * math.sqrt(2.0) * sigma) * math.exp(-gain_nats)
-    return min(1.0, float(1.0 - ndtr(z)) + ups)
+    return min(1.0, 0.5 * math.erfc(z / math.sqrt(2.0)) + ups)     # P(N > z) + upcrossings
 
 
 @functools.lru_cache(maxsize=4096)
