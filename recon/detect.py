@@ -1072,7 +1072,6 @@ def decide_maps(store, settings, maps, neighbours: bool = True, spreads: bool = 
 
     # a window hardly wider than the pulse: time cannot tell a return from background
     decidable = b.n_bins >= UNDECIDABLE_FWHM * fwhm_bins(kern.g)
-    supported = np.empty(0, np.int64)
     filled = None
     thr_n = math.nan
     half = max(1, int(round(NEIGHBOUR_HALF_CORES * core_s / b.bin_width_s)))

@@ -877,22 +877,24 @@ def pair_difference_histogram(times: np.ndarray, offsets: np.ndarray, max_per_pi
     else:
         nh = int(span // step) + 1
         edges_hi = nh * step
-    import numba
-    from concurrent.futures import ThreadPoolExecutor
+    from spdepth.recon.threadpool import shared_pool, threads
 
     # np.histogram(|dt|, bins=nh, range=(0, edges_hi)), bin for bin: its edges and scale. One
     # slice of the pixels per thread of numba's (--threads), each counting into its own histogram
-    # (counts: their sum is exact); a pool of its own, as recon.pixelwise's would be an import
-    # cycle (pixelwise imports this module), made once a reconstruction
+    # (counts: their sum is exact), on the process's pool (inline when called from one of its threads)
     edges = np.linspace(0.0, edges_hi, nh + 1, endpoint=True)
-    workers = max(1, min(numba.get_num_threads(), multi.size))
+    workers = max(1, min(threads(), multi.size))
     cuts = np.linspace(0, multi.size, workers + 1).astype(np.int64)
     parts = np.zeros((workers, nh), np.int64)
 
     def count(k: int) -> None:
         pair_histogram(times, starts, counts, multi[cuts[k]:cuts[k + 1]], edges, nh / edges_hi, parts[k])
 
-    with ThreadPoolExecutor(workers) as pool:
+    pool = shared_pool(workers)
+    if pool is None:
+        for k in range(workers):
+            count(k)
+    else:
         list(pool.map(count, range(workers)))
     return parts.sum(axis=0), step
 

@@ -21,6 +21,7 @@ from spdepth.recon.errors import InputError
 from spdepth.recon.maps import C_M_PER_S, DepthMaps, PixelFlag
 from spdepth.recon.model import FINE_STEPS, Binning, PulseKernel, ReconSettings
 from spdepth.recon.photons import PhotonStore
+from spdepth.recon.threadpool import shared_pool, threads
 
 #: Pixels per kernel call; progress is reported between chunks.
 CHUNK_PIXELS = 16384
@@ -173,33 +174,6 @@ def over_threads(fit: Callable[[int, int], None], npix: int, chunk_pixels: int,
             on_threads(fit, p0, p1, pool, workers)
         if progress is not None:
             progress(p1, npix)
-
-
-#: The thread pools of :func:`over_threads`, one per thread count, kept for the process: a pool
-#: made and shut down per call cost about 0.4 ms (an array frame's estimator and return test make
-#: five calls: 2 ms of its 33).
-_POOLS: dict[int, ThreadPoolExecutor] = {}
-_POOLS_LOCK = threading.Lock()
-_POOL_PREFIX = "spdepth-fit"
-
-
-def shared_pool(workers: int) -> ThreadPoolExecutor | None:
-    """The process's pool of ``workers`` threads, or None when the caller is one of its threads (a
-    fit waiting on the pool from inside it could wait for itself)."""
-    if threading.current_thread().name.startswith(_POOL_PREFIX):
-        return None
-    with _POOLS_LOCK:
-        pool = _POOLS.get(workers)
-        if pool is None:
-            pool = _POOLS[workers] = ThreadPoolExecutor(workers, thread_name_prefix=f"{_POOL_PREFIX}-{workers}")
-        return pool
-
-
-def threads() -> int:
-    """The threads a fit runs on: numba's (``numba.set_num_threads``, ``--threads``)."""
-    import numba
-
-    return max(1, numba.get_num_threads())
 
 
 def on_threads(fit: Callable[[int, int], None], p0: int, p1: int, pool: ThreadPoolExecutor,
