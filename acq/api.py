@@ -558,6 +558,7 @@ def reconstruct_file(request: FileReconRequest, progress=None,
     estimator's own, without the return test's spreads (``recon.estimate.reconstruct``), for a
     caller that uses the summary alone and writes no map (``spdepth recon`` without outputs)."""
     from spdepth.acq.readers import read_photons
+    from spdepth.recon.detect import pulse_dispersion
     from spdepth.recon.estimate import reconstruct
 
     warm = KernelWarmUp(request, notice)
@@ -595,8 +596,11 @@ def reconstruct_file(request: FileReconRequest, progress=None,
     load_s += warm.wait()
     t1 = time.perf_counter()
     maps = reconstruct(store, settings, progress=progress, spreads=spreads)
-    return file_result(request, maps, result, read_s=read_s, recon_s=time.perf_counter() - t1,
-                       pileup=pileup, load_s=load_s)
+    recon_s = time.perf_counter() - t1
+    # where uncertainties are written, whether the pulse model fits the detections about their depths
+    dispersion = pulse_dispersion(store, settings, maps) if spreads else None
+    return file_result(request, maps, result, read_s=read_s, recon_s=recon_s, pileup=pileup, load_s=load_s,
+                       dispersion=dispersion)
 
 
 def set_threads(request: FileReconRequest) -> None:
@@ -612,12 +616,14 @@ def set_threads(request: FileReconRequest) -> None:
 
 def file_result(request: FileReconRequest, maps, read, *, read_s: float = 0.0,
                 recon_s: float = 0.0, photons_in_file: int | None = None,
-                pileup: dict | None = None, load_s: float = 0.0) -> FileResult:
+                pileup: dict | None = None, load_s: float = 0.0, dispersion: dict | None = None) -> FileResult:
     """A file's reconstructed maps finished as ``spdepth recon`` finishes them: the scan geometry
     and range offset added, the outputs the request names written (npz, png, pulse shape, points)
     and the summary made. ``read``: the reader's ``ReadResult`` (its ``store`` may be None when
     the photons were read in blocks elsewhere; then give ``photons_in_file``; a cube's are its
-    ``counts``). ``pileup``: the pile-up decision (:func:`file_counts`)."""
+    ``counts``). ``pileup``: the pile-up decision (:func:`file_counts`). ``dispersion``: the pulse
+    model's (``recon.detect.pulse_dispersion``), in the summary, and in a note when the model's
+    width is off by more than DISPERSION_OFF."""
     from spdepth.recon import estimators
 
     store = read.store
@@ -648,6 +654,8 @@ def file_result(request: FileReconRequest, maps, read, *, read_s: float = 0.0,
     if read.is_image and request.method not in neighbours and neighbours and per_pixel < SPARSE_PER_PIXEL:
         notes += (f"about {per_pixel:.1f} detections per pixel: too few for a pixel on its own; "
                   f"--method {' or '.join(neighbours)} uses the neighbours",)
+    if dispersion is not None and abs(math.log(dispersion["width_ratio"])) > math.log(DISPERSION_OFF):
+        notes += (dispersion_note(dispersion, request.pulse_rms_s is not None and request.irf is None),)
     res = FileResult(request, maps, store, used_binning, used.get("pulse_rms_s"),
                      irf_used if used.get("irf") else None, read.is_image, read.kind,
                      notes, read_s, recon_s, pileup=pileup,
@@ -655,7 +663,30 @@ def file_result(request: FileReconRequest, maps, read, *, read_s: float = 0.0,
     _write_file_outputs(res, read)
     res.summary = _file_summary(res, read)
     res.summary["photons_account"] = account
+    res.summary["pulse_dispersion"] = dispersion
     return res
+
+
+#: The pulse model's width, as the detections about their depths say it (its dispersion's square
+#: root), is noted when off by more than this factor either way.
+DISPERSION_OFF = 1.25
+
+
+def dispersion_note(d: dict, stated: bool) -> str:
+    """What a dispersion ``d`` (``recon.detect.pulse_dispersion``) off the model means, in a line;
+    ``stated``: the pulse was the user's (``--pulse-rms-ps``)."""
+    r = d["width_ratio"]
+    closer = r < 1.0
+    head = (f"the detections lie {'closer to' if closer else 'wider about'} their depths than the pulse model "
+            f"says (dispersion {d['dispersion']:.2f} over {d['pixels']} pixels: as from a response {r:.2f} "
+            f"times its width); where a depth's uncertainty is the model's (its Fisher information, the "
+            f"likelihood's spread) it is likely {'too large' if closer else 'too small'} (by about "
+            f"{max(r, 1.0 / r):.1f}x if the width alone is off)")
+    if stated:
+        return head + f" (--pulse-rms-ps may be too {'wide' if closer else 'narrow'}: without it the pulse is " \
+                      "measured from the data)"
+    return head + " (the response measured from the data does not fit its returns: a tail or a width " \
+                  "that the returns do not show)"
 
 
 def _photons_in(read) -> int:

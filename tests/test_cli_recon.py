@@ -164,3 +164,24 @@ def test_a_batch_goes_on_past_a_file_it_cannot_read(small_ptu, tmp_path, capsys)
     assert err[-1] == "spdepth recon: 2 of 3 inputs reconstructed; 1 could not be: bad.ptu"
     assert len(err) == 2
     assert sorted(p.name for p in out.iterdir()) == ["a.npz", "b.npz"]    # both good ones written
+
+
+def test_a_stated_pulse_wider_than_the_returns_is_said_with_what_it_does_to_the_uncertainties(
+        simulated_ptus, tmp_path, capsys):
+    # the simulator's pulse is 362 ps RMS: stated as 720 ps, the model's uncertainties are too large
+    bust = simulated_ptus[1][0]
+    assert main(["recon", bust, "--pulse-rms-ps", "720", "--npz", str(tmp_path / "wide.npz"), "--json"]) == 0
+    captured = capsys.readouterr()
+    summary = _last_json(captured.out)
+    assert summary["pulse_dispersion"]["dispersion"] < 0.5
+    assert "closer to their depths than the pulse model" in captured.err
+    assert "--pulse-rms-ps may be too wide" in captured.err
+    assert main(["recon", bust, "--pulse-rms-ps", "362", "--npz", str(tmp_path / "right.npz"), "--json"]) == 0
+    captured = capsys.readouterr()
+    summary = _last_json(captured.out)
+    assert 0.8 < summary["pulse_dispersion"]["dispersion"] < 1.25
+    assert "pulse model" not in captured.err
+    # without an output the summary holds no uncertainty, so the check is not made
+    assert main(["recon", bust, "--pulse-rms-ps", "720", "--json"]) == 0
+    captured = capsys.readouterr()
+    assert _last_json(captured.out)["pulse_dispersion"] is None

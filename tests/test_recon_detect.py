@@ -271,3 +271,31 @@ def test_the_return_test_reads_the_estimator_s_binned_detections():
         assert binned_photons(store, B, 3)[0] is not first[0]
     assert binned_photons(store, B, None)[0] is not first[0]
     assert np.array_equal(binned_photons(store, B, None)[0], first[0])
+
+
+@pytest.mark.parametrize("model_rms_u, lo, hi", [(RMS_U, 0.85, 1.15), (2 * RMS_U, 0.2, 0.5), (0.7 * RMS_U, 1.4, 2.5)])
+def test_the_pulse_dispersion_measures_the_model_s_width_against_the_detections(model_rms_u, lo, hi):
+    # returns of a 45-unit pulse fitted with it, twice as wide, 0.7 as wide: 1.00, 0.39, 1.67 here
+    # (without background 0.99, 0.25, 1.85: the width ratio squared), from the detections alone
+    from spdepth.recon.detect import pulse_dispersion
+
+    rng = np.random.default_rng(11)
+    store = _store(rng, 2500, 8, 4)
+    s = ReconSettings(method="ml", binning=B, pulse_rms_s=model_rms_u * UNIT_S)
+    d = pulse_dispersion(store, s, reconstruct(store, s))
+    assert d["pixels"] >= 2000
+    assert lo < d["dispersion"] < hi
+    assert d["width_ratio"] == pytest.approx(np.sqrt(d["dispersion"]))
+
+
+def test_the_pulse_dispersion_is_not_said_where_it_cannot_be():
+    from spdepth.recon.detect import pulse_dispersion
+
+    rng = np.random.default_rng(12)
+    store = _store(rng, 2500, 8, 4)
+    for method in ("uos", "lmf", "spatial"):      # not the likelihood's own optimum
+        s = ReconSettings(method=method, binning=B, pulse_rms_s=RMS_U * UNIT_S)
+        assert pulse_dispersion(store, s, reconstruct(store, s)) is None
+    few = _store(rng, 100, 8, 4)                  # too few pixels to pool
+    s = ReconSettings(method="ml", binning=B, pulse_rms_s=RMS_U * UNIT_S)
+    assert pulse_dispersion(few, s, reconstruct(few, s)) is None

@@ -7,7 +7,9 @@ where both halves report a depth, the share that agree within 3 and within 1 com
 halves are independent draws: about 99.7% agree within 3 sigma and 68% within 1 (a heavy tail of
 failures, e.g. a background cluster taken for a return, shows in the 3-sigma share; uncertainties
 too large or too small move the 1-sigma share). Also printed: the share of pixels with a depth in
-the whole file and in each half.
+the whole file and in each half, and for ml the pulse model's dispersion on the whole file
+(``recon.detect.pulse_dispersion``: below 1, the detections lie closer to their depths than the
+model says, and the model's uncertainties are too wide).
 
 Run as ``spdepth bench honesty FILE [--methods ml,spatial] [--time-unit-ps PS] ...``.
 """
@@ -87,6 +89,7 @@ def split_half(store: PhotonStore, settings: ReconSettings) -> dict:
     the share of pixels with a depth in the whole and the decision's settings."""
     import numpy as np
 
+    from spdepth.recon.detect import pulse_dispersion
     from spdepth.recon.estimate import reconstruct
 
     full = reconstruct(store, settings)
@@ -95,7 +98,8 @@ def split_half(store: PhotonStore, settings: ReconSettings) -> dict:
     a, b = reconstruct(half_a, fixed), reconstruct(half_b, fixed)
     depth = np.asarray(full.depth_m, float)
     has = np.isfinite(depth) if depth.ndim == 2 else np.isfinite(depth).any(axis=0)
-    out = {"method": settings.method, "depth_full": float(has.mean())}
+    out = {"method": settings.method, "depth_full": float(has.mean()),
+           "pulse_dispersion": pulse_dispersion(store, settings, full)}
     out.update(agreement(a, b))
     if "detection" in full.settings:
         out["detection"] = full.settings["detection"].get("rule")
@@ -153,7 +157,8 @@ def bench(argv: list[str]) -> int:
             continue
         first = "surface 1, weak included, " if "surfaces" in r else ""
         print(f"{method:>8}: depth on {100 * r['depth_full']:5.1f}% (halves {100 * r['depth_a']:5.1f}% / "
-              f"{100 * r['depth_b']:5.1f}%); {first}both halves {_shares(r)}")
+              f"{100 * r['depth_b']:5.1f}%); {first}both halves {_shares(r)}"
+              + (f"; pulse model's dispersion {r['pulse_dispersion']['dispersion']:.2f}" if r["pulse_dispersion"] else ""))
         for k, rk in enumerate(r.get("surfaces", [])):
             print(f"          surface {k + 1}, not weak, as many surfaces in both halves: {_shares(rk)}")
     return 0
