@@ -453,3 +453,35 @@ def test_censor_alpha_is_the_sidak_level_of_the_pixel_rate():
     a = censor_alpha(1e-3, n)
     assert_allclose(1 - (1 - a) ** n, 1e-3, rtol=1e-9)
     assert a[0] == pytest.approx(1e-3) and np.all(np.diff(a) < 0)
+
+
+def _flat_returns(rng, n_signal=6, n_background=2, side=30):
+    """A gently tilted surface of Gaussian returns (RMS_UNITS) over a little background."""
+    lists = []
+    for i in range(side * side):
+        d = 2000 + 200 * (i % side) / side
+        x = np.concatenate([d + RMS_UNITS * rng.standard_normal(n_signal), rng.uniform(0, 4000, n_background)])
+        lists.append(np.floor(x[(x >= 0) & (x < 4000)]))
+    return PhotonStore.from_lists(lists, (side, side), UNIT_S)
+
+
+def test_the_uncertainty_follows_the_detections_spread_not_the_stated_pulse(monkeypatch):
+    # the fits' dispersion (pairs of a pixel's detections about one another): 1 with the true
+    # width, below with a wider model, above with a narrower one; the noise of the uncertainty's
+    # probes follows it, so a pulse stated twice too wide no longer doubles the uncertainty
+    from spdepth.recon.estimators import spatial as S
+
+    store = _flat_returns(np.random.default_rng(7))
+    b = Binning(UNIT_S, 0, 4000, 5)
+    got = {}
+    for rms in (RMS_UNITS, 2 * RMS_UNITS, RMS_UNITS / 1.5):
+        m = reconstruct(store, ReconSettings(method="spatial", binning=b, pulse_rms_s=rms * UNIT_S))
+        got[rms] = (m.settings["spatial"]["fit_dispersion"], float(np.nanmedian(m.uncertainty_s)))
+    assert 0.9 < got[RMS_UNITS][0] < 1.1
+    assert got[2 * RMS_UNITS][0] < 0.5
+    assert got[RMS_UNITS / 1.5][0] > 1.4
+    assert got[2 * RMS_UNITS][1] < 1.2 * got[RMS_UNITS][1]
+    # the model's width alone (dispersion 1) made it about twice as large
+    monkeypatch.setattr(S, "fit_dispersion", lambda *a, **k: 1.0)
+    wide = reconstruct(store, ReconSettings(method="spatial", binning=b, pulse_rms_s=2 * RMS_UNITS * UNIT_S))
+    assert np.nanmedian(wide.uncertainty_s) > 1.6 * got[RMS_UNITS][1]
