@@ -2,8 +2,12 @@
 never as a full-frame recompute.
 
 Every pixel is reconstructed exactly once, with the same ``ReconSettings`` (fixed binning and pulse),
-so the live maps at the end equal ``recon.estimate.reconstruct`` of the final store bit for bit:
-each estimator works pixel by pixel. When no pulse width is given, it is estimated once from the
+and each pixel's return decided on its own detections (a batch is not a frame). Once every pixel
+is final, where some pixel with detections holds no return of its own, the whole final store is
+reconstructed once more with the return test's frame rules (its neighbours' support and regions,
+``recon.detect``), so the live maps at the end equal ``recon.estimate.reconstruct`` of the final
+store bit for bit, and ``spdepth recon`` of the recording; a scan cut short keeps the batches'
+decisions (``settings['neighbour_rules']`` says so). When no pulse width is given, it is estimated once from the
 first ``PULSE_SAMPLE_PIXELS`` pixels to become final (in stream order, so a replay of the same
 stream estimates the same width) and then frozen.
 
@@ -155,10 +159,11 @@ class LiveRecon:
                            if n else f"at most {self.pileup_max_per_period:.3g} detections per laser period: "
                                      "pile-up negligible")}
 
-    def corrected(self, pixels: np.ndarray | None = None):
-        """The store's pixels (flat indices; None: the whole frame) to estimate from: their photon
-        list, or counts with Coates' correction at the pixels whose detections per laser period
-        pass PILEUP_THRESHOLD (module docstring)."""
+    def corrected(self, pixels: np.ndarray | None = None, tally: bool = True):
+        """The store's pixels (flat indices, a 1 x n image; None: the whole frame) to estimate
+        from: their photon list, or counts with Coates' correction at the pixels whose detections
+        per laser period pass PILEUP_THRESHOLD (module docstring). ``tally``: listed pixels count
+        in :attr:`pileup` (False: pixels already counted, estimated again)."""
         from spdepth.recon.counts import CountStore
         from spdepth.recon.pileup import PILEUP_THRESHOLD, coates
 
@@ -171,7 +176,7 @@ class LiveRecon:
         n = self.store.count[idx].astype(np.float64)
         rate = np.divide(n, periods, out=np.zeros_like(n), where=periods > 0)
         hot = (periods > 0) & (rate > PILEUP_THRESHOLD)
-        if pixels is not None:
+        if pixels is not None and tally:
             self.pileup_max_per_period = max(self.pileup_max_per_period, float(rate.max(initial=0.0)))
             self.pileup_pixels += int(hot.sum())
         if not hot.any():
@@ -329,6 +334,8 @@ class LiveRecon:
                     self.frame_settings, pulse_rms_s=self.pixel_settings.pulse_rms_s,
                     irf=self.pixel_settings.irf))
                 self.busy_s += time.perf_counter() - t0
+            elif self.processed:
+                self._frame_rules()
         except BaseException as exc:  # noqa: BLE001 - handed to the owner at submit/finish
             # the owner reports it (one line); the traceback only at debug level
             log.debug("live reconstruction failed", exc_info=True)
@@ -357,7 +364,7 @@ class LiveRecon:
         empty = self.store.count[pixels] == 0
         full = pixels[~empty]
         # a batch is a list of pixels, not a frame: each pixel is tested on its own detections (the
-        # neighbours' support, recon.detect, needs the frame: spdepth recon of the recording)
+        # neighbours' rules, recon.detect, need the frame: _frame_rules, once every pixel is final)
         m = _reconstruct_store(self.corrected(full), self.pixel_settings, neighbours=False) if full.size else None
         if self._empty is None and empty.any():
             self._empty = self._empty_result()
@@ -393,13 +400,49 @@ class LiveRecon:
         out["settings"] = m.settings
         return out
 
-    def _reconstruct_frame(self, settings: ReconSettings) -> None:
+    def _frame_rules(self) -> None:
+        """Once every pixel is final, the return test's rules that need the frame (a pixel that
+        fails on its own detections, tested with its neighbours': recon.detect) as ``spdepth
+        recon`` of the recording applies them: a batch is not a frame. Only where they could
+        change a pixel (one surface, some pixel with detections and no return), and over the rows
+        that hold detections (a scan cut by its time limit reached a few of a large frame's: the
+        others hold none, so they neither change nor lend support). A session that ended before
+        every pixel was final keeps each pixel's own decision, and its record says so."""
+        if self.pixel_settings.several:
+            return
+        with self.lock:
+            no_return = int(np.count_nonzero(self.flags == PixelFlag.NO_RETURN))
+            final = int(np.count_nonzero(self.done))
+        if not no_return:
+            return
+        if final < self.done.size:
+            self.settings_used["neighbour_rules"] = (
+                f"not applied: {final} of {self.done.size} pixels final (a pixel's neighbours may be "
+                f"missing); each pixel's return decided on its own detections")
+            return
+        t0 = time.perf_counter()
+        h, w = self.store.shape
+        rows = np.flatnonzero(np.asarray(self.store.count).reshape(h, w).any(axis=1))
+        self._reconstruct_frame(self.pixel_settings, rows=(int(rows[0]), int(rows[-1]) + 1))
+        self.settings_used.update(self._pulse_note)
+        self.settings_used["live_maps"] += ("; once every pixel was final, the frame reconstructed with the "
+                                            "neighbours' rules of the return test")
+        self.busy_s += time.perf_counter() - t0
+
+    def _reconstruct_frame(self, settings: ReconSettings, rows: tuple[int, int] | None = None) -> None:
         """One reconstruction of the whole final store (the last step of an estimator that does not
-        run live)."""
-        m = _reconstruct_store(self.corrected(), settings)
+        run live), or of its rows [r0, r1) (the return test's frame rules: :meth:`_frame_rules`)."""
+        if rows is None:
+            m = _reconstruct_store(self.corrected(), settings)
+            at = (...,)
+        else:
+            h, w = self.store.shape
+            part = self.corrected(np.arange(rows[0] * w, rows[1] * w), tally=False)
+            m = _reconstruct_store(dataclasses.replace(part, shape=(rows[1] - rows[0], w)), settings)
+            at = (..., slice(*rows), slice(None))
         with self.lock:
             for name in self.fields:
-                getattr(self, name)[...] = getattr(m, name)
+                getattr(self, name)[at] = getattr(m, name)
         self.settings_used = dict(m.settings)
         self.settings_used["pileup"] = self.pileup
         self.settings_used["live_maps"] = f"{self.pixel_settings.method} pixel by pixel during the scan"

@@ -82,5 +82,24 @@ def assert_same_maps(a: DepthMaps, b: DepthMaps, skip_flags=False):
         np.testing.assert_array_equal(getattr(a, k), getattr(b, k), err_msg=k)
 
 
+class StoreView:
+    """What ``LiveRecon`` reads of ``acq.store.PixelStore``, over a ``PhotonStore``."""
+
+    def __init__(self, store):
+        self.whole, self.shape, self.time_unit_s = store, store.shape, store.time_unit_s
+        self.count = np.diff(store.offsets)
+
+    def photons(self, pixels=None):
+        from spdepth.recon.photons import PhotonStore
+
+        if pixels is None:
+            return self.whole
+        idx = np.asarray(pixels, np.int64)
+        parts = [self.whole.times[self.whole.offsets[p]:self.whole.offsets[p + 1]] for p in idx]
+        offsets = np.concatenate(([0], np.cumsum([x.size for x in parts]))).astype(np.int64)
+        return PhotonStore(np.concatenate(parts) if parts else np.zeros(0), offsets, (1, idx.size),
+                           self.time_unit_s)
+
+
 __all__ = ["sim_session", "replay_session", "assert_complete_or_flagged", "assert_from_complete_dwells",
-           "assert_same_maps"]
+           "assert_same_maps", "StoreView"]

@@ -13,6 +13,7 @@ import pytest
 from spdepth.acq.cli import main
 from spdepth.drivers.sim.scene import load_scene
 from spdepth.recon.maps import DepthMaps
+from tests.sessions import StoreView
 
 SIZE = (16, 16)           # H, W
 TARGET = 20
@@ -134,25 +135,6 @@ def test_bad_surfaces_options_are_one_line_errors(tmp_path, capsys):
     assert not out.exists()
 
 
-class _Store:
-    """What ``LiveRecon`` reads of ``acq.store.PixelStore``, over a ``PhotonStore``."""
-
-    def __init__(self, store):
-        self.whole, self.shape, self.time_unit_s = store, store.shape, store.time_unit_s
-        self.count = np.diff(store.offsets)
-
-    def photons(self, pixels=None):
-        from spdepth.recon.photons import PhotonStore
-
-        if pixels is None:
-            return self.whole
-        idx = np.asarray(pixels, np.int64)
-        parts = [self.whole.times[self.whole.offsets[p]:self.whole.offsets[p + 1]] for p in idx]
-        offsets = np.concatenate(([0], np.cumsum([x.size for x in parts]))).astype(np.int64)
-        return PhotonStore(np.concatenate(parts) if parts else np.zeros(0), offsets, (1, idx.size),
-                           self.time_unit_s)
-
-
 @pytest.mark.parametrize("reflectors", [2, "auto"])
 def test_live_batches_with_empty_pixels_equal_one_reconstruction_with_the_frozen_response(reflectors):
     """Pixels handed over in uneven batches, a tenth of them without a detection (a scan cut by
@@ -179,7 +161,7 @@ def test_live_batches_with_empty_pixels_equal_one_reconstruction_with_the_frozen
     whole = PhotonStore(np.concatenate(times), np.array(offsets, np.int64), (h, w), unit)
     settings = ReconSettings(method="ml", binning=Binning.from_window(unit, (0, 30e-9), 40e-12),
                              max_photons=40, reflectors=reflectors)
-    live = LiveRecon(_Store(whole), settings)
+    live = LiveRecon(StoreView(whole), settings)
     live.start()
     order = rng.permutation(h * w)
     cuts = np.sort(rng.choice(np.arange(1, h * w), 6, replace=False))

@@ -535,3 +535,59 @@ def test_a_host_that_falls_behind_ends_each_pass_where_its_replay_does(tmp_path)
     ends = [json.loads(line) for line in (tmp_path / "events.jsonl").open()]
     assert sum(e.get("event") == "pass_end" for e in ends) == s.passes >= 2
     _assert_replay_equals_live(s, tmp_path)
+
+
+def test_once_every_pixel_is_final_the_frame_s_return_rules_apply_and_replays_equal(tmp_path):
+    # 3 detections a pixel: many fail on their own and are supported by their neighbours; a batch
+    # is not a frame, so the scan applies those rules once at its end, as spdepth recon does
+    from spdepth.recon.estimate import reconstruct
+
+    with open_sim("bust", (16, 16), ppp=3, seed=3) as inst:
+        s = _session(inst, (16, 16), tmp_path, target=3, method="ml")
+        assert s.run() == SessionState.DONE
+    frame = reconstruct(s.store.photons(), s.live_recon.requested)
+    assert_same_maps(s.maps(), frame)
+    alone = reconstruct(s.store.photons(), s.live_recon.requested, neighbours=False)
+    assert np.isfinite(s.maps().depth_m).mean() > np.isfinite(alone.depth_m).mean() + 0.2
+    assert "neighbours' rules" in s.maps().settings["live_maps"]
+    rep = _replay(tmp_path)
+    assert rep.run() == SessionState.DONE
+    assert_same_maps(s.maps(), rep.maps())
+
+
+def test_the_frame_s_rules_run_on_the_rows_that_hold_detections_as_on_the_whole_frame():
+    # a scan cut by its time limit: every pixel final, only the first rows reached; the rules
+    # run on those rows alone (a 4096 x 4096 frame is not reconstructed again) and give what one
+    # reconstruction of the whole frame gives
+    from spdepth.acq.live_recon import LiveRecon
+    from spdepth.recon.estimate import reconstruct
+    from spdepth.recon.model import Binning, ReconSettings
+    from spdepth.recon.photons import PhotonStore
+    from tests.sessions import StoreView
+
+    rng = np.random.default_rng(8)
+    h, w, reached = 40, 24, 9 * 24 + 5
+    lists = [np.floor(np.concatenate([rng.normal(2000, 45, 2), rng.uniform(0, 4000, 3)]))
+             if p < reached else np.zeros(0) for p in range(h * w)]
+    whole = PhotonStore.from_lists(lists, (h, w), 8e-12)
+    settings = ReconSettings(method="ml", binning=Binning(8e-12, 0, 4000, 5), pulse_rms_s=360e-12, max_photons=5)
+    live = LiveRecon(StoreView(whole), settings)
+    live.start()
+    for part in np.array_split(np.arange(h * w), 7):
+        live.submit(part)
+    live.finish(timeout_s=300)
+    maps = live.maps()
+    assert "neighbours' rules" in maps.settings["live_maps"]
+    assert_same_maps(maps, reconstruct(whole, settings))
+    alone = reconstruct(whole, settings, neighbours=False)
+    assert np.isfinite(maps.depth_m).sum() > np.isfinite(alone.depth_m).sum()
+    # ended before every pixel was final (a session stopped mid-frame): each pixel's own decision
+    part = LiveRecon(StoreView(whole), settings)
+    part.start()
+    part.submit(np.arange(reached))
+    part.finish(timeout_s=300)
+    cut = part.maps()
+    assert "not applied: 221 of 960 pixels final" in cut.settings["neighbour_rules"]
+    for k in ("depth_m", "uncertainty_s", "flags"):
+        assert np.array_equal(getattr(cut, k).ravel()[:reached], getattr(alone, k).ravel()[:reached],
+                              equal_nan=True), k
