@@ -241,12 +241,13 @@ def _share(chunk: list, b: int):
     return chunk[b]
 
 
-def block_task(plan: Plan, b: int, settings, time_unit_s: float, *shares):
+def block_task(plan: Plan, b: int, settings, time_unit_s: float, *shares, spreads: bool = True):
     """Reconstruct block b (rows ``plan.rows[b]:plan.rows[b + 1]``) from its share of every chunk,
     in chunk order, and the shares of the blocks above and below it (``shares``: every chunk's
     share of block b, then of b - 1 and of b + 1 where they exist): their rows next to the block
     are its halo, so the return test's neighbours' support (recon.detect) sees a block's edge rows
-    as the whole frame does. The halo's own maps are cut off."""
+    as the whole frame does. The halo's own maps are cut off. ``spreads`` False: the return test's
+    spreads are not computed (no output file: ``recon.estimate.reconstruct``)."""
     from spdepth.recon.estimate import reconstruct
     from spdepth.recon.photons import PhotonStore
 
@@ -258,7 +259,7 @@ def block_task(plan: Plan, b: int, settings, time_unit_s: float, *shares):
     # a pixel's detections all come from one block's shares, in chunk order, which the store keeps
     keep = (pixel >= lo * w) & (pixel < hi * w)
     store = PhotonStore.from_pixel_indices(pixel[keep] - lo * w, dtime[keep], (hi - lo, w), time_unit_s)
-    return crop_rows(reconstruct(store, settings), r0 - lo, r1 - lo)
+    return crop_rows(reconstruct(store, settings, spreads=spreads), r0 - lo, r1 - lo)
 
 
 def crop_rows(maps, a: int, b: int):
@@ -280,10 +281,10 @@ def assemble(parts: list) -> object:
     return DepthMaps(settings=parts[0].settings, **arrays)
 
 
-def reconstruct_blocks(client, plan: Plan, settings, time_unit_s: float, on_submitted=None):
+def reconstruct_blocks(client, plan: Plan, settings, time_unit_s: float, on_submitted=None, spreads: bool = True):
     """Maps of the whole recording, computed as chunk and block tasks on ``client`` (the channel
     kept is the plan's). ``on_submitted(futures)`` is called once everything is submitted (tests
-    kill a worker there)."""
+    kill a worker there). ``spreads``: as :func:`block_task`'s."""
     n_blocks = len(plan.rows) - 1
     chunks = [client.submit(chunk_task, plan, i, pure=False)
               for i in range(len(plan.starts))]
@@ -291,7 +292,7 @@ def reconstruct_blocks(client, plan: Plan, settings, time_unit_s: float, on_subm
     # each block's own shares, then its neighbours' (the halo rows: block_task)
     inputs = [shares[b] + [f for n in (b - 1, b + 1) if 0 <= n < n_blocks for f in shares[n]]
               for b in range(n_blocks)]
-    blocks = [client.submit(block_task, plan, b, settings, time_unit_s, *inputs[b], pure=False)
+    blocks = [client.submit(block_task, plan, b, settings, time_unit_s, *inputs[b], spreads=spreads, pure=False)
               for b in range(n_blocks)]
     if on_submitted is not None:
         on_submitted(chunks + blocks)
@@ -349,7 +350,8 @@ def _by_blocks(request, client) -> dict | None:
               f"reconstructing it as one task (--pileup off splits it into blocks)", file=sys.stderr)
         return None
     t1 = time.perf_counter()
-    maps = reconstruct_blocks(client, plan, settings, unit_s)
+    # without an output file only the summary is seen: no spreads (as spdepth recon FILE)
+    maps = reconstruct_blocks(client, plan, settings, unit_s, spreads=request.writes_files())
     read = ReadResult(store=None, path=str(path), kind="ptu", is_image=True, meta=plan.meta)
     res = file_result(request, maps, read, read_s=t1 - t0, recon_s=time.perf_counter() - t1,
                       photons_in_file=plan.photons, pileup=pileup)

@@ -43,13 +43,13 @@ def _single(path, tmp, method="uos", reflectors=1):
     return DepthMaps.load_npz(out)
 
 
-def _blocks(client, path, method="uos", on_submitted=None, reflectors=1):
+def _blocks(client, path, method="uos", on_submitted=None, reflectors=1, spreads=True):
     unit_s = D._image_and_unit(path, None)[4]
     settings = D.block_settings(_request(path, method, reflectors=reflectors), unit_s)
     # small chunks and blocks, so that rows, chunks and blocks all cut across each other
     plan = D.plan_blocks(path, unit_s, chunk_records=3001, block_pixels=7 * 40 + 13)
     assert len(plan.starts) > 3 and len(plan.rows) > 3
-    return D.reconstruct_blocks(client, plan, settings, unit_s, on_submitted=on_submitted)
+    return D.reconstruct_blocks(client, plan, settings, unit_s, on_submitted=on_submitted, spreads=spreads)
 
 
 def test_local_cluster_listens_on_loopback_only(client):
@@ -63,6 +63,17 @@ def test_blocks_of_one_recording_give_the_single_process_maps(client, simulated_
     d, paths = simulated_ptus
     for method in ("uos", "ml"):
         _same(_blocks(client, paths[0], method), _single(paths[0], d, method))
+
+
+def test_blocks_without_spreads_decide_alike_and_compute_no_spread(client, simulated_ptus):
+    # no output file: the summary holds no uncertainty, so no block computes the test's spreads
+    _, paths = simulated_ptus
+    lean = _blocks(client, paths[0], "ml", spreads=False)
+    full = _blocks(client, paths[0], "ml")
+    np.testing.assert_array_equal(lean.depth_m, full.depth_m)
+    np.testing.assert_array_equal(lean.flags, full.flags)
+    assert "not computed" in lean.settings["detection"]["uncertainty"]
+    assert "not computed" not in full.settings["detection"]["uncertainty"]
 
 
 def test_blocks_with_several_surfaces_give_the_single_process_maps(client, simulated_ptus):
