@@ -864,8 +864,8 @@ def pulse_dispersion(store, settings, maps, max_pixels: int = DISPERSION_PIXELS)
     one-surface ``maps``: the detections' squared scores over the likelihood's curvature, each
     summed over (at most ``max_pixels``, evenly spaced) pixels with a depth and at least two
     signal detections, the scores taken about their mean and corrected for the depth being fitted
-    to them (k / (k - 1) for k signal detections, as a sample variance is). 1 when the model fits; a response narrower
-    than the model gives less, about the width ratio squared where background is scarce (the
+    to them (k / (k - 1) for k signal detections, as a sample variance is). 1 when the model
+    fits; a response narrower than the model gives less, about the width ratio squared where background is scarce (the
     simulated bust, 362 ps RMS, fitted with a 720 ps pulse: 0.27; with 250 ps: 1.94; with its
     own: 0.99; background near the returns moves it towards 1), and the model's uncertainties
     (Fisher and the likelihood's spread) are then too large by about 1 / sqrt of it. A
@@ -873,26 +873,16 @@ def pulse_dispersion(store, settings, maps, max_pixels: int = DISPERSION_PIXELS)
     few detections is too noisy to say it. ml's maps only (the depth the likelihood's own
     optimum: uos's depths of the bust fitted with a 720 ps pulse gave 160); None with several
     surfaces or fewer than DISPERSION_MIN_PIXELS pixels to pool."""
-    from spdepth.recon.counts import CountStore
     from spdepth.recon.estimators.ml import ml_tables
     from spdepth.recon.kernels import Photons
     from spdepth.recon.photons import rows_of
-    from spdepth.recon.pixelwise import binned_photons
 
     tof = np.asarray(maps.tof_s, np.float64)
     if tof.ndim == 3 or settings.method != "ml":
         return None
-    rec = maps.settings
-    b, kern = _kernel_of(rec)
-    if isinstance(store, CountStore):
-        bins, weights, offsets = store.binned(b)
-    else:
-        bins, offsets = binned_photons(store, b, settings.max_photons)
-        weights = NO_WEIGHTS
-    total = np.concatenate([[0.0], np.cumsum(weights)]) if weights.size else None
-    n = (total[offsets[1:]] - total[offsets[:-1]]) if total is not None else np.diff(offsets).astype(np.float64)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        share = np.clip(np.nan_to_num(1.0 - np.asarray(maps.background, np.float64).ravel() * b.n_bins / n), 0.0, 1.0)
+    b, kern = _kernel_of(maps.settings)
+    bins, weights, offsets, n = _binned_frame(store, settings, b)
+    share = _signal_share(maps, b, n)
     est = (tof.ravel() / b.time_unit_s - b.window_start) / b.bin_width - 0.5
     k = share * n
     pix = np.flatnonzero(np.isfinite(est) & (k >= 2.0))
@@ -1122,6 +1112,28 @@ def _surface_spreads(bins, weights, offsets, kern, b, tof, unc, signal, n_photon
     return out.reshape(k_all, h, w)
 
 
+def _binned_frame(store, settings, b):
+    """(bins, weights, offsets, detections per pixel) of a frame's in-window detections, as the
+    estimator binned them: a count store's (bin, count) pairs (no photon list), else each pixel's
+    first ``settings.max_photons`` (weights empty)."""
+    from spdepth.recon.counts import CountStore
+    from spdepth.recon.pixelwise import binned_photons
+
+    if isinstance(store, CountStore):
+        bins, weights, offsets = store.binned(b)
+        total = np.concatenate([[0.0], np.cumsum(weights)])
+        return bins, weights, offsets, total[offsets[1:]] - total[offsets[:-1]]
+    bins, offsets = binned_photons(store, b, settings.max_photons)
+    return bins, NO_WEIGHTS, offsets, np.diff(offsets)
+
+
+def _signal_share(maps, b, n_photons) -> np.ndarray:
+    """Each pixel's signal share by the estimator's background (flat per bin), in [0, 1]."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        share = 1.0 - np.asarray(maps.background, np.float64).ravel() * b.n_bins / n_photons
+    return np.clip(np.nan_to_num(share), 0.0, 1.0)
+
+
 def decide_maps(store, settings, maps, neighbours: bool = True, spreads: bool = True):
     """``maps`` with the test applied and honest uncertainties (module docstring): pixels without a
     return get no depth and the flag NO_RETURN; ``settings['detection']`` records the test. With
@@ -1129,19 +1141,9 @@ def decide_maps(store, settings, maps, neighbours: bool = True, spreads: bool = 
     its own detections may be supported by its neighbours'. ``spreads`` False: the decision alone,
     every uncertainty the estimator's own (for a caller that writes and shows no map: the spreads
     were about half of a 512x512 recon's estimation time), as the record says."""
-    from spdepth.recon.counts import CountStore
-    from spdepth.recon.pixelwise import binned_photons
-
     rec = dict(maps.settings)
     b, kern = _kernel_of(rec)
-    if isinstance(store, CountStore):
-        bins, weights, offsets = store.binned(b)     # (bin, count) pairs: no photon list
-        total = np.concatenate([[0.0], np.cumsum(weights)])
-        n_photons = total[offsets[1:]] - total[offsets[:-1]]
-    else:
-        bins, offsets = binned_photons(store, b, settings.max_photons)
-        weights = NO_WEIGHTS
-        n_photons = np.diff(offsets)
+    bins, weights, offsets, n_photons = _binned_frame(store, settings, b)
     tof = np.asarray(maps.tof_s, np.float64)
     unc = np.asarray(maps.uncertainty_s, np.float64)
     several = tof.ndim == 3
@@ -1152,10 +1154,8 @@ def decide_maps(store, settings, maps, neighbours: bool = True, spreads: bool = 
     core_s = float(rec.get("pulse_core_rms_s", rec["pulse_rms_s"]))
     known = dict(known_gain=None, known_share=None)
     if maps.gain_nats is not None and not several:
-        with np.errstate(divide="ignore", invalid="ignore"):
-            share = 1.0 - np.asarray(maps.background, np.float64).ravel() * b.n_bins / n_photons
         known = dict(known_gain=np.asarray(maps.gain_nats, np.float64).ravel(),
-                     known_share=np.clip(np.nan_to_num(share), 0.0, 1.0))
+                     known_share=_signal_share(maps, b, n_photons))
     det = detect(bins, offsets, kern, est, settings.false_alarm, weights, spreads=spreads, **known)
     h, w = maps.shape
     spatial = settings.method == "spatial"
