@@ -673,6 +673,21 @@ def neighbour_gain_kernel(bins, weights, offsets, w, cand, est, half, tabs, out)
 REGION_SHARES = (1 / 32, 1 / 8, 1 / 2, 7 / 8)
 
 
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy", **INNER)
+def _most_within(kb, kw, nu, span):
+    """The most detections (counts kw of the ascending bins kb[:nu]) within any span bins."""
+    most = 0.0
+    inside = 0.0
+    a = 0
+    for b in range(nu):
+        inside += kw[b]
+        while kb[b] - kb[a] >= span:
+            inside -= kw[a]
+            a += 1
+        most = max(most, inside)
+    return most
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
 def neighbour_region_kernel(bins, weights, offsets, w, cand, half, thr, tabs, rates, shares, out):
     """For each supported pixel cand[c]: out[c, i] = 1 where a return at shift i is within
@@ -686,14 +701,28 @@ def neighbour_region_kernel(bins, weights, offsets, w, cand, half, thr, tabs, ra
     rrow = np.empty(T.nk)
     acc = np.zeros(m)
     dense = np.zeros(m)
+    # a detection's term beyond the off-pulse rate's is at most log(1 + s g_max / (C_min uni (1 - s)))
+    # (the pulse's peak, the smallest column sum: a window's edge), and only within nk bins of the
+    # shift: a share whose bound with the most detections any nk bins hold cannot pass is not swept
+    # (at a high background the large shares: their off-pulse term, ntot log(1 - s), sinks them)
+    gmax = 0.0
+    for d in range(T.nk):
+        gmax = max(gmax, T.g[d])
+    cmin = np.inf
+    for i in range(m):
+        if T.colsum[i] > 0.0:
+            cmin = min(cmin, T.colsum[i])
     for c in range(cand.size):
         kb, kw, nu, ntot = _pool_neighbours(bins, weights, offsets, w, cand[c], dense)
         reg = out[c]
         reg[:] = 0
         if nu == 0:
             continue
+        most = _most_within(kb, kw, nu, T.nk)
         for j in range(shares.size):
             s = shares[j]
+            if ntot * math.log(1.0 - s) + most * math.log(1.0 + s * gmax * m / (cmin * (1.0 - s))) <= thr:
+                continue
             lo0 = _sweep(kb, kw, nu, s, T, rates, row, rrow, acc)
             base = ntot * (lo0 + T.logm)
             upto = -1             # marked up to here at this share
