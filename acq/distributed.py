@@ -210,7 +210,10 @@ def plan_blocks(path: str, time_unit_s: float | None = None, *, chunk_records: i
         return None
     meta = decoder.meta(ptu_meta(layout.tags, layout.n_records), unit_s)
     meta.update(fixed_dwell_periods(layout.tags)[1])
-    per = max(1, block_pixels // w)
+    from spdepth.recon.detect import NEIGHBOUR_ROWS
+
+    # each block at least as tall as the halo its neighbours read from it (block_task)
+    per = max(NEIGHBOUR_ROWS, block_pixels // w)
     rows = tuple(range(0, h, per)) + (h,)
     return Plan(str(path), (h, w), rectype, chunk_records, tuple(starts), tuple(states), rows,
                 meta, photons)
@@ -244,16 +247,17 @@ def _share(chunk: list, b: int):
 def block_task(plan: Plan, b: int, settings, time_unit_s: float, *shares, spreads: bool = True):
     """Reconstruct block b (rows ``plan.rows[b]:plan.rows[b + 1]``) from its share of every chunk,
     in chunk order, and the shares of the blocks above and below it (``shares``: every chunk's
-    share of block b, then of b - 1 and of b + 1 where they exist): their rows next to the block
-    are its halo, so the return test's neighbours' support (recon.detect) sees a block's edge rows
+    share of block b, then of b - 1 and of b + 1 where they exist): their NEIGHBOUR_ROWS rows next
+    to the block are its halo, so the return test's neighbours' support (recon.detect) sees a block's edge rows
     as the whole frame does. The halo's own maps are cut off. ``spreads`` False: the return test's
     spreads are not computed (no output file: ``recon.estimate.reconstruct``)."""
+    from spdepth.recon.detect import NEIGHBOUR_ROWS
     from spdepth.recon.estimate import reconstruct
     from spdepth.recon.photons import PhotonStore
 
     r0, r1 = plan.rows[b], plan.rows[b + 1]
     h, w = plan.shape
-    lo, hi = max(0, r0 - 1), min(h, r1 + 1)
+    lo, hi = max(0, r0 - NEIGHBOUR_ROWS), min(h, r1 + NEIGHBOUR_ROWS)
     pixel = np.concatenate([s[0] for s in shares])
     dtime = np.concatenate([s[1] for s in shares])
     # a pixel's detections all come from one block's shares, in chunk order, which the store keeps

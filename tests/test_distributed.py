@@ -65,6 +65,21 @@ def test_blocks_of_one_recording_give_the_single_process_maps(client, simulated_
         _same(_blocks(client, paths[0], method), _single(paths[0], d, method))
 
 
+def test_blocks_read_the_rows_the_neighbours_support_needs(client, tmp_path):
+    # 2 detections a pixel: most pixels hold a return only by their neighbours' support, which
+    # pools the pixels within SUPPORT_RADIUS rows: a block's halo must hold as many rows
+    from spdepth.recon.detect import NEIGHBOUR_ROWS, SUPPORT_RADIUS
+    from tests.conftest import _simulate
+
+    assert NEIGHBOUR_ROWS >= SUPPORT_RADIUS
+    faint = str(_simulate(tmp_path / "faint.ptu", "--scene", "bust", "--size", "80x60", "--ppp", "2",
+                          "--seed", "5"))
+    single = _single(faint, tmp_path, "ml")
+    alone = np.isfinite(np.asarray(single.depth_m)).mean()
+    _same(_blocks(client, faint, "ml"), single)
+    assert alone > 0.5
+
+
 def test_blocks_without_spreads_decide_alike_and_compute_no_spread(client, simulated_ptus):
     # no output file: the summary holds no uncertainty, so no block computes the test's spreads
     _, paths = simulated_ptus
