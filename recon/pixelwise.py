@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import threading
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, wait
 from typing import Callable, NamedTuple
 
 import numpy as np
@@ -163,30 +163,51 @@ def fit_pixels(store, settings: ReconSettings, b: Binning,
 def over_threads(fit: Callable[[int, int], None], npix: int, chunk_pixels: int,
                  progress: Callable[[int, int], None] | None = None) -> None:
     """``fit(a, b)`` over the pixels [0, npix) in chunks of ``chunk_pixels``, each shared among
-    :func:`threads` threads (:func:`on_threads`), calling ``progress(done, npix)`` after each."""
+    :func:`threads` threads in slices (:func:`thread_slices`), calling ``progress(done, npix)``
+    as each chunk completes, in order. Every chunk's slices are queued at once: a thread that
+    ends its share of a chunk goes on with the next instead of waiting for the slowest slice
+    (a warm 512x512 ml fit, 16 chunks: 0.534 -> 0.519 s median of 6, alternated, load 1.6). On
+    an error the slices not started are cancelled and those running are waited for, so no fit
+    writes after this returns."""
     workers = threads()
     pool = shared_pool(workers)
-    for p0 in range(0, npix, chunk_pixels):
-        p1 = min(npix, p0 + chunk_pixels)
-        if pool is None:           # called from one of the pool's own threads: no nesting
+    chunks = [(p0, min(npix, p0 + chunk_pixels)) for p0 in range(0, npix, chunk_pixels)]
+    if pool is None:               # called from one of the pool's own threads: no nesting
+        for p0, p1 in chunks:
             fit(p0, p1)
-        else:
-            on_threads(fit, p0, p1, pool, workers)
-        if progress is not None:
-            progress(p1, npix)
+            if progress is not None:
+                progress(p1, npix)
+        return
+    queued = [[pool.submit(fit, a, b) for a, b in thread_slices(p0, p1, workers)] for p0, p1 in chunks]
+    try:
+        for (_, p1), futures in zip(chunks, queued):
+            for f in futures:
+                f.result()
+            if progress is not None:
+                progress(p1, npix)
+    except BaseException:
+        running = [f for futures in queued for f in futures if not f.cancel()]
+        wait(running)
+        raise
+
+
+def thread_slices(p0: int, p1: int, workers: int) -> list[tuple[int, int]]:
+    """The pixels [p0, p1) in slices of whole kernel blocks, about four per one of ``workers``
+    threads. The kernels are nogil loops over blocks: side by side on a pool they go as fast as
+    numba's ``prange`` over the same blocks, whose parallel loops compile far slower (cold, CPU s:
+    ml 20 -> 15.5, uos 21 -> 12). Pixels are independent, so the maps are the same bit for bit
+    however they are sliced."""
+    from spdepth.recon.kernels import BLOCK
+
+    step = max(BLOCK, -(-(p1 - p0) // (4 * workers)) // BLOCK * BLOCK)
+    return [(a, min(p1, a + step)) for a in range(p0, p1, step)]
 
 
 def on_threads(fit: Callable[[int, int], None], p0: int, p1: int, pool: ThreadPoolExecutor,
                workers: int) -> None:
-    """``fit(a, b)`` over the pixels [p0, p1) in slices of whole kernel blocks, about four per
-    one of the ``workers`` threads of ``pool``, and wait for all. The kernels are nogil loops over
-    blocks: side by side on a pool they go as fast as numba's ``prange`` over the same blocks,
-    whose parallel loops compile far slower (cold, CPU s: ml 20 -> 15.5, uos 21 -> 12). Pixels
-    are independent, so the maps are the same bit for bit however they are sliced."""
-    from spdepth.recon.kernels import BLOCK
-
-    step = max(BLOCK, -(-(p1 - p0) // (4 * workers)) // BLOCK * BLOCK)
-    for f in [pool.submit(fit, a, min(p1, a + step)) for a in range(p0, p1, step)]:
+    """``fit(a, b)`` over the pixels [p0, p1) in :func:`thread_slices` on ``pool``, and wait
+    for all."""
+    for f in [pool.submit(fit, a, b) for a, b in thread_slices(p0, p1, workers)]:
         f.result()
 
 
