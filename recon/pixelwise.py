@@ -95,16 +95,51 @@ def binned_photons(store: PhotonStore, b: Binning, max_photons: int | None) -> t
     return out
 
 
+#: Detections from which :func:`binned_photons` bins on the fit's threads, in parts of about as many
+#: detections each (fewer: one call, as a live batch's).
+PARALLEL_BINNING = 1 << 20
+
+
 def _binned_photons(store: PhotonStore, b: Binning, max_photons: int | None) -> tuple[np.ndarray, np.ndarray]:
+    times = np.ascontiguousarray(store.times, dtype=np.float64)
+    offsets = np.ascontiguousarray(store.offsets, dtype=np.int64)
+    bins = np.empty(times.size, np.int64)
+    out_offsets = np.empty(offsets.size, np.int64)
+    window = (b.window_start, b.window_stop, b.bin_width, b.n_bins, -1 if max_photons is None else int(max_photons))
+    workers = threads()
+    pool = shared_pool(workers)
+    parts = workers if pool is not None and times.size >= PARALLEL_BINNING else 1
+    n_kept = bin_in_parts(times, offsets, window, bins, out_offsets, parts, pool)
+    return bins[:n_kept], out_offsets
+
+
+def bin_in_parts(times: np.ndarray, offsets: np.ndarray, window: tuple, bins: np.ndarray,
+                 out_offsets: np.ndarray, parts: int, pool: ThreadPoolExecutor | None) -> int:
+    """``recon.kernels.window_bins`` over the pixels in ``parts`` runs of about as many detections
+    each, side by side on ``pool`` (its kernel is nogil): each run bins its own detections in
+    place (it keeps at most as many as it reads, so the runs' writes never meet), then the runs
+    are moved down behind each other and their offsets shifted; the bins are the same as one call
+    gives (the 512x512 PTU's 7.9 M detections: 0.048 s in one call on the reconstruction's path).
+    ``window``: (start, stop, width, n_bins, max_photons or -1). Returns the detections kept."""
     from spdepth.recon.kernels import window_bins
 
-    times = np.ascontiguousarray(store.times, dtype=np.float64)
-    bins = np.empty(times.size, np.int64)
-    offsets = np.empty(store.offsets.size, np.int64)
-    n_kept = window_bins(times, np.ascontiguousarray(store.offsets, dtype=np.int64), b.window_start,
-                         b.window_stop, b.bin_width, b.n_bins,
-                         -1 if max_photons is None else int(max_photons), bins, offsets)
-    return bins[:n_kept], offsets
+    npix = offsets.size - 1
+    if parts <= 1 or pool is None or npix < 2:
+        return int(window_bins(times, offsets, *window, bins, out_offsets))
+    cuts = np.searchsorted(offsets, np.linspace(0, times.size, parts + 1)[1:-1])
+    edges = [0, *sorted({int(c) for c in cuts if 0 < c < npix}), npix]
+    runs = [(a, c, np.empty(c - a + 1, np.int64)) for a, c in zip(edges[:-1], edges[1:])]
+    futures = [pool.submit(window_bins, times, offsets[a:c + 1], *window, bins[offsets[a]:], local)
+               for a, c, local in runs]
+    kept = [int(f.result()) for f in futures]
+    n = 0
+    for (a, c, local), k in zip(runs, kept):
+        start = int(offsets[a])
+        if start != n:
+            bins[n:n + k] = bins[start:start + k]     # overlapping: numpy copies through a buffer
+        out_offsets[a:c + 1] = local + n
+        n += k
+    return n
 
 
 def store_pairs(store, b: Binning, max_photons: int | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
