@@ -278,3 +278,18 @@ def test_the_console_script_collects_cycles_less_often_unless_told_otherwise(bef
             "cli.console_main()\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True)
     assert out.stdout.split() == [str(after), "7", "9"], out.stderr
+
+
+def test_reading_a_file_loads_no_device_driver():
+    """Issue 33: every spdepth recon imported the galvo's and the tagger's devices, their serial
+    and USB transports and pyserial (acq.requests reads the galvo protocol's MAX_N_TARGET, the PTU
+    reader the tagger's t3): their packages now load those on first use."""
+    code = ("import sys\nimport spdepth.acq.api, spdepth.acq.readers.picoquant, spdepth.acq.commands.recon\n"
+            "print([m for m in sys.modules if m.split('.')[0] in ('serial', 'usb') or "
+            "m.startswith(('spdepth.drivers.galvo.', 'spdepth.drivers.tagger.')) and m.rsplit('.', 1)[1] in "
+            "('device', 'transport', 'reader')])\n"
+            "from spdepth.drivers.galvo import Galvo, SerialTransport\nfrom spdepth.drivers.tagger import Tagger\n"
+            "print(Galvo.__module__, SerialTransport.__module__, Tagger.__module__)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         cwd=ROOT).stdout.splitlines()
+    assert out == ["[]", "spdepth.drivers.galvo.device spdepth.drivers.galvo.transport spdepth.drivers.tagger.device"]
