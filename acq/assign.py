@@ -265,6 +265,12 @@ class PixelAssigner:
         return pixel
 
 
+    def kernel_arguments(self, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(geometry, state, scratch for ``n`` events' lost pixels): what :func:`_assign_kernel`
+        takes besides the events, for a reader that calls it from a kernel of its own
+        (``acq.readers.picoquant``); the state is this assigner's, updated in place."""
+        return self._geom, self._state, self._lost_buffer(n)
+
     def _lost_buffer(self, n: int) -> np.ndarray:
         """Scratch for the pixel open at each LOST event, kept between chunks."""
         buf = getattr(self, "_lost_scratch", None)

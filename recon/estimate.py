@@ -159,7 +159,7 @@ def compile_apart(settings: list[ReconSettings], decide: bool = False,
     import sys
 
     todo, covers = [], set()
-    test_cold = decide and not _module_cached("spdepth.recon.detect")
+    test_cold = decide and not module_cached("spdepth.recon.detect")
     for s in settings:
         est_cold = estimator and not _kernels_cached(estimators.for_settings(s))
         if est_cold or test_cold:
@@ -183,7 +183,7 @@ def kernels_cached(settings: ReconSettings, decide: bool = False) -> bool:
     """Whether numba's cache holds the kernels of ``settings``' estimator (and, with ``decide``,
     the return test's), as :func:`compile_apart` judges them."""
     return _kernels_cached(estimators.for_settings(settings)) and (
-        not decide or _module_cached("spdepth.recon.detect"))
+        not decide or module_cached("spdepth.recon.detect"))
 
 
 def _kernels_cached(est) -> bool:
@@ -191,10 +191,10 @@ def _kernels_cached(est) -> bool:
     module with ``_kernels`` after it, as lmf, uos and ml have; True when there is none)."""
     fit = est.fit
     module = fit.partition(":")[0] if isinstance(fit, str) else getattr(fit, "__module__", "")
-    return _module_cached(module + "_kernels")
+    return module_cached(module + "_kernels")
 
 
-def _module_cached(module: str) -> bool:
+def module_cached(module: str) -> bool:
     """Whether numba's cache holds compiled code of any kernel of ``module`` (True when it has none
     or cannot be imported), read from the cache's index files without loading any code (numba's own
     FunctionCache reader: an index left by other sources reads as empty)."""
@@ -213,4 +213,5 @@ def _module_cached(module: str) -> bool:
     return any(f._load_index() for f in files)
 
 
-__all__ = ["DECIDE", "as_photons", "compile_apart", "kernels_cached", "reconstruct", "resolve_model", "warm_up"]
+__all__ = ["DECIDE", "as_photons", "compile_apart", "kernels_cached", "module_cached", "reconstruct", "resolve_model",
+           "warm_up"]

@@ -62,8 +62,11 @@ class PhotonStore:
     def from_pixel_indices(cls, pixel: np.ndarray, times: np.ndarray, shape: tuple[int, int],
                            time_unit_s: float) -> "PhotonStore":
         """Build from parallel arrays of flat pixel index and detection time (any order of pixels;
-        detection order within a pixel is kept). A counting sort: linear in the detections."""
-        pixel = np.ascontiguousarray(pixel, dtype=np.int64)
+        detection order within a pixel is kept). A counting sort: linear in the detections.
+        int32 indices are grouped as they are (a reader's, half the memory of int64), any other
+        integer type as int64."""
+        pixel = np.asarray(pixel)
+        pixel = np.ascontiguousarray(pixel, dtype=pixel.dtype if pixel.dtype == np.int32 else np.int64)
         times = np.ascontiguousarray(times)
         if pixel.shape != times.shape:
             raise InputError(f"pixel and time arrays differ in length ({pixel.size} vs {times.size})")

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import threading
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, wait
 from typing import Callable, NamedTuple
 
 import numpy as np
@@ -95,16 +95,51 @@ def binned_photons(store: PhotonStore, b: Binning, max_photons: int | None) -> t
     return out
 
 
+#: Detections from which :func:`binned_photons` bins on the fit's threads, in parts of about as many
+#: detections each (fewer: one call, as a live batch's).
+PARALLEL_BINNING = 1 << 20
+
+
 def _binned_photons(store: PhotonStore, b: Binning, max_photons: int | None) -> tuple[np.ndarray, np.ndarray]:
+    times = np.ascontiguousarray(store.times, dtype=np.float64)
+    offsets = np.ascontiguousarray(store.offsets, dtype=np.int64)
+    bins = np.empty(times.size, np.int64)
+    out_offsets = np.empty(offsets.size, np.int64)
+    window = (b.window_start, b.window_stop, b.bin_width, b.n_bins, -1 if max_photons is None else int(max_photons))
+    workers = threads()
+    pool = shared_pool(workers)
+    parts = workers if pool is not None and times.size >= PARALLEL_BINNING else 1
+    n_kept = bin_in_parts(times, offsets, window, bins, out_offsets, parts, pool)
+    return bins[:n_kept], out_offsets
+
+
+def bin_in_parts(times: np.ndarray, offsets: np.ndarray, window: tuple, bins: np.ndarray,
+                 out_offsets: np.ndarray, parts: int, pool: ThreadPoolExecutor | None) -> int:
+    """``recon.kernels.window_bins`` over the pixels in ``parts`` runs of about as many detections
+    each, side by side on ``pool`` (its kernel is nogil): each run bins its own detections in
+    place (it keeps at most as many as it reads, so the runs' writes never meet), then the runs
+    are moved down behind each other and their offsets shifted; the bins are the same as one call
+    gives (the 512x512 PTU's 7.9 M detections: 0.048 s in one call on the reconstruction's path).
+    ``window``: (start, stop, width, n_bins, max_photons or -1). Returns the detections kept."""
     from spdepth.recon.kernels import window_bins
 
-    times = np.ascontiguousarray(store.times, dtype=np.float64)
-    bins = np.empty(times.size, np.int64)
-    offsets = np.empty(store.offsets.size, np.int64)
-    n_kept = window_bins(times, np.ascontiguousarray(store.offsets, dtype=np.int64), b.window_start,
-                         b.window_stop, b.bin_width, b.n_bins,
-                         -1 if max_photons is None else int(max_photons), bins, offsets)
-    return bins[:n_kept], offsets
+    npix = offsets.size - 1
+    if parts <= 1 or pool is None or npix < 2:
+        return int(window_bins(times, offsets, *window, bins, out_offsets))
+    cuts = np.searchsorted(offsets, np.linspace(0, times.size, parts + 1)[1:-1])
+    edges = [0, *sorted({int(c) for c in cuts if 0 < c < npix}), npix]
+    runs = [(a, c, np.empty(c - a + 1, np.int64)) for a, c in zip(edges[:-1], edges[1:])]
+    futures = [pool.submit(window_bins, times, offsets[a:c + 1], *window, bins[offsets[a]:], local)
+               for a, c, local in runs]
+    kept = [int(f.result()) for f in futures]
+    n = 0
+    for (a, c, local), k in zip(runs, kept):
+        start = int(offsets[a])
+        if start != n:
+            bins[n:n + k] = bins[start:start + k]     # overlapping: numpy copies through a buffer
+        out_offsets[a:c + 1] = local + n
+        n += k
+    return n
 
 
 def store_pairs(store, b: Binning, max_photons: int | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -163,30 +198,51 @@ def fit_pixels(store, settings: ReconSettings, b: Binning,
 def over_threads(fit: Callable[[int, int], None], npix: int, chunk_pixels: int,
                  progress: Callable[[int, int], None] | None = None) -> None:
     """``fit(a, b)`` over the pixels [0, npix) in chunks of ``chunk_pixels``, each shared among
-    :func:`threads` threads (:func:`on_threads`), calling ``progress(done, npix)`` after each."""
+    :func:`threads` threads in slices (:func:`thread_slices`), calling ``progress(done, npix)``
+    as each chunk completes, in order. Every chunk's slices are queued at once: a thread that
+    ends its share of a chunk goes on with the next instead of waiting for the slowest slice
+    (a warm 512x512 ml fit, 16 chunks: 0.534 -> 0.519 s median of 6, alternated, load 1.6). On
+    an error the slices not started are cancelled and those running are waited for, so no fit
+    writes after this returns."""
     workers = threads()
     pool = shared_pool(workers)
-    for p0 in range(0, npix, chunk_pixels):
-        p1 = min(npix, p0 + chunk_pixels)
-        if pool is None:           # called from one of the pool's own threads: no nesting
+    chunks = [(p0, min(npix, p0 + chunk_pixels)) for p0 in range(0, npix, chunk_pixels)]
+    if pool is None:               # called from one of the pool's own threads: no nesting
+        for p0, p1 in chunks:
             fit(p0, p1)
-        else:
-            on_threads(fit, p0, p1, pool, workers)
-        if progress is not None:
-            progress(p1, npix)
+            if progress is not None:
+                progress(p1, npix)
+        return
+    queued = [[pool.submit(fit, a, b) for a, b in thread_slices(p0, p1, workers)] for p0, p1 in chunks]
+    try:
+        for (_, p1), futures in zip(chunks, queued):
+            for f in futures:
+                f.result()
+            if progress is not None:
+                progress(p1, npix)
+    except BaseException:
+        running = [f for futures in queued for f in futures if not f.cancel()]
+        wait(running)
+        raise
+
+
+def thread_slices(p0: int, p1: int, workers: int) -> list[tuple[int, int]]:
+    """The pixels [p0, p1) in slices of whole kernel blocks, about four per one of ``workers``
+    threads. The kernels are nogil loops over blocks: side by side on a pool they go as fast as
+    numba's ``prange`` over the same blocks, whose parallel loops compile far slower (cold, CPU s:
+    ml 20 -> 15.5, uos 21 -> 12). Pixels are independent, so the maps are the same bit for bit
+    however they are sliced."""
+    from spdepth.recon.kernels import BLOCK
+
+    step = max(BLOCK, -(-(p1 - p0) // (4 * workers)) // BLOCK * BLOCK)
+    return [(a, min(p1, a + step)) for a in range(p0, p1, step)]
 
 
 def on_threads(fit: Callable[[int, int], None], p0: int, p1: int, pool: ThreadPoolExecutor,
                workers: int) -> None:
-    """``fit(a, b)`` over the pixels [p0, p1) in slices of whole kernel blocks, about four per
-    one of the ``workers`` threads of ``pool``, and wait for all. The kernels are nogil loops over
-    blocks: side by side on a pool they go as fast as numba's ``prange`` over the same blocks,
-    whose parallel loops compile far slower (cold, CPU s: ml 20 -> 15.5, uos 21 -> 12). Pixels
-    are independent, so the maps are the same bit for bit however they are sliced."""
-    from spdepth.recon.kernels import BLOCK
-
-    step = max(BLOCK, -(-(p1 - p0) // (4 * workers)) // BLOCK * BLOCK)
-    for f in [pool.submit(fit, a, min(p1, a + step)) for a in range(p0, p1, step)]:
+    """``fit(a, b)`` over the pixels [p0, p1) in :func:`thread_slices` on ``pool``, and wait
+    for all."""
+    for f in [pool.submit(fit, a, b) for a, b in thread_slices(p0, p1, workers)]:
         f.result()
 
 

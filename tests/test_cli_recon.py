@@ -185,3 +185,27 @@ def test_a_stated_pulse_wider_than_the_returns_is_said_with_what_it_does_to_the_
     assert main(["recon", bust, "--pulse-rms-ps", "720", "--json"]) == 0
     captured = capsys.readouterr()
     assert _last_json(captured.out)["pulse_dispersion"] is None
+
+
+@pytest.mark.parametrize("reader_cached, order", [(True, ["reader", "apart", "estimator"]),
+                                                  (False, ["apart", "reader", "estimator"])])
+def test_the_warm_up_loads_a_cached_reader_before_it_looks_for_a_cold_return_test(monkeypatch, tmp_path,
+                                                                                 reader_cached, order):
+    # issue 33: a warm install's read waits only for the reader's kernels; on a cold cache the
+    # second process compiling the return test starts first, to compile beside them
+    import spdepth.acq.readers.picoquant as pq
+    import spdepth.recon.estimate as E
+    from spdepth.acq.api import KernelWarmUp
+    from spdepth.acq.requests import FileReconRequest
+
+    seen = []
+    monkeypatch.setattr(E, "module_cached", lambda module: reader_cached)
+    monkeypatch.setattr(pq, "warm_up", lambda: seen.append("reader"))
+    monkeypatch.setattr(E, "compile_apart", lambda *a, **k: seen.append("apart"))
+    monkeypatch.setattr(E, "warm_up", lambda *a, **k: seen.append("estimator"))
+    (tmp_path / "scan.ptu").write_bytes(b"")         # the request checks that the file is there
+    warm = KernelWarmUp(FileReconRequest(input=str(tmp_path / "scan.ptu"), method="ml"))
+    warm.wait_reader()
+    assert seen[:order.index("reader") + 1] == order[:order.index("reader") + 1]
+    warm.wait()
+    assert seen == order

@@ -265,3 +265,31 @@ def test_the_array_command_takes_its_options_from_the_declarations(capsys):
                         (["--sim", "bust", "--mode", "gated", "--out", "x"], "frame, accumulate")):
         assert main(["array", *argv]) == 2
         assert words in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("before, after", [(700, 50_000), (200_000, 200_000), (0, 0)])
+def test_the_console_script_collects_cycles_less_often_unless_told_otherwise(before, after):
+    """Issue 33: the console script raises the collector's first threshold (a warm 512x512 recon ran
+    321 collections as its kernels loaded); one set higher, or 0 (collection off), stands, and
+    the other two thresholds are kept."""
+    code = ("import gc\nfrom spdepth.acq import cli\n"
+            f"gc.set_threshold({before}, 7, 9)\n"
+            "cli.main = lambda argv=None: print(*gc.get_threshold(), flush=True) or 0\n"
+            "cli.console_main()\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True)
+    assert out.stdout.split() == [str(after), "7", "9"], out.stderr
+
+
+def test_reading_a_file_loads_no_device_driver():
+    """Issue 33: every spdepth recon imported the galvo's and the tagger's devices, their serial
+    and USB transports and pyserial (acq.requests reads the galvo protocol's MAX_N_TARGET, the PTU
+    reader the tagger's t3): their packages now load those on first use."""
+    code = ("import sys\nimport spdepth.acq.api, spdepth.acq.readers.picoquant, spdepth.acq.commands.recon\n"
+            "print([m for m in sys.modules if m.split('.')[0] in ('serial', 'usb') or "
+            "m.startswith(('spdepth.drivers.galvo.', 'spdepth.drivers.tagger.')) and m.rsplit('.', 1)[1] in "
+            "('device', 'transport', 'reader')])\n"
+            "from spdepth.drivers.galvo import Galvo, SerialTransport\nfrom spdepth.drivers.tagger import Tagger\n"
+            "print(Galvo.__module__, SerialTransport.__module__, Tagger.__module__)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         cwd=ROOT).stdout.splitlines()
+    assert out == ["[]", "spdepth.drivers.galvo.device spdepth.drivers.galvo.transport spdepth.drivers.tagger.device"]

@@ -151,15 +151,31 @@ def test_gated_recording_header_holds_the_typical_dwell(tmp_path):
 
 def test_the_reader_warm_up_loads_every_kernel_the_read_runs(gated):
     # spdepth recon runs it on a thread while it opens the file: a kernel it missed would still be
-    # loaded (or compiled) inside the read, in the read's time
-    from spdepth.acq import assign
-    from spdepth.drivers.tagger import t3
+    # loaded (or compiled) inside the read, in the read's time. The read calls two from Python: the
+    # stages of decoding in one (their kernels compiled into it) and the grouping by pixel
     from spdepth.recon import photons
 
     pq.warm_up()
-    kernels = (pq._renumber_markers, pq._collect_photons, t3._decode_kernel, assign._assign_kernel,
-               photons._group_by_pixel)
+    kernels = (pq._decode_pixel_markers, photons._group_by_pixel)
     before = [len(k.signatures) for k in kernels]
     assert all(before)
     assert read_photons(gated[0]).meta["assignment"] == "pixel markers"
     assert [len(k.signatures) for k in kernels] == before
+
+
+def test_an_undefined_record_is_refused_naming_the_file_and_its_place(gated, tmp_path, monkeypatch):
+    # special=1 on channel 20 is neither a marker (1..15) nor an overflow (63); found in a later
+    # piece than the first, its index counts from the stream's start
+    from spdepth.drivers.tagger.t3 import T3_CHANNEL_SHIFT, T3_SPECIAL_SHIFT
+
+    path = tmp_path / "bad.ptu"
+    data = bytearray(gated[0].read_bytes())
+    layout = read_layout(gated[0])
+    at = 250
+    bad = (1 << T3_SPECIAL_SHIFT) | (20 << T3_CHANNEL_SHIFT) | 5
+    data[layout.record_offset + 4 * at:layout.record_offset + 4 * at + 4] = bad.to_bytes(4, "little")
+    path.write_bytes(bytes(data))
+    monkeypatch.setattr(pq, "CHUNK_RECORDS", 97)
+    with pytest.raises(pq.InputError, match=rf"bad\.ptu: T3 record {at} is not a photon, marker or overflow: "
+                                            rf"0x{bad:08x} \(special=1, channel=20"):
+        read_photons(path)

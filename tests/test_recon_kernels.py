@@ -458,3 +458,26 @@ def test_a_sampled_response_carries_the_fisher_information_of_its_pulse():
         return float(np.sum(k.dg[ok] ** 2 / k.g[ok]))
 
     assert info(build_kernel(b, irf=irf)) == pytest.approx(info(build_kernel(b, pulse_rms_s=360e-12)), rel=0.05)
+
+
+@pytest.mark.parametrize("parts", [2, 3, 7])
+@pytest.mark.parametrize("window, max_photons", [((0.0, 400.0), -1), ((50.0, 300.0), -1), ((50.0, 300.0), 3)])
+def test_binning_in_parts_on_threads_gives_the_bins_of_one_call(rng, parts, window, max_photons):
+    # recon.pixelwise bins a large frame's detections in runs side by side, each in place, then
+    # moves the runs together: the same bins and offsets as one call, with empty pixels, detections
+    # outside the window and the first max_photons a pixel left out
+    from spdepth.recon.kernels import window_bins
+    from spdepth.recon.pixelwise import bin_in_parts, shared_pool
+
+    counts = rng.integers(0, 12, 500)
+    counts[rng.random(500) < 0.2] = 0
+    offsets = np.concatenate(([0], np.cumsum(counts))).astype(np.int64)
+    times = rng.uniform(0, 400, int(offsets[-1]))
+    w = (window[0], window[1], 2.5, 100, max_photons)
+    one_bins, one_off = np.empty(times.size, np.int64), np.empty(offsets.size, np.int64)
+    n_one = window_bins(times, offsets, *w, one_bins, one_off)
+    bins, off = np.full(times.size, -7, np.int64), np.full(offsets.size, -7, np.int64)
+    n = bin_in_parts(times, offsets, w, bins, off, parts, shared_pool(2))
+    assert n == n_one
+    np.testing.assert_array_equal(off, one_off)
+    np.testing.assert_array_equal(bins[:n], one_bins[:n_one])

@@ -29,3 +29,42 @@ def test_a_fit_started_from_a_pool_thread_runs_there_instead_of_waiting_on_the_p
     assert done.wait(60), "a nested fit waited on its own pool"
     starts = sorted({v // 1000 for v in seen})
     assert len(seen) == 300 * len(starts) and len(set(seen)) == len(seen)
+
+
+def test_every_pixel_is_fitted_once_and_progress_comes_in_order():
+    seen, told = [], []
+    lock = threading.Lock()
+
+    def fit(a, b):
+        with lock:
+            seen.extend(range(a, b))
+
+    over_threads(fit, 5000, 1024, lambda done, total: told.append((done, total, len(seen))))
+    assert sorted(seen) == list(range(5000))
+    assert [t[:2] for t in told] == [(1024, 5000), (2048, 5000), (3072, 5000), (4096, 5000), (5000, 5000)]
+    # each chunk is complete when it is reported: its pixels and all before it were fitted
+    assert all(n >= done for done, _, n in told)
+
+
+def test_a_failing_slice_stops_the_fit_and_nothing_runs_after_it_returns():
+    import pytest
+
+    started, running = [], []
+    lock = threading.Lock()
+
+    def fit(a, b):
+        with lock:
+            started.append(a)
+            running.append(a)
+        try:
+            if a == 0:
+                raise ValueError("bad pixel")
+            threading.Event().wait(0.01)
+        finally:
+            with lock:
+                running.remove(a)
+
+    with pytest.raises(ValueError, match="bad pixel"):
+        over_threads(fit, 64 * 400, 64 * 8)
+    assert running == []                      # the slices still running were waited for
+    assert len(started) < 400                 # and the queued ones cancelled

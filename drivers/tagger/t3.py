@@ -149,6 +149,12 @@ def describe_record(record: int) -> str:
             f"dtime={(r >> T3_DTIME_SHIFT) & T3_DTIME_MAX}, nsync={r & (T3_WRAP_SYNCS - 1)})")
 
 
+def invalid_record(index: int, record: int) -> ProtocolError:
+    """The error for stream record ``index`` (from the stream's start), which :func:`_decode_kernel`
+    stopped at."""
+    return ProtocolError(f"T3 record {index} is not a photon, marker or overflow: {describe_record(record)}")
+
+
 def decode_t3(records: np.ndarray, state: T3DecoderState | None = None,
               out: np.ndarray | None = None) -> np.ndarray:
     """Decode Generic T3 records into events.
@@ -185,8 +191,7 @@ def decode_t3(records: np.ndarray, state: T3DecoderState | None = None,
     words = out.view(np.uint64).reshape(-1, 2)
     n, base, last, bad = _decode_kernel(records, words, np.int64(state.sync_base))
     if bad >= 0:
-        raise ProtocolError(f"T3 record {state.records + bad} is not a photon, marker or overflow: "
-                            f"{describe_record(records[bad])}")
+        raise invalid_record(state.records + bad, records[bad])
     state.sync_base = int(base)
     if last >= 0:
         state.last_sync = int(last)
