@@ -576,7 +576,6 @@ def reconstruct_file(request: FileReconRequest, progress=None,
     estimator's own, without the return test's spreads (``recon.estimate.reconstruct``), for a
     caller that uses the summary alone and writes no map (``spdepth recon`` without outputs)."""
     from spdepth.acq.readers import read_photons
-    from spdepth.recon.detect import pulse_dispersion
     from spdepth.recon.estimate import reconstruct
 
     warm = KernelWarmUp(request, notice)
@@ -616,6 +615,9 @@ def reconstruct_file(request: FileReconRequest, progress=None,
     maps = reconstruct(store, settings, progress=progress, spreads=spreads)
     recon_s = time.perf_counter() - t1
     # where uncertainties are written, whether the pulse model fits the detections about their depths
+    # (imported here: recon.detect is no part of the read, which starts first)
+    from spdepth.recon.detect import pulse_dispersion
+
     dispersion = pulse_dispersion(store, settings, maps) if spreads else None
     return file_result(request, maps, result, read_s=read_s, recon_s=recon_s, pileup=pileup, load_s=load_s,
                        dispersion=dispersion)

@@ -3,12 +3,13 @@ never as a full-frame recompute.
 
 Every pixel is reconstructed exactly once, with the same ``ReconSettings`` (fixed binning and pulse),
 and each pixel's return decided on its own detections (a batch is not a frame). Once every pixel
-is final, where some pixel with detections holds no return of its own, the whole final store is
-reconstructed once more with the return test's frame rules (its neighbours' support and regions,
-``recon.detect``), so the live maps at the end equal ``recon.estimate.reconstruct`` of the final
-store bit for bit, and ``spdepth recon`` of the recording; a scan cut short keeps the batches'
-decisions (``settings['neighbour_rules']`` says so). When no pulse width is given, it is estimated once from the
-first ``PULSE_SAMPLE_PIXELS`` pixels to become final (in stream order, so a replay of the same
+is final, where some pixel with detections holds no return of its own, the rows of the final store
+that hold detections are reconstructed once more with the return test's frame rules (its
+neighbours' support and regions, ``recon.detect``), so the live maps at the end equal
+``recon.estimate.reconstruct`` of the final store bit for bit, and ``spdepth recon`` of the
+recording; a worker that ends before every pixel is final keeps the batches' decisions
+(``settings['neighbour_rules']`` says so). When no pulse width is given, it is estimated once
+from the first ``PULSE_SAMPLE_PIXELS`` pixels to become final (in stream order, so a replay of the same
 stream estimates the same width) and then frozen.
 
 Several surfaces per pixel (``reflectors`` K > 1 or "auto", :mod:`recon.estimators.surfaces_fit`): the maps of
