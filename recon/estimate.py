@@ -103,14 +103,16 @@ def warm_up(settings: ReconSettings, decide: bool = True, estimator: bool = True
         pulse = 3 * b.bin_width_s          # any width: only the kernels' loading matters
     settings = dataclasses.replace(settings, binning=b, pulse_rms_s=pulse)
     if estimator:
+        # the estimator's kernels first: while a second process compiles the test's (compile_apart),
+        # this one compiles these instead of waiting for it (the cold mannequin recon waited 17 s
+        # for the test, then compiled uos for 6)
         _wait_apart(settings.method)
+        bb, kern, notes = resolve_model(one, settings)
+        estimators.for_settings(settings).run(one, settings, bb, kern, notes)
     if decide:
         _wait_apart(DECIDE)
     if estimator and decide:
-        reconstruct(one, settings)
-    elif estimator:
-        bb, kern, notes = resolve_model(one, settings)
-        estimators.for_settings(settings).run(one, settings, bb, kern, notes)
+        reconstruct(one, settings)      # its maps through the test, as a reconstruction runs them
     if decide:
         # the test and the neighbours' support on the made-up pixel, as decide_maps calls them
         # (the support's kernel runs only where a pixel fails, which the pixel above may not)
