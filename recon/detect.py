@@ -13,8 +13,8 @@ amplitude and background profiled; a pixel holds a return when the gain exceeds
 
 **The neighbours' support.** A pixel that fails on its own detections holds a return when the
 detections of the 24 pixels around it (5 x 5, SUPPORT_RADIUS), pooled with its own left out, pass
-the same test within NEIGHBOUR_HALF_CORES pulse-core widths of the pixel's own estimate, at the same false-alarm rate for that span of shifts
-(:func:`neighbour_support`). Leaving its own detections out keeps the two independent under the
+the same test within NEIGHBOUR_HALF_CORES pulse-core widths of the pixel's own estimate, at the
+same false-alarm rate for that span of shifts (:func:`neighbour_support`). Leaving its own detections out keeps the two independent under the
 null: the estimate chose nothing among the neighbours' detections. A surface that several pixels
 see lends each its evidence (tower_9km.mat: ml reports a depth on 24.3% of pixels, 19.3% by the own
 test, of the 39.8% with any detection); the depth stays the pixel's own estimate. A pixel whose own estimate lies
@@ -621,9 +621,10 @@ def detect_kernel(ph, tabs, dt, rates, maxn, est_shift, known_gain, known_share,
 @njit(cache=True, nogil=True, error_model="numpy", **INNER)
 def _pool_neighbours(bins, weights, offsets, w, p, dense, r):
     """The detections of the pixels within r rows and columns of pixel p (row-major in a frame w
-    pixels wide; r = 1: its 8 neighbours) pooled, its own left out: (distinct bins ascending, their counts, how many, total). ``dense``: zeros,
-    one per bin (the counts gather there and it is zero again on return; bins are few against the
-    detections of 8 pixels, so a pass over them orders the pool without a sort)."""
+    pixels wide; r = 1: its 8 neighbours) pooled, its own left out: (distinct bins ascending, their
+    counts, how many, total). ``dense``: zeros, one per bin (the counts gather there and it is zero
+    again on return; bins are few against the pooled pixels' detections, so a pass over them orders
+    the pool without a sort)."""
     npix = offsets.size - 1
     h = npix // w
     y, x = p // w, p % w
@@ -657,8 +658,8 @@ def _pool_neighbours(bins, weights, offsets, w, p, dense, r):
 def neighbour_gain_kernel(bins, weights, offsets, w, cand, est, half, radius, tabs, out):
     """For each candidate pixel cand[c] (row-major index in a frame w pixels wide): the largest
     profiled gain of one return over background alone (nats) of the detections of the pixels
-    within ``radius`` of it pooled (its own left out), over the integer shifts within ``half`` bins of its own estimate
-    est[cand[c]] (bins). bins/weights/offsets: every pixel's in-window bins (weights empty: one
+    within ``radius`` of it pooled (its own left out), over the integer shifts within ``half`` bins
+    of its own estimate est[cand[c]] (bins). bins/weights/offsets: every pixel's in-window bins (weights empty: one
     detection each)."""
     T = tabs
     dense = np.zeros(T.m)
@@ -907,8 +908,8 @@ def pulse_dispersion(store, settings, maps, max_pixels: int = DISPERSION_PIXELS)
     summed over (at most ``max_pixels``, evenly spaced) pixels with a depth and at least two
     signal detections, the scores taken about their mean and corrected for the depth being fitted
     to them (k / (k - 1) for k signal detections, as a sample variance is). 1 when the model
-    fits; a response narrower than the model gives less, about the width ratio squared where background is scarce (the
-    simulated bust, 362 ps RMS, fitted with a 720 ps pulse: 0.27; with 250 ps: 1.94; with its
+    fits; a response narrower than the model gives less, about the width ratio squared where
+    background is scarce (the simulated bust, 362 ps RMS, fitted with a 720 ps pulse: 0.27; with 250 ps: 1.94; with its
     own: 0.99; background near the returns moves it towards 1), and the model's uncertainties
     (Fisher and the likelihood's spread) are then too large by about 1 / sqrt of it. A
     quasi-likelihood's dispersion, pooled over the frame: a pixel's own sandwich variance of a
@@ -917,7 +918,7 @@ def pulse_dispersion(store, settings, maps, max_pixels: int = DISPERSION_PIXELS)
     surfaces or fewer than DISPERSION_MIN_PIXELS pixels to pool."""
     from spdepth.recon.estimators.ml import ml_tables
     from spdepth.recon.kernels import Photons
-    from spdepth.recon.photons import rows_of
+    from spdepth.recon.photons import evenly_spaced, rows_of
 
     tof = np.asarray(maps.tof_s, np.float64)
     if tof.ndim == 3 or settings.method != "ml":
@@ -927,9 +928,7 @@ def pulse_dispersion(store, settings, maps, max_pixels: int = DISPERSION_PIXELS)
     share = _signal_share(maps, b, n)
     est = (tof.ravel() / b.time_unit_s - b.window_start) / b.bin_width - 0.5
     k = share * n
-    pix = np.flatnonzero(np.isfinite(est) & (k >= 2.0))
-    if pix.size > max_pixels:
-        pix = pix[np.linspace(0, pix.size - 1, max_pixels).astype(np.int64)]
+    pix = evenly_spaced(np.flatnonzero(np.isfinite(est) & (k >= 2.0)), max_pixels)
     if pix.size < DISPERSION_MIN_PIXELS:
         return None
     at, so = rows_of(offsets, pix)
@@ -954,8 +953,7 @@ def pulse_dispersion(store, settings, maps, max_pixels: int = DISPERSION_PIXELS)
 def neighbour_support(bins, weights, offsets, shape, kern, est, cand, false_alarm: float, half: int):
     """Which pixels ``cand`` (indices) their neighbours support: the detections of the pixels within
     SUPPORT_RADIUS of each pooled (the pixel's own left out, so the pixel's estimate ``est`` chose
-    nothing among them)
-    hold a return within ``half`` bins of the pixel's estimate, at the false-alarm rate
+    nothing among them) hold a return within ``half`` bins of the pixel's estimate, at the false-alarm rate
     ``false_alarm`` for that span of shifts (:func:`recon.estimators.surfaces_fit.auto_threshold_nats`).
     Returns (supported indices, threshold nats)."""
     from spdepth.recon.estimators.ml import ml_tables

@@ -26,7 +26,7 @@ import numpy as np
 from spdepth.recon.errors import InputError
 from spdepth.recon.model import (Binning, Irf, ReconSettings, default_binning, edge_core_rms,
                                  estimate_pulse_rms_s, pair_difference_histogram)
-from spdepth.recon.photons import PhotonStore, rows_of
+from spdepth.recon.photons import PhotonStore, evenly_spaced, rows_of
 from spdepth.recon.given import reconstruct_given
 
 ROUNDS = 3
@@ -121,7 +121,7 @@ def _sample(store: PhotonStore, max_pixels: int) -> PhotonStore:
     if store.n_pixels <= max_pixels:
         return store
     pairs = np.flatnonzero(counts >= 2)
-    keep = pairs if pairs.size <= max_pixels else pairs[np.linspace(0, pairs.size - 1, max_pixels).astype(np.int64)]
+    keep = evenly_spaced(pairs, max_pixels)
     at, offsets = rows_of(store.offsets, keep)        # one gather (a list per pixel took 0.05 s)
     return PhotonStore(store.times[at], offsets, (1, keep.size), store.time_unit_s)
 

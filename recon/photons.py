@@ -126,6 +126,14 @@ class PhotonStore:
         return self.times[self.offsets[p]:self.offsets[p + 1]]
 
 
+def evenly_spaced(idx: np.ndarray, most: int) -> np.ndarray:
+    """At most ``most`` of the pixel indices ``idx``, evenly spaced through them (all when fewer):
+    a sample that keeps the frame's mix, where the busiest pixels would not."""
+    if idx.size <= most:
+        return idx
+    return idx[np.linspace(0, idx.size - 1, most).astype(np.int64)]
+
+
 def rows_of(offsets: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The entries of the pixels ``idx`` in a CSR list grouped by ``offsets``: (their flat indices in
     the pixels' order, the offsets of that list of its own)."""

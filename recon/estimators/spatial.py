@@ -329,13 +329,11 @@ def fit_dispersion(x, wx, offsets, mu, n_used, pi, sigma: float, m: int) -> floa
     below where the stated pulse is wider than the returns."""
     import numpy as np
 
-    from spdepth.recon.photons import rows_of
+    from spdepth.recon.photons import evenly_spaced, rows_of
 
-    some = np.flatnonzero(np.isfinite(mu) & (n_used >= 2))
-    if some.size > DISPERSION_PIXELS:
-        # evenly spaced over the frame: a numpy pass over every detection cost 19% of the
-        # estimate's time at 30 detections a pixel
-        some = some[np.linspace(0, some.size - 1, DISPERSION_PIXELS).astype(np.int64)]
+    # a sample of the frame: a numpy pass over every detection cost 19% of the estimate's time at
+    # 30 detections a pixel
+    some = evenly_spaced(np.flatnonzero(np.isfinite(mu) & (n_used >= 2)), DISPERSION_PIXELS)
     at, sub = rows_of(offsets, some)
     n = some.size
     pp = np.repeat(np.arange(n), np.diff(sub))
@@ -415,7 +413,8 @@ def regulariser_variance(f: np.ndarray, wt: np.ndarray, z: np.ndarray, reach: np
                          chosen: np.ndarray | None = None, dispersion: float = 1.0) -> np.ndarray:
     """Variance of each regularised shift z (pulse RMS^2; NaN outside ``reach``), by a parametric
     bootstrap of the regularisation: the pixelwise shifts f carry noise of variance dispersion / wt
-    (wt the fit's Fisher weight, in pulse widths; ``dispersion`` :func:`fit_dispersion`'s), which the regulariser averages over as many neighbours
+    (wt the fit's Fisher weight, in pulse widths; ``dispersion`` :func:`fit_dispersion`'s), which
+    the regulariser averages over as many neighbours
     as it fuses (far beyond the 8 next to a pixel on a flat patch of weak data, where TV makes
     plateaus; none across an edge), so the whole regulariser runs again on ``probes`` copies of
     the fitted model, z plus that noise, and each pixel's variance is the mean square of its
