@@ -10,11 +10,13 @@ the window (ml's exact branch and bound, :func:`recon.estimators.ml_kernels.inte
 amplitude and background profiled; a pixel holds a return when the gain exceeds
 :func:`recon.estimators.surfaces_fit.auto_threshold_nats` at the false-alarm rate ``ReconSettings.false_alarm``
 (default 1e-3 per pixel: about one background-only pixel in a thousand is taken for a return).
+Where the neighbours' support applies (next), the own test and the support each get half of it,
+so that the rate is the pixel's and not each rule's (:func:`decide_maps`).
 
 **The neighbours' support.** A pixel that fails on its own detections holds a return when the
 detections of the 24 pixels around it (5 x 5, SUPPORT_RADIUS), pooled with its own left out, pass
-the same test within NEIGHBOUR_HALF_CORES pulse-core widths of the pixel's own estimate, at the
-same false-alarm rate for that span of shifts (:func:`neighbour_support`). Leaving its own detections out keeps the two independent under the
+the same test within NEIGHBOUR_HALF_CORES pulse-core widths of the pixel's own estimate, at half the
+false-alarm rate for that span of shifts (:func:`neighbour_support`). Leaving its own detections out keeps the two independent under the
 null: the estimate chose nothing among the neighbours' detections. A surface that several pixels
 see lends each its evidence (tower_9km.mat: ml reports a depth on 24.3% of pixels, 19.3% by the own
 test, of the 39.8% with any detection); the depth stays the pixel's own estimate. A pixel whose own estimate lies
@@ -32,8 +34,10 @@ faint wall with holes, test_recon_detect: holes 4.8 -> 4.8%, the wall's pixels 3
 art_top.mat, ml: a depth on 28.0 -> 34.6% of pixels, halves within 3 / 1 sigma 96.7 / 65.7% ->
 96.6 / 65.0% on 606 -> 922 pixels; tower_9km.mat 25.2% with it. The thresholds count the search
 over shifts by Rice's formula (:func:`recon.estimators.surfaces_fit.auto_threshold_nats`): on
-frames of background alone (10 / 60 detections a pixel) the own test passes on 0.8e-3 / 0.4e-3 of
-the pixels, the support on 0.9e-3 / 1.2e-3 more and this rule on 0.3e-3 / 0.5e-3.
+frames of background alone (10 / 60 detections a pixel) at 1e-3 the own test and the support, at
+half of it each, pass on 0.53e-3 / 0.76e-3 of the pixels in all, and with this rule 0.80e-3 /
+0.93e-3 (at the whole rate each: 1.73e-3 / 1.60e-3 and 2.04e-3 / 2.09e-3; art_top.mat 34.6 ->
+34.3%, the tower 25.2% either way).
 
 **The uncertainty** of a reported depth is the largest of three spreads, each used only where it
 exceeds the estimator's own (its Fisher or sandwich variance) beyond its resolution:
@@ -1198,22 +1202,25 @@ def decide_maps(store, settings, maps, neighbours: bool = True, spreads: bool = 
     if maps.gain_nats is not None and not several:
         known = dict(known_gain=np.asarray(maps.gain_nats, np.float64).ravel(),
                      known_share=_signal_share(maps, b, n_photons))
-    det = detect(bins, offsets, kern, est, settings.false_alarm, weights, spreads=spreads, **known)
     h, w = maps.shape
     spatial = settings.method == "spatial"
     from spdepth.recon.estimators.surfaces_fit import fwhm_bins
 
     # a window hardly wider than the pulse: time cannot tell a return from background
     decidable = b.n_bins >= UNDECIDABLE_FWHM * fwhm_bins(kern.g)
+    rules = neighbours and decidable and not spatial and not several
+    # the stated rate is the pixel's: where the neighbours' support applies, a pixel of background
+    # alone has two chances (its own test, then the support), and each is given half of it
+    rate = settings.false_alarm / 2 if rules else settings.false_alarm
+    det = detect(bins, offsets, kern, est, rate, weights, spreads=spreads, **known)
     filled = None
     thr_n = math.nan
     half = max(1, int(round(NEIGHBOUR_HALF_CORES * core_s / b.bin_width_s)))
-    if neighbours and decidable and not spatial and not several:
+    if rules:
         # a pixel whose own detections are too few for the test: its neighbours may hold the
         # return at its depth (a surface seen by several pixels), with its own spreads
         cand = np.flatnonzero(~det.has_return & np.isfinite(est) & (n_photons > 0))
-        supported, thr_n = neighbour_support(bins, weights, offsets, (h, w), kern, est, cand,
-                                             settings.false_alarm, half)
+        supported, thr_n = neighbour_support(bins, weights, offsets, (h, w), kern, est, cand, rate, half)
         # their spreads only over where their neighbours see returns: the reported depth lies there
         # by the support's rule (the likelihood's and the bootstrap's far modes elsewhere would not
         # have been reported); in slices, so the regions (pixels x bins) stay bounded
@@ -1221,12 +1228,12 @@ def decide_maps(store, settings, maps, neighbours: bool = True, spreads: bool = 
         for c0 in range(0, supported.size if spreads else 0, REGION_CHUNK):
             sup = supported[c0:c0 + REGION_CHUNK]
             regions = neighbour_regions(bins, weights, offsets, w, kern, sup, half, thr_n)
-            _region_spreads(det, bins, weights, offsets, kern, sup, est[sup], regions, settings.false_alarm,
+            _region_spreads(det, bins, weights, offsets, kern, sup, est[sup], regions, rate,
                             **{k: None if v is None else v[sup] for k, v in known.items()})
         # a pixel whose own estimate lies elsewhere (a background cluster beat a faint return):
         # its own detections tested where its neighbours see returns, and given ml's depth there
         fill = neighbour_fill(bins, weights, offsets, w, kern, np.flatnonzero(~det.has_return & (n_photons > 0)),
-                              half, thr_n, settings.neighbour_false_alarm, det, settings.false_alarm, spreads)
+                              half, thr_n, settings.neighbour_false_alarm, det, rate, spreads)
         if fill.pixels.size:
             filled = _filled_maps(maps, b, kern, fill)
     has = det.has_return.reshape(h, w)
@@ -1272,8 +1279,10 @@ def decide_maps(store, settings, maps, neighbours: bool = True, spreads: bool = 
     flags[drop] = PixelFlag.NO_RETURN
     rec["detection"] = {
         "rule": (f"likelihood-ratio test of one return against background alone, false-alarm rate "
-                 f"{det.false_alarm:g} per pixel (gain > {det.threshold_nats:.2f} nats)"),
-        "false_alarm": det.false_alarm, "threshold_nats": det.threshold_nats,
+                 f"{settings.false_alarm:g} per pixel (gain > {det.threshold_nats:.2f} nats"
+                 + (f", at {det.false_alarm:g}: the other half is the neighbours' support's)" if rules else ")")),
+        "false_alarm": settings.false_alarm, "own_false_alarm": det.false_alarm,
+        "threshold_nats": det.threshold_nats,
         "applied": ("decision kept (neighbours' support)" if spatial else
                     "not applied: the window is hardly wider than the pulse" if not decidable else
                     "no return: no depth, flag NO_RETURN"),

@@ -524,8 +524,10 @@ class ReconSettings:
                     and auto fit every pixel by recon.estimators.surfaces' greedy Poisson pursuit (lmf, uos, ml)
                     or recon.estimators.surfaces' K-surface fit with the neighbours' help (spatial).
     max_reflectors: most surfaces per pixel for reflectors="auto" (default 3).
-    false_alarm:    reflectors="auto": chance per pixel and per added surface that background (or the
-                    response's own tail) passes for a surface (default 1e-3).
+    false_alarm:    chance per pixel that background alone passes the return test (:mod:`recon.detect`:
+                    its own test and the neighbours' support together, half each) and, with
+                    reflectors="auto", per added surface that background (or the response's own
+                    tail) passes for a surface (default 1e-3).
     neighbour_false_alarm: the return test's rule for a pixel that fails on its own and by its
                     neighbours' support at its own estimate (:mod:`recon.detect`): its detections are
                     tested where its neighbours see returns at this false-alarm rate for that

@@ -195,9 +195,11 @@ def test_each_of_two_real_surfaces_has_an_honest_uncertainty(shared_data):
 
 
 def test_background_alone_passes_the_test_at_the_stated_rate():
-    # 22,500 pixels of 10 background detections each: at --false-alarm 1e-3 about 22 may pass the
-    # own test and as many more the neighbours' support. Counting window / FWHM independent shifts
-    # let 43 and 45 pass; the threshold by Rice's formula for the search, 18 and 16
+    # 22,500 pixels of 10 background detections each: at --false-alarm 1e-3 about 22 may pass in
+    # all, whichever rule passes them. Counting window / FWHM independent shifts let 43 pass the own
+    # test alone; the threshold by Rice's formula for the search, 18. Each rule at the whole rate
+    # let 39 pass with the support and 46 with the regions too; half of it each to the own test and
+    # the support, 12 and 18
     rng = np.random.default_rng(5)
     side = 150
     store = PhotonStore.from_lists([np.floor(rng.uniform(0, 4000, 10)) for _ in range(side * side)],
@@ -205,10 +207,10 @@ def test_background_alone_passes_the_test_at_the_stated_rate():
     s = ReconSettings(method="ml", binning=B, pulse_rms_s=RMS_U * UNIT_S, neighbour_false_alarm=0.0)
     own = int(np.isfinite(reconstruct(store, s, neighbours=False).depth_m).sum())
     with_support = int(np.isfinite(reconstruct(store, s).depth_m).sum())
-    assert own <= 1.4e-3 * side * side and with_support - own <= 1.4e-3 * side * side
+    assert own <= 1.4e-3 * side * side and with_support <= 1.4e-3 * side * side
     # the third rule adds few: a region needs the neighbours to pass somewhere first
     filled = int(np.isfinite(reconstruct(store, dataclasses.replace(s, neighbour_false_alarm=0.05)).depth_m).sum())
-    assert filled - with_support <= 0.5e-3 * side * side
+    assert filled <= 1.4e-3 * side * side
 
 
 def test_the_tables_are_kept_with_their_pulse_kernel():

@@ -74,8 +74,10 @@ def bench(argv: list[str]) -> int:
             req = recon_cmd.request_from_args(args, str(f))
             maps.append(reconstruct_file(req).maps)
     r = compare(*maps)
+    each = " / ".join(f"{100 * np.isfinite(m.depth_m).mean():.1f}%" for m in maps)
     print(f"{path}: halves of {counts.n_detections:.0f} counts (seed {args.seed}), {args.method or 'default'} "
-          f"method; {r['both']} of {r['pixels']} pixels with a depth in both halves; within 3 combined "
+          f"method; a depth on {each} of each half's pixels, {r['both']} of {r['pixels']} pixels "
+          f"({100 * r['both'] / r['pixels']:.1f}%) with a depth in both halves; within 3 combined "
           f"sigma: {r['within']} = {100 * r['share']:.1f}%, within 1: {100 * r['share_1_sigma']:.1f}% (median combined sigma {r['median_sigma_cm']:.2f} cm, "
           f"median difference {r['median_diff_cm']:.2f} cm); {time.perf_counter() - t0:.0f} s")
     return 0
