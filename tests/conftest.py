@@ -47,6 +47,17 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(skip)
 
 
+def pytest_collection_finish(session):
+    """A cold numba cache (a clean clone): the kernels compiled in two processes at once before the
+    first test (tests/precompile.py)."""
+    if session.config.option.collectonly:
+        return
+    from tests.precompile import precompile
+
+    reporter = session.config.pluginmanager.get_plugin("terminalreporter")
+    precompile(len(session.items), say=reporter.write_line if reporter else print)
+
+
 @pytest.fixture
 def rng(request):
     """A generator seeded from the test's name, so every failure reproduces."""

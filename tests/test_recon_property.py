@@ -106,8 +106,9 @@ def test_uncertainty_is_honest(method):
         sd = maps.uncertainty_s.ravel() / UNIT_S
         ok = np.isfinite(err)
         # 5 detections (4.5 of them signal): the test finds no return in a pixel of ~3 signal
-        # (77% report one at the look-elsewhere threshold, 9.2 nats; 85% at the 8.2 before it)
-        assert ok.mean() > (0.74 if k == 5 else 0.99)
+        # (77% report one at the look-elsewhere threshold, 9.2 nats; 85% at the 8.2 before it;
+        # 72% with half the rate to the own test, the other half the neighbours' support's)
+        assert ok.mean() > (0.70 if k == 5 else 0.99)
         shares[k] = float(np.mean(np.abs(err[ok]) < sd[ok]))
     print(f"{method}: share within one sigma " + ", ".join(f"{k} det {v:.3f}" for k, v in shares.items()))
     for k, v in shares.items():
