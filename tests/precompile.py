@@ -13,32 +13,26 @@ import subprocess
 import sys
 import time
 
+from spdepth.acq.commands.bench.compile import GROUPS as BENCH_GROUPS, recon_group
+
 #: Fewer tests than this selected: no precompiling (a test file or two compiles what it needs).
 MIN_TESTS = 300
 
-_RECON = ("warm_up(ReconSettings(method={method!r}, binning=Binning(8e-12, 2000.0, 6000.0, 5.0), "
-          "pulse_rms_s=360e-12, max_photons=15{extra}), decide={decide})\n")
-_HEAD = ("from spdepth.recon.model import Binning, ReconSettings\n"
-         "from spdepth.recon.estimate import warm_up\n")
-#: (modules whose kernels the group compiles, its code); split so the two take about as long
-#: (spdepth bench compile: the return test about 15 s, ml 4, K=2 8; lmf 5, uos 7, spatial 12,
-#: the simulator 9)
+#: (modules whose kernels the group compiles, its code), from ``spdepth bench compile``'s groups,
+#: split so the two take about as long (there, cold: the return test about 15 s, ml 4, K=2 8; lmf
+#: 5, uos 7, spatial 12, the simulator 9); the return test only in the first
 GROUPS = (
     (("spdepth.recon.detect", "spdepth.recon.estimators.ml_kernels", "spdepth.recon.estimators.surfaces_kernels",
       "spdepth.drivers.tagger.t3", "spdepth.acq.assign"),
-     _HEAD + _RECON.format(method="ml", extra="", decide=True)
-     + _RECON.format(method="ml", extra=", reflectors=2", decide=False)
-     + "from spdepth.drivers.tagger.t3 import warm_up as t3\nt3()\n"
-     "import numpy as np\nfrom spdepth.drivers.events import EVENT_DTYPE\nfrom spdepth.acq.store import PixelStore\n"
-     "ev = np.zeros(2, dtype=EVENT_DTYPE)\nev['kind'] = 255\nPixelStore((2, 2), 4, (0, 100), 1e-12).feed(ev)\n"),
+     recon_group("ml") + recon_group("ml", ", reflectors=2", decide=False)
+     + BENCH_GROUPS["t3 decode/encode"][1] + BENCH_GROUPS["store feed"][1]),
     (("spdepth.recon.estimators.lmf_kernels", "spdepth.recon.estimators.uos_kernels",
       "spdepth.recon.estimators.spatial_kernels", "spdepth.drivers.sim.kernels", "spdepth.acq.readers.picoquant",
       "spdepth.recon.pair_kernels"),
-     _HEAD + "".join(_RECON.format(method=m, extra="", decide=False) for m in ("lmf", "uos", "spatial"))
-     + "from spdepth.drivers.sim import PhotonWorld, load_scene, warm_up as sim\nsim()\n"
-     "PhotonWorld(load_scene('bust', (2, 2), ppp=2.0), seed=0).raster()\n"
-     "from spdepth.acq.readers.picoquant import warm_up as reader\nreader()\n"
-     "from spdepth.recon.irf import warm_up as pulse\npulse()\n"),
+     "".join(recon_group(m, decide=False) for m in ("lmf", "uos", "spatial"))
+     + BENCH_GROUPS["sim dwell_run"][1] + BENCH_GROUPS["sim raster"][1]
+     + "from spdepth.acq.readers.picoquant import warm_up\nwarm_up()\n"
+     "from spdepth.recon.irf import warm_up\nwarm_up()\n"),
 )
 
 

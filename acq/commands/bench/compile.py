@@ -27,11 +27,16 @@ import time
 
 from spdepth.acq.commands.bench.startup import FACE, SEED_SETTINGS
 
+def recon_group(method: str, extra: str = "", decide: bool = True) -> str:
+    """A group's code: ``method``'s kernels (``extra``: more ReconSettings arguments), and with
+    ``decide`` the return test's, through ``recon.estimate.warm_up``."""
+    return ("from spdepth.recon.model import Binning, ReconSettings\n"
+            "from spdepth.recon.estimate import warm_up\n"
+            f"warm_up(ReconSettings(method={method!r}, binning=Binning(8e-12, 2000.0, 6000.0, 5.0), "
+            f"pulse_rms_s=360e-12, max_photons=15{extra}), decide={decide})\n")
+
+
 # What each group runs: library entry points with tiny inputs, as a command's first call would.
-_RECON = ("from spdepth.recon.model import Binning, ReconSettings\n"
-          "from spdepth.recon.estimate import warm_up\n"
-          "warm_up(ReconSettings(method={method!r}, binning=Binning(8e-12, 2000.0, 6000.0, 5.0), "
-          "pulse_rms_s=360e-12, max_photons=15{extra}))\n")
 GROUPS = {
     "sim dwell_run": ("the simulated bench's dwells: gated and fixed (drivers.sim.warm_up)",
                       "from spdepth.drivers.sim import warm_up\nwarm_up()\n"),
@@ -45,12 +50,12 @@ GROUPS = {
                    "from spdepth.acq.store import PixelStore\n"
                    "ev = np.zeros(2, dtype=EVENT_DTYPE)\nev['kind'] = 255\n"
                    "PixelStore((2, 2), 4, (0, 100), 1e-12).feed(ev)\n"),
-    "recon lmf": ("log-matched filter", _RECON.format(method="lmf", extra="")),
-    "recon uos": ("union of subspaces (Algorithm 1)", _RECON.format(method="uos", extra="")),
-    "recon ml": ("exact Poisson ML", _RECON.format(method="ml", extra="")),
+    "recon lmf": ("log-matched filter", recon_group("lmf")),
+    "recon uos": ("union of subspaces (Algorithm 1)", recon_group("uos")),
+    "recon ml": ("exact Poisson ML", recon_group("ml")),
     "recon ml K=2": ("ml with --reflectors 2 (recon.multi)",
-                     _RECON.format(method="ml", extra=", reflectors=2")),
-    "recon spatial": ("the spatial estimator", _RECON.format(method="spatial", extra="")),
+                     recon_group("ml", ", reflectors=2")),
+    "recon spatial": ("the spatial estimator", recon_group("spatial")),
 }
 # one group's first call, timed inside its process (imports excluded), as one JSON line
 _RUNNER = ("import json, sys, time\nt0 = time.perf_counter()\nc0 = time.process_time()\n"
