@@ -383,6 +383,27 @@ def irf_core_rms_s(irf: Irf) -> float:
     return float(min(edge_core_rms(c, t[1] - t[0]), irf.rms_s))
 
 
+#: FWHM of a Gaussian over its RMS, 2 sqrt(2 ln 2)
+FWHM_PER_RMS = 2.0 * math.sqrt(2.0 * math.log(2.0))
+
+
+def irf_fwhm_rms_s(irf: Irf) -> float:
+    """RMS (s) of the Gaussian with a response's FWHM: the width of where most of a return's
+    detections lie, which a sharp edge and a long tail make far wider than the edge and far
+    narrower than the RMS. For a Gaussian, its RMS."""
+    t, c = irf.arrays()
+    c = np.asarray(c, np.float64)
+    if t.size < 3:
+        return irf.rms_s
+    above = np.flatnonzero(c >= 0.5 * c.max())
+    lo, hi = above[0], above[-1]
+    # the half-maximum crossings between samples (linear), as edge_core_rms reads the edge
+    half = 0.5 * c.max()
+    t_lo = t[lo] if lo == 0 else t[lo - 1] + (half - c[lo - 1]) / (c[lo] - c[lo - 1]) * (t[lo] - t[lo - 1])
+    t_hi = t[hi] if hi == t.size - 1 else t[hi] + (c[hi] - half) / (c[hi] - c[hi + 1]) * (t[hi + 1] - t[hi])
+    return float(min((t_hi - t_lo) / FWHM_PER_RMS, irf.rms_s))
+
+
 def edge_core_rms(shape: np.ndarray, step: float) -> float:
     """Core RMS (units of ``step``) of a sampled response from its leading edge: 10% to 90% of the
     peak spans 2.563 RMS of a Gaussian (linear interpolation between samples)."""
