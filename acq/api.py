@@ -614,13 +614,7 @@ def reconstruct_file(request: FileReconRequest, progress=None,
     t1 = time.perf_counter()
     maps = reconstruct(store, settings, progress=progress, spreads=spreads)
     recon_s = time.perf_counter() - t1
-    # where uncertainties are written, whether the pulse model fits the detections about their depths
-    # (imported here: recon.detect is no part of the read, which starts first)
-    from spdepth.recon.detect import pulse_dispersion
-
-    dispersion = pulse_dispersion(store, settings, maps) if spreads else None
-    return file_result(request, maps, result, read_s=read_s, recon_s=recon_s, pileup=pileup, load_s=load_s,
-                       dispersion=dispersion)
+    return file_result(request, maps, result, read_s=read_s, recon_s=recon_s, pileup=pileup, load_s=load_s)
 
 
 def set_threads(request: FileReconRequest) -> None:
@@ -636,14 +630,14 @@ def set_threads(request: FileReconRequest) -> None:
 
 def file_result(request: FileReconRequest, maps, read, *, read_s: float = 0.0,
                 recon_s: float = 0.0, photons_in_file: int | None = None,
-                pileup: dict | None = None, load_s: float = 0.0, dispersion: dict | None = None) -> FileResult:
+                pileup: dict | None = None, load_s: float = 0.0) -> FileResult:
     """A file's reconstructed maps finished as ``spdepth recon`` finishes them: the scan geometry
     and range offset added, the outputs the request names written (npz, png, pulse shape, points)
     and the summary made. ``read``: the reader's ``ReadResult`` (its ``store`` may be None when
     the photons were read in blocks elsewhere; then give ``photons_in_file``; a cube's are its
-    ``counts``). ``pileup``: the pile-up decision (:func:`file_counts`). ``dispersion``: the pulse
-    model's (``recon.detect.pulse_dispersion``), in the summary, and in a note when the model's
-    width is off by more than DISPERSION_OFF."""
+    ``counts``). ``pileup``: the pile-up decision (:func:`file_counts`). The pulse model's
+    dispersion, where the maps' uncertainties were scaled by it (``recon.detect.with_dispersion``),
+    is in the summary, and in a note when the model's width is off by more than DISPERSION_OFF."""
     from spdepth.recon import estimators
 
     store = read.store
@@ -674,6 +668,7 @@ def file_result(request: FileReconRequest, maps, read, *, read_s: float = 0.0,
     if read.is_image and request.method not in neighbours and neighbours and per_pixel < SPARSE_PER_PIXEL:
         notes += (f"about {per_pixel:.1f} detections per pixel: too few for a pixel on its own; "
                   f"--method {' or '.join(neighbours)} uses the neighbours",)
+    dispersion = maps.settings.get("pulse_dispersion")
     if dispersion is not None and abs(math.log(dispersion["width_ratio"])) > math.log(DISPERSION_OFF):
         notes += (dispersion_note(dispersion, request.pulse_rms_s is not None and request.irf is None),)
     res = FileResult(request, maps, store, used_binning, used.get("pulse_rms_s"),
@@ -683,7 +678,8 @@ def file_result(request: FileReconRequest, maps, read, *, read_s: float = 0.0,
     _write_file_outputs(res, read)
     res.summary = _file_summary(res, read)
     res.summary["photons_account"] = account
-    res.summary["pulse_dispersion"] = dispersion
+    res.summary["pulse_dispersion"] = None if dispersion is None else \
+        {k: dispersion[k] for k in ("dispersion", "pixels", "width_ratio")}
     return res
 
 
@@ -693,20 +689,18 @@ DISPERSION_OFF = 1.25
 
 
 def dispersion_note(d: dict, stated: bool) -> str:
-    """What a dispersion ``d`` (``recon.detect.pulse_dispersion``) off the model means, in a line;
+    """What a dispersion ``d`` (``recon.detect.dispersion_of``) off the model means, in a line;
     ``stated``: the pulse was the user's (``--pulse-rms-ps``)."""
     r = d["width_ratio"]
     closer = r < 1.0
     head = (f"the detections lie {'closer to' if closer else 'wider about'} their depths than the pulse model "
             f"says (dispersion {d['dispersion']:.2f} over {d['pixels']} pixels: as from a response {r:.2f} "
-            f"times its width); where a depth's uncertainty is the model's (its Fisher information, the "
-            f"likelihood's spread) it is likely {'too large' if closer else 'too small'} (by about "
-            f"{max(r, 1.0 / r):.1f}x if the width alone is off)")
+            f"times its width); every depth's uncertainty is scaled by {r:.2f} for it, and the depths "
+            f"themselves are those of a model {'wider' if closer else 'narrower'} than the returns")
     if stated:
         return head + f" (--pulse-rms-ps may be too {'wide' if closer else 'narrow'}: without it the pulse is " \
                       "measured from the data)"
-    return head + " (the response measured from the data does not fit its returns: a tail or a width " \
-                  "that the returns do not show)"
+    return head + " (the pulse width measured from the data does not fit its returns)"
 
 
 def _photons_in(read) -> int:

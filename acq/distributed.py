@@ -250,8 +250,11 @@ def block_task(plan: Plan, b: int, settings, time_unit_s: float, *shares, spread
     share of block b, then of b - 1 and of b + 1 where they exist): their NEIGHBOUR_ROWS rows next
     to the block are its halo, so the return test's neighbours' support (recon.detect) sees a block's edge rows
     as the whole frame does. The halo's own maps are cut off. ``spreads`` False: the return test's
-    spreads are not computed (no output file: ``recon.estimate.reconstruct``)."""
-    from spdepth.recon.detect import NEIGHBOUR_ROWS
+    spreads are not computed (no output file: ``recon.estimate.reconstruct``). Returns (the block's
+    maps, its rows' terms of the pulse model's dispersion or None): the frame's dispersion is
+    pooled from every block's (:func:`reconstruct_blocks`), as the whole frame's reconstruction
+    takes it (``recon.detect.dispersion_terms``)."""
+    from spdepth.recon.detect import NEIGHBOUR_ROWS, dispersion_terms
     from spdepth.recon.estimate import reconstruct
     from spdepth.recon.photons import PhotonStore
 
@@ -263,7 +266,10 @@ def block_task(plan: Plan, b: int, settings, time_unit_s: float, *shares, spread
     # a pixel's detections all come from one block's shares, in chunk order, which the store keeps
     keep = (pixel >= lo * w) & (pixel < hi * w)
     store = PhotonStore.from_pixel_indices(pixel[keep] - lo * w, dtime[keep], (hi - lo, w), time_unit_s)
-    return crop_rows(reconstruct(store, settings, spreads=spreads), r0 - lo, r1 - lo)
+    maps = reconstruct(store, settings, spreads=spreads, dispersion=False)
+    terms = dispersion_terms(store, settings, maps, first_pixel=lo * w, frame_pixels=h * w,
+                             rows=(r0 - lo, r1 - lo)) if spreads else None
+    return crop_rows(maps, r0 - lo, r1 - lo), terms
 
 
 def crop_rows(maps, a: int, b: int):
@@ -288,7 +294,11 @@ def assemble(parts: list) -> object:
 def reconstruct_blocks(client, plan: Plan, settings, time_unit_s: float, on_submitted=None, spreads: bool = True):
     """Maps of the whole recording, computed as chunk and block tasks on ``client`` (the channel
     kept is the plan's). ``on_submitted(futures)`` is called once everything is submitted (tests
-    kill a worker there). ``spreads``: as :func:`block_task`'s."""
+    kill a worker there). ``spreads``: as :func:`block_task`'s; with them, ml's uncertainties are
+    scaled by the frame's pulse model's dispersion, pooled from the blocks' terms in frame order (so
+    the same as one process's, to the bit: ``recon.detect.with_dispersion``)."""
+    from spdepth.recon.detect import dispersion_of, with_dispersion
+
     n_blocks = len(plan.rows) - 1
     chunks = [client.submit(chunk_task, plan, i, pure=False)
               for i in range(len(plan.starts))]
@@ -301,7 +311,12 @@ def reconstruct_blocks(client, plan: Plan, settings, time_unit_s: float, on_subm
     if on_submitted is not None:
         on_submitted(chunks + blocks)
     del chunks, shares, inputs      # the scheduler keeps what the blocks still need, and how to remake it
-    return assemble(client.gather(blocks))
+    parts = client.gather(blocks)
+    maps = assemble([p[0] for p in parts])
+    terms = [p[1] for p in parts]
+    if any(t is None for t in terms):
+        return maps
+    return with_dispersion(maps, dispersion_of(tuple(np.concatenate([t[i] for t in terms]) for i in (0, 1))))
 
 
 def block_settings(request, unit_s: float):

@@ -28,7 +28,7 @@ from spdepth.recon.resolve import resolve_model
 
 def reconstruct(store: PhotonStore, settings: ReconSettings,
                 progress: Callable[[int, int], None] | None = None, neighbours: bool = True,
-                spreads: bool = True) -> DepthMaps:
+                spreads: bool = True, dispersion: bool = True) -> DepthMaps:
     """Estimate depth, background and signal at every pixel of ``store``.
 
     ``store``: a photon list, or counts (``recon.counts.CountStore``: a histogram cube, or a
@@ -47,6 +47,8 @@ def reconstruct(store: PhotonStore, settings: ReconSettings,
     that are not a frame: a live scan's). ``settings`` in it holds everything used (binning, pulse
     RMS and its source). ``spreads`` False: the decision without the uncertainty's spreads (each
     depth's uncertainty the estimator's own, as the record says), for a caller that writes no map.
+    ``dispersion`` False: ml's uncertainties are not scaled by the pulse model's dispersion here
+    (``recon.detect.with_dispersion``; a block of a frame leaves it to the frame's).
     """
     if not isinstance(settings, ReconSettings):
         raise InputError(f"settings must be ReconSettings, got {type(settings).__name__}")
@@ -69,7 +71,7 @@ def reconstruct(store: PhotonStore, settings: ReconSettings,
     with binned_once():                 # the test reads the detections the estimator binned
         maps = est.run(store, settings, b, kern, notes, progress)
         _wait_apart(DECIDE)
-        return decide_maps(store, settings, maps, neighbours=neighbours, spreads=spreads)
+        return decide_maps(store, settings, maps, neighbours=neighbours, spreads=spreads, dispersion=dispersion)
 
 
 def as_photons(counts: CountStore) -> PhotonStore:

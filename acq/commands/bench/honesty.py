@@ -7,9 +7,10 @@ where both halves report a depth, the share that agree within 3 and within 1 com
 halves are independent draws: about 99.7% agree within 3 sigma and 68% within 1 (a heavy tail of
 failures, e.g. a background cluster taken for a return, shows in the 3-sigma share; uncertainties
 too large or too small move the 1-sigma share). Also printed: the share of pixels with a depth in
-the whole file and in each half, and for ml the pulse model's dispersion on the whole file
-(``recon.detect.pulse_dispersion``: below 1, the detections lie closer to their depths than the
-model says, and the model's uncertainties are too wide).
+the whole file and in each half, and for ml with a Gaussian pulse the pulse model's dispersion on
+the whole file (``recon.detect.dispersion_of``: below 1, the detections lie closer to their depths
+than the model says, and the model's uncertainties were too wide), by which each half's
+uncertainties are scaled too (its own, measured on it).
 
 Run as ``spdepth bench honesty FILE [--methods ml,spatial] [--time-unit-ps PS] ...``.
 """
@@ -89,7 +90,6 @@ def split_half(store: PhotonStore, settings: ReconSettings) -> dict:
     the share of pixels with a depth in the whole and the decision's settings."""
     import numpy as np
 
-    from spdepth.recon.detect import pulse_dispersion
     from spdepth.recon.estimate import reconstruct
 
     full = reconstruct(store, settings)
@@ -99,7 +99,7 @@ def split_half(store: PhotonStore, settings: ReconSettings) -> dict:
     depth = np.asarray(full.depth_m, float)
     has = np.isfinite(depth) if depth.ndim == 2 else np.isfinite(depth).any(axis=0)
     out = {"method": settings.method, "depth_full": float(has.mean()),
-           "pulse_dispersion": pulse_dispersion(store, settings, full)}
+           "pulse_dispersion": full.settings.get("pulse_dispersion")}
     out.update(agreement(a, b))
     if "detection" in full.settings:
         out["detection"] = full.settings["detection"].get("rule")
