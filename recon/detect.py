@@ -462,6 +462,25 @@ def _candidate(sp, ns, k, bar, peaks_only, region):
     return region.size == 0 or region[sp.pos[k]] != 0
 
 
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy", **INNER)
+def _resample_best(cnt, nu, tab, n_cand, v):
+    """The candidate (index) of the largest likelihood of a resample of counts cnt[:nu] by
+    distinct bin, the first of equals: each bin's row of ``tab`` (nu x n_cand, flat) times its
+    count summed in v."""
+    v[:] = 0.0
+    for u in range(nu):
+        w = cnt[u]
+        if w > 0.0:
+            a0 = u * n_cand
+            for q in range(n_cand):
+                v[q] += w * tab[a0 + q]
+    best = 0
+    for q in range(1, n_cand):
+        if v[q] > v[best]:
+            best = q
+    return best
+
+
 @njit(cache=True, nogil=True, error_model="numpy", **INNER)
 def _bootstrap_sd(kb, kw, nu, ntot, e, s, sp, ns, top, tabs, n_boot, seed, peaks_only, region, mode_thr):
     """Spread of the shift about e (bins) over ``n_boot`` bootstrap resamples of the pixel's
@@ -528,6 +547,16 @@ def _bootstrap_sd(kb, kw, nu, ntot, e, s, sp, ns, top, tabs, n_boot, seed, peaks
     v = np.empty(n_cand)
     cnt = np.empty(nu)
     dist = np.empty(n_boot)
+    # a resample's counts as one number (base n + 1), where that fits: a few detections have few
+    # distinct resamples (2 detections: 3), and a repeated one has the same best shift
+    # (an open-addressed table of twice the resamples' slots, -1 empty)
+    memo = nu * math.log(n + 1.0) < 62.0 * math.log(2.0)
+    slots = 1
+    while slots < 2 * n_boot:
+        slots *= 2
+    keys = np.full(slots if memo else 0, -1, np.int64)
+    bests = np.empty(slots if memo else 0, np.int64)
+    at = 0
     state = np.uint64(seed)
     for b in range(n_boot):
         cnt[:] = 0.0
@@ -537,17 +566,20 @@ def _bootstrap_sd(kb, kw, nu, ntot, e, s, sp, ns, top, tabs, n_boot, seed, peaks
                 cnt[di[min(int(x * n), n - 1)]] += 1.0
             else:
                 cnt[min(first_above(cum, nu, x * c, np.bool_(True)), nu - 1)] += 1.0
-        v[:] = 0.0
-        for u in range(nu):
-            w = cnt[u]
-            if w > 0.0:
-                a0 = u * n_cand
-                for q in range(n_cand):
-                    v[q] += w * tab[a0 + q]
-        best = 0
-        for q in range(1, n_cand):
-            if v[q] > v[best]:
-                best = q
+        best = -1
+        if memo:
+            key = 0
+            for u in range(nu):
+                key = key * (n + 1) + int(cnt[u])
+            at = (key * 40503) & (slots - 1)
+            while keys[at] != -1 and keys[at] != key:
+                at = (at + 1) & (slots - 1)
+            best = bests[at] if keys[at] == key else -1
+        if best < 0:
+            best = _resample_best(cnt, nu, tab, n_cand, v)
+            if memo:
+                keys[at] = key
+                bests[at] = best
         dist[b] = abs(cand[best] - e)
     heap_sort(dist, n_boot)      # not dist.sort(): numpy's quicksort cost about 1 s more to compile
     q68 = dist[min(n_boot - 1, int(math.ceil(0.6827 * n_boot)) - 1)]
