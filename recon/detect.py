@@ -179,7 +179,7 @@ DetTables = namedtuple("DetTables", ["m", "uni", "logm", "nk", "off", "g", "cols
 def det_tables(tabs) -> DetTables:
     """:class:`DetTables` of ml's tables ``tabs``."""
     return DetTables(*(getattr(tabs, f) for f in DetTables._fields))
-SpreadScratch = namedtuple("SpreadScratch", ["pos", "logw", "wt", "row", "rrow", "acc", "ivlo", "ivhi", "edge"])
+SpreadScratch = namedtuple("SpreadScratch", ["pos", "logw", "wt", "row", "rrow", "acc", "ivlo", "ivhi"])
 
 
 @njit(cache=True, nogil=True)
@@ -250,29 +250,6 @@ def _ll_at(kb, kw, nu, ntot, i, s, tabs, row):
 
 
 @njit(cache=True, nogil=True, _nrt=False, error_model="numpy", **INNER)
-def _edge_lls(kb, kw, nu, s, tabs, row, out):
-    """out[i] = :func:`_ll_at` at every edge shift i (below ia, above ib) of a pixel of at most
-    ML_SCAN_ALL distinct bins, the same sums in the same order (each shift's terms by detection),
-    a detection at a time over the shifts: off its pulse one term for all, contiguous."""
-    T = tabs
-    nk = T.nk
-    lo0 = row[nk]
-    out[:T.ia] = 0.0 * lo0
-    out[T.ib + 1:] = 0.0 * lo0
-    for u in range(nu):
-        off_pulse = kw[u] * lo0
-        a = kb[u] + T.off - nk + 1       # the shifts its pulse reaches: a..b
-        b = kb[u] + T.off
-        for lo, hi in ((0, T.ia - 1), (T.ib + 1, T.m - 1)):
-            for i in range(lo, min(hi, a - 1) + 1):
-                out[i] += off_pulse
-            for i in range(max(lo, a), min(hi, b) + 1):
-                out[i] += kw[u] * math.log(T.uni + s * (T.g[kb[u] + T.off - i] * T.inv_colsum[i] - T.uni))
-            for i in range(max(lo, b + 1), hi + 1):
-                out[i] += off_pulse
-
-
-@njit(cache=True, nogil=True, _nrt=False, error_model="numpy", **INNER)
 def _sweep(kb, kw, nu, s, tabs, rates, row, rrow, acc, lo, hi):
     """Add into acc[i] (zero outside the last pixel's span) the log-likelihood beyond all
     detections off the pulse of the return at each shift i of lo..hi (interior: within ia..ib)
@@ -336,18 +313,12 @@ def _spread(kb, kw, nu, ntot, e, s, best_i, tabs, rates, sp, region):
         niv = 1
     else:
         niv = photon_intervals(kb, nu, T.dhi, -T.dlo, T.m, sp.ivlo, sp.ivhi)
-    # every edge shift at once where all are asked for and a pixel's shifts scan all its bins
-    edges = niv == 1 and sp.ivlo[0] == 0 and sp.ivhi[0] == T.m - 1 and nu <= ML_SCAN_ALL
-    if edges:
-        _edge_lls(kb, kw, nu, s, T, row, sp.edge)
     ns = 0
     top = -math.inf
     for t in range(niv):
         for i in range(sp.ivlo[t], sp.ivhi[t] + 1):
             if T.ia <= i <= T.ib:
                 v = base_ll + acc[i]
-            elif edges:
-                v = sp.edge[i]
             else:
                 v = _ll_at(kb, kw, nu, ntot, i, s, T, row)
             if v >= bar:
@@ -640,8 +611,7 @@ def _detect_block(blk, ph, tabs, dt, rates, maxn, est_shift, known_gain, known_s
     px = pixel_scratch(maxn, T.m)
     scr = ml_scratch(maxn, tabs)
     sp = SpreadScratch(np.empty(T.m, np.int64), np.empty(T.m), np.empty(T.m), np.empty(T.nk + 1), np.empty(T.nk),
-                       np.zeros(T.m), np.empty(max(maxn, 1), np.int64), np.empty(max(maxn, 1), np.int64),
-                       np.empty(T.m))
+                       np.zeros(T.m), np.empty(max(maxn, 1), np.int64), np.empty(max(maxn, 1), np.int64))
     no_region = np.zeros(0, np.uint8)
     for p in block_pixels(ph, blk):
         out_gain[p] = 0.0

@@ -411,39 +411,3 @@ def test_the_regions_mark_where_the_pooled_gain_passes_at_the_window_s_edges_too
         assert not (regions[c].astype(bool) & ~near).any()
         if at_bin != 400.0:
             assert regions[:, :40].any() if at_bin < 400 else regions[:, -40:].any()
-
-
-def test_a_pixel_s_edge_shifts_at_once_are_its_likelihood_shift_by_shift():
-    """_edge_lls (every edge shift of a pixel at once, for the likelihood over shifts) gives
-    _ll_at's sums to the bit at each: detections near either edge, in the middle, repeated bins
-    and counts that are not whole, up to ML_SCAN_ALL distinct bins."""
-    from numba import njit
-
-    from spdepth.recon.detect import _edge_lls, _ll_at, _log_rates, _tables_of
-    from spdepth.recon.estimators.ml import ml_tables
-    from spdepth.recon.estimators.ml_bounds import ML_SCAN_ALL
-    from spdepth.recon.model import build_kernel
-
-    @njit
-    def both(kb, kw, s, dt, rates):
-        row = np.empty(dt.nk + 1)
-        _log_rates(s, dt, rates, row)
-        edge = np.full(dt.m, np.nan)
-        _edge_lls(kb, kw, kb.size, s, dt, row, edge)
-        each = np.full(dt.m, np.nan)
-        for i in range(dt.m):
-            if i < dt.ia or i > dt.ib:
-                each[i] = _ll_at(kb, kw, kb.size, kw.sum(), i, s, dt, row)
-        return edge, each
-
-    kern = build_kernel(B, pulse_rms_s=RMS_U * UNIT_S)
-    m = int(kern.n_bins)
-    dt, rates = _tables_of(ml_tables(kern, m))
-    rng = np.random.default_rng(4)
-    for n in (1, 2, 5, 20, ML_SCAN_ALL):
-        for _ in range(5):
-            kb = np.unique(np.concatenate([rng.integers(0, 130, n), rng.integers(m - 130, m, n // 2),
-                                           rng.integers(0, m, n // 3)]))[:ML_SCAN_ALL]
-            kw = rng.integers(1, 4, kb.size).astype(np.float64) * rng.choice([1.0, 0.7], kb.size)
-            edge, each = both(kb, kw, rng.uniform(0.01, 0.99), dt, rates)
-            assert np.array_equal(edge, each, equal_nan=True)
