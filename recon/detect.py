@@ -118,6 +118,14 @@ NEIGHBOUR_HALF_CORES = 2.0
 #: with 3 x 3), so they stay 3 x 3. The 256 x 256 daylight frame's decide_maps: 18% more CPU.
 SUPPORT_RADIUS = 2
 REGION_RADIUS = 1
+#: The neighbours' support first tries these signal shares, in this order, on the tabulated log
+#: rates (:func:`neighbour_gain_kernel`): a pooled gain over the threshold at one of them is
+#: enough, and ml's solve at every shift is left for the pixels that pass at none.
+SUPPORT_SHARES = (1 / 2, 7 / 8, 1 / 8)
+#: ... over the threshold by more than this many nats: the fixed share's gain and the solve's
+#: differ by rounding (about 1e-13 nats) and the solve's stop (ML_MODEL_TOL of the likelihood),
+#: so no pixel within it of the threshold is decided by the tables.
+SUPPORT_MARGIN = 1e-6
 #: Rows a block of a frame needs beside it to decide its edge rows as the whole frame does
 #: (``acq.distributed``'s halo).
 NEIGHBOUR_ROWS = max(SUPPORT_RADIUS, REGION_RADIUS)
@@ -242,12 +250,13 @@ def _ll_at(kb, kw, nu, ntot, i, s, tabs, row):
 
 
 @njit(cache=True, nogil=True, _nrt=False, error_model="numpy", **INNER)
-def _sweep(kb, kw, nu, s, tabs, rates, row, rrow, acc):
+def _sweep(kb, kw, nu, s, tabs, rates, row, rrow, acc, lo, hi):
     """Add into acc[i] (zero outside the last pixel's span) the log-likelihood beyond all
-    detections off the pulse of the return at each interior shift i (ia..ib) at the signal share
-    s: each detection adds its row of tabulated log rates over its reach, contiguous. Returns the
-    log rate of a detection off the pulse (the likelihood at an interior shift i is then
-    ntot * that + acc[i]); row gets the log rates by pulse offset (:func:`_log_rates`)."""
+    detections off the pulse of the return at each shift i of lo..hi (interior: within ia..ib)
+    at the signal share s: each detection adds its row of tabulated log rates over its reach,
+    contiguous. Returns the log rate of a detection off the pulse (the likelihood at such a
+    shift i is then ntot * that + acc[i]); row gets the log rates by pulse offset
+    (:func:`_log_rates`)."""
     T = tabs
     nk = T.nk
     _log_rates(s, T, rates, row)
@@ -256,8 +265,8 @@ def _sweep(kb, kw, nu, s, tabs, rates, row, rrow, acc):
         rrow[t] = row[nk - 1 - t] - lo0     # shift order: i = k + off - (nk - 1) + t sees offset nk - 1 - t
     for u in range(nu):
         i0 = kb[u] + T.off - nk + 1
-        t0 = max(0, T.ia - i0)
-        t1 = min(nk, T.ib - i0 + 1)
+        t0 = max(0, lo - i0)
+        t1 = min(nk, hi - i0 + 1)
         if t1 <= t0:
             continue
         seg = acc[i0 + t0:i0 + t1]
@@ -269,11 +278,12 @@ def _sweep(kb, kw, nu, s, tabs, rates, row, rrow, acc):
 
 
 @njit(cache=True, nogil=True, _nrt=False, error_model="numpy", **INNER)
-def _sweep_clear(kb, nu, tabs, acc):
-    """acc back to zero over the span :func:`_sweep` wrote for the detections kb (ascending)."""
+def _sweep_clear(kb, nu, tabs, acc, lo, hi):
+    """acc back to zero over the span :func:`_sweep` wrote for the detections kb (ascending) over
+    the shifts lo..hi."""
     T = tabs
-    lo = max(T.ia, kb[0] + T.off - T.nk + 1)
-    hi = min(T.ib, kb[nu - 1] + T.off)
+    lo = max(lo, kb[0] + T.off - T.nk + 1)
+    hi = min(hi, kb[nu - 1] + T.off)
     if hi >= lo:
         acc[lo:hi + 1] = 0.0
 
@@ -290,7 +300,7 @@ def _spread(kb, kw, nu, ntot, e, s, best_i, tabs, rates, sp, region):
     T = tabs
     row = sp.row
     acc = sp.acc
-    lo0 = _sweep(kb, kw, nu, s, T, rates, row, sp.rrow, acc)
+    lo0 = _sweep(kb, kw, nu, s, T, rates, row, sp.rrow, acc, T.ia, T.ib)
     base_ll = ntot * lo0                 # every detection off the pulse
     ref = _ll_at(kb, kw, nu, ntot, best_i, s, T, row)
     bar = ref - (SPREAD_NATS_BEYOND + T.logm)
@@ -316,7 +326,7 @@ def _spread(kb, kw, nu, ntot, e, s, best_i, tabs, rates, sp, region):
                 sp.logw[ns] = v
                 top = max(top, v)
                 ns += 1
-    _sweep_clear(kb, nu, T, acc)
+    _sweep_clear(kb, nu, T, acc, T.ia, T.ib)
     if ns == 0:
         return np.nan, 0, top
     total = 0.0
@@ -452,6 +462,25 @@ def _candidate(sp, ns, k, bar, peaks_only, region):
     return region.size == 0 or region[sp.pos[k]] != 0
 
 
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy", **INNER)
+def _resample_best(cnt, nu, tab, n_cand, v):
+    """The candidate (index) of the largest likelihood of a resample of counts cnt[:nu] by
+    distinct bin, the first of equals: each bin's row of ``tab`` (nu x n_cand, flat) times its
+    count summed in v."""
+    v[:] = 0.0
+    for u in range(nu):
+        w = cnt[u]
+        if w > 0.0:
+            a0 = u * n_cand
+            for q in range(n_cand):
+                v[q] += w * tab[a0 + q]
+    best = 0
+    for q in range(1, n_cand):
+        if v[q] > v[best]:
+            best = q
+    return best
+
+
 @njit(cache=True, nogil=True, error_model="numpy", **INNER)
 def _bootstrap_sd(kb, kw, nu, ntot, e, s, sp, ns, top, tabs, n_boot, seed, peaks_only, region, mode_thr):
     """Spread of the shift about e (bins) over ``n_boot`` bootstrap resamples of the pixel's
@@ -518,6 +547,16 @@ def _bootstrap_sd(kb, kw, nu, ntot, e, s, sp, ns, top, tabs, n_boot, seed, peaks
     v = np.empty(n_cand)
     cnt = np.empty(nu)
     dist = np.empty(n_boot)
+    # a resample's counts as one number (base n + 1), where that fits: a few detections have few
+    # distinct resamples (2 detections: 3), and a repeated one has the same best shift
+    # (an open-addressed table of twice the resamples' slots, -1 empty)
+    memo = nu * math.log(n + 1.0) < 62.0 * math.log(2.0)
+    slots = 1
+    while slots < 2 * n_boot:
+        slots *= 2
+    keys = np.full(slots if memo else 0, -1, np.int64)
+    bests = np.empty(slots if memo else 0, np.int64)
+    at = 0
     state = np.uint64(seed)
     for b in range(n_boot):
         cnt[:] = 0.0
@@ -527,17 +566,20 @@ def _bootstrap_sd(kb, kw, nu, ntot, e, s, sp, ns, top, tabs, n_boot, seed, peaks
                 cnt[di[min(int(x * n), n - 1)]] += 1.0
             else:
                 cnt[min(first_above(cum, nu, x * c, np.bool_(True)), nu - 1)] += 1.0
-        v[:] = 0.0
-        for u in range(nu):
-            w = cnt[u]
-            if w > 0.0:
-                a0 = u * n_cand
-                for q in range(n_cand):
-                    v[q] += w * tab[a0 + q]
-        best = 0
-        for q in range(1, n_cand):
-            if v[q] > v[best]:
-                best = q
+        best = -1
+        if memo:
+            key = 0
+            for u in range(nu):
+                key = key * (n + 1) + int(cnt[u])
+            at = (key * 40503) & (slots - 1)
+            while keys[at] != -1 and keys[at] != key:
+                at = (at + 1) & (slots - 1)
+            best = bests[at] if keys[at] == key else -1
+        if best < 0:
+            best = _resample_best(cnt, nu, tab, n_cand, v)
+            if memo:
+                keys[at] = key
+                bests[at] = best
         dist[b] = abs(cand[best] - e)
     heap_sort(dist, n_boot)      # not dist.sort(): numpy's quicksort cost about 1 s more to compile
     q68 = dist[min(n_boot - 1, int(math.ceil(0.6827 * n_boot)) - 1)]
@@ -658,15 +700,49 @@ def _pool_neighbours(bins, weights, offsets, w, p, dense, r):
     return kb, kw, nu, ntot
 
 
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy", **INNER)
+def _passes_at_shares(kb, kw, nu, ntot, lo, hi, bar, tabs, rates, shares, row, rrow, acc):
+    """Whether the gain of the detections kb (counts kw) at some fixed share of ``shares`` exceeds
+    ``bar`` at an interior shift of lo..hi, the likelihood at each read from the tabulated rows
+    (:func:`_sweep`, restricted to those shifts). The rows' chords lie below the log rates, so such
+    a gain is one the profiled gain at that shift reaches too (to the sums' rounding)."""
+    T = tabs
+    lo = max(lo, T.ia)
+    hi = min(hi, T.ib)
+    if hi < lo:
+        return False
+    passed = False
+    for j in range(shares.size):
+        lo0 = _sweep(kb, kw, nu, shares[j], T, rates, row, rrow, acc, lo, hi)
+        base = ntot * (lo0 + T.logm)
+        for i in range(lo, hi + 1):
+            if base + acc[i] > bar:
+                passed = True
+        _sweep_clear(kb, nu, T, acc, lo, hi)
+        if passed:
+            return True
+    return False
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
-def neighbour_gain_kernel(bins, weights, offsets, w, cand, est, half, radius, tabs, out):
-    """For each candidate pixel cand[c] (row-major index in a frame w pixels wide): the largest
+def neighbour_gain_kernel(bins, weights, offsets, w, cand, est, half, radius, thr, tabs, rates, shares, out):
+    """For each candidate pixel cand[c] (row-major index in a frame w pixels wide): whether the
     profiled gain of one return over background alone (nats) of the detections of the pixels
-    within ``radius`` of it pooled (its own left out), over the integer shifts within ``half`` bins
-    of its own estimate est[cand[c]] (bins). bins/weights/offsets: every pixel's in-window bins (weights empty: one
-    detection each)."""
+    within ``radius`` of it pooled (its own left out) exceeds ``thr`` at an integer shift within
+    ``half`` bins of its own estimate est[cand[c]] (bins). bins/weights/offsets: every pixel's
+    in-window bins (weights empty: one detection each); ``tabs``: the test's :class:`DetTables`,
+    ``rates`` its :func:`rate_tables`. out[c]: over ``thr`` where one passes (inf where a fixed
+    share did), else the largest (0 at least).
+
+    Most candidates of a surface pass at a fixed share of ``shares`` (:func:`_passes_at_shares`,
+    by SUPPORT_MARGIN beyond ``thr``), a sweep of table lookups; the rest get ml's solve at each
+    shift in turn (:func:`recon.estimators.ml_bounds._ml_at_int`), which stops at the first
+    that passes."""
     T = tabs
     dense = np.zeros(T.m)
+    row = np.empty(T.nk + 1)
+    rrow = np.empty(T.nk)
+    acc = np.zeros(T.m)
     for c in range(cand.size):
         p = cand[c]
         kb, kw, nu, ntot = _pool_neighbours(bins, weights, offsets, w, p, dense, radius)
@@ -674,13 +750,20 @@ def neighbour_gain_kernel(bins, weights, offsets, w, cand, est, half, radius, ta
         if nu == 0:
             continue
         centre = int(round(est[p]))
+        lo = max(0, centre - half)
+        hi = min(T.m - 1, centre + half)
+        if _passes_at_shares(kb, kw, nu, ntot, lo, hi, thr + SUPPORT_MARGIN, T, rates, shares, row, rrow, acc):
+            out[c] = np.inf
+            continue
         best = 0.0
         s0 = 0.5
-        for i in range(max(0, centre - half), min(T.m, centre + half + 1)):
+        for i in range(lo, hi + 1):
             s, ll = _ml_at_int(kb, kw, nu, ntot, i, T.g, T.off, T.colsum, T.uni, s0, -np.inf)
             if 0.0 < s < 1.0:
                 s0 = s
             best = max(best, ll + ntot * T.logm)
+            if best > thr:
+                break
         out[c] = best
 
 
@@ -706,19 +789,39 @@ def _most_within(kb, kw, nu, span):
     return most
 
 
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy", **INNER)
+def _edge_reach(kb, kw, nu, tabs, out):
+    """out[i] at the window's edge shifts (below ia, above ib): the detections (counts kw of the
+    bins kb[:nu]) whose pulse reaches shift i, a detection at bin k those of k + off - nk + 1 ..
+    k + off."""
+    T = tabs
+    out[:T.ia] = 0.0
+    out[T.ib + 1:] = 0.0
+    for u in range(nu):
+        a = kb[u] + T.off - T.nk + 1
+        b = kb[u] + T.off
+        for i in range(max(a, 0), min(b, T.ia - 1) + 1):
+            out[i] += kw[u]
+        for i in range(max(a, T.ib + 1), min(b, T.m - 1) + 1):
+            out[i] += kw[u]
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
 def neighbour_region_kernel(bins, weights, offsets, w, cand, half, thr, tabs, rates, shares, out):
     """For each supported pixel cand[c]: out[c, i] = 1 where a return at shift i is within
     ``half`` bins of a shift at which its neighbours' pooled detections (its own left out) pass
     the support test (gain over ``thr`` nats at the best of the signal ``shares``), else 0: where
     its neighbours see returns. ``tabs``: the test's :class:`DetTables`, ``rates`` its
-    :func:`rate_tables`; the likelihood at every shift from one sweep a share (:func:`_sweep`)."""
+    :func:`rate_tables`; the likelihood at every interior shift from one sweep a share
+    (:func:`_sweep`), at the window's edges (other column sums) one by one where a bound allows
+    a pass."""
     T = tabs
     m = T.m
     row = np.empty(T.nk + 1)
     rrow = np.empty(T.nk)
     acc = np.zeros(m)
     dense = np.zeros(m)
+    reach = np.zeros(m)
     # a detection's term beyond the off-pulse rate's is at most log(1 + s g_max / (C_min uni (1 - s)))
     # (the pulse's peak, the smallest column sum: a window's edge), and only within nk bins of the
     # shift: a share whose bound with the most detections any nk bins hold cannot pass is not swept
@@ -737,23 +840,30 @@ def neighbour_region_kernel(bins, weights, offsets, w, cand, half, thr, tabs, ra
         if nu == 0:
             continue
         most = _most_within(kb, kw, nu, T.nk)
+        _edge_reach(kb, kw, nu, T, reach)
         for j in range(shares.size):
             s = shares[j]
-            if ntot * math.log(1.0 - s) + most * math.log(1.0 + s * gmax * m / (cmin * (1.0 - s))) <= thr:
+            floor = ntot * math.log(1.0 - s)
+            lmax = math.log(1.0 + s * gmax * m / (cmin * (1.0 - s)))
+            if floor + most * lmax <= thr:
                 continue
-            lo0 = _sweep(kb, kw, nu, s, T, rates, row, rrow, acc)
+            lo0 = _sweep(kb, kw, nu, s, T, rates, row, rrow, acc, T.ia, T.ib)
             base = ntot * (lo0 + T.logm)
             upto = -1             # marked up to here at this share
             for i in range(m):
                 if T.ia <= i <= T.ib:
                     g = base + acc[i]
+                elif T.colsum[i] > 0.0 and floor + reach[i] * lmax <= thr - SUPPORT_MARGIN:
+                    # the same bound at this shift, with the detections that reach it: the
+                    # logs of an edge shift's likelihood were most of the regions' time
+                    continue
                 else:
                     g = _ll_at(kb, kw, nu, ntot, i, s, T, row) + ntot * T.logm
                 if g > thr:
                     for k in range(max(upto + 1, i - half), min(m, i + half + 1)):
                         reg[k] = 1
                     upto = i + half
-            _sweep_clear(kb, nu, T, acc)
+            _sweep_clear(kb, nu, T, acc, T.ia, T.ib)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -1012,10 +1122,11 @@ def neighbour_support(bins, weights, offsets, shape, kern, est, cand, false_alar
     gains = np.zeros(cand.size)
     bins, weights, offsets, cand = _frame_arrays(bins, weights, offsets, cand)
     est = np.ascontiguousarray(est, np.float64)
-    tabs = ml_tables(kern, int(kern.n_bins))
+    dt, rates = _tables_of(ml_tables(kern, int(kern.n_bins)))
+    shares = np.array(SUPPORT_SHARES)
     over_threads(lambda a, b: neighbour_gain_kernel(bins, weights, offsets, int(shape[1]), cand[a:b], est,
-                                                    int(half), SUPPORT_RADIUS, tabs, gains[a:b]), cand.size,
-                 max(cand.size, 1))
+                                                    int(half), SUPPORT_RADIUS, thr, dt, rates, shares, gains[a:b]),
+                 cand.size, max(cand.size, 1))
     return cand[gains > thr], thr
 
 

@@ -341,3 +341,113 @@ def test_no_dispersion_scaling_with_a_sampled_response_or_without_spreads():
     s = ReconSettings(method="ml", binning=B, pulse_rms_s=2 * RMS_U * UNIT_S)
     lean, full = reconstruct(store, s, spreads=False), reconstruct(store, s)
     assert "pulse_dispersion" not in lean.settings and "pulse_dispersion" in full.settings
+
+
+def _frame(rng, side, n_signal, n_background, at_bin, m, weighted=False):
+    """(bins, weights, offsets) of a frame: each pixel n_signal detections about bin at_bin (the
+    pulse's RMS RMS_U / 5 bins) and n_background over the m bins; ``weighted``: as a count store's
+    distinct bins, with counts that are not whole."""
+    bins, weights, offsets = [], [], [0]
+    for _ in range(side * side):
+        x = np.concatenate([at_bin + RMS_U / 5 * rng.standard_normal(n_signal), rng.uniform(0, m, n_background)])
+        b = np.clip(np.floor(x), 0, m - 1).astype(np.int64)
+        if weighted:
+            b, c = np.unique(b, return_counts=True)
+            weights.append(c * rng.uniform(0.8, 1.3, c.size))
+        bins.append(np.sort(b))
+        offsets.append(offsets[-1] + b.size)
+    w = np.concatenate(weights) if weighted else np.empty(0)
+    return np.concatenate(bins), w, np.array(offsets, np.int64)
+
+
+def _pooled(bins, weights, offsets, side, p, r):
+    """The detections of the pixels within r of pixel p pooled, its own left out (distinct bins
+    ascending, counts), added in the support kernel's order."""
+    y, x = divmod(p, side)
+    dense = {}
+    for yy in range(max(0, y - r), min(side, y + r + 1)):
+        for xx in range(max(0, x - r), min(side, x + r + 1)):
+            q = yy * side + xx
+            if q != p:
+                for a in range(offsets[q], offsets[q + 1]):
+                    dense[int(bins[a])] = dense.get(int(bins[a]), 0.0) + (float(weights[a]) if weights.size else 1.0)
+    kb = np.array(sorted(dense), np.int64)
+    return kb, np.array([dense[k] for k in kb])
+
+
+@pytest.mark.parametrize("n_signal,n_background,weighted", [(2, 2, False), (1, 10, False), (3, 30, False),
+                                                            (0, 4, False), (2, 3, True)])
+def test_the_support_decides_as_ml_s_solve_at_every_shift(n_signal, n_background, weighted):
+    """neighbour_support's pixels are those whose pooled neighbours' profiled gain (ml's solve at
+    each shift of the span, from the share of the shift before) passes the threshold: the fixed
+    shares it tries first on the tabulated rates only pass pixels the solve passes too (few and
+    many detections pooled, beyond ML_SCAN_ALL distinct bins, counts that are not whole)."""
+    from spdepth.recon.detect import SUPPORT_RADIUS, neighbour_support
+    from spdepth.recon.estimators.ml import ml_tables
+    from spdepth.recon.estimators.ml_bounds import _ml_at_int
+    from spdepth.recon.model import build_kernel
+
+    rng = np.random.default_rng(n_signal * 100 + n_background)
+    kern = build_kernel(B, pulse_rms_s=RMS_U * UNIT_S)
+    m = int(kern.n_bins)
+    side = 14
+    bins, weights, offsets = _frame(rng, side, n_signal, n_background, 300.0, m, weighted)
+    # estimates on the surface, beside it and anywhere (the window's edges too)
+    est = np.where(rng.uniform(size=side * side) < 0.5, 300 + rng.normal(0, 15, side * side),
+                   rng.uniform(0, m - 1, side * side))
+    cand = np.arange(side * side)
+    half = 18
+    got, thr = neighbour_support(bins, weights, offsets, (side, side), kern, est, cand, 1e-3, half)
+    T = ml_tables(kern, m)
+    want = []
+    for p in cand:
+        kb, kw = _pooled(bins, weights, offsets, side, p, SUPPORT_RADIUS)
+        best, s0, c = 0.0, 0.5, int(round(est[p]))
+        for i in range(max(0, c - half), min(m, c + half + 1)) if kb.size else ():
+            s, ll = _ml_at_int(kb, kw, kb.size, kw.sum(), i, T.g, T.off, T.colsum, T.uni, s0, -np.inf)
+            s0 = s if 0.0 < s < 1.0 else s0
+            best = max(best, ll + kw.sum() * T.logm)
+        if best > thr:
+            want.append(p)
+    assert np.array_equal(got, np.array(want, np.int64))
+    if n_signal >= 2:
+        assert got.size > cand.size / 4
+
+
+@pytest.mark.parametrize("at_bin", [15.0, 785.0, 400.0])
+def test_the_regions_mark_where_the_pooled_gain_passes_at_the_window_s_edges_too(at_bin):
+    """neighbour_regions marks the shifts within ``half`` of one where the 8 neighbours' pooled gain
+    at one of REGION_SHARES passes the threshold, computed here from its definition: at the
+    window's edges (a surface there, other column sums) the bound that spares most edge shifts'
+    logs must not drop one that passes."""
+    from spdepth.recon.detect import REGION_RADIUS, REGION_SHARES, neighbour_regions
+    from spdepth.recon.estimators.ml import ml_tables
+    from spdepth.recon.model import build_kernel
+
+    rng = np.random.default_rng(int(at_bin))
+    kern = build_kernel(B, pulse_rms_s=RMS_U * UNIT_S)
+    m = int(kern.n_bins)
+    side = 8
+    bins, weights, offsets = _frame(rng, side, 2, 2, at_bin, m)
+    cand = np.arange(side * side)
+    half, thr = 18, 7.0
+    regions = neighbour_regions(bins, weights, offsets, side, kern, cand, half, thr)
+    T = ml_tables(kern, m)
+    i = np.arange(m)
+    eps = 0.05        # the interior's tabulated rates lie below the exact ones by less
+    for c in cand:
+        kb, kw = _pooled(bins, weights, offsets, side, c, REGION_RADIUS)
+        d = kb[:, None] - i[None, :] + T.off
+        g = np.where((d >= 0) & (d < T.nk), T.g[np.clip(d, 0, T.nk - 1)], 0.0) / T.colsum[None, :]
+        gain = np.max([(kw[:, None] * np.log(T.uni + s * (g - T.uni))).sum(0) + kw.sum() * T.logm
+                       for s in REGION_SHARES], axis=0)
+        sure = np.flatnonzero(gain > thr + eps)
+        maybe = np.flatnonzero(gain > thr - eps)
+        for k in sure:
+            assert regions[c, max(0, k - half):k + half + 1].all()
+        near = np.zeros(m, bool)
+        for k in maybe:
+            near[max(0, k - half):k + half + 1] = True
+        assert not (regions[c].astype(bool) & ~near).any()
+        if at_bin != 400.0:
+            assert regions[:, :40].any() if at_bin < 400 else regions[:, -40:].any()
