@@ -450,10 +450,6 @@ class KernelWarmUp:
         except Exception:  # noqa: BLE001 - the reconstruction itself reports what is wrong
             log.debug("estimator warm-up failed; the reconstruction compiles what it needs",
                       exc_info=True)
-        if self._request.png:
-            # the picture's library (0.37 s), here rather than after the reconstruction
-            import matplotlib.figure  # noqa: F401
-            from matplotlib.backends import backend_agg  # noqa: F401
 
     def _warm_reader(self) -> None:
         try:

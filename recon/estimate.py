@@ -90,10 +90,7 @@ def warm_up(settings: ReconSettings, decide: bool = True, estimator: bool = True
     also the return test's (:mod:`recon.detect`, which every reconstruction runs, with the
     neighbours' support); False: the estimator's alone. ``estimator`` False: the return test's
     alone (what :func:`compile_apart` compiles beside an estimator compiled here). With
-    ``estimator``, settings that give no pulse also load what measures it (:func:`recon.irf.warm_up`).
-    With ``estimator``, the test's part is skipped while a process of :func:`compile_apart` compiles
-    it: a reconstruction waits for that process only before its test, so its estimator runs on the
-    data meanwhile (the cold mannequin recon's uos, 1.2 s, had waited with it)."""
+    ``estimator``, settings that give no pulse also load what measures it (:func:`recon.irf.warm_up`)."""
     if estimator and given_pulse(settings) is None:
         from spdepth.recon.irf import warm_up as warm_pulse_estimate
 
@@ -114,7 +111,6 @@ def warm_up(settings: ReconSettings, decide: bool = True, estimator: bool = True
         _wait_apart(settings.method)
         bb, kern, notes = resolve_model(one, settings)
         estimators.for_settings(settings).run(one, settings, bb, kern, notes)
-        decide = decide and not _compiling_apart(DECIDE)
     if decide:
         _wait_apart(DECIDE)
     if estimator and decide:
@@ -142,11 +138,6 @@ DECIDE = "decide"
 #: what it compiles (method names, DECIDE): :func:`reconstruct` and :func:`warm_up` wait for one
 #: before they need its kernels, so that this process loads them rather than compiling them too.
 _APART: list[tuple[subprocess.Popen, frozenset]] = []
-
-
-def _compiling_apart(what: str) -> bool:
-    """Whether a process of :func:`compile_apart` still compiles ``what`` (a method, DECIDE)."""
-    return any(what in covers and child.poll() is None for child, covers in _APART)
 
 
 def _wait_apart(what: str) -> None:
