@@ -451,3 +451,35 @@ def test_the_regions_mark_where_the_pooled_gain_passes_at_the_window_s_edges_too
         assert not (regions[c].astype(bool) & ~near).any()
         if at_bin != 400.0:
             assert regions[:, :40].any() if at_bin < 400 else regions[:, -40:].any()
+
+
+def test_the_dispersion_s_terms_of_blocks_of_rows_are_the_frame_s(monkeypatch):
+    # every stride-th pixel of the frame, so blocks of rows (acq.distributed) give, concatenated in
+    # order, the frame's terms; here 50 x 50 pixels sampled every 7th
+    import spdepth.recon.detect as D
+
+    monkeypatch.setattr(D, "DISPERSION_PIXELS", 2500 // 7)
+    rng = np.random.default_rng(15)
+    store = _store(rng, 2500, 8, 4)
+    s = ReconSettings(method="ml", binning=B, pulse_rms_s=RMS_U * UNIT_S)
+    maps = reconstruct(store, s, dispersion=False)
+    whole = D.dispersion_terms(store, s, maps)
+    assert 250 < whole[0].size <= -(-2500 // 7)
+    parts = [D.dispersion_terms(store, s, maps, rows=(r0, r1)) for r0, r1 in ((0, 13), (13, 14), (14, 50))]
+    for i in (0, 1):
+        assert np.array_equal(np.concatenate([p[i] for p in parts]), whole[i])
+    # a block's own maps: its pixels counted from the frame's first_pixel on
+    lower = dataclasses.replace(maps, **{k: np.asarray(getattr(maps, k))[20:] for k in
+                                         ("tof_s", "background", "signal")})
+    sub = PhotonStore.from_pixel_indices(*_rows_from(store, 20), (30, 50), UNIT_S)
+    got = D.dispersion_terms(sub, s, lower, first_pixel=20 * 50, frame_pixels=2500)
+    ref = D.dispersion_terms(store, s, maps, rows=(20, 50))
+    assert np.array_equal(got[0], ref[0]) and np.array_equal(got[1], ref[1])
+
+
+def _rows_from(store, r0):
+    """(pixel indices from row r0 on, renumbered, and their times) of ``store``."""
+    counts = np.diff(store.offsets)
+    pix = np.repeat(np.arange(store.n_pixels), counts)
+    keep = pix >= r0 * store.shape[1]
+    return pix[keep] - r0 * store.shape[1], store.times[keep]
