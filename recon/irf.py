@@ -49,8 +49,11 @@ class IrfEstimate:
     """A response measured from the data and how it was found.
 
     irf:         the response (times relative to its centroid, counts), source "estimated".
-    core_rms_s:  RMS of a Gaussian with the same FWHM: the width of the sharp part (the default
-                 bin width is a ninth of this, so a long tail does not blur the leading edge).
+    core_rms_s:  the width of the sharp part, as a Gaussian's RMS: the EMG's own Gaussian
+                 ("emg-pairs"), or the leading edge's 10-90% rise read as a Gaussian's
+                 (``recon.model.edge_core_rms``, "aligned"); with a long tail, far less than the
+                 FWHM's Gaussian (the mannequin's: 62 ps against 132). The default bin width is a
+                 ninth of it, so a long tail does not blur the leading edge.
     fwhm_s:      full width at half maximum.
     tail_share:  share of the response later than 3 core RMS after its peak.
     photons:     detections used; pixels: pixels used.
