@@ -257,6 +257,7 @@ def block_task(plan: Plan, b: int, settings, time_unit_s: float, *shares, spread
     from spdepth.recon.detect import NEIGHBOUR_ROWS, dispersion_terms
     from spdepth.recon.estimate import reconstruct
     from spdepth.recon.photons import PhotonStore
+    from spdepth.recon.pixelwise import binned_once
 
     r0, r1 = plan.rows[b], plan.rows[b + 1]
     h, w = plan.shape
@@ -266,9 +267,10 @@ def block_task(plan: Plan, b: int, settings, time_unit_s: float, *shares, spread
     # a pixel's detections all come from one block's shares, in chunk order, which the store keeps
     keep = (pixel >= lo * w) & (pixel < hi * w)
     store = PhotonStore.from_pixel_indices(pixel[keep] - lo * w, dtime[keep], (hi - lo, w), time_unit_s)
-    maps = reconstruct(store, settings, spreads=spreads, dispersion=False)
-    terms = dispersion_terms(store, settings, maps, first_pixel=lo * w, frame_pixels=h * w,
-                             rows=(r0 - lo, r1 - lo)) if spreads else None
+    with binned_once():                 # the dispersion's terms read the detections the estimator binned
+        maps = reconstruct(store, settings, spreads=spreads, dispersion=False)
+        terms = dispersion_terms(store, settings, maps, first_pixel=lo * w, frame_pixels=h * w,
+                                 rows=(r0 - lo, r1 - lo)) if spreads else None
     return crop_rows(maps, r0 - lo, r1 - lo), terms
 
 

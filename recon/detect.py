@@ -718,6 +718,7 @@ def _passes_at_shares(kb, kw, nu, ntot, lo, hi, bar, tabs, rates, shares, row, r
         for i in range(lo, hi + 1):
             if base + acc[i] > bar:
                 passed = True
+                break
         _sweep_clear(kb, nu, T, acc, lo, hi)
         if passed:
             return True

@@ -395,13 +395,28 @@ def irf_fwhm_rms_s(irf: Irf) -> float:
     c = np.asarray(c, np.float64)
     if t.size < 3:
         return irf.rms_s
-    above = np.flatnonzero(c >= 0.5 * c.max())
-    lo, hi = above[0], above[-1]
-    # the half-maximum crossings between samples (linear), as edge_core_rms reads the edge
-    half = 0.5 * c.max()
-    t_lo = t[lo] if lo == 0 else t[lo - 1] + (half - c[lo - 1]) / (c[lo] - c[lo - 1]) * (t[lo] - t[lo - 1])
-    t_hi = t[hi] if hi == t.size - 1 else t[hi] + (c[hi] - half) / (c[hi] - c[hi + 1]) * (t[hi + 1] - t[hi])
-    return float(min((t_hi - t_lo) / FWHM_PER_RMS, irf.rms_s))
+    pk = int(np.argmax(c))
+    half = 0.5 * c[pk]
+
+    def at(x: float) -> float:          # the time at a fractional sample index
+        j = min(int(x), t.size - 2)
+        return float(t[j] + (x - j) * (t[j + 1] - t[j]))
+
+    width = at(level_crossing(c, pk, half, 1)) - at(level_crossing(c, pk, half, -1))
+    return float(min(width / FWHM_PER_RMS, irf.rms_s))
+
+
+def level_crossing(shape: np.ndarray, pk: int, level: float, side: int) -> float:
+    """Where a sampled response ``shape`` falls below ``level`` walking from its peak sample ``pk``
+    towards ``side`` (-1: earlier, 1: later), as a fractional sample index (linear between
+    samples; the end sample if it never does)."""
+    j = pk
+    while 0 <= j + side < shape.size and shape[j + side] >= level:
+        j += side
+    if not 0 <= j + side < shape.size:
+        return float(j)
+    near, far = shape[j], shape[j + side]
+    return (j + side) - side * (level - far) / (near - far) if near > far else float(j)
 
 
 def edge_core_rms(shape: np.ndarray, step: float) -> float:
@@ -409,17 +424,8 @@ def edge_core_rms(shape: np.ndarray, step: float) -> float:
     peak spans 2.563 RMS of a Gaussian (linear interpolation between samples)."""
     pk = int(np.argmax(shape))
     peak = shape[pk]
-
-    def crossing(level):
-        j = pk
-        while j > 0 and shape[j - 1] >= level:
-            j -= 1
-        if j == 0:
-            return 0.0
-        lo, hi = shape[j - 1], shape[j]
-        return (j - 1) + (level - lo) / (hi - lo) if hi > lo else float(j)
-
-    return float(max((crossing(0.9 * peak) - crossing(0.1 * peak)) * step / 2.563, 0.5 * step))
+    rise = level_crossing(shape, pk, 0.9 * peak, -1) - level_crossing(shape, pk, 0.1 * peak, -1)
+    return float(max(rise * step / 2.563, 0.5 * step))
 
 
 class MethodNames(Sequence):
