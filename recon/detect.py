@@ -601,15 +601,22 @@ def _pixel_seed(kb, kw, nu):
     return seed
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _total(kw, nu):
+    """The detections of a pixel's distinct bins' counts kw[:nu], summed in order."""
+    ntot = 0.0
+    for u in range(nu):
+        ntot += kw[u]
+    return ntot
+
+
 # inlined into detect_kernel: as a function of its own it was compiled, then optimised and emitted
 # again inside detect_kernel (1.8-3.9 s of CPU on a cold cache for a loop over blocks)
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _detect_block(blk, ph, tabs, dt, rates, maxn, est_shift, known_gain, known_share, thr, mode_thr, n_boot, regions, out_gain, out_sd, out_sandwich, out_boot):
-    """The pixels of block blk of :func:`detect_kernel` with their scratch (ml's tables ``tabs`` go
-    to ml's search only, the test's own functions read ``dt``)."""
+def _detect_block(blk, ph, dt, rates, maxn, est_shift, gain_in, index_in, share_in, thr, mode_thr, n_boot, regions, out_gain, out_sd, out_sandwich, out_boot):
+    """The pixels of block blk of :func:`detect_kernel` with their scratch."""
     T = dt
     px = pixel_scratch(maxn, T.m)
-    scr = ml_scratch(maxn, tabs)
     sp = SpreadScratch(np.empty(T.m, np.int64), np.empty(T.m), np.empty(T.m), np.empty(T.nk + 1), np.empty(T.nk),
                        np.zeros(T.m), np.empty(max(maxn, 1), np.int64), np.empty(max(maxn, 1), np.int64))
     no_region = np.zeros(0, np.uint8)
@@ -622,18 +629,11 @@ def _detect_block(blk, ph, tabs, dt, rates, maxn, est_shift, known_gain, known_s
         if nu == 0:
             continue
         kb, kw = px.kb, px.kw
-        ntot = 0.0
-        for u in range(nu):
-            ntot += kw[u]
+        ntot = _total(kw, nu)
         e = est_shift[p]
-        if known_gain.size and math.isfinite(known_gain[p]):
-            # the estimator ran this very search (ml): its gain, its shift and share
-            gain = known_gain[p]
-            best_i = min(max(int(round(e)), 0), T.m - 1) if math.isfinite(e) else -1
-            best_s = known_share[p]
-        else:
-            best_ll, best_i, best_s = integer_optimum(kb, kw, nu, ntot, tabs, scr)
-            gain = best_ll + ntot * T.logm if best_i >= 0 else 0.0
+        gain = gain_in[p]
+        best_i = index_in[p]
+        best_s = share_in[p]
         out_gain[p] = gain
         if not (gain > thr and math.isfinite(e) and best_i >= 0):
             continue       # no return, or no depth to give an uncertainty: nothing more to say
@@ -651,17 +651,44 @@ def _detect_block(blk, ph, tabs, dt, rates, maxn, est_shift, known_gain, known_s
 # numpy's error model as in _detect_block, which is inlined here and compiled under these options
 # (python's would add a zero check to every division and raise on one)
 @njit(cache=True, nogil=True, error_model="numpy")
-def detect_kernel(ph, tabs, dt, rates, maxn, est_shift, known_gain, known_share, thr, mode_thr, n_boot, regions, out_gain, out_sd, out_sandwich, out_boot):
-    """Per pixel of ph (:class:`recon.kernels.Photons`, at most maxn entries a pixel) with ml's tables
-    (:class:`recon.estimators.ml_kernels.MlTables`; ``dt`` its :class:`DetTables`): the largest log-likelihood gain of one return
-    over background alone (nats; ml's exact search over every integer shift, or ``known_gain``
-    where finite, the estimator's own, with the signal share ``known_share``), and where it passes
-    ``thr`` and the estimator gave a shift ``est_shift`` (bins, NaN: none) the spreads of the
-    shift about it (bins; NaN: none): the likelihood's (:func:`_spread`), the sandwich variance
-    (bins^2) and the bootstrap's."""
+def detect_kernel(ph, dt, rates, maxn, est_shift, gain_in, index_in, share_in, thr, mode_thr, n_boot, regions, out_gain, out_sd, out_sandwich, out_boot):
+    """Per pixel of ph (:class:`recon.kernels.Photons`, at most maxn entries a pixel) with the
+    test's tables ``dt`` (:class:`DetTables`), given its largest log-likelihood gain of one return
+    over background alone ``gain_in`` (nats), the integer shift ``index_in`` (-1: none) and signal
+    share ``share_in`` where it is reached (:func:`search_kernel`, or the estimator's own search):
+    the gain (0 without a detection), and where it passes ``thr`` and the estimator gave a shift
+    ``est_shift`` (bins, NaN: none) the spreads of the shift about it (bins; NaN: none): the
+    likelihood's (:func:`_spread`), the sandwich variance (bins^2) and the bootstrap's."""
     for blk in range(n_blocks(ph)):
-        _detect_block(np.int64(blk), ph, tabs, dt, rates, maxn, est_shift, known_gain, known_share, thr, mode_thr,
+        _detect_block(np.int64(blk), ph, dt, rates, maxn, est_shift, gain_in, index_in, share_in, thr, mode_thr,
                       n_boot, regions, out_gain, out_sd, out_sandwich, out_boot)
+
+
+# a kernel of its own, not a branch of detect_kernel: ml's search is most of the test's compile
+# (ml's estimator gives its gains, and then never runs it), and on a cold cache a second process
+# compiles one while this one compiles the other (recon.estimate.warm_up)
+@njit(cache=True, nogil=True, error_model="numpy")
+def search_kernel(ph, tabs, maxn, todo, out_gain, out_index, out_share):
+    """Per pixel of ph where ``todo``: the largest log-likelihood gain of one return over
+    background alone (nats, 0 where that wins or without a detection; ml's exact search over every
+    integer shift with ml's tables ``tabs``), its integer shift (-1: none) and signal share."""
+    px = pixel_scratch(maxn, tabs.m)
+    scr = ml_scratch(maxn, tabs)
+    for p in range(ph.offsets.size - 1):
+        if not todo[p]:
+            continue
+        out_gain[p] = 0.0
+        out_index[p] = -1
+        out_share[p] = 0.0
+        nu, _ = pixel_bins(ph, p, px)
+        if nu == 0:
+            continue
+        kb, kw = px.kb, px.kw
+        ntot = _total(kw, nu)
+        best_ll, best_i, best_s = integer_optimum(kb, kw, nu, ntot, tabs, scr)
+        out_gain[p] = best_ll + ntot * tabs.logm if best_i >= 0 else 0.0
+        out_index[p] = best_i
+        out_share[p] = best_s
 
 
 @njit(cache=True, nogil=True, error_model="numpy", **INNER)
@@ -881,9 +908,7 @@ def region_ml_kernel(ph, tabs, maxn, cand, regions, out_shift, out_amp, out_bg, 
     for c in range(cand.size):
         nu, n = pixel_bins(ph, cand[c], px)
         kb, kw = px.kb, px.kw
-        ntot = 0.0
-        for u in range(nu):
-            ntot += kw[u]
+        ntot = _total(kw, nu)
         out_shift[c], out_amp[c], out_bg[c], out_var[c], out_gain[c], out_share[c] = np.nan, 0.0, 0.0, np.nan, 0.0, 0.0
         best_ll, best_i, best_s = -ntot * T.logm, -1, 0.0
         s0 = 0.5
@@ -947,6 +972,43 @@ def _tables_of(tabs):
     return hit[1], hit[2]
 
 
+def _slice(bins, weights, offsets, p0: int, p1: int):
+    """(Photons, most entries a pixel) of the pixels [p0, p1) of a frame's arrays."""
+    from spdepth.recon.kernels import Photons
+
+    o = offsets[p0:p1 + 1]
+    w = weights[o[0]:o[-1]] if weights.size else NO_WEIGHTS
+    return Photons(bins[o[0]:o[-1]], o - o[0], w), int(np.diff(o).max()) if p1 > p0 else 0
+
+
+def search(bins: np.ndarray, offsets: np.ndarray, kern, weights: np.ndarray = NO_WEIGHTS,
+           todo: np.ndarray | None = None, gain: np.ndarray | None = None, index: np.ndarray | None = None,
+           share: np.ndarray | None = None):
+    """(gain, index, share) per pixel of the detections ``bins`` (grouped by ``offsets``, as
+    :func:`detect` takes them): the test's statistic by ml's exact search over every integer
+    shift (:func:`search_kernel`) at the pixels ``todo`` (default all), written into ``gain``,
+    ``index`` and ``share`` where given. On numba's threads, as :func:`detect`."""
+    from spdepth.recon.estimators.ml import ml_tables
+
+    bins = np.ascontiguousarray(bins, np.int64)
+    offsets = np.ascontiguousarray(offsets, np.int64)
+    weights = np.ascontiguousarray(weights, np.float64)
+    npix = offsets.size - 1
+    todo = np.ones(npix, np.bool_) if todo is None else todo
+    gain = np.zeros(npix) if gain is None else gain
+    index = np.full(npix, -1, np.int64) if index is None else index
+    share = np.zeros(npix) if share is None else share
+    tabs = ml_tables(kern, int(kern.n_bins))
+
+    def run(p0: int, p1: int) -> None:
+        if todo[p0:p1].any():
+            ph, maxn = _slice(bins, weights, offsets, p0, p1)
+            search_kernel(ph, tabs, maxn, todo[p0:p1], gain[p0:p1], index[p0:p1], share[p0:p1])
+
+    over_threads(run, npix, max(npix, 1))
+    return gain, index, share
+
+
 def detect(bins: np.ndarray, offsets: np.ndarray, kern, est_shift: np.ndarray, false_alarm: float,
            weights: np.ndarray = NO_WEIGHTS, spread_all: bool = False, known_gain: np.ndarray | None = None,
            known_share: np.ndarray | None = None, regions: np.ndarray | None = None,
@@ -962,7 +1024,6 @@ def detect(bins: np.ndarray, offsets: np.ndarray, kern, est_shift: np.ndarray, f
     pixels are sliced. ``spreads`` False: the test alone, every spread NaN."""
     from spdepth.recon.estimators.ml import ml_tables
     from spdepth.recon.estimators.surfaces_fit import auto_threshold_nats, fwhm_bins
-    from spdepth.recon.kernels import Photons
 
     m = int(kern.n_bins)
     npix = offsets.size - 1
@@ -977,26 +1038,35 @@ def detect(bins: np.ndarray, offsets: np.ndarray, kern, est_shift: np.ndarray, f
     offsets = np.ascontiguousarray(offsets, np.int64)
     weights = np.ascontiguousarray(weights, np.float64)
     est = np.ascontiguousarray(est_shift, np.float64)
-    kg = np.empty(0) if known_gain is None else np.ascontiguousarray(known_gain, np.float64)
-    ks = np.empty(0) if known_gain is None else np.ascontiguousarray(known_share, np.float64)
     counts = np.diff(offsets)
     reg = np.zeros((0, 1), np.uint8) if regions is None else np.ascontiguousarray(regions, np.uint8)
     # the kernel spreads the pixels whose gain passes this (none above infinity)
     spread_thr = np.inf if not spreads else -np.inf if spread_all else thr
-    if not spreads and kg.size and not weights.size and np.all(np.isfinite(kg[counts > 0])):
-        # the test alone on the estimator's gains: what the kernel would give (0 without a
-        # detection), without its pass over every pixel's detections
-        gain = np.where(counts > 0, kg, 0.0)
-        return Detection(gain > thr, gain, sd, sw, boot, thr, float(false_alarm))
+    if known_gain is None:
+        g_in, i_in, s_in = np.zeros(npix), np.full(npix, -1, np.int64), np.zeros(npix)
+        todo = np.ones(npix, np.bool_)
+    else:
+        g_in = np.array(known_gain, np.float64)
+        s_in = np.array(known_share, np.float64)
+        todo = ~np.isfinite(g_in)
+        if not spreads and not weights.size and not todo[counts > 0].any():
+            # the test alone on the estimator's gains: what the kernel would give (0 without a
+            # detection), without its pass over every pixel's detections
+            gain = np.where(counts > 0, g_in, 0.0)
+            return Detection(gain > thr, gain, sd, sw, boot, thr, float(false_alarm))
+        # where the estimator ran the search (ml): the integer shift nearest its estimate
+        i_in = np.full(npix, -1, np.int64)
+        fin = np.isfinite(est)
+        i_in[fin] = np.clip(np.rint(est[fin]), 0, m - 1).astype(np.int64)
+
+    if todo.any():
+        search(bins, offsets, kern, weights, todo, g_in, i_in, s_in)
 
     def run(p0: int, p1: int) -> None:
-        o = offsets[p0:p1 + 1]
-        w = weights[o[0]:o[-1]] if weights.size else NO_WEIGHTS
-        ph = Photons(bins[o[0]:o[-1]], o - o[0], w)
-        maxn = int(counts[p0:p1].max()) if p1 > p0 else 0
-        detect_kernel(ph, tabs, dt, rates, maxn, est[p0:p1], kg[p0:p1] if kg.size else kg, ks[p0:p1] if kg.size else ks,
-                      spread_thr, thr, BOOTSTRAP, reg[p0:p1] if reg.shape[0] else reg, gain[p0:p1],
-                      sd[p0:p1], sw[p0:p1], boot[p0:p1])
+        ph, maxn = _slice(bins, weights, offsets, p0, p1)
+        detect_kernel(ph, dt, rates, maxn, est[p0:p1], g_in[p0:p1], i_in[p0:p1], s_in[p0:p1], spread_thr, thr,
+                      BOOTSTRAP, reg[p0:p1] if reg.shape[0] else reg, gain[p0:p1], sd[p0:p1], sw[p0:p1],
+                      boot[p0:p1])
 
     over_threads(run, npix, max(npix, 1))
     return Detection(gain > thr, gain, sd, sw, boot, thr, float(false_alarm))
@@ -1470,5 +1540,5 @@ def decide_maps(store, settings, maps, neighbours: bool = True, spreads: bool = 
     return out
 
 
-__all__ = ["Detection", "detect", "decide_maps", "detect_kernel", "dispersion_of", "dispersion_terms",
+__all__ = ["Detection", "detect", "decide_maps", "detect_kernel", "search", "search_kernel", "dispersion_of", "dispersion_terms",
            "pulse_dispersion", "with_dispersion"]

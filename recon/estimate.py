@@ -111,25 +111,45 @@ def warm_up(settings: ReconSettings, decide: bool = True, estimator: bool = True
         _wait_apart(settings.method)
         bb, kern, notes = resolve_model(one, settings)
         estimators.for_settings(settings).run(one, settings, bb, kern, notes)
-    if decide:
-        _wait_apart(DECIDE)
-    if estimator and decide:
+    if not decide:
+        return
+    steps = _test_steps(one, settings)
+    # the process compiling the test apart (compile_apart) takes its kernels in order, the one that
+    # started it from the end (its estimator's done): each compiles those it claims first
+    apart = isinstance(_CLAIMS, str)
+    left = []
+    for name, call in steps if apart else reversed(steps):
+        if _claim(name):
+            call()
+        else:
+            left.append(call)
+    _wait_apart(DECIDE)
+    if estimator:
         reconstruct(one, settings)      # its maps through the test, as a reconstruction runs them
-    if decide:
-        # the test and the neighbours' support on the made-up pixel, as decide_maps calls them
-        # (the support's kernel runs only where a pixel fails, which the pixel above may not)
-        from spdepth.recon.detect import detect, neighbour_regions, neighbour_support, region_fit
-        from spdepth.recon.pixelwise import binned_photons
+    for call in left:                   # load what the other process compiled
+        call()
 
-        bb, kern, _ = resolve_model(one, settings)
-        bins, offsets = binned_photons(one, bb, settings.max_photons)
-        est = np.full(1, 0.5 * bb.n_bins)
-        if not estimator:
-            detect(bins, offsets, kern, est, settings.false_alarm)
-        cand = np.zeros(1, np.int64)
-        neighbour_support(bins, np.empty(0), offsets, (1, 1), kern, est, cand, settings.false_alarm, 1)
-        neighbour_regions(bins, np.empty(0), offsets, 1, kern, cand, 1, 0.0)
-        region_fit(bins, np.empty(0), offsets, kern, cand, np.ones((1, bb.n_bins), np.uint8))
+
+def _test_steps(one: PhotonStore, settings: ReconSettings) -> list[tuple[str, Callable[[], object]]]:
+    """The return test's kernels (:mod:`recon.detect`) as (name, call) in the order a
+    reconstruction first runs them, each call running one kernel on the made-up pixel ``one`` as
+    :func:`recon.detect.decide_maps` calls it: ml's search, the test given its result, then the
+    neighbours' support, regions and fit there (which run only where a pixel fails)."""
+    from spdepth.recon.detect import detect, neighbour_regions, neighbour_support, region_fit, search
+    from spdepth.recon.pixelwise import binned_photons
+
+    bb, kern, _ = resolve_model(one, settings)
+    bins, offsets = binned_photons(one, bb, settings.max_photons)
+    est = np.full(1, 0.5 * bb.n_bins)
+    cand = np.zeros(1, np.int64)
+    fa = settings.false_alarm
+    return [
+        ("search", lambda: search(bins, offsets, kern)),
+        ("test", lambda: detect(bins, offsets, kern, est, fa, known_gain=np.zeros(1), known_share=np.zeros(1))),
+        ("support", lambda: neighbour_support(bins, np.empty(0), offsets, (1, 1), kern, est, cand, fa, 1)),
+        ("regions", lambda: neighbour_regions(bins, np.empty(0), offsets, 1, kern, cand, 1, 0.0)),
+        ("region fit", lambda: region_fit(bins, np.empty(0), offsets, kern, cand, np.ones((1, bb.n_bins), np.uint8))),
+    ]
 
 
 #: What :func:`compile_apart` names the return test's kernels (:mod:`recon.detect`) beside the methods'.
@@ -142,10 +162,37 @@ _APART: list[tuple[subprocess.Popen, frozenset]] = []
 
 def _wait_apart(what: str) -> None:
     """Wait for the processes of :func:`compile_apart` that compile ``what`` (a method, DECIDE)."""
+    global _CLAIMS
     for child, covers in list(_APART):
         if what in covers:
             child.wait()
     _APART[:] = [(c, w) for c, w in _APART if c.poll() is None]
+    if hasattr(_CLAIMS, "cleanup") and not any(DECIDE in w for _, w in _APART):
+        _CLAIMS.cleanup()               # its owner: no process compiles the test beside this one any more
+        _CLAIMS = None
+
+
+#: The folder where this process and the one compiling the return test beside it (compile_apart)
+#: claim its kernels (:func:`_claim`), while there is one; the child is given its path.
+_CLAIMS = None
+
+
+def _claim(name: str) -> bool:
+    """Whether this process compiles the return test's kernel ``name`` now: True unless the other
+    process compiling the test (:func:`compile_apart`) claimed it first (an empty file created
+    once, by whichever comes first; without such a process, always)."""
+    import os
+
+    folder = _CLAIMS if isinstance(_CLAIMS, str) else getattr(_CLAIMS, "name", None)
+    if folder is None:
+        return True
+    try:
+        os.close(os.open(os.path.join(folder, name), os.O_CREAT | os.O_EXCL | os.O_WRONLY))
+    except FileExistsError:
+        return False
+    except OSError:
+        return True                     # the folder is gone: the other process is done
+    return True
 
 
 def compile_apart(settings: list[ReconSettings], decide: bool = False,
@@ -173,11 +220,21 @@ def compile_apart(settings: list[ReconSettings], decide: bool = False,
             test_cold = False               # the first one compiles the test for all
     if not todo:
         return None
-    code = ("import json, sys\nfrom spdepth.recon.estimate import warm_up\n"
+    global _CLAIMS
+    claims = ""
+    if DECIDE in covers:
+        if _CLAIMS is None:
+            import tempfile
+
+            _CLAIMS = tempfile.TemporaryDirectory(prefix="spdepth-compile-")
+        claims = _CLAIMS.name
+    code = ("import json, sys\nfrom spdepth.recon import estimate\n"
             "from spdepth.recon.model import ReconSettings\n"
+            "estimate._CLAIMS = sys.argv[2] or None\n"
             "for d in json.loads(sys.argv[1]):\n"
-            "    warm_up(ReconSettings.from_dict(d['settings']), decide=d['decide'], estimator=d['estimator'])\n")
-    child = subprocess.Popen([sys.executable, "-c", code, json.dumps(todo)],
+            "    estimate.warm_up(ReconSettings.from_dict(d['settings']), decide=d['decide'], "
+            "estimator=d['estimator'])\n")
+    child = subprocess.Popen([sys.executable, "-c", code, json.dumps(todo), claims],
                              stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     _APART.append((child, frozenset(covers)))
     return child
