@@ -90,7 +90,9 @@ def warm_up(settings: ReconSettings, decide: bool = True, estimator: bool = True
     also the return test's (:mod:`recon.detect`, which every reconstruction runs, with the
     neighbours' support); False: the estimator's alone. ``estimator`` False: the return test's
     alone (what :func:`compile_apart` compiles beside an estimator compiled here). With
-    ``estimator``, settings that give no pulse also load what measures it (:func:`recon.irf.warm_up`)."""
+    ``estimator``, settings that give no pulse also load what measures it (:func:`recon.irf.warm_up`).
+    Beside a process of :func:`compile_apart` compiling the return test, each of the test's kernels
+    is compiled by the one of the two that claims it first (:func:`_claim`) and loaded by the other."""
     if estimator and given_pulse(settings) is None:
         from spdepth.recon.irf import warm_up as warm_pulse_estimate
 
@@ -173,7 +175,8 @@ def _wait_apart(what: str) -> None:
 
 
 #: The folder where this process and the one compiling the return test beside it (compile_apart)
-#: claim its kernels (:func:`_claim`), while there is one; the child is given its path.
+#: claim its kernels (:func:`_claim`), while there is one: in the process that started it the
+#: ``tempfile.TemporaryDirectory`` it owns (removed once the child is done), in the child its path.
 _CLAIMS = None
 
 
