@@ -136,7 +136,8 @@ def _test_steps(one: PhotonStore, settings: ReconSettings) -> list[tuple[str, Ca
     """The return test's kernels (:mod:`recon.detect`) as (name, call) in the order a
     reconstruction first runs them, each call running one kernel on the made-up pixel ``one`` as
     :func:`recon.detect.decide_maps` calls it: ml's search, the test given its result, then the
-    neighbours' support, regions and fit there (which run only where a pixel fails)."""
+    neighbours' support, regions and fit there (which run only where a pixel fails). Without the
+    search for an estimator that gives its gains (:attr:`recon.estimators.Estimator.gains`)."""
     from spdepth.recon.detect import detect, neighbour_regions, neighbour_support, region_fit, search
     from spdepth.recon.pixelwise import binned_photons
 
@@ -145,8 +146,8 @@ def _test_steps(one: PhotonStore, settings: ReconSettings) -> list[tuple[str, Ca
     est = np.full(1, 0.5 * bb.n_bins)
     cand = np.zeros(1, np.int64)
     fa = settings.false_alarm
-    return [
-        ("search", lambda: search(bins, offsets, kern)),
+    # an estimator that gives the test its statistic (ml) leaves the search unused
+    return [("search", lambda: search(bins, offsets, kern))] * (not estimators.for_settings(settings).gains) + [
         ("test", lambda: detect(bins, offsets, kern, est, fa, known_gain=np.zeros(1), known_share=np.zeros(1))),
         ("support", lambda: neighbour_support(bins, np.empty(0), offsets, (1, 1), kern, est, cand, fa, 1)),
         ("regions", lambda: neighbour_regions(bins, np.empty(0), offsets, 1, kern, cand, 1, 0.0)),

@@ -108,3 +108,20 @@ print(json.dumps({"cold": cold, "started": child is not None, "code": child.wait
     here = [k for k in order if "spdepth.recon.detect." + k in ours]
     assert here == order[len(order) - len(here):]
     assert "search_kernel" not in here and "spdepth.recon.estimators.ml_kernels.integer_optimum" not in ours
+
+
+def test_a_first_run_compiles_the_tests_search_only_for_estimators_that_do_not_give_its_gains():
+    # ml's maps carry the test's statistic (gain_nats), which the test takes: its search never runs
+    # after ml, so a first run of ml does not compile it; uos gives none, and the test searches
+    import numpy as np
+
+    from spdepth.recon.estimate import _test_steps
+    from spdepth.recon.model import Binning, ReconSettings
+    from spdepth.recon.photons import PhotonStore
+
+    b = Binning(1e-12, 0.0, 64.0, 1.0)
+    one = PhotonStore(np.array([30.0, 31.0, 32.0, 33.0]), np.array([0, 4]), (1, 1), b.time_unit_s)
+    names = {m: [n for n, _ in _test_steps(one, ReconSettings(method=m, binning=b, pulse_rms_s=3e-12))]
+             for m in ("ml", "uos")}
+    assert names["uos"] == ["search", "test", "support", "regions", "region fit"]
+    assert names["ml"] == names["uos"][1:]

@@ -50,6 +50,10 @@ class Estimator:
                    (``recon.pixelwise.fit_pixels``, ``store_pairs``); "whole": as pairs of whole
                    counts, a pile-up-corrected store's rounded first (``CountStore.rounded``, as
                    for its photon list); False: it is handed the equivalent photon list.
+    gains:         its maps carry the return test's statistic at every pixel
+                   (``DepthMaps.gain_nats``: ml's search), which the test takes instead of searching
+                   again; a first run then does not compile the test's search for it
+                   (``recon.estimate.warm_up``).
     """
 
     name: str
@@ -63,6 +67,7 @@ class Estimator:
     live_stand_in: str | None = None
     method: bool = True
     counts: bool | str = False
+    gains: bool = False
 
     def run(self, store, settings, binning, kernel, notes: dict, progress=None):
         """:data:`Fit` of this estimator, its module imported on the first call."""

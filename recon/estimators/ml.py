@@ -67,4 +67,4 @@ def fit(store, settings, b, kern, notes, progress=None):
 
 ESTIMATOR = register(Estimator(
     "ml", "exact Poisson maximum likelihood (the paper's eq. 9): 1/8-bin shifts, estimates background",
-    fit, pixelwise=True, several="surfaces", counts=True))
+    fit, pixelwise=True, several="surfaces", counts=True, gains=True))
