@@ -146,13 +146,15 @@ def _test_steps(one: PhotonStore, settings: ReconSettings) -> list[tuple[str, Ca
     est = np.full(1, 0.5 * bb.n_bins)
     cand = np.zeros(1, np.int64)
     fa = settings.false_alarm
-    # an estimator that gives the test its statistic (ml) leaves the search unused
-    return [("search", lambda: search(bins, offsets, kern))] * (not estimators.for_settings(settings).gains) + [
+    steps = [
+        ("search", lambda: search(bins, offsets, kern)),
         ("test", lambda: detect(bins, offsets, kern, est, fa, known_gain=np.zeros(1), known_share=np.zeros(1))),
         ("support", lambda: neighbour_support(bins, np.empty(0), offsets, (1, 1), kern, est, cand, fa, 1)),
         ("regions", lambda: neighbour_regions(bins, np.empty(0), offsets, 1, kern, cand, 1, 0.0)),
         ("region fit", lambda: region_fit(bins, np.empty(0), offsets, kern, cand, np.ones((1, bb.n_bins), np.uint8))),
     ]
+    # an estimator that gives the test its statistic (ml) leaves the search unused
+    return steps[1:] if estimators.for_settings(settings).gains else steps
 
 
 #: What :func:`compile_apart` names the return test's kernels (:mod:`recon.detect`) beside the methods'.
