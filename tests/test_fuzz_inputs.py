@@ -6,7 +6,8 @@ most three lines on stderr and no traceback: no exception escapes ``main`` (it t
 errors spdepth raises on purpose into one line; anything else is a bug with its traceback) and
 nothing is logged with one.
 
-Each test prints its counts (``pytest -s``): inputs tried and the exit statuses seen."""
+Each test prints its counts, inputs tried and the exit statuses seen (``pytest -n 0 -s``: in the
+suite's two processes pytest-xdist does not show what a test prints)."""
 
 from __future__ import annotations
 
