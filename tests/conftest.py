@@ -47,6 +47,7 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(skip)
 
 
+@pytest.hookimpl(optionalhook=True)
 def pytest_xdist_auto_num_workers(config):
     """``-n auto`` (the default, pyproject.toml): two processes where there are two cores or more
     (the count measured: 414 s warm against 627 s in one process here; a few 4096 x 4096 frames
@@ -57,15 +58,33 @@ def pytest_xdist_auto_num_workers(config):
     return 2 if (os.cpu_count() or 1) >= 2 else 0
 
 
-def pytest_collection_finish(session):
+def _precompile(config, n_tests: int) -> None:
     """A cold numba cache (a clean clone): the kernels compiled in two processes at once before the
     first test (tests/precompile.py)."""
-    if session.config.option.collectonly:
+    if config.option.collectonly:
         return
     from tests.precompile import precompile
 
-    reporter = session.config.pluginmanager.get_plugin("terminalreporter")
-    precompile(len(session.items), say=reporter.write_line if reporter else print)
+    reporter = config.pluginmanager.get_plugin("terminalreporter")
+    precompile(n_tests, say=reporter.write_line if reporter else print)
+
+
+def pytest_collection_finish(session):
+    # in the suite's processes (pytest-xdist's workers) the controller does it, once
+    if not hasattr(session.config, "workerinput"):
+        _precompile(session.config, len(session.items))
+
+
+_workers_collected: list[str] = []
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_node_collection_finished(node, ids):
+    """The controller, when the first worker has collected: no test is handed out before every
+    worker has, so they all wait for the kernels, and its lines show (a worker's do not)."""
+    _workers_collected.append(node.gateway.id)
+    if len(_workers_collected) == 1:
+        _precompile(node.config, len(ids))
 
 
 @pytest.fixture

@@ -9,15 +9,9 @@ starts nothing. Only a run of many tests pays the wait: a single file compiles w
 
 from __future__ import annotations
 
-import hashlib
-import os
 import subprocess
 import sys
-import tempfile
 import time
-from pathlib import Path
-
-from filelock import FileLock
 
 from spdepth.acq.commands.bench.compile import GROUPS as BENCH_GROUPS, recon_group
 
@@ -49,25 +43,9 @@ def cold_groups() -> list[str]:
     return [code for modules, code in GROUPS if not all(module_cached(m) for m in modules)]
 
 
-def _lock_path() -> Path:
-    """A lock file per numba cache (this checkout's, or NUMBA_CACHE_DIR's) in the system's temp
-    folder, shared by the suite's processes."""
-    key = f"{Path(__file__).resolve().parents[1]}|{os.environ.get('NUMBA_CACHE_DIR', '')}"
-    return Path(tempfile.gettempdir()) / f"spdepth-precompile-{hashlib.sha1(key.encode()).hexdigest()[:12]}.lock"
-
-
 def precompile(n_tests: int, say=print) -> None:
-    """Compile the cold groups in a process each and wait for them (``say``: one line each way).
-    One process of the suite at a time (pytest-xdist runs it in several, each collecting every
-    test): the first compiles, the others wait for it and then find the cache warm."""
-    if n_tests < MIN_TESTS:
-        return
-    with FileLock(_lock_path()):
-        _precompile(say)
-
-
-def _precompile(say) -> None:
-    todo = cold_groups()
+    """Compile the cold groups in a process each and wait for them (``say``: one line each way)."""
+    todo = cold_groups() if n_tests >= MIN_TESTS else []
     if not todo:
         return
     say(f"numba's cache is cold: compiling the kernels in {len(todo)} processes at once first")
