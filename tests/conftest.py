@@ -75,15 +75,16 @@ def pytest_collection_finish(session):
         _precompile(session.config, len(session.items))
 
 
-_workers_collected: list[str] = []
+_precompiled = False
 
 
 @pytest.hookimpl(optionalhook=True)
 def pytest_xdist_node_collection_finished(node, ids):
     """The controller, when the first worker has collected: no test is handed out before every
     worker has, so they all wait for the kernels, and its lines show (a worker's do not)."""
-    _workers_collected.append(node.gateway.id)
-    if len(_workers_collected) == 1:
+    global _precompiled
+    if not _precompiled:
+        _precompiled = True
         _precompile(node.config, len(ids))
 
 
