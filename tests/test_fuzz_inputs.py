@@ -249,15 +249,25 @@ def _event_variants(lines: list[str], rng):
                                    + lines[i + 1:]))
 
 
+#: test_fuzz_events_jsonl runs in this many parts, so that the suite's two processes share it
+#: (each part about 15 s)
+EVENT_PARTS = 3
+
+
 @pytest.mark.slow
-def test_fuzz_events_jsonl(session_dir, tmp_path, rng, capsys, caplog):
-    tally = Tally("events.jsonl")
+@pytest.mark.parametrize("part", range(EVENT_PARTS))
+def test_fuzz_events_jsonl(part, session_dir, tmp_path, capsys, caplog):
+    tally = Tally(f"events.jsonl, part {part + 1} of {EVENT_PARTS}")
     lines = (session_dir / "events.jsonl").read_text().splitlines(keepends=True)
     assert any('"event": "lost"' in ln for ln in lines)
-    # a third of the variants, drawn by the seeded rng: each is a whole replay (about 0.4 s)
+    # a third of the variants, drawn by one seeded rng for every part (not the per-test rng fixture,
+    # seeded by each part's own name), each part replaying every EVENT_PARTS-th of them: each is a
+    # whole replay (about 0.4 s)
+    rng = np.random.default_rng(0x5EED_E7E5)
     variants = list(_event_variants(lines, rng))
     keep = np.sort(rng.choice(len(variants), len(variants) // 3, replace=False))
-    for i, (name, body) in enumerate(variants[k] for k in keep):
+    for i in range(part, keep.size, EVENT_PARTS):
+        name, body = variants[keep[i]]
         d = _session_copy(session_dir, tmp_path, i)
         (d / "events.jsonl").write_text(body)
         tally.check(name + " (replay)", ["replay", str(d), "--out", str(tmp_path / f"o{i}")],
@@ -266,8 +276,9 @@ def test_fuzz_events_jsonl(session_dir, tmp_path, rng, capsys, caplog):
             tally.check(name + " (recon)", ["recon", str(d / "recording.ptu")], capsys, caplog)
         shutil.rmtree(d)
         shutil.rmtree(tmp_path / f"o{i}", ignore_errors=True)
-    print(f"\nfuzz events.jsonl: {len(keep)} damaged logs of {len(variants)} made, each replayed "
-          f"and every third also reconstructed")
+    print(f"\nfuzz events.jsonl, part {part + 1} of {EVENT_PARTS}: {len(range(part, keep.size, EVENT_PARTS))} "
+          f"of {len(keep)} damaged logs (of {len(variants)} made), each replayed and every third also "
+          f"reconstructed")
     tally.done()
 
 
