@@ -142,9 +142,10 @@ def test_recon_of_a_recording_gives_the_sessions_maps(tmp_path, capsys):
     np.testing.assert_array_equal(a.tof_s, b.tof_s)
 
 
-def _scan_until_recording(rec, size="512x512", min_bytes=100_000, extra=()):
+def _scan_until_recording(rec, size="1024x1024", min_bytes=100_000, extra=()):
     """A scan in a child process, returned once its recording holds ``min_bytes`` (big enough to
-    be still running after two more CLI processes: the simulator scans 128x128 in a few s)."""
+    be still running after two more CLI processes: the simulator scans 512x512 at 15 detections
+    a pixel in about 5 s on a quiet machine, 1024x1024 in about 18)."""
     proc = subprocess.Popen([sys.executable, "-m", "spdepth.acq.cli", "scan", "--sim", "--size", size,
                              "--target", "15", "--out", str(rec), *extra],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)

@@ -52,8 +52,10 @@ def test_the_window_keys_on_a_real_x_server(tmp_path):
         pytest.skip(problem)
     env = {**os.environ, "QT_QPA_PLATFORM": "xcb", "XDG_CONFIG_HOME": str(tmp_path / "cfg")}
     env.pop("DISPLAY", None)
+    # in one process (-n 0): two windows of two processes on one X server with no window manager
+    # take each other's focus, and a key goes to the other's window
     p = subprocess.run(["xvfb-run", "-a", "-s", "-screen 0 1600x1000x24", sys.executable, "-m",
-                        "pytest", "-q", "-p", "no:cacheprovider", __file__, "-k", "x11_"],
+                        "pytest", "-q", "-n", "0", "-p", "no:cacheprovider", __file__, "-k", "x11_"],
                        env=env, capture_output=True, text=True, timeout=600,
                        cwd=Path(__file__).resolve().parents[1])
     assert p.returncode == 0, p.stdout[-4000:] + p.stderr[-2000:]
