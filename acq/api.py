@@ -679,7 +679,7 @@ def file_result(request: FileReconRequest, maps, read, *, read_s: float = 0.0,
     res.summary = _file_summary(res, read)
     res.summary["photons_account"] = account
     res.summary["pulse_dispersion"] = None if dispersion is None else \
-        {k: dispersion[k] for k in ("dispersion", "pixels", "width_ratio")}
+        {k: dispersion.get(k) for k in ("dispersion", "pixels", "width_ratio", "score")}
     return res
 
 
@@ -693,9 +693,12 @@ def dispersion_note(d: dict, stated: bool) -> str:
     ``stated``: the pulse was the user's (``--pulse-rms-ps``)."""
     r = d["width_ratio"]
     closer = r < 1.0
+    # ml's is about the width ratio squared; uos's filter's is not (its slope's ratio counts twice)
+    like = f": as from a response {r:.2f} times its width" if d.get("score", "the likelihood's") == "the likelihood's" \
+        else f", of {d['score']} score"
     head = (f"the detections lie {'closer to' if closer else 'wider about'} their depths than the pulse model "
-            f"says (dispersion {d['dispersion']:.2f} over {d['pixels']} pixels: as from a response {r:.2f} "
-            f"times its width); every depth's uncertainty is scaled by {r:.2f} for it, and the depths "
+            f"says (dispersion {d['dispersion']:.2f} over {d['pixels']} pixels{like}); every depth's "
+            f"uncertainty is scaled by {r:.2f} for it, and the depths "
             f"themselves are those of a model {'wider' if closer else 'narrower'} than the returns")
     if stated:
         return head + f" (--pulse-rms-ps may be too {'wide' if closer else 'narrow'}: without it the pulse is " \

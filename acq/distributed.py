@@ -318,7 +318,7 @@ def reconstruct_blocks(client, plan: Plan, settings, time_unit_s: float, on_subm
     terms = [p[1] for p in parts]
     if any(t is None for t in terms):
         return maps
-    return with_dispersion(maps, dispersion_of(tuple(np.concatenate([t[i] for t in terms]) for i in (0, 1))))
+    return with_dispersion(maps, dispersion_of(tuple(np.concatenate(part) for part in zip(*terms))))
 
 
 def block_settings(request, unit_s: float):

@@ -252,8 +252,10 @@ def test_without_spreads_the_decision_is_the_same_and_the_uncertainty_the_estima
     assert np.array_equal(full.depth_m, bare.depth_m, equal_nan=True)
     assert np.array_equal(full.gain_nats, bare.gain_nats, equal_nan=True)
     got = np.isfinite(full.depth_m)
-    assert np.all(bare.uncertainty_s[got] <= full.uncertainty_s[got])
-    assert np.any(bare.uncertainty_s[got] < full.uncertainty_s[got])          # the spreads widened some
+    # the spreads before the pulse model's dispersion scales them all (uos's here: 0.8, ml's 1.0)
+    spread = full.uncertainty_s / full.settings.get("pulse_dispersion", {}).get("width_ratio", 1.0)
+    assert np.all(bare.uncertainty_s[got] <= spread[got] * (1 + 1e-12))
+    assert np.any(bare.uncertainty_s[got] < spread[got])          # the spreads widened some
     assert "not computed" in bare.settings["detection"]["uncertainty"]
     assert "not computed" not in full.settings["detection"]["uncertainty"]
 
@@ -295,7 +297,7 @@ def test_the_pulse_dispersion_is_not_said_where_it_cannot_be():
 
     rng = np.random.default_rng(12)
     store = _store(rng, 2500, 8, 4)
-    for method in ("uos", "lmf", "spatial"):      # not the likelihood's own optimum
+    for method in ("lmf", "spatial"):             # no score of their own said (uos's: its matched filter's)
         s = ReconSettings(method=method, binning=B, pulse_rms_s=RMS_U * UNIT_S)
         assert pulse_dispersion(store, s, reconstruct(store, s)) is None
     few = _store(rng, 100, 8, 4)                  # too few pixels to pool
@@ -303,11 +305,13 @@ def test_the_pulse_dispersion_is_not_said_where_it_cannot_be():
     assert pulse_dispersion(few, s, reconstruct(few, s)) is None
 
 
+@pytest.mark.parametrize("method", ["ml", "uos"])
 @pytest.mark.parametrize("model_rms_u", [2 * RMS_U, 0.7 * RMS_U])
-def test_ml_s_uncertainties_follow_the_detections_not_a_wrongly_stated_pulse(model_rms_u):
+def test_the_uncertainties_follow_the_detections_not_a_wrongly_stated_pulse(model_rms_u, method):
     # returns of a 45-unit pulse fitted with a pulse twice as wide or 0.7 as wide: the model's own
     # uncertainties were too large (too small), and with the dispersion's scaling the depths' errors
-    # against the truth are about their sigma again (here 73% / 72% within 1 sigma)
+    # against the truth are about their sigma again (here ml 73% / 72%, uos 70% / 68% within 1
+    # sigma; uos's own 96% / 64%, its matched filter's dispersion 0.26 / 1.20)
     rng = np.random.default_rng(13)
     lists, truth = [], []
     for _ in range(50 * 50):
@@ -316,15 +320,15 @@ def test_ml_s_uncertainties_follow_the_detections_not_a_wrongly_stated_pulse(mod
         lists.append(np.floor(x[(x >= 0) & (x < 4000)]))
         truth.append(d + 0.5)                       # floor() moves every detection half a unit on average
     store = PhotonStore.from_lists(lists, (50, 50), UNIT_S)
-    s = ReconSettings(method="ml", binning=B, pulse_rms_s=model_rms_u * UNIT_S)
+    s = ReconSettings(method=method, binning=B, pulse_rms_s=model_rms_u * UNIT_S)
     m = reconstruct(store, s)
     d = m.settings["pulse_dispersion"]
-    assert d["applied"] and (d["width_ratio"] < 0.8 if model_rms_u > RMS_U else d["width_ratio"] > 1.2)
+    assert d["applied"] and (d["width_ratio"] < 0.8 if model_rms_u > RMS_U else d["width_ratio"] > 1.05)
     z = np.abs(np.asarray(m.tof_s).ravel() / UNIT_S - np.array(truth)) / (np.asarray(m.uncertainty_s).ravel() / UNIT_S)
     z = z[np.isfinite(z)]
     assert z.size > 2000
     assert 0.6 < np.mean(z <= 1.0) < 0.78
-    # the model's own (here 91% / 61% within 1 sigma): too large (too small)
+    # the model's own (here ml 91% / 61%, uos 96% / 64% within 1 sigma): too large (too small)
     raw = np.asarray(m.uncertainty_s).ravel() / d["width_ratio"] / UNIT_S
     z0 = np.abs(np.asarray(m.tof_s).ravel() / UNIT_S - np.array(truth)) / raw
     z0 = z0[np.isfinite(z0)]
