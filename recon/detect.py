@@ -503,7 +503,7 @@ def _bootstrap_sd(kb, kw, nu, ntot, e, s, sp, ns, top, tabs, n_boot, seed, peaks
         # resamples (their duplicates make coincidences) are picked far more often than the
         # halves of the data pick it (simulated daylight: 76% within 1 sigma -> 85% with them)
         bar = max(bar, mode_thr - ntot * T.logm)
-    n_cand = 0
+    n_cand = np.int64(0)     # not 0: numba would also compile _resample_best for a literal 0 on its way
     for k in range(ns):
         if _candidate(sp, ns, k, bar, peaks_only, region):
             n_cand += 1
@@ -864,7 +864,8 @@ def neighbour_region_kernel(bins, weights, offsets, w, cand, half, thr, tabs, ra
         if T.colsum[i] > 0.0:
             cmin = min(cmin, T.colsum[i])
     for c in range(cand.size):
-        kb, kw, nu, ntot = _pool_neighbours(bins, weights, offsets, w, cand[c], dense, REGION_RADIUS)
+        # np.int64: a global constant would compile a second _pool_neighbours for its literal value
+        kb, kw, nu, ntot = _pool_neighbours(bins, weights, offsets, w, cand[c], dense, np.int64(REGION_RADIUS))
         reg = out[c]
         reg[:] = 0
         if nu == 0:

@@ -142,13 +142,20 @@ def test_recon_of_a_recording_gives_the_sessions_maps(tmp_path, capsys):
     np.testing.assert_array_equal(a.tof_s, b.tof_s)
 
 
-def _scan_until_recording(rec, size="1024x1024", min_bytes=100_000, extra=()):
+def _default_sigint() -> None:
+    """In the child before it starts: Ctrl-C's default, as in a terminal. A suite started in the
+    background of a script has SIGINT ignored (``(.ci/run &)``), which children inherit and Python
+    keeps (the CLI, as shells expect, does not undo it): the scans ran to "done" through it on a
+    clean clone's suite, in an xdist worker."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+def _scan_until_recording(rec, size="512x512", min_bytes=100_000, extra=()):
     """A scan in a child process, returned once its recording holds ``min_bytes`` (big enough to
-    be still running after two more CLI processes: the simulator scans 512x512 at 15 detections
-    a pixel in about 5 s on a quiet machine, 1024x1024 in about 18)."""
+    be still running after two more CLI processes: the simulator scans 128x128 in a few s)."""
     proc = subprocess.Popen([sys.executable, "-m", "spdepth.acq.cli", "scan", "--sim", "--size", size,
                              "--target", "15", "--out", str(rec), *extra],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=_default_sigint)
     ptu = rec / "recording.ptu"
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline and proc.poll() is None:

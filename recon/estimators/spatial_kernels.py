@@ -18,8 +18,10 @@ from collections import namedtuple
 
 import numpy as np
 from llvmlite import ir
-from numba import njit, prange, types
+from numba import njit, types
 from numba.extending import intrinsic
+
+from spdepth.recon.threadpool import on_threads, threads
 
 #: window_shifts: lists longer than this are bucket sorted, shorter ones by rank counting (its k^2
 #: comparisons vectorise: 2x faster than the bucket sort at 60 and 100 detections, 1.2x at 160).
@@ -146,7 +148,6 @@ CensorSettings = namedtuple("CensorSettings", ["h", "w", "radius", "tau", "sigma
                                                "count_width"])
 
 
-@njit(parallel=True, cache=True, nogil=True)
 def censor_fit(x, wx, offsets, s_min, win_counts, cs, out_mu, out_k, out_bg, out_n, out_kept):
     """Per pixel: censor, then fit a pulse-plus-flat mixture to the detections kept
     (:class:`CensorSettings` cs).
@@ -166,15 +167,17 @@ def censor_fit(x, wx, offsets, s_min, win_counts, cs, out_mu, out_k, out_bg, out
     sum of responsibilities; 0 when nothing kept), out_bg (background detections per bin),
     out_n (detections used), out_kept (detections that passed censoring)."""
     npix = cs.h * cs.w
-    longest = np.int64(0)     # not the literal 0: numba compiled the callee for that type too
-    for p in range(npix):
-        longest = max(longest, offsets[p + 1] - offsets[p])
+    longest = np.int64(np.diff(offsets[:npix + 1]).max()) if npix else np.int64(0)
+    # blocks of pixels on the thread pool, each a call of the nogil block kernel: numba's prange
+    # over them cost 2.1 s of cold compile more (censor_fit's parallel lowering) at the same speed
     n_blocks = (npix + PIXEL_BLOCK - 1) // PIXEL_BLOCK
-    # a block's pixels in a plain function: with the loop over them inside the parallel loop,
-    # numba's parallel lowering took 8 s of cold compile, as a plain function it takes about 4
-    for blk in prange(n_blocks):
-        _censor_fit_block(blk * PIXEL_BLOCK, min(npix, (blk + 1) * PIXEL_BLOCK), longest, x, wx, offsets,
+    per = max(1, -(-n_blocks // (4 * threads())))      # about four parts a thread
+
+    def part(i: int) -> None:
+        _censor_fit_block(i * per * PIXEL_BLOCK, min(npix, (i + 1) * per * PIXEL_BLOCK), longest, x, wx, offsets,
                           s_min, win_counts, cs, out_mu, out_k, out_bg, out_n, out_kept)
+
+    on_threads(part, -(-n_blocks // per))
 
 
 @njit(cache=True, nogil=True, _nrt=False)
@@ -529,12 +532,20 @@ def _exp_neg(e):
     return p * scale if e >= EXP_IS_ZERO else 0.0
 
 
-@njit(parallel=True, cache=True, nogil=True)
 def local_mean(f, wt, radius, out):
     """Weighted mean of ``f`` over the (2 radius + 1)^2 window with weights ``wt`` (NaN where the
-    window holds no weight): the start of the TV iterations and the fill of empty pixels."""
+    window holds no weight): the start of the TV iterations and the fill of empty pixels. In bands
+    of rows on the thread pool (:func:`_local_mean_rows`)."""
+    h = f.shape[0]
+    per = max(1, -(-h // (4 * threads())))
+    on_threads(lambda i: _local_mean_rows(f, wt, radius, out, i * per, min(h, (i + 1) * per)), -(-h // per))
+
+
+@njit(cache=True, nogil=True)
+def _local_mean_rows(f, wt, radius, out, r0, r1):
+    """local_mean of rows r0..r1 - 1."""
     h, w = f.shape
-    for r in prange(h):
+    for r in range(r0, r1):
         for c in range(w):
             a = 0.0
             s = 0.0
@@ -594,18 +605,16 @@ def tv_pdhg(f, wt, lam, z, iters, px, py, zbar):
                 _primal(zr, zbr, fr, wr, c, pxr[c] - pxr[c - 1] + pyr[c] - pyu[c], step)
 
 
-@njit(parallel=True, cache=True, nogil=True)
 def tv_pdhg_many(fs, wt, lam, zs, iters):
     """tv_pdhg of each frame fs[j] (the same weights wt) into zs[j] (holding each start): the
-    copies of the uncertainty's bootstrap (recon.estimators.spatial.regulariser_variance) in
-    parallel, one whole serial run per copy and thread (one parallel region per call, not two per
-    iteration)."""
+    copies of the uncertainty's bootstrap (recon.estimators.spatial.regulariser_variance) side by
+    side on the thread pool, one whole serial run per copy and thread."""
     n, h, w = fs.shape
-    for j in prange(n):
-        px = np.empty((h, w))
-        py = np.empty((h, w))
-        zbar = np.empty((h, w))
-        tv_pdhg(fs[j], wt, lam, zs[j], iters, px, py, zbar)
+
+    def one(j: int) -> None:
+        tv_pdhg(fs[j], wt, lam, zs[j], iters, np.empty((h, w)), np.empty((h, w)), np.empty((h, w)))
+
+    on_threads(one, n)
 
 
 @njit(inline="always", cache=True, nogil=True)
