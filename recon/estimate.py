@@ -172,8 +172,9 @@ def _wait_apart(what: str) -> None:
         if what in covers:
             child.wait()
     _APART[:] = [(c, w) for c, w in _APART if c.poll() is None]
-    if hasattr(_CLAIMS, "cleanup") and not any(DECIDE in w for _, w in _APART):
-        _CLAIMS.cleanup()               # its owner: no process compiles the test beside this one any more
+    claims = _CLAIMS                    # once: a thread of the demo's compiles may be here too
+    if hasattr(claims, "cleanup") and not any(DECIDE in w for _, w in _APART):
+        claims.cleanup()                # its owner: no process compiles the test beside this one any more
         _CLAIMS = None
 
 
