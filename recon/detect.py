@@ -1091,9 +1091,9 @@ def dispersion_kernel(ph, dt, maxn, est_shift, share, out_score2, out_curv, out_
 
 
 def dispersion_terms(store, settings, maps, first_pixel: int = 0, frame_pixels: int | None = None,
-                     rows: tuple[int, int] | None = None) -> tuple[np.ndarray, np.ndarray] | None:
-    """Each sampled pixel's two terms of the pulse model's dispersion (:func:`dispersion_of`) in
-    ``maps`` of ``store`` (one surface, ml, a Gaussian pulse; else None): its detections' squared
+                     rows: tuple[int, int] | None = None) -> tuple[np.ndarray, ...] | None:
+    """Each sampled pixel's terms of the pulse model's dispersion (:func:`dispersion_of`) in
+    ``maps`` of ``store`` (one surface, ml or uos, a Gaussian pulse; else None). ml's two: its detections' squared
     score about its depth, corrected for the depth being fitted to them (k / (k - 1) for k signal
     detections, as a sample variance is), and the likelihood's curvature there. The pixels are
     those with a depth and at least two signal detections among every ``stride``-th pixel of the
@@ -1131,12 +1131,12 @@ def dispersion_terms(store, settings, maps, first_pixel: int = 0, frame_pixels: 
     start = -(-(first_pixel + lo * w) // stride) * stride - first_pixel
     local = np.arange(start, hi * w, stride)
     pix = local[np.isfinite(est[local]) & (k[local] >= 2.0)]
-    at, so = rows_of(offsets, pix)
     if settings.method == "uos":
         from spdepth.recon.estimators.uos import MIN_DETECTIONS, matched_filter_terms
 
         pix = pix[n[pix] >= MIN_DETECTIONS]   # by the count alone: the fit chose none of them
-        at, so = rows_of(offsets, pix)
+    at, so = rows_of(offsets, pix)
+    if settings.method == "uos":
         return matched_filter_terms(bins[at], weights[at] if weights.size else NO_WEIGHTS, so, est[pix], k[pix],
                                     np.asarray(maps.background, np.float64).ravel()[pix], kern, b.n_bins)
     ph = Photons(np.ascontiguousarray(bins[at], np.int64), np.ascontiguousarray(so, np.int64),
@@ -1167,8 +1167,8 @@ def dispersion_of(terms: tuple[np.ndarray, ...] | None) -> dict | None:
     (:func:`with_dispersion`). uos's four terms a pixel (:func:`recon.estimators.uos.matched_filter_terms`):
     its matched filter's variance is its score's variance over its slope squared, each pooled data
     over model, ``(sum s2 / sum s2_model) / (sum slope / sum slope_model)^2`` (simulated returns
-    of a 45-unit pulse fitted with one twice as wide: 0.26, and halves of the error within 1
-    sigma against the truth 96% -> 70%; 0.7 as wide: 1.20, 64% -> 68%). None without terms, with
+    of a 45-unit pulse fitted with one twice as wide: 0.26, and the depths within 1 sigma of
+    the truth 96% -> 70%; 0.7 as wide: 1.20, 64% -> 68%). None without terms, with
     fewer than DISPERSION_MIN_PIXELS pixels, or where a pooled sum has the wrong sign.
     ``score``: whose terms they were."""
     if terms is None or terms[0].size < DISPERSION_MIN_PIXELS:
@@ -1443,7 +1443,8 @@ def decide_maps(store, settings, maps, neighbours: bool = True, spreads: bool = 
     were about half of a 512x512 recon's estimation time), as the record says. With ``spreads``,
     ``neighbours`` and ``dispersion``, the uncertainties of ml's and uos's one-surface maps with a
     Gaussian pulse are scaled by the pulse model's dispersion (:func:`with_dispersion`), measured
-    on these maps (uos's: its matched filter's); ``dispersion`` False: left to the caller (``acq.distributed`` pools it over blocks)."""
+    on these maps (uos's: its matched filter's); ``dispersion`` False: left to the caller
+    (``acq.distributed`` pools it over blocks)."""
     rec = dict(maps.settings)
     b, kern = _kernel_of(rec)
     bins, weights, offsets, n_photons = _binned_frame(store, settings, b)

@@ -1,7 +1,8 @@
 """uos: the seed paper's union-of-subspaces greedy pursuit (Algorithm 1) with one depth column and
 the background column, on its published scaling (columns peak 1, so ``delta`` means what it means
 there), over integer shifts. Its uncertainty is a matched filter's sandwich variance
-(:func:`matched_filter_var`), not the Fisher bound. Kernels: :mod:`.uos_kernels`, loaded on the
+(:func:`matched_filter_var`), not the Fisher bound, scaled where maps are written by the filter's
+dispersion (:func:`matched_filter_terms`, ``recon.detect.dispersion_of``). Kernels: :mod:`.uos_kernels`, loaded on the
 first run."""
 
 from __future__ import annotations
@@ -14,12 +15,13 @@ if TYPE_CHECKING:
     import numpy as np
 
 
-#: The matched filter's dispersion pools pixels of at least this many detections in the window
-#: (chosen by the count alone: a choice by the fitted signal picks pixels whose detections
-#: cluster). A shift fitted to a few detections lies where they cluster, and their slope there
-#: overstates the filter's: simulated returns of 6 detections and 4 of background, fitted with
-#: their own pulse, gave 0.54 (0.82 with 8 and 4, 0.92 with 16 and 4; with 4 and 4 the uos
-#: property test's 5 detections fell to 57% within 1 sigma).
+#: The matched filter's dispersion pools pixels of at least this many detections in the window.
+#: A shift fitted to a few detections lies where they cluster, and their slope there overstates
+#: the filter's: simulated returns fitted with their own pulse gave 0.82 with 8 signal and 4
+#: background detections a pixel and 0.92 with 16 and 4 (1 is right), and pooled from pixels of 5
+#: detections the uos property test fell to 57% within 1 sigma. The pixels are chosen by the count
+#: alone: chosen by the fitted signal (8 or more) they are those whose detections cluster, and 6
+#: and 4 gave 0.54.
 MIN_DETECTIONS = 12
 
 
