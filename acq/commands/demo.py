@@ -211,6 +211,11 @@ def _compile_comparison_apart(request, methods):
     if others:
         def compile_here() -> None:
             try:
+                # the simulator's first: the scan waits for them, the rest only after it (numba
+                # compiles one function at a time in a process, whichever thread asks)
+                from spdepth.drivers.sim.world import warm_up as warm_sim
+
+                warm_sim()
                 for m in others:
                     warm_up(settings(m), decide=False)
                 # then the return test's kernels the second process has not claimed yet, from its
