@@ -193,10 +193,10 @@ class _CompiledApart:
 
 def _compile_comparison_apart(request, methods):
     """On a cold numba cache, split the first run's compiles over both cores: the live estimator's
-    kernels and the return test's (most of it) in a second process (``recon.estimate.compile_apart``,
-    which the session's warm-up waits for and then loads), the other compared methods' here on a
-    thread while the simulator's kernels compile and the scan is prepared; a line says so. None
-    when they are all cached."""
+    kernels and the return test's in a second process (``recon.estimate.compile_apart``, which the
+    session's warm-up waits for and then loads), and here on a thread the simulator's, the other
+    compared methods' and the test's kernels the second process has not claimed, while the scan is
+    prepared and runs; a line says so. None when they are all cached."""
     import threading
 
     from spdepth.recon.estimate import compile_apart, kernels_cached, warm_up
@@ -229,7 +229,7 @@ def _compile_comparison_apart(request, methods):
     if child is None and thread is None:
         return None
     parts = ([f"{request.method}'s and the return test's kernels in a second process"] if child else []) + (
-        [f"those of {', '.join(others)} here"] if others else [])
+        [f"the simulator's, {', '.join(others)}'s and the test's last here"] if others else [])
     print(f"spdepth demo: compiling {' and '.join(parts)} while the scan is prepared (first run; later runs "
           f"load them from numba's cache)", file=sys.stderr)
     return _CompiledApart(child, thread)
