@@ -228,8 +228,9 @@ def _compile_comparison_apart(request, methods):
         thread.start()
     if child is None and thread is None:
         return None
+    theirs = ", ".join(f"{m}'s" for m in others)
     parts = ([f"{request.method}'s and the return test's kernels in a second process"] if child else []) + (
-        [f"the simulator's, {', '.join(others)}'s and the test's last here"] if others else [])
+        [f"the simulator's, {theirs} and the test's last here"] if others else [])
     print(f"spdepth demo: compiling {' and '.join(parts)} while the scan is prepared (first run; later runs "
           f"load them from numba's cache)", file=sys.stderr)
     return _CompiledApart(child, thread)
