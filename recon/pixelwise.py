@@ -21,7 +21,7 @@ from spdepth.recon.errors import InputError
 from spdepth.recon.maps import C_M_PER_S, DepthMaps, PixelFlag
 from spdepth.recon.model import FINE_STEPS, Binning, PulseKernel, ReconSettings
 from spdepth.recon.photons import PhotonStore
-from spdepth.recon.threadpool import shared_pool, threads
+from spdepth.recon.threadpool import shared_pool, slices, threads
 
 #: Pixels per kernel call; progress is reported between chunks.
 CHUNK_PIXELS = 16384
@@ -234,8 +234,7 @@ def thread_slices(p0: int, p1: int, workers: int) -> list[tuple[int, int]]:
     however they are sliced."""
     from spdepth.recon.kernels import BLOCK
 
-    step = max(BLOCK, -(-(p1 - p0) // (4 * workers)) // BLOCK * BLOCK)
-    return [(a, min(p1, a + step)) for a in range(p0, p1, step)]
+    return slices(p0, p1, workers, BLOCK)
 
 
 def on_threads(fit: Callable[[int, int], None], p0: int, p1: int, pool: ThreadPoolExecutor,

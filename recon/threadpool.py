@@ -34,6 +34,19 @@ def threads() -> int:
     return max(1, numba.get_num_threads())
 
 
+def slices(p0: int, p1: int, workers: int, unit: int = 1) -> list[tuple[int, int]]:
+    """[p0, p1) in slices of whole ``unit``s (a kernel's block), about four per one of ``workers``
+    threads: a thread that ends its slice early takes another instead of waiting for the slowest."""
+    step = max(unit, -(-(p1 - p0) // (4 * workers)) // unit * unit)
+    return [(a, min(p1, a + step)) for a in range(p0, p1, step)]
+
+
+def on_slices(work: Callable[[int, int], None], n: int, unit: int = 1) -> None:
+    """``work(a, b)`` over the :func:`slices` of [0, n) on :func:`on_threads`."""
+    parts = slices(0, n, threads(), unit)
+    on_threads(lambda i: work(*parts[i]), len(parts))
+
+
 def on_threads(work: Callable[[int], None], n: int) -> None:
     """``work(i)`` for i in range(n) on the process's pool of :func:`threads` threads (in this
     thread when called from one of its own, or for one item): for nogil kernels over independent

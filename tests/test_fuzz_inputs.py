@@ -266,7 +266,8 @@ def test_fuzz_events_jsonl(part, session_dir, tmp_path, capsys, caplog):
     rng = np.random.default_rng(0x5EED_E7E5)
     variants = list(_event_variants(lines, rng))
     keep = np.sort(rng.choice(len(variants), len(variants) // 3, replace=False))
-    for i in range(part, keep.size, EVENT_PARTS):
+    mine = range(part, keep.size, EVENT_PARTS)
+    for i in mine:
         name, body = variants[keep[i]]
         d = _session_copy(session_dir, tmp_path, i)
         (d / "events.jsonl").write_text(body)
@@ -276,7 +277,7 @@ def test_fuzz_events_jsonl(part, session_dir, tmp_path, capsys, caplog):
             tally.check(name + " (recon)", ["recon", str(d / "recording.ptu")], capsys, caplog)
         shutil.rmtree(d)
         shutil.rmtree(tmp_path / f"o{i}", ignore_errors=True)
-    print(f"\nfuzz events.jsonl, part {part + 1} of {EVENT_PARTS}: {len(range(part, keep.size, EVENT_PARTS))} "
+    print(f"\nfuzz events.jsonl, part {part + 1} of {EVENT_PARTS}: {len(mine)} "
           f"of {len(keep)} damaged logs (of {len(variants)} made), each replayed and every third also "
           f"reconstructed")
     tally.done()

@@ -21,7 +21,7 @@ from llvmlite import ir
 from numba import njit, types
 from numba.extending import intrinsic
 
-from spdepth.recon.threadpool import on_threads, threads
+from spdepth.recon.threadpool import on_slices, on_threads
 
 #: window_shifts: lists longer than this are bucket sorted, shorter ones by rank counting (its k^2
 #: comparisons vectorise: 2x faster than the bucket sort at 60 and 100 detections, 1.2x at 160).
@@ -168,16 +168,11 @@ def censor_fit(x, wx, offsets, s_min, win_counts, cs, out_mu, out_k, out_bg, out
     out_n (detections used), out_kept (detections that passed censoring)."""
     npix = cs.h * cs.w
     longest = np.int64(np.diff(offsets[:npix + 1]).max()) if npix else np.int64(0)
-    # blocks of pixels on the thread pool, each a call of the nogil block kernel: numba's prange
-    # over them cost 2.1 s of cold compile more (censor_fit's parallel lowering) at the same speed
-    n_blocks = (npix + PIXEL_BLOCK - 1) // PIXEL_BLOCK
-    per = max(1, -(-n_blocks // (4 * threads())))      # about four parts a thread
-
-    def part(i: int) -> None:
-        _censor_fit_block(i * per * PIXEL_BLOCK, min(npix, (i + 1) * per * PIXEL_BLOCK), longest, x, wx, offsets,
-                          s_min, win_counts, cs, out_mu, out_k, out_bg, out_n, out_kept)
-
-    on_threads(part, -(-n_blocks // per))
+    # slices of whole blocks of pixels on the thread pool, each a call of the nogil block kernel:
+    # numba's prange over them cost 2.1 s of cold compile more (censor_fit's parallel lowering) at
+    # the same speed
+    on_slices(lambda a, b: _censor_fit_block(a, b, longest, x, wx, offsets, s_min, win_counts, cs, out_mu, out_k,
+                                             out_bg, out_n, out_kept), npix, PIXEL_BLOCK)
 
 
 @njit(cache=True, nogil=True, _nrt=False)
@@ -536,9 +531,7 @@ def local_mean(f, wt, radius, out):
     """Weighted mean of ``f`` over the (2 radius + 1)^2 window with weights ``wt`` (NaN where the
     window holds no weight): the start of the TV iterations and the fill of empty pixels. In bands
     of rows on the thread pool (:func:`_local_mean_rows`)."""
-    h = f.shape[0]
-    per = max(1, -(-h // (4 * threads())))
-    on_threads(lambda i: _local_mean_rows(f, wt, radius, out, i * per, min(h, (i + 1) * per)), -(-h // per))
+    on_slices(lambda r0, r1: _local_mean_rows(f, wt, radius, out, r0, r1), f.shape[0])
 
 
 @njit(cache=True, nogil=True)
