@@ -48,6 +48,7 @@ def run(args: argparse.Namespace) -> int:
     if args.dask or len(args.file) > 1:
         return _run_many(args)
     from spdepth.acq.api import reconstruct_file
+    from spdepth.acq.commands._session import CompileNotice
     from spdepth.acq.report import ProgressBar
 
     from spdepth.acq.outputs import refuse_existing
@@ -57,10 +58,12 @@ def run(args: argparse.Namespace) -> int:
     refuse_existing(_outputs(request), overwrite=args.overwrite, inputs=(request.input,))
     bar = ProgressBar(f"recon {request.method}")
     # without an output file only the summary is seen, which holds no uncertainty: the return
-    # test's spreads are not computed (half of a 512x512 PTU's estimation time)
+    # test's spreads are not computed (half of a 512x512 PTU's estimation time); on a cold cache
+    # a line as each kernel starts compiling says how far the first run is
     try:
-        result = reconstruct_file(request, progress=bar, spreads=request.writes_files(),
-                                  notice=lambda text: print(f"spdepth recon: {text}", file=sys.stderr, flush=True))
+        with CompileNotice("spdepth recon"):
+            result = reconstruct_file(request, progress=bar, spreads=request.writes_files(),
+                                      notice=lambda text: print(f"spdepth recon: {text}", file=sys.stderr, flush=True))
     finally:
         bar.close()
     summary = result.summary
