@@ -696,9 +696,12 @@ def dispersion_note(d: dict, stated: bool) -> str:
     # ml's is about the width ratio squared; uos's filter's is not (its slope's ratio counts twice)
     like = f": as from a response {r:.2f} times its width" if d.get("score", "the likelihood's") == "the likelihood's" \
         else f", of {d['score']} score"
+    # lmf's (recon.detect.TEMPERED_METHODS) tempers the test's likelihood spreads by it instead
+    scaled = (f"the likelihood's spreads of every depth are tempered by it and the estimator's own "
+              f"uncertainty scaled by {r:.2f}") if "tempered" in d.get("applied", "") else \
+        f"every depth's uncertainty is scaled by {r:.2f} for it"
     head = (f"the detections lie {'closer to' if closer else 'wider about'} their depths than the pulse model "
-            f"says (dispersion {d['dispersion']:.2f} over {d['pixels']} pixels{like}); every depth's "
-            f"uncertainty is scaled by {r:.2f} for it, and the depths "
+            f"says (dispersion {d['dispersion']:.2f} over {d['pixels']} pixels{like}); {scaled}, and the depths "
             f"themselves are those of a model {'wider' if closer else 'narrower'} than the returns")
     if stated:
         return head + f" (--pulse-rms-ps may be too {'wide' if closer else 'narrow'}: without it the pulse is " \

@@ -244,20 +244,10 @@ def _share(chunk: list, b: int):
     return chunk[b]
 
 
-def block_task(plan: Plan, b: int, settings, time_unit_s: float, *shares, spreads: bool = True):
-    """Reconstruct block b (rows ``plan.rows[b]:plan.rows[b + 1]``) from its share of every chunk,
-    in chunk order, and the shares of the blocks above and below it (``shares``: every chunk's
-    share of block b, then of b - 1 and of b + 1 where they exist): their NEIGHBOUR_ROWS rows next
-    to the block are its halo, so the return test's neighbours' support (recon.detect) sees a block's edge rows
-    as the whole frame does. The halo's own maps are cut off. ``spreads`` False: the return test's
-    spreads are not computed (no output file: ``recon.estimate.reconstruct``). Returns (the block's
-    maps, its rows' terms of the pulse model's dispersion or None): the frame's dispersion is
-    pooled from every block's (:func:`reconstruct_blocks`), as the whole frame's reconstruction
-    takes it (``recon.detect.dispersion_terms``)."""
-    from spdepth.recon.detect import NEIGHBOUR_ROWS, dispersion_terms
-    from spdepth.recon.estimate import reconstruct
+def _block_store(plan: Plan, b: int, time_unit_s: float, shares):
+    """(block b's store with its halo rows, the first row of it, its own rows within it)."""
+    from spdepth.recon.detect import NEIGHBOUR_ROWS
     from spdepth.recon.photons import PhotonStore
-    from spdepth.recon.pixelwise import binned_once
 
     r0, r1 = plan.rows[b], plan.rows[b + 1]
     h, w = plan.shape
@@ -267,11 +257,46 @@ def block_task(plan: Plan, b: int, settings, time_unit_s: float, *shares, spread
     # a pixel's detections all come from one block's shares, in chunk order, which the store keeps
     keep = (pixel >= lo * w) & (pixel < hi * w)
     store = PhotonStore.from_pixel_indices(pixel[keep] - lo * w, dtime[keep], (hi - lo, w), time_unit_s)
+    return store, lo, (r0 - lo, r1 - lo)
+
+
+def search_terms_task(plan: Plan, b: int, settings, time_unit_s: float, *shares):
+    """Block b's terms of the pulse model's dispersion at ml's search's shifts
+    (``recon.detect.search_dispersion_terms``), for an estimator that tempers its test's spreads
+    by the frame's before the test (``recon.detect.TEMPERED_METHODS``): pooled over the blocks
+    first (:func:`reconstruct_blocks`), as one process measures it on the whole frame."""
+    from spdepth.recon.detect import search_dispersion_terms
+    from spdepth.recon.estimate import resolve_model
+
+    store, lo, rows = _block_store(plan, b, time_unit_s, shares)
+    bb, kern, _ = resolve_model(store, settings)
+    h, w = plan.shape
+    return search_dispersion_terms(store, settings, bb, kern, first_pixel=lo * w, frame_pixels=h * w, rows=rows)
+
+
+def block_task(plan: Plan, b: int, settings, time_unit_s: float, *shares, spreads: bool = True,
+               tempered: dict | None = None):
+    """Reconstruct block b (rows ``plan.rows[b]:plan.rows[b + 1]``) from its share of every chunk,
+    in chunk order, and the shares of the blocks above and below it (``shares``: every chunk's
+    share of block b, then of b - 1 and of b + 1 where they exist): their NEIGHBOUR_ROWS rows next
+    to the block are its halo, so the return test's neighbours' support (recon.detect) sees a block's edge rows
+    as the whole frame does. The halo's own maps are cut off. ``spreads`` False: the return test's
+    spreads are not computed (no output file: ``recon.estimate.reconstruct``). Returns (the block's
+    maps, its rows' terms of the pulse model's dispersion or None): the frame's dispersion is
+    pooled from every block's (:func:`reconstruct_blocks`), as the whole frame's reconstruction
+    takes it (``recon.detect.dispersion_terms``). ``tempered``: the frame's dispersion for an
+    estimator that tempers its test's spreads by it (:func:`search_terms_task`)."""
+    from spdepth.recon.detect import dispersion_terms
+    from spdepth.recon.estimate import reconstruct
+    from spdepth.recon.pixelwise import binned_once
+
+    store, lo, rows = _block_store(plan, b, time_unit_s, shares)
+    w = plan.shape[1]
     with binned_once():                 # the dispersion's terms read the detections the estimator binned
-        maps = reconstruct(store, settings, spreads=spreads, dispersion=False)
-        terms = dispersion_terms(store, settings, maps, first_pixel=lo * w, frame_pixels=h * w,
-                                 rows=(r0 - lo, r1 - lo)) if spreads else None
-    return crop_rows(maps, r0 - lo, r1 - lo), terms
+        maps = reconstruct(store, settings, spreads=spreads, dispersion=tempered or False)
+        terms = dispersion_terms(store, settings, maps, first_pixel=lo * w, frame_pixels=plan.shape[0] * w,
+                                 rows=rows) if spreads else None
+    return crop_rows(maps, *rows), terms
 
 
 def crop_rows(maps, a: int, b: int):
@@ -299,7 +324,7 @@ def reconstruct_blocks(client, plan: Plan, settings, time_unit_s: float, on_subm
     kill a worker there). ``spreads``: as :func:`block_task`'s; with them, ml's uncertainties are
     scaled by the frame's pulse model's dispersion, pooled from the blocks' terms in frame order (so
     the same as one process's, to the bit: ``recon.detect.with_dispersion``)."""
-    from spdepth.recon.detect import dispersion_of, with_dispersion
+    from spdepth.recon.detect import TEMPERED_METHODS, dispersion_of, with_dispersion
 
     n_blocks = len(plan.rows) - 1
     chunks = [client.submit(chunk_task, plan, i, pure=False)
@@ -308,7 +333,14 @@ def reconstruct_blocks(client, plan: Plan, settings, time_unit_s: float, on_subm
     # each block's own shares, then its neighbours' (the halo rows: block_task)
     inputs = [shares[b] + [f for n in (b - 1, b + 1) if 0 <= n < n_blocks for f in shares[n]]
               for b in range(n_blocks)]
-    blocks = [client.submit(block_task, plan, b, settings, time_unit_s, *inputs[b], spreads=spreads, pure=False)
+    tempered = None
+    if spreads and settings.method in TEMPERED_METHODS and settings.irf is None:
+        # its test tempers the spreads by the frame's dispersion, measured before the blocks' tests
+        found = client.gather([client.submit(search_terms_task, plan, b, settings, time_unit_s, *inputs[b],
+                                             pure=False) for b in range(n_blocks)])
+        tempered = dispersion_of(tuple(np.concatenate(part) for part in zip(*found)))
+    blocks = [client.submit(block_task, plan, b, settings, time_unit_s, *inputs[b], spreads=spreads,
+                            tempered=tempered, pure=False)
               for b in range(n_blocks)]
     if on_submitted is not None:
         on_submitted(chunks + blocks)

@@ -138,6 +138,14 @@ DISPERSION_PIXELS = 20_000
 DISPERSION_MIN_PIXELS = 200
 #: The estimators whose uncertainties the pulse model's dispersion scales (:func:`dispersion_terms`).
 DISPERSION_METHODS = ("ml", "uos")
+#: ... and those whose depths are not the likelihood's optimum, nor have a background: lmf's. The
+#: likelihood's terms at ml's search's shifts give theirs (:func:`search_dispersion_terms`), before
+#: the test, whose likelihood spreads are then tempered by it (:func:`decide_maps`): the widths
+#: scale, the distances between the likelihood's modes and lmf's depth (the background's pull on
+#: it) stay. Scaling lmf's whole uncertainty instead, as ml's is, shrank those distances too: on
+#: simulated returns with background and a pulse stated twice as wide 10.6% of the depths lay
+#: within 1 sigma of the truth.
+TEMPERED_METHODS = ("lmf",)
 #: Bootstrap resamples of each pixel's detections (the spread of the best shift among them).
 BOOTSTRAP = 40
 #: Largest table (grid shifts x distinct bins) a pixel's bootstrap builds; larger pixels go without.
@@ -291,10 +299,11 @@ def _sweep_clear(kb, nu, tabs, acc, lo, hi):
 
 
 @njit(cache=True, nogil=True, _nrt=False, error_model="numpy", **INNER)
-def _spread(kb, kw, nu, ntot, e, s, best_i, tabs, rates, sp, region):
-    """The likelihood over the integer shifts at the fixed signal share s: (sd, ns, top), sd the
-    larger of the 68.27% quantile and half the 95.45% quantile of |shift - e| under it (a flat
-    prior), the ns shifts within SPREAD_NATS_BEYOND + log M of its peak in sp (ascending, with
+def _spread(kb, kw, nu, ntot, e, s, best_i, tabs, rates, sp, region, temper):
+    """The likelihood over the integer shifts at the fixed signal share s, to the power ``temper``
+    (1: itself): (sd, ns, top), sd the larger of the 68.27% quantile and half the 95.45% quantile
+    of |shift - e| under it (a flat prior), the ns shifts within (SPREAD_NATS_BEYOND + log M) /
+    temper nats of its peak in sp (ascending, with
     their log-likelihoods; the rest weigh under e^-SPREAD_NATS_BEYOND together), and the peak.
     The interior shifts' likelihoods come from one sweep, each detection adding its log rates
     over its reach (contiguous adds into sp.acc, zero between pixels); the few at the
@@ -305,7 +314,7 @@ def _spread(kb, kw, nu, ntot, e, s, best_i, tabs, rates, sp, region):
     lo0 = _sweep(kb, kw, nu, s, T, rates, row, sp.rrow, acc, T.ia, T.ib)
     base_ll = ntot * lo0                 # every detection off the pulse
     ref = _ll_at(kb, kw, nu, ntot, best_i, s, T, row)
-    bar = ref - (SPREAD_NATS_BEYOND + T.logm)
+    bar = ref - (SPREAD_NATS_BEYOND + T.logm) / temper
     # a shift where no detection's rate beats the background's, uni (every detection at an offset
     # outside dlo..dhi), has a likelihood below ntot log uni; when
     # that floor lies below the bar only the shifts that some detection reaches within dlo..dhi
@@ -335,7 +344,7 @@ def _spread(kb, kw, nu, ntot, e, s, best_i, tabs, rates, sp, region):
     r = ns
     for k in range(ns):
         # outside the region the shifts weigh nothing (they stay in sp for _modes)
-        sp.wt[k] = math.exp(sp.logw[k] - top) if region.size == 0 or region[sp.pos[k]] else 0.0
+        sp.wt[k] = math.exp((sp.logw[k] - top) * temper) if region.size == 0 or region[sp.pos[k]] else 0.0
         total += sp.wt[k]
         if r == ns and sp.pos[k] >= e:
             r = k
@@ -615,7 +624,7 @@ def _total(kw, nu):
 # inlined into detect_kernel: as a function of its own it was compiled, then optimised and emitted
 # again inside detect_kernel (1.8-3.9 s of CPU on a cold cache for a loop over blocks)
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _detect_block(blk, ph, dt, rates, maxn, est_shift, gain_in, index_in, share_in, thr, mode_thr, n_boot, regions, out_gain, out_sd, out_sandwich, out_boot):
+def _detect_block(blk, ph, dt, rates, maxn, est_shift, gain_in, index_in, share_in, thr, mode_thr, n_boot, temper, regions, out_gain, out_sd, out_sandwich, out_boot):
     """The pixels of block blk of :func:`detect_kernel` with their scratch."""
     T = dt
     px = pixel_scratch(maxn, T.m)
@@ -643,7 +652,7 @@ def _detect_block(blk, ph, dt, rates, maxn, est_shift, gain_in, index_in, share_
         # half a detection's worth of background keeps it possible
         s = min(best_s, 1.0 - 0.5 / ntot)
         region = regions[p] if regions.shape[0] else no_region
-        out_sd[p], ns, top = _spread(kb, kw, nu, ntot, e, s, best_i, T, rates, sp, region)
+        out_sd[p], ns, top = _spread(kb, kw, nu, ntot, e, s, best_i, T, rates, sp, region, temper)
         out_sandwich[p] = _sandwich_var(kb, kw, nu, e, best_s, T)
         if n_boot > 0 and n >= 2 and ns > 0 and (n < BOOT_MAX_N or _modes(sp, ns, top) > 1):
             out_boot[p] = _bootstrap_sd(kb, kw, nu, ntot, e, s, sp, ns, top, T, n_boot, _pixel_seed(kb, kw, nu),
@@ -653,7 +662,7 @@ def _detect_block(blk, ph, dt, rates, maxn, est_shift, gain_in, index_in, share_
 # numpy's error model as in _detect_block, which is inlined here and compiled under these options
 # (python's would add a zero check to every division and raise on one)
 @njit(cache=True, nogil=True, error_model="numpy")
-def detect_kernel(ph, dt, rates, maxn, est_shift, gain_in, index_in, share_in, thr, mode_thr, n_boot, regions, out_gain, out_sd, out_sandwich, out_boot):
+def detect_kernel(ph, dt, rates, maxn, est_shift, gain_in, index_in, share_in, thr, mode_thr, n_boot, temper, regions, out_gain, out_sd, out_sandwich, out_boot):
     """Per pixel of ph (:class:`recon.kernels.Photons`, at most maxn entries a pixel) with the
     test's tables ``dt`` (:class:`DetTables`), given its largest log-likelihood gain of one return
     over background alone ``gain_in`` (nats), the integer shift ``index_in`` (-1: none) and signal
@@ -663,7 +672,7 @@ def detect_kernel(ph, dt, rates, maxn, est_shift, gain_in, index_in, share_in, t
     likelihood's (:func:`_spread`), the sandwich variance (bins^2) and the bootstrap's."""
     for blk in range(n_blocks(ph)):
         _detect_block(np.int64(blk), ph, dt, rates, maxn, est_shift, gain_in, index_in, share_in, thr, mode_thr,
-                      n_boot, regions, out_gain, out_sd, out_sandwich, out_boot)
+                      n_boot, temper, regions, out_gain, out_sd, out_sandwich, out_boot)
 
 
 # a kernel of its own, not a branch of detect_kernel: ml's search is most of the test's compile
@@ -1015,7 +1024,7 @@ def search(bins: np.ndarray, offsets: np.ndarray, kern, weights: np.ndarray = NO
 def detect(bins: np.ndarray, offsets: np.ndarray, kern, est_shift: np.ndarray, false_alarm: float,
            weights: np.ndarray = NO_WEIGHTS, spread_all: bool = False, known_gain: np.ndarray | None = None,
            known_share: np.ndarray | None = None, regions: np.ndarray | None = None,
-           spreads: bool = True) -> Detection:
+           spreads: bool = True, temper: float = 1.0) -> Detection:
     """The test and the spreads (module docstring) of every pixel's in-window detections ``bins``
     (bin indices grouped by ``offsets``; with ``weights``, distinct bins and their counts) about
     the estimated shifts ``est_shift`` (bins, NaN where the estimator reports none), for the pulse
@@ -1024,7 +1033,8 @@ def detect(bins: np.ndarray, offsets: np.ndarray, kern, est_shift: np.ndarray, f
     ``known_share``: the estimator's own gain and signal share where it ran the same search (ml's
     :attr:`recon.maps.DepthMaps.gain_nats`), taken instead of searching again. Runs on numba's threads (``recon.pixelwise.threads``)
     in slices of whole blocks, as the pixelwise estimators do: the result is the same however the
-    pixels are sliced. ``spreads`` False: the test alone, every spread NaN."""
+    pixels are sliced. ``spreads`` False: the test alone, every spread NaN. ``temper``: the likelihood's spread is that of its power ``temper`` (1 / the pulse
+    model's dispersion: a quasi-likelihood's, TEMPERED_METHODS)."""
     from spdepth.recon.estimators.ml import ml_tables
     from spdepth.recon.estimators.surfaces_fit import auto_threshold_nats, fwhm_bins
 
@@ -1068,7 +1078,7 @@ def detect(bins: np.ndarray, offsets: np.ndarray, kern, est_shift: np.ndarray, f
     def run(p0: int, p1: int) -> None:
         ph, maxn = _slice(bins, weights, offsets, p0, p1)
         detect_kernel(ph, dt, rates, maxn, est[p0:p1], g_in[p0:p1], i_in[p0:p1], s_in[p0:p1], spread_thr, thr,
-                      BOOTSTRAP, reg[p0:p1] if reg.shape[0] else reg, gain[p0:p1], sd[p0:p1], sw[p0:p1],
+                      BOOTSTRAP, float(temper), reg[p0:p1] if reg.shape[0] else reg, gain[p0:p1], sd[p0:p1], sw[p0:p1],
                       boot[p0:p1])
 
     over_threads(run, npix, max(npix, 1))
@@ -1108,11 +1118,8 @@ def dispersion_terms(store, settings, maps, first_pixel: int = 0, frame_pixels: 
     with Gaussian pulses it follows the halves' agreement (below). uos's depths are not the
     likelihood's optimum (ml's terms at those of the bust fitted with a 720 ps pulse: 160), and its
     uncertainty is its matched filter's: its terms are the filter's own, four a pixel
-    (:func:`recon.estimators.uos.matched_filter_terms`). Not lmf's: its log-matched filter has no
-    background, and a background detection's score grows without bound with its distance from
-    the depth."""
-    from spdepth.recon.estimators.ml import ml_tables
-    from spdepth.recon.kernels import Photons
+    (:func:`recon.estimators.uos.matched_filter_terms`). Not lmf's: it measures the dispersion
+    before its test, at ml's search's shifts (:func:`search_dispersion_terms`)."""
     from spdepth.recon.photons import rows_of
 
     tof = np.asarray(maps.tof_s, np.float64)
@@ -1124,21 +1131,59 @@ def dispersion_terms(store, settings, maps, first_pixel: int = 0, frame_pixels: 
     share = _signal_share(maps, b, n)
     est = (tof.ravel() / b.time_unit_s - b.window_start) / b.bin_width - 0.5
     k = share * n
-    stride = max(1, (tof.size if frame_pixels is None else frame_pixels) // DISPERSION_PIXELS)
-    w = tof.shape[-1]
-    lo, hi = (0, tof.shape[0]) if rows is None else rows
-    # every stride-th pixel of the frame, without an index of every pixel (a 4096 x 4096 frame's: 134 MB)
-    start = -(-(first_pixel + lo * w) // stride) * stride - first_pixel
-    local = np.arange(start, hi * w, stride)
+    local = _sampled_pixels(tof.shape, first_pixel, frame_pixels, rows)
     pix = local[np.isfinite(est[local]) & (k[local] >= 2.0)]
     if settings.method == "uos":
         from spdepth.recon.estimators.uos import MIN_DETECTIONS, matched_filter_terms
 
         pix = pix[n[pix] >= MIN_DETECTIONS]   # by the count alone: the fit chose none of them
-    at, so = rows_of(offsets, pix)
-    if settings.method == "uos":
+        at, so = rows_of(offsets, pix)
         return matched_filter_terms(bins[at], weights[at] if weights.size else NO_WEIGHTS, so, est[pix], k[pix],
                                     np.asarray(maps.background, np.float64).ravel()[pix], kern, b.n_bins)
+    return _likelihood_terms(bins, weights, offsets, n, kern, pix, est[pix], share[pix])
+
+
+def search_dispersion_terms(store, settings, b, kern, first_pixel: int = 0, frame_pixels: int | None = None,
+                            rows: tuple[int, int] | None = None) -> tuple[np.ndarray, ...]:
+    """The likelihood's two terms of the pulse model's dispersion, as :func:`dispersion_terms` takes
+    ml's, at ml's search's best integer shift and signal share (:func:`search`) of every sampled
+    pixel of ``store`` with at least two signal detections there, whatever the estimator: the
+    dispersion of an estimator whose depths are not the likelihood's optimum (lmf's, TEMPERED_METHODS),
+    measured before its test. ``b``, ``kern``: the resolved binning and pulse (a Gaussian's: as
+    for :func:`dispersion_terms`, not for a sampled response, which the caller checks). The search
+    runs on the sampled pixels alone (the test searches every pixel again: about 20,000 of them at
+    most, a tenth of a second), so that blocks of rows with :func:`dispersion_terms`'s
+    ``first_pixel``, ``frame_pixels`` and ``rows`` give the frame's (``acq.distributed``)."""
+    from spdepth.recon.photons import rows_of
+
+    bins, weights, offsets, n = _binned_frame(store, settings, b)
+    local = _sampled_pixels(store.shape, first_pixel, frame_pixels, rows)
+    local = local[n[local] > 0]
+    at, so = rows_of(offsets, local)
+    _, index, share = search(bins[at], so, kern, weights[at] if weights.size else NO_WEIGHTS)
+    ok = (index >= 0) & (share * n[local] >= 2.0)
+    return _likelihood_terms(bins, weights, offsets, n, kern, local[ok], index[ok].astype(np.float64), share[ok])
+
+
+def _sampled_pixels(shape, first_pixel: int, frame_pixels: int | None, rows: tuple[int, int] | None) -> np.ndarray:
+    """Every stride-th pixel of a frame among those of ``shape`` (the frame's from ``first_pixel``
+    on, of ``frame_pixels``, default their own), within ``rows`` (:func:`dispersion_terms`)."""
+    h, w = shape[-2], shape[-1]
+    stride = max(1, (h * w if frame_pixels is None else frame_pixels) // DISPERSION_PIXELS)
+    lo, hi = (0, h) if rows is None else rows
+    # without an index of every pixel (a 4096 x 4096 frame's: 134 MB)
+    start = -(-(first_pixel + lo * w) // stride) * stride - first_pixel
+    return np.arange(start, hi * w, stride)
+
+
+def _likelihood_terms(bins, weights, offsets, n, kern, pix, est, share):
+    """ml's two terms (:func:`dispersion_terms`) of the pixels ``pix`` at shifts ``est`` (bins) and
+    signal shares ``share`` (theirs)."""
+    from spdepth.recon.estimators.ml import ml_tables
+    from spdepth.recon.kernels import Photons
+    from spdepth.recon.photons import rows_of
+
+    at, so = rows_of(offsets, pix)
     ph = Photons(np.ascontiguousarray(bins[at], np.int64), np.ascontiguousarray(so, np.int64),
                  np.ascontiguousarray(weights[at], np.float64) if weights.size else NO_WEIGHTS)
     dt, _ = _tables_of(ml_tables(kern, int(kern.n_bins)))
@@ -1146,12 +1191,13 @@ def dispersion_terms(store, settings, maps, first_pixel: int = 0, frame_pixels: 
     curv = np.empty(pix.size)
     score = np.empty(pix.size)
     if pix.size:
-        dispersion_kernel(ph, dt, int(np.diff(so).max()), np.ascontiguousarray(est[pix]),
-                          np.ascontiguousarray(share[pix]), score2, curv, score)
-    # about their mean: the depth is a refined optimum, where the scores sum to nearly zero
+        dispersion_kernel(ph, dt, int(np.diff(so).max()), np.ascontiguousarray(est, np.float64),
+                          np.ascontiguousarray(share, np.float64), score2, curv, score)
+    # about their mean: the depth is a refined optimum (ml's), or the search's integer one, where
+    # the scores sum to nearly zero
     score2 = score2 - score ** 2 / n[pix]
     ok = np.isfinite(score2) & np.isfinite(curv)
-    kk = k[pix][ok]
+    kk = (share * n[pix])[ok]
     return score2[ok] * kk / (kk - 1.0), curv[ok]
 
 
@@ -1287,10 +1333,10 @@ def neighbour_fill(bins, weights, offsets, width: int, kern, cand, half: int, th
 
 
 def _region_spreads(det: Detection, bins, weights, offsets, kern, pix, est, regions, false_alarm: float,
-                    known_gain=None, known_share=None, spreads: bool = True) -> None:
+                    known_gain=None, known_share=None, spreads: bool = True, temper: float = 1.0) -> None:
     """``det`` with the pixels ``pix`` holding a return and their spreads about ``est`` (bins)
-    taken over their ``regions`` only (:func:`detect` with ``spread_all``; without ``spreads``,
-    the decision alone)."""
+    taken over their ``regions`` only (:func:`detect` with ``spread_all`` and ``temper``; without
+    ``spreads``, the decision alone)."""
     from spdepth.recon.photons import rows_of
 
     det.has_return[pix] = True
@@ -1298,7 +1344,7 @@ def _region_spreads(det: Detection, bins, weights, offsets, kern, pix, est, regi
         return
     at, so = rows_of(offsets, pix)
     sub = detect(bins[at], so, kern, est, false_alarm, weights[at] if weights.size else NO_WEIGHTS,
-                 spread_all=True, regions=regions, known_gain=known_gain, known_share=known_share)
+                 spread_all=True, regions=regions, known_gain=known_gain, known_share=known_share, temper=temper)
     det.sd_bins[pix] = sub.sd_bins
     det.sandwich_var_bins2[pix] = sub.sandwich_var_bins2
     det.bootstrap_sd_bins[pix] = sub.bootstrap_sd_bins
@@ -1434,7 +1480,8 @@ def _signal_share(maps, b, n_photons) -> np.ndarray:
     return np.clip(np.nan_to_num(share), 0.0, 1.0)
 
 
-def decide_maps(store, settings, maps, neighbours: bool = True, spreads: bool = True, dispersion: bool = True):
+def decide_maps(store, settings, maps, neighbours: bool = True, spreads: bool = True,
+                dispersion: bool | dict = True):
     """``maps`` with the test applied and honest uncertainties (module docstring): pixels without a
     return get no depth and the flag NO_RETURN; ``settings['detection']`` records the test. With
     ``neighbours`` (the store is a frame, its pixels' neighbours beside them) a pixel that fails on
@@ -1444,7 +1491,10 @@ def decide_maps(store, settings, maps, neighbours: bool = True, spreads: bool = 
     ``neighbours`` and ``dispersion``, the uncertainties of ml's and uos's one-surface maps with a
     Gaussian pulse are scaled by the pulse model's dispersion (:func:`with_dispersion`), measured
     on these maps (uos's: its matched filter's); ``dispersion`` False: left to the caller
-    (``acq.distributed`` pools it over blocks)."""
+    (``acq.distributed`` pools it over blocks). lmf's (TEMPERED_METHODS, with ``spreads``): the
+    dispersion at ml's search's shifts (:func:`search_dispersion_terms`, on this store, or
+    ``dispersion`` as a dict: the frame's), measured before the test, tempers its likelihood
+    spreads, and scales lmf's own uncertainty by its square root."""
     rec = dict(maps.settings)
     b, kern = _kernel_of(rec)
     bins, weights, offsets, n_photons = _binned_frame(store, settings, b)
@@ -1470,7 +1520,18 @@ def decide_maps(store, settings, maps, neighbours: bool = True, spreads: bool = 
     # the stated rate is the pixel's: where the neighbours' support applies, a pixel of background
     # alone has two chances (its own test, then the support), and each is given half of it
     rate = settings.false_alarm / 2 if rules else settings.false_alarm
-    det = detect(bins, offsets, kern, est, rate, weights, spreads=spreads, **known)
+    tempered = None
+    # on a frame, as ml's scaling (a live batch is none: acq.live_recon's frame pass applies both)
+    if settings.method in TEMPERED_METHODS and spreads and neighbours and not several and dispersion is not False \
+            and rec.get("kernel", {}).get("pulse") == "gaussian":
+        if isinstance(dispersion, dict):
+            tempered = dispersion           # the frame's (acq.distributed)
+        else:
+            tempered = dispersion_of(search_dispersion_terms(store, settings, b, kern))
+    # the likelihood's spreads of a quasi-likelihood (its log over the dispersion): their widths
+    # scale by its square root, and the distances between its modes and the depth stay
+    temper = 1.0 / tempered["dispersion"] if tempered is not None else 1.0
+    det = detect(bins, offsets, kern, est, rate, weights, spreads=spreads, temper=temper, **known)
     filled = None
     thr_n = math.nan
     half = max(1, int(round(NEIGHBOUR_HALF_CORES * core_s / b.bin_width_s)))
@@ -1486,7 +1547,7 @@ def decide_maps(store, settings, maps, neighbours: bool = True, spreads: bool = 
         for c0 in range(0, supported.size if spreads else 0, REGION_CHUNK):
             sup = supported[c0:c0 + REGION_CHUNK]
             regions = neighbour_regions(bins, weights, offsets, w, kern, sup, half, thr_n)
-            _region_spreads(det, bins, weights, offsets, kern, sup, est[sup], regions, rate,
+            _region_spreads(det, bins, weights, offsets, kern, sup, est[sup], regions, rate, temper=temper,
                             **{k: None if v is None else v[sup] for k, v in known.items()})
         # a pixel whose own estimate lies elsewhere (a background cluster beat a faint return):
         # its own detections tested where its neighbours see returns, and given ml's depth there
@@ -1522,6 +1583,8 @@ def decide_maps(store, settings, maps, neighbours: bool = True, spreads: bool = 
         # each spread replaces the estimator's uncertainty only where it is larger beyond its own
         # resolution: the likelihood's and the bootstrap's are read on a grid of whole bins (a
         # bin), the bootstrap's quantile from BOOTSTRAP resamples is good to about BOOT_NOISE
+        if tempered is not None:
+            unc = unc * tempered["width_ratio"]       # the estimator's own, filled pixels' included
         post, boot, use_post, use_boot = _spreads(det, unc, bw)
         if spatial:
             # the neighbours narrow a spatial depth beyond what the pixel's own detections say;
@@ -1547,6 +1610,9 @@ def decide_maps(store, settings, maps, neighbours: bool = True, spreads: bool = 
         "uncertainty": ("larger of the estimator's and the profile likelihood's spread about the estimate"
                         if spreads else "the estimator's own (the test's spreads not computed: no maps written)"),
     }
+    if tempered is not None:
+        rec["pulse_dispersion"] = dict(tempered, applied="the likelihood's spreads tempered by it (its log over the "
+                                       "dispersion) and the estimator's own uncertainty scaled by sqrt(dispersion)")
     if np.isfinite(thr_n):
         rec["detection"]["neighbours"] = {
             "rule": (f"a pixel that fails the test holds a return when the detections of the "
@@ -1568,4 +1634,4 @@ def decide_maps(store, settings, maps, neighbours: bool = True, spreads: bool = 
 
 
 __all__ = ["Detection", "detect", "decide_maps", "detect_kernel", "search", "search_kernel", "dispersion_of", "dispersion_terms",
-           "pulse_dispersion", "with_dispersion"]
+           "pulse_dispersion", "search_dispersion_terms", "with_dispersion"]

@@ -28,7 +28,7 @@ from spdepth.recon.resolve import resolve_model
 
 def reconstruct(store: PhotonStore, settings: ReconSettings,
                 progress: Callable[[int, int], None] | None = None, neighbours: bool = True,
-                spreads: bool = True, dispersion: bool = True) -> DepthMaps:
+                spreads: bool = True, dispersion: bool | dict = True) -> DepthMaps:
     """Estimate depth, background and signal at every pixel of ``store``.
 
     ``store``: a photon list, or counts (``recon.counts.CountStore``: a histogram cube, or a
@@ -48,7 +48,9 @@ def reconstruct(store: PhotonStore, settings: ReconSettings,
     RMS and its source). ``spreads`` False: the decision without the uncertainty's spreads (each
     depth's uncertainty the estimator's own, as the record says), for a caller that writes no map.
     ``dispersion`` False: ml's uncertainties are not scaled by the pulse model's dispersion here
-    (``recon.detect.with_dispersion``; a block of a frame leaves it to the frame's).
+    (``recon.detect.with_dispersion``; a block of a frame leaves it to the frame's), nor lmf's
+    test's spreads tempered by it; a dict: the frame's, by which lmf's are tempered
+    (``recon.detect.TEMPERED_METHODS``, measured before the test).
     """
     if not isinstance(settings, ReconSettings):
         raise InputError(f"settings must be ReconSettings, got {type(settings).__name__}")
