@@ -1033,8 +1033,9 @@ def detect(bins: np.ndarray, offsets: np.ndarray, kern, est_shift: np.ndarray, f
     ``known_share``: the estimator's own gain and signal share where it ran the same search (ml's
     :attr:`recon.maps.DepthMaps.gain_nats`), taken instead of searching again. Runs on numba's threads (``recon.pixelwise.threads``)
     in slices of whole blocks, as the pixelwise estimators do: the result is the same however the
-    pixels are sliced. ``spreads`` False: the test alone, every spread NaN. ``temper``: the likelihood's spread is that of its power ``temper`` (1 / the pulse
-    model's dispersion: a quasi-likelihood's, TEMPERED_METHODS)."""
+    pixels are sliced. ``spreads`` False: the test alone, every spread NaN. ``temper``: the
+    likelihood's spread is that of its power ``temper`` (1 / the pulse model's dispersion: a
+    quasi-likelihood's, TEMPERED_METHODS)."""
     from spdepth.recon.estimators.ml import ml_tables
     from spdepth.recon.estimators.surfaces_fit import auto_threshold_nats, fwhm_bins
 
