@@ -124,6 +124,9 @@ class MapDef:
     replaces: str | None = None
     """Key of the map this one is drawn instead of, in the same place, when it has data (the
     background rate of a scan replaces the background count of a file's maps)."""
+    from_background: bool = False
+    """Drawn from the estimator's background: without a value where the estimator estimates none
+    (``recon.estimators.Estimator.background``: lmf)."""
 
 
 MAP_DEFS: tuple[MapDef, ...] = (
@@ -135,14 +138,14 @@ MAP_DEFS: tuple[MapDef, ...] = (
            "standard deviation of the depth, from the Poisson likelihood", per_surface=True),
     MapDef("background", "Background", "detections in window", "magma", "zero",
            _background_window,
-           "background detections among those kept, over the whole detection window"),
+           "background detections among those kept, over the whole detection window", from_background=True),
     MapDef("background_rate", "Background rate", "kcps", "magma", "zero", _background_rate,
            "background detections per second over the detection window (thousands), from the "
            "laser time each pixel was observed: a flux, independent of the target",
-           optional=True, replaces="background"),
+           optional=True, replaces="background", from_background=True),
     MapDef("sbr", "Signal / background", "dB", "viridis", "robust", _sbr,
            "10 log10 of the detections attributed to the return(s) over the background "
-           "detections in the window; no background found: above the scale"),
+           "detections in the window; no background found: above the scale", from_background=True),
     MapDef("counts", "Detections kept", "per pixel", "cividis", "target",
            lambda m: np.asarray(m.counts, dtype=np.float64),
            "in-window detections used by the estimate (at most the target)"),

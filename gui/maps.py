@@ -158,12 +158,13 @@ class MapPanel:
         self.plot.setTitle(text, size="10pt")
 
     def show(self, data: np.ndarray, target: int, version=None, *, refit: bool = False,
-             surface: int = 0, weak: np.ndarray | None = None) -> None:
+             surface: int = 0, weak: np.ndarray | None = None, missing: str | None = None) -> None:
         """New data. Levels by the map's rule on the data, widened (never narrowed) during a run,
         or refitted with ``refit``. ``version``: equal to the last one shown, the data is unchanged
         and the image is not set again (each setImage re-renders the whole image in Python).
         ``surface``, ``weak``: of (K, H, W) data, the surface shown and the (K, H, W) mask of weak
-        surfaces, drawn faded."""
+        surfaces, drawn faded. ``missing``: what the title says when no pixel holds a value
+        because none is estimated (the background of an estimator without one)."""
         if version is not None and version == self.version and not refit:
             return
         self.version = version
@@ -184,6 +185,8 @@ class MapPanel:
             few = whole_numbers(data) and lv[1] - lv[0] <= DISCRETE_MAX
             self.bar.axis.setTickSpacing(*((1, 1) if few else (None, None)))
         caption = constant_caption(self.spec, data)
+        if caption is None and missing and not np.isfinite(data).any():
+            caption = missing
         if caption != self._const:
             # one value everywhere: say it in the title (the bar's ends would be rounding noise)
             self._const = caption

@@ -1062,11 +1062,16 @@ class MainWindow(QtWidgets.QMainWindow):
         self.run_label.setText(f"{label} — {w}×{h}, {snap.detections:,} detections, "
                                f"window {b.window_start * b.time_unit_s * 1e9:.1f}–"
                                f"{b.window_stop * b.time_unit_s * 1e9:.1f} ns{pulse}")
-        # where the pulse came from is a sentence: in the tooltip, with the file's path
+        # where the pulse came from is a sentence: in the tooltip, with the file's path, and so are
+        # the notes (what the file held and what was used, the pulse model's fit), which the
+        # status bar shows for a while and cuts at its width
         source = res.maps.settings.get("pulse_source", "")
-        self.run_label.setToolTip(job.request.input + (f"\npulse: {source}" if source else ""))
-        for note in res.notes:
-            self.statusBar().showMessage(note, 10000)
+        self.run_label.setToolTip(job.request.input + (f"\npulse: {source}" if source else "")
+                                  + "".join(f"\n\n{note}" for note in res.notes))
+        if res.notes:
+            n = len(res.notes)
+            self.statusBar().showMessage(f"{n} note{'s' if n > 1 else ''}, whole in the title's tooltip: "
+                                         + "; ".join(res.notes), 15000)
         self.inspect((h // 2, w // 2), pin=False)
         self.scan_ended.emit("done")
 
@@ -1157,6 +1162,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self._maps_stale = False
         mi = snapshot_input(snap, self._n_bins, target)
         surface = max(0, self.controls.surface.currentIndex())
+        method = self._shown_method()
+        no_background = method is not None and method in estimators.names() and not estimators.get(method).background
         for p in self.panels:
             v = None if versions is None else versions["counts" if p.spec.key == "counts"
                                                        else "estimate"]
@@ -1167,11 +1174,20 @@ class MainWindow(QtWidgets.QMainWindow):
                     p.plot.setVisible(False)
                     continue
                 p.plot.setVisible(True)
-                p.show(data, target, version=v, refit=refit, surface=surface, weak=snap.weak)
+                p.show(data, target, version=v, refit=refit, surface=surface, weak=snap.weak,
+                       missing=f"not estimated by {method}" if no_background and spec.from_background else None)
                 painted = True
         if painted:
             self._paint_3d()
         return painted
+
+    def _shown_method(self) -> str | None:
+        """The estimator of the maps shown: the file's or the session's (None: neither)."""
+        if isinstance(self.view, ResultView):
+            return self.view.result.request.method
+        if self.run is not None:
+            return self.run.session.live_recon.requested.method
+        return None
 
     def _estimator_changed(self, method: str) -> None:
         """A new estimator chosen after a run: the same detections reconstructed again with it

@@ -561,6 +561,25 @@ def test_a_ptu_file_is_reconstructed_off_the_gui_thread(qtbot, win, tmp_path, sm
     assert win.save_maps(tmp_path / "maps.npz").stat().st_size > 0
 
 
+def test_a_file_s_notes_are_kept_whole_in_the_title_s_tooltip(qtbot, win, small_ptu):
+    # the status bar shows them a while and cuts them at its width; the tooltip keeps every one
+    spec = SourceSpec(kind="file", file=str(small_ptu), method="ml", target=5)
+    assert _reconstruct_in_window(qtbot, win, spec) == "done"
+    tip = win.run_label.toolTip()
+    assert str(small_ptu) in tip and "beyond the first 5 per pixel (--target)" in tip
+    assert "whole in the title's tooltip: " in win.statusBar().currentMessage()
+
+
+def test_maps_an_estimator_does_not_estimate_say_so_in_their_titles(qtbot, win, small_ptu):
+    # lmf estimates no background: its background and signal/background maps hold no value
+    for method, said in (("lmf", True), ("ml", False)):
+        spec = SourceSpec(kind="file", file=str(small_ptu), method=method, target=0)
+        assert _reconstruct_in_window(qtbot, win, spec) == "done"
+        for key in ("background", "sbr"):
+            assert ("not estimated by lmf" in win.panel(key).plot.titleLabel.text) is said, (method, key)
+        assert "not estimated" not in win.panel("depth").plot.titleLabel.text
+
+
 def test_a_bad_file_shows_in_the_banner(qtbot, win, tmp_path):
     bad = tmp_path / "broken.ptu"
     bad.write_bytes(b"PQTTTR\0\0" + b"\0" * 40)
