@@ -205,6 +205,16 @@ def constant_value(data: np.ndarray) -> float | None:
     return lo if lo == hi else None
 
 
+def not_estimated(d: MapDef, method: str | None) -> str | None:
+    """What a map says in place of values it cannot have: "not estimated by lmf" for a map drawn
+    from the background of an estimator that estimates none (``Estimator.background``); else None."""
+    from spdepth.recon import estimators
+
+    if not d.from_background or method not in estimators.names(pixelwise=None):
+        return None
+    return None if estimators.get(method).background else f"not estimated by {method}"
+
+
 def constant_caption(d: MapDef, data: np.ndarray) -> str | None:
     """What a constant map says instead of a colour bar, true whatever the scan's state: "15 in
     every pixel" when every pixel holds the value, "15 in 312 of 1,024 pixels" when the others

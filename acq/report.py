@@ -104,6 +104,8 @@ def render_maps_png(path: str | Path, maps, *, title: str | None = None,
     if geometry is None:
         geometry = geometry_of(maps)
     h, w = np.shape(getattr(maps, panels[0][0]) if panels else maps.depth_m)[-2:]
+    # the estimator of the maps (the demo's sheet of several draws each from its own attribute)
+    method = None if panels else (getattr(maps, "settings", None) or {}).get("method")
     step = max(1, -(-max(h, w) // DRAWN_MAX_PX))
     if step > 1:
         # a panel is a few hundred pixels wide on the sheet: a 4096 x 4096 frame is drawn every
@@ -136,7 +138,7 @@ def render_maps_png(path: str | Path, maps, *, title: str | None = None,
         _draw_irf(axes[n_ax - 1], *irf)
     for ax, panel in zip(axes, drawn):
         _draw_panel(fig, ax, *panel, extent, geometry is not None,
-                    drawn_note=f"drawn: 1 pixel in {step} a side of {w} x {h}" if step > 1 else None)
+                    drawn_note=f"drawn: 1 pixel in {step} a side of {w} x {h}" if step > 1 else None, method=method)
     if title:
         fig.suptitle(title)
     fig.savefig(path, dpi=dpi)
@@ -173,7 +175,7 @@ def _panels(maps, panels, n_bins, target, counts, exposure_s) -> list:
 
 
 def _draw_panel(fig, ax, d, name: str, arr: np.ndarray, tgt: int, weak_px, extent, scan_axes: bool,
-                drawn_note: str | None = None) -> None:
+                drawn_note: str | None = None, method: str | None = None) -> None:
     """One panel of :func:`render_maps_png`: the image (weak surfaces faded), its colour bar or a
     note when there is nothing to scale, and the notes under the axis label (``drawn_note`` last:
     which pixels of a large frame are drawn)."""
@@ -181,7 +183,7 @@ def _draw_panel(fig, ax, d, name: str, arr: np.ndarray, tgt: int, weak_px, exten
     import matplotlib.ticker
 
     from spdepth.acq.mapdefs import (DISCRETE_MAX, constant_caption, constant_value, display,
-                                     levels_for, whole_numbers)
+                                     levels_for, not_estimated, whole_numbers)
 
     cmap = matplotlib.colormaps[d.cmap].with_extremes(bad=NAN_COLOUR)
     const = constant_value(arr)
@@ -212,7 +214,7 @@ def _draw_panel(fig, ax, d, name: str, arr: np.ndarray, tgt: int, weak_px, exten
     finite = arr[np.isfinite(arr)]
     notes = []
     if finite.size == 0:
-        notes.append("no pixel has a value")      # and no colour bar to read
+        notes.append(not_estimated(d, method) or "no pixel has a value")      # and no colour bar to read
     elif const is not None:
         # one value everywhere: a colour bar would spread rounding noise over its length
         notes.append(constant_caption(d, arr))

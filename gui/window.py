@@ -30,7 +30,7 @@ from spdepth.acq.params import MAX_PIXELS_PER_AXIS, MAX_SURFACES, PARAMS, expand
 from spdepth.acq.requests import DEFAULT_METHOD, MAX_TARGET, FileReconRequest, ReplayRequest
 from spdepth.gui.health import HealthTracker
 from spdepth.acq.flags import AcqFlag
-from spdepth.acq.mapdefs import resolve
+from spdepth.acq.mapdefs import not_estimated, resolve
 from spdepth.acq.points import ScanGeometry
 from spdepth.gui.maps import C_M_PER_S, PANEL_DEFS, MapPanel, link_panels, snapshot_input
 from spdepth.gui.view3d import PointCloudView
@@ -1163,7 +1163,6 @@ class MainWindow(QtWidgets.QMainWindow):
         mi = snapshot_input(snap, self._n_bins, target)
         surface = max(0, self.controls.surface.currentIndex())
         method = self._shown_method()
-        no_background = method is not None and method in estimators.names() and not estimators.get(method).background
         for p in self.panels:
             v = None if versions is None else versions["counts" if p.spec.key == "counts"
                                                        else "estimate"]
@@ -1175,7 +1174,7 @@ class MainWindow(QtWidgets.QMainWindow):
                     continue
                 p.plot.setVisible(True)
                 p.show(data, target, version=v, refit=refit, surface=surface, weak=snap.weak,
-                       missing=f"not estimated by {method}" if no_background and spec.from_background else None)
+                       missing=not_estimated(spec, method))
                 painted = True
         if painted:
             self._paint_3d()

@@ -11,7 +11,7 @@ import pytest
 pytest.importorskip("pytestqt")
 from PySide6 import QtCore  # noqa: E402
 
-from spdepth.acq.mapdefs import MAPS_BY_KEY, constant_caption  # noqa: E402
+from spdepth.acq.mapdefs import MAPS_BY_KEY, constant_caption, not_estimated  # noqa: E402
 from spdepth.gui.window import MainWindow, fmt_depth, fmt_kcps, readable_span  # noqa: E402
 
 
@@ -48,6 +48,15 @@ def test_a_constant_map_says_where_it_holds_its_value():
     assert constant_caption(MAPS_BY_KEY["depth"], every) == "15 m in every pixel"
     every[0, 0] = 14
     assert constant_caption(counts, every) is None
+
+
+def test_a_map_the_estimator_does_not_estimate_says_so():
+    # the window's titles and the PNG's notes (acq.report) take it from one place
+    for key in ("background", "background_rate", "sbr"):
+        assert not_estimated(MAPS_BY_KEY[key], "lmf") == "not estimated by lmf"
+        assert not_estimated(MAPS_BY_KEY[key], "ml") is None
+    assert not_estimated(MAPS_BY_KEY["depth"], "lmf") is None
+    assert not_estimated(MAPS_BY_KEY["background"], None) is None
 
 
 @pytest.fixture
