@@ -210,7 +210,7 @@ def not_estimated(d: MapDef, method: str | None) -> str | None:
     from the background of an estimator that estimates none (``Estimator.background``); else None."""
     from spdepth.recon import estimators
 
-    if not d.from_background or method not in estimators.names(pixelwise=None):
+    if not d.from_background or method not in estimators.names():
         return None
     return None if estimators.get(method).background else f"not estimated by {method}"
 
