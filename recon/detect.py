@@ -1024,7 +1024,7 @@ def search(bins: np.ndarray, offsets: np.ndarray, kern, weights: np.ndarray = NO
 def detect(bins: np.ndarray, offsets: np.ndarray, kern, est_shift: np.ndarray, false_alarm: float,
            weights: np.ndarray = NO_WEIGHTS, spread_all: bool = False, known_gain: np.ndarray | None = None,
            known_share: np.ndarray | None = None, regions: np.ndarray | None = None,
-           spreads: bool = True, temper: float = 1.0) -> Detection:
+           spreads: bool = True, temper: float = 1.0, known_index: np.ndarray | None = None) -> Detection:
     """The test and the spreads (module docstring) of every pixel's in-window detections ``bins``
     (bin indices grouped by ``offsets``; with ``weights``, distinct bins and their counts) about
     the estimated shifts ``est_shift`` (bins, NaN where the estimator reports none), for the pulse
@@ -1033,7 +1033,9 @@ def detect(bins: np.ndarray, offsets: np.ndarray, kern, est_shift: np.ndarray, f
     ``known_share``: the estimator's own gain and signal share where it ran the same search (ml's
     :attr:`recon.maps.DepthMaps.gain_nats`), taken instead of searching again. Runs on numba's threads (``recon.pixelwise.threads``)
     in slices of whole blocks, as the pixelwise estimators do: the result is the same however the
-    pixels are sliced. ``spreads`` False: the test alone, every spread NaN. ``temper``: the
+    pixels are sliced. ``spreads`` False: the test alone, every spread NaN. ``known_index``: the
+    shifts where ``known_gain`` is reached (-1: none; default the integer nearest ``est_shift``,
+    where ml's search reached it). ``temper``: the
     likelihood's spread is that of its power ``temper`` (1 / the pulse model's dispersion: a
     quasi-likelihood's, TEMPERED_METHODS)."""
     from spdepth.recon.estimators.ml import ml_tables
@@ -1068,10 +1070,13 @@ def detect(bins: np.ndarray, offsets: np.ndarray, kern, est_shift: np.ndarray, f
             # detection), without its pass over every pixel's detections
             gain = np.where(counts > 0, g_in, 0.0)
             return Detection(gain > thr, gain, sd, sw, boot, thr, float(false_alarm))
-        # where the estimator ran the search (ml): the integer shift nearest its estimate
-        i_in = np.full(npix, -1, np.int64)
-        fin = np.isfinite(est)
-        i_in[fin] = np.clip(np.rint(est[fin]), 0, m - 1).astype(np.int64)
+        if known_index is not None:
+            i_in = np.array(known_index, np.int64)
+        else:
+            # where the estimator ran the search (ml): the integer shift nearest its estimate
+            i_in = np.full(npix, -1, np.int64)
+            fin = np.isfinite(est)
+            i_in[fin] = np.clip(np.rint(est[fin]), 0, m - 1).astype(np.int64)
 
     if todo.any():
         search(bins, offsets, kern, weights, todo, g_in, i_in, s_in)
@@ -1145,23 +1150,27 @@ def dispersion_terms(store, settings, maps, first_pixel: int = 0, frame_pixels: 
 
 
 def search_dispersion_terms(store, settings, b, kern, first_pixel: int = 0, frame_pixels: int | None = None,
-                            rows: tuple[int, int] | None = None) -> tuple[np.ndarray, ...]:
+                            rows: tuple[int, int] | None = None, found=None) -> tuple[np.ndarray, ...]:
     """The likelihood's two terms of the pulse model's dispersion, as :func:`dispersion_terms` takes
     ml's, at ml's search's best integer shift and signal share (:func:`search`) of every sampled
     pixel of ``store`` with at least two signal detections there, whatever the estimator: the
     dispersion of an estimator whose depths are not the likelihood's optimum (lmf's, TEMPERED_METHODS),
     measured before its test. ``b``, ``kern``: the resolved binning and pulse (a Gaussian's: as
-    for :func:`dispersion_terms`, not for a sampled response, which the caller checks). The search
-    runs on the sampled pixels alone (the test searches every pixel again: about 20,000 of them at
-    most, a tenth of a second), so that blocks of rows with :func:`dispersion_terms`'s
-    ``first_pixel``, ``frame_pixels`` and ``rows`` give the frame's (``acq.distributed``)."""
+    for :func:`dispersion_terms`, not for a sampled response, which the caller checks). ``found``:
+    the search's (gain, index, share) of every pixel of ``store`` where the caller ran it (the
+    test's own, :func:`decide_maps`); else it runs on the sampled pixels alone, so that blocks of
+    rows with :func:`dispersion_terms`'s ``first_pixel``, ``frame_pixels`` and ``rows`` give the
+    frame's (``acq.distributed``)."""
     from spdepth.recon.photons import rows_of
 
     bins, weights, offsets, n = _binned_frame(store, settings, b)
     local = _sampled_pixels(store.shape, first_pixel, frame_pixels, rows)
     local = local[n[local] > 0]
-    at, so = rows_of(offsets, local)
-    _, index, share = search(bins[at], so, kern, weights[at] if weights.size else NO_WEIGHTS)
+    if found is None:
+        at, so = rows_of(offsets, local)
+        _, index, share = search(bins[at], so, kern, weights[at] if weights.size else NO_WEIGHTS)
+    else:
+        index, share = found[1][local], found[2][local]
     ok = (index >= 0) & (share * n[local] >= 2.0)
     return _likelihood_terms(bins, weights, offsets, n, kern, local[ok], index[ok].astype(np.float64), share[ok])
 
@@ -1334,7 +1343,8 @@ def neighbour_fill(bins, weights, offsets, width: int, kern, cand, half: int, th
 
 
 def _region_spreads(det: Detection, bins, weights, offsets, kern, pix, est, regions, false_alarm: float,
-                    known_gain=None, known_share=None, spreads: bool = True, temper: float = 1.0) -> None:
+                    known_gain=None, known_share=None, known_index=None, spreads: bool = True,
+                    temper: float = 1.0) -> None:
     """``det`` with the pixels ``pix`` holding a return and their spreads about ``est`` (bins)
     taken over their ``regions`` only (:func:`detect` with ``spread_all`` and ``temper``; without
     ``spreads``, the decision alone)."""
@@ -1345,7 +1355,8 @@ def _region_spreads(det: Detection, bins, weights, offsets, kern, pix, est, regi
         return
     at, so = rows_of(offsets, pix)
     sub = detect(bins[at], so, kern, est, false_alarm, weights[at] if weights.size else NO_WEIGHTS,
-                 spread_all=True, regions=regions, known_gain=known_gain, known_share=known_share, temper=temper)
+                 spread_all=True, regions=regions, known_gain=known_gain, known_share=known_share,
+                 known_index=known_index, temper=temper)
     det.sd_bins[pix] = sub.sd_bins
     det.sandwich_var_bins2[pix] = sub.sandwich_var_bins2
     det.bootstrap_sd_bins[pix] = sub.bootstrap_sd_bins
@@ -1528,7 +1539,10 @@ def decide_maps(store, settings, maps, neighbours: bool = True, spreads: bool = 
         if isinstance(dispersion, dict):
             tempered = dispersion           # the frame's (acq.distributed)
         else:
-            tempered = dispersion_of(search_dispersion_terms(store, settings, b, kern))
+            # the test's own search, run once: its statistic at every pixel, and the terms' shifts
+            found = search(bins, offsets, kern, weights)
+            known = dict(known_gain=found[0], known_share=found[2], known_index=found[1])
+            tempered = dispersion_of(search_dispersion_terms(store, settings, b, kern, found=found))
     # the likelihood's spreads of a quasi-likelihood (its log over the dispersion): their widths
     # scale by its square root, and the distances between its modes and the depth stay
     temper = 1.0 / tempered["dispersion"] if tempered is not None else 1.0
