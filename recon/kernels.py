@@ -8,7 +8,7 @@ Every kernel works from per-pixel photon lists (:class:`Photons`, CSR:
 :class:`recon.model.PulseKernel`, so ``S_i^T y = sum over photons of g[k - i]`` and no N x N matrix
 is ever formed. The shape, after stumpy's ``stump`` -> ``_stump``: a public kernel, plain Python
 (validated, allocated arguments and scratch), -> the compiled pixel loop, nogil, that
-``recon.pixelwise.on_threads`` runs over slices of whole BLOCKs of pixels side by side -> a
+``recon.pixelwise.over_threads`` runs over slices of whole BLOCKs of pixels side by side -> a
 per-pixel fit made of small named helpers. No ``parallel=True`` loop (numba compiles its body
 twice) and no compiled level that only allocates and calls the next: numba compiles every called
 function on its own, then optimises and emits the whole call tree again at each level above it.
@@ -37,7 +37,7 @@ from numba.cpython.unsafe.numbers import trailing_zeros
 
 from spdepth.recon.model import FISHER_RHO0, FISHER_STEPS
 
-#: Pixels per block: the threads of a fit take slices of whole blocks (recon.pixelwise.on_threads).
+#: Pixels per block: the threads of a fit take slices of whole blocks (recon.pixelwise.over_threads).
 BLOCK = 64
 #: Sorts of up to this many items are insertion sorts, longer ones heap sorts (a million detections
 #: must not be quadratic). At the 50 detections of `spdepth bench surfaces` insertion sort took 1.1

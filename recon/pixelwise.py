@@ -237,14 +237,6 @@ def thread_slices(p0: int, p1: int, workers: int) -> list[tuple[int, int]]:
     return slices(p0, p1, workers, BLOCK)
 
 
-def on_threads(fit: Callable[[int, int], None], p0: int, p1: int, pool: ThreadPoolExecutor,
-               workers: int) -> None:
-    """``fit(a, b)`` over the pixels [p0, p1) in :func:`thread_slices` on ``pool``, and wait
-    for all."""
-    for f in [pool.submit(fit, a, b) for a, b in thread_slices(p0, p1, workers)]:
-        f.result()
-
-
 def honest_var(var: np.ndarray, has: np.ndarray, rms_bins: float, n_bins: int, shift_step: float) -> np.ndarray:
     """Shift variance (bins^2) to report, from the kernels' Fisher variance ``var``.
 

@@ -1,7 +1,7 @@
 """Numba kernels of lmf (:mod:`.lmf`): the log-matched filter of eq. (11), ``argmax_i sum_k y_k log
 S_{k,i}`` per pixel over integer shifts, and the variance from that score's curvature there.
 
-:func:`lmf_kernel` (the scratch; recon.pixelwise.on_threads shares a fit's pixels among threads) ->
+:func:`lmf_kernel` (the scratch; recon.pixelwise.over_threads shares a fit's pixels among threads) ->
 :func:`_lmf_pixels` (the compiled loop) -> :func:`lmf_pixel` (:func:`lmf_shift`, :func:`lmf_var`) on one pixel's distinct bins and counts
 (:func:`recon.kernels.pixel_bins`).
 """

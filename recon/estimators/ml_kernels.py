@@ -20,7 +20,7 @@ the integer optimum while the exact likelihood rises finds it with fewer solves
 (:func:`_fine_climb`). Then a parabola through its exact neighbours (:func:`_parabola`), and the
 variance from the Fisher table (``recon.kernels.fisher_tab``).
 
-:func:`ml_kernel` (the scratch, :func:`ml_scratch`; recon.pixelwise.on_threads shares a fit's pixels among
+:func:`ml_kernel` (the scratch, :func:`ml_scratch`; recon.pixelwise.over_threads shares a fit's pixels among
 threads) -> :func:`_ml_pixels` (the compiled loop) -> :func:`ml_pixel` -> the helpers above.
 """
 

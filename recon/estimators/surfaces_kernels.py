@@ -643,7 +643,7 @@ def multi_return_kernel(ph, tabs, kmax, gain_min, maxn, out):
     """K-return greedy Poisson pursuit over the pixels of ph (:class:`recon.kernels.Photons`, at most
     maxn detections a pixel) with :class:`SurfTables` (see the module docstring): up to kmax returns a
     pixel, each gaining more than gain_min nats, into out (:class:`SurfOut`, sorted by shift).
-    Releases the GIL (``recon.pixelwise.on_threads`` shares a fit's pixels among threads); the
+    Releases the GIL (``recon.pixelwise.over_threads`` shares a fit's pixels among threads); the
     scratch is allocated here, the compiled loop called from Python (no ``parallel=True`` loop,
     whose compile numba pays twice, and one level of compiled calls fewer)."""
     _multi_pixels(ph, tabs, np.int64(kmax), float(gain_min), pixel_scratch(maxn, tabs.m),

@@ -2,7 +2,7 @@
 (Algorithm 1) with one depth column and the background column, on the published code's scaling
 (columns g / gmax, peak 1, so delta means what it means there).
 
-:func:`uos_kernel` (the scratch, :func:`uos_scratch`; recon.pixelwise.on_threads shares a fit's pixels
+:func:`uos_kernel` (the scratch, :func:`uos_scratch`; recon.pixelwise.over_threads shares a fit's pixels
 among threads) -> :func:`_uos_pixels` (the compiled loop) -> :func:`uos_pixel`: :func:`uos_scatter` (S^T y), iterations of
 (:func:`_iterate`: the proxy's argmax :func:`uos1_argmax`, pruned -> :func:`union_support` ->
 :func:`solve_support` -> :func:`keep_largest` -> :func:`change_norm`), then :func:`refit_nonneg`

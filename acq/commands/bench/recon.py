@@ -26,7 +26,6 @@ import importlib.util
 import os
 import sys
 import time
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Callable
 
@@ -45,17 +44,17 @@ def _import_heavy() -> None:
     from spdepth.recon.estimate import reconstruct
     from spdepth.recon.estimators import lmf_kernels, ml_kernels, uos_kernels
     from spdepth.recon.estimators.ml import ml_tables
-    from spdepth.recon.kernels import Photons
+    from spdepth.recon.kernels import BLOCK, Photons
     from spdepth.recon.model import FINE_STEPS, SEED_PAPER, Binning, ReconSettings, build_kernel
     from spdepth.recon.photons import PhotonStore
-    from spdepth.recon.pixelwise import on_threads, threads
+    from spdepth.recon.threadpool import on_slices
 
     globals().update(
         numba=numba, np=np, MIN_BATCH_PIXELS=MIN_BATCH_PIXELS, reconstruct=reconstruct,
         lmf_kernels=lmf_kernels, ml_kernels=ml_kernels, uos_kernels=uos_kernels, ml_tables=ml_tables,
         Photons=Photons, FINE_STEPS=FINE_STEPS, SEED_PAPER=SEED_PAPER, Binning=Binning,
         ReconSettings=ReconSettings, build_kernel=build_kernel, PhotonStore=PhotonStore,
-        on_threads=on_threads, threads=threads, M=SEED_PAPER.n_bins, UNIT_S=SEED_PAPER.time_unit_s,
+        on_slices=on_slices, BLOCK=BLOCK, M=SEED_PAPER.n_bins, UNIT_S=SEED_PAPER.time_unit_s,
         BIN_UNITS=float(SEED_PAPER.bin_units), RMS_S=SEED_PAPER.pulse_rms_s,
         DETECTIONS=SEED_PAPER.max_photons)
 
@@ -240,10 +239,7 @@ def kernel_runner(kern) -> Callable[[str, np.ndarray, np.ndarray], np.ndarray]:
     def run(method, b, o):
         # the kernel's blocks shared among numba's threads, as a reconstruction runs them
         shift = np.full(o.size - 1, np.nan)
-        workers = threads()
-        with ThreadPoolExecutor(workers) as pool:
-            on_threads(lambda a, c: run_slice(method, b[o[a]:o[c]], o[a:c + 1] - o[a], shift[a:c]),
-                       0, o.size - 1, pool, workers)
+        on_slices(lambda a, c: run_slice(method, b[o[a]:o[c]], o[a:c + 1] - o[a], shift[a:c]), o.size - 1, BLOCK)
         return shift
 
     return run
