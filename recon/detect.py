@@ -1203,8 +1203,8 @@ def _likelihood_terms(bins, weights, offsets, n, kern, pix, est, share):
     if pix.size:
         dispersion_kernel(ph, dt, int(np.diff(so).max()), np.ascontiguousarray(est, np.float64),
                           np.ascontiguousarray(share, np.float64), score2, curv, score)
-    # about their mean: the depth is a refined optimum (ml's), or the search's integer one, where
-    # the scores sum to nearly zero
+    # about their mean: at a refined optimum (ml's depth) the scores sum to nearly zero, at the
+    # search's integer shift near it they need not
     score2 = score2 - score ** 2 / n[pix]
     ok = np.isfinite(score2) & np.isfinite(curv)
     kk = (share * n[pix])[ok]
