@@ -1419,6 +1419,27 @@ def _filled_maps(maps, b, kern, fill: Fill):
     return tof, unc, signal, bg
 
 
+def _own_width(bins, weights, offsets, kern, pix, false_alarm: float) -> np.ndarray:
+    """The width (bins) of the peak of the pixels ``pix``'s own likelihood at their own most
+    likely return (ml's search's shift): the sandwich's, which reads that peak's curvature alone;
+    0 where the likelihood has other peaks (its spread about that return, as :func:`_spreads`
+    reads it, beyond SPATIAL_OVERRULE of the peak's width) and NaN where there is no return."""
+    from spdepth.recon.photons import rows_of
+
+    if pix.size == 0:
+        return np.zeros(0)
+    at, so = rows_of(offsets, pix)
+    w = weights[at] if weights.size else NO_WEIGHTS
+    gain, index, share = search(bins[at], so, kern, w)
+    own = detect(bins[at], so, kern, np.where(index >= 0, index, np.nan).astype(np.float64), false_alarm, w,
+                 spread_all=True, known_gain=gain, known_share=share, known_index=index)
+    peak = np.sqrt(own.sandwich_var_bins2 + 1.0 / 12.0)
+    whole = np.sqrt(own.sd_bins ** 2 + 1.0 / 12.0)
+    # a likelihood of other peaks too (its spread about its own return far beyond that peak's
+    # width): 0, so that those peaks may overrule the neighbours' depth
+    return np.where(whole <= SPATIAL_OVERRULE * peak, peak, 0.0)
+
+
 def _spreads(det: Detection, unc: np.ndarray, bw: float):
     """(post, boot, use_post, use_boot), shaped like ``unc`` (s): the likelihood's spread (with
     the sandwich variance) and the bootstrap's of ``det``, and where each replaces the estimator's
@@ -1607,6 +1628,14 @@ def decide_maps(store, settings, maps, neighbours: bool = True, spreads: bool = 
             # (beyond 3 of its sigma and the pulse's sharp part): another likely return
             far = has & (np.fmax(np.where(use_post, post, 0), np.where(use_boot, boot, 0)) > SPATIAL_OVERRULE * unc)
             far &= np.fmax(post, boot) > core_s
+            # and beyond its own peak's width about its own most likely return: a few detections of a
+            # sharp core with a long tail (the mannequin's measured response) spread far beyond the core
+            # about the neighbours' depth and their own peak alike, which is no other return
+            far = far.reshape(-1)
+            cand = np.flatnonzero(far)
+            width = _own_width(bins, weights, offsets, kern, cand, rate) * bw
+            far[cand[np.fmax(post, boot).reshape(-1)[cand] <= SPATIAL_OVERRULE * width]] = False
+            far = far.reshape(unc.shape)
             use_post &= far
             use_boot &= far
         sd = np.fmax(np.where(use_post & decidable, post, 0.0), np.where(use_boot & decidable, boot, 0.0))
