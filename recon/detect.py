@@ -1437,7 +1437,7 @@ def _own_width(bins, weights, offsets, kern, pix, false_alarm: float) -> np.ndar
     whole = np.sqrt(own.sd_bins ** 2 + 1.0 / 12.0)
     # a likelihood of other peaks too (its spread about its own return far beyond that peak's
     # width): 0, so that those peaks may overrule the neighbours' depth
-    return np.where(whole <= SPATIAL_OVERRULE * peak, peak, 0.0)
+    return np.where(whole > SPATIAL_OVERRULE * peak, 0.0, peak)
 
 
 def _spreads(det: Detection, unc: np.ndarray, bw: float):

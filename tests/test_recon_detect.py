@@ -518,3 +518,24 @@ def _rows_from(store, r0):
     pix = np.repeat(np.arange(store.n_pixels), counts)
     keep = pix >= r0 * store.shape[1]
     return pix[keep] - r0 * store.shape[1], store.times[keep]
+
+
+def test_a_pixel_s_own_peak_width_is_its_one_peak_s_and_none_where_it_has_others():
+    """_own_width, which lets a spatial depth keep its own uncertainty: one cluster of detections
+    gives its peak's width (about the pulse's over the square root of its detections), two
+    clusters far apart give 0 (other peaks: the pixel's spreads may overrule), none NaN."""
+    from spdepth.recon.detect import _own_width
+    from spdepth.recon.model import build_kernel
+
+    rng = np.random.default_rng(5)
+    kern = build_kernel(B, pulse_rms_s=RMS_U * UNIT_S)
+    rms_bins = RMS_U / B.bin_width
+    one = np.round(300 + rms_bins * rng.standard_normal(8))
+    two = np.concatenate([np.round(200 + rms_bins * rng.standard_normal(4)),
+                          np.round(600 + rms_bins * rng.standard_normal(4))])
+    bins = np.concatenate([np.sort(one), np.sort(two)]).astype(np.int64)
+    offsets = np.array([0, 8, 16, 16], np.int64)
+    got = _own_width(bins, np.zeros(0), offsets, kern, np.arange(3), 1e-3)
+    assert 0.5 * rms_bins / np.sqrt(8) < got[0] < 2.0 * rms_bins / np.sqrt(8)
+    assert got[1] == 0.0
+    assert np.isnan(got[2])
