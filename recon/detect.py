@@ -1024,7 +1024,8 @@ def search(bins: np.ndarray, offsets: np.ndarray, kern, weights: np.ndarray = NO
 def detect(bins: np.ndarray, offsets: np.ndarray, kern, est_shift: np.ndarray, false_alarm: float,
            weights: np.ndarray = NO_WEIGHTS, spread_all: bool = False, known_gain: np.ndarray | None = None,
            known_share: np.ndarray | None = None, regions: np.ndarray | None = None,
-           spreads: bool = True, temper: float = 1.0, known_index: np.ndarray | None = None) -> Detection:
+           spreads: bool = True, temper: float = 1.0, known_index: np.ndarray | None = None,
+           bootstrap: bool = True) -> Detection:
     """The test and the spreads (module docstring) of every pixel's in-window detections ``bins``
     (bin indices grouped by ``offsets``; with ``weights``, distinct bins and their counts) about
     the estimated shifts ``est_shift`` (bins, NaN where the estimator reports none), for the pulse
@@ -1037,7 +1038,8 @@ def detect(bins: np.ndarray, offsets: np.ndarray, kern, est_shift: np.ndarray, f
     shifts where ``known_gain`` is reached (-1: none; default the integer nearest ``est_shift``,
     where ml's search reached it). ``temper``: the
     likelihood's spread is that of its power ``temper`` (1 / the pulse model's dispersion: a
-    quasi-likelihood's, TEMPERED_METHODS)."""
+    quasi-likelihood's, TEMPERED_METHODS). ``bootstrap`` False: no bootstrap spread (NaN), for a
+    caller that reads the likelihood's spreads alone."""
     from spdepth.recon.estimators.ml import ml_tables
     from spdepth.recon.estimators.surfaces_fit import auto_threshold_nats, fwhm_bins
 
@@ -1084,7 +1086,7 @@ def detect(bins: np.ndarray, offsets: np.ndarray, kern, est_shift: np.ndarray, f
     def run(p0: int, p1: int) -> None:
         ph, maxn = _slice(bins, weights, offsets, p0, p1)
         detect_kernel(ph, dt, rates, maxn, est[p0:p1], g_in[p0:p1], i_in[p0:p1], s_in[p0:p1], spread_thr, thr,
-                      BOOTSTRAP, float(temper), reg[p0:p1] if reg.shape[0] else reg, gain[p0:p1], sd[p0:p1], sw[p0:p1],
+                      BOOTSTRAP if bootstrap else 0, float(temper), reg[p0:p1] if reg.shape[0] else reg, gain[p0:p1], sd[p0:p1], sw[p0:p1],
                       boot[p0:p1])
 
     over_threads(run, npix, max(npix, 1))
@@ -1432,7 +1434,7 @@ def _own_width(bins, weights, offsets, kern, pix, false_alarm: float) -> np.ndar
     w = weights[at] if weights.size else NO_WEIGHTS
     gain, index, share = search(bins[at], so, kern, w)
     own = detect(bins[at], so, kern, np.where(index >= 0, index, np.nan).astype(np.float64), false_alarm, w,
-                 spread_all=True, known_gain=gain, known_share=share, known_index=index)
+                 spread_all=True, known_gain=gain, known_share=share, known_index=index, bootstrap=False)
     peak = np.sqrt(own.sandwich_var_bins2 + 1.0 / 12.0)
     whole = np.sqrt(own.sd_bins ** 2 + 1.0 / 12.0)
     # a likelihood of other peaks too (its spread about its own return far beyond that peak's
