@@ -1421,9 +1421,10 @@ def _filled_maps(maps, b, kern, fill: Fill):
     return tof, unc, signal, bg
 
 
-def _own_width(bins, weights, offsets, kern, pix, false_alarm: float) -> np.ndarray:
+def _own_width(bins, weights, offsets, kern, pix, gain, index, share, false_alarm: float) -> np.ndarray:
     """The width (bins) of the peak of the pixels ``pix``'s own likelihood at their own most
-    likely return (ml's search's shift): the sandwich's, which reads that peak's curvature alone;
+    likely return (``index``, with ``gain`` and ``share`` there: ml's search's, :func:`search`):
+    the sandwich's, which reads that peak's curvature alone;
     0 where the likelihood has other peaks (its spread about that return, as :func:`_spreads`
     reads it, beyond SPATIAL_OVERRULE of the peak's width) and NaN where there is no return."""
     from spdepth.recon.photons import rows_of
@@ -1432,7 +1433,6 @@ def _own_width(bins, weights, offsets, kern, pix, false_alarm: float) -> np.ndar
         return np.zeros(0)
     at, so = rows_of(offsets, pix)
     w = weights[at] if weights.size else NO_WEIGHTS
-    gain, index, share = search(bins[at], so, kern, w)
     own = detect(bins[at], so, kern, np.where(index >= 0, index, np.nan).astype(np.float64), false_alarm, w,
                  spread_all=True, known_gain=gain, known_share=share, known_index=index, bootstrap=False)
     peak = np.sqrt(own.sandwich_var_bins2 + 1.0 / 12.0)
@@ -1556,6 +1556,7 @@ def decide_maps(store, settings, maps, neighbours: bool = True, spreads: bool = 
     # alone has two chances (its own test, then the support), and each is given half of it
     rate = settings.false_alarm / 2 if rules else settings.false_alarm
     tempered = None
+    found = None        # the test's own search (gain, index, share of every pixel), where run here
     # on a frame, as ml's scaling (a live batch is none: acq.live_recon's frame pass applies both)
     if settings.method in TEMPERED_METHODS and spreads and neighbours and not several and dispersion is not False \
             and rec.get("kernel", {}).get("pulse") == "gaussian":
@@ -1564,8 +1565,12 @@ def decide_maps(store, settings, maps, neighbours: bool = True, spreads: bool = 
         else:
             # the test's own search, run once: its statistic at every pixel, and the terms' shifts
             found = search(bins, offsets, kern, weights)
-            known = dict(known_gain=found[0], known_share=found[2], known_index=found[1])
             tempered = dispersion_of(search_dispersion_terms(store, settings, b, kern, found=found))
+    elif spatial and spreads and not several and known["known_gain"] is None:
+        # run once too: its statistic, and the own best shifts the spatial overrule reads (_own_width)
+        found = search(bins, offsets, kern, weights)
+    if found is not None:
+        known = dict(known_gain=found[0], known_share=found[2], known_index=found[1])
     # the likelihood's spreads of a quasi-likelihood (its log over the dispersion): their widths
     # scale by its square root, and the distances between its modes and the depth stay
     temper = 1.0 / tempered["dispersion"] if tempered is not None else 1.0
@@ -1635,7 +1640,8 @@ def decide_maps(store, settings, maps, neighbours: bool = True, spreads: bool = 
             # about the neighbours' depth and their own peak alike, which is no other return
             far = far.reshape(-1)
             cand = np.flatnonzero(far)
-            width = _own_width(bins, weights, offsets, kern, cand, rate) * bw
+            gain, index, share = found if found is not None else search(bins, offsets, kern, weights, todo=far)
+            width = _own_width(bins, weights, offsets, kern, cand, gain[cand], index[cand], share[cand], rate) * bw
             far[cand[np.fmax(post, boot).reshape(-1)[cand] <= SPATIAL_OVERRULE * width]] = False
             far = far.reshape(unc.shape)
             use_post &= far

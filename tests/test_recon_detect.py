@@ -524,7 +524,7 @@ def test_a_pixel_s_own_peak_width_is_its_one_peak_s_and_none_where_it_has_others
     """_own_width, which lets a spatial depth keep its own uncertainty: one cluster of detections
     gives its peak's width (about the pulse's over the square root of its detections), two
     clusters far apart give 0 (other peaks: the pixel's spreads may overrule), none NaN."""
-    from spdepth.recon.detect import _own_width
+    from spdepth.recon.detect import _own_width, search
     from spdepth.recon.model import build_kernel
 
     rng = np.random.default_rng(5)
@@ -535,7 +535,8 @@ def test_a_pixel_s_own_peak_width_is_its_one_peak_s_and_none_where_it_has_others
                           np.round(600 + rms_bins * rng.standard_normal(4))])
     bins = np.concatenate([np.sort(one), np.sort(two)]).astype(np.int64)
     offsets = np.array([0, 8, 16, 16], np.int64)
-    got = _own_width(bins, np.zeros(0), offsets, kern, np.arange(3), 1e-3)
+    gain, index, share = search(bins, offsets, kern)
+    got = _own_width(bins, np.zeros(0), offsets, kern, np.arange(3), gain, index, share, 1e-3)
     assert 0.5 * rms_bins / np.sqrt(8) < got[0] < 2.0 * rms_bins / np.sqrt(8)
     assert got[1] == 0.0
     assert np.isnan(got[2])
