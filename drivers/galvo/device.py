@@ -148,33 +148,45 @@ class Galvo:
         self._tag = self._tag % P.MAX_TAG + 1
         return self._tag
 
-    def _exchange_once(self, mnemonic: str, args: tuple) -> P.Reply:
+    def _exchange_once(self, mnemonic: str, args: tuple, wait_factor: int = 1) -> P.Reply:
         """Send one tagged command and return its reply; replies with another tag are stale
-        answers to earlier attempts and are dropped."""
+        answers to earlier attempts and are dropped. ``wait_factor`` stretches the port's
+        timeout (the n-th re-send after a timeout waits n + 1 timeouts)."""
         tag = self._next_tag()
         line = P.encode_command(mnemonic, *args, tag=tag)
         with self.transport.lock:
             self.transport.write_line(line)
-            deadline = time.monotonic() + getattr(self.transport, "timeout_s", 0.5)
+            timeout_s = getattr(self.transport, "timeout_s", 0.5)
+            sent = time.monotonic()
+            deadline = sent + wait_factor * timeout_s
             while True:
                 reply = P.decode_reply(self.transport.read_line(
                     max(0.0, deadline - time.monotonic())))
                 if reply.tag == tag:
+                    took = time.monotonic() - sent
+                    if took > timeout_s:
+                        self._fault("slow-reply", f"the reply to {mnemonic} came after {took:.3g} s "
+                                                  f"(timeout {timeout_s:.3g} s)")
                     return reply
                 log.warning("galvo: dropped stale reply (tag %s, expected %s)", reply.tag, tag)
                 self._fault("slow-reply", f"a late reply (tag {reply.tag}) to an earlier {mnemonic} dropped")
+                # Replies leave in order, so this attempt's own reply comes right behind.
+                deadline = max(deadline, time.monotonic() + timeout_s)
 
     def _query(self, mnemonic: str, *args, safe: bool = True) -> str:
         """Payload of the OK reply to one command, with recovery.
 
-        A garbled or missing reply is retried up to ``retries`` times when ``safe``; a vanished
+        A garbled or missing reply is retried up to ``retries`` times when ``safe``, each re-send
+        after a timeout waiting one timeout longer: at the deadline a late reply cannot be told
+        from a lost one, and a late one holds back the replies queued behind it; a vanished
         port is re-opened (and the configuration restored) and the command re-sent when ``safe``.
         Numbered error replies raise their GalvoReplyError at once."""
         command = " ".join([mnemonic, *map(str, args)])
         attempts = {"serial-unplug": 0, "garbled-reply": 0, "missing-reply": 0}
         while True:
             try:
-                return self._exchange_once(mnemonic, args).raise_for_error(command)
+                return self._exchange_once(
+                    mnemonic, args, 1 + attempts["missing-reply"]).raise_for_error(command)
             except ConnectionLostError as e:
                 log.warning("galvo: %s; reconnecting", e)
                 self._reconnect()
@@ -187,7 +199,10 @@ class Galvo:
                     raise
                 log.warning("galvo: %s after %r; re-sending", e, command)
                 self._fault(kind, f"{e} after {command!r}; re-sent")
-                self._reset_input()
+                if kind == "garbled-reply":
+                    # Only a garbled line can leave a fragment behind; after a timeout the input
+                    # is kept, so a late reply arriving now is dropped by its tag and on record.
+                    self._reset_input()
             attempts[kind] += 1
 
     def _fault(self, kind: str, what: str) -> None:
