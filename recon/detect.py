@@ -8,7 +8,7 @@ statistic is the Poisson log-likelihood gain of one return over a flat backgroun
 ``max_s max_{a, B >= 0} log L(s, a, B) - max_B log L(B)``, its shift searched over every whole bin of
 the window (ml's exact branch and bound, :func:`recon.estimators.ml_kernels.integer_optimum`) and its
 amplitude and background profiled; a pixel holds a return when the gain exceeds
-:func:`recon.estimators.surfaces_fit.auto_threshold_nats` at the false-alarm rate ``ReconSettings.false_alarm``
+:func:`auto_threshold_nats` at the false-alarm rate ``ReconSettings.false_alarm``
 (default 1e-3 per pixel: about one background-only pixel in a thousand is taken for a return).
 Where the neighbours' support applies (next), the own test and the support each get half of it,
 so that the rate is the pixel's and not each rule's (:func:`decide_maps`).
@@ -33,7 +33,7 @@ pixel without a return of its own at those shifts is given one at that rate at m
 faint wall with holes, test_recon_detect: holes 4.8 -> 4.8%, the wall's pixels 37.0 -> 39.0%).
 art_top.mat, ml: a depth on 28.0 -> 34.6% of pixels, halves within 3 / 1 sigma 96.7 / 65.7% ->
 96.6 / 65.0% on 606 -> 922 pixels; tower_9km.mat 25.2% with it. The thresholds count the search
-over shifts by Rice's formula (:func:`recon.estimators.surfaces_fit.auto_threshold_nats`): on
+over shifts by Rice's formula (:func:`auto_threshold_nats`): on
 frames of background alone (10 / 60 detections a pixel) at 1e-3 the own test and the support, at
 half of it each, pass on 0.53e-3 / 0.76e-3 of the pixels in all, and with this rule 0.80e-3 /
 0.93e-3 (at the whole rate each: 1.73e-3 / 1.60e-3 and 2.04e-3 / 2.09e-3; art_top.mat 34.6 ->
@@ -79,12 +79,13 @@ detections alone would pass the test (elsewhere the pixel's own likelihood says 
 neighbours' support). Several surfaces per pixel: the pixel's surfaces are dropped when the test
 finds no return at all; the surfaces found keep their weak flags, and a pixelwise fit's get the
 sandwich's and the bootstrap's spreads of each surface's own part of the window
-(:func:`_surface_spreads`) where they exceed its Fisher sigma.
+(:func:`surface_spreads`) where they exceed its Fisher sigma.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections import namedtuple
 
@@ -96,7 +97,7 @@ from spdepth.recon.estimators.ml_kernels import integer_optimum, ml_scratch
 from spdepth.recon.kernels import (INNER, NO_WEIGHTS, block_pixels, first_above, fisher_tab, heap_sort, n_blocks,
                                    photon_intervals, pixel_bins, pixel_scratch)
 from spdepth.recon.maps import C_M_PER_S, PixelFlag
-from spdepth.recon.model import Binning, Irf, build_kernel
+from spdepth.recon.model import FWHM_PER_RMS, Binning, Irf, build_kernel
 from spdepth.recon.pixelwise import over_threads
 
 #: spatial: the pixel's own likelihood spread replaces the estimator's uncertainty when it is more
@@ -129,7 +130,7 @@ SUPPORT_MARGIN = 1e-6
 #: Rows a block of a frame needs beside it to decide its edge rows as the whole frame does
 #: (``acq.distributed``'s halo).
 NEIGHBOUR_ROWS = max(SUPPORT_RADIUS, REGION_RADIUS)
-#: Pixels whose surfaces' spreads are taken at once (:func:`_surface_spreads`: a region of shifts each).
+#: Pixels whose surfaces' spreads are taken at once (:func:`surface_spreads`: a region of shifts each).
 SURFACE_CHUNK = 4096
 #: Pixels pooled for the pulse model's dispersion (:func:`dispersion_terms`): about this many, every
 #: (frame's pixels // this)-th of the frame; 7,600 pixels of a simulated bust gave it to 1%.
@@ -184,6 +185,48 @@ RATE_SHARES = 256
 #: on a cold cache to compile the test's functions).
 DetTables = namedtuple("DetTables", ["m", "uni", "logm", "nk", "off", "g", "colsum", "inv_colsum", "ia", "ib",
                                      "dlo", "dhi", "fine", "fine_colsum", "fsteps"])
+
+
+# the test's threshold: Rice's formula for the largest gain over a window's shifts
+def search_false_alarm(gain_nats: float, window_bins: float, width_bins: float) -> float:
+    """Chance that background alone passes ``gain_nats`` at some shift of a window of
+    ``window_bins`` (``recon.estimators.surfaces_fit``'s module docstring: Rice's formula for the test's field, a response of FWHM
+    ``width_bins``), at most 1."""
+    z = math.sqrt(2.0 * max(gain_nats, 0.0))
+    sigma = max(width_bins, 1.0) / FWHM_PER_RMS
+    ups = max(window_bins, 1.0) / (2.0 * math.pi * math.sqrt(2.0) * sigma) * math.exp(-gain_nats)
+    return min(1.0, 0.5 * math.erfc(z / math.sqrt(2.0)) + ups)     # P(N > z) + upcrossings
+
+
+@functools.lru_cache(maxsize=4096)
+def auto_threshold_nats(false_alarm: float, window_bins: float, width_bins: float) -> float:
+    """Gain (nats, half the statistic) a surface needs under the test (``recon.estimators.surfaces_fit``'s module docstring), at
+    ``false_alarm`` over a window of ``window_bins``; width_bins: the response's FWHM (bins). The
+    root of :func:`search_false_alarm` (decreasing in the gain), by bisection."""
+    if not false_alarm > 0:
+        return math.inf
+    lo, hi = 0.0, 1.0
+    while search_false_alarm(hi, window_bins, width_bins) > false_alarm:
+        hi *= 2.0
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        if search_false_alarm(mid, window_bins, width_bins) > false_alarm:
+            lo = mid
+        else:
+            hi = mid
+    return hi
+
+
+def fwhm_bins(g: np.ndarray) -> int:
+    """Full width at half maximum of the binned response (bins, contiguous around its peak)."""
+    pk = int(np.argmax(g))
+    half = 0.5 * g[pk]
+    lo, hi = pk, pk
+    while lo > 0 and g[lo - 1] >= half:
+        lo -= 1
+    while hi < g.size - 1 and g[hi + 1] >= half:
+        hi += 1
+    return hi - lo + 1
 
 
 def det_tables(tabs) -> DetTables:
@@ -1041,7 +1084,6 @@ def detect(bins: np.ndarray, offsets: np.ndarray, kern, est_shift: np.ndarray, f
     quasi-likelihood's, TEMPERED_METHODS). ``bootstrap`` False: no bootstrap spread (NaN), for a
     caller that reads the likelihood's spreads alone."""
     from spdepth.recon.estimators.ml import ml_tables
-    from spdepth.recon.estimators.surfaces_fit import auto_threshold_nats, fwhm_bins
 
     m = int(kern.n_bins)
     npix = offsets.size - 1
@@ -1188,9 +1230,9 @@ def _sampled_pixels(shape, first_pixel: int, frame_pixels: int | None, rows: tup
     return np.arange(start, hi * w, stride)
 
 
-def _score_terms(bins, weights, offsets, kern, pix, est, share):
-    """(squared scores, curvature, score) of the likelihood of the pixels ``pix`` at shifts ``est``
-    (bins) and signal shares ``share`` (:func:`dispersion_kernel`; NaN where it has none)."""
+def _likelihood_terms(bins, weights, offsets, n, kern, pix, est, share):
+    """ml's two terms (:func:`dispersion_terms`) of the pixels ``pix`` at shifts ``est`` (bins) and
+    signal shares ``share`` (theirs)."""
     from spdepth.recon.estimators.ml import ml_tables
     from spdepth.recon.kernels import Photons
     from spdepth.recon.photons import rows_of
@@ -1205,13 +1247,6 @@ def _score_terms(bins, weights, offsets, kern, pix, est, share):
     if pix.size:
         dispersion_kernel(ph, dt, int(np.diff(so).max()), np.ascontiguousarray(est, np.float64),
                           np.ascontiguousarray(share, np.float64), score2, curv, score)
-    return score2, curv, score
-
-
-def _likelihood_terms(bins, weights, offsets, n, kern, pix, est, share):
-    """ml's two terms (:func:`dispersion_terms`) of the pixels ``pix`` at shifts ``est`` (bins) and
-    signal shares ``share`` (theirs)."""
-    score2, curv, score = _score_terms(bins, weights, offsets, kern, pix, est, share)
     # about their mean: at a refined optimum (ml's depth) the scores sum to nearly zero, at the
     # search's integer shift near it they need not
     score2 = score2 - score ** 2 / n[pix]
@@ -1276,10 +1311,9 @@ def neighbour_support(bins, weights, offsets, shape, kern, est, cand, false_alar
     """Which pixels ``cand`` (indices) their neighbours support: the detections of the pixels within
     SUPPORT_RADIUS of each pooled (the pixel's own left out, so the pixel's estimate ``est`` chose
     nothing among them) hold a return within ``half`` bins of the pixel's estimate, at the false-alarm rate
-    ``false_alarm`` for that span of shifts (:func:`recon.estimators.surfaces_fit.auto_threshold_nats`).
+    ``false_alarm`` for that span of shifts (:func:`auto_threshold_nats`).
     Returns (supported indices, threshold nats)."""
     from spdepth.recon.estimators.ml import ml_tables
-    from spdepth.recon.estimators.surfaces_fit import auto_threshold_nats, fwhm_bins
 
     thr = float(auto_threshold_nats(false_alarm, 2 * half + 1, fwhm_bins(kern.g)))
     gains = np.zeros(cand.size)
@@ -1323,7 +1357,6 @@ def neighbour_fill(bins, weights, offsets, width: int, kern, cand, half: int, th
     neighbours passed the support's test too; beside a surface, a pixel without one at those
     shifts is given one at the rate ``rate``. Their decision and their spreads over the region
     (at the test's ``false_alarm``; without ``spreads``, the decision alone) go into ``det``."""
-    from spdepth.recon.estimators.surfaces_fit import auto_threshold_nats, fwhm_bins
 
     parts = []
     fw = fwhm_bins(kern.g)
@@ -1460,15 +1493,19 @@ def _spreads(det: Detection, unc: np.ndarray, bw: float):
     return post, boot, np.isfinite(post) & (post > unc + bw), np.isfinite(boot) & (boot > (1.0 + BOOT_NOISE) * unc + bw)
 
 
-def _surface_detections(bins, weights, offsets, kern, b, tof, signal, n_photons, false_alarm: float):
-    """(surface r, pixel indices, :class:`Detection`) in chunks: the test's spreads of each surface
-    of the K-surface fit's ``tof`` (K x H x W, s) over the shifts between the midpoints to its
-    neighbouring surfaces (its own part of the window)."""
+def surface_spreads(bins, weights, offsets, kern, b, tof, unc, signal, n_photons, false_alarm: float) -> np.ndarray:
+    """The uncertainties ``unc`` (K x H x W, s) of the K-surface fit's surfaces ``tof`` widened by
+    the sandwich variance and the bootstrap's spread (:func:`_spreads`) of each surface, taken over
+    the shifts between the midpoints to its neighbouring surfaces (its own part of the window):
+    the fit's Fisher variance reads a response's sharp edge and misses the flat top beside it
+    (two_layer_top.mat's pane and wall: 0.2 cm sigmas on halves 1-3 cm apart; halves within 3 / 1
+    sigma 92.8 / 61.8% -> 95.6 / 67.5% on the pane, 92.5 / 60.4% -> 96.6 / 69.0% on the wall)."""
     from spdepth.recon.photons import rows_of
 
-    k_all = tof.shape[0]
+    k_all, h, w = tof.shape
     m = int(b.n_bins)
     shift = (tof.reshape(k_all, -1) / b.time_unit_s - b.window_start) / b.bin_width - 0.5
+    out = np.array(unc, np.float64, copy=True).reshape(k_all, -1)
     i = np.arange(m)
     for r in range(k_all):
         idx = np.flatnonzero(np.isfinite(shift[r]))
@@ -1486,53 +1523,13 @@ def _surface_detections(bins, weights, offsets, kern, b, tof, signal, n_photons,
             share = np.clip(signal.reshape(k_all, -1)[r, p] / np.maximum(n_photons[p], 1.0), 0.0, 1.0)
             det = detect(bins[at], so, kern, e, false_alarm, weights[at] if weights.size else NO_WEIGHTS,
                          spread_all=True, regions=regions, known_gain=np.full(p.size, np.inf), known_share=share)
-            yield r, p, e, share, det
-
-
-def _surface_spreads(bins, weights, offsets, kern, b, tof, unc, signal, n_photons, false_alarm: float) -> np.ndarray:
-    """The uncertainties ``unc`` (K x H x W, s) of the K-surface fit's surfaces ``tof`` widened by
-    the sandwich variance and the bootstrap's spread (:func:`_spreads`) of each surface, taken over
-    the shifts between the midpoints to its neighbouring surfaces (its own part of the window):
-    the fit's Fisher variance reads a response's sharp edge and misses the flat top beside it
-    (two_layer_top.mat's pane and wall: 0.2 cm sigmas on halves 1-3 cm apart; halves within 3 / 1
-    sigma 92.8 / 61.8% -> 95.6 / 67.5% on the pane, 92.5 / 60.4% -> 96.6 / 69.0% on the wall)."""
-    k_all, h, w = tof.shape
-    out = np.array(unc, np.float64, copy=True).reshape(k_all, -1)
-    for r, p, _, _, det in _surface_detections(bins, weights, offsets, kern, b, tof, signal, n_photons, false_alarm):
-        u = out[r, p]
-        _, boot, _, use_boot = _spreads(det, u, b.bin_width_s)
-        # the sandwich's and the bootstrap's, not the likelihood's: each surface's region holds one
-        # return, the likelihood's far peaks of a low SBR are not there, and over a flat top its
-        # spread is the shift's posterior, wider than the estimate's (halves within 1 sigma 83%)
-        sw = np.sqrt(det.sandwich_var_bins2) * b.bin_width_s
-        out[r, p] = np.fmax(u, np.fmax(np.where(np.isfinite(sw), sw, 0.0), np.where(use_boot, boot, 0.0)))
-    return out.reshape(k_all, h, w)
-
-
-def _smoothed_surface_spreads(bins, weights, offsets, kern, b, tof, unc, signal, n_photons,
-                              false_alarm: float) -> np.ndarray:
-    """spatial-surfaces' uncertainties ``unc`` (K x H x W, s: its smoothing's, the neighbours'
-    Fisher variances averaged) widened as far as each surface's own detections widen their own
-    Fisher variance, the inverse of the likelihood's curvature there: by the ratio of the larger
-    of their sandwich variance and their bootstrap's (:func:`_surface_detections`) to it, never
-    below 1 (nor where the likelihood is not concave there: a weak surface of a few detections).
-    The smoothing averages its neighbours' noise, and where each one's is r^2 times its Fisher
-    variance, so is the average's; the pixel's spreads alone would be as wide as without the
-    neighbours. Halves within 3 / 1 sigma, surfaces not weak in both (``spdepth bench honesty
-    --reflectors 2``), before -> after: two_layer_top.mat's pane 94.8 / 55.3% -> 96.5 / 75.4%, its
-    wall 93.4 / 53.5% -> 96.5 / 78.0%; the simulated two-layer scene (64 x 64, 20 a pixel) 86.8 /
-    44.3% -> 95.0 / 69.4%; the simulated bust at 8 a pixel 75.0 / 34.8% -> 89.1 / 60.3%, at 30 a
-    pixel 98.9 / 65.1% -> 99.5 / 83.5% (too wide there: the bootstrap's ratio is noisy, and the
-    floor at 1 keeps its upward half). The sandwich alone hardly moves them (two_layer_top.mat
-    95.0 / 56.5%): the bootstrap is what sees a flat-topped response's spread."""
-    k_all, h, w = tof.shape
-    out = np.array(unc, np.float64, copy=True).reshape(k_all, -1)
-    for r, p, e, share, det in _surface_detections(bins, weights, offsets, kern, b, tof, signal, n_photons, false_alarm):
-        _, curv, _ = _score_terms(bins, weights, offsets, kern, p, e, np.minimum(share, 1.0 - 1e-9))
-        own = np.fmax(np.nan_to_num(det.sandwich_var_bins2), np.nan_to_num(det.bootstrap_sd_bins ** 2))
-        with np.errstate(invalid="ignore"):
-            ratio = np.where(curv > 0.0, own * curv, 1.0)
-        out[r, p] *= np.sqrt(np.fmax(ratio, 1.0))
+            u = out[r, p]
+            _, boot, _, use_boot = _spreads(det, u, b.bin_width_s)
+            # the sandwich's and the bootstrap's, not the likelihood's: each surface's region holds one
+            # return, the likelihood's far peaks of a low SBR are not there, and over a flat top its
+            # spread is the shift's posterior, wider than the estimate's (halves within 1 sigma 83%)
+            sw = np.sqrt(det.sandwich_var_bins2) * b.bin_width_s
+            out[r, p] = np.fmax(u, np.fmax(np.where(np.isfinite(sw), sw, 0.0), np.where(use_boot, boot, 0.0)))
     return out.reshape(k_all, h, w)
 
 
@@ -1590,7 +1587,6 @@ def decide_maps(store, settings, maps, neighbours: bool = True, spreads: bool = 
                      known_share=_signal_share(maps, b, n_photons))
     h, w = maps.shape
     spatial = settings.method == "spatial"
-    from spdepth.recon.estimators.surfaces_fit import fwhm_bins
 
     # a window hardly wider than the pulse: time cannot tell a return from background
     decidable = b.n_bins >= UNDECIDABLE_FWHM * fwhm_bins(kern.g)
@@ -1659,10 +1655,9 @@ def decide_maps(store, settings, maps, neighbours: bool = True, spreads: bool = 
         changes["surfaces"] = np.where(drop, 0, maps.surfaces).astype(np.int16)
         changes["weak"] = np.asarray(maps.weak) & keep
         changes["signal"] = np.where(keep, maps.signal, 0.0)
-        if decidable and spreads:
-            widen = _smoothed_surface_spreads if spatial else _surface_spreads
-            unc = widen(bins, weights, offsets, kern, b, tof, unc, maps.signal, n_photons.ravel(),
-                        settings.false_alarm)
+        if decidable and not spatial and spreads:       # spatial's took them before its smoothing
+            unc = surface_spreads(bins, weights, offsets, kern, b, tof, unc, maps.signal, n_photons.ravel(),
+                                   settings.false_alarm)
         new_unc = np.where(keep, unc, np.nan)
     else:
         new_tof = np.where(drop, np.nan, tof)
@@ -1729,5 +1724,5 @@ def decide_maps(store, settings, maps, neighbours: bool = True, spreads: bool = 
     return out
 
 
-__all__ = ["Detection", "detect", "decide_maps", "detect_kernel", "search", "search_kernel", "dispersion_of", "dispersion_terms",
+__all__ = ["Detection", "auto_threshold_nats", "detect", "fwhm_bins", "search_false_alarm", "surface_spreads", "decide_maps", "detect_kernel", "search", "search_kernel", "dispersion_of", "dispersion_terms",
            "pulse_dispersion", "search_dispersion_terms", "with_dispersion"]

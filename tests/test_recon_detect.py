@@ -183,7 +183,7 @@ def test_each_of_two_real_surfaces_has_an_honest_uncertainty(shared_data, method
     # response's sharp edge and missed its flat top (92.8 / 92.5% within 3 sigma); with its own
     # sandwich and bootstrap over its part of the window, as a one-surface estimate is widened.
     # spatial's smoothing averaged those Fisher variances (94.8 / 93.4%, 55.3 / 53.5% within 1):
-    # widened by the ratio of each surface's own spreads to its Fisher variance
+    # now each surface's own, widened as a pixelwise fit's, before the smoothing
     from spdepth.acq.commands.bench.honesty import resolved_settings, split_halves
     from spdepth.acq.readers import read_photons
 
