@@ -190,8 +190,8 @@ DetTables = namedtuple("DetTables", ["m", "uni", "logm", "nk", "off", "g", "cols
 # the test's threshold: Rice's formula for the largest gain over a window's shifts
 def search_false_alarm(gain_nats: float, window_bins: float, width_bins: float) -> float:
     """Chance that background alone passes ``gain_nats`` at some shift of a window of
-    ``window_bins`` (``recon.estimators.surfaces_fit``'s module docstring: Rice's formula for the test's field, a response of FWHM
-    ``width_bins``), at most 1."""
+    ``window_bins`` (Rice's formula for the test's field, a response of FWHM ``width_bins``: the
+    module docstring of ``recon.estimators.surfaces_fit``, whose ``auto`` test it is), at most 1."""
     z = math.sqrt(2.0 * max(gain_nats, 0.0))
     sigma = max(width_bins, 1.0) / FWHM_PER_RMS
     ups = max(window_bins, 1.0) / (2.0 * math.pi * math.sqrt(2.0) * sigma) * math.exp(-gain_nats)
@@ -200,8 +200,9 @@ def search_false_alarm(gain_nats: float, window_bins: float, width_bins: float) 
 
 @functools.lru_cache(maxsize=4096)
 def auto_threshold_nats(false_alarm: float, window_bins: float, width_bins: float) -> float:
-    """Gain (nats, half the statistic) a surface needs under the test (``recon.estimators.surfaces_fit``'s module docstring), at
-    ``false_alarm`` over a window of ``window_bins``; width_bins: the response's FWHM (bins). The
+    """Gain (nats, half the statistic) a surface needs under the test (the module docstring of
+    ``recon.estimators.surfaces_fit``), at ``false_alarm`` over a window of ``window_bins``;
+    width_bins: the response's FWHM (bins). The
     root of :func:`search_false_alarm` (decreasing in the gain), by bisection."""
     if not false_alarm > 0:
         return math.inf

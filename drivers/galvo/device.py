@@ -170,8 +170,9 @@ class Galvo:
                     return reply
                 log.warning("galvo: dropped stale reply (tag %s, expected %s)", reply.tag, tag)
                 self._fault("slow-reply", f"a late reply (tag {reply.tag}) to an earlier {mnemonic} dropped")
-                # Replies leave in order, so this attempt's own reply comes right behind.
-                deadline = max(deadline, time.monotonic() + timeout_s)
+                # Replies leave in order, so this attempt's own reply comes right behind: wait
+                # for it one timeout more, once (a port repeating old replies still times out).
+                deadline = min(max(deadline, time.monotonic() + timeout_s), sent + (wait_factor + 1) * timeout_s)
 
     def _query(self, mnemonic: str, *args, safe: bool = True) -> str:
         """Payload of the OK reply to one command, with recovery.
