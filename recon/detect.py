@@ -79,7 +79,8 @@ detections alone would pass the test (elsewhere the pixel's own likelihood says 
 neighbours' support). Several surfaces per pixel: the pixel's surfaces are dropped when the test
 finds no return at all; the surfaces found keep their weak flags, and a pixelwise fit's get the
 sandwich's and the bootstrap's spreads of each surface's own part of the window
-(:func:`surface_spreads`) where they exceed its Fisher sigma.
+(:func:`surface_spreads`) where they exceed its Fisher sigma; spatial's got them before its smoothing
+(``recon.estimators.surfaces_fit``), which averages them.
 """
 
 from __future__ import annotations
