@@ -187,8 +187,6 @@ def test_each_of_two_real_surfaces_has_an_honest_uncertainty(shared_data, method
     from spdepth.acq.commands.bench.honesty import resolved_settings, split_halves
     from spdepth.acq.readers import read_photons
 
-    from spdepth.recon.model import Binning
-
     store = read_photons(shared_data / "multidepth" / "two_layer_top.mat", time_unit_s=UNIT_S).store
     # the README's window: with the data's own, wider one spatial's were within the bands before
     window = Binning.from_data(store.times, store.time_unit_s, window_s=(24e-9, 56e-9))

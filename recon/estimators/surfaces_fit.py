@@ -257,14 +257,26 @@ def _measured_model(store: PhotonStore, settings: ReconSettings, b: Binning, ker
     return kern, core_s
 
 
-def _maps(store, settings, b, kern, notes, shift, amp, bg, var, gain, n_used, kmax) -> DepthMaps:
+def _images(a: np.ndarray, shape) -> np.ndarray:
+    """Per-pixel surfaces' values (pixels x K) as K images of ``shape`` (the maps' layout)."""
+    return np.ascontiguousarray(a.T).reshape(a.shape[1], *shape)
+
+
+def _times_and_sigmas(shift, var, b, kern) -> tuple[np.ndarray, np.ndarray]:
+    """(times of flight, uncertainties; s, NaN without a surface) of the surfaces' shifts and shift
+    variances (bins, bins^2), as the maps report them (:func:`recon.pixelwise.honest_var`)."""
+    has = np.isfinite(shift)
+    tof_s = np.where(has, b.shift_to_time_s(np.nan_to_num(shift)), np.nan)
+    return tof_s, np.sqrt(honest_var(var, has, kern.rms_bins, b.n_bins, 1.0)) * b.bin_width_s
+
+
+def _maps(store, settings, b, kern, notes, shift, amp, bg, var, gain, n_used) -> DepthMaps:
     h, w = store.shape
     npix = h * w
     has = np.isfinite(shift)
     j = np.clip(np.nan_to_num(shift).astype(np.int64), 0, b.n_bins - 1)
     signal = np.where(has, amp * kern.colsum[j], 0.0)
-    tof_s = np.where(has, b.shift_to_time_s(np.nan_to_num(shift)), np.nan)
-    unc_s = np.sqrt(honest_var(var, has, kern.rms_bins, b.n_bins, 1.0)) * b.bin_width_s
+    tof_s, unc_s = _times_and_sigmas(shift, var, b, kern)
     # weak: a surface the test of auto would not keep at the user's false-alarm rate
     weak_thr = auto_threshold_nats(settings.false_alarm, b.n_bins, fwhm_bins(kern.g))
     weak = has & (gain <= weak_thr)
@@ -274,15 +286,12 @@ def _maps(store, settings, b, kern, notes, shift, amp, bg, var, gain, n_used, km
     flags[n_used == 0] = PixelFlag.NO_PHOTONS
     notes["weak_below_nats"] = float(weak_thr)
     rec = settings_record(settings, notes, b, kern)
-
-    def img(a):
-        return np.ascontiguousarray(a.T).reshape(kmax, h, w)
-
-    tof_img = img(tof_s)
+    tof_img = _images(tof_s, (h, w))
     return DepthMaps(tof_s=tof_img, depth_m=C_M_PER_S * tof_img / 2.0, background=bg.reshape(h, w),
-                     signal=img(signal), photons=n_used.reshape(h, w), iterations=np.ones((h, w), np.int32),
-                     uncertainty_s=img(unc_s), flags=flags.reshape(h, w), settings=rec,
-                     surfaces=surfaces.reshape(h, w).astype(np.int16), weak=img(weak))
+                     signal=_images(signal, (h, w)), photons=n_used.reshape(h, w),
+                     iterations=np.ones((h, w), np.int32), uncertainty_s=_images(unc_s, (h, w)),
+                     flags=flags.reshape(h, w), settings=rec, surfaces=surfaces.reshape(h, w).astype(np.int16),
+                     weak=_images(weak, (h, w)))
 
 
 def reconstruct_multi(store: PhotonStore, settings: ReconSettings, b: Binning, kern: PulseKernel, notes: dict,
@@ -299,7 +308,7 @@ def reconstruct_multi(store: PhotonStore, settings: ReconSettings, b: Binning, k
     notes["surfaces_rule"] = rule
     notes["surface_gain_min_nats"] = float(gain_min)
     notes["kernel_k_surfaces"] = "greedy Poisson pursuit (recon.estimators.surfaces)"
-    return _maps(store, settings, b, kern, notes, shift, amp, bg, var, gain, n_used, kmax)
+    return _maps(store, settings, b, kern, notes, shift, amp, bg, var, gain, n_used)
 
 
 #: spatial, several surfaces: neighbourhood radius (pixels) of censoring, proposals and smoothing.
@@ -319,20 +328,12 @@ def _own_spreads(bins, weights, offsets, counts, shape, settings, b, kern, shift
     --reflectors 2, 8 a pixel, had 1.8 mm sigmas where the halves lay 2 cm apart; and averaging
     Fisher variances alone gave two_layer_top.mat's halves 94.8 / 55.3% (pane) and 93.4 / 53.5%
     (wall) within 3 / 1 sigma."""
-    kmax = shift.shape[1]
-    h, w = shape
-    has = np.isfinite(shift)
-
-    def img(a):
-        return np.ascontiguousarray(a.T).reshape(kmax, h, w)
-
-    tof = np.where(has, b.shift_to_time_s(np.nan_to_num(shift)), np.nan)
-    unc = np.sqrt(honest_var(var, has, kern.rms_bins, b.n_bins, 1.0)) * b.bin_width_s
-    wide = surface_spreads(bins, weights, offsets, kern, b, img(tof), img(np.where(has, unc, np.nan)), img(sig),
-                           np.asarray(counts, np.float64), settings.false_alarm)
+    tof, unc = _times_and_sigmas(shift, var, b, kern)
+    wide = surface_spreads(bins, weights, offsets, kern, b, _images(tof, shape), _images(unc, shape),
+                           _images(sig, shape), np.asarray(counts, np.float64), settings.false_alarm)
     # less the integer grid's quantization, which honest_var adds once more after the smoothing
-    out = (wide.reshape(kmax, -1).T / b.bin_width_s) ** 2 - 1.0 / 12.0
-    return np.where(has, np.fmax(out, var), var)
+    out = (wide.reshape(shift.shape[1], -1).T / b.bin_width_s) ** 2 - 1.0 / 12.0
+    return np.where(np.isfinite(shift), np.fmax(out, var), var)
 
 
 def reconstruct_multi_spatial(store: PhotonStore, settings: ReconSettings, b: Binning, kern: PulseKernel,
@@ -392,4 +393,4 @@ def reconstruct_multi_spatial(store: PhotonStore, settings: ReconSettings, b: Bi
     notes["spatial_surfaces"] = {"radius": SPATIAL_RADIUS, "tau_bins": float(tau), "strong_nats": float(strong),
                                  "pooled_nats": float(pool), "own_strong": int(np.sum(src == 0)),
                                  "from_neighbourhood": int(np.sum(src == 1))}
-    return _maps(store, settings, b, kern, notes, sm_shift, amp, bg, sm_var, gain, counts, kmax)
+    return _maps(store, settings, b, kern, notes, sm_shift, amp, bg, sm_var, gain, counts)
