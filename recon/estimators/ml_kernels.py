@@ -299,7 +299,7 @@ def _solve_best_first(kb, kw, nu, ntot, nc, best_ll, best_i, best_s, tabs, scr):
     return best_ll, best_i, best_s
 
 
-@njit(cache=True, nogil=True, _nrt=False, error_model="numpy")
+@njit(cache=True, nogil=True, _nrt=False, error_model="numpy", **INNER)
 def integer_optimum(kb, kw, nu, ntot, tabs, scr):
     """(loglik, shift, share) of the best integer shift (shift -1: the all-background fit, at the
     floor, wins). Compiled once, on its own (not inlined): ml's pixels and recon.detect's return
