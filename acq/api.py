@@ -397,12 +397,15 @@ class KernelWarmUp:
     reconstruction. The reader's kernels come first (PTU files), then the estimator's, which load
     while the file is read. :meth:`wait_reader` and :meth:`wait` return the seconds the caller
     waited; a failure here is ignored (the real call then loads the kernel, or says what is
-    wrong)."""
+    wrong). ``spreads`` False: for a reconstruction without the test's spreads, which never runs
+    their kernel (recon.estimate.warm_up)."""
 
-    def __init__(self, request: FileReconRequest, notice: Callable[[str], None] | None = None):
+    def __init__(self, request: FileReconRequest, notice: Callable[[str], None] | None = None,
+                 spreads: bool = True):
         import threading
 
         self._request = request
+        self._spreads = spreads
         self._notice = notice
         self._reader = threading.Event()
         self._thread = threading.Thread(target=self._run, name="kernel-warm-up", daemon=True)
@@ -434,7 +437,8 @@ class KernelWarmUp:
             # process (recon.estimate.compile_apart) while this one reads and compiles the estimator
             from spdepth.recon.estimate import compile_apart
 
-            if compile_apart([self._settings()], decide=True, estimator=False) is not None and self._notice:
+            if compile_apart([self._settings()], decide=True, estimator=False,
+                             spreads=self._spreads) is not None and self._notice:
                 self._notice("compiling the return test's kernels in a second process while the file is read "
                              "and the estimator's compile here (first run; later runs load them from numba's cache)")
         except Exception:  # noqa: BLE001 - then the warm-up below compiles them here
@@ -446,7 +450,7 @@ class KernelWarmUp:
         try:
             from spdepth.recon.estimate import warm_up
 
-            warm_up(self._settings())
+            warm_up(self._settings(), spreads=self._spreads)
         except Exception:  # noqa: BLE001 - the reconstruction itself reports what is wrong
             log.debug("estimator warm-up failed; the reconstruction compiles what it needs",
                       exc_info=True)
@@ -578,7 +582,7 @@ def reconstruct_file(request: FileReconRequest, progress=None,
     from spdepth.acq.readers import read_photons
     from spdepth.recon.estimate import reconstruct
 
-    warm = KernelWarmUp(request, notice)
+    warm = KernelWarmUp(request, notice, spreads)
     load_s = warm.wait_reader()
     t0 = time.perf_counter()
     result = read_photons(request.input, time_unit_s=request.time_unit_s, mat_var=request.mat_var,

@@ -1111,11 +1111,6 @@ def detect(bins: np.ndarray, offsets: np.ndarray, kern, est_shift: np.ndarray, f
         g_in = np.array(known_gain, np.float64)
         s_in = np.array(known_share, np.float64)
         todo = ~np.isfinite(g_in)
-        if not spreads and not weights.size and not todo[counts > 0].any():
-            # the test alone on the estimator's gains: what the kernel would give (0 without a
-            # detection), without its pass over every pixel's detections
-            gain = np.where(counts > 0, g_in, 0.0)
-            return Detection(gain > thr, gain, sd, sw, boot, thr, float(false_alarm))
         if known_index is not None:
             i_in = np.array(known_index, np.int64)
         else:
@@ -1126,6 +1121,14 @@ def detect(bins: np.ndarray, offsets: np.ndarray, kern, est_shift: np.ndarray, f
 
     if todo.any():
         search(bins, offsets, kern, weights, todo, g_in, i_in, s_in)
+    if not spreads:
+        # the test alone on the searched (or the estimator's) gains: what the kernel would give (0
+        # without a detection; a pixel's entries are its detections or, weighted, its distinct
+        # bins), without its pass over every pixel's detections, and without
+        # compiling it on a cold cache (most of the test's compile beside the search: a command
+        # that writes no map, such as the summary of `spdepth recon FILE`, never needs it)
+        gain = np.where(counts > 0, g_in, 0.0)
+        return Detection(gain > thr, gain, sd, sw, boot, thr, float(false_alarm))
 
     def run(p0: int, p1: int) -> None:
         ph, maxn = _slice(bins, weights, offsets, p0, p1)

@@ -83,7 +83,7 @@ def as_photons(counts: CountStore) -> PhotonStore:
     return counts.to_photons(round_counts=not counts.is_whole())
 
 
-def warm_up(settings: ReconSettings, decide: bool = True, estimator: bool = True) -> None:
+def warm_up(settings: ReconSettings, decide: bool = True, estimator: bool = True, spreads: bool = True) -> None:
     """Load (or, on a cold numba cache, compile) the kernels that ``settings``' estimator runs, on
     one made-up pixel of four detections, so that a later call on real data does not wait for them
     (a new process loads each kernel from the cache on its first call). Without a binning (a file's
@@ -93,6 +93,8 @@ def warm_up(settings: ReconSettings, decide: bool = True, estimator: bool = True
     neighbours' support); False: the estimator's alone. ``estimator`` False: the return test's
     alone (what :func:`compile_apart` compiles beside an estimator compiled here). With
     ``estimator``, settings that give no pulse also load what measures it (:func:`recon.irf.warm_up`).
+    ``spreads`` False: not the test's spreads either (a reconstruction with ``spreads`` False never
+    runs their kernel, :func:`recon.detect.detect_kernel`).
     Beside a process of :func:`compile_apart` compiling the return test, each of the test's kernels
     is compiled by the one of the two that claims it first (:func:`_claim`) and loaded by the other."""
     if estimator and given_pulse(settings) is None:
@@ -117,7 +119,7 @@ def warm_up(settings: ReconSettings, decide: bool = True, estimator: bool = True
         estimators.for_settings(settings).run(one, settings, bb, kern, notes)
     if not decide:
         return
-    steps = _test_steps(one, settings)
+    steps = _test_steps(one, settings, spreads)
     # the process compiling the test apart (compile_apart) takes its kernels in order (ml's search
     # first, the largest), the one that started it, its estimator done, the test itself next (the
     # second largest) and then the rest from the end: each compiles those it claims first. (From
@@ -133,17 +135,25 @@ def warm_up(settings: ReconSettings, decide: bool = True, estimator: bool = True
             left.append(call)
     _wait_apart(DECIDE)
     if estimator:
-        reconstruct(one, settings)      # its maps through the test, as a reconstruction runs them
+        reconstruct(one, settings, spreads=spreads)     # its maps through the test, as a reconstruction runs them
+    if apart:
+        # a process compiling for the one that started it loads nothing it did not compile: a kernel
+        # the other had claimed and not finished would be compiled here again (the cold mannequin
+        # recon's neighbours' regions twice, 0.8 s)
+        return
     for call in left:                   # load what the other process compiled
         call()
 
 
-def _test_steps(one: PhotonStore, settings: ReconSettings) -> list[tuple[str, Callable[[], object]]]:
+def _test_steps(one: PhotonStore, settings: ReconSettings,
+                spreads: bool = True) -> list[tuple[str, Callable[[], object]]]:
     """The return test's kernels (:mod:`recon.detect`) as (name, call) in the order a
     reconstruction first runs them, each call running one kernel on the made-up pixel ``one`` as
     :func:`recon.detect.decide_maps` calls it: ml's search, the test given its result, then the
     neighbours' support, regions and fit there (which run only where a pixel fails). Without the
-    search for an estimator that gives its gains (:attr:`recon.estimators.Estimator.gains`)."""
+    search for an estimator that gives its gains (:attr:`recon.estimators.Estimator.gains`), and
+    without the test's spreads (``spreads`` False) without the test itself: its kernel computes
+    them, the decision alone reads the search's gains."""
     from spdepth.recon.detect import detect, neighbour_regions, neighbour_support, region_fit, search
     from spdepth.recon.pixelwise import binned_photons
 
@@ -159,8 +169,10 @@ def _test_steps(one: PhotonStore, settings: ReconSettings) -> list[tuple[str, Ca
         ("regions", lambda: neighbour_regions(bins, np.empty(0), offsets, 1, kern, cand, 1, 0.0)),
         ("region fit", lambda: region_fit(bins, np.empty(0), offsets, kern, cand, np.ones((1, bb.n_bins), np.uint8))),
     ]
+    if not spreads:
+        steps = [st for st in steps if st[0] != "test"]
     # an estimator that gives the test its statistic (ml) leaves the search unused
-    return steps[1:] if estimators.for_settings(settings).gains else steps
+    return [st for st in steps if st[0] != "search"] if estimators.for_settings(settings).gains else steps
 
 
 #: What :func:`compile_apart` names the return test's kernels (:mod:`recon.detect`) beside the methods'.
@@ -209,10 +221,10 @@ def _claim(name: str) -> bool:
 
 
 def compile_apart(settings: list[ReconSettings], decide: bool = False,
-                  estimator: bool = True) -> subprocess.Popen | None:
+                  estimator: bool = True, spreads: bool = True) -> subprocess.Popen | None:
     """The first run after an install: compile the kernels of each of ``settings`` (as
-    :func:`warm_up` with the same ``decide`` and ``estimator``: the estimator's, and with ``decide``
-    the return test's) into numba's cache in a new interpreter, started now, and return it;
+    :func:`warm_up` with the same ``decide``, ``estimator`` and ``spreads``: the estimator's, and
+    with ``decide`` the return test's) into numba's cache in a new interpreter, started now, and return it;
     :func:`reconstruct` and :func:`warm_up` here wait for it before they need those kernels, and
     then load them from the cache (``wait()`` on it waits for all). None when each is in the cache
     already (or its kernels are not found: then its first call compiles it here, as without
@@ -223,11 +235,11 @@ def compile_apart(settings: list[ReconSettings], decide: bool = False,
     import sys
 
     todo, covers = [], set()
-    test_cold = decide and not module_cached("spdepth.recon.detect")
+    test_cold = decide and not _test_cached(spreads)
     for s in settings:
         est_cold = estimator and not _kernels_cached(estimators.for_settings(s))
         if est_cold or test_cold:
-            todo.append({"settings": s.to_dict(), "estimator": est_cold, "decide": test_cold})
+            todo.append({"settings": s.to_dict(), "estimator": est_cold, "decide": test_cold, "spreads": spreads})
             covers |= {s.method} if est_cold else set()
             covers |= {DECIDE} if test_cold else set()
             test_cold = False               # the first one compiles the test for all
@@ -246,18 +258,27 @@ def compile_apart(settings: list[ReconSettings], decide: bool = False,
             "estimate._CLAIMS = sys.argv[2] or None\n"
             "for d in json.loads(sys.argv[1]):\n"
             "    estimate.warm_up(ReconSettings.from_dict(d['settings']), decide=d['decide'], "
-            "estimator=d['estimator'])\n")
+            "estimator=d['estimator'], spreads=d['spreads'])\n")
     child = subprocess.Popen([sys.executable, "-c", code, json.dumps(todo), claims],
                              stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     _APART.append((child, frozenset(covers)))
     return child
 
 
-def kernels_cached(settings: ReconSettings, decide: bool = False) -> bool:
+def kernels_cached(settings: ReconSettings, decide: bool = False, spreads: bool = True) -> bool:
     """Whether numba's cache holds the kernels of ``settings``' estimator (and, with ``decide``,
-    the return test's), as :func:`compile_apart` judges them."""
-    return _kernels_cached(estimators.for_settings(settings)) and (
-        not decide or module_cached("spdepth.recon.detect"))
+    the return test's, with ``spreads`` its spreads' too), as :func:`compile_apart` judges them."""
+    return _kernels_cached(estimators.for_settings(settings)) and (not decide or _test_cached(spreads))
+
+
+def _test_cached(spreads: bool) -> bool:
+    """Whether numba's cache holds the return test's kernels, with ``spreads`` the one of its
+    spreads too (:func:`recon.detect.detect_kernel`, which a run without them leaves uncompiled)."""
+    if not module_cached("spdepth.recon.detect"):
+        return False
+    from spdepth.recon.detect import detect_kernel
+
+    return not spreads or _any_cached([detect_kernel])
 
 
 def _kernels_cached(est) -> bool:
@@ -278,9 +299,14 @@ def module_cached(module: str) -> bool:
         kernels = importlib.import_module(module)
     except ImportError:
         return True
-    caches = [getattr(v, "_cache", None) for v in vars(kernels).values()
-              if getattr(getattr(v, "py_func", None), "__module__", None) == kernels.__name__]
-    files = [getattr(c, "_cache_file", None) for c in caches]
+    return _any_cached([v for v in vars(kernels).values()
+                        if getattr(getattr(v, "py_func", None), "__module__", None) == kernels.__name__])
+
+
+def _any_cached(dispatchers: list) -> bool:
+    """Whether numba's cache holds compiled code of any of ``dispatchers`` (True when none has a
+    cache), from their index files."""
+    files = [getattr(getattr(d, "_cache", None), "_cache_file", None) for d in dispatchers]
     files = [f for f in files if f is not None and hasattr(f, "_load_index")]
     if not files:
         return True

@@ -23,6 +23,23 @@ print(json.dumps({f"{o.py_func.__module__}.{o.py_func.__name__}": len(o.overload
 """
 
 
+#: from here on, each compile that starts in the process: "module.name" into ``compiled``
+_COUNTING = """
+from numba.core import event
+compiled = []
+
+class Count(event.Listener):
+    def on_start(self, ev):
+        f = ev.data["dispatcher"].py_func
+        compiled.append(f.__module__ + "." + f.__name__)
+
+    def on_end(self, ev):
+        return None     # numba's Listener needs it; only the starts are counted
+
+event.register("numba:compile", Count())
+"""
+
+
 def _cold(code: str, tmp_path) -> dict:
     env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba-cache"))
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=600)
@@ -45,7 +62,6 @@ def test_estimator_kernels_compile_one_signature_each(tmp_path):
 def test_kernels_compiled_apart_load_from_the_cache(tmp_path):
     got = _cold("""
 import json
-from numba.core import event
 from spdepth.recon.estimate import compile_apart, warm_up
 from spdepth.recon.model import ReconSettings
 
@@ -54,17 +70,7 @@ child = compile_apart(settings)
 started = child is not None
 code = child.wait() if started else None
 again = compile_apart(settings)          # cached now: nothing to start
-compiled = []
-
-class Count(event.Listener):
-    def on_start(self, ev):
-        compiled.append(ev.data["dispatcher"].py_func.__name__)
-
-    def on_end(self, ev):
-        return None     # numba's Listener needs it; only the starts are counted
-
-event.register("numba:compile", Count())
-warm_up(settings[0], decide=False)
+""" + _COUNTING + """warm_up(settings[0], decide=False)
 print(json.dumps({"started": started, "code": code, "again": again is None, "compiled": compiled}))
 """, tmp_path)
     assert got["started"] and got["code"] == 0 and got["again"]
@@ -77,25 +83,13 @@ def test_the_return_test_compiled_apart_loads_here_while_the_estimator_compiles_
     # reconstruction waits for the child, then loads the rest
     got = _cold("""
 import json
-from numba.core import event
 from spdepth.recon.estimate import compile_apart, kernels_cached, warm_up
 from spdepth.recon.model import ReconSettings
 
 s = ReconSettings(method="lmf", max_photons=15)
 cold = not kernels_cached(s, decide=True)
 child = compile_apart([s], decide=True, estimator=False)
-compiled = []
-
-class Count(event.Listener):
-    def on_start(self, ev):
-        f = ev.data["dispatcher"].py_func
-        compiled.append(f.__module__ + "." + f.__name__)
-
-    def on_end(self, ev):
-        return None     # numba's Listener needs it; only the starts are counted
-
-event.register("numba:compile", Count())
-warm_up(s)
+""" + _COUNTING + """warm_up(s)
 print(json.dumps({"cold": cold, "started": child is not None, "code": child.wait() if child else None,
                   "compiled": compiled, "cached": kernels_cached(s, decide=True)}))
 """, tmp_path)
@@ -114,6 +108,36 @@ print(json.dumps({"cold": cold, "started": child is not None, "code": child.wait
     assert "search_kernel" not in here and "spdepth.recon.estimators.ml_kernels.integer_optimum" not in ours
 
 
+def test_a_first_run_without_spreads_compiles_no_kernel_of_theirs(tmp_path):
+    # spdepth recon without an output file (its summary holds no uncertainty) reconstructs without
+    # the test's spreads: neither process compiles their kernel (most of the test's compile beside
+    # ml's search), the decision compiles the rest, and a later run that needs them sees them cold
+    got = _cold("""
+import json
+import numpy as np
+from spdepth.recon.estimate import compile_apart, kernels_cached, reconstruct, warm_up
+from spdepth.recon.model import Binning, ReconSettings
+from spdepth.recon.photons import PhotonStore
+
+s = ReconSettings(method="lmf", max_photons=15)
+child = compile_apart([s], decide=True, estimator=False, spreads=False)
+""" + _COUNTING + """warm_up(s, spreads=False)
+rng = np.random.default_rng(0)
+lists = [np.floor(np.concatenate([30 + 2 * rng.standard_normal(8), rng.uniform(0, 64, 4)])) for _ in range(16)]
+b = Binning(1e-12, 0.0, 64.0, 1.0)
+maps = reconstruct(PhotonStore.from_lists(lists, (4, 4), 1e-12), ReconSettings(method="lmf", binning=b,
+                   pulse_rms_s=2e-12, max_photons=15), spreads=False)
+print(json.dumps({"code": child.wait() if child else None, "compiled": compiled,
+                  "depths": int(np.isfinite(maps.depth_m).sum()),
+                  "lean": kernels_cached(s, decide=True, spreads=False),
+                  "full": kernels_cached(s, decide=True)}))
+""", tmp_path)
+    assert got["code"] == 0 and got["depths"] > 0
+    assert "spdepth.recon.detect.detect_kernel" not in got["compiled"]
+    assert "spdepth.recon.estimators.lmf_kernels._lmf_pixels" in got["compiled"]
+    assert got["lean"] and not got["full"]          # nor did the child: its kernel is still cold
+
+
 def test_a_first_run_compiles_the_tests_search_only_for_estimators_that_do_not_give_its_gains():
     # ml's maps carry the test's statistic (gain_nats), which the test takes: its search never runs
     # after ml, so a first run of ml does not compile it; uos gives none, and the test searches
@@ -129,3 +153,5 @@ def test_a_first_run_compiles_the_tests_search_only_for_estimators_that_do_not_g
              for m in ("ml", "uos")}
     assert names["uos"] == ["search", "test", "support", "regions", "region fit"]
     assert names["ml"] == names["uos"][1:]
+    lean = [n for n, _ in _test_steps(one, ReconSettings(method="uos", binning=b, pulse_rms_s=3e-12), spreads=False)]
+    assert lean == ["search", "support", "regions", "region fit"]

@@ -265,6 +265,33 @@ def test_without_spreads_the_decision_is_the_same_and_the_uncertainty_the_estima
     assert "not computed" not in full.settings["detection"]["uncertainty"]
 
 
+@pytest.mark.parametrize("weighted", [False, True])
+def test_the_test_alone_decides_as_the_test_with_its_spreads(weighted):
+    # detect() without spreads reads the search's gains without running the spreads' kernel: the
+    # same gains and decisions, from detections and from a count store's weighted bins, with
+    # pixels without any entry among them
+    from spdepth.recon.detect import detect
+    from spdepth.recon.model import build_kernel
+
+    rng = np.random.default_rng(3)
+    kern = build_kernel(B, pulse_rms_s=RMS_U * UNIT_S)
+    m = int(kern.n_bins)
+    bins, weights, offsets = _frame(rng, 8, 5, 6, m // 2, m, weighted)
+    empty = np.arange(0, offsets.size - 1, 5)        # every fifth pixel without an entry
+    keep = np.ones(bins.size, bool)
+    for p in empty:
+        keep[offsets[p]:offsets[p + 1]] = False
+    counts = np.array([keep[offsets[p]:offsets[p + 1]].sum() for p in range(offsets.size - 1)])
+    offsets = np.concatenate([[0], np.cumsum(counts)])
+    bins, weights = bins[keep], weights[keep] if weighted else weights
+    est = np.full(offsets.size - 1, m / 2)
+    full = detect(bins, offsets, kern, est, 1e-3, weights)
+    lean = detect(bins, offsets, kern, est, 1e-3, weights, spreads=False)
+    assert np.array_equal(full.gain_nats, lean.gain_nats) and np.array_equal(full.has_return, lean.has_return)
+    assert 0 < full.has_return.sum() < full.has_return.size and np.all(lean.gain_nats[empty] == 0)
+    assert np.all(np.isnan(lean.sd_bins)) and np.isfinite(full.sd_bins).any()
+
+
 def test_the_return_test_reads_the_estimator_s_binned_detections():
     # within binned_once (a reconstruction) the second binning of the same store, window and
     # first-N is the first one's arrays; outside it, or for another window, a binning of its own
