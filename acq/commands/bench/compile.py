@@ -29,11 +29,22 @@ from spdepth.acq.commands.bench.startup import FACE, SEED_SETTINGS
 
 def recon_group(method: str, extra: str = "", decide: bool = True) -> str:
     """A group's code: ``method``'s kernels (``extra``: more ReconSettings arguments), and with
-    ``decide`` the return test's, through ``recon.estimate.warm_up``."""
-    return ("from spdepth.recon.model import Binning, ReconSettings\n"
-            "from spdepth.recon.estimate import warm_up\n"
-            f"warm_up(ReconSettings(method={method!r}, binning=Binning(8e-12, 2000.0, 6000.0, 5.0), "
-            f"pulse_rms_s=360e-12, max_photons=15{extra}), decide={decide})\n")
+    ``decide`` the return test's, through ``recon.estimate.warm_up``. A checkout whose warm-up
+    compiled the estimator's alone (no ``decide``: before the return test was compiled apart) compiles the
+    test's in a reconstruction of four pixels instead, where every reconstruction ran it."""
+    return ("import inspect\n"
+            "import numpy as np\n"
+            "from spdepth.recon.model import Binning, ReconSettings\n"
+            "from spdepth.recon.estimate import reconstruct, warm_up\n"
+            f"s = ReconSettings(method={method!r}, binning=Binning(8e-12, 2000.0, 6000.0, 5.0), "
+            f"pulse_rms_s=360e-12, max_photons=15{extra})\n"
+            "if 'decide' in inspect.signature(warm_up).parameters:\n"
+            f"    warm_up(s, decide={decide})\n"
+            "else:\n"
+            "    warm_up(s)\n"
+            + ("    from spdepth.recon.photons import PhotonStore\n"
+               "    times = [np.array([3990.0, 4000.0, 4010.0, 2500.0, 5500.0])] * 4\n"
+               "    reconstruct(PhotonStore.from_lists(times, (2, 2), 8e-12), s)\n" if decide else ""))
 
 
 # What each group runs: library entry points with tiny inputs, as a command's first call would.
