@@ -683,7 +683,7 @@ def file_result(request: FileReconRequest, maps, read, *, read_s: float = 0.0,
     res.summary = _file_summary(res, read)
     res.summary["photons_account"] = account
     res.summary["pulse_dispersion"] = None if dispersion is None else \
-        {k: dispersion.get(k) for k in ("dispersion", "pixels", "width_ratio", "score")}
+        {k: dispersion.get(k) for k in ("dispersion", "pixels", "width_ratio", "width_ratio_se", "score")}
     return res
 
 

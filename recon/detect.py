@@ -136,8 +136,13 @@ SURFACE_CHUNK = 4096
 #: Pixels pooled for the pulse model's dispersion (:func:`dispersion_terms`): about this many, every
 #: (frame's pixels // this)-th of the frame; 7,600 pixels of a simulated bust gave it to 1%.
 DISPERSION_PIXELS = 20_000
-#: ... and fewer than this many pixels say nothing.
-DISPERSION_MIN_PIXELS = 200
+#: ... and it is said where its width ratio (its square root, by which the uncertainties scale) is
+#: known to this relative standard error or better, across the pooled pixels (:func:`dispersion_of`),
+#: from at least DISPERSION_MIN_PIXELS of them. (A floor of 200 pixels left a 14 x 14 crop of the
+#: mannequin unscaled, uos's uncertainties 2.2x too wide, where its dispersion was 0.23 +- 0.02 against
+#: the whole frame's 0.20.)
+DISPERSION_MAX_SE = 0.1
+DISPERSION_MIN_PIXELS = 10
 #: The estimators whose uncertainties the pulse model's dispersion scales (:func:`dispersion_terms`).
 DISPERSION_METHODS = ("ml", "uos")
 #: ... and those whose depths are not the likelihood's optimum, nor have a background: lmf's. The
@@ -1273,8 +1278,10 @@ def dispersion_of(terms: tuple[np.ndarray, ...] | None) -> dict | None:
     its matched filter's variance is its score's variance over its slope squared, each pooled data
     over model, ``(sum s2 / sum s2_model) / (sum slope / sum slope_model)^2`` (simulated returns
     of a 45-unit pulse fitted with one twice as wide: 0.26, and the depths within 1 sigma of
-    the truth 96% -> 70%; 0.7 as wide: 1.20, 64% -> 68%). None without terms, with
-    fewer than DISPERSION_MIN_PIXELS pixels, or where a pooled sum has the wrong sign.
+    the truth 96% -> 70%; 0.7 as wide: 1.20, 64% -> 68%). ``width_ratio_se``: the width ratio's
+    relative standard error, from the pixels' spread about the pooled ratio (the delta method, each
+    pixel's terms one sample). None without terms, with fewer than DISPERSION_MIN_PIXELS pixels,
+    where a pooled sum has the wrong sign, or where that error exceeds DISPERSION_MAX_SE.
     ``score``: whose terms they were."""
     if terms is None or terms[0].size < DISPERSION_MIN_PIXELS:
         return None
@@ -1286,8 +1293,15 @@ def dispersion_of(terms: tuple[np.ndarray, ...] | None) -> dict | None:
         phi = (sums[0] / sums[1]) / slope ** 2 if sums[1] > 0.0 and slope > 0.0 else math.nan
     if not math.isfinite(phi) or phi <= 0.0:
         return None
+    # log phi's change with each pixel's terms: +-1 each for ml's ratio, and for uos's (s2 / s2_model)
+    # / (slope / slope_model)^2 also -+2 for the slope's pair; its variance is their sum of squares
+    signs = (1.0, -1.0) if len(sums) == 2 else (1.0, -1.0, -2.0, 2.0)
+    change = sum(c * np.asarray(t, np.float64) / total for c, t, total in zip(signs, terms, sums))
+    se = 0.5 * math.sqrt(float(np.sum(change ** 2)))        # the width ratio's, sqrt(phi)
+    if not se <= DISPERSION_MAX_SE:
+        return None
     return {"dispersion": phi, "pixels": int(terms[0].size), "width_ratio": math.sqrt(phi),
-            "score": "the likelihood's" if len(sums) == 2 else "uos's matched filter's"}
+            "width_ratio_se": se, "score": "the likelihood's" if len(sums) == 2 else "uos's matched filter's"}
 
 
 def with_dispersion(maps, d: dict | None):

@@ -334,9 +334,30 @@ def test_the_pulse_dispersion_is_not_said_where_it_cannot_be():
     for method in ("lmf", "spatial"):
         s = ReconSettings(method=method, binning=B, pulse_rms_s=RMS_U * UNIT_S)
         assert pulse_dispersion(store, s, reconstruct(store, s)) is None
-    few = _store(rng, 100, 8, 4)                  # too few pixels to pool
     s = ReconSettings(method="ml", binning=B, pulse_rms_s=RMS_U * UNIT_S)
+    few = _store(rng, 5, 8, 4)                    # too few pixels to pool
     assert pulse_dispersion(few, s, reconstruct(few, s)) is None
+    weak = _store(rng, 12, 3, 4)                  # a ratio too uncertain (over 10%) to scale by
+    assert pulse_dispersion(weak, s, reconstruct(weak, s)) is None
+    # a small frame of well-filled pixels says it, with its error: the model fits (ratio 1)
+    small = _store(rng, 100, 8, 4)
+    d = pulse_dispersion(small, s, reconstruct(small, s))
+    assert d is not None and d["pixels"] == 100 and 0 < d["width_ratio_se"] <= 0.1
+    assert abs(d["width_ratio"] - 1) < 3 * d["width_ratio_se"]
+
+
+def test_the_pulse_dispersion_s_stated_error_is_its_spread_over_frames():
+    # the width ratio's standard error (from one frame's pixels) against the ratio's spread over
+    # independent frames of the same scene: 0.88 of it here
+    from spdepth.recon.detect import pulse_dispersion
+
+    rng = np.random.default_rng(5)
+    s = ReconSettings(method="ml", binning=B, pulse_rms_s=RMS_U * UNIT_S)
+    got = [pulse_dispersion(st, s, reconstruct(st, s)) for st in (_store(rng, 60, 8, 4) for _ in range(30))]
+    assert all(d is not None for d in got)
+    spread = np.std([d["width_ratio"] for d in got], ddof=1)
+    stated = np.mean([d["width_ratio_se"] for d in got])
+    assert 0.6 * stated < spread < 1.4 * stated
 
 
 @pytest.mark.parametrize("method", ["ml", "uos"])
