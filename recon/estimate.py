@@ -154,7 +154,8 @@ def _test_steps(one: PhotonStore, settings: ReconSettings,
     search for an estimator that gives its gains (:attr:`recon.estimators.Estimator.gains`), and
     without the test's spreads (``spreads`` False) without the test itself: its kernel computes
     them, the decision alone reads the search's gains."""
-    from spdepth.recon.detect import detect, neighbour_regions, neighbour_support, region_fit, search
+    from spdepth.recon.detect import (TEMPERED_METHODS, _likelihood_terms, detect, neighbour_regions,
+                                      neighbour_support, region_fit, search)
     from spdepth.recon.pixelwise import binned_photons
 
     bb, kern, _ = resolve_model(one, settings)
@@ -165,10 +166,19 @@ def _test_steps(one: PhotonStore, settings: ReconSettings,
     steps = [
         ("search", lambda: search(bins, offsets, kern)),
         ("test", lambda: detect(bins, offsets, kern, est, fa, known_gain=np.zeros(1), known_share=np.zeros(1))),
+        # the pulse model's dispersion from the likelihood's terms (ml's maps, lmf's before its test),
+        # which a reconstruction writing maps measures on its pixels with a depth (a made-up pixel
+        # without one never reaches it)
+        ("dispersion", lambda: _likelihood_terms(bins, np.empty(0), offsets, np.full(1, 4.0), kern,
+                                                 np.zeros(1, np.int64), est, np.full(1, 0.5))),
         ("support", lambda: neighbour_support(bins, np.empty(0), offsets, (1, 1), kern, est, cand, fa, 1)),
         ("regions", lambda: neighbour_regions(bins, np.empty(0), offsets, 1, kern, cand, 1, 0.0)),
         ("region fit", lambda: region_fit(bins, np.empty(0), offsets, kern, cand, np.ones((1, bb.n_bins), np.uint8))),
     ]
+    if not spreads or settings.several or settings.method not in ("ml",) + TEMPERED_METHODS:
+        # measured on maps with the test's spreads, of one surface, from the likelihood's terms
+        # (ml's, and lmf's before its test; uos's from its matched filter's, without a kernel)
+        steps = [st for st in steps if st[0] != "dispersion"]
     if not spreads:
         steps = [st for st in steps if st[0] != "test"]
     # an estimator that gives the test its statistic (ml) leaves the search unused
@@ -235,9 +245,12 @@ def compile_apart(settings: list[ReconSettings], decide: bool = False,
     import sys
 
     todo, covers = [], set()
-    test_cold = decide and not _test_cached(spreads)
+    # what a process started earlier still compiles is not started again (the demo's, before the
+    # session's live reconstruction asks for the same)
+    running = set().union(*(w for c, w in _APART if c.poll() is None))
+    test_cold = decide and DECIDE not in running and not _test_cached(spreads)
     for s in settings:
-        est_cold = estimator and not _kernels_cached(estimators.for_settings(s))
+        est_cold = estimator and s.method not in running and not _kernels_cached(estimators.for_settings(s))
         if est_cold or test_cold:
             todo.append({"settings": s.to_dict(), "estimator": est_cold, "decide": test_cold, "spreads": spreads})
             covers |= {s.method} if est_cold else set()

@@ -189,6 +189,23 @@ def _import_writers(session) -> None:
             logging.getLogger(__name__).debug("importing %s ahead failed: %s", name, exc)
 
 
+
+def compile_live_apart(request, label: str):
+    """On a cold numba cache (a first run), the live estimator's kernels and the return test's in a
+    second process (``recon.estimate.compile_apart``), started now, with a line saying so; the
+    session's warm-up waits for it and then loads them. On the warm-up's own thread their compile
+    held the interpreter the scan's threads run in (numba compiles holding it). None when they are
+    cached, or a process started earlier compiles them (the demo's)."""
+    from spdepth.recon.estimate import compile_apart
+    from spdepth.recon.model import ReconSettings
+
+    settings = ReconSettings(method=request.method, max_photons=request.target, reflectors=request.reflectors)
+    child = compile_apart([settings], decide=True)
+    if child is not None:
+        print(f"spdepth {label}: compiling {request.method}'s and the return test's kernels in a second process "
+              f"while the scan runs (first run; later runs load them from numba's cache)", file=sys.stderr)
+    return child
+
 def run_session(session, label: str) -> bool:
     """Run with a progress bar. Ctrl-C or SIGTERM aborts cleanly (the session writes its files);
     returns whether it was interrupted, so the caller still reports the summary. A session with

@@ -32,10 +32,11 @@ def request_from_args(args: argparse.Namespace, command: str = "scan"):
 
 def run(args: argparse.Namespace) -> int:
     from spdepth.acq.api import OutputDir, build_session, finish_session, open_instruments
-    from spdepth.acq.commands._session import (OutputsProgress, PreparingNotice, exit_status, report,
-                                               run_session)
+    from spdepth.acq.commands._session import (OutputsProgress, PreparingNotice, compile_live_apart, exit_status,
+                                               report, run_session)
 
     request = request_from_args(args)
+    compile_live_apart(request, "scan")
     with OutputDir(args.out, overwrite=args.overwrite) as out:
         with PreparingNotice("scan") as notice, open_instruments(request) as inst:
             session = notice.session = build_session(request, out, inst)
