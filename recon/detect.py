@@ -1200,7 +1200,7 @@ def dispersion_terms(store, settings, maps, first_pixel: int = 0, frame_pixels: 
         at, so = rows_of(offsets, pix)
         return matched_filter_terms(bins[at], weights[at] if weights.size else NO_WEIGHTS, so, est[pix], k[pix],
                                     np.asarray(maps.background, np.float64).ravel()[pix], kern, b.n_bins)
-    return _likelihood_terms(bins, weights, offsets, n, kern, pix, est[pix], share[pix])
+    return likelihood_terms(bins, weights, offsets, n, kern, pix, est[pix], share[pix])
 
 
 def search_dispersion_terms(store, settings, b, kern, first_pixel: int = 0, frame_pixels: int | None = None,
@@ -1226,7 +1226,7 @@ def search_dispersion_terms(store, settings, b, kern, first_pixel: int = 0, fram
     else:
         index, share = found[1][local], found[2][local]
     ok = (index >= 0) & (share * n[local] >= 2.0)
-    return _likelihood_terms(bins, weights, offsets, n, kern, local[ok], index[ok].astype(np.float64), share[ok])
+    return likelihood_terms(bins, weights, offsets, n, kern, local[ok], index[ok].astype(np.float64), share[ok])
 
 
 def _sampled_pixels(shape, first_pixel: int, frame_pixels: int | None, rows: tuple[int, int] | None) -> np.ndarray:
@@ -1240,7 +1240,7 @@ def _sampled_pixels(shape, first_pixel: int, frame_pixels: int | None, rows: tup
     return np.arange(start, hi * w, stride)
 
 
-def _likelihood_terms(bins, weights, offsets, n, kern, pix, est, share):
+def likelihood_terms(bins, weights, offsets, n, kern, pix, est, share):
     """ml's two terms (:func:`dispersion_terms`) of the pixels ``pix`` at shifts ``est`` (bins) and
     signal shares ``share`` (theirs)."""
     from spdepth.recon.estimators.ml import ml_tables
@@ -1744,4 +1744,4 @@ def decide_maps(store, settings, maps, neighbours: bool = True, spreads: bool = 
 
 
 __all__ = ["Detection", "auto_threshold_nats", "detect", "fwhm_bins", "search_false_alarm", "surface_spreads", "decide_maps", "detect_kernel", "search", "search_kernel", "dispersion_of", "dispersion_terms",
-           "pulse_dispersion", "search_dispersion_terms", "with_dispersion"]
+           "likelihood_terms", "pulse_dispersion", "search_dispersion_terms", "with_dispersion"]

@@ -149,12 +149,13 @@ def _test_steps(one: PhotonStore, settings: ReconSettings,
                 spreads: bool = True) -> list[tuple[str, Callable[[], object]]]:
     """The return test's kernels (:mod:`recon.detect`) as (name, call) in the order a
     reconstruction first runs them, each call running one kernel on the made-up pixel ``one`` as
-    :func:`recon.detect.decide_maps` calls it: ml's search, the test given its result, then the
+    :func:`recon.detect.decide_maps` calls it: ml's search, the test given its result, the pulse
+    model's dispersion from the likelihood's terms (ml's and lmf's, with the spreads), then the
     neighbours' support, regions and fit there (which run only where a pixel fails). Without the
     search for an estimator that gives its gains (:attr:`recon.estimators.Estimator.gains`), and
     without the test's spreads (``spreads`` False) without the test itself: its kernel computes
     them, the decision alone reads the search's gains."""
-    from spdepth.recon.detect import (TEMPERED_METHODS, _likelihood_terms, detect, neighbour_regions,
+    from spdepth.recon.detect import (TEMPERED_METHODS, detect, likelihood_terms, neighbour_regions,
                                       neighbour_support, region_fit, search)
     from spdepth.recon.pixelwise import binned_photons
 
@@ -169,7 +170,7 @@ def _test_steps(one: PhotonStore, settings: ReconSettings,
         # the pulse model's dispersion from the likelihood's terms (ml's maps, lmf's before its test),
         # which a reconstruction writing maps measures on its pixels with a depth (a made-up pixel
         # without one never reaches it)
-        ("dispersion", lambda: _likelihood_terms(bins, np.empty(0), offsets, np.full(1, 4.0), kern,
+        ("dispersion", lambda: likelihood_terms(bins, np.empty(0), offsets, np.full(1, 4.0), kern,
                                                  np.zeros(1, np.int64), est, np.full(1, 0.5))),
         ("support", lambda: neighbour_support(bins, np.empty(0), offsets, (1, 1), kern, est, cand, fa, 1)),
         ("regions", lambda: neighbour_regions(bins, np.empty(0), offsets, 1, kern, cand, 1, 0.0)),
