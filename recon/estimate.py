@@ -176,14 +176,14 @@ def _test_steps(one: PhotonStore, settings: ReconSettings,
         ("regions", lambda: neighbour_regions(bins, np.empty(0), offsets, 1, kern, cand, 1, 0.0)),
         ("region fit", lambda: region_fit(bins, np.empty(0), offsets, kern, cand, np.ones((1, bb.n_bins), np.uint8))),
     ]
-    if not spreads or settings.several or settings.method not in ("ml",) + TEMPERED_METHODS:
-        # measured on maps with the test's spreads, of one surface, from the likelihood's terms
-        # (ml's, and lmf's before its test; uos's from its matched filter's, without a kernel)
-        steps = [st for st in steps if st[0] != "dispersion"]
-    if not spreads:
-        steps = [st for st in steps if st[0] != "test"]
-    # an estimator that gives the test its statistic (ml) leaves the search unused
-    return [st for st in steps if st[0] != "search"] if estimators.for_settings(settings).gains else steps
+    unused = set() if spreads else {"test", "dispersion"}
+    if settings.several or settings.method not in ("ml",) + TEMPERED_METHODS:
+        # measured on one surface's maps from the likelihood's terms (ml's, and lmf's before its
+        # test; uos's from its matched filter's, without a kernel of its own)
+        unused.add("dispersion")
+    if estimators.for_settings(settings).gains:
+        unused.add("search")            # the estimator gives the test its statistic (ml)
+    return [st for st in steps if st[0] not in unused]
 
 
 #: What :func:`compile_apart` names the return test's kernels (:mod:`recon.detect`) beside the methods'.
